@@ -1,0 +1,59 @@
+"""The Estimator contract shared by every filter and by :func:`vehjax.run`.
+
+An estimator is a pair of pure functions, like optax's ``GradientTransformation``::
+
+    init(x0, P0, theta0, P_theta0, key) -> state      # x0 (nx,), P0 (nx, nx); theta0 (p,) or None
+    step(state, y, u) -> (state, StepOutput)          # y (ny,) with NaN for missing, u (nu,)
+
+``state`` is any pytree of arrays (filters that draw random numbers carry their key in it).
+Everything that configures a filter (model, Q, R, tuning) is closed over, so ``run`` treats
+every filter alike and ``jax.vmap``/``jax.lax.scan`` see only arrays.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax.numpy as jnp
+
+
+class StepOutput(NamedTuple):
+    """What one filter step reports for the current time.
+
+    Attributes:
+        mean: filtered state estimate, (nx,).
+        cov: its covariance, (nx, nx).
+        loglik: log p(y_t | y_{1:t-1}) of the observed components, scalar.
+        nis: normalised innovation squared of the observed components, scalar.
+        n_obs: how many measurement components were observed (not NaN), scalar int.
+        params: parameter estimate, (p,); shape (0,) for state-only filters.
+        params_cov: its covariance, (p, p); shape (0, 0) for state-only filters.
+    """
+
+    mean: jnp.ndarray
+    cov: jnp.ndarray
+    loglik: jnp.ndarray
+    nis: jnp.ndarray
+    n_obs: jnp.ndarray
+    params: jnp.ndarray
+    params_cov: jnp.ndarray
+
+
+class Estimator(NamedTuple):
+    """``Estimator(init, step)``: see the module docstring for the signatures.
+
+    Attributes:
+        init: builds the filter state from the prior.
+        step: predicts with ``u`` then updates with ``y``; returns the new state and a StepOutput.
+        nx: state dimension the filter estimates.
+        param_names: names of the parameters it estimates (empty for state-only filters).
+        name: short label used in tables and plots.
+        needs_key: whether ``init`` needs a PRNG key (particle filters).
+    """
+
+    init: Callable[..., Any]
+    step: Callable[..., tuple[Any, StepOutput]]
+    nx: int
+    param_names: tuple[str, ...] = ()
+    name: str = "estimator"
+    needs_key: bool = False

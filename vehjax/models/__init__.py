@@ -1,0 +1,10 @@
+"""Vehicle models as pure functions ``transition(x, u, theta)`` and ``observe(x, u, theta)``."""
+
+from .base import BaseModel, Model, VehicleModel, integrate
+from .dynamic import Dynamic3DOF
+from .kinematic import KinematicBicycle
+
+__all__ = ["BaseModel", "Model", "VehicleModel", "integrate", "KinematicBicycle", "Dynamic3DOF"]
+
+#: name -> class, for the CLI.
+REGISTRY = {"KinematicBicycle": KinematicBicycle, "Dynamic3DOF": Dynamic3DOF}

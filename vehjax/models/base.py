@@ -1,0 +1,265 @@
+"""The model type every vehjax filter works on.
+
+A model is an equinox Module holding the sampling period ``dt``, the integrator, the names of its
+states, inputs, parameters and outputs, and the nominal parameter vector ``theta``. Its two methods
+are pure functions on 1-D arrays::
+
+    transition(x, u, theta) -> x_next     # (nx,), (nu,), (np,) -> (nx,)
+    observe(x, u, theta)    -> y          # (nx,), (nu,), (np,) -> (ny,)
+
+Built-in vehicle models subclass :class:`VehicleModel` and write the continuous-time
+``derivative(x, u, theta)``; ``transition`` integrates it over ``dt`` with explicit Euler or RK4.
+A user's own discrete-time model is wrapped by :class:`Model`.
+"""
+
+from __future__ import annotations
+
+import abc
+
+from typing import Callable, ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+INTEGRATORS = ("euler", "rk4")
+
+
+def integrate(derivative: Callable, x, u, theta, dt: float, integrator: str):
+    """One step of ``xdot = derivative(x, u, theta)`` over ``dt`` seconds, input held constant."""
+    if integrator == "euler":
+        return x + dt * derivative(x, u, theta)
+    k1 = derivative(x, u, theta)
+    k2 = derivative(x + 0.5 * dt * k1, u, theta)
+    k3 = derivative(x + 0.5 * dt * k2, u, theta)
+    k4 = derivative(x + dt * k3, u, theta)
+    return x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def _check_dt(dt) -> float:
+    try:
+        dt = float(dt)
+    except (TypeError, ValueError):
+        raise ValueError(f"dt: expected a positive number of seconds, got {dt!r}") from None
+    if not np.isfinite(dt) or dt <= 0.0:
+        raise ValueError(f"dt: expected a positive, finite number of seconds, got {dt}")
+    return dt
+
+
+def _check_integrator(integrator) -> str:
+    if integrator not in INTEGRATORS:
+        raise ValueError(f"integrator: expected one of {INTEGRATORS}, got {integrator!r}")
+    return integrator
+
+
+def _check_names(arg: str, names) -> tuple[str, ...]:
+    if isinstance(names, str):
+        raise ValueError(f"{arg}: expected a sequence of names, got the single string {names!r}")
+    names = tuple(names)
+    if not all(isinstance(n, str) and n for n in names):
+        raise ValueError(f"{arg}: expected non-empty strings, got {names!r}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"{arg}: names must be unique, got {names!r}")
+    return names
+
+
+def _check_theta(theta, param_names: tuple[str, ...]):
+    theta = np.asarray(theta, dtype=float).reshape(-1) if np.ndim(theta) <= 1 else np.asarray(theta)
+    if theta.ndim != 1 or theta.shape[0] != len(param_names):
+        raise ValueError(
+            f"theta: expected shape ({len(param_names)},) for parameters {param_names}, "
+            f"got shape {np.shape(theta)}"
+        )
+    if not np.all(np.isfinite(theta)):
+        raise ValueError(f"theta: expected finite values, got {theta}")
+    return jnp.asarray(theta)
+
+
+class BaseModel(eqx.Module):
+    """What filters, ``simulate`` and ``run`` rely on. Not instantiated directly.
+
+    Attributes:
+        dt: sampling period, s.
+        theta: nominal ("true") parameter vector, shape (np,).
+        state_names, input_names, param_names, output_names: tuples of names.
+        state_units, input_units, param_units, output_units: tuples of unit strings, same lengths.
+    """
+
+    dt: float = eqx.field(static=True)
+    theta: jnp.ndarray
+
+    @property
+    def nx(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def nu(self) -> int:
+        return len(self.input_names)
+
+    @property
+    def ny(self) -> int:
+        return len(self.output_names)
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names)
+
+    def param_index(self, names) -> tuple[int, ...]:
+        """Indices of ``names`` in ``param_names``; ValueError naming any unknown one."""
+        if isinstance(names, str):
+            names = (names,)
+        unknown = [n for n in names if n not in self.param_names]
+        if unknown:
+            raise ValueError(
+                f"estimate: unknown parameter name(s) {unknown}; this model has {self.param_names}"
+            )
+        return tuple(self.param_names.index(n) for n in names)
+
+    def with_theta(self, **values) -> "BaseModel":
+        """A copy with some nominal parameters replaced, by name: ``model.with_theta(m=1800.0)``."""
+        idx = self.param_index(tuple(values))
+        theta = np.array(self.theta, dtype=float)
+        theta[list(idx)] = [float(v) for v in values.values()]
+        return eqx.tree_at(lambda m: m.theta, self, jnp.asarray(theta))
+
+    def describe(self) -> str:
+        """A human-readable listing of states, inputs, parameters (nominal, unit) and outputs."""
+
+        def fmt(names, units):
+            return ", ".join(f"{n} [{u}]" for n, u in zip(names, units))
+
+        params = ", ".join(
+            f"{n} = {float(v):.6g} [{u}]"
+            for n, v, u in zip(self.param_names, np.asarray(self.theta), self.param_units)
+        )
+        return "\n".join(
+            [
+                f"{type(self).__name__} (dt = {self.dt} s, integrator = {getattr(self, 'integrator', '-')})",
+                f"  states:     {fmt(self.state_names, self.state_units)}",
+                f"  inputs:     {fmt(self.input_names, self.input_units)}",
+                f"  parameters: {params}",
+                f"  outputs:    {fmt(self.output_names, self.output_units)}",
+            ]
+        )
+
+
+class VehicleModel(BaseModel):
+    """A continuous-time model integrated over ``dt``; subclasses define ``derivative`` and
+    ``observe`` and class-level names, units and nominal parameters.
+
+    Subclasses set the ClassVars below and may override ``output_names``/``output_units`` as
+    properties when they offer several output sets.
+    """
+
+    integrator: str = eqx.field(static=True)
+
+    STATE_NAMES: ClassVar[tuple[str, ...]] = ()
+    STATE_UNITS: ClassVar[tuple[str, ...]] = ()
+    INPUT_NAMES: ClassVar[tuple[str, ...]] = ()
+    INPUT_UNITS: ClassVar[tuple[str, ...]] = ()
+    PARAM_NAMES: ClassVar[tuple[str, ...]] = ()
+    PARAM_UNITS: ClassVar[tuple[str, ...]] = ()
+    PARAM_NOMINAL: ClassVar[tuple[float, ...]] = ()
+
+    def __init__(self, dt: float = 0.01, integrator: str = "rk4", theta=None):
+        self.dt = _check_dt(dt)
+        self.integrator = _check_integrator(integrator)
+        self.theta = _check_theta(self.PARAM_NOMINAL if theta is None else theta, self.PARAM_NAMES)
+
+    state_names = property(lambda self: self.STATE_NAMES)
+    state_units = property(lambda self: self.STATE_UNITS)
+    input_names = property(lambda self: self.INPUT_NAMES)
+    input_units = property(lambda self: self.INPUT_UNITS)
+    param_names = property(lambda self: self.PARAM_NAMES)
+    param_units = property(lambda self: self.PARAM_UNITS)
+
+    @abc.abstractmethod
+    def derivative(self, x, u, theta):
+        """Continuous-time state derivative, (nx,) -> (nx,) in state units per second."""
+
+    @abc.abstractmethod
+    def observe(self, x, u, theta):
+        """Measurement for state ``x`` under input ``u``, shape (ny,)."""
+
+    def transition(self, x, u, theta):
+        """State after ``dt`` seconds with input ``u`` held constant, shape (nx,)."""
+        return integrate(self.derivative, x, u, theta, self.dt, self.integrator)
+
+
+class Model(BaseModel):
+    """A user's own discrete-time model from two pure functions.
+
+    Args:
+        transition: ``f(x, u, theta) -> x_next`` on 1-D arrays, pure and jit-able.
+        observe: ``h(x, u, theta) -> y`` on 1-D arrays.
+        dt: sampling period, s (> 0).
+        state_names, param_names, input_names, output_names: names of the vector components.
+        theta: nominal parameters, shape (len(param_names),); zeros when omitted.
+        units: optional dict name -> unit string for any of the names.
+
+    Example::
+
+        model = Model(transition=lambda x, u, th: th[0] * x + u, observe=lambda x, u, th: x,
+                      dt=0.1, state_names=("x",), param_names=("a",), input_names=("u",),
+                      output_names=("y",), theta=[0.9])
+    """
+
+    transition_fn: Callable = eqx.field(static=True)
+    observe_fn: Callable = eqx.field(static=True)
+    state_names: tuple[str, ...] = eqx.field(static=True)
+    input_names: tuple[str, ...] = eqx.field(static=True)
+    param_names: tuple[str, ...] = eqx.field(static=True)
+    output_names: tuple[str, ...] = eqx.field(static=True)
+    units: tuple[tuple[str, str], ...] = eqx.field(static=True)
+
+    def __init__(
+        self,
+        transition: Callable,
+        observe: Callable,
+        dt: float,
+        state_names,
+        param_names=(),
+        input_names=(),
+        output_names=None,
+        theta=None,
+        units: dict | None = None,
+    ):
+        if not callable(transition):
+            raise ValueError(f"transition: expected a function f(x, u, theta), got {transition!r}")
+        if not callable(observe):
+            raise ValueError(f"observe: expected a function h(x, u, theta), got {observe!r}")
+        self.transition_fn = transition
+        self.observe_fn = observe
+        self.dt = _check_dt(dt)
+        self.state_names = _check_names("state_names", state_names)
+        if not self.state_names:
+            raise ValueError("state_names: expected at least one state")
+        self.param_names = _check_names("param_names", param_names)
+        self.input_names = _check_names("input_names", input_names)
+        if output_names is None:
+            output_names = tuple(f"y{i}" for i in range(len(self._probe_output())))
+        self.output_names = _check_names("output_names", output_names)
+        theta = np.zeros(len(self.param_names)) if theta is None else theta
+        self.theta = _check_theta(theta, self.param_names)
+        self.units = tuple(sorted((units or {}).items()))
+
+    def _probe_output(self):
+        x = jnp.zeros(len(self.state_names))
+        u = jnp.zeros(len(self.input_names))
+        th = jnp.zeros(len(self.param_names))
+        return np.atleast_1d(np.asarray(self.observe_fn(x, u, th)))
+
+    def _units_for(self, names):
+        d = dict(self.units)
+        return tuple(d.get(n, "-") for n in names)
+
+    state_units = property(lambda self: self._units_for(self.state_names))
+    input_units = property(lambda self: self._units_for(self.input_names))
+    param_units = property(lambda self: self._units_for(self.param_names))
+    output_units = property(lambda self: self._units_for(self.output_names))
+
+    def transition(self, x, u, theta):
+        return jnp.asarray(self.transition_fn(x, u, theta))
+
+    def observe(self, x, u, theta):
+        return jnp.atleast_1d(jnp.asarray(self.observe_fn(x, u, theta)))
