@@ -1,5 +1,16 @@
+"""vehjax: batched, jitted state and parameter estimation for road vehicles.
+
+Importing vehjax switches JAX to float64 (``jax_enable_x64``): estimation accuracy needs it.
+Pass float32 arrays to run in single precision.
+"""
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from . import models  # noqa: E402
+from . import filters, models, scenarios  # noqa: E402
+from .simulate import Simulation, simulate  # noqa: E402
+
+__version__ = "0.1.0"
+
+__all__ = ["filters", "models", "scenarios", "simulate", "Simulation"]

@@ -1,10 +1,16 @@
 """Vehicle models as pure functions ``transition(x, u, theta)`` and ``observe(x, u, theta)``."""
 
+from .bank import SingleTrackBank, virtual_yaw_rate
 from .base import BaseModel, Model, VehicleModel, integrate
 from .dynamic import Dynamic3DOF
 from .kinematic import KinematicBicycle
 
-__all__ = ["BaseModel", "Model", "VehicleModel", "integrate", "KinematicBicycle", "Dynamic3DOF"]
+__all__ = ["BaseModel", "Model", "VehicleModel", "integrate", "KinematicBicycle", "Dynamic3DOF",
+           "SingleTrackBank", "virtual_yaw_rate"]
 
 #: name -> class, for the CLI.
-REGISTRY = {"KinematicBicycle": KinematicBicycle, "Dynamic3DOF": Dynamic3DOF}
+REGISTRY = {
+    "KinematicBicycle": KinematicBicycle,
+    "Dynamic3DOF": Dynamic3DOF,
+    "SingleTrackBank": SingleTrackBank,
+}

@@ -1,0 +1,1 @@
+import vehjax  # noqa: F401  (turns on float64 before any test builds arrays)

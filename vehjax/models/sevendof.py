@@ -1,0 +1,273 @@
+"""7-DOF dual-track model with Pacejka-89 tyres and load transfer (Wang et al. 2016, eq. 1-20).
+
+Frame: ISO 8855 body axes, x forward, y left, z up, as the rest of vehjax; r > 0 turns left and
+delta > 0 steers left. The wheels sit at (x_i, y_i) = (a, +tf/2) fl, (a, -tf/2) fr,
+(-b, +tr/2) rl, (-b, -tr/2) rr.
+
+How the transcription is read:
+
+* The +/- signs of eq. 5, 7-10 and 13-14 are those of an SAE frame (y to the right, z down, so
+  the *left* wheels sit at y = -t/2): e.g. eq. 9 puts u + tf/2 r under the front-left slip angle
+  and eq. 7 adds the lateral load transfer to the left wheels for ay > 0. They are consistent in
+  that frame. In ISO axes the track terms change sign: u_fl = u - tf/2 r, the left wheels lose
+  load for ay > 0, and eq. 5 carries -tf/2 F'x_fl + tf/2 F'x_fr.
+* Eq. 5: the yaw moment is sum_i (x_i F'y_i - y_i F'x_i) with F'x, F'y the wheel forces turned
+  into body axes by the wheel's steer angle (delta at the front, 0 at the rear), as printed.
+  The self-aligning torques Mz_ij are neglected: the paper gives no Mz coefficients, and the
+  Pac89 example aligning-moment set peaks at D = c1 Fz^2 + c2 Fz = 35 N m per tyre at 3.16 kN,
+  under 1 % of the a Fy ~ 4 kN m yaw moment of one saturated front tyre.
+* Eq. 12-14: the slip is s = (re omega - u_w) / u_w with u_w the wheel-centre velocity along
+  the wheel heading, vx_i cos(delta_i) + vy_i sin(delta_i), computed exactly. Eq. 13-14 are a
+  small-angle approximation of the wheel-centre speed (their front a-beta term has the sign
+  flipped against the rear one, a transcription slip). The denominator is
+  sqrt(u_w^2 + eps^2), eps = 0.5 m/s: smooth and non-singular at standstill, within 3e-4 of
+  |u_w| above 20 m/s.
+* Eq. 9-10 use arctan2 so that a sampled state with u <= 0 gives finite numbers; for u > 0 it
+  equals the printed arctan.
+* Eq. 2 and 4 define ax and ay as the force sums over m (what an accelerometer at the CoG
+  reads); u' = ax + v r and v' = ay - u r (eq. 1, 3).
+
+Algebraic loop: the loads (eq. 7-8) depend on ax, ay, which depend on the tyre forces, which
+depend on the loads. It is solved by a fixed number (3) of fixed-point iterations starting from
+the static loads: loads -> forces -> (ax, ay) -> loads. Lateral load transfer moves load from one
+side to the other, so it changes the total force only through the curvature of D(Fz) and
+BCD(Fz); the iteration contracts by a factor of about 0.05-0.2 per pass and 3 passes leave
+residuals of about 1e-4 relative or less in the loads at 0.7 g. The result is a plain
+differentiable function (no while-loops, no implicit differentiation).
+
+Tyres: Pacejka '89 pure-slip forces of :mod:`vehjax.models.tyres` per wheel, slip angle in
+degrees, slip in percent, load in kN. Right-hand tyres use the coefficient sets as given
+(camber 0.5 deg; the zero-slip side force of about 107 N then points to the car's centre line, as
+static negative camber does); left-hand tyres are their mirror image, Fy_left(alpha) =
+-Fy_right(-alpha), so the car is left-right symmetric and drives straight with zero steer.
+Longitudinal and lateral forces are computed independently (no combined-slip reduction), as
+eq. 15-17 are in the paper: a friction-ellipse clip would put a kink into the model's Jacobian,
+and the scenarios' longitudinal slips stay below about 1 %. Loads are floored at 10 N (wheel
+lift).
+
+Wheel spin: Iw omega_i' = T_i - re Fx_i (no rolling resistance, no drag: the paper has none).
+The wheel-spin modes are stiff, with eigenvalues near -re^2 C_s / (Iw u_w), C_s ~ 1.4-2.2e5 N
+the slip stiffness: about -800 1/s at 20 m/s. ``transition`` therefore integrates in
+``substeps`` equal sub-steps (default: sub-steps of at most 1 ms, i.e. 10 for dt = 0.01 s),
+which keeps RK4 stable down to about 10 m/s; use more sub-steps for slower driving.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .base import VehicleModel, integrate
+from .tyres import pacejka89_lateral, pacejka89_longitudinal
+
+#: Gravitational acceleration [m/s^2].
+G = 9.81
+
+_SLIP_EPS = 0.5  # m/s, regularises the slip denominator near standstill
+_FZ_MIN = 10.0  # N, load floor (wheel lift)
+_LOAD_ITERATIONS = 3  # fixed-point passes on the load transfer
+_MAX_SUBSTEP = 1e-3  # s, default longest integration sub-step
+# Mirror sign per wheel (fl, fr, rl, rr): left tyres are mirror images of the right ones.
+_MIRROR = jnp.array([-1.0, 1.0, -1.0, 1.0])
+_FRONT = jnp.array([1.0, 1.0, 0.0, 0.0])
+
+_OUTPUT_SETS = {
+    "eq20": (("r", "ay", "u"), ("rad/s", "m/s^2", "m/s")),
+    "eq18": (
+        ("u", "v", "ax", "ay", "r", "beta", "Gamma"),
+        ("m/s", "m/s", "m/s^2", "m/s^2", "rad/s", "rad", "N m"),
+    ),
+}
+
+
+class SevenDOF(VehicleModel):
+    """Dual-track model: longitudinal, lateral and yaw motion plus the four wheel spins.
+
+    States x = (u, v, r, omega_fl, omega_fr, omega_rl, omega_rr): body-frame velocities of the
+        CoG [m/s], yaw rate [rad/s], wheel spin speeds [rad/s].
+    Inputs u = (delta, T_fl, T_fr, T_rl, T_rr): front road-wheel steering angle [rad] and wheel
+        torques [N m], drive positive, brake negative.
+    Parameters theta = (m, iz, a, b, tf, tr, h, re, iw): mass [kg], yaw inertia [kg m^2], CoG to
+        front and rear axle [m], front and rear track [m], CoG height [m], effective rolling
+        radius [m], spin inertia of one wheel [kg m^2]. Nominal values are the paper's section 4
+        (1685, 2580, 1.16, 1.36, 1.54, 1.59, 0.436, 0.36); the paper has no wheel inertia, and
+        iw = 1.1 kg m^2 is our estimate for a wheel and tyre of this size (about 20 kg at a
+        radius of gyration of 0.235 m). The tyre coefficients are constants of
+        :mod:`vehjax.models.tyres`.
+    Outputs: ``outputs="eq20"`` gives eq. 20's (r, ay, u); ``outputs="eq18"`` gives eq. 18's
+        (u, v, ax, ay, r, beta, Gamma) with beta = arctan(v / u) [rad] and Gamma the yaw
+        moment [N m].
+    ``substeps``: integration sub-steps per ``dt`` (default ceil(dt / 1 ms)).
+
+    Valid for u well above 0 (about 10 m/s and up with the default sub-steps). See the module
+    docstring for the equations and how the transcription's typos are read.
+    """
+
+    outputs: str = eqx.field(static=True)
+    substeps: int = eqx.field(static=True)
+
+    STATE_NAMES = ("u", "v", "r", "omega_fl", "omega_fr", "omega_rl", "omega_rr")
+    STATE_UNITS = ("m/s", "m/s", "rad/s", "rad/s", "rad/s", "rad/s", "rad/s")
+    INPUT_NAMES = ("delta", "T_fl", "T_fr", "T_rl", "T_rr")
+    INPUT_UNITS = ("rad", "N m", "N m", "N m", "N m")
+    PARAM_NAMES = ("m", "iz", "a", "b", "tf", "tr", "h", "re", "iw")
+    PARAM_UNITS = ("kg", "kg m^2", "m", "m", "m", "m", "m", "m", "kg m^2")
+    PARAM_NOMINAL = (1685.0, 2580.0, 1.16, 1.36, 1.54, 1.59, 0.436, 0.36, 1.1)
+
+    def __init__(self, dt: float = 0.01, integrator: str = "rk4", theta=None,
+                 outputs: str = "eq20", substeps: int | None = None):
+        super().__init__(dt=dt, integrator=integrator, theta=theta)
+        if outputs not in _OUTPUT_SETS:
+            raise ValueError(f"outputs: expected one of {tuple(_OUTPUT_SETS)}, got {outputs!r}")
+        self.outputs = outputs
+        if substeps is None:
+            substeps = max(1, math.ceil(self.dt / _MAX_SUBSTEP - 1e-9))
+        if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+            raise ValueError(f"substeps: expected a positive integer, got {substeps!r}")
+        self.substeps = substeps
+
+    output_names = property(lambda self: _OUTPUT_SETS[self.outputs][0])
+    output_units = property(lambda self: _OUTPUT_SETS[self.outputs][1])
+
+    # -- the equations ------------------------------------------------------------------------
+    @staticmethod
+    def _wheel_slips(x, u, theta):
+        """Slip angles [rad] (eq. 9-10) and longitudinal slips [-] (eq. 12) of fl, fr, rl, rr."""
+        vx, vy, r = x[0], x[1], x[2]
+        omega = x[3:7]
+        delta = u[0]
+        a, b, tf, tr, re = theta[2], theta[3], theta[4], theta[5], theta[7]
+        px = jnp.stack([a, a, -b, -b])
+        py = jnp.stack([tf, -tf, tr, -tr]) / 2.0
+        steer = _FRONT * delta
+        wx = vx - r * py  # wheel-centre velocity in body axes
+        wy = vy + r * px
+        alpha = steer - jnp.arctan2(wy, wx)
+        u_w = wx * jnp.cos(steer) + wy * jnp.sin(steer)
+        slip = (re * omega - u_w) / jnp.sqrt(u_w**2 + _SLIP_EPS**2)
+        return alpha, slip
+
+    @staticmethod
+    def _tyre_forces(alpha, slip, fz):
+        """Wheel-frame forces (Fx, Fy) [N] from eq. 15-17 at loads ``fz`` [N], each (4,)."""
+        fz_kn = jnp.maximum(fz, _FZ_MIN) / 1000.0
+        fx = pacejka89_longitudinal(100.0 * slip, fz_kn)
+        fy = _MIRROR * pacejka89_lateral(_MIRROR * jnp.rad2deg(alpha), fz_kn)
+        return fx, fy
+
+    @staticmethod
+    def _body_forces(fx, fy, delta, theta):
+        """Sum of forces along body x, y [N] and yaw moment Gamma [N m] (eq. 2, 4, 5)."""
+        a, b, tf, tr = theta[2], theta[3], theta[4], theta[5]
+        steer = _FRONT * delta
+        c, s = jnp.cos(steer), jnp.sin(steer)
+        fxb = fx * c - fy * s  # F'x of eq. 5
+        fyb = fy * c + fx * s  # F'y of eq. 5
+        px = jnp.stack([a, a, -b, -b])
+        py = jnp.stack([tf, -tf, tr, -tr]) / 2.0
+        gamma = jnp.sum(px * fyb - py * fxb)
+        return jnp.sum(fxb), jnp.sum(fyb), gamma
+
+    @staticmethod
+    def _loads(ax, ay, theta):
+        """Vertical loads [N] of fl, fr, rl, rr (eq. 7-8 in ISO axes)."""
+        m, a, b, tf, tr, h = theta[0], theta[2], theta[3], theta[4], theta[5], theta[6]
+        l = a + b
+        lat_f = m * ay * h / tf
+        lat_r = m * ay * h / tr
+        lon = 0.5 * m * ax * h / l
+        half = 0.5 * m * G
+        return jnp.stack([
+            (half - lat_f) * b / l - lon,
+            (half + lat_f) * b / l - lon,
+            (half - lat_r) * a / l + lon,
+            (half + lat_r) * a / l + lon,
+        ])
+
+    def _solve(self, x, u, theta):
+        """Tyre forces, loads, (ax, ay) and Gamma with the load-transfer loop resolved."""
+        m = theta[0]
+        delta = u[0]
+        alpha, slip = self._wheel_slips(x, u, theta)
+        zero = jnp.zeros((), dtype=x.dtype)
+        fz = self._loads(zero, zero, theta)
+        for _ in range(_LOAD_ITERATIONS):
+            fx, fy = self._tyre_forces(alpha, slip, fz)
+            sx, sy, _ = self._body_forces(fx, fy, delta, theta)
+            fz = self._loads(sx / m, sy / m, theta)
+        fx, fy = self._tyre_forces(alpha, slip, fz)
+        sx, sy, gamma = self._body_forces(fx, fy, delta, theta)
+        return fx, fz, sx / m, sy / m, gamma
+
+    def derivative(self, x, u, theta):
+        """(u', v', r', omega_i') [m/s^2, m/s^2, rad/s^2, rad/s^2 x4], eq. 1-6 plus wheel spin."""
+        vx, vy, r = x[0], x[1], x[2]
+        iz, re, iw = theta[1], theta[7], theta[8]
+        fx, _, ax, ay, gamma = self._solve(x, u, theta)
+        omega_dot = (u[1:5] - re * fx) / iw
+        return jnp.concatenate([jnp.stack([ax + vy * r, ay - vx * r, gamma / iz]), omega_dot])
+
+    def derived(self, x, u, theta):
+        """Eq. 18's vector (u, v, ax, ay, r, beta, Gamma), shape (7,).
+
+        ax, ay [m/s^2] are the force sums over m (eq. 2, 4), beta = arctan(v / u) [rad] (eq. 11),
+        Gamma [N m] the yaw moment (eq. 5).
+        """
+        _, _, ax, ay, gamma = self._solve(x, u, theta)
+        beta = jnp.arctan2(x[1], x[0])
+        return jnp.stack([x[0], x[1], ax, ay, x[2], beta, gamma])
+
+    def wheel_loads(self, x, u, theta):
+        """Vertical tyre loads (fl, fr, rl, rr) [N] after the load-transfer iteration."""
+        return self._solve(x, u, theta)[1]
+
+    def observe(self, x, u, theta):
+        d = self.derived(x, u, theta)
+        if self.outputs == "eq18":
+            return d
+        return jnp.stack([d[4], d[3], d[0]])
+
+    def transition(self, x, u, theta):
+        """State after ``dt`` seconds, ``substeps`` integrator steps with ``u`` held, (7,)."""
+        h = self.dt / self.substeps
+        if self.substeps == 1:
+            return integrate(self.derivative, x, u, theta, h, self.integrator)
+        return jax.lax.fori_loop(
+            0, self.substeps,
+            lambda _, xk: integrate(self.derivative, xk, u, theta, h, self.integrator), x
+        )
+
+    # -- used by scenarios' driver model ----------------------------------------------------
+    def body_velocity(self, x, u, theta):
+        """(u, v, r) of the CoG in the body frame [m/s, m/s, rad/s]."""
+        return x[0], x[1], x[2]
+
+    def pose(self, x):
+        return None
+
+    def speed(self, x):
+        return x[0]
+
+    def drive_input(self, x, delta, accel, speed, theta):
+        """Steer ``delta`` [rad] and wheel torques [N m] for longitudinal acceleration ``accel``.
+
+        Feed-forward torque (m re + 4 iw / re) accel (body plus spin-up of all four wheels; the
+        model has no rolling or air resistance), shared by all four wheels in proportion to
+        the static axle loads, front b / l, rear a / l: all-wheel drive and four-wheel braking.
+        """
+        m, a, b, re, iw = theta[0], theta[2], theta[3], theta[7], theta[8]
+        l = a + b
+        total = (m * re + 4.0 * iw / re) * accel
+        front = 0.5 * total * b / l
+        rear = 0.5 * total * a / l
+        return jnp.stack([delta, front, front, rear, rear])
+
+    def initial_state(self, speed):
+        """Straight driving at ``speed`` [m/s], wheels rolling freely (omega = speed / re)."""
+        speed = jnp.asarray(speed, dtype=self.theta.dtype)
+        w = speed / self.theta[7]
+        zero = 0.0 * speed
+        return jnp.stack([speed, zero, zero, w, w, w, w])

@@ -1,0 +1,565 @@
+"""Run a whole Monte-Carlo study in one call: ``lax.scan`` over time, ``vmap`` over runs.
+
+::
+
+    out = vehjax.run(est, measurements, inputs, x0=x0, P0=P0, key=jax.random.key(0))
+    out.states          # (R, T, nx)
+    out.diverged        # (R,) bool
+
+Time convention (the papers' order): ``x0``/``P0`` describe the state before the first step;
+step ``t`` predicts with ``inputs[..., t, :]``, then updates with ``measurements[:, t, :]``, so
+``out.states[:, t]`` is the filtered estimate after the ``t``-th measurement.
+
+A NaN measurement component is missing; ``run`` passes it to the filter untouched and the filter
+skips that component's update.
+
+Divergence: after every step, a run whose new mean is not finite or whose covariance is not
+finite and positive definite (also the parameter estimate and its covariance, for filters that
+estimate parameters) is flagged ``diverged`` at that step. From then on its filter state is frozen
+at the last good state and its outputs hold the last good estimate (the prior ``x0``/``P0`` if it
+diverged at the first step), its ``nis`` is NaN, its ``n_obs`` 0 and its ``loglik`` stops
+accumulating. The other runs are not touched.
+
+Large studies are split into chunks of runs, each one jitted call (one compilation per chunk
+shape; the last chunk is padded); results come back to host memory chunk by chunk, so device
+memory stays bounded. When several JAX devices are visible the runs of each chunk are sharded over
+them (``jax.shard_map`` over a 1-D mesh); each run's arithmetic does not depend on that.
+
+Compile and execution time can be measured apart with :func:`compile_run`::
+
+    t0 = time.perf_counter(); prepared = vehjax.run.compile_run(est, ys, us, x0=x0, P0=P0)
+    t1 = time.perf_counter(); out = prepared()            # executes only; call again to repeat
+    t2 = time.perf_counter()                              # compile: t1 - t0, run: t2 - t1
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from functools import partial
+from typing import Any, NamedTuple, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from .filters.base import Estimator
+
+__all__ = ["RunResult", "CompiledRun", "run", "compile_run"]
+
+_AXIS = "runs"
+# Auto chunk size: keep the per-chunk stacked outputs near this many bytes of device memory.
+_AUTO_CHUNK_BYTES = 512 * 2**20
+
+
+class RunResult(NamedTuple):
+    """Outputs of a study of R runs over T steps (numpy arrays on the host).
+
+    Attributes:
+        states: filtered state estimates, (R, T, nx), in the model's state units.
+        covariances: their covariances, (R, T, nx, nx); None unless ``return_covariances``.
+        params: parameter estimates, (R, T, p); p = 0 for state-only filters.
+        params_cov: their covariances, (R, T, p, p); None unless ``return_covariances``.
+        loglik: total log-likelihood log p(y_1:T) of the observed components, (R,); for a
+            diverged run, the sum over the steps before it diverged.
+        nis: normalised innovation squared of the observed components per step, (R, T);
+            NaN from the step a run diverged.
+        n_obs: number of observed (non-NaN) measurement components per step, (R, T); the
+            degrees of freedom of ``nis``. 0 from the step a run diverged.
+        diverged: whether the run diverged, (R,) bool.
+        diverged_at: index of the step at which it diverged, or -1, (R,) int.
+        name: the estimator's name.
+    """
+
+    states: np.ndarray
+    covariances: np.ndarray | None
+    params: np.ndarray
+    params_cov: np.ndarray | None
+    loglik: np.ndarray
+    nis: np.ndarray
+    n_obs: np.ndarray
+    diverged: np.ndarray
+    diverged_at: np.ndarray
+    name: str
+
+
+# ----------------------------------------------------------------------------------------------
+# Traced part
+
+
+def _is_pd(C):
+    """Whether a square matrix is finite and positive definite (a Cholesky succeeds)."""
+    if C.shape[-1] == 0:
+        return jnp.array(True)
+    L = jnp.linalg.cholesky(0.5 * (C + C.T))
+    return jnp.all(jnp.isfinite(C)) & jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
+
+
+def _check_step_output(out, nx: int, p: int):
+    expected = {
+        "mean": (nx,),
+        "cov": (nx, nx),
+        "loglik": (),
+        "nis": (),
+        "n_obs": (),
+        "params": (p,),
+        "params_cov": (p, p),
+    }
+    for field, shape in expected.items():
+        got = getattr(out, field).shape
+        if got != shape:
+            raise ValueError(
+                f"estimator: step returned StepOutput.{field} of shape {got}, expected {shape} "
+                f"(nx = {nx}, {p} estimated parameters)"
+            )
+
+
+def _one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key):
+    """One run: y (T, ny), u (T, nu); x0 (nx,), P0 (nx, nx); th0 (p,), Pth0 (p, p) or None."""
+    nx, p = estimator.nx, len(estimator.param_names)
+    state0 = estimator.init(x0, P0, th0, Pth0, key)
+    _, out_shape = jax.eval_shape(estimator.step, state0, y[0], u[0])
+    _check_step_output(out_shape, nx, p)
+
+    def cast(a, like):
+        return jnp.asarray(a).astype(like.dtype)
+
+    held0 = (
+        cast(x0, out_shape.mean),
+        cast(P0, out_shape.cov),
+        cast(jnp.zeros((0,)) if th0 is None else th0, out_shape.params),
+        cast(jnp.zeros((0, 0)) if Pth0 is None else Pth0, out_shape.params_cov),
+    )
+    ll0 = jnp.zeros((), out_shape.loglik.dtype)
+    carry0 = (state0, held0, jnp.array(False), jnp.array(-1, jnp.int32), ll0, jnp.array(0, jnp.int32))
+
+    def body(carry, yu):
+        state, held, diverged, diverged_at, ll, t = carry
+        new_state, out = estimator.step(state, *yu)
+        ok = jnp.all(jnp.isfinite(out.mean)) & _is_pd(out.cov)
+        if p:
+            ok = ok & jnp.all(jnp.isfinite(out.params)) & _is_pd(out.params_cov)
+        bad = diverged | ~ok
+        diverged_at = jnp.where(bad & ~diverged, t, diverged_at)
+        keep = partial(jnp.where, bad)
+        state = jax.tree.map(keep, state, new_state)
+        held = jax.tree.map(keep, held, (out.mean, out.cov, out.params, out.params_cov))
+        ll = ll + jnp.where(bad, 0.0, out.loglik).astype(ll.dtype)
+        nis = jnp.where(bad, jnp.nan, out.nis)
+        n_obs = jnp.where(bad, 0, out.n_obs).astype(jnp.int32)
+        mean, cov, params, params_cov = held
+        per_step = (
+            mean,
+            cov if return_cov else None,
+            params,
+            params_cov if return_cov else None,
+            nis,
+            n_obs,
+        )
+        return (state, held, bad, diverged_at, ll, t + 1), per_step
+
+    (_, _, diverged, diverged_at, ll, _), (mean, cov, params, pcov, nis, n_obs) = jax.lax.scan(
+        body, carry0, (y, u)
+    )
+    return mean, cov, params, pcov, ll, nis, n_obs, diverged, diverged_at
+
+
+@eqx.filter_jit
+def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh):
+    """A chunk of runs: ys (C, T, ny); the others per run (leading C) or shared, by rank."""
+    per_run = (
+        True,
+        us.ndim == 3,
+        x0.ndim == 2,
+        P0.ndim == 3,
+        th0 is not None and th0.ndim == 2,
+        Pth0 is not None and Pth0.ndim == 3,
+        keys is not None,
+    )
+    f = jax.vmap(
+        partial(_one_run, estimator, return_cov), in_axes=tuple(0 if r else None for r in per_run)
+    )
+    if mesh is not None:
+        f = jax.shard_map(
+            f,
+            mesh=mesh,
+            in_specs=tuple(PartitionSpec(_AXIS) if r else PartitionSpec() for r in per_run),
+            out_specs=PartitionSpec(_AXIS),
+            check_vma=False,  # no collectives; shared inputs are replicated constants
+        )
+    return f(ys, us, x0, P0, th0, Pth0, keys)
+
+
+# ----------------------------------------------------------------------------------------------
+# Validation (before anything is traced)
+
+
+def _as_float(arg: str, value, allow_nan: bool = False) -> np.ndarray:
+    try:
+        a = np.asarray(value)
+    except Exception:  # ragged lists and the like
+        raise ValueError(f"{arg}: expected a numeric array, got {type(value).__name__}") from None
+    if a.dtype == bool or not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+        raise ValueError(f"{arg}: expected a real numeric array, got dtype {a.dtype}")
+    if not np.issubdtype(a.dtype, np.floating):
+        a = a.astype(np.float64)
+    if not allow_nan and not np.all(np.isfinite(a)):
+        raise ValueError(f"{arg}: expected finite values, found NaN or inf")
+    return a
+
+
+def _check_shape(arg: str, a: np.ndarray, shared: tuple, R: int, what: str) -> np.ndarray:
+    """``a`` must have shape ``shared`` or ``(R,) + shared``."""
+    if a.shape == shared or a.shape == (R,) + shared:
+        return a
+    raise ValueError(
+        f"{arg}: expected shape {shared} (shared by all runs) or {(R,) + shared} (one per run) "
+        f"for {what}, got {a.shape}"
+    )
+
+
+def _check_cov(arg: str, P: np.ndarray):
+    sym = np.swapaxes(P, -1, -2)
+    scale = max(float(np.max(np.abs(P))), np.finfo(np.float64).tiny)
+    if not np.allclose(P, sym, rtol=0.0, atol=1e-9 * scale):
+        raise ValueError(f"{arg}: expected a symmetric matrix (or one per run)")
+    if P.shape[-1] == 0:
+        return
+    try:
+        np.linalg.cholesky(0.5 * (P + sym).astype(np.float64))
+    except np.linalg.LinAlgError:
+        if P.ndim == 3:
+            low = np.linalg.eigvalsh(0.5 * (P + sym).astype(np.float64)).min(axis=-1)
+            bad = np.flatnonzero(low <= 0)
+            raise ValueError(
+                f"{arg}: expected positive-definite covariances; runs {bad[:10].tolist()} are not"
+            ) from None
+        raise ValueError(f"{arg}: expected a positive-definite covariance") from None
+
+
+def _check_key(key, R: int):
+    try:
+        keys = jax.random.split(key, R)
+    except Exception:
+        raise ValueError(
+            f"key: expected a JAX PRNG key such as jax.random.key(0), got {key!r}"
+        ) from None
+    return keys
+
+
+def _resolve_devices(devices):
+    if devices is None or devices is True:
+        return list(jax.devices())
+    if devices is False:
+        return [jax.devices()[0]]
+    try:
+        devices = list(devices)
+    except TypeError:
+        raise ValueError(
+            f"devices: expected None (all devices), False (one device) or a sequence of "
+            f"jax devices, got {devices!r}"
+        ) from None
+    if not devices or not all(isinstance(d, jax.Device) for d in devices):
+        raise ValueError(f"devices: expected a non-empty sequence of jax devices, got {devices!r}")
+    return devices
+
+
+class _Plan(NamedTuple):
+    estimator: Estimator
+    arrays: tuple  # ys, us, x0, P0, th0, Pth0 (numpy or None)
+    per_run: tuple  # which of arrays have a leading run axis
+    keys: Any  # jax array of per-run keys (R,) or None
+    R: int
+    chunk: int
+    n_chunks: int
+    return_cov: bool
+    devices: tuple
+    mesh: Any
+    progress: bool | None
+
+
+def _plan(
+    estimator,
+    measurements,
+    inputs,
+    x0,
+    P0,
+    theta0,
+    P_theta0,
+    key,
+    return_covariances,
+    chunk_size,
+    progress,
+    devices,
+) -> _Plan:
+    if not isinstance(estimator, Estimator):
+        raise ValueError(
+            f"estimator: expected a vehjax.filters.Estimator, got {type(estimator).__name__}"
+        )
+    nx, p = int(estimator.nx), len(estimator.param_names)
+    if nx < 1:
+        raise ValueError(f"estimator: nx must be >= 1, got {estimator.nx}")
+
+    ys = _as_float("measurements", measurements, allow_nan=True)
+    if ys.ndim != 3 or 0 in ys.shape:
+        raise ValueError(
+            f"measurements: expected shape (runs, steps, ny) with none zero, got {ys.shape}; "
+            f"for a single run pass measurements[None]"
+        )
+    R, T, _ = ys.shape
+
+    if inputs is None:
+        us = np.zeros((T, 0), ys.dtype)
+    else:
+        us = _as_float("inputs", inputs)
+        if us.ndim == 1 and T == us.shape[0]:
+            raise ValueError(
+                f"inputs: expected shape ({T}, nu) or ({R}, {T}, nu), got {us.shape}; "
+                f"for a single input pass inputs[:, None]"
+            )
+        if not (us.ndim == 2 and us.shape[0] == T) and not (us.ndim == 3 and us.shape[:2] == (R, T)):
+            raise ValueError(
+                f"inputs: expected shape ({T}, nu) (shared by all runs) or ({R}, {T}, nu) "
+                f"(one per run) to match measurements {ys.shape}, got {us.shape}"
+            )
+
+    x0 = _check_shape("x0", _as_float("x0", x0), (nx,), R, f"nx = {nx} states")
+    P0 = _check_shape("P0", _as_float("P0", P0), (nx, nx), R, f"nx = {nx} states")
+    _check_cov("P0", P0)
+
+    if p == 0:
+        for arg, v in (("theta0", theta0), ("P_theta0", P_theta0)):
+            if v is not None:
+                raise ValueError(
+                    f"{arg}: estimator {estimator.name!r} estimates no parameters; pass None"
+                )
+        th0 = Pth0 = None
+    else:
+        names = tuple(estimator.param_names)
+        for arg, v in (("theta0", theta0), ("P_theta0", P_theta0)):
+            if v is None:
+                raise ValueError(
+                    f"{arg}: required, estimator {estimator.name!r} estimates parameters {names}"
+                )
+        th0 = _check_shape("theta0", _as_float("theta0", theta0), (p,), R, f"parameters {names}")
+        Pth0 = _check_shape(
+            "P_theta0", _as_float("P_theta0", P_theta0), (p, p), R, f"parameters {names}"
+        )
+        _check_cov("P_theta0", Pth0)
+
+    if estimator.needs_key and key is None:
+        raise ValueError(
+            f"key: estimator {estimator.name!r} draws random numbers; pass key=jax.random.key(...)"
+        )
+    keys = None if key is None else _check_key(key, R)
+
+    if not isinstance(return_covariances, (bool, np.bool_)):
+        raise ValueError(f"return_covariances: expected True or False, got {return_covariances!r}")
+    if progress is not None and not isinstance(progress, (bool, np.bool_)):
+        raise ValueError(f"progress: expected None, True or False, got {progress!r}")
+    if chunk_size is not None and (
+        isinstance(chunk_size, (bool, np.bool_))
+        or not isinstance(chunk_size, (int, np.integer))
+        or chunk_size < 1
+    ):
+        raise ValueError(f"chunk_size: expected None or an integer >= 1, got {chunk_size!r}")
+
+    devs = tuple(_resolve_devices(devices))
+    n_dev = len(devs)
+    if chunk_size is None:
+        itemsize = np.dtype(ys.dtype).itemsize
+        per_run_bytes = T * itemsize * (nx + p + 3 + (nx * nx + p * p if return_covariances else 0))
+        chunk_size = max(1, _AUTO_CHUNK_BYTES // per_run_bytes)
+    n_chunks = math.ceil(R / min(int(chunk_size), R))
+    # Balance the chunks and make each a multiple of the device count.
+    chunk = math.ceil(math.ceil(R / n_chunks) / n_dev) * n_dev
+    mesh = Mesh(np.array(devs), (_AXIS,)) if n_dev > 1 else None
+
+    dtype = np.result_type(*(a for a in (ys, us, x0, P0, th0, Pth0) if a is not None))
+    arrays = tuple(None if a is None else a.astype(dtype, copy=False) for a in (ys, us, x0, P0, th0, Pth0))
+    per_run = (True, us.ndim == 3, x0.ndim == 2, P0.ndim == 3)
+    per_run += (th0 is not None and th0.ndim == 2, Pth0 is not None and Pth0.ndim == 3)
+    return _Plan(
+        estimator, arrays, per_run, keys, R, chunk, n_chunks, bool(return_covariances), devs, mesh,
+        progress,
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Execution
+
+
+def _chunk_args(plan: _Plan, i: int):
+    """Device-placed arguments of chunk ``i`` (padded with copies of the last run)."""
+    start, stop = i * plan.chunk, min((i + 1) * plan.chunk, plan.R)
+    idx = np.minimum(np.arange(start, start + plan.chunk), stop - 1)
+    if plan.mesh is not None:
+        split = NamedSharding(plan.mesh, PartitionSpec(_AXIS))
+        whole = NamedSharding(plan.mesh, PartitionSpec())
+    else:
+        split = whole = plan.devices[0]
+    args = []
+    for a, r in zip(plan.arrays, plan.per_run):
+        if a is None:
+            args.append(None)
+        else:
+            args.append(jax.device_put(a[idx] if r else a, split if r else whole))
+    keys = None if plan.keys is None else jax.device_put(plan.keys[idx], split)
+    return (*args, keys), stop - start
+
+
+def _call_args(plan: _Plan, i: int):
+    args, n = _chunk_args(plan, i)
+    return (plan.estimator, *args, plan.return_cov, plan.mesh), n
+
+
+class _Progress:
+    """A one-line text progress bar on stderr, updated per chunk."""
+
+    def __init__(self, n_chunks: int, n_runs: int, enabled: bool, width: int = 30):
+        self.n_chunks, self.n_runs, self.enabled, self.width = n_chunks, n_runs, enabled, width
+        self.t0 = time.perf_counter()
+        if enabled:
+            self.update(0, 0)
+
+    def update(self, chunks: int, runs: int):
+        if not self.enabled:
+            return
+        filled = round(self.width * chunks / self.n_chunks)
+        bar = "#" * filled + "." * (self.width - filled)
+        elapsed = time.perf_counter() - self.t0
+        sys.stderr.write(
+            f"\rvehjax.run [{bar}] chunk {chunks}/{self.n_chunks}, "
+            f"{runs}/{self.n_runs} runs, {elapsed:.1f} s"
+        )
+        if chunks == self.n_chunks:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+def _execute(plan: _Plan, fn, progress) -> RunResult:
+    show = plan.n_chunks > 1 if progress is None else bool(progress)
+    bar = _Progress(plan.n_chunks, plan.R, show)
+    parts = []
+    pending = None  # (device outputs, n valid); the next chunk is dispatched before fetching
+    done = 0
+    for i in range(plan.n_chunks + 1):
+        nxt = None
+        if i < plan.n_chunks:
+            args, n = _call_args(plan, i)
+            nxt = (fn(*args), n)
+        if pending is not None:
+            out, n = pending
+            parts.append(tuple(None if a is None else np.asarray(a)[:n] for a in out))
+            done += n
+            bar.update(len(parts), done)
+        pending = nxt
+
+    def cat(k):
+        if parts[0][k] is None:
+            return None
+        return parts[0][k] if len(parts) == 1 else np.concatenate([q[k] for q in parts])
+
+    states, covs, params, pcov, ll, nis, n_obs, div, div_at = (cat(k) for k in range(9))
+    return RunResult(states, covs, params, pcov, ll, nis, n_obs, div, div_at, plan.estimator.name)
+
+
+def run(
+    estimator: Estimator,
+    measurements,
+    inputs,
+    *,
+    x0,
+    P0,
+    theta0=None,
+    P_theta0=None,
+    key=None,
+    return_covariances: bool = False,
+    chunk_size: int | None = None,
+    progress: bool | None = None,
+    devices: Sequence | bool | None = None,
+) -> RunResult:
+    """Run ``estimator`` over R runs of T steps in one jitted call per chunk of runs.
+
+    Args:
+        estimator: a :class:`vehjax.filters.Estimator`.
+        measurements: (R, T, ny); NaN components are missing. A single run is (1, T, ny).
+        inputs: (T, nu) shared by all runs, or (R, T, nu); None when the model has no inputs.
+        x0: state before the first step, (nx,) shared or (R, nx) per run.
+        P0: its covariance, (nx, nx) or (R, nx, nx), symmetric positive definite.
+        theta0: initial parameter estimate, (p,) or (R, p), for filters that estimate
+            ``estimator.param_names``; must be None for state-only filters.
+        P_theta0: its covariance, (p, p) or (R, p, p).
+        key: PRNG key, required when ``estimator.needs_key``; run r gets
+            ``jax.random.split(key, R)[r]``.
+        return_covariances: also return ``covariances`` and ``params_cov`` (R*T*nx*nx numbers).
+        chunk_size: at most this many runs per jitted call (chunks are balanced and padded to a
+            common size, a multiple of the device count). Default: as many as keep the stacked
+            outputs of a chunk near 512 MiB.
+        progress: text progress bar on stderr per chunk; default shown when there are several
+            chunks.
+        devices: None shards runs over all ``jax.devices()``; False uses the default device only;
+            or a sequence of devices.
+
+    Returns:
+        :class:`RunResult` of numpy arrays.
+
+    Raises:
+        ValueError: naming the argument, for wrong shapes, non-finite inputs/x0/P0, a P0 that is
+            not symmetric positive definite, a missing key or theta0, before anything is traced.
+    """
+    plan = _plan(
+        estimator, measurements, inputs, x0, P0, theta0, P_theta0, key, return_covariances,
+        chunk_size, progress, devices,
+    )
+    return _execute(plan, _study, progress)
+
+
+class CompiledRun:
+    """A study whose chunk function is compiled ahead of time; call it to execute.
+
+    Attributes:
+        compile_seconds: wall time spent tracing, lowering and compiling, s.
+        chunk_size: runs per compiled call; n_chunks: number of calls per execution.
+    """
+
+    def __init__(self, plan: _Plan, compiled, compile_seconds: float):
+        self._plan, self._compiled = plan, compiled
+        self.compile_seconds = compile_seconds
+        self.chunk_size, self.n_chunks = plan.chunk, plan.n_chunks
+
+    def __call__(self, progress: bool | None = None) -> RunResult:
+        """Execute the whole study (all chunks) and return its :class:`RunResult`."""
+        return _execute(self._plan, self._compiled, self._plan.progress if progress is None else progress)
+
+
+def compile_run(
+    estimator: Estimator,
+    measurements,
+    inputs,
+    *,
+    x0,
+    P0,
+    theta0=None,
+    P_theta0=None,
+    key=None,
+    return_covariances: bool = False,
+    chunk_size: int | None = None,
+    progress: bool | None = None,
+    devices: Sequence | bool | None = None,
+) -> CompiledRun:
+    """Validate and compile a study without running it, for timing compilation apart.
+
+    Same arguments as :func:`run`. ``compile_run(...)()`` returns what ``run(...)`` returns.
+    """
+    plan = _plan(
+        estimator, measurements, inputs, x0, P0, theta0, P_theta0, key, return_covariances,
+        chunk_size, progress, devices,
+    )
+    t0 = time.perf_counter()
+    args, _ = _call_args(plan, 0)
+    compiled = _study.lower(*args).compile()
+    return CompiledRun(plan, compiled, time.perf_counter() - t0)

@@ -1,0 +1,252 @@
+"""Truth and noisy measurements for R Monte-Carlo runs in one jitted, vmapped call.
+
+Time convention (shared with :func:`vehjax.run`): ``scenario.x0`` is the state before the first
+step; row t of the output holds the state after applying input u_t,
+
+    states[t]       = transition(states[t-1], u_t + steering offset, theta_r) + w_t
+    measurements[t] = observe(states[t], u_t + steering offset, theta_r) + bias_t + v_t
+
+with w_t ~ N(0, diag(process_std * process_scale[t])^2) and v_t ~ N(0, diag(meas_std *
+meas_scale[t])^2). The filter is given the *measured* inputs ``sim.inputs`` (without the steering
+offset), as a car's estimator would be.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["Simulation", "simulate"]
+
+
+class Simulation(NamedTuple):
+    """R simulated runs of one scenario.
+
+    Attributes:
+        states: (R, T, nx) true states after each step.
+        measurements: (R, T, ny) noisy measurements.
+        inputs: (T, nu) measured inputs, shared by all runs.
+        theta: (R, np) true parameters of each run.
+        biases: (R, T, ny) measurement biases (zeros unless a bias walk was asked for).
+        x0: (R, nx) initial states.
+        t: (T,) time [s] of each row.
+        state_names, input_names, param_names, output_names: the model's names.
+    """
+
+    states: jnp.ndarray
+    measurements: jnp.ndarray
+    inputs: jnp.ndarray
+    theta: jnp.ndarray
+    biases: jnp.ndarray
+    x0: jnp.ndarray
+    t: np.ndarray
+    state_names: tuple
+    input_names: tuple
+    param_names: tuple
+    output_names: tuple
+
+    def to_dict(self) -> dict:
+        """Named numpy arrays, e.g. for ``np.savez``; names are stored as string arrays."""
+        return {
+            "states": np.asarray(self.states),
+            "measurements": np.asarray(self.measurements),
+            "inputs": np.asarray(self.inputs),
+            "theta": np.asarray(self.theta),
+            "biases": np.asarray(self.biases),
+            "x0": np.asarray(self.x0),
+            "t": np.asarray(self.t),
+            "state_names": np.array(self.state_names),
+            "input_names": np.array(self.input_names),
+            "param_names": np.array(self.param_names),
+            "output_names": np.array(self.output_names),
+        }
+
+    def save(self, path) -> None:
+        """Write the named arrays to an ``.npz`` file."""
+        np.savez(path, **self.to_dict())
+
+
+def _vector(name: str, value, n: int, what: str, allow_none=True):
+    """A non-negative finite vector of length n from a scalar or a sequence."""
+    if value is None:
+        return np.zeros(n)
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        arr = np.full(n, float(arr))
+    if arr.shape != (n,):
+        raise ValueError(f"{name}: expected a scalar or shape ({n},) ({what}), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ValueError(f"{name}: expected non-negative, finite values, got {arr}")
+    return arr
+
+
+def _scale(name: str, value, t: np.ndarray):
+    """A non-negative (T,) std multiplier from None, a callable of t [s], or an array."""
+    if value is None:
+        return np.ones_like(t)
+    arr = np.asarray(value(t) if callable(value) else value, dtype=float)
+    if arr.ndim == 0:
+        arr = np.full_like(t, float(arr))
+    if arr.shape != t.shape:
+        raise ValueError(f"{name}: expected shape {t.shape} (one factor per step), got {arr.shape}")
+    if not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ValueError(f"{name}: expected non-negative, finite factors")
+    return arr
+
+
+def simulate(
+    model,
+    scenario,
+    runs: int = 1,
+    key=None,
+    process_std=None,
+    meas_std=None,
+    *,
+    param_std=None,
+    theta=None,
+    x0_std=None,
+    process_scale: Callable | np.ndarray | None = None,
+    meas_scale: Callable | np.ndarray | None = None,
+    bias_walk_std=None,
+    bias0=None,
+    steering_offset: float = 0.0,
+) -> Simulation:
+    """Simulate ``runs`` noisy realisations of ``scenario`` on ``model``.
+
+    Args:
+        model: a vehjax model.
+        scenario: a :class:`vehjax.scenarios.Scenario` built for this model.
+        runs: number of Monte-Carlo runs R (>= 1).
+        key: a ``jax.random.key``; the same key gives the same runs. Defaults to key(0).
+        process_std: std of the additive process noise per step, scalar or (nx,), state units.
+        meas_std: std of the measurement noise, scalar or (ny,), output units.
+        param_std: relative std of a per-run perturbation of the parameters, scalar or (np,):
+            theta_r = theta * (1 + param_std * N(0, 1)).
+        theta: true parameters, (np,) or (R, np); defaults to ``model.theta``.
+        x0_std: std of a per-run perturbation of the initial state, scalar or (nx,).
+        process_scale, meas_scale: time-varying multipliers of the two stds, (T,) arrays or
+            callables of the time vector t [s] (e.g. ``lambda t: np.sin(np.pi * t / 10)`` for
+            paper 001 eq. 31-32).
+        bias_walk_std: std of the per-step increments of random-walk measurement biases, scalar
+            or (ny,), output units per step.
+        bias0: initial measurement biases, scalar or (ny,).
+        steering_offset: constant offset [rad] added to the true steering input named "delta"
+            (paper 004 eq. 4); the returned ``inputs`` are the measured ones without it.
+
+    Returns:
+        A :class:`Simulation`.
+    """
+    for attr in ("transition", "observe", "state_names", "output_names", "theta"):
+        if not hasattr(model, attr):
+            raise ValueError(f"model: expected a vehjax model, got {type(model).__name__}")
+    if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
+        raise ValueError(f"runs: expected an integer >= 1, got {runs!r}")
+    runs = int(runs)
+    nx, ny, n_par = len(model.state_names), len(model.output_names), len(model.param_names)
+    inputs = np.asarray(scenario.inputs, dtype=float)
+    if inputs.ndim != 2 or inputs.shape[1] != len(model.input_names):
+        raise ValueError(
+            f"scenario: its inputs have shape {inputs.shape}, expected (T, {len(model.input_names)}) "
+            f"for {type(model).__name__}; build the scenario for this model"
+        )
+    x0 = np.asarray(scenario.x0, dtype=float)
+    if x0.shape != (nx,):
+        raise ValueError(f"scenario: its x0 has shape {x0.shape}, expected ({nx},)")
+    n_steps = inputs.shape[0]
+    t = np.arange(n_steps) * model.dt
+
+    q_std = _vector("process_std", process_std, nx, "one std per state")
+    r_std = _vector("meas_std", meas_std, ny, "one std per output")
+    p_std = _vector("param_std", param_std, n_par, "a relative std per parameter")
+    s_std = _vector("x0_std", x0_std, nx, "one std per state")
+    b_std = _vector("bias_walk_std", bias_walk_std, ny, "one std per output")
+    b0 = np.asarray(0.0 if bias0 is None else bias0, dtype=float)
+    b0 = np.full(ny, float(b0)) if b0.ndim == 0 else b0
+    if b0.shape != (ny,) or not np.all(np.isfinite(b0)):
+        raise ValueError(f"bias0: expected a finite scalar or shape ({ny},), got {b0}")
+    q_scale = _scale("process_scale", process_scale, t)
+    r_scale = _scale("meas_scale", meas_scale, t)
+    try:
+        steering_offset = float(steering_offset)
+    except (TypeError, ValueError):
+        raise ValueError(f"steering_offset: expected a number in rad, got {steering_offset!r}") from None
+    if not np.isfinite(steering_offset):
+        raise ValueError(f"steering_offset: expected a finite number in rad, got {steering_offset}")
+    offset = np.zeros(len(model.input_names))
+    if steering_offset != 0.0:
+        if "delta" not in model.input_names:
+            raise ValueError(
+                f"steering_offset: {type(model).__name__} has no input named 'delta' "
+                f"(inputs {tuple(model.input_names)})"
+            )
+        offset[list(model.input_names).index("delta")] = steering_offset
+
+    base_theta = np.asarray(model.theta if theta is None else theta, dtype=float)
+    if base_theta.shape not in ((n_par,), (runs, n_par)):
+        raise ValueError(f"theta: expected shape ({n_par},) or ({runs}, {n_par}), got {base_theta.shape}")
+    if not np.all(np.isfinite(base_theta)):
+        raise ValueError("theta: expected finite values")
+    base_theta = np.broadcast_to(base_theta, (runs, n_par))
+    key = jax.random.key(0) if key is None else key
+
+    dtype = jnp.result_type(float)
+    arrays = dict(
+        inputs=jnp.asarray(inputs, dtype),
+        x0=jnp.asarray(x0, dtype),
+        theta=jnp.asarray(base_theta, dtype),
+        q=jnp.asarray(q_std[None, :] * q_scale[:, None], dtype),
+        r=jnp.asarray(r_std[None, :] * r_scale[:, None], dtype),
+        p_std=jnp.asarray(p_std, dtype),
+        s_std=jnp.asarray(s_std, dtype),
+        b_std=jnp.asarray(b_std, dtype),
+        b0=jnp.asarray(b0, dtype),
+        offset=jnp.asarray(offset, dtype),
+    )
+    states, meas, thetas, biases, x0s = _simulate_jit(model, key, runs, arrays)
+    return Simulation(
+        states=states,
+        measurements=meas,
+        inputs=arrays["inputs"],
+        theta=thetas,
+        biases=biases,
+        x0=x0s,
+        t=t,
+        state_names=tuple(model.state_names),
+        input_names=tuple(model.input_names),
+        param_names=tuple(model.param_names),
+        output_names=tuple(model.output_names),
+    )
+
+
+def _simulate_jit(model, key, runs, a):
+    return _simulate_runs(model, jax.random.split(key, runs), a)
+
+
+@eqx.filter_jit
+def _simulate_runs(model, keys, a):
+    nx, ny = a["x0"].shape[0], a["b0"].shape[0]
+    n_steps = a["inputs"].shape[0]
+
+    def one_run(k, theta_nom):
+        k_par, k_x0, k_noise = jax.random.split(k, 3)
+        theta = theta_nom * (1.0 + a["p_std"] * jax.random.normal(k_par, theta_nom.shape))
+        x0 = a["x0"] + a["s_std"] * jax.random.normal(k_x0, a["x0"].shape)
+        eps = jax.random.normal(k_noise, (n_steps, nx + 2 * ny))
+
+        def step(carry, xs):
+            x, bias = carry
+            u, q, r, e = xs
+            u_true = u + a["offset"]
+            x_next = model.transition(x, u_true, theta) + q * e[:nx]
+            bias_next = bias + a["b_std"] * e[nx + ny:]
+            y = model.observe(x_next, u_true, theta) + bias_next + r * e[nx:nx + ny]
+            return (x_next, bias_next), (x_next, y, bias_next)
+
+        _, (xs, ys, bs) = jax.lax.scan(step, (x0, a["b0"]), (a["inputs"], a["q"], a["r"], eps))
+        return xs, ys, theta, bs, x0
+
+    return jax.vmap(one_run)(keys, a["theta"])
