@@ -34,3 +34,11 @@ def test_simulate_writes_npz_and_png(tmp_path, capsys):
 def test_bad_input_is_a_clear_error(capsys):
     assert cli.main(["simulate", "Dynamic3DOF", "sine_steer", "--runs", "0"]) == 2
     assert "runs" in capsys.readouterr().err
+
+
+def test_bench_gaussian_smoke(capsys):
+    """Tiny sizes: the three libraries must agree before any timing is printed."""
+    assert cli.main(["bench", "gaussian", "--runs", "2", "--steps", "30", "--filterpy-runs", "1",
+                     "--repeat", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "dynamax" in out and "filterpy" in out and "same estimates" in out

@@ -9,8 +9,13 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from . import filters, models, scenarios  # noqa: E402
+from . import metrics  # noqa: E402
+from .run import CompiledRun, RunResult, compile_run, run  # noqa: E402
 from .simulate import Simulation, simulate  # noqa: E402
 
 __version__ = "0.1.0"
 
-__all__ = ["filters", "models", "scenarios", "simulate", "Simulation"]
+__all__ = [
+    "filters", "models", "scenarios", "metrics", "simulate", "Simulation",
+    "run", "compile_run", "RunResult", "CompiledRun",
+]

@@ -38,6 +38,19 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _cmd_bench(args) -> int:
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"bench_{args.which}.py"
+    if not path.exists():
+        print(f"vehjax: error: {path} not found (benchmarks run from a source checkout)", file=sys.stderr)
+        return 2
+    spec = importlib.util.spec_from_file_location(f"bench_{args.which}", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return int(mod.main(args.rest) or 0)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import models, scenarios
 
@@ -60,6 +73,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out", help="output folder (default ./out)")
     p.set_defaults(func=_cmd_simulate)
+
+    p = sub.add_parser("bench", help="side-by-side timings against other libraries")
+    p.add_argument("which", choices=["gaussian", "particle"])
+    p.add_argument("rest", nargs=argparse.REMAINDER, help="benchmark options, e.g. --runs 2")
+    p.set_defaults(func=_cmd_bench)
     return parser
 
 

@@ -46,7 +46,9 @@ _AXES = ("all", "run", "time")
 def _estimates(arg: str, x) -> np.ndarray:
     x = np.asarray(x)
     if x.ndim != 3:
-        raise ValueError(f"{arg}: expected shape (runs, steps, n), got {x.shape}; for one run pass x[None]")
+        raise ValueError(
+            f"{arg}: expected shape (runs, steps, n), got {x.shape}; for one run pass x[None]"
+        )
     if not np.issubdtype(x.dtype, np.number) or np.iscomplexobj(x):
         raise ValueError(f"{arg}: expected a real numeric array, got dtype {x.dtype}")
     return x
@@ -68,7 +70,9 @@ def _mask(mask, R: int) -> np.ndarray:
         return np.ones(R, bool)
     m = np.asarray(mask)
     if m.shape != (R,) or m.dtype != bool:
-        raise ValueError(f"mask: expected a bool array of shape ({R},) (True = include), got {m.dtype} {m.shape}")
+        raise ValueError(
+            f"mask: expected a bool array of shape ({R},) (True = include), got {m.dtype} {m.shape}"
+        )
     return m
 
 
@@ -116,7 +120,9 @@ def mae(estimates, truth, *, axis: str = "all", mask=None) -> np.ndarray:
     return _reduce(np.abs(err), m, axis)
 
 
-def final_error(estimates, truth, *, window: int = 1, relative: bool = False, mask=None) -> np.ndarray:
+def final_error(
+    estimates, truth, *, window: int = 1, relative: bool = False, mask=None
+) -> np.ndarray:
     """Signed error at the end of each run, (R, n), averaged over the last ``window`` steps.
 
     With ``relative=True`` the error is divided by ``|truth|`` (a fraction, not a percentage).
@@ -124,7 +130,8 @@ def final_error(estimates, truth, *, window: int = 1, relative: bool = False, ma
     """
     err, m = _errors(estimates, truth, mask)
     T = err.shape[1]
-    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or not 1 <= window <= T:
+    is_int = isinstance(window, (int, np.integer)) and not isinstance(window, bool)
+    if not is_int or not 1 <= window <= T:
         raise ValueError(f"window: expected an integer in [1, {T}], got {window!r}")
     if relative:
         err = err / np.abs(_truth(truth, err.shape))
@@ -153,7 +160,9 @@ def convergence_time(estimates, truth, tol, dt: float, *, t0: float = 0.0, mask=
         raise ValueError(f"dt: expected a positive, finite number of seconds, got {dt}")
     tol = np.asarray(tol, dtype=float)
     if tol.shape not in ((), (err.shape[2],)) or not np.all(tol >= 0):
-        raise ValueError(f"tol: expected a non-negative scalar or shape ({err.shape[2]},), got {tol}")
+        raise ValueError(
+            f"tol: expected a non-negative scalar or shape ({err.shape[2]},), got {tol}"
+        )
     outside = ~(np.abs(err) <= tol)  # NaN -> outside
     T = err.shape[1]
     any_out = outside.any(axis=1)
@@ -192,32 +201,53 @@ def nees(states, covariances, truth) -> np.ndarray:
     return np.asarray(_nees(x, P, _truth(truth, x.shape)))
 
 
+def _bisect(cdf, q, hi, iters: int = 110):
+    """Solve cdf(x) = q on [0, hi] by bisection (elementwise; cdf increasing)."""
+
+    def body(_, lohi):
+        lo, hi = lohi
+        mid = 0.5 * (lo + hi)
+        below = cdf(mid) < q
+        return jnp.where(below, mid, lo), jnp.where(below, hi, mid)
+
+    lo, hi = jax.lax.fori_loop(0, iters, body, (jnp.zeros_like(hi), hi))
+    return 0.5 * (lo + hi)
+
+
 @jax.jit
 def _gammainc_ppf(q, a):
     """x with P(a, x) = q, P the regularised lower incomplete gamma function; a > 0."""
+    # P(a, a + 40 sqrt(a) + 100) is 1 to double precision for every a > 0.
+    hi = a + 40.0 * jnp.sqrt(a) + 100.0
+    return _bisect(lambda x: jax.scipy.special.gammainc(a, x), q, hi)
 
-    def too_low(hi):
-        return jax.scipy.special.gammainc(a, hi) < q
 
-    hi = jax.lax.while_loop(
-        lambda hi: jnp.any(too_low(hi)), lambda hi: jnp.where(too_low(hi), 2.0 * hi, hi), jnp.maximum(a, 1.0)
-    )
+@jax.jit
+def _student_t_ppf(q, nu):
+    """t with F(t) = q in [0.5, 1 - 1e-15) for Student's t with ``nu`` >= 1 degrees of freedom."""
 
-    def bisect(_, lohi):
-        lo, hi = lohi
-        mid = 0.5 * (lo + hi)
-        below = jax.scipy.special.gammainc(a, mid) < q
-        return jnp.where(below, mid, lo), jnp.where(below, hi, mid)
+    def cdf(t):
+        return 1.0 - 0.5 * jax.scipy.special.betainc(0.5 * nu, 0.5, nu / (nu + t * t))
 
-    lo, hi = jax.lax.fori_loop(0, 200, bisect, (jnp.zeros_like(hi), hi))
-    return 0.5 * (lo + hi)
+    return _bisect(cdf, q, jnp.full_like(nu, 1e16), iters=200)
+
+
+def _bucketed(fn, q, p, pad_p: float) -> np.ndarray:
+    """``fn(q, p)`` elementwise on broadcast arrays, padded to a power-of-two length so that a
+    session compiles ``fn`` for a few sizes only."""
+    q, p = np.broadcast_arrays(np.asarray(q, float), np.asarray(p, float))
+    n = q.size
+    size = max(16, 1 << (n - 1).bit_length())
+    qf = np.full(size, 0.75)
+    pf = np.full(size, pad_p)
+    qf[:n], pf[:n] = q.ravel(), p.ravel()
+    return np.asarray(fn(jnp.asarray(qf), jnp.asarray(pf)))[:n].reshape(q.shape)
 
 
 def _chi2_ppf(q, dof) -> np.ndarray:
     """Chi-square quantile for probability ``q`` in (0, 1) and ``dof`` >= 0 (0 gives 0)."""
-    q, dof = np.broadcast_arrays(np.asarray(q, float), np.asarray(dof, float))
-    a = np.where(dof > 0, 0.5 * dof, 1.0)
-    x = 2.0 * np.asarray(_gammainc_ppf(jnp.asarray(q), jnp.asarray(a)))
+    dof = np.asarray(dof, float)
+    x = 2.0 * _bucketed(_gammainc_ppf, q, np.where(dof > 0, 0.5 * dof, 1.0), 1.0)
     return np.where(dof > 0, x, 0.0)
 
 
@@ -288,7 +318,9 @@ def consistency(values, dof, *, prob: float = 0.95, mask=None) -> Consistency:
     try:
         d = np.broadcast_to(np.asarray(dof, float), v.shape)
     except ValueError:
-        raise ValueError(f"dof: shape {np.shape(dof)} does not broadcast to values {v.shape}") from None
+        raise ValueError(
+            f"dof: shape {np.shape(dof)} does not broadcast to values {v.shape}"
+        ) from None
     if np.any(d < 0):
         raise ValueError("dof: expected non-negative degrees of freedom")
     use = _mask(mask, v.shape[0])[:, None] & ~np.isnan(v)
@@ -316,27 +348,6 @@ class Interval(NamedTuple):
     half_width: np.ndarray
     low: np.ndarray
     high: np.ndarray
-
-
-@jax.jit
-def _student_t_ppf(q, nu):
-    """t with F(t) = q >= 0.5 for Student's t with ``nu`` > 0 degrees of freedom."""
-
-    def cdf(t):
-        return 1.0 - 0.5 * jax.scipy.special.betainc(0.5 * nu, 0.5, nu / (nu + t * t))
-
-    hi = jax.lax.while_loop(
-        lambda hi: jnp.any(cdf(hi) < q), lambda hi: jnp.where(cdf(hi) < q, 2.0 * hi, hi), jnp.ones_like(nu)
-    )
-
-    def bisect(_, lohi):
-        lo, hi = lohi
-        mid = 0.5 * (lo + hi)
-        below = cdf(mid) < q
-        return jnp.where(below, mid, lo), jnp.where(below, hi, mid)
-
-    lo, hi = jax.lax.fori_loop(0, 200, bisect, (jnp.zeros_like(hi), hi))
-    return 0.5 * (lo + hi)
 
 
 def confidence_interval(x, *, axis: int = 0, level: float = 0.95, mask=None) -> Interval:
@@ -370,6 +381,6 @@ def confidence_interval(x, *, axis: int = 0, level: float = 0.95, mask=None) -> 
         mean = np.where(n > 0, np.nansum(x, axis=0) / np.maximum(n, 1), np.nan)
         dev = np.where(np.isnan(x), 0.0, x - mean)
         sd = np.sqrt(np.sum(dev**2, axis=0) / np.maximum(n - 1, 1))
-        t = np.asarray(_student_t_ppf(jnp.full(n.shape, 0.5 * (1.0 + level)), jnp.asarray(np.maximum(n - 1, 1), float)))
+        t = _bucketed(_student_t_ppf, 0.5 * (1.0 + level), np.maximum(n - 1, 1), 1.0)
         half = np.where(n >= 2, t * sd / np.sqrt(np.maximum(n, 1)), np.nan)
     return Interval(mean, half, mean - half, mean + half)

@@ -23,11 +23,13 @@ accumulating. The other runs are not touched.
 Large studies are split into chunks of runs, each one jitted call (one compilation per chunk
 shape; the last chunk is padded); results come back to host memory chunk by chunk, so device
 memory stays bounded. When several JAX devices are visible the runs of each chunk are sharded over
-them (``jax.shard_map`` over a 1-D mesh); each run's arithmetic does not depend on that.
+them (``jax.shard_map`` over a 1-D mesh, no communication between devices). Results do not depend
+on chunking or sharding beyond rounding: the number of runs computed together can change the last
+bit of a result (XLA vectorises differently), never more.
 
 Compile and execution time can be measured apart with :func:`compile_run`::
 
-    t0 = time.perf_counter(); prepared = vehjax.run.compile_run(est, ys, us, x0=x0, P0=P0)
+    t0 = time.perf_counter(); prepared = vehjax.compile_run(est, ys, us, x0=x0, P0=P0)
     t1 = time.perf_counter(); out = prepared()            # executes only; call again to repeat
     t2 = time.perf_counter()                              # compile: t1 - t0, run: t2 - t1
 """
@@ -134,16 +136,21 @@ def _one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, ke
         cast(jnp.zeros((0, 0)) if Pth0 is None else Pth0, out_shape.params_cov),
     )
     ll0 = jnp.zeros((), out_shape.loglik.dtype)
-    carry0 = (state0, held0, jnp.array(False), jnp.array(-1, jnp.int32), ll0, jnp.array(0, jnp.int32))
+    int0 = partial(jnp.array, dtype=jnp.int32)
+    carry0 = (state0, held0, jnp.array(False), jnp.array(False), int0(-1), ll0, int0(0))
 
     def body(carry, yu):
-        state, held, diverged, diverged_at, ll, t = carry
+        state, held, diverged, flagged, diverged_at, ll, t = carry
         new_state, out = estimator.step(state, *yu)
+        # Particle filters re-initialise a run whose weights all underflow and say so in
+        # ``flag_diverged``: such a run is reported diverged but keeps going, not frozen.
+        flag_now = jnp.asarray(getattr(new_state, "flag_diverged", False)) & ~diverged
         ok = jnp.all(jnp.isfinite(out.mean)) & _is_pd(out.cov)
         if p:
             ok = ok & jnp.all(jnp.isfinite(out.params)) & _is_pd(out.params_cov)
         bad = diverged | ~ok
-        diverged_at = jnp.where(bad & ~diverged, t, diverged_at)
+        diverged_at = jnp.where((bad | flag_now) & ~diverged & ~flagged, t, diverged_at)
+        flagged = flagged | flag_now
         keep = partial(jnp.where, bad)
         state = jax.tree.map(keep, state, new_state)
         held = jax.tree.map(keep, held, (out.mean, out.cov, out.params, out.params_cov))
@@ -159,12 +166,12 @@ def _one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, ke
             nis,
             n_obs,
         )
-        return (state, held, bad, diverged_at, ll, t + 1), per_step
+        return (state, held, bad, flagged, diverged_at, ll, t + 1), per_step
 
-    (_, _, diverged, diverged_at, ll, _), (mean, cov, params, pcov, nis, n_obs) = jax.lax.scan(
-        body, carry0, (y, u)
+    (_, _, frozen, flagged, diverged_at, ll, _), (mean, cov, params, pcov, nis, n_obs) = (
+        jax.lax.scan(body, carry0, (y, u))
     )
-    return mean, cov, params, pcov, ll, nis, n_obs, diverged, diverged_at
+    return mean, cov, params, pcov, ll, nis, n_obs, frozen | flagged, diverged_at
 
 
 @eqx.filter_jit
@@ -202,7 +209,8 @@ def _as_float(arg: str, value, allow_nan: bool = False) -> np.ndarray:
         a = np.asarray(value)
     except Exception:  # ragged lists and the like
         raise ValueError(f"{arg}: expected a numeric array, got {type(value).__name__}") from None
-    if a.dtype == bool or not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+    real = np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)
+    if a.dtype == bool or not real:
         raise ValueError(f"{arg}: expected a real numeric array, got dtype {a.dtype}")
     if not np.issubdtype(a.dtype, np.floating):
         a = a.astype(np.float64)
@@ -320,7 +328,8 @@ def _plan(
                 f"inputs: expected shape ({T}, nu) or ({R}, {T}, nu), got {us.shape}; "
                 f"for a single input pass inputs[:, None]"
             )
-        if not (us.ndim == 2 and us.shape[0] == T) and not (us.ndim == 3 and us.shape[:2] == (R, T)):
+        shared_ok = us.ndim == 2 and us.shape[0] == T
+        if not shared_ok and not (us.ndim == 3 and us.shape[:2] == (R, T)):
             raise ValueError(
                 f"inputs: expected shape ({T}, nu) (shared by all runs) or ({R}, {T}, nu) "
                 f"(one per run) to match measurements {ys.shape}, got {us.shape}"
@@ -373,13 +382,16 @@ def _plan(
         itemsize = np.dtype(ys.dtype).itemsize
         per_run_bytes = T * itemsize * (nx + p + 3 + (nx * nx + p * p if return_covariances else 0))
         chunk_size = max(1, _AUTO_CHUNK_BYTES // per_run_bytes)
-    n_chunks = math.ceil(R / min(int(chunk_size), R))
     # Balance the chunks and make each a multiple of the device count.
-    chunk = math.ceil(math.ceil(R / n_chunks) / n_dev) * n_dev
+    chunk = math.ceil(R / math.ceil(R / min(int(chunk_size), R)))
+    chunk = math.ceil(chunk / n_dev) * n_dev
+    n_chunks = math.ceil(R / chunk)
     mesh = Mesh(np.array(devs), (_AXIS,)) if n_dev > 1 else None
 
     dtype = np.result_type(*(a for a in (ys, us, x0, P0, th0, Pth0) if a is not None))
-    arrays = tuple(None if a is None else a.astype(dtype, copy=False) for a in (ys, us, x0, P0, th0, Pth0))
+    arrays = tuple(
+        None if a is None else a.astype(dtype, copy=False) for a in (ys, us, x0, P0, th0, Pth0)
+    )
     per_run = (True, us.ndim == 3, x0.ndim == 2, P0.ndim == 3)
     per_run += (th0 is not None and th0.ndim == 2, Pth0 is not None and Pth0.ndim == 3)
     return _Plan(
@@ -458,10 +470,10 @@ def _execute(plan: _Plan, fn, progress) -> RunResult:
             bar.update(len(parts), done)
         pending = nxt
 
-    def cat(k):
+    def cat(k):  # np.array copies: writable results, device buffers released
         if parts[0][k] is None:
             return None
-        return parts[0][k] if len(parts) == 1 else np.concatenate([q[k] for q in parts])
+        return np.array(parts[0][k]) if len(parts) == 1 else np.concatenate([q[k] for q in parts])
 
     states, covs, params, pcov, ll, nis, n_obs, div, div_at = (cat(k) for k in range(9))
     return RunResult(states, covs, params, pcov, ll, nis, n_obs, div, div_at, plan.estimator.name)
@@ -486,7 +498,9 @@ def run(
 
     Args:
         estimator: a :class:`vehjax.filters.Estimator`.
-        measurements: (R, T, ny); NaN components are missing. A single run is (1, T, ny).
+        measurements: (R, T, ny); NaN components are missing (inf is passed on as data and
+            will usually make that run diverge). A single run is (1, T, ny): 2-D arrays are
+            refused rather than guessed.
         inputs: (T, nu) shared by all runs, or (R, T, nu); None when the model has no inputs.
         x0: state before the first step, (nx,) shared or (R, nx) per run.
         P0: its covariance, (nx, nx) or (R, nx, nx), symmetric positive definite.
@@ -496,16 +510,19 @@ def run(
         key: PRNG key, required when ``estimator.needs_key``; run r gets
             ``jax.random.split(key, R)[r]``.
         return_covariances: also return ``covariances`` and ``params_cov`` (R*T*nx*nx numbers).
-        chunk_size: at most this many runs per jitted call (chunks are balanced and padded to a
-            common size, a multiple of the device count). Default: as many as keep the stacked
-            outputs of a chunk near 512 MiB.
+        chunk_size: at most this many runs per jitted call, rounded up to a multiple of the
+            device count (chunks are balanced and the last is padded to the common size).
+            Default: as many as keep the stacked outputs of a chunk near 512 MiB. Filters with
+            a large per-run state (particle filters: runs x particles x nx numbers per step)
+            may need a smaller value.
         progress: text progress bar on stderr per chunk; default shown when there are several
             chunks.
         devices: None shards runs over all ``jax.devices()``; False uses the default device only;
             or a sequence of devices.
 
     Returns:
-        :class:`RunResult` of numpy arrays.
+        :class:`RunResult` of numpy arrays. All inputs are cast to their common floating dtype
+        (pass every array as float32 for a single-precision study).
 
     Raises:
         ValueError: naming the argument, for wrong shapes, non-finite inputs/x0/P0, a P0 that is
@@ -521,6 +538,9 @@ def run(
 class CompiledRun:
     """A study whose chunk function is compiled ahead of time; call it to execute.
 
+    A call's time covers the whole study as ``run`` does it: moving each chunk's data to the
+    device, executing, and bringing the results back to host memory.
+
     Attributes:
         compile_seconds: wall time spent tracing, lowering and compiling, s.
         chunk_size: runs per compiled call; n_chunks: number of calls per execution.
@@ -533,7 +553,8 @@ class CompiledRun:
 
     def __call__(self, progress: bool | None = None) -> RunResult:
         """Execute the whole study (all chunks) and return its :class:`RunResult`."""
-        return _execute(self._plan, self._compiled, self._plan.progress if progress is None else progress)
+        progress = self._plan.progress if progress is None else progress
+        return _execute(self._plan, self._compiled, progress)
 
 
 def compile_run(

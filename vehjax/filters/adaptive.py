@@ -2,7 +2,8 @@
 
 A CKF whose process and measurement noise covariances are re-estimated at every step from the
 innovations, with the memory index ``d_k = (1 - b) / (1 - b^k)`` (b the forgetting factor,
-k = 1, 2, ... the number of steps with at least one observed component)::
+k = 1, 2, ... the number of steps with at least one observed component; ``prior_steps`` shifts k
+so that the prior counts as that many earlier steps, 0 by default as in the paper)::
 
     R_k = (1 - d_k) R_{k-1} + d_k (e e^T - P_zz0)                      (eq. 30)
     Q_k = (1 - d_k) Q_{k-1} + d_k (K e e^T K^T + P_k - P_xx0)          (eq. 29)
@@ -33,7 +34,6 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -41,9 +41,11 @@ from .base import Estimator
 from .gaussian import (
     _cast,
     _check_model,
+    _chol,
     _prior,
     _sym,
     _theta,
+    _vmap_model,
     check_cov,
     masked_update,
     step_output,
@@ -78,8 +80,8 @@ class AckfState(NamedTuple):
 
 def _projector(prior: np.ndarray, floor: float):
     """A -> nearest matrix (in the metric of ``prior``) with A >= floor * prior."""
-    L0 = np.linalg.cholesky(prior)
-    L0inv = np.linalg.inv(L0)
+    L0 = _chol(prior)
+    L0inv = np.linalg.inv(L0) if isinstance(L0, np.ndarray) else jnp.linalg.inv(L0)
 
     def project(A):
         dt = A.dtype
@@ -91,7 +93,15 @@ def _projector(prior: np.ndarray, floor: float):
     return project
 
 
-def ackf(model, Q0, R0, forgetting: float = 0.98, adapt=("Q", "R"), floor: float = 1e-6) -> Estimator:
+def ackf(
+    model,
+    Q0,
+    R0,
+    forgetting: float = 0.98,
+    adapt=("Q", "R"),
+    floor: float = 1e-6,
+    prior_steps: float = 0.0,
+) -> Estimator:
     """Sage-Husa adaptive CKF of Wang et al. 2016, eq. 21-30.
 
     Args:
@@ -106,6 +116,13 @@ def ackf(model, Q0, R0, forgetting: float = 0.98, adapt=("Q", "R"), floor: float
             Q0 or R0. Estimating both from the same innovations is weakly identifiable
             (Sage-Husa's known weakness); adapting R alone is the robust choice when Q is known.
         floor: the estimates stay >= floor * Q0 and >= floor * R0 (Loewner order), 0 < floor < 1.
+        prior_steps: how many earlier steps Q0 and R0 count for: d_k = (1-b)/(1-b^(k + s0)).
+            The paper's estimator is s0 = 0: d_1 = 1, so the first innovation replaces the
+            prior entirely; with a broad P0 that one-sample estimate is indefinite and lands on
+            the floor, and R, Q take tens to hundreds of steps to recover. Giving a trusted
+            prior s0 of the order of the memory 1/(1-b) damps that start-up transient. (While
+            P- is large next to R, e e^T - P_zz0 is a small difference of large terms, so an R0
+            that is too small can still be driven onto the floor early on.)
 
     Returns:
         ``Estimator`` with state :class:`AckfState` (x, P, Q, R, k, theta).
@@ -129,10 +146,15 @@ def ackf(model, Q0, R0, forgetting: float = 0.98, adapt=("Q", "R"), floor: float
         raise ValueError(f"floor: expected a number in (0, 1), got {floor!r}") from None
     if not (0.0 < floor < 1.0):
         raise ValueError(f"floor: expected 0 < floor < 1, got {floor}")
+    try:
+        s0 = float(prior_steps)
+    except (TypeError, ValueError):
+        raise ValueError(f"prior_steps: expected a number >= 0, got {prior_steps!r}") from None
+    if not (np.isfinite(s0) and s0 >= 0.0):
+        raise ValueError(f"prior_steps: expected a finite number >= 0, got {s0}")
 
     rule = cubature_rule(nx)
-    f = jax.vmap(model.transition, in_axes=(0, None, None))
-    h = jax.vmap(model.observe, in_axes=(0, None, None))
+    f, h = _vmap_model(model.transition), _vmap_model(model.observe)
     project_Q, project_R = _projector(Q0n, floor), _projector(R0n, floor)
 
     def init(x0, P0, theta0=None, P_theta0=None, key=None):
@@ -157,7 +179,7 @@ def ackf(model, Q0, R0, forgetting: float = 0.98, adapt=("Q", "R"), floor: float
 
         seen = r.n_obs > 0
         k_new = k + seen.astype(jnp.int32)
-        kf = jnp.maximum(k_new, 1).astype(dt)
+        kf = jnp.maximum(k_new, 1).astype(dt) + s0
         d = 1.0 / kf if b == 1.0 else (1.0 - b) / (1.0 - jnp.asarray(b, dt) ** kf)
         if "R" in adapt:
             mf = jnp.isfinite(y).astype(dt)

@@ -104,20 +104,26 @@ def _is_tracer(a) -> bool:
     return isinstance(a, jax.core.Tracer)
 
 
-def check_cov(name: str, value, n: int, allow_diag: bool = True) -> np.ndarray:
+def check_cov(name: str, value, n: int, allow_diag: bool = True):
     """A symmetric positive-definite (n, n) covariance from ``value``, as a float64 numpy array.
 
     ``value`` is (n, n), or (n,) variances of a diagonal covariance when ``allow_diag``.
     Raises ValueError naming ``name`` for a wrong shape, non-finite entries, asymmetry or a
-    matrix that is not positive definite.
+    matrix that is not positive definite. A traced ``value`` (a builder called inside a
+    function being differentiated, as when tuning Q and R) has only its shape checked and is
+    returned as a symmetrised jax array.
     """
+    expect = f"({n}, {n})" + (f" or ({n},) variances" if allow_diag else "")
     if _is_tracer(value):
-        raise ValueError(f"{name}: expected a concrete array, got a traced value")
+        # Traced (e.g. tune.py differentiating the log-likelihood): only the shape can be checked.
+        if np.shape(value) not in (((n,), (n, n)) if allow_diag else ((n, n),)):
+            raise ValueError(f"{name}: expected shape {expect}, got shape {np.shape(value)}")
+        A = jnp.diag(value) if value.ndim == 1 else value
+        return 0.5 * (A + A.T)
     try:
         A = np.array(value, dtype=float)
     except (TypeError, ValueError):
         raise ValueError(f"{name}: expected a numeric array, got {value!r}") from None
-    expect = f"({n}, {n})" + (f" or ({n},) variances" if allow_diag else "")
     if allow_diag and A.shape == (n,):
         A = np.diag(A)
     if A.shape != (n, n):
@@ -168,7 +174,9 @@ def _prior(nx: int, x0, P0):
     if np.ndim(x0) != 1 or np.shape(x0)[0] != nx:
         raise ValueError(f"x0: expected shape ({nx},), got shape {np.shape(x0)}")
     if np.shape(P0) not in ((nx, nx), (nx,)):
-        raise ValueError(f"P0: expected shape ({nx}, {nx}) or ({nx},) variances, got {np.shape(P0)}")
+        raise ValueError(
+            f"P0: expected shape ({nx}, {nx}) or ({nx},) variances, got shape {np.shape(P0)}"
+        )
     validate_prior(nx, x0, P0)
     x0, P0 = jnp.asarray(x0), jnp.asarray(P0)
     dtype = jnp.result_type(x0.dtype, P0.dtype)
@@ -193,7 +201,9 @@ def _theta(model, theta0, dtype):
 def _check_model(model):
     for attr in ("transition", "observe", "theta", "nx", "ny", "n_params"):
         if not hasattr(model, attr):
-            raise ValueError(f"model: expected a vehjax model with .{attr}, got {type(model).__name__}")
+            raise ValueError(
+                f"model: expected a vehjax model with .{attr}, got {type(model).__name__}"
+            )
     return model.nx, model.ny
 
 
@@ -213,6 +223,11 @@ def _prior_init(model, sqrt: bool):
 
 # --------------------------------------------------------------------------------------------
 # shared pieces
+
+
+def _chol(A):
+    """Lower Cholesky factor, in numpy for a constant, in jax for a traced matrix."""
+    return np.linalg.cholesky(A) if isinstance(A, np.ndarray) else jnp.linalg.cholesky(A)
 
 
 def _sym(A):
@@ -273,8 +288,14 @@ def masked_update(x_pred, P_pred, y, y_hat, S, C) -> UpdateResult:
     return UpdateResult(x, P, loglik, nis, n_obs, e)
 
 
+def _in_dtype(fn):
+    """``fn`` with its output cast to the dtype of ``x`` (a model with float64 constants
+    must not silently turn a float32 filter into a float64 one)."""
+    return lambda x, u, theta: jnp.asarray(fn(x, u, theta)).astype(x.dtype)
+
+
 def _vmap_model(fn):
-    return jax.vmap(fn, in_axes=(0, None, None))
+    return jax.vmap(_in_dtype(fn), in_axes=(0, None, None))
 
 
 # --------------------------------------------------------------------------------------------
@@ -294,7 +315,7 @@ def ekf(model, Q, R) -> Estimator:
     """
     nx, ny = _check_model(model)
     Qn, Rn = check_cov("Q", Q, nx), check_cov("R", R, ny)
-    f, h = model.transition, model.observe
+    f, h = _in_dtype(model.transition), _in_dtype(model.observe)
     F_of, H_of = jax.jacfwd(f), jax.jacfwd(h)
 
     def step(state, y, u):
@@ -339,7 +360,7 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str) -> Estima
 
         return Estimator(init=_prior_init(model, False), step=step, nx=nx, name=name)
 
-    LQn, LRn = np.linalg.cholesky(Qn), np.linalg.cholesky(Rn)
+    LQn, LRn = _chol(Qn), _chol(Rn)
 
     def sqrt_step(state, y, u):
         x, L, theta = state
@@ -387,7 +408,9 @@ def _sqrt_masked_update(x_pred, X, y, y_hat, Z, LR, rule: SigmaRule):
     return x_pred + L21 @ w, L22, loglik, nis, n_obs
 
 
-def ukf(model, Q, R, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, sqrt: bool = False) -> Estimator:
+def ukf(
+    model, Q, R, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, sqrt: bool = False
+) -> Estimator:
     """Unscented Kalman filter with the scaled sigma points of Dutta et al. 2019 eq. 14-19.
 
     Args:

@@ -164,7 +164,7 @@ def chol_update(L, v, downdate: bool = False):
         x = jnp.where(below, c * x - s * col, x)
         return L.at[:, k].set(col), x
 
-    L, _ = jax.lax.fori_loop(0, n, body, (L, v))
+    L, _ = jax.lax.fori_loop(0, n, body, (L, jnp.asarray(v).astype(L.dtype)))
     return L
 
 
@@ -184,7 +184,7 @@ def weighted_sqrt_factor(dev, rule: SigmaRule, extra=None):
         cols.append(extra)
     L = triangularize(jnp.concatenate(cols, axis=1))
     for i in neg:
-        L = chol_update(L, np.sqrt(-wc[i]) * dev[i], downdate=True)
+        L = chol_update(L, float(np.sqrt(-wc[i])) * dev[i], downdate=True)
     return L
 
 

@@ -4,13 +4,15 @@ from .bank import SingleTrackBank, virtual_yaw_rate
 from .base import BaseModel, Model, VehicleModel, integrate
 from .dynamic import Dynamic3DOF
 from .kinematic import KinematicBicycle
+from .sevendof import SevenDOF
 
 __all__ = ["BaseModel", "Model", "VehicleModel", "integrate", "KinematicBicycle", "Dynamic3DOF",
-           "SingleTrackBank", "virtual_yaw_rate"]
+           "SingleTrackBank", "SevenDOF", "virtual_yaw_rate"]
 
 #: name -> class, for the CLI.
 REGISTRY = {
     "KinematicBicycle": KinematicBicycle,
     "Dynamic3DOF": Dynamic3DOF,
+    "SevenDOF": SevenDOF,
     "SingleTrackBank": SingleTrackBank,
 }

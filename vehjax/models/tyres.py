@@ -87,7 +87,7 @@ def magic_formula(X, B, C, D, E, Sh, Sv):
 
 
 def pacejka89_lateral_coefficients(fz_kn, camber_deg=CAMBER_DEG, a=LATERAL_89):
-    """(B [1/deg], C, D [N], E, Sh [deg], Sv [N]) of the lateral force at load ``fz_kn`` > 0 [kN]."""
+    """(B [1/deg], C, D [N], E, Sh [deg], Sv [N]) of the lateral force at ``fz_kn`` > 0 [kN]."""
     C = a[0]
     D = (a[1] * fz_kn + a[2]) * fz_kn
     BCD = a[3] * jnp.sin(2.0 * jnp.arctan(fz_kn / a[4])) * (1.0 - a[5] * jnp.abs(camber_deg))
@@ -99,7 +99,7 @@ def pacejka89_lateral_coefficients(fz_kn, camber_deg=CAMBER_DEG, a=LATERAL_89):
 
 
 def pacejka89_longitudinal_coefficients(fz_kn, b=LONGITUDINAL_89):
-    """(B [1/%], C, D [N], E, Sh [%], Sv [N]) of the longitudinal force at load ``fz_kn`` > 0 [kN]."""
+    """(B [1/%], C, D [N], E, Sh [%], Sv [N]) of the longitudinal force at ``fz_kn`` > 0 [kN]."""
     C = b[0]
     D = (b[1] * fz_kn + b[2]) * fz_kn
     BCD = (b[3] * fz_kn**2 + b[4] * fz_kn) * jnp.exp(-b[5] * fz_kn)
