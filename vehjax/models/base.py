@@ -10,6 +10,10 @@ are pure functions on 1-D arrays::
 Built-in vehicle models subclass :class:`VehicleModel` and write the continuous-time
 ``derivative(x, u, theta)``; ``transition`` integrates it over ``dt`` with explicit Euler or RK4.
 A user's own discrete-time model is wrapped by :class:`Model`.
+
+Models hold ``theta`` as an array, so ``jax.jit(model.transition)`` on the bound method fails
+(JAX would hash the model); jit a lambda, ``jax.jit(lambda x, u, th: model.transition(x, u, th))``,
+or use ``equinox.filter_jit``.
 """
 
 from __future__ import annotations
