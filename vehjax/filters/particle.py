@@ -43,7 +43,7 @@ from jax.extend.random import threefry_2x32
 
 from . import resampling as _rs
 from .base import Estimator, StepOutput
-from .gaussian import check_cov, validate_prior
+from .gaussian import _check_model, _prior, _theta, check_cov
 
 
 class PFState(NamedTuple):
@@ -100,44 +100,6 @@ def _check_ess_threshold(ess_threshold) -> float:
     if isinstance(ess_threshold, (bool, np.bool_)) or not 0.0 <= thr <= 1.0:
         raise ValueError(f"ess_threshold: expected a number in [0, 1], got {ess_threshold!r}")
     return thr
-
-
-def _check_model(model):
-    for attr in ("transition", "observe", "theta", "nx", "ny", "n_params"):
-        if not hasattr(model, attr):
-            raise ValueError(
-                f"model: expected a vehjax model with .{attr}, got {type(model).__name__}"
-            )
-    return model.nx, model.ny
-
-
-def _prior(nx: int, x0, P0):
-    """x0 (nx,), P0 (nx, nx) in one float dtype; P0 may be given as (nx,) variances."""
-    if np.ndim(x0) != 1 or np.shape(x0)[0] != nx:
-        raise ValueError(f"x0: expected shape ({nx},), got shape {np.shape(x0)}")
-    if np.shape(P0) not in ((nx, nx), (nx,)):
-        raise ValueError(
-            f"P0: expected shape ({nx}, {nx}) or ({nx},) variances, got shape {np.shape(P0)}"
-        )
-    validate_prior(nx, x0, P0)
-    x0, P0 = jnp.asarray(x0), jnp.asarray(P0)
-    dtype = jnp.result_type(x0.dtype, P0.dtype)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        dtype = jnp.asarray(0.0).dtype  # the default float (float64 under vehjax)
-    if P0.ndim == 1:
-        P0 = jnp.diag(P0)
-    return x0.astype(dtype), P0.astype(dtype)
-
-
-def _theta(model, theta0, dtype):
-    if theta0 is None:
-        theta0 = model.theta
-    if np.shape(theta0) != (model.n_params,):
-        raise ValueError(
-            f"theta0: expected shape ({model.n_params},) for parameters {model.param_names}, "
-            f"got shape {np.shape(theta0)}"
-        )
-    return jnp.asarray(theta0).astype(dtype)
 
 
 def _chol(A):
