@@ -5,6 +5,7 @@ truth."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _linear import linear_gaussian_data
 import pytest
 
 import vehjax  # noqa: F401  (float64)
@@ -33,14 +34,7 @@ LINEAR = Model(
 
 
 def _linear_data(T, seed=0, R=R_TRUE):
-    rng = np.random.default_rng(seed)
-    us = rng.normal(size=(T, 2))
-    x = X0 + rng.multivariate_normal(np.zeros(4), P0)
-    ys = []
-    for t in range(T):
-        x = A @ x + B @ us[t] + rng.multivariate_normal(np.zeros(4), Q_TRUE)
-        ys.append(H @ x + rng.multivariate_normal(np.zeros(2), R))
-    return np.array(ys), us
+    return linear_gaussian_data(A, B, H, Q_TRUE, R, X0, P0, T, seed)
 
 
 def _states_fn(est):

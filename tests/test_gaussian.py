@@ -7,6 +7,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _linear import linear_gaussian_data
 import pytest
 from filterpy.kalman import CubatureKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
 from filterpy.kalman.CubatureKalmanFilter import spherical_radial_sigmas
@@ -50,14 +51,7 @@ LINEAR = Model(
 
 
 def _linear_data(seed=0):
-    rng = np.random.default_rng(seed)
-    us = rng.normal(size=(T, 2))
-    x = X0_LIN + rng.multivariate_normal(np.zeros(4), P0_LIN)
-    ys = []
-    for t in range(T):
-        x = A @ x + B @ us[t] + rng.multivariate_normal(np.zeros(4), Q_LIN)
-        ys.append(H @ x + rng.multivariate_normal(np.zeros(2), R_LIN))
-    return np.array(ys), us
+    return linear_gaussian_data(A, B, H, Q_LIN, R_LIN, X0_LIN, P0_LIN, T, seed)
 
 
 def _numpy_kf(ys, us, R=R_LIN):
