@@ -16,8 +16,10 @@ import vehjax  # noqa: F401  (float64)
 from vehjax.filters.gaussian import ckf, ekf, masked_update, ukf, validate_prior
 from vehjax.filters.sigma import (
     chol_update,
+    cholesky,
     cubature_rule,
     sigma_points,
+    solve_lower,
     triangularize,
     unscented_rule,
 )
@@ -356,6 +358,42 @@ def test_triangularize_and_chol_update():
 
 
 # ---- batching and gradients -------------------------------------------------------------------
+def _random_spd(rng, batch, n):
+    G = rng.normal(size=batch + (n, n))
+    return G @ np.swapaxes(G, -1, -2) + 0.1 * np.eye(n)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 8, 9, 12])
+def test_small_cholesky_and_solve_match_numpy(n):
+    """Unrolled for n <= 8, jnp.linalg beyond: both equal numpy's Cholesky and solve."""
+    rng = np.random.default_rng(n)
+    A = _random_spd(rng, (6,), n)
+    L_np = np.linalg.cholesky(A)
+    b, Bk = rng.normal(size=(6, n)), rng.normal(size=(6, n, 3))
+    L = np.asarray(cholesky(jnp.asarray(A)))  # leading batch axis
+    Lv = np.asarray(jax.vmap(cholesky)(jnp.asarray(A)))  # vmapped
+    np.testing.assert_allclose(L, L_np, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(Lv, L_np, rtol=1e-12, atol=1e-12)
+    assert np.all(np.triu(L, 1) == 0.0)
+    x_np = np.linalg.solve(L_np, b[..., None])[..., 0]
+    X_np = np.linalg.solve(L_np, Bk)
+    np.testing.assert_allclose(solve_lower(jnp.asarray(L), jnp.asarray(b)), x_np, rtol=1e-10)
+    np.testing.assert_allclose(
+        jax.vmap(solve_lower)(jnp.asarray(L), jnp.asarray(Bk)), X_np, rtol=1e-10, atol=1e-12
+    )
+    # Like jnp.linalg.cholesky: the input is symmetrised, and a matrix that is not PD gives NaNs.
+    skew = np.triu(rng.normal(size=(n, n)), 1) * 1e-3
+    np.testing.assert_allclose(
+        cholesky(jnp.asarray(A[0] + skew - skew.T)), L_np[0], rtol=1e-12, atol=1e-12
+    )
+    bad = A[0].copy()
+    bad[-1, -1] = -1.0
+    L_bad = np.asarray(cholesky(jnp.asarray(bad)))
+    assert np.all(np.isnan(np.tril(L_bad)[-1])) and not np.all(np.isfinite(L_bad))
+    if n <= 8:  # the unrolled factor is NaN throughout
+        assert np.all(np.isnan(L_bad))
+
+
 def test_vmap_over_runs_and_grad_of_loglik():
     """Batched over runs with vmap, and d loglik / d log(R scale) against finite differences
     of the numpy Kalman filter (R is built inside the differentiated function)."""

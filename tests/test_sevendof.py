@@ -315,3 +315,91 @@ def test_double_lane_change_scenario_runs(model):
     scn = vj.scenarios.double_lane_change(model, speed=20.0)
     assert scn.inputs.shape[1] == 5 and bool(jnp.all(jnp.isfinite(scn.inputs)))
     assert 3.0 < float(np.max(scn.path[:, 1])) < 4.0  # reaches the 3.5 m offset lane
+
+
+# -- the ROS2 integrator ----------------------------------------------------------------------
+
+DLC_SPEED = 80.0 / 3.6  # m/s, the ISO 3888-1 test speed (the wang2016 study's default)
+
+
+@eqx.filter_jit
+def _replay(model, x0, inputs):
+    """States (T, 7) and eq. 18's derived vector (T, 7) with the inputs replayed open loop."""
+    def step(x, u):
+        xn = model.transition(x, u, model.theta)
+        return xn, (xn, model.derived(xn, u, model.theta))
+
+    return jax.lax.scan(step, x0, inputs)[1]
+
+
+@pytest.fixture(scope="module")
+def dlc_replays():
+    """A 10 s double lane change at 80 km/h replayed by fine RK4 (0.25 ms, the reference) and
+    by ROS2 with one and two steps per 10 ms."""
+    scn = vj.scenarios.double_lane_change(MODEL, speed=DLC_SPEED, duration=10.0)
+    ref = _replay(SevenDOF(substeps=40), scn.x0, scn.inputs)
+    one = _replay(SevenDOF(integrator="ros2"), scn.x0, scn.inputs)
+    two = _replay(SevenDOF(integrator="ros2", substeps=2), scn.x0, scn.inputs)
+    return ref, one, two
+
+
+def _max_err(a, b):
+    return np.max(np.abs(np.asarray(a) - np.asarray(b)), axis=0)
+
+
+def test_ros2_one_step_per_sample_tracks_fine_rk4_over_a_double_lane_change(dlc_replays):
+    (x_ref, d_ref), (x1, d1), _ = dlc_replays
+    assert float(np.max(np.abs(d_ref[:, 3]))) > 5.0  # a real manoeuvre: |ay| above 0.5 g
+    ex, ed = _max_err(x1, x_ref), _max_err(d1, d_ref)
+    # Worst error over the 1000 steps; the study's measurement noise (peak std) is 0.0047 m/s
+    # in u, 0.58 m/s^2 in ay, 0.029 rad/s in r.
+    assert ex[0] < 5e-3  # u [m/s]
+    assert ex[1] < 1.5e-3  # v [m/s]
+    assert ex[2] < 3e-4  # r [rad/s]
+    assert np.all(ex[3:] < 0.02)  # wheel speeds [rad/s], of about 62
+    assert ed[2] < 0.05 and ed[3] < 0.02  # ax, ay [m/s^2]
+    assert ed[5] < 1e-4  # beta [rad]
+
+
+def test_ros2_error_falls_with_the_step(dlc_replays):
+    """Halving the step at least nearly halves the worst error of u, v, r and ay."""
+    (x_ref, d_ref), (x1, d1), (x2, d2) = dlc_replays
+    e1, e2 = _max_err(d1, d_ref), _max_err(d2, d_ref)
+    for i in (0, 1, 3, 4):  # u, v, ay, r
+        assert e2[i] < e1[i] / 1.8, (i, e1[i], e2[i])
+
+
+def test_ros2_wheel_jacobian_rows_match_autodiff():
+    """The wheel rows that ROS2 uses equal jacfwd of omega' with the loads frozen at their solved
+    values; their diagonal (the stiff part) is within 10 % of the full Jacobian's, which also
+    carries the loads' dependence on the wheel speeds (up to 7 % at these random states)."""
+    m = SevenDOF(integrator="ros2")
+
+    def omega_dot_frozen(x, u, th, fz):
+        _, slip, _ = m._wheel_slips(x, u, th)
+        fx = m._tyre_forces(jnp.zeros(4), slip, fz)[0]
+        return (u[1:5] - th[7] * fx) / th[8]
+
+    @jax.jit
+    def evaluate(x, u, th):
+        fz = m.wheel_loads(x, u, th)
+        frozen = jax.jacfwd(omega_dot_frozen)(x, u, th, fz)  # (4, 7)
+        full = jax.jacfwd(lambda x: m.derivative(x, u, th))(x)
+        return frozen, full, m._derivative_and_wheel_jacobian(x, u, th)
+
+    for x, inp, th in _random_points(5, 2):
+        x, inp, th = jnp.asarray(x), jnp.asarray(inp), jnp.asarray(th)
+        frozen, full, (xdot, j, g) = evaluate(x, inp, th)
+        np.testing.assert_allclose(xdot, EVAL(x, inp, th)[0], rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(j, np.diag(np.asarray(frozen)[:, 3:]), rtol=1e-10)
+        np.testing.assert_allclose(g, frozen[:, :3], rtol=1e-10, atol=1e-9)
+        assert np.all(np.asarray(j) < -200.0)  # stiff: hundreds to thousands per second
+        np.testing.assert_allclose(j, np.diag(np.asarray(full))[3:], rtol=0.1)
+
+
+def test_ros2_construction():
+    assert SevenDOF(integrator="ros2").substeps == 1
+    assert SevenDOF(integrator="ros2", dt=0.02).substeps == 2
+    assert SevenDOF(integrator="ros2").integrator == "ros2"
+    with pytest.raises(ValueError, match="integrator"):
+        SevenDOF(integrator="ros3")

@@ -51,6 +51,12 @@ def _cmd_bench(args) -> int:
     return int(mod.main(args.rest) or 0)
 
 
+def _cmd_reproduce(args) -> int:
+    from . import reproduce
+
+    return int(reproduce.load(args.paper).main(args.rest) or 0)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import models, scenarios
 
@@ -73,6 +79,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out", help="output folder (default ./out)")
     p.set_defaults(func=_cmd_simulate)
+
+    from . import reproduce
+
+    p = sub.add_parser("reproduce", help="reproduce a paper's study: tables and figures")
+    p.add_argument("paper", choices=sorted(reproduce.REGISTRY))
+    p.add_argument("rest", nargs=argparse.REMAINDER, help="study options, e.g. --runs 4 (see --help)")
+    p.set_defaults(func=_cmd_reproduce)
 
     p = sub.add_parser("bench", help="side-by-side timings against other libraries")
     p.add_argument("which", choices=["gaussian", "particle"])

@@ -49,6 +49,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .filters.base import Estimator
+from .filters.sigma import cholesky
 
 __all__ = ["RunResult", "CompiledRun", "run", "compile_run"]
 
@@ -96,7 +97,7 @@ def _is_pd(C):
     """Whether a square matrix is finite and positive definite (a Cholesky succeeds)."""
     if C.shape[-1] == 0:
         return jnp.array(True)
-    L = jnp.linalg.cholesky(0.5 * (C + C.T))
+    L = cholesky(C)  # symmetrises; unrolled for small C
     return jnp.all(jnp.isfinite(C)) & jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
 
 

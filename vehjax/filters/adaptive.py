@@ -50,7 +50,7 @@ from .gaussian import (
     masked_update,
     step_output,
 )
-from .sigma import cross_covariance, cubature_rule, sigma_points, unscented_transform
+from .sigma import cholesky, cross_covariance, cubature_rule, sigma_points, unscented_transform
 
 _ADAPT = ("Q", "R")
 
@@ -168,10 +168,10 @@ def ackf(
         x, P, Qh, Rh, k, theta = state
         dt = x.dtype
         y, u = _cast(y, dt), _cast(u, dt)
-        Xf = f(sigma_points(x, jnp.linalg.cholesky(P), rule), u, theta)
+        Xf = f(sigma_points(x, cholesky(P), rule), u, theta)
         x_pred, Pxx0 = unscented_transform(Xf, rule)
         P_pred = _sym(Pxx0 + Qh)
-        X = sigma_points(x_pred, jnp.linalg.cholesky(P_pred), rule)
+        X = sigma_points(x_pred, cholesky(P_pred), rule)
         Z = h(X, u, theta)
         y_hat, Pzz0 = unscented_transform(Z, rule)
         C = cross_covariance(X, x_pred, Z, y_hat, rule)

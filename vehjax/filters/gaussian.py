@@ -31,14 +31,15 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import solve_triangular
 
 from .base import Estimator, StepOutput
 from .sigma import (
     SigmaRule,
+    cholesky,
     cross_covariance,
     cubature_rule,
     sigma_points,
+    solve_lower,
     sqrt_unscented_transform,
     unscented_rule,
     unscented_transform,
@@ -276,9 +277,9 @@ def masked_update(x_pred, P_pred, y, y_hat, S, C) -> UpdateResult:
     m, mf, y0 = _observed(y, dtype)
     e = jnp.where(m, y0 - y_hat, 0)
     Sm = S * (mf[:, None] * mf[None, :]) + jnp.diag(1 - mf)
-    Ls = jnp.linalg.cholesky(_sym(Sm))
-    w = solve_triangular(Ls, e, lower=True)
-    W = solve_triangular(Ls, (C * mf[None, :]).T, lower=True)  # Ls^-1 C^T, so K = W^T Ls^-1
+    Ls = cholesky(Sm)  # symmetrises
+    w = solve_lower(Ls, e)
+    W = solve_lower(Ls, (C * mf[None, :]).T)  # Ls^-1 C^T, so K = W^T Ls^-1
     x = x_pred + W.T @ w
     P = _sym(P_pred - W.T @ W)
     n_obs = jnp.sum(m).astype(jnp.int32)
@@ -349,9 +350,9 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str) -> Estima
             x, P, theta = state
             dt = x.dtype
             y, u = _cast(y, dt), _cast(u, dt)
-            Xf = f(sigma_points(x, jnp.linalg.cholesky(P), rule), u, theta)
+            Xf = f(sigma_points(x, cholesky(P), rule), u, theta)
             x_pred, P_pred = unscented_transform(Xf, rule, jnp.asarray(Qn, dt))
-            X = sigma_points(x_pred, jnp.linalg.cholesky(P_pred), rule)
+            X = sigma_points(x_pred, cholesky(P_pred), rule)
             Z = h(X, u, theta)
             y_hat, S = unscented_transform(Z, rule, jnp.asarray(Rn, dt))
             C = cross_covariance(X, x_pred, Z, y_hat, rule)
@@ -400,7 +401,7 @@ def _sqrt_masked_update(x_pred, X, y, y_hat, Z, LR, rule: SigmaRule):
     )
     Lj = weighted_sqrt_factor(dev, rule, noise)
     L11, L21, L22 = Lj[:ny, :ny], Lj[ny:, :ny], Lj[ny:, ny:]
-    w = solve_triangular(L11, e, lower=True)
+    w = solve_lower(L11, e)
     n_obs = jnp.sum(m).astype(jnp.int32)
     nis = w @ w
     logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(L11)))

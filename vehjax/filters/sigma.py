@@ -17,6 +17,12 @@ Rules are plain numpy constants built once per filter and closed over; they are 
 
 Square-root helpers: :func:`triangularize` (a lower Cholesky factor of ``A A^T`` by QR),
 :func:`chol_update` (rank-1 update or downdate), :func:`sqrt_unscented_transform`.
+
+Small dense algebra: :func:`cholesky` and :func:`solve_lower` are the textbook Cholesky and
+forward substitution, written out entry by entry for n <= 8 (vehicle state and output
+dimensions). Under ``vmap`` over runs every entry is one vector across runs, so XLA fuses the
+whole factorisation into a few vectorised loops instead of one LAPACK call per run and matrix;
+larger n use ``jnp.linalg`` / ``jax.scipy.linalg``. Same algorithm, rounding-level differences.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.scipy.linalg import solve_triangular
 
 
 class SigmaRule(NamedTuple):
@@ -100,6 +107,71 @@ def cubature_rule(n: int) -> SigmaRule:
     points = np.sqrt(n) * np.concatenate([eye, -eye])
     w = np.full(2 * n, 0.5 / n)
     return SigmaRule(points, w, w.copy(), "cubature")
+
+
+# Largest dimension for which cholesky/solve_lower are unrolled (n^3 / 6 scalar ops at trace).
+_UNROLL_MAX = 8
+
+
+def cholesky(A):
+    """Lower Cholesky factor of symmetric positive-definite ``A`` (..., n, n).
+
+    Like ``jnp.linalg.cholesky``: ``A`` is symmetrised first, and a matrix that is not
+    positive definite (or not finite) gives a factor of NaNs. For n <= 8 the factorisation is
+    unrolled into elementwise operations over the leading (batch) axes.
+    """
+    n = A.shape[-1]
+    if A.shape[-2] != n:
+        raise ValueError(f"A: expected a square matrix (..., n, n), got shape {A.shape}")
+    if n == 0 or n > _UNROLL_MAX:
+        return jnp.linalg.cholesky(A)
+
+    def a(i, j):
+        return A[..., i, i] if i == j else 0.5 * (A[..., i, j] + A[..., j, i])
+
+    L = [[None] * n for _ in range(n)]
+    ok = None
+    for j in range(n):
+        d = a(j, j)
+        for k in range(j):
+            d = d - L[j][k] * L[j][k]
+        pos = d > 0  # False for NaN too
+        ok = pos if ok is None else ok & pos
+        L[j][j] = jnp.sqrt(jnp.where(pos, d, 1))
+        for i in range(j + 1, n):
+            t = a(i, j)
+            for k in range(j):
+                t = t - L[i][k] * L[j][k]
+            L[i][j] = t / L[j][j]
+    zero = jnp.zeros_like(L[0][0])
+    rows = [jnp.stack([L[i][j] if j <= i else zero for j in range(n)], axis=-1) for i in range(n)]
+    out = jnp.stack(rows, axis=-2)
+    finite = jnp.all(jnp.isfinite(out), axis=(-2, -1))
+    return jnp.where((ok & finite)[..., None, None], out, jnp.nan)
+
+
+def solve_lower(L, b):
+    """``L^-1 b`` for lower-triangular ``L`` (..., n, n) and ``b`` (..., n) or (..., n, k).
+
+    Forward substitution, unrolled over rows for n <= 8 (the upper triangle of L is not read).
+    """
+    n = L.shape[-1]
+    vec = b.ndim == L.ndim - 1
+    if L.shape[-2] != n or b.shape[-1 if vec else -2] != n:
+        raise ValueError(f"b: expected shape (..., {n}) or (..., {n}, k), got shape {b.shape}")
+    if n == 0 or n > _UNROLL_MAX:
+        return solve_triangular(L, b[..., None] if vec else b, lower=True)[..., 0] if vec else (
+            solve_triangular(L, b, lower=True)
+        )
+    B = b[..., None] if vec else b
+    xs = []
+    for i in range(n):
+        t = B[..., i, :]
+        for k in range(i):
+            t = t - L[..., i, k, None] * xs[k]
+        xs.append(t / L[..., i, i, None])
+    X = jnp.stack(xs, axis=-2)
+    return X[..., 0] if vec else X
 
 
 def sigma_points(mean, chol, rule: SigmaRule):

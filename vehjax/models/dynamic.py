@@ -9,6 +9,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
+from ._elementary import arctan, cos, sin
 from .base import VehicleModel
 from .tyres import linear_force
 
@@ -66,13 +67,13 @@ class Dynamic3DOF(VehicleModel):
         vx, vy, r = x
         s_fl, s_fr, s_rl, s_rr, delta = u
         m, cx, cy, lf, lr, iz, ca = theta
-        alpha_f = delta - jnp.arctan((vy + lf * r) / vx)
-        alpha_r = -jnp.arctan((vy - lr * r) / vx)
+        alpha_f = delta - arctan((vy + lf * r) / vx)
+        alpha_r = -arctan((vy - lr * r) / vx)
         fx_front = linear_force(cx, s_fl) + linear_force(cx, s_fr)
         fx_rear = linear_force(cx, s_rl) + linear_force(cx, s_rr)
         fy_front = 2.0 * linear_force(cy, alpha_f)
         fy_rear = 2.0 * linear_force(cy, alpha_r)
-        c, s = jnp.cos(delta), jnp.sin(delta)
+        c, s = cos(delta), sin(delta)
         fx = fx_front * c - fy_front * s + fx_rear - ca * vx**2
         fy = fx_front * s + fy_front * c + fy_rear
         mz = lf * (fx_front * s + fy_front * c) - lr * fy_rear
@@ -107,7 +108,7 @@ class Dynamic3DOF(VehicleModel):
     def drive_input(self, x, delta, accel, speed, theta):
         """Front slips that give longitudinal acceleration ``accel`` against drag, and ``delta``."""
         m, cx, ca = theta[0], theta[1], theta[6]
-        slip = (m * accel + ca * x[0] ** 2) / (2.0 * cx * jnp.cos(delta))
+        slip = (m * accel + ca * x[0] ** 2) / (2.0 * cx * cos(delta))
         slip = jnp.clip(slip, -0.1, 0.1)
         return jnp.stack([slip, slip, 0.0 * slip, 0.0 * slip, delta])
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from ._elementary import arctan, cos, sin, tan
 from .base import VehicleModel
 
 
@@ -34,9 +35,9 @@ class KinematicBicycle(VehicleModel):
         _, _, psi, v = x
         a, delta = u
         lf, lr = theta
-        beta = jnp.arctan(lr / (lf + lr) * jnp.tan(delta))
+        beta = arctan(lr / (lf + lr) * tan(delta))
         return jnp.stack(
-            [v * jnp.cos(psi + beta), v * jnp.sin(psi + beta), v / lr * jnp.sin(beta), a]
+            [v * cos(psi + beta), v * sin(psi + beta), v / lr * sin(beta), a]
         )
 
     def observe(self, x, u, theta):

@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from ._elementary import arctan, sin
+
 #: Pacejka '89 lateral-force coefficients a0..a13 (Fz in kN, alpha and camber in deg, Fy in N).
 LATERAL_89 = (
     1.65,  # a0   C, shape factor
@@ -83,14 +85,14 @@ def magic_formula(X, B, C, D, E, Sh, Sv):
     Broadcasts over all arguments; X in the unit B refers to (deg or %), Y in the unit of D.
     """
     Bx = B * (X + Sh)
-    return D * jnp.sin(C * jnp.arctan(Bx - E * (Bx - jnp.arctan(Bx)))) + Sv
+    return D * sin(C * arctan(Bx - E * (Bx - arctan(Bx)))) + Sv
 
 
 def pacejka89_lateral_coefficients(fz_kn, camber_deg=CAMBER_DEG, a=LATERAL_89):
     """(B [1/deg], C, D [N], E, Sh [deg], Sv [N]) of the lateral force at ``fz_kn`` > 0 [kN]."""
     C = a[0]
     D = (a[1] * fz_kn + a[2]) * fz_kn
-    BCD = a[3] * jnp.sin(2.0 * jnp.arctan(fz_kn / a[4])) * (1.0 - a[5] * jnp.abs(camber_deg))
+    BCD = a[3] * sin(2.0 * arctan(fz_kn / a[4])) * (1.0 - a[5] * jnp.abs(camber_deg))
     B = BCD / (C * D)
     E = a[6] * fz_kn + a[7]
     Sh = a[8] * camber_deg + a[9] * fz_kn + a[10]

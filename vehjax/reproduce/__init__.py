@@ -1,0 +1,22 @@
+"""Paper reproductions, one module each, run by ``vehjax reproduce NAME [options]``.
+
+Every module defines ``main(argv: list[str] | None) -> int`` (its own argparse options, printed
+tables, saved figures) and ``PAPER``, one line naming the paper it reproduces.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+#: reproduction name -> module under vehjax.reproduce
+REGISTRY = {
+    "wang2016": "wang2016",
+    "dutta2019": "dutta2019",
+}
+
+
+def load(name: str):
+    """The module that reproduces ``name`` (a key of :data:`REGISTRY`)."""
+    if name not in REGISTRY:
+        raise ValueError(f"reproduce: unknown paper {name!r}; expected one of {sorted(REGISTRY)}")
+    return importlib.import_module(f"{__name__}.{REGISTRY[name]}")
