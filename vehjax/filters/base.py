@@ -57,3 +57,30 @@ class Estimator(NamedTuple):
     param_names: tuple[str, ...] = ()
     name: str = "estimator"
     needs_key: bool = False
+
+
+def check_estimate(model, estimate) -> tuple[tuple[str, ...], tuple[int, ...]]:
+    """Names of the parameters to estimate and their indices in ``model.param_names``.
+
+    ``estimate`` is one name or a sequence of unique names of the model's parameters. Raises
+    ValueError naming ``estimate`` when it is missing, empty, not strings, repeated or unknown.
+    """
+    known = tuple(model.param_names)
+    if estimate is None:
+        raise ValueError(f"estimate: required, the names of the parameters to estimate from {known}")
+    if isinstance(estimate, str):
+        estimate = (estimate,)
+    try:
+        names = tuple(estimate)
+    except TypeError:
+        raise ValueError(f"estimate: expected a sequence of parameter names, got {estimate!r}") from None
+    if not names:
+        raise ValueError(f"estimate: expected at least one parameter name from {known}, got none")
+    if not all(isinstance(n, str) for n in names):
+        raise ValueError(f"estimate: expected parameter names (strings), got {names!r}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"estimate: names must be unique, got {names!r}")
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise ValueError(f"estimate: unknown parameter name(s) {unknown}; this model has {known}")
+    return names, tuple(known.index(n) for n in names)

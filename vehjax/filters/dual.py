@@ -53,8 +53,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import cho_solve
 
-from .base import Estimator, StepOutput
-from .gaussian import check_cov, masked_update, validate_prior
+from .base import Estimator, StepOutput, check_estimate
+from .gaussian import _prior as _state_prior
+from .gaussian import check_cov, masked_update
 from .sigma import cross_covariance, sigma_points, unscented_rule, unscented_transform
 
 __all__ = ["DualState", "JointState", "dual_ekf", "dual_ukf", "joint_ekf", "joint_ukf"]
@@ -118,27 +119,8 @@ def _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale) -> _Setup:
                 f"model: expected a vehjax model with .{attr}, got {type(model).__name__}"
             )
     nx, ny = int(model.nx), int(model.ny)
-    if estimate is None:
-        raise ValueError(
-            f"estimate: expected names of parameters to estimate from {model.param_names}"
-        )
-    names = (estimate,) if isinstance(estimate, str) else tuple(estimate)
-    if not names:
-        raise ValueError(
-            f"estimate: expected at least one parameter name from {tuple(model.param_names)}, "
-            "got none"
-        )
-    if not all(isinstance(n, str) for n in names):
-        raise ValueError(f"estimate: expected parameter names (strings), got {names!r}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"estimate: names must be unique, got {names!r}")
-    unknown = [n for n in names if n not in tuple(model.param_names)]
-    if unknown:
-        raise ValueError(
-            f"estimate: unknown parameter name(s) {unknown}; this model has "
-            f"{tuple(model.param_names)}"
-        )
-    idx = np.array([tuple(model.param_names).index(n) for n in names], dtype=int)
+    names, idx = check_estimate(model, estimate)
+    idx = np.array(idx, dtype=int)
     p = len(names)
     theta_nom = np.asarray(model.theta, dtype=float)
 
@@ -184,13 +166,7 @@ def _check_param_innovation(value) -> bool:
 def _prior(cfg: _Setup, x0, P0, theta0, P_theta0):
     """(x0, P0, z0, Pz0) as arrays of one float dtype, checked; z0, Pz0 in scaled units."""
     nx, p = cfg.nx, len(cfg.names)
-    if np.ndim(x0) != 1 or np.shape(x0)[0] != nx:
-        raise ValueError(f"x0: expected shape ({nx},), got shape {np.shape(x0)}")
-    if np.shape(P0) not in ((nx, nx), (nx,)):
-        raise ValueError(
-            f"P0: expected shape ({nx}, {nx}) or ({nx},) variances, got shape {np.shape(P0)}"
-        )
-    validate_prior(nx, x0, P0)
+    x0, P0 = _state_prior(nx, x0, P0)
     if theta0 is None:
         theta0 = cfg.theta_nom[cfg.idx]
     if np.shape(theta0) != (p,):
@@ -205,16 +181,11 @@ def _prior(cfg: _Setup, x0, P0, theta0, P_theta0):
         raise ValueError(f"P_theta0: required, the covariance ({p}, {p}) of theta0 for {cfg.names}")
     Pth0 = check_cov("P_theta0", P_theta0, p)
 
-    x0, P0 = jnp.asarray(x0), jnp.asarray(P0)
-    dtype = jnp.result_type(x0.dtype, P0.dtype)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        dtype = jnp.asarray(0.0).dtype
-    if P0.ndim == 1:
-        P0 = jnp.diag(P0)
+    dtype = x0.dtype
     s = jnp.asarray(cfg.scale, dtype)
     z0 = jnp.asarray(theta0).astype(dtype) / s
     Pz0 = jnp.asarray(Pth0).astype(dtype) / jnp.outer(s, s)
-    return x0.astype(dtype), P0.astype(dtype), z0, Pz0
+    return x0, P0, z0, Pz0
 
 
 # --------------------------------------------------------------------------------------------

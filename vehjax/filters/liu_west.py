@@ -55,7 +55,6 @@ kernel, no gamma) and the UKF only predicts.
 from __future__ import annotations
 
 import math
-import operator
 from typing import NamedTuple
 
 import jax
@@ -63,8 +62,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import resampling as _rs
-from .base import Estimator
+from .base import Estimator, check_estimate
 from .gaussian import GaussianState, _check_model, _prior, check_cov, ukf
+from .particle import _check_n_particles
 from .sigma import sigma_points, unscented_rule, unscented_transform
 
 _LIKELIHOODS = ("predictive", "measurement")
@@ -105,16 +105,6 @@ class LiuWestState(NamedTuple):
 # -- validation (before anything is traced) --------------------------------------------------
 
 
-def _check_n_particles(n_particles) -> int:
-    try:
-        n = operator.index(n_particles)
-    except TypeError:
-        n = 0
-    if isinstance(n_particles, (bool, np.bool_)) or n < 1:
-        raise ValueError(f"n_particles: expected an int >= 1, got {n_particles!r}")
-    return n
-
-
 def _check_number(name: str, value, low: float, high: float, closed_high: bool = False) -> float:
     try:
         v = float(value)
@@ -125,30 +115,6 @@ def _check_number(name: str, value, low: float, high: float, closed_high: bool =
         interval = f"({low}, {high}]" if closed_high else f"({low}, {high})"
         raise ValueError(f"{name}: expected a number in {interval}, got {value!r}")
     return v
-
-
-def _check_estimate(model, estimate) -> tuple[tuple[str, ...], tuple[int, ...]]:
-    if isinstance(estimate, str):
-        estimate = (estimate,)
-    try:
-        names = tuple(estimate)
-    except TypeError:
-        raise ValueError(
-            f"estimate: expected a sequence of parameter names, got {estimate!r}"
-        ) from None
-    if not names:
-        raise ValueError(f"estimate: expected at least one of {tuple(model.param_names)}, got none")
-    if not all(isinstance(n, str) for n in names):
-        raise ValueError(f"estimate: expected parameter names (strings), got {names!r}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"estimate: names must be unique, got {names!r}")
-    unknown = [n for n in names if n not in tuple(model.param_names)]
-    if unknown:
-        raise ValueError(
-            f"estimate: unknown parameter name(s) {unknown}; "
-            f"this model has {tuple(model.param_names)}"
-        )
-    return names, tuple(tuple(model.param_names).index(n) for n in names)
 
 
 def _check_box(theta_low, theta_high, names) -> tuple[np.ndarray, np.ndarray]:
@@ -283,12 +249,7 @@ def liu_west_ukf(
             resampling scheme or likelihood, ess_threshold outside [0, 1].
     """
     nx, ny = _check_model(model)
-    if estimate is None:
-        raise ValueError(
-            "estimate: required, the names of the parameters to estimate, from "
-            f"{tuple(model.param_names)}"
-        )
-    names, idx = _check_estimate(model, estimate)
+    names, idx = check_estimate(model, estimate)
     p = len(names)
     if theta_low is None or theta_high is None:
         raise ValueError(
