@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from vehjax.models._elementary import arctan, arctan2, cos, sin, tan
+from vehjax._elementary import arctan, arctan2, cos, sin, tan
 
 
 def _ulps(got, ref):
@@ -67,3 +67,12 @@ def test_sin_cos_tan_derivatives():
     np.testing.assert_allclose(jax.vmap(jax.grad(sin))(x), np.cos(x), rtol=1e-15, atol=1e-16)
     np.testing.assert_allclose(jax.vmap(jax.grad(cos))(x), -np.sin(x), rtol=1e-15, atol=1e-16)
     np.testing.assert_allclose(jax.vmap(jax.grad(tan))(x), 1 / np.cos(x) ** 2, rtol=1e-14)
+
+
+def test_float32_sin_cos_for_the_particle_filters_box_muller():
+    angle = np.linspace(0.0, 2 * np.pi, 100_001, dtype=np.float32)
+    for fast, ref in ((sin, np.sin), (cos, np.cos)):
+        got = fast(jnp.asarray(angle))
+        assert got.dtype == jnp.float32
+        want = ref(angle.astype(np.float64))
+        assert np.max(np.abs(np.asarray(got, np.float64) - want)) <= 2 * np.finfo(np.float32).eps

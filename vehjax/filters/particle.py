@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.extend.random import threefry_2x32
 
+from .._elementary import _sincos
 from . import resampling as _rs
 from .base import Estimator, StepOutput
 from .gaussian import _check_model, _prior, _theta, check_cov
@@ -131,7 +132,8 @@ def _std_normals(bits, count: int):
     u1 = ((bits[:half] >> 8).astype(jnp.float32) + 1.0) * np.float32(2.0**-24)
     angle = (bits[half:] >> 8).astype(jnp.float32) * np.float32(2.0 * math.pi * 2.0**-24)
     r = jnp.sqrt(-2.0 * jnp.log(u1))
-    return jnp.concatenate([r * jnp.cos(angle), r * jnp.sin(angle)])[:count]
+    sin_a, cos_a = _sincos(angle)  # vectorised: XLA calls libm per element for jnp.sin/cos
+    return jnp.concatenate([r * cos_a, r * sin_a])[:count]
 
 
 def _uniforms(bits, dtype):

@@ -71,7 +71,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._elementary import arctan2, cos, sin
+from .._elementary import arctan2, cos, sin
 from .base import VehicleModel
 from .tyres import pacejka89_lateral, pacejka89_longitudinal
 
