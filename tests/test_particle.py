@@ -197,7 +197,7 @@ def test_all_missing_is_a_pure_prediction(one_step):
     assert float(out.loglik) == 0.0 and float(out.nis) == 0.0 and int(out.n_obs) == 0
     np.testing.assert_array_equal(state2.weights, state.weights)
     # the particle mean moved with the model
-    np.testing.assert_allclose(out.mean, A @ np.asarray(state.particles).mean(axis=0), atol=0.05)
+    np.testing.assert_allclose(out.mean, A @ np.asarray(state.particles).mean(axis=1), atol=0.05)
 
 
 def test_nis_uses_predicted_particle_moments(one_step):
@@ -218,7 +218,7 @@ def test_process_noise_is_gaussian_with_covariance_q():
     est = bootstrap_pf(zero, Q, R_DIAG, 50000)
     state = est.init(jnp.asarray(X0), jnp.asarray(P0), key=jax.random.key(7))
     state, _ = jax.jit(est.step)(state, jnp.array([jnp.nan, jnp.nan]), jnp.zeros(0))
-    v = np.asarray(state.particles)  # = the process noise of one step
+    v = np.asarray(state.particles).T  # (N, nx): the process noise of one step
     np.testing.assert_allclose(np.cov(v.T), Q, rtol=0.03, atol=2e-4)
     white = np.linalg.solve(np.linalg.cholesky(Q), v.T)
     for comp in white:
@@ -318,9 +318,9 @@ def test_dynamic3dof_follows_the_truth():
 def test_estimator_contract(one_step):
     est, step, state = one_step
     assert est.needs_key and est.nx == 2 and est.param_names == () and est.name == "bootstrap_pf"
-    assert state.particles.shape == (20000, 2) and state.flag_diverged.dtype == jnp.bool_
+    assert state.particles.shape == (2, 20000) and state.flag_diverged.dtype == jnp.bool_
     variances = est.init(jnp.asarray(X0), jnp.asarray([0.5, 0.3]), key=jax.random.key(0))
-    np.testing.assert_allclose(np.cov(np.asarray(variances.particles).T), np.diag([0.5, 0.3]),
+    np.testing.assert_allclose(np.cov(np.asarray(variances.particles)), np.diag([0.5, 0.3]),
                                atol=0.02)
     _, out = step(state, jnp.array([0.1, 0.2]), jnp.zeros(2))
     assert out.params.shape == (0,) and out.params_cov.shape == (0, 0)

@@ -106,9 +106,10 @@ def _reduce(x):
     a = jnp.abs(x)
     dp1, dp2, dp3 = _DP[8 if x.dtype.itemsize >= 8 else 4]
     j = jnp.floor(a * (4.0 / np.pi))
-    j = j + jnp.mod(j, 2.0)  # round up to even: r in [-pi/4, pi/4]
+    # j mod 2 and j mod 8 by floor, exact for integer-valued j: XLA on CPU calls fmod per element
+    j = j + (j - 2.0 * jnp.floor(0.5 * j))  # round up to even: r in [-pi/4, pi/4]
     r = ((a - j * dp1) - j * dp2) - j * dp3
-    return r, jnp.mod(j, 8.0)
+    return r, j - 8.0 * jnp.floor(0.125 * j)
 
 
 def _sin_cos_poly(r):
