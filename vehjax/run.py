@@ -10,6 +10,10 @@ Time convention (the papers' order): ``x0``/``P0`` describe the state before the
 step ``t`` predicts with ``inputs[..., t, :]``, then updates with ``measurements[:, t, :]``, so
 ``out.states[:, t]`` is the filtered estimate after the ``t``-th measurement.
 
+Estimators whose ``step`` carries a ``runs_last`` form (UKF and CKF on models with at most 8
+states and outputs, :mod:`vehjax.filters.runs_last`) are not vmapped: one scan runs the batched
+step with the runs axis last, which XLA on CPU vectorises across runs; results agree to rounding.
+
 A NaN measurement component is missing; ``run`` passes it to the filter untouched and the filter
 skips that component's update.
 
@@ -48,6 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from .filters import runs_last as _runs_last
 from .filters.base import Estimator
 from .filters.sigma import cholesky
 
@@ -120,11 +125,12 @@ def _check_step_output(out, nx: int, p: int):
             )
 
 
-def _one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key):
-    """One run: y (T, ny), u (T, nu); x0 (nx,), P0 (nx, nx); th0 (p,), Pth0 (p, p) or None."""
+def _start(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
+    """(filter state, held outputs, log-likelihood 0) of one run before its first step; checks
+    the shapes of the step's output. y (T, ny), u (T, nu) or (nu,) are only read for shapes."""
     nx, p = estimator.nx, len(estimator.param_names)
     state0 = estimator.init(x0, P0, th0, Pth0, key)
-    _, out_shape = jax.eval_shape(estimator.step, state0, y[0], u[0])
+    _, out_shape = jax.eval_shape(estimator.step, state0, y[0], u[0] if u.ndim == 2 else u)
     _check_step_output(out_shape, nx, p)
 
     def cast(a, like):
@@ -136,7 +142,13 @@ def _one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, ke
         cast(jnp.zeros((0,)) if th0 is None else th0, out_shape.params),
         cast(jnp.zeros((0, 0)) if Pth0 is None else Pth0, out_shape.params_cov),
     )
-    ll0 = jnp.zeros((), out_shape.loglik.dtype)
+    return state0, held0, jnp.zeros((), out_shape.loglik.dtype)
+
+
+def _one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key):
+    """One run: y (T, ny), u (T, nu); x0 (nx,), P0 (nx, nx); th0 (p,), Pth0 (p, p) or None."""
+    p = len(estimator.param_names)
+    state0, held0, ll0 = _start(estimator, y, u, x0, P0, th0, Pth0, key)
     int0 = partial(jnp.array, dtype=jnp.int32)
     carry0 = (state0, held0, jnp.array(False), jnp.array(False), int0(-1), ll0, int0(0))
 
@@ -175,6 +187,55 @@ def _one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, ke
     return mean, cov, params, pcov, ll, nis, n_obs, frozen | flagged, diverged_at
 
 
+def _runs_runs_last(estimator: Estimator, return_cov: bool, per_run, ys, us, x0, P0, th0, Pth0,
+                    keys):
+    """What ``vmap(_one_run)`` computes, for an estimator whose ``step`` has a ``runs_last``
+    form: one scan over time of the batched step, every array with the runs axis last (see
+    :mod:`vehjax.filters.runs_last`). Same divergence logic, element for element."""
+    p = len(estimator.param_names)
+    per_run_u = us.ndim == 3
+    step = estimator.step.runs_last(per_run_u)
+    start = jax.vmap(
+        partial(_start, estimator), in_axes=tuple(0 if r else None for r in per_run)
+    )
+    state0, held0, ll0 = start(ys, us, x0, P0, th0, Pth0, keys)
+    last = partial(jax.tree.map, lambda a: jnp.moveaxis(a, 0, -1))
+    state0, held0 = last(state0), last(held0)
+    C = ys.shape[0]
+    carry0 = (state0, held0, jnp.zeros(C, bool), jnp.zeros(C, bool),
+              jnp.full(C, -1, jnp.int32), ll0, jnp.array(0, jnp.int32))
+
+    def body(carry, yu):
+        state, held, diverged, flagged, diverged_at, ll, t = carry
+        new_state, out = step(state, *yu)
+        flag_now = jnp.asarray(getattr(new_state, "flag_diverged", False)) & ~diverged
+        ok = jnp.all(jnp.isfinite(out.mean), axis=0) & _runs_last.is_pd(out.cov)
+        if p:
+            ok = ok & jnp.all(jnp.isfinite(out.params), axis=0) & _runs_last.is_pd(out.params_cov)
+        bad = diverged | ~ok
+        diverged_at = jnp.where((bad | flag_now) & ~diverged & ~flagged, t, diverged_at)
+        flagged = flagged | flag_now
+        keep = partial(jnp.where, bad)  # bad (C,) broadcasts against the trailing runs axis
+        state = jax.tree.map(keep, state, new_state)
+        held = jax.tree.map(keep, held, (out.mean, out.cov, out.params, out.params_cov))
+        ll = ll + jnp.where(bad, 0.0, out.loglik).astype(ll.dtype)
+        nis = jnp.where(bad, jnp.nan, out.nis)
+        n_obs = jnp.where(bad, 0, out.n_obs).astype(jnp.int32)
+        mean, cov, params, params_cov = held
+        per_step = (mean, cov if return_cov else None, params,
+                    params_cov if return_cov else None, nis, n_obs)
+        return (state, held, bad, flagged, diverged_at, ll, t + 1), per_step
+
+    y_t = jnp.moveaxis(ys, 0, -1)  # (T, ny, C)
+    u_t = jnp.moveaxis(us, 0, -1) if per_run_u else us  # (T, nu, C) or (T, nu)
+    (_, _, frozen, flagged, diverged_at, ll, _), outs = jax.lax.scan(body, carry0, (y_t, u_t))
+    # (T, ..., C) -> (C, T, ...)
+    mean, cov, params, pcov, nis, n_obs = (
+        None if a is None else jnp.moveaxis(a, -1, 0) for a in outs
+    )
+    return mean, cov, params, pcov, ll, nis, n_obs, frozen | flagged, diverged_at
+
+
 @eqx.filter_jit
 def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh):
     """A chunk of runs: ys (C, T, ny); the others per run (leading C) or shared, by rank."""
@@ -187,9 +248,13 @@ def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh):
         Pth0 is not None and Pth0.ndim == 3,
         keys is not None,
     )
-    f = jax.vmap(
-        partial(_one_run, estimator, return_cov), in_axes=tuple(0 if r else None for r in per_run)
-    )
+    if getattr(estimator.step, "runs_last", None) is not None:
+        f = partial(_runs_runs_last, estimator, return_cov, per_run)
+    else:
+        f = jax.vmap(
+            partial(_one_run, estimator, return_cov),
+            in_axes=tuple(0 if r else None for r in per_run),
+        )
     if mesh is not None:
         f = jax.shard_map(
             f,

@@ -8,6 +8,13 @@ An estimator is a pair of pure functions, like optax's ``GradientTransformation`
 ``state`` is any pytree of arrays (filters that draw random numbers carry their key in it).
 Everything that configures a filter (model, Q, R, tuning) is closed over, so ``run`` treats
 every filter alike and ``jax.vmap``/``jax.lax.scan`` see only arrays.
+
+A ``step`` may carry an attribute ``runs_last(per_run_inputs: bool) -> step_batch``: the same
+step for a whole batch of runs at once, with the runs axis last in every leaf of the state, of
+y, of u (when ``per_run_inputs``; else u is shared, (nu,)) and of the StepOutput.
+``vehjax.run`` then uses it instead of ``vmap``-ing ``step`` (see
+:mod:`vehjax.filters.runs_last`). It belongs to that function: an estimator whose ``step`` is
+replaced (``est._replace(step=...)``) is run with ``vmap`` again.
 """
 
 from __future__ import annotations

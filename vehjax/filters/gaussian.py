@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import runs_last as _runs_last
 from .base import Estimator, StepOutput
 from .sigma import (
     SigmaRule,
@@ -358,6 +359,19 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str) -> Estima
             C = cross_covariance(X, x_pred, Z, y_hat, rule)
             r = masked_update(x_pred, P_pred, y, y_hat, S, C)
             return GaussianState(r.x, r.P, theta), step_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
+
+        small = max(nx, ny) <= _runs_last.MAX_DIM
+        if small and isinstance(Qn, np.ndarray) and isinstance(Rn, np.ndarray):
+            f1, h1 = _in_dtype(model.transition), _in_dtype(model.observe)
+
+            def batch(per_run_inputs: bool):
+                return _runs_last.sigma_step(
+                    _runs_last.points_fn(f1, per_run_inputs),
+                    _runs_last.points_fn(h1, per_run_inputs),
+                    Qn, Rn, rule,
+                )
+
+            step.runs_last = batch  # vehjax.run's batched form of this very step
 
         return Estimator(init=_prior_init(model, False), step=step, nx=nx, name=name)
 

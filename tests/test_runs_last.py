@@ -1,0 +1,107 @@
+"""vehjax.run's runs-last UKF/CKF step (vehjax.filters.runs_last) against the vmapped per-run
+step it replaces: the same study both ways agrees to rounding, field by field."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import vehjax as vj
+from vehjax.filters import ckf, ukf
+
+R_RUNS, T = 6, 60
+
+
+def _vmapped(est):
+    """The same estimator with a plain step function: run vmaps it over runs."""
+    return est._replace(step=lambda s, y, u: est.step(s, y, u))
+
+
+def _assert_same(a, b, rtol):
+    for f in ("states", "covariances", "loglik", "nis"):
+        np.testing.assert_allclose(getattr(a, f), getattr(b, f), rtol=rtol, atol=rtol, err_msg=f)
+    for f in ("n_obs", "diverged", "diverged_at"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
+
+
+@pytest.fixture(scope="module")
+def study():
+    model = vj.models.Dynamic3DOF(dt=0.01)
+    scn = vj.scenarios.sine_steer(model, speed=20.0, duration=T * model.dt)
+    Q, R = np.diag([0.05, 0.05, 0.01]) ** 2, np.diag([0.2, 0.2, 0.05]) ** 2
+    sim = vj.simulate(model, scn, runs=R_RUNS, key=jax.random.key(3),
+                      process_std=np.sqrt(np.diag(Q)), meas_std=np.sqrt(np.diag(R)))
+    ys = np.array(sim.measurements)
+    ys[1, 10:20, 0] = np.nan  # one component missing
+    ys[2, 30:35] = np.nan  # all missing
+    x0 = np.tile(np.asarray(scn.x0) + [0.5, 0.1, 0.02], (R_RUNS, 1))
+    P0 = np.diag([1.0, 0.2, 0.05]) ** 2
+    return model, Q, R, ys, np.asarray(sim.inputs), x0, P0
+
+
+@pytest.mark.parametrize("build", [ukf, ckf], ids=["ukf", "ckf"])
+def test_runs_last_equals_vmapped_step(study, build):
+    model, Q, R, ys, us, x0, P0 = study
+    est = build(model, Q, R)
+    assert est.step.runs_last is not None
+    us_runs = np.tile(us, (R_RUNS, 1, 1)) * np.linspace(0.9, 1.1, R_RUNS)[:, None, None]
+    for inputs in (us, us_runs):  # shared and per-run inputs
+        kw = dict(x0=x0, P0=P0, return_covariances=True, progress=False)
+        fast = vj.run(est, ys, inputs, **kw)
+        ref = vj.run(_vmapped(est), ys, inputs, **kw)
+        _assert_same(fast, ref, 1e-9)
+        assert fast.n_obs[2, 30:35].tolist() == [0] * 5 and fast.n_obs[1, 15] == 2
+        assert not fast.diverged.any()
+
+
+def test_runs_last_diverging_run_is_frozen_others_untouched():
+    dt = 0.1
+    model = vj.models.Model(  # NaN once the input goes negative
+        transition=lambda x, u, th: jnp.stack([x[0] + dt * x[1], x[1] + dt * jnp.sqrt(u[0])]),
+        observe=lambda x, u, th: x[:1], dt=dt, state_names=("p", "v"), input_names=("a",),
+        output_names=("y",),
+    )
+    runs, steps = 4, 20
+    us = np.ones((runs, steps, 1))
+    us[1, 5:] = -1.0
+    ys = np.cumsum(np.ones((runs, steps, 1)) * 0.1, axis=1)
+    est = ukf(model, np.eye(2) * 1e-3, [1e-2])
+    assert est.step.runs_last is not None
+    kw = dict(x0=[0.0, 1.0], P0=np.eye(2), return_covariances=True, progress=False)
+    fast = vj.run(est, ys, us, **kw)
+    _assert_same(fast, vj.run(_vmapped(est), ys, us, **kw), 1e-12)
+    assert fast.diverged.tolist() == [False, True, False, False] and fast.diverged_at[1] == 5
+    np.testing.assert_array_equal(fast.states[1, 5:], np.broadcast_to(fast.states[1, 4],
+                                                                       (steps - 5, 2)))
+    assert np.isnan(fast.nis[1, 5:]).all() and (fast.n_obs[1, 5:] == 0).all()
+    np.testing.assert_allclose(fast.states[[0, 2, 3]], vj.run(est, ys[[0, 2, 3]], us[[0, 2, 3]],
+                                                              **kw).states, rtol=1e-12)
+
+
+def test_runs_last_float32(study):
+    model, Q, R, ys, us, x0, P0 = study
+    est = ukf(model, Q, R)
+    kw = dict(x0=x0[:4].astype(np.float32), P0=P0.astype(np.float32), progress=False,
+              return_covariances=True)
+    fast = vj.run(est, ys[:4].astype(np.float32), us.astype(np.float32), **kw)
+    ref = vj.run(_vmapped(est), ys[:4].astype(np.float32), us.astype(np.float32), **kw)
+    assert fast.states.dtype == np.float32
+    _assert_same(fast, ref, 2e-4)
+
+
+def test_only_small_models_and_constant_noise_get_a_runs_last_step():
+    small = ukf(vj.models.Dynamic3DOF(dt=0.01), np.eye(3) * 1e-3, np.eye(3) * 1e-2)
+    assert getattr(small.step, "runs_last", None) is not None
+    small_model = vj.models.Dynamic3DOF(dt=0.01)
+    sqrt = ukf(small_model, np.eye(3) * 1e-3, np.eye(3) * 1e-2, sqrt=True)
+    assert getattr(sqrt.step, "runs_last", None) is None
+    # a builder called with traced noise (tuning Q, R by gradients) keeps the vmapped step
+    seen = {}
+
+    def build(q):
+        est = ukf(small_model, q, np.eye(3) * 1e-2)
+        seen["runs_last"] = getattr(est.step, "runs_last", None)
+        return q.sum()
+
+    jax.jit(build)(jnp.eye(3) * 1e-3)
+    assert seen["runs_last"] is None

@@ -1,0 +1,195 @@
+"""The UKF/CKF step over a whole batch of runs at once, the runs axis last (``step.runs_last``,
+see :mod:`vehjax.filters.base`).
+
+:func:`vehjax.run` normally ``vmap``s an estimator's per-run ``step`` over runs. For a vehicle
+model with a handful of states that puts the runs first and 3 x 3 matrices last, so XLA on CPU
+runs every small matrix operation as a loop of 3 over runs, and the filter algebra of a UKF
+costs several times the model's arithmetic. Here every matrix entry and vector component is
+one (R,) array over the runs instead, and the algebra is written out entry by entry: XLA fuses
+it into long vectorised loops. The model is still evaluated by ``vmap`` (over sigma points,
+then runs), on points laid out (n, m, R). Same equations, same order of operations as
+:func:`vehjax.filters.gaussian.ukf`; results agree with the vmapped step to rounding.
+
+Layout of a batch: state ``x`` (nx, R), ``P`` (nx, nx, R), ``theta`` (np, R); measurement
+``y`` (ny, R); input ``u`` (nu,) shared by all runs or (nu, R). Used for nx, ny <= 8.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .sigma import SigmaRule
+
+MAX_DIM = 8  # nx and ny up to this use the runs-last step
+_LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+def _chol(A):
+    """Lower Cholesky factor of a symmetric matrix given as nested lists of (R,) arrays.
+
+    A non-positive pivot gives NaN entries (as ``jnp.linalg.cholesky`` does), which the
+    divergence check of ``run`` catches.
+    """
+    n = len(A)
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        d = A[j][j]
+        for k in range(j):
+            d = d - L[j][k] * L[j][k]
+        L[j][j] = jnp.sqrt(jnp.where(d > 0, d, jnp.nan))
+        for i in range(j + 1, n):
+            t = 0.5 * (A[i][j] + A[j][i])
+            for k in range(j):
+                t = t - L[i][k] * L[j][k]
+            L[i][j] = t / L[j][j]
+    return L
+
+
+def _forward(L, b):
+    """L^-1 b by forward substitution; L lower (nested lists), b a list of (R,) arrays."""
+    out = []
+    for i in range(len(b)):
+        t = b[i]
+        for k in range(i):
+            t = t - L[i][k] * out[k]
+        out.append(t / L[i][i])
+    return out
+
+
+def _wsum(weights, terms):
+    """sum_i w_i t_i over the non-zero (numpy constant) weights."""
+    acc = None
+    for w, t in zip(weights, terms):
+        if w == 0.0:
+            continue
+        term = t if w == 1.0 else float(w) * t
+        acc = term if acc is None else acc + term
+    return acc
+
+
+def _points(x, L, rule: SigmaRule):
+    """Sigma points x + L xi_k, as a list over points of lists over components."""
+    n = len(x)
+    pts = []
+    for xi in rule.points:
+        pts.append([x[i] + (_wsum(xi[: i + 1], L[i][: i + 1]) if np.any(xi[: i + 1]) else 0.0)
+                    for i in range(n)])
+    return pts
+
+
+def _moments(Y, rule: SigmaRule, noise):
+    """Weighted mean (list) and covariance (nested lists) of points Y, plus the deviations."""
+    d = len(Y[0])
+    mean = [_wsum(rule.wm, [y[i] for y in Y]) for i in range(d)]
+    dev = [[y[i] - mean[i] for i in range(d)] for y in Y]
+    cov = [[None] * d for _ in range(d)]
+    for i in range(d):
+        for j in range(i + 1):
+            c = _wsum(rule.wc, [e[i] * e[j] for e in dev])
+            cov[i][j] = cov[j][i] = c + noise[i][j]
+    return mean, cov, dev
+
+
+def sigma_step(model_fn_pts, obs_fn_pts, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule):
+    """The non-square-root UKF/CKF step (:func:`vehjax.filters.gaussian._sigma_filter`) over a
+    batch of runs, runs last.
+
+    Args:
+        model_fn_pts, obs_fn_pts: ``g(X, u, theta)`` for points X (n, m, R), u (nu,) or (nu, R),
+            theta (np, R), returning (d, m, R); built by :func:`points_fn`.
+        Qn, Rn: process and measurement noise covariances (numpy).
+        rule: the sigma-point rule.
+
+    Returns:
+        ``step(state, y, u) -> (state, StepOutput)`` with every leaf's runs axis last
+        (StepOutput.mean (nx, R), cov (nx, nx, R), loglik, nis, n_obs (R,), params (0, R),
+        params_cov (0, 0, R)); ``state`` is a GaussianState of such arrays.
+    """
+    from .base import StepOutput
+    from .gaussian import GaussianState
+
+    nx, ny = Qn.shape[0], Rn.shape[0]
+
+    def through(fn, pts, u, theta):
+        X = jnp.stack([jnp.stack([p[i] for p in pts]) for i in range(len(pts[0]))])
+        F = fn(X, u, theta)
+        return [[F[i, k] for i in range(F.shape[0])] for k in range(len(pts))]
+
+    def step(state, y, u):
+        X0, P0, theta = state
+        dt = X0.dtype
+        y, u, theta = y.astype(dt), u.astype(dt), theta.astype(dt)
+        Q = [[jnp.asarray(Qn[i, j], dt) for j in range(nx)] for i in range(nx)]
+        Rm = [[jnp.asarray(Rn[i, j], dt) for j in range(ny)] for i in range(ny)]
+        x = [X0[i] for i in range(nx)]
+        P = [[P0[i, j] for j in range(nx)] for i in range(nx)]
+
+        F = through(model_fn_pts, _points(x, _chol(P), rule), u, theta)
+        xp, Pp, _ = _moments(F, rule, Q)
+        pts = _points(xp, _chol(Pp), rule)
+        Z = through(obs_fn_pts, pts, u, theta)
+        yh, S, dz = _moments(Z, rule, Rm)
+        dx = [[p[i] - xp[i] for i in range(nx)] for p in pts]
+        C = [[_wsum(rule.wc, [a[i] * b[j] for a, b in zip(dx, dz)]) for j in range(ny)]
+             for i in range(nx)]
+
+        # masked update, as gaussian.masked_update: NaN components of y are not observed
+        obs = [jnp.isfinite(y[j]) for j in range(ny)]
+        mf = [o.astype(dt) for o in obs]
+        e = [jnp.where(obs[j], y[j] - yh[j], 0.0) for j in range(ny)]
+        Sm = [[S[i][j] * (mf[i] * mf[j]) + ((1.0 - mf[i]) if i == j else 0.0) for j in range(ny)]
+              for i in range(ny)]
+        Ls = _chol(Sm)
+        w = _forward(Ls, e)
+        W = [_forward(Ls, [C[i][j] * mf[j] for j in range(ny)]) for i in range(nx)]
+        xn = [xp[i] + sum(W[i][k] * w[k] for k in range(ny)) for i in range(nx)]
+        Pn = [[None] * nx for _ in range(nx)]
+        for i in range(nx):
+            for j in range(i + 1):
+                Pn[i][j] = Pn[j][i] = Pp[i][j] - sum(W[i][k] * W[j][k] for k in range(ny))
+        nis = sum(v * v for v in w)
+        n_obs = sum(o.astype(jnp.int32) for o in obs)
+        logdet = 2.0 * sum(jnp.log(Ls[k][k]) for k in range(ny))
+        loglik = -0.5 * (nis + logdet + n_obs.astype(dt) * _LOG_2PI)
+
+        x_new = jnp.stack(xn)
+        P_new = jnp.stack([jnp.stack(row) for row in Pn])
+        R_runs = x_new.shape[-1]
+        out = StepOutput(
+            mean=x_new,
+            cov=P_new,
+            loglik=loglik,
+            nis=nis,
+            n_obs=n_obs,
+            params=jnp.zeros((0, R_runs), dt),
+            params_cov=jnp.zeros((0, 0, R_runs), dt),
+        )
+        return GaussianState(x_new, P_new, theta), out
+
+    return step
+
+
+def is_pd(C):
+    """(R,) bool: whether each run's matrix of C (n, n, R) is finite and positive definite."""
+    n = C.shape[0]
+    if n == 0:
+        return jnp.ones(C.shape[-1], bool)
+    if n > MAX_DIM:
+        Cr = jnp.moveaxis(C, -1, 0)
+        L = jnp.linalg.cholesky(0.5 * (Cr + jnp.swapaxes(Cr, -1, -2)))
+        return jnp.all(jnp.isfinite(Cr), axis=(1, 2)) & jnp.all(jnp.isfinite(L), axis=(1, 2))
+    L = _chol([[C[i, j] for j in range(n)] for i in range(n)])
+    ok = jnp.all(jnp.isfinite(C), axis=(0, 1))
+    for i in range(n):
+        for j in range(i + 1):
+            ok = ok & jnp.isfinite(L[i][j])
+    return ok
+
+
+def points_fn(fn, per_run_input: bool):
+    """``fn(x, u, theta)`` of one point mapped over points X (n, m, R): vmapped over the points
+    axis 1, then over runs (axis 2 of X, last of theta, and of u when ``per_run_input``)."""
+    over_points = jax.vmap(fn, in_axes=(1, None, None), out_axes=1)
+    return jax.vmap(over_points, in_axes=(2, 1 if per_run_input else None, 1), out_axes=2)
