@@ -145,23 +145,18 @@ def _start(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
     return state0, held0, jnp.zeros((), out_shape.loglik.dtype)
 
 
-def _one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key):
-    """One run: y (T, ny), u (T, nu); x0 (nx,), P0 (nx, nx); th0 (p,), Pth0 (p, p) or None."""
-    p = len(estimator.param_names)
-    state0, held0, ll0 = _start(estimator, y, u, x0, P0, th0, Pth0, key)
-    int0 = partial(jnp.array, dtype=jnp.int32)
-    carry0 = (state0, held0, jnp.array(False), jnp.array(False), int0(-1), ll0, int0(0))
+def _scan_body(step, ok, return_cov: bool):
+    """The scan body shared by the vmapped and the runs-last study: one filter step, then the
+    divergence bookkeeping of the module docstring. ``ok(out)`` says which runs' step output is
+    finite and positive definite (a scalar for one run, (C,) for a runs-last batch)."""
 
     def body(carry, yu):
         state, held, diverged, flagged, diverged_at, ll, t = carry
-        new_state, out = estimator.step(state, *yu)
+        new_state, out = step(state, *yu)
         # Particle filters re-initialise a run whose weights all underflow and say so in
         # ``flag_diverged``: such a run is reported diverged but keeps going, not frozen.
         flag_now = jnp.asarray(getattr(new_state, "flag_diverged", False)) & ~diverged
-        ok = jnp.all(jnp.isfinite(out.mean)) & _is_pd(out.cov)
-        if p:
-            ok = ok & jnp.all(jnp.isfinite(out.params)) & _is_pd(out.params_cov)
-        bad = diverged | ~ok
+        bad = diverged | ~ok(out)
         diverged_at = jnp.where((bad | flag_now) & ~diverged & ~flagged, t, diverged_at)
         flagged = flagged | flag_now
         keep = partial(jnp.where, bad)
@@ -181,13 +176,30 @@ def _one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, ke
         )
         return (state, held, bad, flagged, diverged_at, ll, t + 1), per_step
 
+    return body
+
+
+def _one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key):
+    """One run: y (T, ny), u (T, nu); x0 (nx,), P0 (nx, nx); th0 (p,), Pth0 (p, p) or None."""
+    p = len(estimator.param_names)
+    state0, held0, ll0 = _start(estimator, y, u, x0, P0, th0, Pth0, key)
+    int0 = partial(jnp.array, dtype=jnp.int32)
+    carry0 = (state0, held0, jnp.array(False), jnp.array(False), int0(-1), ll0, int0(0))
+
+    def ok(out):
+        good = jnp.all(jnp.isfinite(out.mean)) & _is_pd(out.cov)
+        if p:
+            good = good & jnp.all(jnp.isfinite(out.params)) & _is_pd(out.params_cov)
+        return good
+
+    body = _scan_body(estimator.step, ok, return_cov)
     (_, _, frozen, flagged, diverged_at, ll, _), (mean, cov, params, pcov, nis, n_obs) = (
         jax.lax.scan(body, carry0, (y, u))
     )
     return mean, cov, params, pcov, ll, nis, n_obs, frozen | flagged, diverged_at
 
 
-def _runs_runs_last(estimator: Estimator, return_cov: bool, per_run, ys, us, x0, P0, th0, Pth0,
+def _runs_last_study(estimator: Estimator, return_cov: bool, per_run, ys, us, x0, P0, th0, Pth0,
                     keys):
     """What ``vmap(_one_run)`` computes, for an estimator whose ``step`` has a ``runs_last``
     form: one scan over time of the batched step, every array with the runs axis last (see
@@ -205,26 +217,14 @@ def _runs_runs_last(estimator: Estimator, return_cov: bool, per_run, ys, us, x0,
     carry0 = (state0, held0, jnp.zeros(C, bool), jnp.zeros(C, bool),
               jnp.full(C, -1, jnp.int32), ll0, jnp.array(0, jnp.int32))
 
-    def body(carry, yu):
-        state, held, diverged, flagged, diverged_at, ll, t = carry
-        new_state, out = step(state, *yu)
-        flag_now = jnp.asarray(getattr(new_state, "flag_diverged", False)) & ~diverged
-        ok = jnp.all(jnp.isfinite(out.mean), axis=0) & _runs_last.is_pd(out.cov)
+    def ok(out):
+        good = jnp.all(jnp.isfinite(out.mean), axis=0) & _runs_last.is_pd(out.cov)
         if p:
-            ok = ok & jnp.all(jnp.isfinite(out.params), axis=0) & _runs_last.is_pd(out.params_cov)
-        bad = diverged | ~ok
-        diverged_at = jnp.where((bad | flag_now) & ~diverged & ~flagged, t, diverged_at)
-        flagged = flagged | flag_now
-        keep = partial(jnp.where, bad)  # bad (C,) broadcasts against the trailing runs axis
-        state = jax.tree.map(keep, state, new_state)
-        held = jax.tree.map(keep, held, (out.mean, out.cov, out.params, out.params_cov))
-        ll = ll + jnp.where(bad, 0.0, out.loglik).astype(ll.dtype)
-        nis = jnp.where(bad, jnp.nan, out.nis)
-        n_obs = jnp.where(bad, 0, out.n_obs).astype(jnp.int32)
-        mean, cov, params, params_cov = held
-        per_step = (mean, cov if return_cov else None, params,
-                    params_cov if return_cov else None, nis, n_obs)
-        return (state, held, bad, flagged, diverged_at, ll, t + 1), per_step
+            good = good & jnp.all(jnp.isfinite(out.params), axis=0)
+            good = good & _runs_last.is_pd(out.params_cov)
+        return good
+
+    body = _scan_body(step, ok, return_cov)  # (C,) masks broadcast against the trailing axis
 
     y_t = jnp.moveaxis(ys, 0, -1)  # (T, ny, C)
     u_t = jnp.moveaxis(us, 0, -1) if per_run_u else us  # (T, nu, C) or (T, nu)
@@ -249,7 +249,7 @@ def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh):
         keys is not None,
     )
     if getattr(estimator.step, "runs_last", None) is not None:
-        f = partial(_runs_runs_last, estimator, return_cov, per_run)
+        f = partial(_runs_last_study, estimator, return_cov, per_run)
     else:
         f = jax.vmap(
             partial(_one_run, estimator, return_cov),
