@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 import vehjax as vj
-from vehjax import _random
 from vehjax.filters.gaussian import GaussianState, ukf
 from vehjax.filters.liu_west import _kernel, liu_west_ukf
 
@@ -84,7 +83,7 @@ def test_kernel_keeps_weighted_mean_and_covariance():
     mean = w @ parts
     V = ((parts - mean) * w[:, None]).T @ (parts - mean)
     a = 0.9
-    moved = np.asarray(_kernel(_random.raw_key(jax.random.key(3)), jnp.asarray(parts), jnp.asarray(mean),
+    moved = np.asarray(_kernel(jax.random.key(3), jnp.asarray(parts), jnp.asarray(mean),
                                jnp.asarray(V), a))
     new_mean = w @ moved
     new_V = ((moved - new_mean) * w[:, None]).T @ (moved - new_mean)

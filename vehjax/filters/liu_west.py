@@ -61,7 +61,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _random
 from . import resampling as _rs
 from .base import Estimator, check_estimate
 from .gaussian import GaussianState, _check_model, _prior, check_cov, ukf
@@ -81,7 +80,7 @@ class LiuWestState(NamedTuple):
         particles: (M, p) parameter particles, physical units, after the last step's kernel.
         log_weights: (M,) their normalised log weights (``logsumexp == 0``), residual weight
             applied.
-        key: (2,) uint32 raw Threefry-2x32 key for the next step's draws (:mod:`vehjax._random`).
+        key: (2,) uint32 threefry2x32 key data for the next step's draws.
         theta_mean: (p,) the parameter estimate the UKF last ran with (the prior box's mean
             before the first step).
         theta_cov: (p, p) its covariance (weighted covariance of the cloud plus jitter).
@@ -147,6 +146,15 @@ def _check_box(theta_low, theta_high, names) -> tuple[np.ndarray, np.ndarray]:
 # -- helpers ----------------------------------------------------------------------------------
 
 
+def _key(raw):
+    return jax.random.wrap_key_data(raw, impl="threefry2x32")
+
+
+def _raw_key(key):
+    """(2,) uint32 key data from any JAX PRNG key (typed or legacy uint32[2])."""
+    return jax.random.bits(key, (2,), jnp.uint32)
+
+
 def _moments(w, x):
     """Weighted mean (p,) and symmetrised covariance (p, p) of rows x (M, p), weights w sum 1."""
     mean = w @ x
@@ -160,21 +168,14 @@ def _kernel(key, particles, mean, V, a: float):
 
     With weights W summing to 1 whose weighted mean and covariance of ``particles`` are
     ``mean`` and ``V``, the moved cloud has the same weighted mean and covariance in expectation.
-    ``key`` is a raw key; the normals use its counter streams 0 .. ceil(p / 2) - 1.
     """
-    M, p = particles.shape
     L_V = jnp.linalg.cholesky(V)
-    z = jnp.stack(_random.std_normal_rows(key, p, M, particles.dtype), axis=1)
+    z = jax.random.normal(key, particles.shape, dtype=particles.dtype)
     return a * particles + (1.0 - a) * mean + math.sqrt(1.0 - a * a) * (z @ L_V.T)
 
 
-def _draw_box(key, low, high, n, stream: int = 0):
-    """(n, p) uniform draws on the box [low, high]; raw ``key``, counter streams
-    ``stream`` .. ``stream + p - 1``."""
-    u = jnp.stack(
-        [_random.uniforms(key, n, low.dtype, stream=stream + k) for k in range(low.shape[0])],
-        axis=1,
-    )
+def _draw_box(key, low, high, n):
+    u = jax.random.uniform(key, (n, low.shape[0]), dtype=low.dtype)
     return low + (high - low) * u
 
 
@@ -269,7 +270,6 @@ def liu_west_ukf(
     idx_a = np.asarray(idx)
     log_n = math.log(n)
     n_unif = _rs.uniforms_needed(scheme, n)
-    p_streams = (p + 1) // 2  # counter streams of the kernel's normals
     predictive = likelihood == "predictive"
 
     def f(x, u, th):
@@ -311,14 +311,14 @@ def liu_west_ukf(
         if key is None:
             raise ValueError("key: liu_west_ukf draws random numbers; pass key=jax.random.key(...)")
         low, high = jnp.asarray(low_n, dtype), jnp.asarray(high_n, dtype)
-        k_run, k_draw = _random.split(_random.raw_key(key))
+        k_run, k_draw = jax.random.split(key)
         particles = _draw_box(k_draw, low, high, n)
         return LiuWestState(
             x=x0,
             P=P0,
             particles=particles,
             log_weights=jnp.full((n,), -log_n, dtype),
-            key=k_run,
+            key=_raw_key(k_run),
             theta_mean=0.5 * (low + high),
             theta_cov=jnp.diag((high - low) ** 2 / 12.0),
             ess=jnp.asarray(float(n), dtype),
@@ -333,9 +333,7 @@ def liu_west_ukf(
         base = jnp.asarray(model.theta).astype(dtype)
         low, high = jnp.asarray(low_n, dtype), jnp.asarray(high_n, dtype)
         Rd = jnp.asarray(Rn, dtype)
-        # one split a step; its draws use disjoint counter streams of the sub-key
-        k_next, k_step = _random.split(state.key)
-        s_res, s_box = p_streams, p_streams + 1
+        k_next, k_res, k_kernel, k_box = jax.random.split(_key(state.key), 4)
         obs = jnp.isfinite(y)
         has_obs = jnp.any(obs)
         theta_prev = full_theta(base, state.theta_mean)
@@ -373,12 +371,12 @@ def liu_west_ukf(
         # Liu-West: resample when the weights degenerate, then shrink towards the mean and jitter
         mean, V = _moments(w, state.particles)
         ess = 1.0 / jnp.sum(w * w)
-        u_res = _random.uniforms(k_step, n_unif, dtype, stream=s_res)
+        u_res = jax.random.uniform(k_res, (n_unif,), dtype=dtype)
         ancestors = _rs.indices_from_uniforms(scheme, w, u_res, n)
         do_res = ess < thr * n
         parts = jnp.where(do_res, state.particles[ancestors], state.particles)
         lw_k = jnp.where(do_res, -log_n, lw)
-        moved = _kernel(k_step, parts, mean, V + jitter(dtype), a)
+        moved = _kernel(k_kernel, parts, mean, V + jitter(dtype), a)
         move = has_obs & ~diverged & jnp.all(jnp.isfinite(moved))
         parts = jnp.where(move, moved, state.particles)
         lw_k = jnp.where(move, lw_k, lw)
@@ -396,7 +394,7 @@ def liu_west_ukf(
         lw_next = jnp.where(move, lw_next, lw_k)
 
         # divergence: the next step starts from fresh draws from the prior box
-        fresh = _draw_box(k_step, low, high, n, stream=s_box)
+        fresh = _draw_box(k_box, low, high, n)
         parts_next = jnp.where(diverged, fresh, parts)
         lw_next = jnp.where(diverged, -log_n, lw_next)
 
@@ -409,7 +407,7 @@ def liu_west_ukf(
             P=ukf_state.P,
             particles=parts_next,
             log_weights=lw_next,
-            key=k_next,
+            key=jax.random.key_data(k_next),
             theta_mean=theta_bar,
             theta_cov=cov_bar,
             ess=jnp.where(diverged, 0.0, jnp.where(has_obs, ess, state.ess)),
