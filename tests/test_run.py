@@ -370,6 +370,18 @@ _SHARDED = textwrap.dedent(
     prepared = compile_run(t.EST, ys, us, chunk_size=1, **kw)
     assert (prepared.chunk_size, prepared.n_chunks) == (2, 3)  # rounded up to the device count
     t._assert_close(prepared(progress=False), one)
+    # the runs-last UKF step (vehjax.filters.runs_last) sharded the same way
+    import vehjax as vj
+    model = vj.models.Dynamic3DOF(dt=0.01)
+    scn = vj.scenarios.sine_steer(model, speed=20.0, duration=0.2)
+    sim = vj.simulate(model, scn, runs=5, key=jax.random.key(0), meas_std=[0.2, 0.2, 0.05])
+    est = vj.filters.ukf(model, [1e-3, 1e-3, 1e-4], [0.04, 0.04, 0.0025])
+    assert est.step.runs_last is not None
+    kw = dict(x0=scn.x0, P0=np.eye(3) * 0.1, return_covariances=True, progress=False)
+    one = run(est, sim.measurements, sim.inputs, devices=False, **kw)
+    two = run(est, sim.measurements, sim.inputs, **kw)
+    np.testing.assert_allclose(two.states, one.states, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(two.covariances, one.covariances, rtol=1e-12, atol=1e-15)
     print("sharded ok")
     """
 )

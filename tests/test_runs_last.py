@@ -78,6 +78,15 @@ def test_runs_last_diverging_run_is_frozen_others_untouched():
                                                               **kw).states, rtol=1e-12)
 
 
+def test_runs_last_chunked_equals_one_chunk(study):
+    model, Q, R, ys, us, x0, P0 = study
+    est = ukf(model, Q, R)
+    kw = dict(x0=x0, P0=P0, return_covariances=True, progress=False)
+    one = vj.run(est, ys, us, **kw)
+    chunked = vj.run(est, ys, us, chunk_size=4, **kw)  # 6 runs: a full and a padded chunk
+    _assert_same(chunked, one, 1e-12)
+
+
 def test_runs_last_float32(study):
     model, Q, R, ys, us, x0, P0 = study
     est = ukf(model, Q, R)
