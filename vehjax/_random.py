@@ -58,8 +58,7 @@ def raw_key(key):
 def split(key):
     """(next key, sub-key) from a raw key: the words ``threefry_2x32(key, arange(4))`` of
     ``jax.extend.random``, split in two halves."""
-    a, b = threefry2x32(key, np.array([0, 1], np.uint32), np.array([2, 3], np.uint32))
-    return a, b
+    return threefry2x32(key, np.array([0, 1], np.uint32), np.array([2, 3], np.uint32))
 
 
 # Cephes sinf.c / cosf.c: float32 polynomials for sin t and cos t, |t| <= pi/4.
@@ -87,13 +86,12 @@ def _unit_circle(w):
 
 
 def std_normal_rows(key, rows: int, n: int, dtype, stream: int = 0):
-    """``rows`` arrays of ``n`` standard normals each, as a list, from one key.
+    """(rows, n) standard normals from one key.
 
     Box-Muller on pairs of float32 uniforms on a 2^-24 grid, u1 in (0, 1] and an angle in
     [0, 2 pi): the radius reaches 5.77 at most. Row pairs (2k, 2k + 1) share the hashes of
     counters (p, stream + k), p = 0..n-1, one row as the cosine and the other as the sine
-    branch; an odd last row leaves its sines unused. Rows apart, not one (rows, n) array, so
-    that XLA fuses each into its consumer without a concatenation.
+    branch; an odd last row leaves its sines unused.
 
     Args:
         key: (2,) uint32 raw key.
@@ -112,7 +110,7 @@ def std_normal_rows(key, rows: int, n: int, dtype, stream: int = 0):
         out.append((r * cos_a).astype(dtype))
         if len(out) < rows:
             out.append((r * sin_a).astype(dtype))
-    return out
+    return jnp.stack(out)
 
 
 def uniforms(key, n: int, dtype, stream: int = 0):

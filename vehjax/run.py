@@ -127,10 +127,10 @@ def _check_step_output(out, nx: int, p: int):
 
 def _start(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
     """(filter state, held outputs, log-likelihood 0) of one run before its first step; checks
-    the shapes of the step's output. y (T, ny), u (T, nu) or (nu,) are only read for shapes."""
+    the shapes of the step's output. y (T, ny), u (T, nu) are only read for shapes."""
     nx, p = estimator.nx, len(estimator.param_names)
     state0 = estimator.init(x0, P0, th0, Pth0, key)
-    _, out_shape = jax.eval_shape(estimator.step, state0, y[0], u[0] if u.ndim == 2 else u)
+    _, out_shape = jax.eval_shape(estimator.step, state0, y[0], u[0])
     _check_step_output(out_shape, nx, p)
 
     def cast(a, like):
@@ -143,6 +143,16 @@ def _start(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
         cast(jnp.zeros((0, 0)) if Pth0 is None else Pth0, out_shape.params_cov),
     )
     return state0, held0, jnp.zeros((), out_shape.loglik.dtype)
+
+
+def _output_ok(out, p: int, is_pd, axis):
+    """Whether a step output is finite with positive-definite covariances: a scalar for one
+    run (``axis=None``, ``is_pd`` on (n, n)), (C,) for a runs-last batch (``axis=0``, ``is_pd``
+    on (n, n, C))."""
+    good = jnp.all(jnp.isfinite(out.mean), axis=axis) & is_pd(out.cov)
+    if p:
+        good = good & jnp.all(jnp.isfinite(out.params), axis=axis) & is_pd(out.params_cov)
+    return good
 
 
 def _scan_body(step, ok, return_cov: bool):
@@ -186,12 +196,7 @@ def _one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, ke
     int0 = partial(jnp.array, dtype=jnp.int32)
     carry0 = (state0, held0, jnp.array(False), jnp.array(False), int0(-1), ll0, int0(0))
 
-    def ok(out):
-        good = jnp.all(jnp.isfinite(out.mean)) & _is_pd(out.cov)
-        if p:
-            good = good & jnp.all(jnp.isfinite(out.params)) & _is_pd(out.params_cov)
-        return good
-
+    ok = partial(_output_ok, p=p, is_pd=_is_pd, axis=None)
     body = _scan_body(estimator.step, ok, return_cov)
     (_, _, frozen, flagged, diverged_at, ll, _), (mean, cov, params, pcov, nis, n_obs) = (
         jax.lax.scan(body, carry0, (y, u))
@@ -217,13 +222,7 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, per_run, ys, us, x0
     carry0 = (state0, held0, jnp.zeros(C, bool), jnp.zeros(C, bool),
               jnp.full(C, -1, jnp.int32), ll0, jnp.array(0, jnp.int32))
 
-    def ok(out):
-        good = jnp.all(jnp.isfinite(out.mean), axis=0) & _runs_last.is_pd(out.cov)
-        if p:
-            good = good & jnp.all(jnp.isfinite(out.params), axis=0)
-            good = good & _runs_last.is_pd(out.params_cov)
-        return good
-
+    ok = partial(_output_ok, p=p, is_pd=_runs_last.is_pd, axis=0)
     body = _scan_body(step, ok, return_cov)  # (C,) masks broadcast against the trailing axis
 
     y_t = jnp.moveaxis(ys, 0, -1)  # (T, ny, C)

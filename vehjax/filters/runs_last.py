@@ -20,7 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .sigma import SigmaRule
+from .base import StepOutput
+from .sigma import SigmaRule, cholesky
 
 MAX_DIM = 8  # nx and ny up to this use the runs-last step
 _LOG_2PI = float(np.log(2.0 * np.pi))
@@ -71,11 +72,13 @@ def _wsum(weights, terms):
 
 def _points(x, L, rule: SigmaRule):
     """Sigma points x + L xi_k, as a list over points of lists over components."""
-    n = len(x)
     pts = []
     for xi in rule.points:
-        pts.append([x[i] + (_wsum(xi[: i + 1], L[i][: i + 1]) if np.any(xi[: i + 1]) else 0.0)
-                    for i in range(n)])
+        point = []
+        for i in range(len(x)):
+            off = _wsum(xi[: i + 1], L[i][: i + 1])  # L is lower triangular
+            point.append(x[i] if off is None else x[i] + off)
+        pts.append(point)
     return pts
 
 
@@ -107,9 +110,6 @@ def sigma_step(model_fn_pts, obs_fn_pts, Qn: np.ndarray, Rn: np.ndarray, rule: S
         (StepOutput.mean (nx, R), cov (nx, nx, R), loglik, nis, n_obs (R,), params (0, R),
         params_cov (0, 0, R)); ``state`` is a GaussianState of such arrays.
     """
-    from .base import StepOutput
-    from .gaussian import GaussianState
-
     nx, ny = Qn.shape[0], Rn.shape[0]
 
     def through(fn, pts, u, theta):
@@ -120,7 +120,7 @@ def sigma_step(model_fn_pts, obs_fn_pts, Qn: np.ndarray, Rn: np.ndarray, rule: S
     def step(state, y, u):
         X0, P0, theta = state
         dt = X0.dtype
-        y, u, theta = y.astype(dt), u.astype(dt), theta.astype(dt)
+        y, u, theta = y.astype(dt), u.astype(dt), theta.astype(dt)  # theta for the model only
         Q = [[jnp.asarray(Qn[i, j], dt) for j in range(nx)] for i in range(nx)]
         Rm = [[jnp.asarray(Rn[i, j], dt) for j in range(ny)] for i in range(ny)]
         x = [X0[i] for i in range(nx)]
@@ -166,7 +166,7 @@ def sigma_step(model_fn_pts, obs_fn_pts, Qn: np.ndarray, Rn: np.ndarray, rule: S
             params=jnp.zeros((0, R_runs), dt),
             params_cov=jnp.zeros((0, 0, R_runs), dt),
         )
-        return GaussianState(x_new, P_new, theta), out
+        return state._replace(x=x_new, P=P_new), out
 
     return step
 
@@ -176,10 +176,10 @@ def is_pd(C):
     n = C.shape[0]
     if n == 0:
         return jnp.ones(C.shape[-1], bool)
-    if n > MAX_DIM:
+    if n > MAX_DIM:  # sigma.cholesky on a runs-first copy (it goes to LAPACK for such n)
         Cr = jnp.moveaxis(C, -1, 0)
-        L = jnp.linalg.cholesky(0.5 * (Cr + jnp.swapaxes(Cr, -1, -2)))
-        return jnp.all(jnp.isfinite(Cr), axis=(1, 2)) & jnp.all(jnp.isfinite(L), axis=(1, 2))
+        return jnp.all(jnp.isfinite(Cr), axis=(1, 2)) & jnp.all(jnp.isfinite(cholesky(Cr)),
+                                                                axis=(1, 2))
     L = _chol([[C[i, j] for j in range(n)] for i in range(n)])
     ok = jnp.all(jnp.isfinite(C), axis=(0, 1))
     for i in range(n):
