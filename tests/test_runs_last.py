@@ -114,3 +114,49 @@ def test_only_small_models_and_constant_noise_get_a_runs_last_step():
 
     jax.jit(build)(jnp.eye(3) * 1e-3)
     assert seen["runs_last"] is None
+
+
+def test_runs_last_input_dependent_outputs(study):
+    """The 'matlab' outputs (vx, ay, r) make observe depend on the input as well."""
+    _, Q, R, ys, us, x0, P0 = study
+    model = vj.models.Dynamic3DOF(dt=0.01, outputs="matlab")
+    est = ukf(model, Q, R)
+    us_runs = np.tile(us, (R_RUNS, 1, 1)) * np.linspace(0.9, 1.1, R_RUNS)[:, None, None]
+    for inputs in (us, us_runs):
+        kw = dict(x0=x0, P0=P0, return_covariances=True, progress=False)
+        _assert_same(vj.run(est, ys, inputs, **kw), vj.run(_vmapped(est), ys, inputs, **kw), 1e-9)
+
+
+@pytest.mark.parametrize("per_run_inputs", [False, True])
+def test_runs_last_step_reads_theta_from_state_unless_constant(study, per_run_inputs):
+    """With ``default_theta=False`` the batch step uses each run's theta from the state; with
+    True it uses model.theta as a constant. Same result when the state holds model.theta,
+    different when it does not."""
+    model, Q, R, ys, us, x0, P0 = study
+    est = ukf(model, Q, R)
+    n = 4
+    theta = np.tile(np.asarray(model.theta), (n, 1)) * np.linspace(0.8, 1.2, n)[:, None]
+    u = np.tile(us[:3][..., None], (1, 1, n)) if per_run_inputs else us[:3]  # (T, nu[, R])
+    y = np.moveaxis(ys[:n, :3], 0, -1)  # (T, ny, R)
+
+    def first_steps(th, default_theta):
+        batch = est.step.runs_last(per_run_inputs, jnp.float64, default_theta)
+        state = vj.filters.gaussian.GaussianState(
+            jnp.asarray(x0[:n].T), jnp.broadcast_to(jnp.asarray(P0)[..., None], (3, 3, n)),
+            jnp.asarray(th.T))
+        prepared = batch.prepare(jnp.asarray(u))
+        for t in range(3):
+            state, out = batch.step(state, jnp.asarray(y[t]),
+                                    jax.tree.map(lambda a: a[t], prepared))
+        return np.asarray(state.x)
+
+    nominal = np.tile(np.asarray(model.theta), (n, 1))
+    np.testing.assert_allclose(first_steps(nominal, False), first_steps(nominal, True), rtol=1e-12)
+    per_run = first_steps(theta, False)
+    # each run's own theta, through the per-run (vmapped) step
+    for r in range(n):
+        s = est.init(x0[r], P0, theta[r])
+        for t in range(3):
+            s, _ = est.step(s, ys[r, t], u[t, :, r] if per_run_inputs else u[t])
+        np.testing.assert_allclose(per_run[:, r], s.x, rtol=1e-12)
+    assert np.max(np.abs(per_run - first_steps(theta, True))) > 1e-6

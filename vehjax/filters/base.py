@@ -9,10 +9,13 @@ An estimator is a pair of pure functions, like optax's ``GradientTransformation`
 Everything that configures a filter (model, Q, R, tuning) is closed over, so ``run`` treats
 every filter alike and ``jax.vmap``/``jax.lax.scan`` see only arrays.
 
-A ``step`` may carry an attribute ``runs_last(per_run_inputs: bool) -> step_batch``: the same
-step for a whole batch of runs at once, with the runs axis last in every leaf of the state, of
-y, of u (when ``per_run_inputs``; else u is shared, (nu,)) and of the StepOutput.
-``vehjax.run`` then uses it instead of ``vmap``-ing ``step`` (see
+A ``step`` may carry an attribute
+``runs_last(per_run_inputs: bool, dtype, default_theta: bool) -> Batch(prepare, step)``: the
+same step for a whole batch of runs at once, with the runs axis last in every leaf of the
+state, of y and of the StepOutput. ``prepare`` maps the whole input sequence, (T, nu) shared or
+(T, nu, R) when ``per_run_inputs``, to what the batch ``step`` takes in place of u at each time;
+``dtype`` is the filter's float dtype and ``default_theta`` says that every run was started
+with ``theta0=None``. ``vehjax.run`` then uses it instead of ``vmap``-ing ``step`` (see
 :mod:`vehjax.filters.runs_last`). It belongs to that function: an estimator whose ``step`` is
 replaced (``est._replace(step=...)``) is run with ``vmap`` again.
 """

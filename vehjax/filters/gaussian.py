@@ -364,11 +364,13 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str) -> Estima
         if small and isinstance(Qn, np.ndarray) and isinstance(Rn, np.ndarray):
             f1, h1 = _in_dtype(model.transition), _in_dtype(model.observe)
 
-            def batch(per_run_inputs: bool):
+            def batch(per_run_inputs: bool, dtype, default_theta: bool):
+                # every run at model.theta (init's default): a constant of the compiled step
+                const = default_theta and not _is_tracer(model.theta)
                 return _runs_last.sigma_step(
-                    _runs_last.points_fn(f1, per_run_inputs),
-                    _runs_last.points_fn(h1, per_run_inputs),
-                    Qn, Rn, rule,
+                    f1, h1, Qn, Rn, rule, nu=model.nu, n_params=model.n_params,
+                    per_run_inputs=per_run_inputs, dtype=dtype,
+                    theta=np.asarray(model.theta) if const else None,
                 )
 
             step.runs_last = batch  # vehjax.run's batched form of this very step

@@ -6,20 +6,29 @@ model with a handful of states that puts the runs first and 3 x 3 matrices last,
 runs every small matrix operation as a loop of 3 over runs, and the filter algebra of a UKF
 costs several times the model's arithmetic. Here every matrix entry and vector component is
 one (R,) array over the runs instead, and the algebra is written out entry by entry: XLA fuses
-it into long vectorised loops. The model is still evaluated by ``vmap`` (over sigma points,
-then runs), on points laid out (n, m, R). Same equations, same order of operations as
+it into long vectorised loops. Same equations, same order of operations as
 :func:`vehjax.filters.gaussian.ukf`; results agree with the vmapped step to rounding.
 
+The model is evaluated at all sigma points of all runs as one flat batch, points laid out
+(n, m * R), after :func:`vehjax._hoist.split` has taken out what depends on the input and the
+parameters alone: :attr:`Batch.prepare` computes that once for the whole input sequence before
+the time loop, instead of XLA recomputing it for every point inside it. When every run uses the
+model's own parameters they are constants of the compiled step.
+
 Layout of a batch: state ``x`` (nx, R), ``P`` (nx, nx, R), ``theta`` (np, R); measurement
-``y`` (ny, R); input ``u`` (nu,) shared by all runs or (nu, R). Used for nx, ny <= 8.
+``y`` (ny, R); input sequence ``u`` (T, nu) shared by all runs or (T, nu, R). Used for
+nx, ny <= 8.
 """
 
 from __future__ import annotations
+
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._hoist import split
 from .base import StepOutput
 from .sigma import SigmaRule, cholesky
 
@@ -95,41 +104,122 @@ def _moments(Y, rule: SigmaRule, noise):
     return mean, cov, dev
 
 
-def sigma_step(model_fn_pts, obs_fn_pts, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule):
+class Batch(NamedTuple):
+    """A filter step over a batch of runs, runs axis last.
+
+    Attributes:
+        prepare: ``prepare(u)`` maps the input sequence, (T, nu) shared or (T, nu, R) per run,
+            to what ``step`` takes in its place at each time: a pytree of arrays with leading
+            axis T. Called once, before the time loop.
+        step: ``step(state, y, prepared_t) -> (state, StepOutput)``.
+    """
+
+    prepare: Callable
+    step: Callable
+
+
+class _PointModel(NamedTuple):
+    """A model function ``fn(x, u, theta)`` of one point, split for evaluation at many."""
+
+    early: Callable  # u (nu,) -> residuals that depend on u (and constant theta) only
+    late: Callable  # (x, theta, *residuals) -> output (d,)
+    n_residuals: int
+
+
+def _point_model(fn, nx: int, nu: int, n_params: int, dtype, theta_const) -> _PointModel:
+    """Split ``fn`` by :func:`vehjax._hoist.split`; with ``theta_const`` (np,) the parameters
+    are that constant and the ``theta`` argument of ``late`` is ignored."""
+    if theta_const is not None:
+        theta_const = jnp.asarray(theta_const, dtype)
+
+        def g(x, u, theta):
+            return fn(x, u, theta_const)
+    else:
+        g = fn
+
+    def reorder(x, theta, u):
+        return g(x, u, theta)
+
+    sd = jax.ShapeDtypeStruct
+    sp = split(reorder, (sd((nx,), dtype), sd((n_params,), dtype), sd((nu,), dtype)),
+               late=(True, True, False))
+    return _PointModel(sp.early, sp.late, sp.n_residuals)
+
+
+def _evaluate(model: _PointModel, pts, theta, residuals, per_run: bool):
+    """The model at sigma points ``pts`` (list over m points of lists over n components, each
+    (R,)): evaluated as one batch (n, m * R), returned as a list over points of lists over
+    output components, each (R,). ``theta`` (np, R) or None (constant); ``residuals`` of
+    ``model.early`` for this time, shared or with a trailing runs axis when ``per_run``."""
+    m, R = len(pts), pts[0][0].shape[-1]
+    X = jnp.stack([jnp.concatenate([p[i] for p in pts]) for i in range(len(pts[0]))])
+
+    def tile(a):  # (..., R) -> (..., m * R), point-major like X
+        lead = a.shape[:-1]
+        return jnp.broadcast_to(a[..., None, :], lead + (m, R)).reshape(lead + (m * R,))
+
+    if theta is None:
+        th, th_axis = jnp.zeros((0,), X.dtype), None
+    else:
+        th, th_axis = tile(theta), 1
+    if per_run:
+        res, res_axes = [tile(r) for r in residuals], (-1,) * len(residuals)
+    else:
+        res, res_axes = list(residuals), (None,) * len(residuals)
+    F = jax.vmap(model.late, in_axes=(1, th_axis) + res_axes, out_axes=1)(X, th, *res)
+    return [[F[i, k * R:(k + 1) * R] for i in range(F.shape[0])] for k in range(m)]
+
+
+def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int, n_params: int,
+               per_run_inputs: bool, dtype, theta=None) -> Batch:
     """The non-square-root UKF/CKF step (:func:`vehjax.filters.gaussian._sigma_filter`) over a
     batch of runs, runs last.
 
     Args:
-        model_fn_pts, obs_fn_pts: ``g(X, u, theta)`` for points X (n, m, R), u (nu,) or (nu, R),
-            theta (np, R), returning (d, m, R); built by :func:`points_fn`.
+        f, h: transition and observation of one point, ``fn(x, u, theta)`` -> (nx,), (ny,),
+            returning ``x``'s dtype.
         Qn, Rn: process and measurement noise covariances (numpy).
         rule: the sigma-point rule.
+        nu, n_params: input and parameter dimensions.
+        per_run_inputs: whether the inputs are (T, nu, R) rather than shared (T, nu).
+        dtype: the filter's float dtype.
+        theta: the parameters (np,) of every run, as a constant of the step; None to read
+            each run's from the state.
 
     Returns:
-        ``step(state, y, u) -> (state, StepOutput)`` with every leaf's runs axis last
-        (StepOutput.mean (nx, R), cov (nx, nx, R), loglik, nis, n_obs (R,), params (0, R),
-        params_cov (0, 0, R)); ``state`` is a GaussianState of such arrays.
+        :class:`Batch`; ``step``'s state is a GaussianState of runs-last arrays and its
+        StepOutput has mean (nx, R), cov (nx, nx, R), loglik, nis, n_obs (R,), params (0, R),
+        params_cov (0, 0, R).
     """
     nx, ny = Qn.shape[0], Rn.shape[0]
+    fm = _point_model(f, nx, nu, n_params, dtype, theta)
+    hm = _point_model(h, nx, nu, n_params, dtype, theta)
 
-    def through(fn, pts, u, theta):
-        X = jnp.stack([jnp.stack([p[i] for p in pts]) for i in range(len(pts[0]))])
-        F = fn(X, u, theta)
-        return [[F[i, k] for i in range(F.shape[0])] for k in range(len(pts))]
+    def prepare(u):
+        u = jnp.asarray(u).astype(dtype)
 
-    def step(state, y, u):
-        X0, P0, theta = state
+        def early(u_t):
+            return fm.early(u_t), hm.early(u_t)
+
+        if per_run_inputs:  # (T, nu, R) -> residuals (T, ..., R)
+            return jax.vmap(jax.vmap(early, in_axes=1, out_axes=-1))(u)
+        return jax.vmap(early)(u)
+
+    def step(state, y, prepared):
+        X0, P0, th = state
         dt = X0.dtype
-        y, u, theta = y.astype(dt), u.astype(dt), theta.astype(dt)  # theta for the model only
+        y = y.astype(dt)
+        th = None if theta is not None else th.astype(dt)  # theta for the model only
+        res_f, res_h = prepared
         Q = [[jnp.asarray(Qn[i, j], dt) for j in range(nx)] for i in range(nx)]
         Rm = [[jnp.asarray(Rn[i, j], dt) for j in range(ny)] for i in range(ny)]
         x = [X0[i] for i in range(nx)]
         P = [[P0[i, j] for j in range(nx)] for i in range(nx)]
 
-        F = through(model_fn_pts, _points(x, _chol(P), rule), u, theta)
+        F = _evaluate(fm, _points(x, _chol(P), rule), th, res_f, per_run_inputs)
         xp, Pp, _ = _moments(F, rule, Q)
         pts = _points(xp, _chol(Pp), rule)
-        Z = through(obs_fn_pts, pts, u, theta)
+        Z = _evaluate(hm, pts, th, res_h, per_run_inputs)
         yh, S, dz = _moments(Z, rule, Rm)
         dx = [[p[i] - xp[i] for i in range(nx)] for p in pts]
         C = [[_wsum(rule.wc, [a[i] * b[j] for a, b in zip(dx, dz)]) for j in range(ny)]
@@ -168,7 +258,7 @@ def sigma_step(model_fn_pts, obs_fn_pts, Qn: np.ndarray, Rn: np.ndarray, rule: S
         )
         return state._replace(x=x_new, P=P_new), out
 
-    return step
+    return Batch(prepare, step)
 
 
 def is_pd(C):
@@ -186,10 +276,3 @@ def is_pd(C):
         for j in range(i + 1):
             ok = ok & jnp.isfinite(L[i][j])
     return ok
-
-
-def points_fn(fn, per_run_input: bool):
-    """``fn(x, u, theta)`` of one point mapped over points X (n, m, R): vmapped over the points
-    axis 1, then over runs (axis 2 of X, last of theta, and of u when ``per_run_input``)."""
-    over_points = jax.vmap(fn, in_axes=(1, None, None), out_axes=1)
-    return jax.vmap(over_points, in_axes=(2, 1 if per_run_input else None, 1), out_axes=2)
