@@ -46,8 +46,8 @@ def split(fn: Callable, args: Sequence, late: Sequence[bool]) -> Split:
             dtypes.
         late: one flag per argument: True for the arguments that vary from point to point.
 
-    An equation with side effects, or a function whose tracing fails, is kept whole in
-    ``late`` (``early`` then returns nothing), so the split never changes what is computed.
+    A function with side effects is kept whole in ``late`` (``early`` then returns the
+    early arguments unchanged), so the split never changes what is computed or how often.
     """
     late = tuple(bool(f) for f in late)
     if len(late) != len(args):

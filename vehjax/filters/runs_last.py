@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._hoist import split
+from .._hoist import Split, split
 from .base import StepOutput
 from .sigma import SigmaRule, cholesky
 
@@ -118,16 +118,9 @@ class Batch(NamedTuple):
     step: Callable
 
 
-class _PointModel(NamedTuple):
-    """A model function ``fn(x, u, theta)`` of one point, split for evaluation at many."""
-
-    early: Callable  # u (nu,) -> residuals that depend on u (and constant theta) only
-    late: Callable  # (x, theta, *residuals) -> output (d,)
-    n_residuals: int
-
-
-def _point_model(fn, nx: int, nu: int, n_params: int, dtype, theta_const) -> _PointModel:
-    """Split ``fn`` by :func:`vehjax._hoist.split`; with ``theta_const`` (np,) the parameters
+def _point_model(fn, nx: int, nu: int, n_params: int, dtype, theta_const) -> Split:
+    """``fn(x, u, theta)`` of one point split by :func:`vehjax._hoist.split` into
+    ``early(u)`` and ``late(x, theta, *residuals)``; with ``theta_const`` (np,) the parameters
     are that constant and the ``theta`` argument of ``late`` is ignored."""
     if theta_const is not None:
         theta_const = jnp.asarray(theta_const, dtype)
@@ -141,12 +134,11 @@ def _point_model(fn, nx: int, nu: int, n_params: int, dtype, theta_const) -> _Po
         return g(x, u, theta)
 
     sd = jax.ShapeDtypeStruct
-    sp = split(reorder, (sd((nx,), dtype), sd((n_params,), dtype), sd((nu,), dtype)),
-               late=(True, True, False))
-    return _PointModel(sp.early, sp.late, sp.n_residuals)
+    return split(reorder, (sd((nx,), dtype), sd((n_params,), dtype), sd((nu,), dtype)),
+                 late=(True, True, False))
 
 
-def _evaluate(model: _PointModel, pts, theta, residuals, per_run: bool):
+def _evaluate(model: Split, pts, theta, residuals, per_run: bool):
     """The model at sigma points ``pts`` (list over m points of lists over n components, each
     (R,)): evaluated as one batch (n, m * R), returned as a list over points of lists over
     output components, each (R,). ``theta`` (np, R) or None (constant); ``residuals`` of
