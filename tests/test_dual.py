@@ -112,19 +112,18 @@ def _numpy_dual_kf(ys, us, predictive=True):
 
 
 def _scan_runs(est, ys, us):
-    """vmap over runs of a lax.scan of est.step from (X0, P0, B0, PB0); one compile."""
+    """vmap over runs of vehjax.filter from (X0, P0, B0, PB0); one compile."""
 
     def one(y):
-        s0 = est.init(X0, P0, B0, PB0)
-        return jax.lax.scan(lambda s, yu: est.step(s, *yu), s0, (y, us))[1]
+        return vj.filter(est, y, us, X0, P0, B0, PB0)
 
     outs = jax.jit(jax.vmap(one))(jnp.asarray(ys))
     return [jax.tree.map(lambda a: np.asarray(a[i]), outs) for i in range(ys.shape[0])]
 
 
 def _assert_matches(out, ref, ys):
-    np.testing.assert_allclose(out.mean, ref["x"], rtol=0, atol=1e-9)
-    np.testing.assert_allclose(out.cov, ref["Px"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(out.states, ref["x"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(out.covariances, ref["Px"], rtol=0, atol=1e-9)
     np.testing.assert_allclose(out.params, ref["b"], rtol=0, atol=1e-9)
     np.testing.assert_allclose(out.params_cov, ref["Pb"], rtol=0, atol=1e-9)
     np.testing.assert_allclose(out.loglik, ref["ll"], rtol=0, atol=1e-9)

@@ -12,7 +12,7 @@ import pytest
 from filterpy.kalman import CubatureKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
 from filterpy.kalman.CubatureKalmanFilter import spherical_radial_sigmas
 
-import vehjax  # noqa: F401  (float64)
+import vehjax as vj  # float64
 from vehjax.filters.gaussian import ckf, ekf, masked_update, ukf, validate_prior
 from vehjax.filters.sigma import (
     chol_update,
@@ -56,13 +56,13 @@ def _linear_data(seed=0):
     return linear_gaussian_data(A, B, H, Q_LIN, R_LIN, X0_LIN, P0_LIN, T, seed)
 
 
-def _numpy_kf(ys, us, R=R_LIN):
+def _numpy_kf(ys, us, R=R_LIN, Q=Q_LIN):
     """The Kalman filter written out; NaN components are dropped from H, R and y."""
     x, P = X0_LIN.copy(), P0_LIN.copy()
     means, covs, lls, niss = [], [], [], []
     for y, u in zip(ys, us):
         x = A @ x + B @ u
-        P = A @ P @ A.T + Q_LIN
+        P = A @ P @ A.T + Q
         o = np.isfinite(y)
         ll = nis = 0.0
         if o.any():
@@ -82,11 +82,12 @@ def _numpy_kf(ys, us, R=R_LIN):
 
 
 def _scan(est, ys, us, x0, P0):
-    """A local time loop (vehjax.run is tested elsewhere)."""
+    """One run through vehjax.filter: (final state, FilterResult)."""
 
     @jax.jit
     def go(ys, us, x0, P0):
-        return jax.lax.scan(lambda s, yu: est.step(s, *yu), est.init(x0, P0), (ys, us))
+        res = vj.filter(est, ys, us, x0, P0)
+        return res.state, res
 
     return go(jnp.asarray(ys), jnp.asarray(us), jnp.asarray(x0), jnp.asarray(P0))
 
@@ -117,14 +118,14 @@ def test_linear_gaussian_equals_kalman_filter(name):
     est = LINEAR_FILTERS[name](LINEAR, Q_LIN, R_LIN)
 
     def one(y):
-        return jax.lax.scan(lambda s, yu: est.step(s, *yu), est.init(X0_LIN, P0_LIN), (y, us))[1]
+        return vj.filter(est, y, us, X0_LIN, P0_LIN)
 
     outs = jax.jit(jax.vmap(one))(jnp.asarray(ys2))
     for i in range(2):
         out = jax.tree.map(lambda a: np.asarray(a[i]), outs)
         m, P, ll, nis = _numpy_kf(ys2[i], us)
-        np.testing.assert_allclose(out.mean, m, rtol=0, atol=1e-9)
-        np.testing.assert_allclose(out.cov, P, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(out.states, m, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(out.covariances, P, rtol=0, atol=1e-9)
         np.testing.assert_allclose(out.loglik, ll, rtol=0, atol=1e-9)
         np.testing.assert_allclose(out.nis, nis, rtol=0, atol=1e-9)
         np.testing.assert_array_equal(out.n_obs, np.isfinite(ys2[i]).sum(axis=1))
@@ -246,8 +247,8 @@ def _compare(out, ref, tol=1e-8):
     m = np.array([r[0] for r in ref])
     P = np.array([r[1] for r in ref])
     ll = np.array([r[2] for r in ref])
-    np.testing.assert_allclose(np.asarray(out.mean), m, rtol=tol, atol=tol)
-    np.testing.assert_allclose(np.asarray(out.cov), P, rtol=tol, atol=tol)
+    np.testing.assert_allclose(np.asarray(out.states), m, rtol=tol, atol=tol)
+    np.testing.assert_allclose(np.asarray(out.covariances), P, rtol=tol, atol=tol)
     np.testing.assert_allclose(np.asarray(out.loglik), ll, rtol=tol, atol=tol)
 
 
@@ -299,8 +300,23 @@ def test_ekf_matches_numpy_ekf_with_finite_difference_jacobians():
         K = P @ Hk.T @ np.linalg.inv(S)
         x = x + K @ (ys[k] - _hx(x))
         P = P - K @ S @ K.T
-        np.testing.assert_allclose(out.mean[k], x, rtol=1e-6, atol=1e-6)
-        np.testing.assert_allclose(out.cov[k], P, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(out.states[k], x, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(out.covariances[k], P, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["ekf", "ukf", "sr_ukf", "ckf"])
+def test_noise_free_state_q_with_zero_variance_equals_kalman_filter(name):
+    """Q may be positive semi-definite: a state without process noise (issue: zero entries
+    where meaningful). The filters still equal the exact Kalman filter with that Q."""
+    Q0 = np.diag(np.diag(Q_LIN) * np.array([1.0, 0.0, 1.0, 0.0]))
+    est = {"ekf": ekf, "ukf": ukf, "ckf": ckf,
+           "sr_ukf": lambda m, q, r: ukf(m, q, r, sqrt=True)}[name](LINEAR, Q0, R_LIN)
+    ys, us = _linear_data()
+    out = vj.filter(est, ys, us, X0_LIN, P0_LIN)
+    m, P, ll, _ = _numpy_kf(ys, us, Q=Q0)
+    np.testing.assert_allclose(out.states, m, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(out.covariances, P, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(out.loglik, ll, rtol=0, atol=1e-9)
 
 
 # ---- float32 --------------------------------------------------------------------------------
@@ -310,11 +326,11 @@ def test_float32_agrees_with_float64(name):
     deviations of the float64 mean, the standard deviations agree to 1e-4 relative and the
     log-likelihoods to 1e-3 (measured: about 1e-5, 1e-5, 3e-5)."""
     o64, o32 = _nonlin_run(name), _nonlin_run(name, "float32")
-    assert o32.mean.dtype == jnp.float32 and o32.cov.dtype == jnp.float32
+    assert o32.states.dtype == jnp.float32 and o32.covariances.dtype == jnp.float32
     assert o32.loglik.dtype == jnp.float32
-    sd64 = np.sqrt(np.diagonal(np.asarray(o64.cov), axis1=1, axis2=2))
-    sd32 = np.sqrt(np.diagonal(np.asarray(o32.cov, dtype=float), axis1=1, axis2=2))
-    assert np.max(np.abs(np.asarray(o32.mean, dtype=float) - np.asarray(o64.mean)) / sd64) < 5e-4
+    sd64 = np.sqrt(np.diagonal(np.asarray(o64.covariances), axis1=1, axis2=2))
+    sd32 = np.sqrt(np.diagonal(np.asarray(o32.covariances, dtype=float), axis1=1, axis2=2))
+    assert np.max(np.abs(np.asarray(o32.states, dtype=float) - np.asarray(o64.states)) / sd64) < 5e-4
     assert np.max(np.abs(sd32 / sd64 - 1)) < 1e-4
     np.testing.assert_allclose(np.asarray(o32.loglik, dtype=float), o64.loglik, rtol=0, atol=1e-3)
 
@@ -402,9 +418,7 @@ def test_vmap_over_runs_and_grad_of_loglik():
 
     def total_loglik(log_r, ys):
         est = ekf(LINEAR, Q_LIN, R_LIN * jnp.exp(log_r))  # traced R: shape check only
-        s0 = est.init(X0_LIN, P0_LIN)
-        _, out = jax.lax.scan(lambda s, yu: est.step(s, *yu), s0, (ys, jnp.asarray(us)))
-        return out.loglik.sum()
+        return vj.filter(est, ys, jnp.asarray(us), X0_LIN, P0_LIN).loglik.sum()
 
     batched = jax.jit(jax.vmap(jax.value_and_grad(total_loglik), in_axes=(None, 0)))
     lls, grads = batched(0.0, jnp.asarray(ys2))
@@ -423,7 +437,7 @@ def test_vmap_over_runs_and_grad_of_loglik():
     [
         (dict(Q=np.eye(3), R=R_LIN), "Q"),
         (dict(Q=-np.eye(4), R=R_LIN), "Q"),
-        (dict(Q=np.diag([1.0, 1.0, 0.0, 1.0]), R=R_LIN), "Q"),
+        (dict(Q=np.diag([1.0, 1.0, -1e-3, 1.0]), R=R_LIN), "Q"),
         (dict(Q=Q_LIN + np.triu(np.ones((4, 4)), 1) * 1e-3, R=R_LIN), "Q"),
         (dict(Q=Q_LIN, R=np.array([0.1, np.nan])), "R"),
         (dict(Q=Q_LIN, R=np.array([[0.1, 0.2], [0.2, 0.1]])), "R"),

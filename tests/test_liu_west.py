@@ -83,8 +83,8 @@ def test_kernel_keeps_weighted_mean_and_covariance():
     mean = w @ parts
     V = ((parts - mean) * w[:, None]).T @ (parts - mean)
     a = 0.9
-    moved = np.asarray(_kernel(jax.random.key(3), jnp.asarray(parts), jnp.asarray(mean),
-                               jnp.asarray(V), a))
+    moved = np.asarray(_kernel(jax.random.key(3), jnp.asarray(parts.T), jnp.asarray(mean),
+                               jnp.asarray(V), a)).T  # particles (p, M) in the filter
     new_mean = w @ moved
     new_V = ((moved - new_mean) * w[:, None]).T @ (moved - new_mean)
     ess = 1.0 / np.sum(w**2)
@@ -107,9 +107,9 @@ def test_step_without_information_keeps_the_cloud():
     est = liu_west_ukf(model, Q=[QV], R=[RV], n_particles=M, estimate="b", theta_low=[1000.0],
                        theta_high=[2500.0], a=0.8, ess_threshold=0.0)
     state = est.init(jnp.zeros(1), jnp.eye(1), key=jax.random.key(0))
-    before = np.asarray(state.particles[:, 0])
+    before = np.asarray(state.particles[0])  # particles (p, M)
     state, out = jax.jit(est.step)(state, jnp.array([0.3]), jnp.array([0.0]))
-    after = np.asarray(state.particles[:, 0])
+    after = np.asarray(state.particles[0])
     assert np.allclose(np.asarray(state.log_weights), -np.log(M))
     assert not np.allclose(after, before)
     assert abs(out.params[0] - before.mean()) < 4 * before.std() / np.sqrt(M)
@@ -130,12 +130,12 @@ _SCANS = {}
 
 
 def _scan(est, ys, us, key):
-    """init + lax.scan over the steps of one run, prior N(0, I); one jit per estimator."""
+    """vehjax.filter over one run, prior N(0, I): (final state, result); one jit per estimator."""
     if id(est) not in _SCANS:
 
         def one(ys, us, key):
-            state = est.init(jnp.zeros(2), jnp.eye(2), key=key)
-            return jax.lax.scan(lambda s, yu: est.step(s, *yu), state, (ys, us))
+            res = vj.filter(est, ys, us, jnp.zeros(2), jnp.eye(2), key=key)
+            return res.state, res
 
         _SCANS[id(est)] = (est, jax.jit(one))
     return _SCANS[id(est)][1](jnp.asarray(ys), jnp.asarray(us), key)
@@ -194,7 +194,7 @@ def test_same_key_same_result_other_key_other_result():
     _, o2 = _scan(est, ys, us, jax.random.key(3))
     _, o3 = _scan(est, ys, us, jax.random.key(4))
     np.testing.assert_array_equal(o1.params, o2.params)
-    np.testing.assert_array_equal(o1.mean, o2.mean)
+    np.testing.assert_array_equal(o1.states, o2.states)
     assert not np.allclose(o1.params, o3.params)
 
 
@@ -205,7 +205,7 @@ def test_weights_underflow_reinitialises_from_the_box_with_finite_outputs():
     state, out = _scan(est, ys[:4], us[:4], jax.random.key(2))
     assert bool(state.flag_diverged) and int(state.n_reinit) == 1
     assert np.all(np.isfinite(np.asarray(out.params))) and np.all(np.isfinite(out.params_cov))
-    p = np.asarray(state.particles)
+    p = np.asarray(state.particles).T  # (M, p)
     assert np.all((p >= [0.0, 0.0]) & (p <= [2.0, 1.0]))
     np.testing.assert_allclose(state.log_weights, -np.log(64))
 

@@ -76,8 +76,8 @@ def _run(est, ys, us, keys, x0=X0, P0_=P0):
     if id(est) not in _RUNNERS:
 
         def one(key, ys, us, x0, P0_):
-            state = est.init(x0, P0_, key=key)
-            return jax.lax.scan(lambda s, yu: est.step(s, *yu), state, (ys, us))
+            res = vj.filter(est, ys, us, x0, P0_, key=key)
+            return res.state, res
 
         _RUNNERS[id(est)] = (est, jax.jit(jax.vmap(one, in_axes=(0, None, None, None, None))))
     return _RUNNERS[id(est)][1](keys, jnp.asarray(ys), jnp.asarray(us), jnp.asarray(x0),
@@ -97,7 +97,7 @@ def test_close_to_kalman_and_error_shrinks_with_particles():
     err = {}
     for n in (100, 3000):
         _, out = _run(bootstrap_pf(_model(), Q, R, n_particles=n), ys, us, _keys(6))
-        mean, cov = np.asarray(out.mean), np.asarray(out.cov)
+        mean, cov = np.asarray(out.states), np.asarray(out.covariances)
         assert np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))
         # error in units of the exact posterior standard deviation
         err[n] = np.sqrt(np.mean((mean - m_kf) ** 2 / np.diagonal(P_kf, axis1=1, axis2=2)))
@@ -144,7 +144,7 @@ def test_every_scheme_tracks_the_kalman_filter(scheme, threshold):
     m_kf, P_kf, _ = _kalman(ys, us, R_DIAG)
     est = bootstrap_pf(_model(), Q, R_DIAG, 1000, resampling=scheme, ess_threshold=threshold)
     state, out = _run(est, ys, us, _keys(4))
-    z = (np.asarray(out.mean) - m_kf) / np.sqrt(np.diagonal(P_kf, axis1=1, axis2=2))
+    z = (np.asarray(out.states) - m_kf) / np.sqrt(np.diagonal(P_kf, axis1=1, axis2=2))
     assert np.sqrt(np.mean(z**2)) < 0.1
     if threshold == 1.0:  # resampled after every step: equal weights
         np.testing.assert_allclose(np.asarray(state.weights), 1.0 / 1000)
@@ -177,7 +177,7 @@ def test_missing_component_is_the_same_as_not_measuring_it():
     )
     _, out_nan = _run(bootstrap_pf(_model(), Q, R_FULL, 300), ys_nan, us, _keys(2))
     _, out_one = _run(bootstrap_pf(one_output, Q, R_FULL[:1, :1], 300), ys[:, :1], us, _keys(2))
-    for field in ("mean", "cov", "loglik", "nis"):
+    for field in ("states", "covariances", "loglik", "nis"):
         np.testing.assert_allclose(getattr(out_nan, field), getattr(out_one, field), rtol=1e-9,
                                    atol=1e-12, err_msg=field)
     assert np.all(np.asarray(out_nan.n_obs) == 1)
@@ -233,10 +233,10 @@ def test_weights_underflow_reinitialises_with_finite_outputs():
     ys_bad[10] = [1e4, -1e4]  # 1e4 / 0.3 standard deviations away: every weight underflows
     est = bootstrap_pf(_model(), Q, R_DIAG, 500)
     state, out = _run(est, ys_bad, us, _keys(3))
-    for field in ("mean", "cov", "loglik", "nis"):
+    for field in ("states", "covariances", "loglik", "nis"):
         assert np.all(np.isfinite(np.asarray(getattr(out, field)))), field
     assert np.all(np.asarray(state.flag_diverged)) and np.all(np.asarray(state.n_reinit) == 1)
-    mean, cov = np.asarray(out.mean), np.asarray(out.cov)
+    mean, cov = np.asarray(out.states), np.asarray(out.covariances)
     # the diverged step moves the last estimate with the model and widens it by Q
     np.testing.assert_allclose(mean[:, 10], mean[:, 9] @ A.T + us[10], rtol=1e-12)
     np.testing.assert_allclose(cov[:, 10], cov[:, 9] + Q, rtol=1e-12)
@@ -289,9 +289,9 @@ def test_float32_prior_runs_in_float32():
     est = bootstrap_pf(_model(), Q, R_DIAG, 1000)
     state, out = _run(est, ys.astype(np.float32), us.astype(np.float32), _keys(2),
                       x0=X0.astype(np.float32), P0_=P0.astype(np.float32))
-    assert out.mean.dtype == jnp.float32 and state.particles.dtype == jnp.float32
-    assert out.cov.dtype == jnp.float32 and out.loglik.dtype == jnp.float32
-    z = (np.asarray(out.mean) - m_kf) / np.sqrt(np.diagonal(P_kf, axis1=1, axis2=2))
+    assert out.states.dtype == jnp.float32 and state.particles.dtype == jnp.float32
+    assert out.covariances.dtype == jnp.float32 and out.loglik.dtype == jnp.float32
+    z = (np.asarray(out.states) - m_kf) / np.sqrt(np.diagonal(P_kf, axis1=1, axis2=2))
     assert np.sqrt(np.mean(z**2)) < 0.15
 
 
@@ -305,12 +305,11 @@ def test_dynamic3dof_follows_the_truth():
     est = bootstrap_pf(model, Qd, Rd, 300)
 
     def one(key, ys):
-        state = est.init(jnp.asarray(scn.x0), jnp.asarray(np.diag([0.1, 0.05, 0.01]) ** 2),
-                         key=key)
-        return jax.lax.scan(lambda s, yu: est.step(s, *yu), state, (ys, sim.inputs))[1]
+        return vj.filter(est, ys, sim.inputs, jnp.asarray(scn.x0),
+                         jnp.asarray(np.diag([0.1, 0.05, 0.01]) ** 2), key=key)
 
     out = jax.jit(jax.vmap(one))(_keys(2), sim.measurements)
-    err = np.sqrt(np.mean((np.asarray(out.mean) - np.asarray(sim.states)) ** 2, axis=(0, 1)))
+    err = np.sqrt(np.mean((np.asarray(out.states) - np.asarray(sim.states)) ** 2, axis=(0, 1)))
     meas_err = np.sqrt(np.mean((np.asarray(sim.measurements - sim.states)) ** 2, axis=(0, 1)))
     assert np.all(err < 0.7 * meas_err), (err, meas_err)
 

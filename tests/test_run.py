@@ -174,7 +174,7 @@ def test_all_missing_run_is_open_loop_prediction():
 def test_diverging_run_is_flagged_and_frozen_others_untouched():
     ys, us = _data()
     bad = ys.copy()
-    bad[1, 12, 0] = np.inf  # the update sends this run's mean to inf/NaN
+    bad[1, 12, 0] = 1e300  # the update sends this run's mean to inf/NaN
     out = run(EST, bad, us, x0=X0, P0=P0, return_covariances=True)
     np.testing.assert_array_equal(out.diverged, [False, True, False])
     np.testing.assert_array_equal(out.diverged_at, [-1, 12, -1])
@@ -202,7 +202,7 @@ def _corrupting(est, threshold=50.0):
         flip = jnp.abs(y[0]) > threshold
         return new, out._replace(cov=jnp.where(flip, -out.cov, out.cov))
 
-    return est._replace(step=step, name="corrupting")
+    return est._replace(step=step, name="corrupting", batch=None)
 
 
 def test_non_positive_definite_covariance_flags_divergence():
@@ -285,8 +285,8 @@ def test_parameter_outputs_and_theta_checks():
     with pytest.raises(ValueError, match="theta0"):
         run(est, ys, us, x0=X0, P0=P0, theta0=[1.0, 2.0], P_theta0=[[1.0]])
     bad = ys.copy()
-    bad[0, 0, 0] = np.inf  # diverges at the first step: holds theta0, P_theta0
-    bad[2, 30, 0] = np.inf
+    bad[0, 0, 0] = 1e300  # diverges at the first step: holds theta0, P_theta0
+    bad[2, 30, 0] = 1e300
     out = run(est, bad, us, x0=X0, P0=P0, theta0=[9.0], P_theta0=[[3.0]], return_covariances=True)
     assert (out.params[0] == 9.0).all() and (out.params_cov[0] == 3.0).all()
     assert out.params.shape == (R_RUNS, T, 1) and out.params_cov.shape == (R_RUNS, T, 1, 1)
@@ -348,7 +348,7 @@ def test_estimator_output_shape_is_checked():
 
     ys, us = _data()
     with pytest.raises(ValueError, match="StepOutput.mean"):
-        run(EST._replace(step=step), ys, us, x0=X0, P0=P0)
+        run(EST._replace(step=step, batch=None), ys, us, x0=X0, P0=P0)
 
 
 _SHARDED = textwrap.dedent(
@@ -361,7 +361,7 @@ _SHARDED = textwrap.dedent(
     from vehjax.run import compile_run, run
     assert len(jax.devices()) == 2, jax.devices()
     ys, us = t._data(R=5, seed=9)
-    ys[3, 8, 1] = np.inf
+    ys[3, 8, 1] = 1e300
     kw = dict(x0=t.X0, P0=t.P0, return_covariances=True)
     one = run(t.EST, ys, us, devices=False, **kw)
     two = run(t.EST, ys, us, **kw)  # one chunk of 6: 5 runs padded over 2 devices
@@ -376,7 +376,7 @@ _SHARDED = textwrap.dedent(
     scn = vj.scenarios.sine_steer(model, speed=20.0, duration=0.2)
     sim = vj.simulate(model, scn, runs=5, key=jax.random.key(0), meas_std=[0.2, 0.2, 0.05])
     est = vj.filters.ukf(model, [1e-3, 1e-3, 1e-4], [0.04, 0.04, 0.0025])
-    assert est.step.runs_last is not None
+    assert est.batch is not None
     kw = dict(x0=scn.x0, P0=np.eye(3) * 0.1, return_covariances=True, progress=False)
     one = run(est, sim.measurements, sim.inputs, devices=False, **kw)
     two = run(est, sim.measurements, sim.inputs, **kw)

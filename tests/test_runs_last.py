@@ -14,7 +14,7 @@ R_RUNS, T = 6, 60
 
 def _vmapped(est):
     """The same estimator with a plain step function: run vmaps it over runs."""
-    return est._replace(step=lambda s, y, u: est.step(s, y, u))
+    return est._replace(batch=None)
 
 
 def _assert_same(a, b, rtol):
@@ -43,7 +43,7 @@ def study():
 def test_runs_last_equals_vmapped_step(study, build):
     model, Q, R, ys, us, x0, P0 = study
     est = build(model, Q, R)
-    assert est.step.runs_last is not None
+    assert est.batch is not None
     us_runs = np.tile(us, (R_RUNS, 1, 1)) * np.linspace(0.9, 1.1, R_RUNS)[:, None, None]
     for inputs in (us, us_runs):  # shared and per-run inputs
         kw = dict(x0=x0, P0=P0, return_covariances=True, progress=False)
@@ -66,7 +66,7 @@ def test_runs_last_diverging_run_is_frozen_others_untouched():
     us[1, 5:] = -1.0
     ys = np.cumsum(np.ones((runs, steps, 1)) * 0.1, axis=1)
     est = ukf(model, np.eye(2) * 1e-3, [1e-2])
-    assert est.step.runs_last is not None
+    assert est.batch is not None
     kw = dict(x0=[0.0, 1.0], P0=np.eye(2), return_covariances=True, progress=False)
     fast = vj.run(est, ys, us, **kw)
     _assert_same(fast, vj.run(_vmapped(est), ys, us, **kw), 1e-12)
@@ -100,16 +100,16 @@ def test_runs_last_float32(study):
 
 def test_only_small_models_and_constant_noise_get_a_runs_last_step():
     small = ukf(vj.models.Dynamic3DOF(dt=0.01), np.eye(3) * 1e-3, np.eye(3) * 1e-2)
-    assert getattr(small.step, "runs_last", None) is not None
+    assert small.batch is not None
     small_model = vj.models.Dynamic3DOF(dt=0.01)
     sqrt = ukf(small_model, np.eye(3) * 1e-3, np.eye(3) * 1e-2, sqrt=True)
-    assert getattr(sqrt.step, "runs_last", None) is None
+    assert sqrt.batch is None
     # a builder called with traced noise (tuning Q, R by gradients) keeps the vmapped step
     seen = {}
 
     def build(q):
         est = ukf(small_model, q, np.eye(3) * 1e-2)
-        seen["runs_last"] = getattr(est.step, "runs_last", None)
+        seen["runs_last"] = est.batch
         return q.sum()
 
     jax.jit(build)(jnp.eye(3) * 1e-3)
@@ -140,7 +140,7 @@ def test_runs_last_step_reads_theta_from_state_unless_constant(study, per_run_in
     y = np.moveaxis(ys[:n, :3], 0, -1)  # (T, ny, R)
 
     def first_steps(th, default_theta):
-        batch = est.step.runs_last(per_run_inputs, jnp.float64, default_theta)
+        batch = est.batch(per_run_inputs, jnp.float64, default_theta)
         state = vj.filters.gaussian.GaussianState(
             jnp.asarray(x0[:n].T), jnp.broadcast_to(jnp.asarray(P0)[..., None], (3, 3, n)),
             jnp.asarray(th.T))

@@ -10,21 +10,24 @@ Time convention (the papers' order): ``x0``/``P0`` describe the state before the
 step ``t`` predicts with ``inputs[..., t, :]``, then updates with ``measurements[:, t, :]``, so
 ``out.states[:, t]`` is the filtered estimate after the ``t``-th measurement.
 
-Estimators whose ``step`` carries a ``runs_last`` form (UKF and CKF on models with at most 8
-states and outputs, :mod:`vehjax.filters.runs_last`) are not vmapped: one scan runs the batched
+Each run is :func:`vehjax.filter`'s traced logic (``vehjax.filtering.one_run``), vmapped over
+the runs of a chunk. Estimators with a runs-last ``batch`` form (UKF and CKF on models with at
+most 8 states and outputs, :mod:`vehjax.filters.runs_last`) are not vmapped: one scan runs the batched
 step with the runs axis last, which XLA on CPU vectorises across runs, and what the model
 computes from the inputs alone is computed once for the whole input sequence before the time
 loop (:mod:`vehjax._hoist`); results agree to rounding.
 
 A NaN measurement component is missing; ``run`` passes it to the filter untouched and the filter
-skips that component's update.
+skips that component's update. Every filter treats any non-finite component as missing; ``run``
+refuses +-inf in the measurements with a ValueError, since it is more likely a fault than a gap.
 
-Divergence: after every step, a run whose new mean is not finite or whose covariance is not
-finite and positive definite (also the parameter estimate and its covariance, for filters that
-estimate parameters) is flagged ``diverged`` at that step. From then on its filter state is frozen
-at the last good state and its outputs hold the last good estimate (the prior ``x0``/``P0`` if it
+Divergence (as in :mod:`vehjax.filtering`): a run whose mean is not finite, whose covariance is
+not finite and positive definite (also the parameter estimate and its covariance, for filters
+that estimate parameters), or whose log-likelihood or NIS is not finite, is flagged ``diverged``
+at that step. From then on its outputs hold the last good estimate (the prior ``x0``/``P0`` if it
 diverged at the first step), its ``nis`` is NaN, its ``n_obs`` 0 and its ``loglik`` stops
-accumulating. The other runs are not touched.
+accumulating. A particle filter that re-initialises (``StepOutput.reinit``) flags the run but
+keeps going. The other runs are not touched.
 
 Large studies are split into chunks of runs, each one jitted call (one compilation per chunk
 shape; the last chunk is padded); results come back to host memory chunk by chunk, so device
@@ -54,15 +57,22 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from . import _validate, filtering
+from .filtering import FilterResult
 from .filters import runs_last as _runs_last
 from .filters.base import Estimator
-from .filters.sigma import cholesky
 
 __all__ = ["RunResult", "CompiledRun", "run", "compile_run"]
 
 _AXIS = "runs"
 # Auto chunk size: keep the per-chunk stacked outputs near this many bytes of device memory.
 _AUTO_CHUNK_BYTES = 512 * 2**20
+# A filter step holds temporaries of about this many times its carried state (particles through
+# the model, predicted measurements, resampled copies).
+_STATE_TEMPORARIES = 16
+# Auto chunk size: at most this many (state number x step) per chunk, so that a long study is
+# several chunks and the progress bar moves (about 5-10 s a chunk for a particle filter on CPU).
+_CHUNK_WORK = 2e9
 
 
 class RunResult(NamedTuple):
@@ -97,113 +107,7 @@ class RunResult(NamedTuple):
 
 
 # ----------------------------------------------------------------------------------------------
-# Traced part
-
-
-def _is_pd(C):
-    """Whether a square matrix is finite and positive definite (a Cholesky succeeds)."""
-    if C.shape[-1] == 0:
-        return jnp.array(True)
-    L = cholesky(C)  # symmetrises; unrolled for small C
-    return jnp.all(jnp.isfinite(C)) & jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
-
-
-def _check_step_output(out, nx: int, p: int):
-    expected = {
-        "mean": (nx,),
-        "cov": (nx, nx),
-        "loglik": (),
-        "nis": (),
-        "n_obs": (),
-        "params": (p,),
-        "params_cov": (p, p),
-    }
-    for field, shape in expected.items():
-        got = getattr(out, field).shape
-        if got != shape:
-            raise ValueError(
-                f"estimator: step returned StepOutput.{field} of shape {got}, expected {shape} "
-                f"(nx = {nx}, {p} estimated parameters)"
-            )
-
-
-def _start(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
-    """(filter state, held outputs, log-likelihood 0) of one run before its first step; checks
-    the shapes of the step's output. y (T, ny), u (T, nu) are only read for shapes."""
-    nx, p = estimator.nx, len(estimator.param_names)
-    state0 = estimator.init(x0, P0, th0, Pth0, key)
-    _, out_shape = jax.eval_shape(estimator.step, state0, y[0], u[0])
-    _check_step_output(out_shape, nx, p)
-
-    def cast(a, like):
-        return jnp.asarray(a).astype(like.dtype)
-
-    held0 = (
-        cast(x0, out_shape.mean),
-        cast(P0, out_shape.cov),
-        cast(jnp.zeros((0,)) if th0 is None else th0, out_shape.params),
-        cast(jnp.zeros((0, 0)) if Pth0 is None else Pth0, out_shape.params_cov),
-    )
-    return state0, held0, jnp.zeros((), out_shape.loglik.dtype)
-
-
-def _output_ok(out, p: int, is_pd, axis):
-    """Whether a step output is finite with positive-definite covariances: a scalar for one
-    run (``axis=None``, ``is_pd`` on (n, n)), (C,) for a runs-last batch (``axis=0``, ``is_pd``
-    on (n, n, C))."""
-    good = jnp.all(jnp.isfinite(out.mean), axis=axis) & is_pd(out.cov)
-    if p:
-        good = good & jnp.all(jnp.isfinite(out.params), axis=axis) & is_pd(out.params_cov)
-    return good
-
-
-def _scan_body(step, ok, return_cov: bool):
-    """The scan body shared by the vmapped and the runs-last study: one filter step, then the
-    divergence bookkeeping of the module docstring. ``ok(out)`` says which runs' step output is
-    finite and positive definite (a scalar for one run, (C,) for a runs-last batch)."""
-
-    def body(carry, yu):
-        state, held, diverged, flagged, diverged_at, ll, t = carry
-        new_state, out = step(state, *yu)
-        # Particle filters re-initialise a run whose weights all underflow and say so in
-        # ``flag_diverged``: such a run is reported diverged but keeps going, not frozen.
-        flag_now = jnp.asarray(getattr(new_state, "flag_diverged", False)) & ~diverged
-        bad = diverged | ~ok(out)
-        diverged_at = jnp.where((bad | flag_now) & ~diverged & ~flagged, t, diverged_at)
-        flagged = flagged | flag_now
-        keep = partial(jnp.where, bad)
-        state = jax.tree.map(keep, state, new_state)
-        held = jax.tree.map(keep, held, (out.mean, out.cov, out.params, out.params_cov))
-        ll = ll + jnp.where(bad, 0.0, out.loglik).astype(ll.dtype)
-        nis = jnp.where(bad, jnp.nan, out.nis)
-        n_obs = jnp.where(bad, 0, out.n_obs).astype(jnp.int32)
-        mean, cov, params, params_cov = held
-        per_step = (
-            mean,
-            cov if return_cov else None,
-            params,
-            params_cov if return_cov else None,
-            nis,
-            n_obs,
-        )
-        return (state, held, bad, flagged, diverged_at, ll, t + 1), per_step
-
-    return body
-
-
-def _one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key):
-    """One run: y (T, ny), u (T, nu); x0 (nx,), P0 (nx, nx); th0 (p,), Pth0 (p, p) or None."""
-    p = len(estimator.param_names)
-    state0, held0, ll0 = _start(estimator, y, u, x0, P0, th0, Pth0, key)
-    int0 = partial(jnp.array, dtype=jnp.int32)
-    carry0 = (state0, held0, jnp.array(False), jnp.array(False), int0(-1), ll0, int0(0))
-
-    ok = partial(_output_ok, p=p, is_pd=_is_pd, axis=None)
-    body = _scan_body(estimator.step, ok, return_cov)
-    (_, _, frozen, flagged, diverged_at, ll, _), (mean, cov, params, pcov, nis, n_obs) = (
-        jax.lax.scan(body, carry0, (y, u))
-    )
-    return mean, cov, params, pcov, ll, nis, n_obs, frozen | flagged, diverged_at
+# Traced part: the per-run logic is vehjax.filtering's; here only the batching
 
 
 def _scan_prefetched(body, carry0, xs, pre):
@@ -232,37 +136,28 @@ def _scan_prefetched(body, carry0, xs, pre):
 
 
 def _runs_last_study(estimator: Estimator, return_cov: bool, per_run, ys, us, x0, P0, th0, Pth0,
-                    keys):
-    """What ``vmap(_one_run)`` computes, for an estimator whose ``step`` has a ``runs_last``
+                     keys) -> FilterResult:
+    """What ``vmap(filtering.one_run)`` computes, for an estimator with a runs-last ``batch``
     form: one scan over time of the batched step, every array with the runs axis last (see
-    :mod:`vehjax.filters.runs_last`). Same divergence logic, element for element."""
+    :mod:`vehjax.filters.runs_last`); the same per-run bookkeeping (``filtering.finish``)."""
     p = len(estimator.param_names)
     per_run_u = us.ndim == 3
     start = jax.vmap(
-        partial(_start, estimator), in_axes=tuple(0 if r else None for r in per_run)
+        partial(filtering.start, estimator), in_axes=tuple(0 if r else None for r in per_run)
     )
-    state0, held0, ll0 = start(ys, us, x0, P0, th0, Pth0, keys)
-    batch = estimator.step.runs_last(per_run_u, held0[0].dtype, th0 is None)
-    last = partial(jax.tree.map, lambda a: jnp.moveaxis(a, 0, -1))
-    state0, held0 = last(state0), last(held0)
-    C = ys.shape[0]
-    carry0 = (state0, held0, jnp.zeros(C, bool), jnp.zeros(C, bool),
-              jnp.full(C, -1, jnp.int32), ll0, jnp.array(0, jnp.int32))
+    state0, held0 = start(ys, us, x0, P0, th0, Pth0, keys)
+    batch = estimator.batch(per_run_u, held0[0].dtype, th0 is None)
+    state0 = jax.tree.map(lambda a: jnp.moveaxis(a, 0, -1), state0)
 
-    ok = partial(_output_ok, p=p, is_pd=_runs_last.is_pd, axis=0)
-    body = _scan_body(batch.step, ok, return_cov)  # (C,) masks broadcast against the last axis
+    ok = partial(filtering.output_ok, p=p, pd=_runs_last.is_pd, axis=0)
+    body = filtering.scan_body(batch.step, ok, return_cov)
 
     y_t = jnp.moveaxis(ys, 0, -1)  # (T, ny, C)
     u_t = jnp.moveaxis(us, 0, -1) if per_run_u else us  # (T, nu, C) or (T, nu)
     # the prepared inputs go through the carry, see _scan_prefetched
-    (_, _, frozen, flagged, diverged_at, ll, _), outs = _scan_prefetched(
-        body, carry0, y_t, batch.prepare(u_t)
-    )
-    # (T, ..., C) -> (C, T, ...)
-    mean, cov, params, pcov, nis, n_obs = (
-        None if a is None else jnp.moveaxis(a, -1, 0) for a in outs
-    )
-    return mean, cov, params, pcov, ll, nis, n_obs, frozen | flagged, diverged_at
+    _, per_step = _scan_prefetched(body, state0, y_t, batch.prepare(u_t))
+    per_step = jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), per_step)  # (C, T, ...)
+    return jax.vmap(filtering.finish)(per_step, held0)
 
 
 @eqx.filter_jit
@@ -277,13 +172,18 @@ def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh):
         Pth0 is not None and Pth0.ndim == 3,
         keys is not None,
     )
-    if getattr(estimator.step, "runs_last", None) is not None:
-        f = partial(_runs_last_study, estimator, return_cov, per_run)
-    else:
-        f = jax.vmap(
-            partial(_one_run, estimator, return_cov),
-            in_axes=tuple(0 if r else None for r in per_run),
-        )
+
+    def f(*args):
+        if estimator.batch is not None:
+            res = _runs_last_study(estimator, return_cov, per_run, *args)
+        else:
+            res = jax.vmap(
+                partial(filtering.one_run, estimator, return_cov),
+                in_axes=tuple(0 if r else None for r in per_run),
+            )(*args)
+        return (res.states, res.covariances, res.params, res.params_cov,
+                jnp.sum(res.loglik, axis=1), res.nis, res.n_obs, res.diverged, res.diverged_at)
+
     if mesh is not None:
         f = jax.shard_map(
             f,
@@ -299,21 +199,6 @@ def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh):
 # Validation (before anything is traced)
 
 
-def _as_float(arg: str, value, allow_nan: bool = False) -> np.ndarray:
-    try:
-        a = np.asarray(value)
-    except Exception:  # ragged lists and the like
-        raise ValueError(f"{arg}: expected a numeric array, got {type(value).__name__}") from None
-    real = np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)
-    if a.dtype == bool or not real:
-        raise ValueError(f"{arg}: expected a real numeric array, got dtype {a.dtype}")
-    if not np.issubdtype(a.dtype, np.floating):
-        a = a.astype(np.float64)
-    if not allow_nan and not np.all(np.isfinite(a)):
-        raise ValueError(f"{arg}: expected finite values, found NaN or inf")
-    return a
-
-
 def _check_shape(arg: str, a: np.ndarray, shared: tuple, R: int, what: str) -> np.ndarray:
     """``a`` must have shape ``shared`` or ``(R,) + shared``."""
     if a.shape == shared or a.shape == (R,) + shared:
@@ -322,35 +207,6 @@ def _check_shape(arg: str, a: np.ndarray, shared: tuple, R: int, what: str) -> n
         f"{arg}: expected shape {shared} (shared by all runs) or {(R,) + shared} (one per run) "
         f"for {what}, got {a.shape}"
     )
-
-
-def _check_cov(arg: str, P: np.ndarray):
-    sym = np.swapaxes(P, -1, -2)
-    scale = max(float(np.max(np.abs(P))), np.finfo(np.float64).tiny)
-    if not np.allclose(P, sym, rtol=0.0, atol=1e-9 * scale):
-        raise ValueError(f"{arg}: expected a symmetric matrix (or one per run)")
-    if P.shape[-1] == 0:
-        return
-    try:
-        np.linalg.cholesky(0.5 * (P + sym).astype(np.float64))
-    except np.linalg.LinAlgError:
-        if P.ndim == 3:
-            low = np.linalg.eigvalsh(0.5 * (P + sym).astype(np.float64)).min(axis=-1)
-            bad = np.flatnonzero(low <= 0)
-            raise ValueError(
-                f"{arg}: expected positive-definite covariances; runs {bad[:10].tolist()} are not"
-            ) from None
-        raise ValueError(f"{arg}: expected a positive-definite covariance") from None
-
-
-def _check_key(key, R: int):
-    try:
-        keys = jax.random.split(key, R)
-    except Exception:
-        raise ValueError(
-            f"key: expected a JAX PRNG key such as jax.random.key(0), got {key!r}"
-        ) from None
-    return keys
 
 
 def _resolve_devices(devices):
@@ -368,6 +224,30 @@ def _resolve_devices(devices):
     if not devices or not all(isinstance(d, jax.Device) for d in devices):
         raise ValueError(f"devices: expected a non-empty sequence of jax devices, got {devices!r}")
     return devices
+
+
+def _auto_chunk(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov: bool) -> int:
+    """Runs per chunk from a memory budget (outputs plus what the filter holds per run: its
+    state from ``init``, times the temporaries of a step) and a work budget (module constants).
+    """
+    R, T, _ = ys.shape
+    nx, p = estimator.nx, len(estimator.param_names)
+    itemsize = np.dtype(ys.dtype).itemsize
+    out_bytes = T * itemsize * (nx + p + 4 + (nx * nx + p * p if return_cov else 0))
+
+    def first(a, per_run_ndim):
+        return None if a is None else (a[0] if a.ndim == per_run_ndim else a)
+
+    state = jax.eval_shape(
+        estimator.init, first(x0, 2), first(P0, 3), first(th0, 2), first(Pth0, 3),
+        None if keys is None else keys[0],
+    )
+    leaves = jax.tree.leaves(state)
+    state_numbers = sum(int(np.prod(a.shape)) for a in leaves)
+    state_bytes = 8 * state_numbers  # at most float64 (typed PRNG keys have no numpy dtype)
+    by_memory = _AUTO_CHUNK_BYTES // (out_bytes + _STATE_TEMPORARIES * state_bytes)
+    by_work = int(_CHUNK_WORK // (T * max(state_numbers, 1)))
+    return max(1, min(by_memory, by_work))
 
 
 class _Plan(NamedTuple):
@@ -406,33 +286,58 @@ def _plan(
     if nx < 1:
         raise ValueError(f"estimator: nx must be >= 1, got {estimator.nx}")
 
-    ys = _as_float("measurements", measurements, allow_nan=True)
+    ys = _validate.array("measurements", measurements, allow_nan=True)
     if ys.ndim != 3 or 0 in ys.shape:
         raise ValueError(
             f"measurements: expected shape (runs, steps, ny) with none zero, got {ys.shape}; "
             f"for a single run pass measurements[None]"
         )
-    R, T, _ = ys.shape
+    R, T, ny = ys.shape
+    if np.any(np.isinf(ys)):
+        raise ValueError(
+            "measurements: +-inf found; mark missing components with NaN (a filter skips them)"
+        )
+    if estimator.ny is not None and ny != estimator.ny:
+        raise ValueError(
+            f"measurements: expected {estimator.ny} columns (the model's outputs) in shape "
+            f"(runs, steps, {estimator.ny}), got {ys.shape}"
+        )
 
     if inputs is None:
+        if estimator.nu:
+            raise ValueError(
+                f"inputs: required, shape ({T}, {estimator.nu}) shared or ({R}, {T}, "
+                f"{estimator.nu}) per run, for this model's {estimator.nu} inputs"
+            )
         us = np.zeros((T, 0), ys.dtype)
     else:
-        us = _as_float("inputs", inputs)
+        us = _validate.array("inputs", inputs)
         if us.ndim == 1 and T == us.shape[0]:
             raise ValueError(
                 f"inputs: expected shape ({T}, nu) or ({R}, {T}, nu), got {us.shape}; "
                 f"for a single input pass inputs[:, None]"
             )
         shared_ok = us.ndim == 2 and us.shape[0] == T
+        nu = estimator.nu
+        if nu is not None and us.ndim in (2, 3) and us.shape[-1] != nu:
+            raise ValueError(
+                f"inputs: expected {nu} columns (the model's inputs), shape ({T}, {nu}) or "
+                f"({R}, {T}, {nu}), got {us.shape}"
+            )
         if not shared_ok and not (us.ndim == 3 and us.shape[:2] == (R, T)):
             raise ValueError(
                 f"inputs: expected shape ({T}, nu) (shared by all runs) or ({R}, {T}, nu) "
                 f"(one per run) to match measurements {ys.shape}, got {us.shape}"
             )
 
-    x0 = _check_shape("x0", _as_float("x0", x0), (nx,), R, f"nx = {nx} states")
-    P0 = _check_shape("P0", _as_float("P0", P0), (nx, nx), R, f"nx = {nx} states")
-    _check_cov("P0", P0)
+    x0 = _check_shape("x0", _validate.array("x0", x0), (nx,), R, f"nx = {nx} states")
+    P0 = _validate.array("P0", P0)
+    if P0.shape == (nx,):
+        if np.any(P0 <= 0):
+            raise ValueError(f"P0: expected positive variances, got {P0}")
+        P0 = np.diag(P0)  # (nx,) variances, the rule for every covariance argument
+    P0 = _check_shape("P0", P0, (nx, nx), R, f"nx = {nx} states (or ({nx},) variances)")
+    _validate.batched_cov("P0", P0)
 
     if p == 0:
         for arg, v in (("theta0", theta0), ("P_theta0", P_theta0)):
@@ -444,21 +349,27 @@ def _plan(
     else:
         names = tuple(estimator.param_names)
         for arg, v in (("theta0", theta0), ("P_theta0", P_theta0)):
-            if v is None:
+            if v is None and estimator.param_prior is None:
                 raise ValueError(
                     f"{arg}: required, estimator {estimator.name!r} estimates parameters {names}"
                 )
-        th0 = _check_shape("theta0", _as_float("theta0", theta0), (p,), R, f"parameters {names}")
-        Pth0 = _check_shape(
-            "P_theta0", _as_float("P_theta0", P_theta0), (p, p), R, f"parameters {names}"
-        )
-        _check_cov("P_theta0", Pth0)
+        if theta0 is None and P_theta0 is None:
+            th0 = Pth0 = None  # the estimator's own prior (param_prior)
+        else:
+            if theta0 is None or P_theta0 is None:
+                raise ValueError("theta0, P_theta0: pass both or neither (the filter's own prior)")
+            th0 = _check_shape("theta0", _validate.array("theta0", theta0), (p,), R,
+                               f"parameters {names}")
+            Pth0 = _check_shape(
+                "P_theta0", _validate.array("P_theta0", P_theta0), (p, p), R, f"parameters {names}"
+            )
+            _validate.batched_cov("P_theta0", Pth0)
 
     if estimator.needs_key and key is None:
         raise ValueError(
             f"key: estimator {estimator.name!r} draws random numbers; pass key=jax.random.key(...)"
         )
-    keys = None if key is None else _check_key(key, R)
+    keys = None if key is None else _validate.key(key, R)
 
     if not isinstance(return_covariances, (bool, np.bool_)):
         raise ValueError(f"return_covariances: expected True or False, got {return_covariances!r}")
@@ -474,9 +385,8 @@ def _plan(
     devs = tuple(_resolve_devices(devices))
     n_dev = len(devs)
     if chunk_size is None:
-        itemsize = np.dtype(ys.dtype).itemsize
-        per_run_bytes = T * itemsize * (nx + p + 3 + (nx * nx + p * p if return_covariances else 0))
-        chunk_size = max(1, _AUTO_CHUNK_BYTES // per_run_bytes)
+        chunk_size = _auto_chunk(estimator, ys, us, x0, P0, th0, Pth0, keys,
+                                 bool(return_covariances))
     # Balance the chunks and make each a multiple of the device count.
     chunk = math.ceil(R / math.ceil(R / min(int(chunk_size), R)))
     chunk = math.ceil(chunk / n_dev) * n_dev
@@ -524,16 +434,33 @@ def _call_args(plan: _Plan, i: int):
 
 
 class _Progress:
-    """A one-line text progress bar on stderr, updated per chunk."""
+    """A progress bar per chunk: tqdm's (``tqdm.auto``, a widget in Jupyter) when tqdm is
+    installed, else one text line on stderr."""
 
     def __init__(self, n_chunks: int, n_runs: int, enabled: bool, width: int = 30):
         self.n_chunks, self.n_runs, self.enabled, self.width = n_chunks, n_runs, enabled, width
         self.t0 = time.perf_counter()
-        if enabled:
+        self.bar = None
+        if not enabled:
+            return
+        try:
+            from tqdm.auto import tqdm
+        except ImportError:
             self.update(0, 0)
+            return
+        self.bar = tqdm(total=n_chunks, desc="vehjax.run", unit="chunk", file=sys.stderr,
+                        bar_format="{desc} [{bar:30}] chunk {n_fmt}/{total_fmt}, {postfix}, "
+                                   "{elapsed}")
+        self.bar.set_postfix_str(f"0/{n_runs} runs")
 
     def update(self, chunks: int, runs: int):
         if not self.enabled:
+            return
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"{runs}/{self.n_runs} runs", refresh=False)
+            self.bar.update(chunks - self.bar.n)
+            if chunks == self.n_chunks:
+                self.bar.close()
             return
         filled = round(self.width * chunks / self.n_chunks)
         bar = "#" * filled + "." * (self.width - filled)
@@ -593,12 +520,13 @@ def run(
 
     Args:
         estimator: a :class:`vehjax.filters.Estimator`.
-        measurements: (R, T, ny); NaN components are missing (inf is passed on as data and
-            will usually make that run diverge). A single run is (1, T, ny): 2-D arrays are
-            refused rather than guessed.
+        measurements: (R, T, ny); NaN components are missing (every filter skips them); +-inf
+            is refused. A single run is (1, T, ny), or use :func:`vehjax.filter`: 2-D arrays
+            are refused rather than guessed.
         inputs: (T, nu) shared by all runs, or (R, T, nu); None when the model has no inputs.
         x0: state before the first step, (nx,) shared or (R, nx) per run.
-        P0: its covariance, (nx, nx) or (R, nx, nx), symmetric positive definite.
+        P0: its covariance, (nx, nx) or (R, nx, nx), symmetric positive definite, or (nx,)
+            variances (as Q and R in the builders).
         theta0: initial parameter estimate, (p,) or (R, p), for filters that estimate
             ``estimator.param_names``; must be None for state-only filters.
         P_theta0: its covariance, (p, p) or (R, p, p).
@@ -607,11 +535,12 @@ def run(
         return_covariances: also return ``covariances`` and ``params_cov`` (R*T*nx*nx numbers).
         chunk_size: at most this many runs per jitted call, rounded up to a multiple of the
             device count (chunks are balanced and the last is padded to the common size).
-            Default: as many as keep the stacked outputs of a chunk near 512 MiB. Filters with
-            a large per-run state (particle filters: runs x particles x nx numbers per step)
-            may need a smaller value.
-        progress: text progress bar on stderr per chunk; default shown when there are several
-            chunks.
+            Default: as many as keep a chunk's outputs and the filters' working memory (their
+            state from ``init`` times the temporaries of a step, so particles and sigma points
+            count) near 512 MiB, and its work near 2e9 state numbers x steps, so that a long
+            study runs in several chunks and shows its progress.
+        progress: progress bar per chunk (tqdm's, which renders in Jupyter, when installed;
+            else a text line on stderr); default shown when there are several chunks.
         devices: None shards runs over all ``jax.devices()``; False uses the default device only;
             or a sequence of devices.
 

@@ -20,6 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _validate
+from .models.base import DrivableModel
+
 __all__ = [
     "Scenario",
     "double_lane_change",
@@ -85,34 +88,21 @@ def _wheelbase(model) -> float:
 
 
 def _check_model(model):
-    needed = ("drive_input", "body_velocity", "pose", "speed", "initial_state")
-    missing = [n for n in needed if not hasattr(model, n)]
-    if missing:
+    if not isinstance(model, DrivableModel):
         raise ValueError(
-            f"model: {type(model).__name__} has no driver interface ({', '.join(missing)}); "
+            f"model: {type(model).__name__} has no driver interface (vehjax.models.base."
+            "DrivableModel: drive_input, body_velocity, pose, speed, initial_state); "
             "scenarios drive the built-in vehicle models. For your own model build the inputs "
             "yourself and wrap them with vehjax.scenarios.from_inputs(model, inputs, x0)."
         )
 
 
 def _check_positive(name, value):
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a positive number, got {value!r}") from None
-    if not np.isfinite(value) or value <= 0.0:
-        raise ValueError(f"{name}: expected a positive, finite number, got {value}")
-    return value
+    return _validate.number(name, value, 0.0)
 
 
 def _check_finite(name, value):
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a number, got {value!r}") from None
-    if not np.isfinite(value):
-        raise ValueError(f"{name}: expected a finite number, got {value}")
-    return value
+    return _validate.number(name, value)
 
 
 def _drive(model, name: str, speed: float, duration: float, steer: Callable | None, offset=3.5):

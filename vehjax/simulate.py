@@ -20,6 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _validate
+
 __all__ = ["Simulation", "simulate"]
 
 
@@ -140,9 +142,7 @@ def simulate(
     Returns:
         A :class:`Simulation`.
     """
-    for attr in ("transition", "observe", "state_names", "output_names", "theta"):
-        if not hasattr(model, attr):
-            raise ValueError(f"model: expected a vehjax model, got {type(model).__name__}")
+    _validate.model(model)
     if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
         raise ValueError(f"runs: expected an integer >= 1, got {runs!r}")
     runs = int(runs)
@@ -191,7 +191,7 @@ def simulate(
     if not np.all(np.isfinite(base_theta)):
         raise ValueError("theta: expected finite values")
     base_theta = np.broadcast_to(base_theta, (runs, n_par))
-    key = jax.random.key(0) if key is None else key
+    keys = _validate.key(jax.random.key(0) if key is None else key, runs)
 
     dtype = jnp.result_type(float)
     arrays = dict(
@@ -206,7 +206,7 @@ def simulate(
         b0=jnp.asarray(b0, dtype),
         offset=jnp.asarray(offset, dtype),
     )
-    states, meas, thetas, biases, x0s = _simulate_jit(model, key, runs, arrays)
+    states, meas, thetas, biases, x0s = _simulate_jit(model, keys, arrays)
     return Simulation(
         states=states,
         measurements=meas,
@@ -222,8 +222,8 @@ def simulate(
     )
 
 
-def _simulate_jit(model, key, runs, a):
-    return _simulate_runs(model, jax.random.split(key, runs), a)
+def _simulate_jit(model, keys, a):
+    return _simulate_runs(model, keys, a)
 
 
 @eqx.filter_jit

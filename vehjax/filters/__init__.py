@@ -1,6 +1,11 @@
-"""Filters: each builder returns an ``Estimator(init, step)`` of pure functions."""
+"""Filters: each builder returns an ``Estimator(init, step)`` of pure functions.
 
-from . import resampling, sigma
+Shared algebra: :mod:`~vehjax.filters.sigma` (sigma-point rules and the one sigma-point
+predict/update), :mod:`~vehjax.filters.kalman` (the masked Kalman update and the Jacobian forms),
+:mod:`~vehjax.filters.smc` (the one particle core), :mod:`~vehjax.filters.resampling`.
+"""
+
+from . import kalman, resampling, sigma, smc
 from .adaptive import AckfState, ackf
 from .base import Estimator, StepOutput
 from .dual import DualState, JointState, dual_ekf, dual_ukf, joint_ekf, joint_ukf
@@ -13,5 +18,5 @@ __all__ = [
     "dual_ekf", "dual_ukf", "joint_ekf", "joint_ukf", "liu_west_ukf",
     "DualState", "JointState", "LiuWestState",
     "GaussianState", "SqrtGaussianState", "AckfState", "PFState",
-    "masked_update", "validate_prior", "sigma", "resampling",
+    "masked_update", "validate_prior", "sigma", "kalman", "smc", "resampling",
 ]

@@ -37,20 +37,14 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from .base import Estimator
-from .gaussian import (
-    _cast,
-    _check_model,
-    _chol,
-    _prior,
-    _sym,
-    _theta,
-    _vmap_model,
-    check_cov,
-    masked_update,
-    step_output,
+from .. import _validate
+from . import sigma
+from ._linalg import sym
+from .base import Estimator, state_output
+from ._model import (
+    cast_yu, chol_const, check_model, model_dims, model_theta, point_fns, prior,
 )
-from .sigma import cholesky, cross_covariance, cubature_rule, sigma_points, unscented_transform
+from .kalman import masked_update
 
 _ADAPT = ("Q", "R")
 
@@ -78,17 +72,17 @@ class AckfState(NamedTuple):
     theta: jnp.ndarray
 
 
-def _projector(prior: np.ndarray, floor: float):
+def _projector(ref: np.ndarray, floor: float):
     """A -> nearest matrix (in the metric of ``prior``) with A >= floor * prior."""
-    L0 = _chol(prior)
+    L0 = chol_const(ref)
     L0inv = np.linalg.inv(L0) if isinstance(L0, np.ndarray) else jnp.linalg.inv(L0)
 
     def project(A):
         dt = A.dtype
         Li, L = jnp.asarray(L0inv, dt), jnp.asarray(L0, dt)
-        w, V = jnp.linalg.eigh(_sym(Li @ A @ Li.T))
+        w, V = jnp.linalg.eigh(sym(Li @ A @ Li.T))
         B = L @ V
-        return _sym((B * jnp.maximum(w, floor)[None, :]) @ B.T)
+        return sym((B * jnp.maximum(w, floor)[None, :]) @ B.T)
 
     return project
 
@@ -127,55 +121,35 @@ def ackf(
     Returns:
         ``Estimator`` with state :class:`AckfState` (x, P, Q, R, k, theta).
     """
-    nx, ny = _check_model(model)
-    Q0n, R0n = check_cov("Q0", Q0, nx), check_cov("R0", R0, ny)
-    try:
-        b = float(forgetting)
-    except (TypeError, ValueError):
-        raise ValueError(f"forgetting: expected a number in (0, 1], got {forgetting!r}") from None
-    if not (0.0 < b <= 1.0):
-        raise ValueError(f"forgetting: expected 0 < b <= 1 (the paper uses 0.95-0.995), got {b}")
+    nx, ny = check_model(model)
+    Q0n, R0n = _validate.cov("Q0", Q0, nx), _validate.cov("R0", R0, ny)
+    b = _validate.number("forgetting", forgetting, 0.0, 1.0, high_open=False)
     if isinstance(adapt, str):
         adapt = (adapt,)
-    adapt = tuple(adapt)
-    if not set(adapt) <= set(_ADAPT):
-        raise ValueError(f"adapt: expected a subset of {_ADAPT}, got {adapt!r}")
-    try:
-        floor = float(floor)
-    except (TypeError, ValueError):
-        raise ValueError(f"floor: expected a number in (0, 1), got {floor!r}") from None
-    if not (0.0 < floor < 1.0):
-        raise ValueError(f"floor: expected 0 < floor < 1, got {floor}")
-    try:
-        s0 = float(prior_steps)
-    except (TypeError, ValueError):
-        raise ValueError(f"prior_steps: expected a number >= 0, got {prior_steps!r}") from None
-    if not (np.isfinite(s0) and s0 >= 0.0):
-        raise ValueError(f"prior_steps: expected a finite number >= 0, got {s0}")
+    adapt = _validate.names("adapt", adapt, _ADAPT, allow_empty=True)
+    floor = _validate.number("floor", floor, 0.0, 1.0)
+    s0 = _validate.number("prior_steps", prior_steps, 0.0, low_open=False)
 
-    rule = cubature_rule(nx)
-    f, h = _vmap_model(model.transition), _vmap_model(model.observe)
+    rule = sigma.cubature_rule(nx)
     project_Q, project_R = _projector(Q0n, floor), _projector(R0n, floor)
 
     def init(x0, P0, theta0=None, P_theta0=None, key=None):
         """State from the prior x0 (nx,), P0 (nx, nx) or (nx,); theta0 (np,) or model.theta."""
-        x0, P0 = _prior(nx, x0, P0)
+        x0, P0 = prior(nx, x0, P0)
         dt = x0.dtype
-        theta = _theta(model, theta0, dt)
+        theta = model_theta(model, theta0, dt)
         return AckfState(x0, P0, jnp.asarray(Q0n, dt), jnp.asarray(R0n, dt), jnp.int32(0), theta)
 
     def step(state, y, u):
         x, P, Qh, Rh, k, theta = state
         dt = x.dtype
-        y, u = _cast(y, dt), _cast(u, dt)
-        Xf = f(sigma_points(x, cholesky(P), rule), u, theta)
-        x_pred, Pxx0 = unscented_transform(Xf, rule)
-        P_pred = _sym(Pxx0 + Qh)
-        X = sigma_points(x_pred, cholesky(P_pred), rule)
-        Z = h(X, u, theta)
-        y_hat, Pzz0 = unscented_transform(Z, rule)
-        C = cross_covariance(X, x_pred, Z, y_hat, rule)
-        r = masked_update(x_pred, P_pred, y, y_hat, Pzz0 + Rh, C)
+        y, u = cast_yu(y, u, dt)
+        f, h = point_fns(model, u, theta)
+        x_pred, Pxx0 = sigma.predict(rule, x, P, f)
+        P_pred = sym(Pxx0 + Qh)
+        m = sigma.measure(rule, x_pred, P_pred, h)
+        Pzz0 = m.S
+        r = masked_update(x_pred, P_pred, y, m.y_hat, Pzz0 + Rh, m.C)
 
         seen = r.n_obs > 0
         k_new = k + seen.astype(jnp.int32)
@@ -193,6 +167,6 @@ def ackf(
             Q_new = project_Q((1 - d) * Qh + d * (jnp.outer(dx, dx) + r.P - Pxx0))
             Qh = jnp.where(seen, Q_new, Qh)
         new = AckfState(r.x, r.P, Qh, Rh, k_new, theta)
-        return new, step_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
+        return new, state_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
 
-    return Estimator(init=init, step=step, nx=nx, name="ACKF")
+    return Estimator(init=init, step=step, nx=nx, name="ACKF", **model_dims(model))

@@ -9,15 +9,19 @@ An estimator is a pair of pure functions, like optax's ``GradientTransformation`
 Everything that configures a filter (model, Q, R, tuning) is closed over, so ``run`` treats
 every filter alike and ``jax.vmap``/``jax.lax.scan`` see only arrays.
 
-A ``step`` may carry an attribute
-``runs_last(per_run_inputs: bool, dtype, default_theta: bool) -> Batch(prepare, step)``: the
-same step for a whole batch of runs at once, with the runs axis last in every leaf of the
-state, of y and of the StepOutput. ``prepare`` maps the whole input sequence, (T, nu) shared or
-(T, nu, R) when ``per_run_inputs``, to what the batch ``step`` takes in place of u at each time;
-``dtype`` is the filter's float dtype and ``default_theta`` says that every run was started
-with ``theta0=None``. ``vehjax.run`` then uses it instead of ``vmap``-ing ``step`` (see
-:mod:`vehjax.filters.runs_last`). It belongs to that function: an estimator whose ``step`` is
-replaced (``est._replace(step=...)``) is run with ``vmap`` again.
+Two optional parts of the contract are declared fields too, so that ``run`` reads nothing else:
+
+* ``StepOutput.reinit``: the filter had to re-initialise this step (a particle filter whose
+  weights all underflowed). ``run`` reports such a run as diverged but does not freeze it.
+* ``Estimator.batch``: ``batch(per_run_inputs: bool, dtype, default_theta: bool) ->
+  Batch(prepare, step)``, the same step for a whole batch of runs at once with the runs axis
+  last in every leaf of the state, of y and of the StepOutput (see
+  :mod:`vehjax.filters.runs_last`). ``prepare`` maps the whole input sequence, (T, nu) shared or
+  (T, nu, R) when ``per_run_inputs``, to what the batch ``step`` takes in place of u at each
+  time; ``dtype`` is the filter's float dtype and ``default_theta`` says that every run was
+  started with ``theta0=None``. ``vehjax.run`` uses it instead of ``vmap``-ing ``step``. It is a
+  field: ``est._replace(step=...)`` keeps it, so replace ``batch=None`` too when the new step
+  computes something else.
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ class StepOutput(NamedTuple):
         n_obs: how many measurement components were observed (not NaN), scalar int.
         params: parameter estimate, (p,); shape (0,) for state-only filters.
         params_cov: its covariance, (p, p); shape (0, 0) for state-only filters.
+        reinit: bool scalar, the filter re-initialised at this step (its weights all
+            underflowed); always False for the Gaussian filters.
     """
 
     mean: jnp.ndarray
@@ -47,6 +53,17 @@ class StepOutput(NamedTuple):
     n_obs: jnp.ndarray
     params: jnp.ndarray
     params_cov: jnp.ndarray
+    reinit: jnp.ndarray | bool = False
+
+
+def state_output(x, P, loglik, nis, n_obs) -> StepOutput:
+    """StepOutput of a state-only filter that never re-initialises (params (0,), params_cov
+    (0, 0), reinit False)."""
+    return StepOutput(
+        mean=x, cov=P, loglik=loglik, nis=nis, n_obs=n_obs,
+        params=jnp.zeros((0,), x.dtype), params_cov=jnp.zeros((0, 0), x.dtype),
+        reinit=jnp.zeros((), bool),
+    )
 
 
 class Estimator(NamedTuple):
@@ -59,6 +76,11 @@ class Estimator(NamedTuple):
         param_names: names of the parameters it estimates (empty for state-only filters).
         name: short label used in tables and plots.
         needs_key: whether ``init`` needs a PRNG key (particle filters).
+        param_prior: ``(theta0, P_theta0)`` in physical units, what ``run`` and ``filter`` use
+            when the caller gives none; None when a parameter-estimating filter requires them.
+        batch: optional runs-last form of ``step`` (module docstring); None to ``vmap`` it.
+        ny: measurement width the filter expects (the model's outputs); None: not checked.
+        nu: input width the filter expects (the model's inputs); None: not checked.
     """
 
     init: Callable[..., Any]
@@ -67,6 +89,10 @@ class Estimator(NamedTuple):
     param_names: tuple[str, ...] = ()
     name: str = "estimator"
     needs_key: bool = False
+    param_prior: tuple | None = None
+    batch: Callable | None = None
+    ny: int | None = None
+    nu: int | None = None
 
 
 def check_estimate(model, estimate) -> tuple[tuple[str, ...], tuple[int, ...]]:
@@ -75,22 +101,10 @@ def check_estimate(model, estimate) -> tuple[tuple[str, ...], tuple[int, ...]]:
     ``estimate`` is one name or a sequence of unique names of the model's parameters. Raises
     ValueError naming ``estimate`` when it is missing, empty, not strings, repeated or unknown.
     """
+    from .. import _validate
+
     known = tuple(model.param_names)
     if estimate is None:
         raise ValueError(f"estimate: required, the names of the parameters to estimate from {known}")
-    if isinstance(estimate, str):
-        estimate = (estimate,)
-    try:
-        names = tuple(estimate)
-    except TypeError:
-        raise ValueError(f"estimate: expected a sequence of parameter names, got {estimate!r}") from None
-    if not names:
-        raise ValueError(f"estimate: expected at least one parameter name from {known}, got none")
-    if not all(isinstance(n, str) for n in names):
-        raise ValueError(f"estimate: expected parameter names (strings), got {names!r}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"estimate: names must be unique, got {names!r}")
-    unknown = [n for n in names if n not in known]
-    if unknown:
-        raise ValueError(f"estimate: unknown parameter name(s) {unknown}; this model has {known}")
+    names = _validate.names("estimate", estimate, known)
     return names, tuple(known.index(n) for n in names)

@@ -51,12 +51,15 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import cho_solve
 
+from .. import _validate
+from . import sigma
+from ._linalg import sym
 from .base import Estimator, StepOutput, check_estimate
-from .gaussian import _prior as _state_prior
-from .gaussian import check_cov, masked_update
-from .sigma import cross_covariance, sigma_points, unscented_rule, unscented_transform
+from ._model import cast_yu, check_model, model_dims
+from ._model import prior as _state_prior
+from .kalman import linearized_measure, linearized_predict, masked_update
+from .sigma import unscented_rule
 
 __all__ = ["DualState", "JointState", "dual_ekf", "dual_ukf", "joint_ekf", "joint_ukf"]
 
@@ -113,12 +116,7 @@ class _Setup(NamedTuple):
 
 
 def _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale) -> _Setup:
-    for attr in ("transition", "observe", "theta", "param_names", "nx", "ny"):
-        if not hasattr(model, attr):
-            raise ValueError(
-                f"model: expected a vehjax model with .{attr}, got {type(model).__name__}"
-            )
-    nx, ny = int(model.nx), int(model.ny)
+    nx, ny = check_model(model)
     names, idx = check_estimate(model, estimate)
     idx = np.array(idx, dtype=int)
     p = len(names)
@@ -142,15 +140,10 @@ def _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale) -> _Setup:
                 f"{names}, got {theta_scale!r}"
             )
 
-    try:
-        decay = float(theta_decay)
-    except (TypeError, ValueError):
-        raise ValueError(f"theta_decay: expected a number in (0, 1], got {theta_decay!r}") from None
-    if not (0.0 < decay <= 1.0):
-        raise ValueError(f"theta_decay: expected a number in (0, 1], got {theta_decay!r}")
+    decay = _validate.number("theta_decay", theta_decay, 0.0, 1.0, high_open=False)
 
-    Qn, Rn = check_cov("Q", Q, nx), check_cov("R", R, ny)
-    Qth = check_cov("Q_theta", Q_theta, p)
+    Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
+    Qth = _validate.cov("Q_theta", Q_theta, p)
     if not isinstance(Qth, np.ndarray):
         raise ValueError("Q_theta: expected a concrete array (it is decayed in the filter state)")
     Qz = Qth / np.outer(scale, scale)
@@ -179,7 +172,7 @@ def _prior(cfg: _Setup, x0, P0, theta0, P_theta0):
         raise ValueError(f"theta0: expected finite values, got {theta0}")
     if P_theta0 is None:
         raise ValueError(f"P_theta0: required, the covariance ({p}, {p}) of theta0 for {cfg.names}")
-    Pth0 = check_cov("P_theta0", P_theta0, p)
+    Pth0 = _validate.cov("P_theta0", P_theta0, p)
 
     dtype = x0.dtype
     s = jnp.asarray(cfg.scale, dtype)
@@ -190,14 +183,6 @@ def _prior(cfg: _Setup, x0, P0, theta0, P_theta0):
 
 # --------------------------------------------------------------------------------------------
 # shared pieces
-
-
-def _sym(A):
-    return 0.5 * (A + A.T)
-
-
-def _cast(a, dtype):
-    return jnp.asarray(a).astype(dtype)
 
 
 def _model_fns(model, cfg: _Setup):
@@ -217,25 +202,11 @@ def _model_fns(model, cfg: _Setup):
     return f, h
 
 
-def _joseph(P_pred, C, S, H, N, y):
-    """Joseph-form covariance after a masked update: (I - K H) P- (I - K H)^T + K N K^T.
-
-    ``C`` = P- H^T (n, ny), ``S`` = H P- H^T + N (ny, ny), ``N`` the noise part of S. NaN
-    components of ``y`` are missing: their columns of K are zero, as in ``masked_update``.
-    """
-    mf = jnp.isfinite(y).astype(P_pred.dtype)
-    Sm = S * (mf[:, None] * mf[None, :]) + jnp.diag(1 - mf)
-    L = jnp.linalg.cholesky(_sym(Sm))
-    K = cho_solve((L, True), (C * mf[None, :]).T).T
-    A = jnp.eye(P_pred.shape[0], dtype=P_pred.dtype) - K @ H
-    return _sym(A @ P_pred @ A.T + K @ N @ K.T)
-
-
 def _out(cfg: _Setup, x, P, z, Pz, r) -> StepOutput:
     s = jnp.asarray(cfg.scale, z.dtype)
     return StepOutput(
         mean=x, cov=P, loglik=r.loglik, nis=r.nis, n_obs=r.n_obs,
-        params=z * s, params_cov=Pz * jnp.outer(s, s),
+        params=z * s, params_cov=Pz * jnp.outer(s, s), reinit=jnp.zeros((), bool),
     )
 
 
@@ -297,39 +268,32 @@ def dual_ekf(
     cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale)
     predictive = _check_param_innovation(param_innovation)
     f, h = _model_fns(model, cfg)
-    jac_f = jax.jacfwd(f, argnums=(0, 2))
-    jac_h = jax.jacfwd(h, argnums=(0, 2))
 
     def step(state, y, u):
         x, P, z, Pz, Qz = state
         dt = x.dtype
-        y, u = _cast(y, dt), _cast(u, dt)
+        y, u = cast_yu(y, u, dt)
         Qn, Rn = jnp.asarray(cfg.Q, dt), jnp.asarray(cfg.R, dt)
         # parameter prediction
-        Pz_pred = _sym(Pz + Qz)
-        # state prediction
-        G, Fz = jac_f(x, u, z)
-        x_pred = f(x, u, z)
-        P_pred = _sym(G @ P @ G.T + Qn)
-        # state correction
-        H, Hz = jac_h(x_pred, u, z)
-        y_hat = h(x_pred, u, z)
-        C = P_pred @ H.T
-        S = _sym(H @ C + Rn)
-        r = masked_update(x_pred, P_pred, y, y_hat, S, C)
-        P_new = _joseph(P_pred, C, S, H, Rn, y)
+        Pz_pred = sym(Pz + Qz)
+        # state prediction and correction
+        x_pred, P_pred, _ = linearized_predict(x, P, lambda v: f(v, u, z), Qn)
+        m = linearized_measure(x_pred, P_pred, lambda v: h(v, u, z), Rn)
+        r = masked_update(x_pred, P_pred, y, m.y_hat, m.S, m.C, joseph=(m.H, Rn))
         # parameter correction: Hp = d y^ / d z, through f (eq. 13) and h
-        Hp = H @ Fz + Hz
-        N = S if predictive else Rn
+        Fz = jax.jacfwd(lambda v: f(x, u, v))(z)
+        Hz = jax.jacfwd(lambda v: h(x_pred, u, v))(z)
+        Hp = m.H @ Fz + Hz
+        N = m.S if predictive else Rn
         Cp = Pz_pred @ Hp.T
-        Sp = _sym(Hp @ Cp + N)
-        rp = masked_update(z, Pz_pred, y, y_hat, Sp, Cp)
-        Pz_new = _joseph(Pz_pred, Cp, Sp, Hp, N, y)
-        new = DualState(r.x, P_new, rp.x, Pz_new, cfg.decay * Qz)
-        return new, _out(cfg, r.x, P_new, rp.x, Pz_new, r)
+        Sp = sym(Hp @ Cp + N)
+        rp = masked_update(z, Pz_pred, y, m.y_hat, Sp, Cp, joseph=(Hp, N))
+        new = DualState(r.x, r.P, rp.x, rp.P, cfg.decay * Qz)
+        return new, _out(cfg, r.x, r.P, rp.x, rp.P, r)
 
     return Estimator(
-        init=_dual_init(cfg), step=step, nx=cfg.nx, param_names=cfg.names, name="DEKF"
+        init=_dual_init(cfg), step=step, nx=cfg.nx, param_names=cfg.names, name="DEKF",
+        **model_dims(model)
     )
 
 
@@ -359,37 +323,27 @@ def dual_ukf(
     rule_s = unscented_rule(cfg.nx, alpha, beta, kappa)
     rule_p = unscented_rule(len(cfg.names), alpha, beta, kappa)
     f, h = _model_fns(model, cfg)
-    f_pts = jax.vmap(f, in_axes=(0, None, None))
-    h_pts = jax.vmap(h, in_axes=(0, None, None))
-    y_of_z = jax.vmap(lambda x, u, z: h(f(x, u, z), u, z), in_axes=(None, None, 0))
 
     def step(state, y, u):
         x, P, z, Pz, Qz = state
         dt = x.dtype
-        y, u = _cast(y, dt), _cast(u, dt)
+        y, u = cast_yu(y, u, dt)
         Qn, Rn = jnp.asarray(cfg.Q, dt), jnp.asarray(cfg.R, dt)
         # parameter prediction (identity propagation of the points keeps mean and covariance)
-        Pz_pred = _sym(Pz + Qz)
-        # state prediction
-        Xf = f_pts(sigma_points(x, jnp.linalg.cholesky(P), rule_s), u, z)
-        x_pred, P_pred = unscented_transform(Xf, rule_s, Qn)
-        # state correction, fresh points from (x-, P-)
-        X = sigma_points(x_pred, jnp.linalg.cholesky(P_pred), rule_s)
-        Zs = h_pts(X, u, z)
-        y_hat, S = unscented_transform(Zs, rule_s, Rn)
-        C = cross_covariance(X, x_pred, Zs, y_hat, rule_s)
-        r = masked_update(x_pred, P_pred, y, y_hat, S, C)
+        Pz_pred = sym(Pz + Qz)
+        # state prediction, then correction with fresh points from (x-, P-)
+        x_pred, P_pred = sigma.predict(rule_s, x, P, lambda v: f(v, u, z), Qn)
+        m = sigma.measure(rule_s, x_pred, P_pred, lambda v: h(v, u, z), Rn)
+        r = masked_update(x_pred, P_pred, y, m.y_hat, m.S, m.C)
         # parameter correction, sigma points of (th-, Pth-) through the model from x_{t-1}
-        Zp = sigma_points(z, jnp.linalg.cholesky(Pz_pred), rule_p)
-        Yp = y_of_z(x, u, Zp)
-        yp_hat, Sp = unscented_transform(Yp, rule_p, S if predictive else Rn)
-        Cp = cross_covariance(Zp, z, Yp, yp_hat, rule_p)
-        rp = masked_update(z, Pz_pred, y, yp_hat, Sp, Cp)
+        rp = sigma.update(rule_p, z, Pz_pred, lambda v: h(f(x, u, v), u, v), y,
+                          m.S if predictive else Rn)
         new = DualState(r.x, r.P, rp.x, rp.P, cfg.decay * Qz)
         return new, _out(cfg, r.x, r.P, rp.x, rp.P, r)
 
     return Estimator(
-        init=_dual_init(cfg), step=step, nx=cfg.nx, param_names=cfg.names, name="DUKF"
+        init=_dual_init(cfg), step=step, nx=cfg.nx, param_names=cfg.names, name="DUKF",
+        **model_dims(model)
     )
 
 
@@ -431,26 +385,20 @@ def joint_ekf(
     """
     cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale)
     fa, ha = _augmented(model, cfg)
-    Fa_of, Ha_of = jax.jacfwd(fa), jax.jacfwd(ha)
 
     def step(state, y, u):
         a, Pa, Qz = state
         dt = a.dtype
-        y, u = _cast(y, dt), _cast(u, dt)
+        y, u = cast_yu(y, u, dt)
         Rn = jnp.asarray(cfg.R, dt)
-        F = Fa_of(a, u)
-        a_pred = fa(a, u)
-        P_pred = _sym(F @ Pa @ F.T + _noise_aug(cfg, Qz, dt))
-        H = Ha_of(a_pred, u)
-        y_hat = ha(a_pred, u)
-        C = P_pred @ H.T
-        S = _sym(H @ C + Rn)
-        r = masked_update(a_pred, P_pred, y, y_hat, S, C)
-        P_new = _joseph(P_pred, C, S, H, Rn, y)
-        return JointState(r.x, P_new, cfg.decay * Qz), _joint_out(cfg, r.x, P_new, r)
+        a_pred, P_pred, _ = linearized_predict(a, Pa, lambda v: fa(v, u), _noise_aug(cfg, Qz, dt))
+        m = linearized_measure(a_pred, P_pred, lambda v: ha(v, u), Rn)
+        r = masked_update(a_pred, P_pred, y, m.y_hat, m.S, m.C, joseph=(m.H, Rn))
+        return JointState(r.x, r.P, cfg.decay * Qz), _joint_out(cfg, r.x, r.P, r)
 
     return Estimator(
-        init=_joint_init(cfg), step=step, nx=cfg.nx, param_names=cfg.names, name="JEKF"
+        init=_joint_init(cfg), step=step, nx=cfg.nx, param_names=cfg.names, name="JEKF",
+        **model_dims(model)
     )
 
 
@@ -468,24 +416,18 @@ def joint_ukf(
     cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale)
     rule = unscented_rule(cfg.nx + len(cfg.names), alpha, beta, kappa)
     fa, ha = _augmented(model, cfg)
-    fa_pts = jax.vmap(fa, in_axes=(0, None))
-    ha_pts = jax.vmap(ha, in_axes=(0, None))
 
     def step(state, y, u):
         a, Pa, Qz = state
         dt = a.dtype
-        y, u = _cast(y, dt), _cast(u, dt)
-        Xf = fa_pts(sigma_points(a, jnp.linalg.cholesky(Pa), rule), u)
-        a_pred, P_pred = unscented_transform(Xf, rule, _noise_aug(cfg, Qz, dt))
-        X = sigma_points(a_pred, jnp.linalg.cholesky(P_pred), rule)
-        Z = ha_pts(X, u)
-        y_hat, S = unscented_transform(Z, rule, jnp.asarray(cfg.R, dt))
-        C = cross_covariance(X, a_pred, Z, y_hat, rule)
-        r = masked_update(a_pred, P_pred, y, y_hat, S, C)
+        y, u = cast_yu(y, u, dt)
+        a_pred, P_pred = sigma.predict(rule, a, Pa, lambda v: fa(v, u), _noise_aug(cfg, Qz, dt))
+        r = sigma.update(rule, a_pred, P_pred, lambda v: ha(v, u), y, jnp.asarray(cfg.R, dt))
         return JointState(r.x, r.P, cfg.decay * Qz), _joint_out(cfg, r.x, r.P, r)
 
     return Estimator(
-        init=_joint_init(cfg), step=step, nx=cfg.nx, param_names=cfg.names, name="JUKF"
+        init=_joint_init(cfg), step=step, nx=cfg.nx, param_names=cfg.names, name="JUKF",
+        **model_dims(model)
     )
 
 

@@ -40,11 +40,18 @@ Choices where the transcription of Algorithm 3 is unclear:
   box width in float64), both in the kernel and in ``params_cov``.
 * The kernel does not confine particles to the box; a particle whose prediction is not finite
   (e.g. a negative mass) gets weight zero.
+* The parameter prior is the box: ``theta0``/``P_theta0`` are not needed. ``run`` and ``filter``
+  report the box's centre and covariance diag((high - low)^2 / 12) as the estimate of a run
+  that diverges at its first step (``Estimator.param_prior``).
+
+Weights, ESS, resampling and moments are the shared particle core :mod:`vehjax.filters.smc`
+(particles (p, M), particle axis last); the state UKF and the predictive S are the shared
+sigma-point core :mod:`vehjax.filters.sigma`.
 
 Divergence: when every particle's weight underflows at a step (log-sum of the updated weights
 below ``log(finfo.tiny)``, or not finite), that step keeps the prior weights (no update, no
 kernel), and the next step starts from M fresh draws from the uniform prior with equal weights;
-``state.flag_diverged`` is set and stays set (``vehjax.run`` reads it) and ``state.n_reinit``
+``StepOutput.reinit`` says so (``vehjax.run`` reads it), ``state.flag_diverged`` is set and stays set and ``state.n_reinit``
 counts such steps. Outputs are never NaN from the particle part.
 
 Missing measurements: NaN components of y_t are skipped in the weights and in the UKF update. A
@@ -61,14 +68,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _validate
 from . import resampling as _rs
+from . import sigma, smc
+from ._linalg import cholesky
 from .base import Estimator, check_estimate
-from .gaussian import GaussianState, _check_model, _prior, check_cov, ukf
-from .particle import _check_n_particles
-from .sigma import sigma_points, unscented_rule, unscented_transform
+from ._model import check_model, in_dtype, model_dims, prior
+from .gaussian import GaussianState, ukf
+
+__all__ = ["LiuWestState", "liu_west_ukf"]
 
 _LIKELIHOODS = ("predictive", "measurement")
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 class LiuWestState(NamedTuple):
@@ -77,7 +87,8 @@ class LiuWestState(NamedTuple):
     Attributes:
         x: (nx,) the UKF's filtered state mean (x0 before the first step).
         P: (nx, nx) its covariance.
-        particles: (M, p) parameter particles, physical units, after the last step's kernel.
+        particles: (p, M) parameter particles (particle axis last), physical units, after the
+            last step's kernel.
         log_weights: (M,) their normalised log weights (``logsumexp == 0``), residual weight
             applied.
         key: (2,) uint32 threefry2x32 key data for the next step's draws.
@@ -103,18 +114,6 @@ class LiuWestState(NamedTuple):
 
 
 # -- validation (before anything is traced) --------------------------------------------------
-
-
-def _check_number(name: str, value, low: float, high: float, closed_high: bool = False) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = float("nan")
-    ok = low < v < high or (closed_high and v == high)
-    if isinstance(value, (bool, np.bool_)) or not ok:
-        interval = f"({low}, {high}]" if closed_high else f"({low}, {high})"
-        raise ValueError(f"{name}: expected a number in {interval}, got {value!r}")
-    return v
 
 
 def _check_box(theta_low, theta_high, names) -> tuple[np.ndarray, np.ndarray]:
@@ -146,37 +145,23 @@ def _check_box(theta_low, theta_high, names) -> tuple[np.ndarray, np.ndarray]:
 # -- helpers ----------------------------------------------------------------------------------
 
 
-def _key(raw):
-    return jax.random.wrap_key_data(raw, impl="threefry2x32")
-
-
-def _raw_key(key):
-    """(2,) uint32 key data from any JAX PRNG key (typed or legacy uint32[2])."""
-    return jax.random.bits(key, (2,), jnp.uint32)
-
-
-def _moments(w, x):
-    """Weighted mean (p,) and symmetrised covariance (p, p) of rows x (M, p), weights w sum 1."""
-    mean = w @ x
-    d = x - mean
-    cov = (d * w[:, None]).T @ d
-    return mean, 0.5 * (cov + cov.T)
-
-
 def _kernel(key, particles, mean, V, a: float):
-    """Liu-West move of particles (M, p): N(a theta_i + (1 - a) mean, (1 - a^2) V), V (p, p).
+    """Liu-West move of particles (p, M): N(a theta_i + (1 - a) mean, (1 - a^2) V), V (p, p).
 
     With weights W summing to 1 whose weighted mean and covariance of ``particles`` are
     ``mean`` and ``V``, the moved cloud has the same weighted mean and covariance in expectation.
     """
-    L_V = jnp.linalg.cholesky(V)
-    z = jax.random.normal(key, particles.shape, dtype=particles.dtype)
-    return a * particles + (1.0 - a) * mean + math.sqrt(1.0 - a * a) * (z @ L_V.T)
+    L_V = cholesky(V)
+    # drawn (M, p) and transposed: the same normals per particle and parameter as in the
+    # (M, p) layout this filter had before the shared particle core
+    z = jax.random.normal(key, particles.shape[::-1], dtype=particles.dtype).T
+    return a * particles + (1.0 - a) * mean[:, None] + math.sqrt(1.0 - a * a) * (L_V @ z)
 
 
 def _draw_box(key, low, high, n):
-    u = jax.random.uniform(key, (n, low.shape[0]), dtype=low.dtype)
-    return low + (high - low) * u
+    """n uniform draws from the box, (p, n)."""
+    u = jax.random.uniform(key, (n, low.shape[0]), dtype=low.dtype).T  # as drawn (M, p) before
+    return low[:, None] + (high - low)[:, None] * u
 
 
 # -- the filter -------------------------------------------------------------------------------
@@ -248,7 +233,7 @@ def liu_west_ukf(
             length or not low < high, a outside (0, 1), gamma outside (0, 1], an unknown
             resampling scheme or likelihood, ess_threshold outside [0, 1].
     """
-    nx, ny = _check_model(model)
+    nx, ny = check_model(model)
     names, idx = check_estimate(model, estimate)
     p = len(names)
     if theta_low is None or theta_high is None:
@@ -256,30 +241,20 @@ def liu_west_ukf(
             "theta_low, theta_high: required, the bounds of the uniform prior of " f"{names}"
         )
     low_n, high_n = _check_box(theta_low, theta_high, names)
-    n = _check_n_particles(n_particles)
-    a = _check_number("a", a, 0.0, 1.0)
-    gamma = _check_number("gamma", gamma, 0.0, 1.0, closed_high=True)
+    n = smc.check_n_particles(n_particles)
+    a = _validate.number("a", a, 0.0, 1.0)
+    gamma = _validate.number("gamma", gamma, 0.0, 1.0, high_open=False)
     scheme = _rs.check_scheme(resampling)
-    thr = _check_number("ess_threshold", ess_threshold, -1e-300, 1.0, closed_high=True)
-    thr = max(thr, 0.0)
-    if likelihood not in _LIKELIHOODS:
-        raise ValueError(f"likelihood: expected one of {_LIKELIHOODS}, got {likelihood!r}")
-    Qn, Rn = check_cov("Q", Q, nx), check_cov("R", R, ny)
-    rule = unscented_rule(nx, alpha, beta, kappa)
+    thr = smc.check_ess_threshold(ess_threshold)
+    likelihood = _validate.choice("likelihood", likelihood, _LIKELIHOODS)
+    Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
+    rule = sigma.unscented_rule(nx, alpha, beta, kappa)
     state_filter = ukf(model, Qn, Rn, alpha=alpha, beta=beta, kappa=kappa)
     idx_a = np.asarray(idx)
     log_n = math.log(n)
     n_unif = _rs.uniforms_needed(scheme, n)
     predictive = likelihood == "predictive"
-
-    def f(x, u, th):
-        return jnp.asarray(model.transition(x, u, th)).astype(x.dtype)
-
-    def hobs(x, u, th):
-        return jnp.asarray(model.observe(x, u, th)).astype(x.dtype)
-
-    f_sig = jax.vmap(f, in_axes=(0, None, None))
-    h_sig = jax.vmap(hobs, in_axes=(0, None, None))
+    f, hobs = in_dtype(model.transition), in_dtype(model.observe)
 
     def full_theta(base, values):
         """Model parameter vector(s) with the estimated entries set: values (..., p)."""
@@ -296,29 +271,28 @@ def liu_west_ukf(
         return jnp.asarray(np.diag(1e3 * eps * (high_n - low_n) ** 2), dtype)
 
     def init(x0, P0, theta0=None, P_theta0=None, key=None):
-        x0, P0 = _prior(nx, x0, P0)
+        x0, P0 = prior(nx, x0, P0)
         dtype = x0.dtype
         if theta0 is not None and np.shape(theta0) != (p,):
             raise ValueError(
-                f"theta0: expected shape ({p},) for parameters {names}, "
-                f"got shape {np.shape(theta0)}"
+                f"theta0: expected shape ({p},) for parameters {names} or None (the prior is "
+                f"the box), got shape {np.shape(theta0)}"
             )
         if P_theta0 is not None and np.shape(P_theta0) != (p, p):
             raise ValueError(
-                f"P_theta0: expected shape ({p}, {p}) for parameters {names}, "
+                f"P_theta0: expected shape ({p}, {p}) for parameters {names} or None, "
                 f"got shape {np.shape(P_theta0)}"
             )
         if key is None:
             raise ValueError("key: liu_west_ukf draws random numbers; pass key=jax.random.key(...)")
         low, high = jnp.asarray(low_n, dtype), jnp.asarray(high_n, dtype)
         k_run, k_draw = jax.random.split(key)
-        particles = _draw_box(k_draw, low, high, n)
         return LiuWestState(
             x=x0,
             P=P0,
-            particles=particles,
+            particles=_draw_box(k_draw, low, high, n),
             log_weights=jnp.full((n,), -log_n, dtype),
-            key=_raw_key(k_run),
+            key=smc.raw_key(k_run),
             theta_mean=0.5 * (low + high),
             theta_cov=jnp.diag((high - low) ** 2 / 12.0),
             ess=jnp.asarray(float(n), dtype),
@@ -328,62 +302,47 @@ def liu_west_ukf(
 
     def step(state: LiuWestState, y, u):
         dtype = state.x.dtype
-        log_tiny = float(np.log(np.finfo(np.dtype(dtype)).tiny))
         y, u = jnp.asarray(y).astype(dtype), jnp.asarray(u).astype(dtype)
         base = jnp.asarray(model.theta).astype(dtype)
         low, high = jnp.asarray(low_n, dtype), jnp.asarray(high_n, dtype)
         Rd = jnp.asarray(Rn, dtype)
-        k_next, k_res, k_kernel, k_box = jax.random.split(_key(state.key), 4)
+        k_next, k_res, k_kernel, k_box = smc.jax_keys(state.key, 4)
         obs = jnp.isfinite(y)
         has_obs = jnp.any(obs)
         theta_prev = full_theta(base, state.theta_mean)
 
         # weigh: one-step prediction of every particle from the UKF's filtered mean
-        y_i = predict_all(state.x, u, full_theta(base, state.particles))  # (M, ny)
+        y_i = predict_all(state.x, u, full_theta(base, state.particles.T))  # (M, ny)
         e = jnp.where(obs, y[None, :] - y_i, 0.0)
         bad = ~jnp.all(jnp.isfinite(e), axis=1)
         e = jnp.where(bad[:, None], 0.0, e)
         if predictive:
-            Xf = f_sig(sigma_points(state.x, jnp.linalg.cholesky(state.P), rule), u, theta_prev)
-            x_pred, P_pred = unscented_transform(Xf, rule, jnp.asarray(Qn, dtype))
-            X = sigma_points(x_pred, jnp.linalg.cholesky(P_pred), rule)
-            _, S = unscented_transform(h_sig(X, u, theta_prev), rule, Rd)
+            x_pred, P_pred = sigma.predict(rule, state.x, state.P,
+                                           lambda v: f(v, u, theta_prev), jnp.asarray(Qn, dtype))
+            S = sigma.measure(rule, x_pred, P_pred, lambda v: hobs(v, u, theta_prev), Rd).S
         else:
             S = Rd
-        both = obs[:, None] & obs[None, :]
-        L = jnp.linalg.cholesky(jnp.where(both, S, jnp.eye(ny, dtype=dtype)))
-        L_R = jnp.linalg.cholesky(jnp.where(both, Rd, jnp.eye(ny, dtype=dtype)))
-        L = jnp.where(jnp.all(jnp.isfinite(L)), L, L_R)  # a broken S falls back to R
-        wht = jax.scipy.linalg.solve_triangular(L, e.T, lower=True)  # (ny, M)
-        n_obs = jnp.sum(obs).astype(dtype)
-        half_logdet = jnp.sum(jnp.log(jnp.diagonal(L)))
-        ll = -0.5 * jnp.sum(wht * wht, axis=0) - half_logdet - 0.5 * _LOG_2PI * n_obs
-        lw_un = state.log_weights + jnp.where(bad, -jnp.inf, ll)
-        top = jnp.max(lw_un)
-        top = jnp.where(jnp.isfinite(top), top, 0.0)
-        total = jnp.sum(jnp.exp(lw_un - top))
-        incr = top + jnp.log(total)
-        diverged = has_obs & ~(incr > log_tiny)
-        lw = jnp.where(diverged, state.log_weights, lw_un - incr)
-        lw = jnp.where(has_obs, lw, state.log_weights)
+        L = smc.masked_chol(S, obs)
+        L = jnp.where(jnp.all(jnp.isfinite(L)), L, smc.masked_chol(Rd, obs))  # broken S: R
+        ll = smc.gaussian_logliks(e.T, obs, L=L)
+        rw = smc.reweight(state.log_weights, jnp.where(bad, -jnp.inf, ll))
+        diverged = has_obs & rw.underflow
+        keep = diverged | ~has_obs
+        lw = jnp.where(keep, state.log_weights, rw.log_w)
         w = jnp.exp(lw)
 
         # Liu-West: resample when the weights degenerate, then shrink towards the mean and jitter
-        mean, V = _moments(w, state.particles)
-        ess = 1.0 / jnp.sum(w * w)
+        mean, V = smc.moments(w, state.particles)
+        ess = smc.ess(w)
         u_res = jax.random.uniform(k_res, (n_unif,), dtype=dtype)
-        ancestors = _rs.indices_from_uniforms(scheme, w, u_res, n)
-        do_res = ess < thr * n
-        parts = jnp.where(do_res, state.particles[ancestors], state.particles)
-        lw_k = jnp.where(do_res, -log_n, lw)
+        parts, lw_k, _, _ = smc.resample(state.particles, w, lw, u_res, scheme, thr)
         moved = _kernel(k_kernel, parts, mean, V + jitter(dtype), a)
-        move = has_obs & ~diverged & jnp.all(jnp.isfinite(moved))
+        move = ~keep & jnp.all(jnp.isfinite(moved))
         parts = jnp.where(move, moved, state.particles)
         lw_k = jnp.where(move, lw_k, lw)
 
         # parameter estimate: weighted moments of the moved cloud
-        w_k = jnp.exp(lw_k)
-        theta_bar, cov_bar = _moments(w_k, parts)
+        theta_bar, cov_bar = smc.moments(jnp.exp(lw_k), parts)
         cov_bar = cov_bar + jitter(dtype)
 
         # residual weight: a fraction gamma of each weight goes on, the rest evenly
@@ -395,8 +354,8 @@ def liu_west_ukf(
 
         # divergence: the next step starts from fresh draws from the prior box
         fresh = _draw_box(k_box, low, high, n)
-        parts_next = jnp.where(diverged, fresh, parts)
-        lw_next = jnp.where(diverged, -log_n, lw_next)
+        parts_next, lw_next, _ = smc.reinitialise(diverged, fresh, parts, lw_next,
+                                                  jnp.exp(lw_next))
 
         # state: UKF at the parameter estimate
         ukf_state, out = state_filter.step(
@@ -414,8 +373,10 @@ def liu_west_ukf(
             flag_diverged=state.flag_diverged | diverged,
             n_reinit=state.n_reinit + diverged.astype(jnp.int32),
         )
-        return new_state, out._replace(params=theta_bar, params_cov=cov_bar)
+        return new_state, out._replace(params=theta_bar, params_cov=cov_bar, reinit=diverged)
 
+    box = (0.5 * (low_n + high_n), np.diag((high_n - low_n) ** 2 / 12.0))
     return Estimator(
-        init=init, step=step, nx=nx, param_names=names, name="liu_west_ukf", needs_key=True
+        init=init, step=step, nx=nx, param_names=names, name="liu_west_ukf", needs_key=True,
+        param_prior=box, **model_dims(model),
     )

@@ -12,13 +12,15 @@ Each step, for particles x_i and normalised weights W_i carried from the last st
 ``exp(sum_t loglik_t)`` is the standard unbiased estimator of the likelihood (Del Moral 2004);
 its log, ``sum_t loglik_t``, is biased low by about half its variance. Weights stay in log space.
 
-Divergence. When every particle's likelihood underflows at a step (``loglik_t`` below
+Divergence. When the weights collapse onto a single particle (the weighted covariance is not
+positive definite, e.g. with R far below the data's noise), or when every particle's likelihood
+underflows at a step (``loglik_t`` below
 ``log(finfo.tiny)``, about -708 in float64 and -87 in float32, or -inf/NaN because the model
 returned nothing finite), the weights carry no information and the run is re-initialised around
 its last estimate (m, P): that step outputs mean f(m, u_t, theta) and covariance P + Q, and the
 next step draws all its particles afresh, from that mean propagated through the model plus noise
-N(0, P + 2Q), with equal weights. ``state.flag_diverged`` is set and stays set (``vehjax.run``
-reads it), ``state.n_reinit`` counts such steps, and the step's ``loglik`` is ``loglik_t`` when it
+N(0, P + 2Q), with equal weights. ``StepOutput.reinit`` says so for that step (``vehjax.run``
+reads it), ``state.flag_diverged`` is set and stays set, ``state.n_reinit`` counts such steps, and the step's ``loglik`` is ``loglik_t`` when it
 is finite, ``log(finfo.tiny)`` otherwise. Outputs are never NaN. A single particle whose
 propagated state or predicted measurement is not finite gets weight zero.
 
@@ -37,16 +39,20 @@ the cost of a vehicle model on CPU against (N, nx).
 from __future__ import annotations
 
 import math
-import operator
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from .. import _random
+
+from .. import _validate
 from . import resampling as _rs
+from . import smc
+from ._linalg import cholesky, is_pd, solve_lower
 from .base import Estimator, StepOutput
-from .gaussian import _check_model, _prior, _theta, check_cov
+from ._model import chol_const, check_model, in_dtype, model_dims, model_theta, prior
+
+__all__ = ["PFState", "bootstrap_pf"]
 
 
 class PFState(NamedTuple):
@@ -82,39 +88,6 @@ class PFState(NamedTuple):
     n_reinit: jnp.ndarray
 
 
-# -- validation (before anything is traced) --------------------------------------------------
-
-
-def _check_n_particles(n_particles) -> int:
-    try:
-        n = operator.index(n_particles)
-    except TypeError:
-        n = 0
-    if isinstance(n_particles, (bool, np.bool_)) or n < 1:
-        raise ValueError(f"n_particles: expected an int >= 1, got {n_particles!r}")
-    if n > 2**30:
-        raise ValueError(f"n_particles: expected at most 2**30 particles, got {n}")
-    return n
-
-
-def _check_ess_threshold(ess_threshold) -> float:
-    try:
-        thr = float(ess_threshold)
-    except (TypeError, ValueError):
-        thr = float("nan")
-    if isinstance(ess_threshold, (bool, np.bool_)) or not 0.0 <= thr <= 1.0:
-        raise ValueError(f"ess_threshold: expected a number in [0, 1], got {ess_threshold!r}")
-    return thr
-
-
-def _chol(A):
-    """Lower Cholesky factor, in numpy for a constant, in jax for a traced matrix."""
-    return np.linalg.cholesky(A) if isinstance(A, np.ndarray) else jnp.linalg.cholesky(A)
-
-
-_UNROLL = 64  # matrices with at most this many entries are handled with unrolled scalar code
-
-
 def _is_diagonal(A) -> bool:
     """Whether A is a constant (numpy) diagonal matrix."""
     return isinstance(A, np.ndarray) and A.ndim == 2 and A.shape[0] == A.shape[1] and not np.any(
@@ -122,16 +95,11 @@ def _is_diagonal(A) -> bool:
     )
 
 
-def _matmul(A, z):
-    """``A @ z`` for a small A (m, k) and z (k, N): unrolled multiply-adds, which XLA on CPU
-    fuses into one loop, several times cheaper than a batched dot at a vehicle model's sizes."""
-    m, k = A.shape
-    if k * m > _UNROLL:
-        return A @ z
-    acc = A[:, :1] * z[:1]
-    for i in range(1, k):
-        acc = acc + A[:, i : i + 1] * z[i : i + 1]
-    return acc
+def _const(A, dtype):
+    """A matrix in the filter's dtype: numpy stays a numpy constant, a traced array is cast."""
+    if isinstance(A, np.ndarray):
+        return A.astype(np.dtype(dtype))
+    return jnp.asarray(A).astype(dtype)
 
 
 def _add_noise(fx, L, z):
@@ -143,94 +111,9 @@ def _add_noise(fx, L, z):
     """
     noise = L @ z
     n = fx.shape[0]
-    if n * n > _UNROLL:
+    if n * n > 64:
         return fx + noise
     return jnp.stack([fx[i] + noise[i] for i in range(n)])
-
-
-def _moments(w, x):
-    """Weighted mean (n,) and covariance (n, n) of the columns of x (n, N) with weights w (N,)
-    summing to 1.
-
-    For small n, row by row (full reductions, cheap on CPU); otherwise with dots.
-    """
-    n = x.shape[0]
-    if n * n > _UNROLL:
-        mean = x @ w
-        d = x - mean[:, None]
-        cov = (d * w) @ d.T
-        return mean, 0.5 * (cov + cov.T)
-    cols = [x[i] for i in range(n)]
-    mean = jnp.stack([jnp.sum(w * c) for c in cols])
-    d = [c - mean[i] for i, c in enumerate(cols)]
-    wd = [w * di for di in d]
-    entries = {}
-    for i in range(n):
-        for j in range(i, n):
-            entries[i, j] = entries[j, i] = jnp.sum(wd[i] * d[j])
-    cov = jnp.stack([jnp.stack([entries[i, j] for j in range(n)]) for i in range(n)])
-    return mean, cov
-
-
-def _cholesky(M):
-    """Lower Cholesky factor of a small symmetric positive-definite M (NaN where it is not).
-
-    Up to 8 x 8 in unrolled scalar code (no LAPACK call per run and step), else LAPACK.
-    """
-    n = M.shape[0]
-    if n * n > _UNROLL:
-        return jnp.linalg.cholesky(M)
-    zero = jnp.zeros((), M.dtype)
-    L = [[zero] * n for _ in range(n)]
-    for j in range(n):
-        L[j][j] = jnp.sqrt(M[j, j] - sum((L[j][k] ** 2 for k in range(j)), zero))
-        for i in range(j + 1, n):
-            L[i][j] = (M[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), zero)) / L[j][j]
-    return jnp.stack([jnp.stack(row) for row in L])
-
-
-def _tril_inverse(L):
-    """Inverse of a small lower-triangular L (unrolled forward substitution)."""
-    n = L.shape[0]
-    if n * n > _UNROLL:
-        return jax.scipy.linalg.solve_triangular(L, jnp.eye(n, dtype=L.dtype), lower=True)
-    zero = jnp.zeros((), L.dtype)
-    X = [[zero] * n for _ in range(n)]
-    for i in range(n):
-        X[i][i] = 1.0 / L[i, i]
-        for j in range(i):
-            X[i][j] = -sum((L[i, k] * X[k][j] for k in range(j, i)), zero) / L[i, i]
-    return jnp.stack([jnp.stack(row) for row in X])
-
-
-def _whitened_norm2(L, r):
-    """||L^-1 r||^2 for a small lower-triangular L and a vector r."""
-    n = L.shape[0]
-    if n * n > _UNROLL:
-        return jnp.sum(jax.scipy.linalg.solve_triangular(L, r, lower=True) ** 2)
-    v = []
-    for i in range(n):
-        v.append((r[i] - sum((L[i, k] * v[k] for k in range(i)), jnp.zeros((), r.dtype))) / L[i, i])
-    return sum(vi**2 for vi in v)
-
-
-def _const(A, dtype):
-    """A matrix in the filter's dtype: numpy stays a numpy constant, a traced array is cast."""
-    if isinstance(A, np.ndarray):
-        return A.astype(np.dtype(dtype))
-    return jnp.asarray(A).astype(dtype)
-
-
-def _in_dtype(fn):
-    """``fn`` with its output cast to the dtype of ``x`` (float32 filters stay float32)."""
-    return lambda x, u, theta: jnp.asarray(fn(x, u, theta)).astype(x.dtype)
-
-
-def _masked_chol(M, obs):
-    """Cholesky factor of M restricted to the observed components, identity elsewhere."""
-    both = obs[:, None] & obs[None, :]
-    eye = jnp.eye(M.shape[0], dtype=M.dtype)
-    return _cholesky(jnp.where(both, M, eye))
 
 
 # -- the filter -------------------------------------------------------------------------------
@@ -253,7 +136,7 @@ def bootstrap_pf(
             units squared per step; the noise is added after the transition.
         R: measurement-noise covariance, (ny, ny) or (ny,) variances, positive definite, in
             output units squared.
-        n_particles: number of particles N >= 1.
+        n_particles: number of particles N >= 2.
         resampling: "systematic", "stratified", "multinomial" or "residual"
             (see :mod:`vehjax.filters.resampling`).
         ess_threshold: resample when ESS < ess_threshold * N; 0 never resamples, 1 resamples
@@ -279,23 +162,20 @@ def bootstrap_pf(
 
     Raises:
         ValueError: naming the argument, for a wrong model, a Q or R of the wrong shape or not
-            positive definite, n_particles < 1, an unknown resampling scheme, an ess_threshold
+            positive definite, n_particles < 2, an unknown resampling scheme, an ess_threshold
             outside [0, 1].
     """
-    nx, ny = _check_model(model)
-    n = _check_n_particles(n_particles)
+    nx, ny = check_model(model)
+    n = smc.check_n_particles(n_particles, low=2)
     scheme = _rs.check_scheme(resampling)
-    thr = _check_ess_threshold(ess_threshold)
-    Qn, Rn = check_cov("Q", Q, nx), check_cov("R", R, ny)
-    LQn = _chol(Qn)
+    thr = smc.check_ess_threshold(ess_threshold)
+    Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
+    LQn = chol_const(Qn)
     r_diag = np.diagonal(Rn).copy() if _is_diagonal(Rn) else None
-    resamples = thr > 0.0
-    n_uniforms = _rs.uniforms_needed(scheme, n)
     uniform_stream = (nx + 1) // 2  # after the noise rows' counters
     log_n = math.log(n)
-    log_2pi = math.log(2.0 * math.pi)
-    f = _in_dtype(model.transition)
-    h = _in_dtype(model.observe)
+    f = in_dtype(model.transition)
+    h = in_dtype(model.observe)
     f_all = jax.vmap(f, in_axes=(1, None, None), out_axes=1)
     h_all = jax.vmap(h, in_axes=(1, None, None), out_axes=1)
 
@@ -303,17 +183,17 @@ def bootstrap_pf(
         del P_theta0  # state-only filter
         if key is None:
             raise ValueError("key: bootstrap_pf draws its particles at random; pass a PRNG key")
-        x0, P0 = _prior(nx, x0, P0)
+        x0, P0 = prior(nx, x0, P0)
         dtype = x0.dtype
-        theta = _theta(model, theta0, dtype)
+        theta = model_theta(model, theta0, dtype)
         k_init, k_run = jax.random.split(key)
         z = jax.random.normal(k_init, (nx, n), dtype)
-        particles = x0[:, None] + _matmul(jnp.linalg.cholesky(P0), z)
+        particles = x0[:, None] + jnp.linalg.cholesky(P0) @ z
         return PFState(
             particles=particles,
             log_weights=jnp.full((n,), -log_n, dtype),
             weights=jnp.full((n,), 1.0 / n, dtype),
-            key=_random.raw_key(k_run),
+            key=smc.raw_key(k_run),
             theta=theta,
             mean=x0,
             cov=P0,
@@ -325,25 +205,25 @@ def bootstrap_pf(
 
     def step(state: PFState, y, u):
         dtype = state.particles.dtype
-        log_tiny = float(np.log(np.finfo(np.dtype(dtype)).tiny))
         y, u = jnp.asarray(y).astype(dtype), jnp.asarray(u).astype(dtype)
         Qd = _const(Qn, dtype)
+        LQ = _const(LQn, dtype)
         theta = state.theta
-        key_next, key_step = _random.split(state.key)
-        z = _random.std_normal_rows(key_step, nx, n, dtype)  # (nx, N)
+        key_next, key_step = smc.split(state.key)
+        z = smc.normals(key_step, nx, n, dtype)  # (nx, N)
 
         # propagate (a re-initialisation pending from the last step draws the particles
         # around its estimate instead: all from the mean, noise covariance P + Q)
         pending = state.pending_reinit
-        L_re = _cholesky(state.cov + Qd)
-        L_re = jnp.where(jnp.all(jnp.isfinite(L_re)), L_re, _const(LQn, dtype))
+        L_re = cholesky(state.cov + Qd)
+        L_re = jnp.where(jnp.all(jnp.isfinite(L_re)), L_re, LQ)
         start = jnp.where(pending, state.mean[:, None], state.particles)
-        x = _add_noise(f_all(start, u, theta), jnp.where(pending, L_re, _const(LQn, dtype)), z)
+        x = _add_noise(f_all(start, u, theta), jnp.where(pending, L_re, LQ), z)
         prior_lw = jnp.where(pending, -log_n, state.log_weights)
         prior_w = jnp.where(pending, 1.0 / n, state.weights)
 
         # predict the measurement; particles that are not finite get weight zero
-        obs = ~jnp.isnan(y)
+        obs = jnp.isfinite(y)  # NaN and +-inf are missing, as in every vehjax filter
         n_obs = jnp.sum(obs, dtype=jnp.int32)
         e = jnp.where(obs[:, None], y[:, None] - h_all(x, u, theta), 0.0)  # (ny, N)
         bad = ~(jnp.all(jnp.isfinite(x), axis=0) & jnp.all(jnp.isfinite(e), axis=0))
@@ -352,52 +232,36 @@ def bootstrap_pf(
 
         # weigh: Gaussian log-likelihood of the observed components
         if r_diag is not None:
-            r = _const(r_diag, dtype)
-            q = jnp.sum(e * e * (1.0 / r)[:, None], axis=0)
-            half_logdet = 0.5 * jnp.sum(jnp.where(obs, jnp.log(r), 0.0))
+            ll = smc.gaussian_logliks(e, obs, var=_const(r_diag, dtype))
         else:
-            LR = _masked_chol(_const(Rn, dtype), obs)
-            q = jnp.sum(_matmul(_tril_inverse(LR), e) ** 2, axis=0)
-            half_logdet = jnp.sum(jnp.log(jnp.diagonal(LR)))
-        ll = -0.5 * q - (0.5 * log_2pi * n_obs.astype(dtype) + half_logdet)
-        lw_un = prior_lw + jnp.where(bad, -jnp.inf, ll)
-        top = jnp.max(lw_un)
-        w_un = jnp.exp(lw_un - top)
-        total = jnp.sum(w_un)
-        incr = top + jnp.log(total)
-        diverged = ~(incr > log_tiny)
-        w = w_un / total
-        lw = lw_un - incr
+            ll = smc.gaussian_logliks(e, obs, L=smc.masked_chol(_const(Rn, dtype), obs))
+        rw = smc.reweight(prior_lw, jnp.where(bad, -jnp.inf, ll))
+        diverged = rw.underflow
 
-        # weighted moments of the updated particles
-        mean, cov = _moments(w, x)
+        # weighted moments of the updated particles; a cloud collapsed onto one particle (R far
+        # below the data's noise) has a singular covariance: re-initialised like an underflow
+        mean, cov = smc.moments(rw.w, x)
+        collapsed = ~rw.underflow & ~is_pd(cov)
 
         # NIS from the predicted measurement moments (prior weights, finite particles only)
         wp = jnp.where(bad, 0.0, prior_w)
         wp = wp / jnp.maximum(jnp.sum(wp), jnp.finfo(dtype).tiny)
-        r_hat, S_h = _moments(wp, e)  # r_hat = y - y_hat on the observed components
-        nis = _whitened_norm2(_masked_chol(S_h + _const(Rn, dtype), obs), r_hat)
+        r_hat, S_h = smc.moments(wp, e)  # r_hat = y - y_hat on the observed components
+        w_nis = solve_lower(smc.masked_chol(S_h + _const(Rn, dtype), obs), r_hat)
+        nis = w_nis @ w_nis
 
-        # resample for the next step
-        ess = 1.0 / jnp.sum(w**2)
-        if resamples:
-            u_res = _random.uniforms(key_step, n_uniforms, dtype, stream=uniform_stream)
-            idx = _rs.indices_from_uniforms(scheme, w, u_res, n)
-            do = ess < thr * n
-            x_next = jnp.where(do, jnp.stack([x[i][idx] for i in range(nx)]), x)
-            lw_next = jnp.where(do | diverged, -log_n, lw)
-            w_next = jnp.where(do | diverged, 1.0 / n, w)
-        else:
-            x_next = x
-            lw_next = jnp.where(diverged, -log_n, lw)
-            w_next = jnp.where(diverged, 1.0 / n, w)
+        # resample for the next step; after an underflow, equal weights (re-drawn next step)
+        u_res = smc.uniforms(key_step, scheme, n, dtype, stream=uniform_stream)
+        x_next, lw_next, w_next, _ = smc.resample(x, rw.w, rw.log_w, u_res, scheme, thr)
+        x_next, lw_next, w_next = smc.reinitialise(diverged, x_next, x_next, lw_next, w_next)
 
         # divergence: the estimate moves on with the model, its covariance grows by Q, and the
         # next step re-draws the particles around it
         m_re = f(state.mean, u, theta)
         m_re = jnp.where(jnp.all(jnp.isfinite(m_re)), m_re, state.mean)
         mean_out = jnp.where(diverged, m_re, mean)
-        cov_out = jnp.where(diverged, state.cov + Qd, cov)
+        cov_out = jnp.where(diverged | collapsed, state.cov + Qd, cov)
+        diverged = diverged | collapsed
         new_state = PFState(
             particles=x_next,
             log_weights=lw_next,
@@ -406,7 +270,7 @@ def bootstrap_pf(
             theta=theta,
             mean=mean_out,
             cov=cov_out,
-            ess=jnp.where(diverged, 0.0, ess),
+            ess=jnp.where(diverged, 0.0, smc.ess(rw.w)),
             pending_reinit=diverged,
             flag_diverged=state.flag_diverged | diverged,
             n_reinit=state.n_reinit + diverged.astype(jnp.int32),
@@ -414,14 +278,16 @@ def bootstrap_pf(
         out = StepOutput(
             mean=mean_out,
             cov=cov_out,
-            loglik=jnp.where(jnp.isfinite(incr), incr, log_tiny),
+            loglik=jnp.where(jnp.isfinite(rw.loglik), rw.loglik, smc.log_tiny(dtype)),
             nis=nis,
             n_obs=n_obs,
             params=jnp.zeros((0,), dtype),
             params_cov=jnp.zeros((0, 0), dtype),
+            reinit=diverged,
         )
         return new_state, out
 
     return Estimator(
-        init=init, step=step, nx=nx, param_names=(), name="bootstrap_pf", needs_key=True
+        init=init, step=step, nx=nx, param_names=(), name="bootstrap_pf", needs_key=True,
+        **model_dims(model)
     )

@@ -1,4 +1,4 @@
-"""The UKF/CKF step over a whole batch of runs at once, the runs axis last (``step.runs_last``,
+"""The UKF/CKF step over a whole batch of runs at once, the runs axis last (``Estimator.batch``,
 see :mod:`vehjax.filters.base`).
 
 :func:`vehjax.run` normally ``vmap``s an estimator's per-run ``step`` over runs. For a vehicle
@@ -30,42 +30,16 @@ import numpy as np
 
 from .._hoist import Split, split
 from .base import StepOutput
-from .sigma import SigmaRule, cholesky
+from ._linalg import LOG_2PI, UNROLL_MAX, chol_entries, cholesky, forward_entries
+from .sigma import SigmaRule
 
-MAX_DIM = 8  # nx and ny up to this use the runs-last step
-_LOG_2PI = float(np.log(2.0 * np.pi))
+MAX_DIM = UNROLL_MAX  # nx and ny up to this use the runs-last step
 
 
 def _chol(A):
-    """Lower Cholesky factor of a symmetric matrix given as nested lists of (R,) arrays.
-
-    A non-positive pivot gives NaN entries (as ``jnp.linalg.cholesky`` does), which the
-    divergence check of ``run`` catches.
-    """
-    n = len(A)
-    L = [[None] * n for _ in range(n)]
-    for j in range(n):
-        d = A[j][j]
-        for k in range(j):
-            d = d - L[j][k] * L[j][k]
-        L[j][j] = jnp.sqrt(jnp.where(d > 0, d, jnp.nan))
-        for i in range(j + 1, n):
-            t = 0.5 * (A[i][j] + A[j][i])
-            for k in range(j):
-                t = t - L[i][k] * L[j][k]
-            L[i][j] = t / L[j][j]
-    return L
-
-
-def _forward(L, b):
-    """L^-1 b by forward substitution; L lower (nested lists), b a list of (R,) arrays."""
-    out = []
-    for i in range(len(b)):
-        t = b[i]
-        for k in range(i):
-            t = t - L[i][k] * out[k]
-        out.append(t / L[i][i])
-    return out
+    """Lower Cholesky factor (nested lists) of a symmetric matrix given as nested lists of (R,)
+    arrays; NaN entries where it is not positive definite (the divergence check catches them)."""
+    return chol_entries(lambda i, j: A[i][i] if i == j else 0.5 * (A[i][j] + A[j][i]), len(A))
 
 
 def _wsum(weights, terms):
@@ -224,8 +198,8 @@ def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int
         Sm = [[S[i][j] * (mf[i] * mf[j]) + ((1.0 - mf[i]) if i == j else 0.0) for j in range(ny)]
               for i in range(ny)]
         Ls = _chol(Sm)
-        w = _forward(Ls, e)
-        W = [_forward(Ls, [C[i][j] * mf[j] for j in range(ny)]) for i in range(nx)]
+        w = forward_entries(Ls, e)
+        W = [forward_entries(Ls, [C[i][j] * mf[j] for j in range(ny)]) for i in range(nx)]
         xn = [xp[i] + sum(W[i][k] * w[k] for k in range(ny)) for i in range(nx)]
         Pn = [[None] * nx for _ in range(nx)]
         for i in range(nx):
@@ -234,7 +208,7 @@ def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int
         nis = sum(v * v for v in w)
         n_obs = sum(o.astype(jnp.int32) for o in obs)
         logdet = 2.0 * sum(jnp.log(Ls[k][k]) for k in range(ny))
-        loglik = -0.5 * (nis + logdet + n_obs.astype(dt) * _LOG_2PI)
+        loglik = -0.5 * (nis + logdet + n_obs.astype(dt) * LOG_2PI)
 
         x_new = jnp.stack(xn)
         P_new = jnp.stack([jnp.stack(row) for row in Pn])
@@ -247,6 +221,7 @@ def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int
             n_obs=n_obs,
             params=jnp.zeros((0, R_runs), dt),
             params_cov=jnp.zeros((0, 0, R_runs), dt),
+            reinit=jnp.zeros((R_runs,), bool),
         )
         return state._replace(x=x_new, P=P_new), out
 

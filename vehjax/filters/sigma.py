@@ -18,11 +18,17 @@ Rules are plain numpy constants built once per filter and closed over; they are 
 Square-root helpers: :func:`triangularize` (a lower Cholesky factor of ``A A^T`` by QR),
 :func:`chol_update` (rank-1 update or downdate), :func:`sqrt_unscented_transform`.
 
-Small dense algebra: :func:`cholesky` and :func:`solve_lower` are the textbook Cholesky and
-forward substitution, written out entry by entry for n <= 8 (vehicle state and output
-dimensions). Under ``vmap`` over runs every entry is one vector across runs, so XLA fuses the
-whole factorisation into a few vectorised loops instead of one LAPACK call per run and matrix;
-larger n use ``jnp.linalg`` / ``jax.scipy.linalg``. Same algorithm, rounding-level differences.
+The one sigma-point predict/update every deterministic-sampling filter runs (UKF, CKF, ACKF,
+dual and joint UKF, Liu-West's state UKF)::
+
+    predict(rule, x, P, f, Q)      -> x-, P-           points of (x, P) through f, moments, + Q
+    measure(rule, x-, P-, h, R)    -> y^, S, C          fresh points of (x-, P-) through h
+    update(rule, x-, P-, h, y, R)  -> UpdateResult      measure, then the masked Kalman update
+
+and their square-root forms :func:`sqrt_predict`, :func:`sqrt_update`. ``f`` and ``h`` are
+functions of one point (closures over the input and the parameters); they are vmapped here.
+The small-matrix kernels (:func:`cholesky`, :func:`solve_lower`) come from
+:mod:`vehjax.filters._linalg`.
 """
 
 from __future__ import annotations
@@ -32,7 +38,16 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import solve_triangular
+
+from ._linalg import cholesky, solve_lower
+from .kalman import Measurement, UpdateResult, gaussian_loglik, masked_update, observed
+
+__all__ = [
+    "SigmaRule", "unscented_rule", "cubature_rule", "sigma_points", "unscented_transform",
+    "cross_covariance", "triangularize", "chol_update", "weighted_sqrt_factor",
+    "sqrt_unscented_transform", "predict", "measure", "update", "sqrt_predict", "sqrt_update",
+    "cholesky", "solve_lower",
+]
 
 
 class SigmaRule(NamedTuple):
@@ -107,71 +122,6 @@ def cubature_rule(n: int) -> SigmaRule:
     points = np.sqrt(n) * np.concatenate([eye, -eye])
     w = np.full(2 * n, 0.5 / n)
     return SigmaRule(points, w, w.copy(), "cubature")
-
-
-# Largest dimension for which cholesky/solve_lower are unrolled (n^3 / 6 scalar ops at trace).
-_UNROLL_MAX = 8
-
-
-def cholesky(A):
-    """Lower Cholesky factor of symmetric positive-definite ``A`` (..., n, n).
-
-    Like ``jnp.linalg.cholesky``: ``A`` is symmetrised first, and a matrix that is not
-    positive definite (or not finite) gives a factor of NaNs. For n <= 8 the factorisation is
-    unrolled into elementwise operations over the leading (batch) axes.
-    """
-    n = A.shape[-1]
-    if A.shape[-2] != n:
-        raise ValueError(f"A: expected a square matrix (..., n, n), got shape {A.shape}")
-    if n == 0 or n > _UNROLL_MAX:
-        return jnp.linalg.cholesky(A)
-
-    def a(i, j):
-        return A[..., i, i] if i == j else 0.5 * (A[..., i, j] + A[..., j, i])
-
-    L = [[None] * n for _ in range(n)]
-    ok = None
-    for j in range(n):
-        d = a(j, j)
-        for k in range(j):
-            d = d - L[j][k] * L[j][k]
-        pos = d > 0  # False for NaN too
-        ok = pos if ok is None else ok & pos
-        L[j][j] = jnp.sqrt(jnp.where(pos, d, 1))
-        for i in range(j + 1, n):
-            t = a(i, j)
-            for k in range(j):
-                t = t - L[i][k] * L[j][k]
-            L[i][j] = t / L[j][j]
-    zero = jnp.zeros_like(L[0][0])
-    rows = [jnp.stack([L[i][j] if j <= i else zero for j in range(n)], axis=-1) for i in range(n)]
-    out = jnp.stack(rows, axis=-2)
-    finite = jnp.all(jnp.isfinite(out), axis=(-2, -1))
-    return jnp.where((ok & finite)[..., None, None], out, jnp.nan)
-
-
-def solve_lower(L, b):
-    """``L^-1 b`` for lower-triangular ``L`` (..., n, n) and ``b`` (..., n) or (..., n, k).
-
-    Forward substitution, unrolled over rows for n <= 8 (the upper triangle of L is not read).
-    """
-    n = L.shape[-1]
-    vec = b.ndim == L.ndim - 1
-    if L.shape[-2] != n or b.shape[-1 if vec else -2] != n:
-        raise ValueError(f"b: expected shape (..., {n}) or (..., {n}, k), got shape {b.shape}")
-    if n == 0 or n > _UNROLL_MAX:
-        return solve_triangular(L, b[..., None] if vec else b, lower=True)[..., 0] if vec else (
-            solve_triangular(L, b, lower=True)
-        )
-    B = b[..., None] if vec else b
-    xs = []
-    for i in range(n):
-        t = B[..., i, :]
-        for k in range(i):
-            t = t - L[..., i, k, None] * xs[k]
-        xs.append(t / L[..., i, i, None])
-    X = jnp.stack(xs, axis=-2)
-    return X[..., 0] if vec else X
 
 
 def sigma_points(mean, chol, rule: SigmaRule):
@@ -268,3 +218,72 @@ def sqrt_unscented_transform(Y, rule: SigmaRule, noise_chol=None):
     wm = jnp.asarray(rule.wm, dtype=Y.dtype)
     mean = wm @ Y
     return mean, weighted_sqrt_factor(Y - mean[None, :], rule, noise_chol)
+
+
+# --------------------------------------------------------------------------------------------
+# the shared predict / update
+
+
+def _through(fn, X):
+    """``fn`` of one point applied to every row of X (m, n), output in X's dtype."""
+    return jax.vmap(lambda x: jnp.asarray(fn(x)).astype(X.dtype))(X)
+
+
+def predict(rule: SigmaRule, x, P, f, Q=None):
+    """Sigma-point prediction: points of N(x, P) through ``f`` (one point -> (n',)), their
+    weighted mean and covariance, plus ``Q`` when given. Returns (x-, P-)."""
+    Xf = _through(f, sigma_points(x, cholesky(P), rule))
+    return unscented_transform(Xf, rule, Q)
+
+
+def measure(rule: SigmaRule, x, P, h, R=None) -> Measurement:
+    """Measurement moments from fresh points of N(x, P) through ``h``: y^, S (+ R when given)
+    and the cross-covariance C."""
+    X = sigma_points(x, cholesky(P), rule)
+    Z = _through(h, X)
+    y_hat, S = unscented_transform(Z, rule, R)
+    return Measurement(y_hat, S, cross_covariance(X, x, Z, y_hat, rule))
+
+
+def update(rule: SigmaRule, x, P, h, y, R) -> UpdateResult:
+    """:func:`measure` then the masked Kalman update (:func:`vehjax.filters.kalman.masked_update`)
+    of (x, P) with ``y`` (NaN components missing)."""
+    m = measure(rule, x, P, h, R)
+    return masked_update(x, P, y, m.y_hat, m.S, m.C)
+
+
+def sqrt_predict(rule: SigmaRule, x, L, f, LQ):
+    """Square-root :func:`predict`: (x-, L-) with L- L-^T = P-, from the factor L of P and a
+    square root LQ of Q."""
+    Xf = _through(f, sigma_points(x, L, rule))
+    return sqrt_unscented_transform(Xf, rule, LQ)
+
+
+def sqrt_update(rule: SigmaRule, x, L, h, y, LR):
+    """Square-root :func:`update`: one QR of the joint (measurement, state) deviations.
+
+    The lower factor of the joint covariance [[S, C^T], [C, P-]] is [[L11, 0], [L21, L22]]:
+    L11 is the factor of S, the gain is L21 L11^-1 and L22 the factor of the updated
+    covariance. Missing components are masked as in the full form. Returns
+    (x, L, loglik, nis, n_obs).
+    """
+    dtype = x.dtype
+    X = sigma_points(x, L, rule)
+    Z = _through(h, X)
+    y_hat = jnp.asarray(rule.wm, dtype) @ Z
+    ny, nx = y.shape[0], x.shape[0]
+    m, mf, y0 = observed(y)
+    e = jnp.where(m, y0 - y_hat, 0)
+    dev = jnp.concatenate([(Z - y_hat[None, :]) * mf[None, :], X - x[None, :]], axis=1)
+    noise = jnp.concatenate(
+        [
+            jnp.concatenate([LR * mf[:, None], jnp.diag(1 - mf)], axis=1),
+            jnp.zeros((nx, 2 * ny), dtype),
+        ]
+    )
+    Lj = weighted_sqrt_factor(dev, rule, noise)
+    L11, L21, L22 = Lj[:ny, :ny], Lj[ny:, :ny], Lj[ny:, ny:]
+    w = solve_lower(L11, e)
+    n_obs = jnp.sum(m).astype(jnp.int32)
+    loglik, nis = gaussian_loglik(w, L11, n_obs)
+    return x + L21 @ w, L22, loglik, nis, n_obs

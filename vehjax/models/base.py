@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import abc
 
-from typing import Callable, ClassVar
+from typing import Callable, ClassVar, Protocol, runtime_checkable
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -41,13 +41,9 @@ def integrate(derivative: Callable, x, u, theta, dt: float, integrator: str):
 
 
 def _check_dt(dt) -> float:
-    try:
-        dt = float(dt)
-    except (TypeError, ValueError):
-        raise ValueError(f"dt: expected a positive number of seconds, got {dt!r}") from None
-    if not np.isfinite(dt) or dt <= 0.0:
-        raise ValueError(f"dt: expected a positive, finite number of seconds, got {dt}")
-    return dt
+    from .. import _validate
+
+    return _validate.number("dt", dt, 0.0)
 
 
 def _check_integrator(integrator) -> str:
@@ -77,6 +73,49 @@ def _check_theta(theta, param_names: tuple[str, ...]):
     if not np.all(np.isfinite(theta)):
         raise ValueError(f"theta: expected finite values, got {theta}")
     return jnp.asarray(theta)
+
+
+@runtime_checkable
+class ModelProtocol(Protocol):
+    """What every filter, ``simulate`` and ``run`` need of a model: the interface a user's own
+    model class must offer (:class:`Model` and the built-in models do).
+
+    ``transition(x, u, theta) -> x_next`` and ``observe(x, u, theta) -> y`` are pure functions
+    on 1-D arrays; ``theta`` the nominal parameter vector (np,); ``dt`` the sampling period, s.
+    """
+
+    dt: float
+    theta: jnp.ndarray
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    param_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+
+    def transition(self, x, u, theta): ...
+
+    def observe(self, x, u, theta): ...
+
+
+@runtime_checkable
+class DrivableModel(ModelProtocol, Protocol):
+    """A model the closed-loop driver of :mod:`vehjax.scenarios` can steer along a course (every
+    built-in vehicle model): the methods it calls, in the model's own units."""
+
+    def drive_input(self, x, delta, accel, speed, theta):
+        """Input vector (nu,) for road-wheel angle ``delta`` [rad], longitudinal acceleration
+        ``accel`` [m/s^2] and target ``speed`` [m/s]."""
+
+    def body_velocity(self, x, u, theta):
+        """(vx, vy, r): body-frame velocity [m/s] and yaw rate [rad/s]."""
+
+    def pose(self, x):
+        """(X, Y, psi) when the state carries the pose, else None."""
+
+    def speed(self, x):
+        """Longitudinal speed [m/s]."""
+
+    def initial_state(self, speed):
+        """State (nx,) driving straight at ``speed`` [m/s]."""
 
 
 class BaseModel(eqx.Module):
@@ -246,6 +285,9 @@ class Model(BaseModel):
         theta = np.zeros(len(self.param_names)) if theta is None else theta
         self.theta = _check_theta(theta, self.param_names)
         self.units = tuple(sorted((units or {}).items()))
+        from .. import _validate
+
+        _validate.model_shapes(self)  # transition -> (nx,), observe -> (ny,), or ValueError
 
     def _probe_output(self):
         x = jnp.zeros(len(self.state_names))

@@ -1,0 +1,261 @@
+"""``vehjax.filter``: one run of an estimator, pure and traceable (``jax.jit``, ``jax.vmap``,
+``jax.grad``), and the traced per-run logic that :func:`vehjax.run` builds on.
+
+::
+
+    res = vehjax.filter(est, ys, us, x0=x0, P0=P0)      # ys (T, ny), us (T, nu)
+    res.states          # (T, nx)
+    res.loglik.sum()    # log p(y_1:T), differentiable w.r.t. Q, R, model parameters, x0
+
+Time convention (the papers' order): ``x0``/``P0`` describe the state before the first step;
+step ``t`` predicts with ``inputs[t]``, then updates with ``measurements[t]``.
+
+Divergence: a step whose mean is not finite, whose covariance is not finite and positive
+definite (also the parameter estimate and its covariance), or whose log-likelihood or NIS is not
+finite is bad, and so is every later step of that run: their outputs hold the last good estimate
+(the prior before the first step), their ``nis`` is NaN, ``n_obs`` 0 and ``loglik`` 0, and the
+run is ``diverged``. A step with ``StepOutput.reinit`` (a particle filter that re-initialised
+after its weights underflowed) flags the run ``diverged`` too but changes none of its outputs.
+Holding the outputs after the first bad step gives exactly what freezing the filter state there
+would give, since a frozen state is never used again.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .filters._linalg import is_pd
+from .filters.base import Estimator, StepOutput
+
+__all__ = ["FilterResult", "filter"]
+
+
+class FilterResult(NamedTuple):
+    """Per-step outputs of one run of T steps (a leading runs axis under ``vmap``).
+
+    Attributes:
+        states: filtered state estimates, (T, nx).
+        covariances: their covariances, (T, nx, nx); None when not asked for.
+        params: parameter estimates, (T, p); p = 0 for state-only filters.
+        params_cov: their covariances, (T, p, p); None when not asked for.
+        loglik: log p(y_t | y_1:t-1) of the observed components per step, (T,); 0 from the
+            step the run diverged. ``loglik.sum()`` is the log-likelihood of the run.
+        nis: normalised innovation squared of the observed components, (T,); NaN from the step
+            the run diverged.
+        n_obs: number of observed measurement components per step, (T,) int32 (the degrees of
+            freedom of ``nis``); 0 from the step the run diverged.
+        diverged: bool scalar, the run diverged or re-initialised.
+        diverged_at: int32 scalar, the first step it did, or -1.
+        state: the filter's state after the last step (its ``init``/``step`` pytree), to go on
+            filtering from; not held on divergence. None from :func:`finish` alone.
+    """
+
+    states: jnp.ndarray
+    covariances: jnp.ndarray | None
+    params: jnp.ndarray
+    params_cov: jnp.ndarray | None
+    loglik: jnp.ndarray
+    nis: jnp.ndarray
+    n_obs: jnp.ndarray
+    diverged: jnp.ndarray
+    diverged_at: jnp.ndarray
+    state: Any = None
+
+
+# ----------------------------------------------------------------------------------------------
+# The traced core, shared with vehjax.run
+
+
+def check_step_output(out, nx: int, p: int):
+    """ValueError unless a StepOutput (or its shape) has the shapes of the contract."""
+    expected = {"mean": (nx,), "cov": (nx, nx), "loglik": (), "nis": (), "n_obs": (),
+                "params": (p,), "params_cov": (p, p), "reinit": ()}
+    for field, shape in expected.items():
+        got = getattr(out, field).shape
+        if got != shape:
+            raise ValueError(
+                f"estimator: step returned StepOutput.{field} of shape {got}, expected {shape} "
+                f"(nx = {nx}, {p} estimated parameters)"
+            )
+
+
+def start(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
+    """(filter state, outputs held before the first step) of one run; checks the shapes of the
+    step's output. y (T, ny), u (T, nu) are only read for shapes."""
+    nx, p = estimator.nx, len(estimator.param_names)
+    state0 = estimator.init(x0, P0, th0, Pth0, key)
+    _, out_shape = jax.eval_shape(estimator.step, state0, y[0], u[0])
+    check_step_output(out_shape, nx, p)
+
+    def cast(a, like):
+        return jnp.asarray(a).astype(like.dtype)
+
+    if p and th0 is None and estimator.param_prior is not None:
+        th0, Pth0 = estimator.param_prior
+    held0 = (
+        cast(x0, out_shape.mean),
+        cast(P0, out_shape.cov),
+        cast(jnp.zeros((0,)) if th0 is None else th0, out_shape.params),
+        cast(jnp.zeros((0, 0)) if Pth0 is None else Pth0, out_shape.params_cov),
+    )
+    return state0, held0
+
+
+def output_ok(out: StepOutput, p: int, pd=is_pd, axis=None):
+    """Whether a step's output is good (module docstring): a scalar for one run, or (C,) for a
+    runs-last batch (``axis=0`` and ``pd`` on (n, n, C))."""
+    good = jnp.all(jnp.isfinite(out.mean), axis=axis) & pd(out.cov)
+    good = good & jnp.isfinite(out.loglik) & jnp.isfinite(out.nis)
+    if p:
+        good = good & jnp.all(jnp.isfinite(out.params), axis=axis) & pd(out.params_cov)
+    return good
+
+
+def scan_body(step, ok, return_cov: bool):
+    """Scan body: one filter step, returning the per-step outputs and whether they are good.
+    ``ok(out)`` is :func:`output_ok` for the layout at hand."""
+
+    def body(state, yu):
+        state, out = step(state, *yu)
+        per_step = (
+            out.mean,
+            out.cov if return_cov else None,
+            out.params,
+            out.params_cov if return_cov else None,
+            out.loglik,
+            out.nis,
+            out.n_obs.astype(jnp.int32),
+            ok(out),
+            jnp.asarray(out.reinit, bool),
+        )
+        return state, per_step
+
+    return body
+
+
+def finish(per_step, held0) -> FilterResult:
+    """Outputs of one run from the stacked per-step outputs of :func:`scan_body` (leading axis
+    T): everything from the first bad step on is held (module docstring)."""
+    mean, cov, params, pcov, loglik, nis, n_obs, ok, reinit = per_step
+    T = mean.shape[0]
+    bad = jnp.cumsum(~ok) > 0
+    first_bad = jnp.where(jnp.any(bad), jnp.argmax(bad), T)
+    last_good = jnp.maximum(first_bad - 1, 0)
+
+    def hold(seq, before):
+        if seq is None:
+            return None
+        value = jnp.where(first_bad > 0, seq[last_good], before.astype(seq.dtype))
+        mask = bad.reshape((T,) + (1,) * (seq.ndim - 1))
+        return jnp.where(mask, value[None], seq)
+
+    x0, P0, th0, Pth0 = held0
+    flag = bad | reinit
+    return FilterResult(
+        states=hold(mean, x0),
+        covariances=hold(cov, P0),
+        params=hold(params, th0),
+        params_cov=hold(pcov, Pth0),
+        loglik=jnp.where(bad, 0.0, loglik).astype(loglik.dtype),
+        nis=jnp.where(bad, jnp.nan, nis),
+        n_obs=jnp.where(bad, 0, n_obs).astype(jnp.int32),
+        diverged=jnp.any(flag),
+        diverged_at=jnp.where(jnp.any(flag), jnp.argmax(flag), -1).astype(jnp.int32),
+    )
+
+
+def one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key):
+    """One run, traced, without validation: y (T, ny), u (T, nu); x0 (nx,), P0 (nx, nx)."""
+    p = len(estimator.param_names)
+    state0, held0 = start(estimator, y, u, x0, P0, th0, Pth0, key)
+    body = scan_body(estimator.step, partial(output_ok, p=p), return_cov)
+    state, per_step = jax.lax.scan(body, state0, (y, u))
+    return finish(per_step, held0)._replace(state=state)
+
+
+# ----------------------------------------------------------------------------------------------
+# The public single-run function
+
+
+def _shape_check(estimator, ys, us, x0, P0, theta0, P_theta0, key):
+    if not isinstance(estimator, Estimator):
+        raise ValueError(
+            f"estimator: expected a vehjax.filters.Estimator, got {type(estimator).__name__}"
+        )
+    nx = estimator.nx
+    ys_shape = np.shape(ys)
+    if len(ys_shape) != 2 or ys_shape[0] == 0:
+        raise ValueError(
+            f"measurements: expected shape (T, ny) with T >= 1 for one run, got {ys_shape}; "
+            f"for a study of several runs use vehjax.run"
+        )
+    T, ny = ys_shape
+    if estimator.ny is not None and ny != estimator.ny:
+        raise ValueError(
+            f"measurements: expected {estimator.ny} columns (the model's outputs), got {ny}"
+        )
+    nu = estimator.nu
+    if us is None:
+        if nu:
+            raise ValueError(f"inputs: required, shape ({T}, {nu}) for this model's inputs")
+    elif np.ndim(us) != 2 or np.shape(us)[0] != T or (nu is not None and np.shape(us)[1] != nu):
+        want = f"({T}, {nu if nu is not None else 'nu'})"
+        raise ValueError(f"inputs: expected shape {want} to match measurements {ys_shape}, "
+                         f"got {np.shape(us)}")
+    if np.shape(x0) != (nx,):
+        raise ValueError(f"x0: expected shape ({nx},), got {np.shape(x0)}")
+    if np.shape(P0) not in ((nx, nx), (nx,)):
+        raise ValueError(f"P0: expected shape ({nx}, {nx}) or ({nx},) variances, got "
+                         f"{np.shape(P0)}")
+    if estimator.needs_key and key is None:
+        raise ValueError(
+            f"key: estimator {estimator.name!r} draws random numbers; pass key=jax.random.key(...)"
+        )
+
+
+def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_theta0=None,
+           key=None, return_covariances: bool = True) -> FilterResult:
+    """Run ``estimator`` over one run of T steps: ``init``, then ``lax.scan`` of ``step``.
+
+    Pure and traceable: call it under ``jax.jit``, ``jax.vmap`` (over runs) or ``jax.grad``
+    (e.g. of ``filter(...).loglik.sum()`` with respect to Q, R, model parameters or x0, with the
+    estimator built inside the differentiated function). NaN measurement components are missing
+    and give no NaN gradients.
+
+    Args:
+        estimator: a :class:`vehjax.filters.Estimator`.
+        measurements: (T, ny); NaN (or +-inf) components are missing.
+        inputs: (T, nu); None when the model has no inputs.
+        x0: state before the first step, (nx,).
+        P0: its covariance, (nx, nx) or (nx,) variances.
+        theta0, P_theta0: initial parameter estimate (p,) and covariance (p, p) for filters that
+            estimate parameters (``estimator.param_prior`` when None, if the filter has one);
+            for state-only filters ``theta0`` (np,) replaces the model's parameters.
+        key: PRNG key, required when ``estimator.needs_key``.
+        return_covariances: also return ``covariances`` and ``params_cov``.
+
+    Returns:
+        :class:`FilterResult` of arrays (module docstring for divergence).
+
+    Raises:
+        ValueError: naming the argument, for shapes that do not fit (checked on shapes, so also
+            under ``jit``), a missing key.
+    """
+    _shape_check(estimator, measurements, inputs, x0, P0, theta0, P_theta0, key)
+    ys = jnp.asarray(measurements)
+    T = ys.shape[0]
+    us = jnp.zeros((T, 0), ys.dtype) if inputs is None else jnp.asarray(inputs)
+    if len(estimator.param_names) and estimator.param_prior is None and P_theta0 is None:
+        raise ValueError(
+            f"P_theta0: required, estimator {estimator.name!r} estimates parameters "
+            f"{tuple(estimator.param_names)}"
+        )
+    P0 = jnp.asarray(P0)
+    P0 = jnp.diag(P0) if P0.ndim == 1 else P0
+    return one_run(estimator, bool(return_covariances), ys, us, jnp.asarray(x0), P0, theta0,
+                   P_theta0, key)

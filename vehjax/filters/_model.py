@@ -1,0 +1,101 @@
+"""What every filter built on a vehjax model needs: the prior, the model's parameters and
+dimensions, the model's functions in the filter's dtype. Validation itself is
+:mod:`vehjax._validate`."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from .. import _validate
+
+def validate_prior(est, x0, P0) -> None:
+    """Check a prior before tracing; ``est`` is an Estimator or the state dimension nx.
+
+    ``x0`` is (nx,) or batched (R, nx); ``P0`` is (nx, nx) or (nx,) variances, or batched
+    (R, nx, nx). Raises ValueError naming ``x0`` or ``P0`` for a wrong shape, non-finite
+    entries or a covariance that is not symmetric positive definite. Traced values are skipped
+    (only their shapes are checked).
+    """
+    nx = est if isinstance(est, (int, np.integer)) else est.nx
+    xs, Ps = np.shape(x0), np.shape(P0)
+    if len(xs) not in (1, 2) or xs[-1] != nx:
+        raise ValueError(f"x0: expected shape ({nx},) or (runs, {nx}), got shape {xs}")
+    if Ps not in ((nx,), (nx, nx)) and not (len(Ps) == 3 and Ps[1:] == (nx, nx)):
+        raise ValueError(
+            f"P0: expected shape ({nx}, {nx}), ({nx},) variances or (runs, {nx}, {nx}), "
+            f"got shape {Ps}"
+        )
+    if not _validate.is_tracer(x0) and not np.all(np.isfinite(np.asarray(x0, dtype=float))):
+        raise ValueError("x0: expected finite values")
+    if not _validate.is_tracer(P0):
+        P = np.asarray(P0, dtype=float)
+        for i, Pi in enumerate(P.reshape((-1,) + Ps[-2:]) if P.ndim == 3 else [P]):
+            _validate.cov("P0" if P.ndim < 3 else f"P0[{i}]", Pi, nx)
+
+
+def prior(nx: int, x0, P0):
+    """x0, P0 as arrays of one float dtype, checked (shapes always, values when concrete);
+    P0 given as (nx,) variances becomes diagonal."""
+    _validate.prior(nx, x0, P0)
+    x0, P0 = jnp.asarray(x0), jnp.asarray(P0)
+    dtype = jnp.result_type(x0.dtype, P0.dtype)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        dtype = jnp.asarray(0.0).dtype  # the default float (float64 under vehjax)
+    if P0.ndim == 1:
+        P0 = jnp.diag(P0)
+    return x0.astype(dtype), P0.astype(dtype)
+
+
+def model_theta(model, theta0, dtype):
+    """theta0 (np,) (``model.theta`` when None) in ``dtype``."""
+    if theta0 is None:
+        theta0 = model.theta
+    if np.shape(theta0) != (model.n_params,):
+        raise ValueError(
+            f"theta0: expected shape ({model.n_params},) for parameters {model.param_names}, "
+            f"got shape {np.shape(theta0)}"
+        )
+    return jnp.asarray(theta0).astype(dtype)
+
+
+def check_model(model):
+    """(nx, ny) of a model satisfying :class:`vehjax.models.base.ModelProtocol`."""
+    _validate.model(model)
+    return len(model.state_names), len(model.output_names)
+
+
+def model_dims(model) -> dict:
+    """The ``ny``/``nu`` fields of an Estimator built on ``model``."""
+    return dict(ny=len(model.output_names), nu=len(model.input_names))
+
+
+def chol_const(A):
+    """A square root L with L L^T = A: the lower Cholesky factor, in numpy for a constant, in jax
+    for a traced matrix; for a constant that is only positive semi-definite (a Q with zero
+    variances for noise-free states) V diag(sqrt(w)) from its eigen-decomposition."""
+    if not isinstance(A, np.ndarray):
+        return jnp.linalg.cholesky(A)
+    try:
+        return np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(A)
+        return V * np.sqrt(np.maximum(w, 0.0))[None, :]
+
+
+def in_dtype(fn):
+    """``fn(x, u, theta)`` with its output cast to the dtype of ``x`` (a model with float64
+    constants must not silently turn a float32 filter into a float64 one)."""
+    return lambda x, u, theta: jnp.asarray(fn(x, u, theta)).astype(x.dtype)
+
+
+def point_fns(model, u, theta):
+    """The model's transition and observation as functions of one state point, at (u, theta)."""
+    f, h = in_dtype(model.transition), in_dtype(model.observe)
+    return (lambda x: f(x, u, theta)), (lambda x: h(x, u, theta))
+
+
+def cast_yu(y, u, dtype):
+    return jnp.asarray(y).astype(dtype), jnp.asarray(u).astype(dtype)
+
+
