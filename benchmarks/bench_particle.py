@@ -186,15 +186,23 @@ def _rmse(est, truth) -> float:
     return float(np.sqrt(np.mean((np.asarray(est) - np.asarray(truth)) ** 2)))
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--runs", type=int, default=20)
-    p.add_argument("--steps", type=int, default=1000)
-    p.add_argument("--particles", type=int, default=1000)
-    p.add_argument("--repeat", type=int, default=3, help="timed repeats; the best is reported")
+def parser() -> argparse.ArgumentParser:
+    """The benchmark's options (``vehjax bench particle --help``)."""
+    p = argparse.ArgumentParser(prog="vehjax bench particle", description=__doc__.splitlines()[0])
+    p.add_argument("--runs", type=int, default=20, help="Monte-Carlo runs (default %(default)s)")
+    p.add_argument("--steps", type=int, default=1000, help="steps per run (default %(default)s)")
+    p.add_argument("--particles", type=int, default=1000,
+                   help="particles per run (default %(default)s)")
+    p.add_argument("--repeat", type=int, default=3,
+                   help="timed repeats; the best is reported (default %(default)s)")
     p.add_argument("--no-cuthbert-filter", action="store_true",
-                   help="skip cuthbert.filter (it keeps every step's particles in memory)")
-    args = p.parse_args(argv)
+                   help="skip cuthbert.filter (it keeps every step's particles in memory; "
+                        "default: run it)")
+    return p
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
     for name in ("runs", "steps", "particles", "repeat"):
         if getattr(args, name) < 1:
             print(f"bench particle: --{name} must be >= 1")
@@ -250,6 +258,9 @@ def main(argv=None) -> int:
     for name, (_, compile_s) in rows.items():
         r = best[name]
         print(f"{name:<17}{compile_s:>12.2f}{r:>10.3f}{r / n_work * 1e3:>13.4f}{r / ref:>18.3f}")
+    print("run: compiled run time, best of --repeat (compile apart); ms/run-step: run time per "
+          "run and step in milliseconds; vs cuthbert scan: this row's run time divided by "
+          "cuthbert scan's (below 1: faster than cuthbert scan, 0.5 = twice as fast)")
     ratio = best["vehjax scan"] / ref
     print(f"vehjax / cuthbert run time (like for like): {ratio:.3f}; the model's transition "
           f"alone takes {best['model (N, nx)'] / ref:.3f} of cuthbert's time with particles "

@@ -4,6 +4,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from vehjax import cli
 
@@ -31,6 +32,58 @@ def test_simulate_writes_npz_and_png(tmp_path, capsys):
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_simulate_takes_one_noise_std_per_output_and_notes_identical_runs(tmp_path, capsys):
+    # the sizes of test_simulate_writes_npz_and_png, so that the compiled simulation is reused
+    assert cli.main(["simulate", "KinematicBicycle", "step_steer", "--runs", "3",
+                     "--meas-std", "0.1,0.2,0.01,0.05", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "measurement noise std: x 0.1 m, y 0.2 m, psi 0.01 rad, v 0.05 m/s" in out
+    assert "process noise 0" in out and "same true states" in out
+    data = np.load(tmp_path / "KinematicBicycle_step_steer.npz")
+    np.testing.assert_array_equal(data["states"][0], data["states"][1])
+    noise = (data["measurements"] - data["states"]).std(axis=(0, 1))
+    np.testing.assert_allclose(noise, [0.1, 0.2, 0.01, 0.05], rtol=0.2)
+    assert (tmp_path / "KinematicBicycle_step_steer.png").stat().st_size > 10_000
+    # a wrong count is a clear error naming the outputs
+    assert cli.main(["simulate", "KinematicBicycle", "step_steer", "--meas-std", "0.1,0.2",
+                     "--out", str(tmp_path)]) == 2
+    assert "x, y, psi, v" in capsys.readouterr().err
+
+
+def _help_text(capsys, argv):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    assert exc.value.code == 0
+    return capsys.readouterr().out
+
+
+def _documented(parser):
+    """(option string, help) of every option but --help."""
+    return [(a.option_strings[-1], a.help or "") for a in parser._actions
+            if a.option_strings and a.dest != "help"]
+
+
+def test_reproduce_help_lists_every_study_option_with_its_default(capsys):
+    from vehjax import reproduce
+
+    text = _help_text(capsys, ["reproduce", "--help"])
+    for name in reproduce.REGISTRY:
+        assert f"vehjax reproduce {name}" in text
+        for opt, helptext in _documented(reproduce.load(name).parser()):
+            assert opt in text, (name, opt)
+            assert "default" in helptext, (name, opt)
+    assert "(default 100)" in text and "(default 1000)" in text  # --runs, dutta2019 --particles
+
+
+def test_bench_help_lists_every_option_with_its_default(capsys):
+    text = _help_text(capsys, ["bench", "--help"])
+    for which in cli.BENCHMARKS:
+        assert f"vehjax bench {which}" in text
+        for opt, helptext in _documented(cli.load_benchmark(which).parser()):
+            assert opt in text, (which, opt)
+            assert "default" in helptext, (which, opt)
+
+
 def test_bad_input_is_a_clear_error(capsys):
     assert cli.main(["simulate", "Dynamic3DOF", "sine_steer", "--runs", "0"]) == 2
     assert "runs" in capsys.readouterr().err
@@ -42,3 +95,4 @@ def test_bench_gaussian_smoke(capsys):
                      "--repeat", "1"]) == 0
     out = capsys.readouterr().out
     assert "dynamax" in out and "filterpy" in out and "same estimates" in out
+    assert "vehjax/x: vehjax's run time divided by this library's" in out  # the ratio column

@@ -1,5 +1,8 @@
 """`vehjax reproduce dutta2019` at a reduced size: runs end to end, tables and figures written."""
 
+import re
+from types import SimpleNamespace
+
 import jax
 import numpy as np
 import pytest
@@ -28,7 +31,112 @@ def test_reduced_study_writes_tables_and_figures(tmp_path, capsys):
     for png in ("fig4_5_kinematic_lf_lr", "fig6_input_frequency", "fig7_9_dynamic_states",
                 "fig10_12_dynamic_m_cx_cy"):
         assert (tmp_path / f"{png}_matched.png").stat().st_size > 10_000
+    # report.md links every figure it wrote, and every link is a file
+    pngs = sorted(p.name for p in tmp_path.glob("*.png"))
+    links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", report)
+    assert sorted(links) == pngs and len(pngs) == 4
+    # units in the headers, the guesses beside the estimates, the verdict in words
+    assert "| filter | lf [m] | lr [m] |" in report and "cx [1e4 N]" in report
+    assert "RMSE vx [m/s]" in report and "| raw measurements |" in report
+    assert report.count("| initial guess |") == 2
+    assert report.count("**What is learned and what is not.**") == 2
     assert "Table III" in capsys.readouterr().out
+
+
+def _stage(frozen=(), runs=6, steps=50, same_states=False, seed=0):
+    """A synthetic dynamic-model Stage: filters "A", "B", "C"; the parameters named in
+    ``frozen`` stay at each run's initial guess, the others converge to the truth."""
+    rng = np.random.default_rng(seed)
+    truth = np.array([1700.0, 1.5e5, 4.0e4])
+    theta0 = truth * (1 + rng.uniform(-0.3, 0.3, (runs, 3)))
+    decay = np.exp(-np.arange(steps) / 5.0)[None, :, None]
+    states = rng.normal(size=(runs, steps, 3))
+    sim = SimpleNamespace(t=np.arange(steps) * 0.02, states=states,
+                          measurements=states + 0.1 * rng.normal(size=states.shape),
+                          state_names=("vx", "vy", "r"), output_names=("vx", "vy", "r"))
+    results = {}
+    for k, name in enumerate("ABC"):
+        params = truth + (theta0[:, None, :] - truth) * decay
+        for j, p in enumerate(("m", "cx", "cy")):
+            if (name, p) in frozen or p in frozen:
+                params[..., j] = theta0[:, None, j]
+        noise = 0.05 if same_states else 0.05 * (k + 1)
+        rng_k = np.random.default_rng(seed + (0 if same_states else k))
+        est = states + noise * rng_k.normal(size=states.shape)
+        results[name] = SimpleNamespace(params=params, states=est, diverged=np.zeros(runs, bool))
+    box = np.stack([0.7 * truth, 1.3 * truth], 1)
+    return dutta2019.Stage(sim, results, truth, ("m", "cx", "cy"), {}, theta0,
+                           ("kg", "N", "N/rad"), ("m/s", "m/s", "rad/s"), box)
+
+
+def test_a_parameter_left_at_its_guess_is_reported_as_not_learned():
+    st = _stage(frozen=("cx",))
+    tol = 0.03 * st.truth
+    verdicts = dutta2019.learning(st, tol)
+    assert {v[0] for v in verdicts["cx"].values()} == {"not learned"}
+    assert {v[0] for v in verdicts["m"].values()} == {"learned"}
+    text = dutta2019.learning_summary(st, tol, "3 % of the truth", scale=(1, 1e4, 1e4),
+                                      digits=(1, 3, 3))
+    g = st.theta0[:, 1] / 1e4
+    assert "**cx** [1e4 N]" in text and "**not learned by any filter**" in text
+    assert f"{g.mean():.3f} +- {g.std():.3f}" in text  # the guesses' mean and spread, from the data
+    assert "Particle+UKF" not in text  # no box-prior filter in this study
+    assert "**m** [kg]" in text and "learned by A" in text
+    assert "not learned" not in text.split("- **m**")[1].split("- **cx**")[0]
+
+
+def test_not_learned_names_only_the_filters_that_left_it():
+    st = _stage(frozen=(("A", "cy"), ("B", "cy")))
+    text = dutta2019.learning_summary(st, 0.03 * st.truth, "3 %")
+    line = next(ln for ln in text.splitlines() if ln.startswith("- **cy**"))
+    assert "**not learned by A and B**" in line and "learned by C" in line
+    assert "not learned" not in text.split("- **cy**")[0].split("- **m**")[1]  # m, cx learned
+
+
+def test_a_box_prior_filter_starting_at_the_truth_is_not_called_not_learned():
+    st = _stage()
+    results = dict(st.results)
+    res = results.pop("C")
+    # the particle filter's prior is the box, centred on the truth: it starts there and stays
+    results["Particle+UKF"] = SimpleNamespace(
+        params=np.broadcast_to(st.truth, res.params.shape).copy(), states=res.states,
+        diverged=res.diverged)
+    st = st._replace(results=results)
+    verdicts = dutta2019.learning(st, 0.03 * st.truth)
+    assert all(verdicts[p]["Particle+UKF"][0] == "learned" for p in st.names)
+    drifting = SimpleNamespace(params=results["Particle+UKF"].params * 1.1, states=res.states,
+                               diverged=res.diverged)
+    moved = dutta2019.learning(st._replace(results={**results, "Particle+UKF": drifting}),
+                               0.03 * st.truth)
+    assert all(moved[p]["Particle+UKF"][0] == "drifted" for p in st.names)
+    text = dutta2019.learning_summary(st, 0.03 * st.truth, "3 %")
+    assert "Particle+UKF starts from the centre of its prior box" in text
+    assert "not learned" not in text.split("- **m**")[1]
+    table = dutta2019.table_parameters(st, {}, 0.02, 0.03 * st.truth, (1, 3, 3))
+    assert "| Particle+UKF prior mean (box centre) | 1700.0 (0.0) |" in table
+
+
+def test_identical_state_rmse_rows_are_said_in_words():
+    same = _stage(frozen=(("A", "cx"),), same_states=True)
+    text = dutta2019.states_summary(same, 0.03 * same.truth)
+    assert "every filter alike" in text and "All 3 filters have the same state RMSE" in text
+    assert "learned m, cx and cy differently" in text
+    assert "raw-measurement RMSE" in text
+    table = dutta2019.table_states(same, {})
+    assert "| raw measurements |" in table and "RMSE vx [m/s]" in table
+    differ = _stage()
+    assert "alike" not in dutta2019.states_summary(differ, 0.03 * differ.truth)
+    assert dutta2019.same_rmse_groups(dutta2019.state_rmse(differ)) == []
+
+
+def test_parameter_figure_has_units_and_runs(tmp_path):
+    st = _stage(frozen=("cx",), runs=4, steps=20)
+    path = dutta2019.plot_parameters(st, tmp_path / "p.png", "m, cx, cy", scale=(1, 1e4, 1e4),
+                                     tol=0.03 * st.truth)
+    assert path.stat().st_size > 10_000
+    from vehjax import plots
+
+    assert plots.label("cx", "N", 1e4) == "cx [1e4 N]" and plots.label("s", "-") == "s [-]"
 
 
 def test_matched_settings_are_the_simulation_noise():

@@ -2,6 +2,7 @@
 
 import csv
 import math
+import re
 
 import numpy as np
 import pytest
@@ -41,8 +42,14 @@ def test_registered_with_a_citation():
 def test_runs_and_writes_table_and_figures(study):
     rc, text, out, rows = study
     assert rc == 0
-    for name in ("table1.md", "table1.csv", "fig3.png", "rmse_time.png"):
+    for name in ("table1.md", "table1.csv", "fig3.png", "rmse_time.png", "error_bands.png",
+                 "report.md"):
         assert (out / name).stat().st_size > 0
+    # report.md holds the table and links every figure written
+    report = (out / "report.md").read_text()
+    links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", report)
+    assert sorted(links) == sorted(p.name for p in out.glob("*.png")) and len(links) == 3
+    assert "| MAE | ay [m/s^2] |" in report and "3 Monte-Carlo runs" in report
     # 2 metrics x 6 quantities x 2 filters, plus the raw sensor on the 3 measured quantities
     assert len(rows) == 2 * 6 * len(FILTERS) + 2 * 3
     for metric in ("MAE", "RMSE"):

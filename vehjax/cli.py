@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
+import textwrap
 from pathlib import Path
+
+BENCHMARKS = ("gaussian", "particle")
 
 
 def _cmd_models(args) -> int:
@@ -16,6 +20,25 @@ def _cmd_models(args) -> int:
     return 0
 
 
+def _floats(text: str) -> list[float]:
+    """``"0.1"`` or ``"0.1,0.1,0.02"`` -> list of floats (argparse type of the noise options)."""
+    try:
+        return [float(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a number or comma-separated numbers, got {text!r}") from None
+
+
+def _per_component(option: str, values: list[float], names, units) -> list[float]:
+    """One value per component: a single value is used for every one."""
+    if len(values) == 1:
+        return values * len(names)
+    if len(values) != len(names):
+        raise ValueError(f"{option}: expected 1 value or {len(names)} (one per "
+                         f"{', '.join(names)}), got {len(values)}")
+    return values
+
+
 def _cmd_simulate(args) -> int:
     import jax
 
@@ -24,37 +47,95 @@ def _cmd_simulate(args) -> int:
 
     model = models.REGISTRY[args.model](dt=args.dt)
     scn = scenarios.REGISTRY[args.scenario](model, speed=args.speed)
+    process = _per_component("--process-std", args.process_std, model.state_names, model.state_units)
+    meas = _per_component("--meas-std", args.meas_std, model.output_names, model.output_units)
     sim = simulate(model, scn, runs=args.runs, key=jax.random.key(args.seed),
-                   process_std=args.process_std, meas_std=args.meas_std)
+                   process_std=process, meas_std=meas)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = out / f"{args.model}_{args.scenario}"
     sim.save(stem.with_suffix(".npz"))
-    plots.plot_simulation(sim, stem.with_suffix(".png"),
-                          title=f"{args.model}, {args.scenario} at {args.speed} m/s, {args.runs} runs")
+
+    def listing(names, units, values):
+        return ", ".join(f"{n} {v:g} {u}".rstrip() if u not in ("-", "") else f"{n} {v:g}"
+                         for n, u, v in zip(names, units, values))
+
+    note = None
+    if not any(process):
+        note = ("process noise 0: every run has the same true states; "
+                "only the measurement noise differs between runs")
     print(f"{args.runs} runs x {len(scn.t)} steps of {args.model} on {args.scenario}")
+    print("process noise std per step: " + listing(model.state_names, model.state_units, process))
+    print("measurement noise std: " + listing(model.output_names, model.output_units, meas))
+    if note:
+        print(f"note: {note} (set --process-std to make the runs differ)")
+    plots.plot_simulation(sim, stem.with_suffix(".png"), model=model, note=note,
+                          title=f"{args.model}, {args.scenario} at {args.speed:g} m/s")
     print(f"wrote {stem.with_suffix('.npz')} (arrays: {', '.join(sim.to_dict())})")
     print(f"wrote {stem.with_suffix('.png')}")
     return 0
 
 
-def _cmd_bench(args) -> int:
-    import importlib.util
-
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"bench_{args.which}.py"
+def load_benchmark(which: str):
+    """The module benchmarks/bench_<which>.py of a source checkout (ValueError when absent)."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"bench_{which}.py"
     if not path.exists():
-        print(f"vehjax: error: {path} not found (benchmarks run from a source checkout)", file=sys.stderr)
-        return 2
-    spec = importlib.util.spec_from_file_location(f"bench_{args.which}", path)
+        raise ValueError(f"bench: {path} not found (benchmarks run from a source checkout)")
+    spec = importlib.util.spec_from_file_location(f"bench_{which}", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    return int(mod.main(args.rest) or 0)
+    return mod
+
+
+def _cmd_bench(args) -> int:
+    return int(load_benchmark(args.which).main(args.rest) or 0)
 
 
 def _cmd_reproduce(args) -> int:
     from . import reproduce
 
     return int(reproduce.load(args.paper).main(args.rest) or 0)
+
+
+def _study_options(name: str, parser: argparse.ArgumentParser) -> str:
+    """The options part of a study's own --help, indented under its name."""
+    text = parser.format_help()
+    # drop the usage line(s): the command line is shown in the heading
+    body = text.split("\n\n", 1)[1] if "\n\n" in text else text
+    return f"{name}:\n" + textwrap.indent(body.rstrip(), "  ")
+
+
+class _HelpWithStudies(argparse.Action):
+    """-h/--help of ``reproduce`` and ``bench``: the usual help, then every study's options with
+    their defaults (the study modules are imported only when asked)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 studies=None, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+        self.studies = studies
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.print_help()
+        print()
+        for name, get_parser in self.studies():
+            try:
+                print(_study_options(name, get_parser()))
+            except Exception as err:  # a benchmark's optional dependency may be missing
+                print(f"{name}: options not available ({err})")
+            print()
+        parser.exit()
+
+
+def _reproduce_studies():
+    from . import reproduce
+
+    return [(f"vehjax reproduce {name} [options]", reproduce.load(name).parser)
+            for name in sorted(reproduce.REGISTRY)]
+
+
+def _bench_studies():
+    return [(f"vehjax bench {which} [options]", lambda w=which: load_benchmark(w).parser())
+            for which in BENCHMARKS]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -68,28 +149,52 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("models", help="list every model with its states, inputs, parameters, outputs")
     p.set_defaults(func=_cmd_models)
 
-    p = sub.add_parser("simulate", help="simulate R noisy runs of a manoeuvre; writes .npz and .png")
+    p = sub.add_parser(
+        "simulate", help="simulate R noisy runs of a manoeuvre; writes .npz and .png",
+        description="Simulate R noisy runs of a manoeuvre; writes the arrays (.npz) and a figure "
+                    "of the true states, the measurements and the inputs (.png). `vehjax models` "
+                    "lists each model's states and outputs with their units.")
     p.add_argument("model", choices=sorted(models.REGISTRY))
     p.add_argument("scenario", choices=sorted(scenarios.REGISTRY))
     p.add_argument("--runs", type=int, default=10, help="Monte-Carlo runs (default 10)")
     p.add_argument("--speed", type=float, default=20.0, help="speed in m/s (default 20)")
     p.add_argument("--dt", type=float, default=0.01, help="sampling period in s (default 0.01)")
-    p.add_argument("--process-std", type=float, default=0.0, help="process noise std per step")
-    p.add_argument("--meas-std", type=float, default=0.1, help="measurement noise std")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--process-std", type=_floats, default=[0.0], metavar="STD[,STD...]",
+                   help="process noise std per step, in state units: one value for every state "
+                        "or one per state, comma-separated (default 0: no process noise, every "
+                        "run has the same true states)")
+    p.add_argument("--meas-std", type=_floats, default=[0.1], metavar="STD[,STD...]",
+                   help="measurement noise std, in output units: one value for every output or "
+                        "one per output, comma-separated, e.g. 0.1,0.1,0.01 for Dynamic3DOF's "
+                        "vx [m/s], vy [m/s], r [rad/s] (default 0.1 on every output)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--out", default="out", help="output folder (default ./out)")
     p.set_defaults(func=_cmd_simulate)
 
     from . import reproduce
 
-    p = sub.add_parser("reproduce", help="reproduce a paper's study: tables and figures")
+    p = sub.add_parser(
+        "reproduce", help="reproduce a paper's study: tables and figures", add_help=False,
+        usage="vehjax reproduce [-h] {%s} [options]" % ",".join(sorted(reproduce.REGISTRY)),
+        description="Reproduce a paper's study: tables, report and figures. Each study's "
+                    "options and their defaults are listed below; "
+                    "`vehjax reproduce NAME --help` shows one study's.")
+    p.add_argument("-h", "--help", action=_HelpWithStudies, studies=_reproduce_studies,
+                   help="show this help with every study's options and exit")
     p.add_argument("paper", choices=sorted(reproduce.REGISTRY))
-    p.add_argument("rest", nargs=argparse.REMAINDER, help="study options, e.g. --runs 4 (see --help)")
+    p.add_argument("rest", nargs=argparse.REMAINDER, help="study options, e.g. --runs 4 (below)")
     p.set_defaults(func=_cmd_reproduce)
 
-    p = sub.add_parser("bench", help="side-by-side timings against other libraries")
-    p.add_argument("which", choices=["gaussian", "particle"])
-    p.add_argument("rest", nargs=argparse.REMAINDER, help="benchmark options, e.g. --runs 2")
+    p = sub.add_parser(
+        "bench", help="side-by-side timings against other libraries", add_help=False,
+        usage="vehjax bench [-h] {%s} [options]" % ",".join(BENCHMARKS),
+        description="Side-by-side timings against other libraries (from a source checkout: "
+                    "benchmarks/bench_NAME.py). Each benchmark's options and their defaults "
+                    "are listed below; `vehjax bench NAME --help` shows one benchmark's.")
+    p.add_argument("-h", "--help", action=_HelpWithStudies, studies=_bench_studies,
+                   help="show this help with every benchmark's options and exit")
+    p.add_argument("which", choices=list(BENCHMARKS))
+    p.add_argument("rest", nargs=argparse.REMAINDER, help="benchmark options, e.g. --runs 2 (below)")
     p.set_defaults(func=_cmd_bench)
     return parser
 

@@ -1,7 +1,9 @@
 """Paper reproductions, one module each, run by ``vehjax reproduce NAME [options]``.
 
-Every module defines ``main(argv: list[str] | None) -> int`` (its own argparse options, printed
-tables, saved figures) and ``PAPER``, one line naming the paper it reproduces.
+Every module defines ``main(argv: list[str] | None) -> int`` (printed tables, a ``report.md``
+that links the figures it saves), ``parser()``, its argparse parser (every option's help
+states its default; ``vehjax reproduce --help`` lists them all), and ``PAPER``, one line naming
+the paper it reproduces.
 """
 
 from __future__ import annotations

@@ -95,6 +95,23 @@ class Stage(NamedTuple):
     truth: np.ndarray  # (p,) true values of the estimated parameters
     names: tuple  # estimated parameter names
     seconds: dict  # filter name -> wall time of its run call, s
+    theta0: np.ndarray  # (R, p) initial guesses of the estimated parameters (BOX_PRIOR aside)
+    param_units: tuple  # units of the estimated parameters
+    state_units: tuple  # units of the states
+    box: np.ndarray  # (p, 2) the box theta0 is drawn from, the prior of the BOX_PRIOR filters
+
+
+#: filters whose parameter prior is the uniform box itself (theta0 unused): their initial
+#: estimate is the box centre in every run
+BOX_PRIOR = ("Particle+UKF",)
+
+
+def initial_estimates(stage: Stage, name: str) -> np.ndarray:
+    """(R, p) initial parameter estimate of filter ``name`` in each run: ``theta0``, or the box
+    centre for the BOX_PRIOR filters."""
+    if name in BOX_PRIOR:
+        return np.broadcast_to(np.asarray(stage.box, float).mean(axis=1), np.shape(stage.theta0))
+    return np.asarray(stage.theta0)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -148,6 +165,10 @@ def _with_axle_inputs(dyn):
         input_names=tuple(dyn.input_names) + ("lf_hat", "lr_hat"),
         output_names=dyn.output_names,
         theta=dyn.theta,
+        units={**dict(zip(dyn.state_names, dyn.state_units)),
+               **dict(zip(dyn.param_names, dyn.param_units)),
+               **dict(zip(dyn.input_names, dyn.input_units)), "lf_hat": "m", "lr_hat": "m",
+               **dict(zip(dyn.output_names, dyn.output_units))},
     )
 
 
@@ -212,16 +233,30 @@ def _stage(model, scn, estimate, settings, box, runs, key, estimators, inputs=No
         if progress:
             n_div = int(np.sum(results[name].diverged))
             progress(f" {seconds[name]:.1f} s" + (f", {n_div} diverged" if n_div else "") + "\n")
-    return Stage(sim, results, truth, tuple(estimate), seconds)
+    p_units = tuple(model.param_units[i] for i in model.param_index(estimate))
+    return Stage(sim, results, truth, tuple(estimate), seconds, theta0, p_units,
+                 tuple(model.state_units), np.asarray(box, dtype=float))
 
 
 # ----------------------------------------------------------------------------------------------
 # Tables
 
 
+#: "not learned": on average over runs the final estimate lies within this fraction of the
+#: initial guesses' spread (std over runs) of the run's own guess; its mean and spread over runs
+#: are then the guesses' mean and spread to within the same fraction.
+NOT_LEARNED_FRACTION = 0.1
+#: state-RMSE rows that agree to this relative tolerance are "the same"
+SAME_RMSE_RTOL = 0.01
+
+
 def _final(params, window: int):
     """Per-run final estimate: mean over the last ``window`` steps, (R, p)."""
     return params[:, -window:].mean(axis=1)
+
+
+def _window(res):
+    return max(1, res.params.shape[1] // 10)
 
 
 def _ok(res):
@@ -232,22 +267,45 @@ def _fmt_pm(mean, std, digits):
     return f"{mean:.{digits}f} +- {std:.{digits}f}"
 
 
+def _unit(u, s=1.0):
+    """The unit of a column, ``[m]`` or ``[1e4 N]``."""
+    from ..plots import label
+
+    return label("", u, s).strip()
+
+
+def _names_and(names) -> str:
+    names = list(names)
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+
+
 def table_parameters(stage: Stage, paper: dict, dt: float, tol, digits, scale=None, window=None):
-    """Markdown table: final estimate mean +- std over runs, convergence time, the paper's value."""
+    """Markdown table: the initial guesses and each filter's final estimate as mean +- std over
+    runs (mean absolute error), convergence time, the paper's value."""
     from .. import metrics
 
     names = stage.names
     scale = np.ones(len(names)) if scale is None else np.asarray(scale)
-    unit = [f" (x{s:g})" if s != 1 else "" for s in scale]
-    head = "| filter | " + " | ".join(f"{n}{u}" for n, u in zip(names, unit))
+    cols = [f"{n} {_unit(u, s)}" for n, u, s in zip(names, stage.param_units, scale)]
+    head = "| filter | " + " | ".join(cols)
     head += " | " + " | ".join(f"t_conv {n} [s]" for n in names) + " | diverged |"
+    blank = " |" * len(names) + " |"
     lines = [head, "|" + "---|" * (2 * len(names) + 2)]
     lines.append("| truth | " + " | ".join(f"{v / s:.{d}f}" for v, s, d in zip(stage.truth, scale, digits))
-                 + " |" + " |" * len(names) + " |")
+                 + " |" + blank)
+    g = np.asarray(stage.theta0) / scale
+    g_err = np.abs(g - stage.truth / scale).mean(axis=0)
+    lines.append("| initial guess | " + " | ".join(
+        f"{_fmt_pm(g[:, j].mean(), g[:, j].std(), d)} ({g_err[j]:.{d}f})"
+        for j, d in enumerate(digits)) + " |" + blank)
+    for name in (n for n in BOX_PRIOR if n in stage.results):
+        c = np.asarray(stage.box, float).mean(axis=1) / scale
+        lines.append(f"| {name} prior mean (box centre) | " + " | ".join(
+            f"{c[j]:.{d}f} ({abs(c[j] - stage.truth[j] / scale[j]):.{d}f})"
+            for j, d in enumerate(digits)) + " |" + blank)
     for name, res in stage.results.items():
         ok = _ok(res)
-        T = res.params.shape[1]
-        w = window or max(1, T // 10)
+        w = window or _window(res)
         fin = _final(res.params, w)[ok] / scale
         conv = metrics.convergence_time(res.params, stage.truth[None, None, :], tol, dt, mask=ok)
         conv_s = []
@@ -264,17 +322,146 @@ def table_parameters(stage: Stage, paper: dict, dt: float, tol, digits, scale=No
         if name in paper:
             lines.append(f"| {name} (paper) | "
                          + " | ".join(f"{v / s:.{d}f}" for v, s, d in zip(paper[name], scale, digits))
-                         + " |" + " |" * len(names) + " |")
+                         + " |" + blank)
     return "\n".join(lines)
 
 
+def learning(stage: Stage, tol, window=None) -> dict:
+    """Per parameter and filter, what the filter made of its initial guesses.
+
+    Returns {parameter: {filter: (verdict, guess error, final error, moved)}} with verdict one of
+    "learned" (final mean absolute error within ``tol``), "drifted" (a BOX_PRIOR filter whose
+    prior centre, its initial estimate, is the truth, ending farther than ``tol``), "not
+    learned" (each run's final
+    estimate within NOT_LEARNED_FRACTION of the prior's spread, the std of the box the guesses
+    are drawn from, of the filter's own initial estimate in that run, on average),
+    "partly" (error reduced, not to ``tol``), "worse" (error grew); errors are mean absolute
+    errors over the filter's converged runs, ``moved`` the mean |final - guess| over runs, all
+    in the parameter's units. Filters whose every run diverged are left out.
+    """
+    tol = np.broadcast_to(np.asarray(tol, dtype=float), (len(stage.names),))
+    out = {}
+    for j, pname in enumerate(stage.names):
+        verdicts = {}
+        for fname, res in stage.results.items():
+            ok = _ok(res)
+            if not ok.any():
+                continue
+            fin = _final(res.params, window or _window(res))[ok, j]
+            guess = initial_estimates(stage, fname)[ok, j]
+            spread = max(float(np.diff(np.asarray(stage.box, float)[j])[0]) / np.sqrt(12.0),
+                         1e-12 * abs(stage.truth[j]))
+            e0 = float(np.mean(np.abs(guess - stage.truth[j])))
+            e1 = float(np.mean(np.abs(fin - stage.truth[j])))
+            moved = float(np.mean(np.abs(fin - guess)))
+            # a box-prior filter whose prior centre is the truth starts at the truth: staying
+            # there is not a sign of not learning, and its point estimates cannot show learning
+            at_truth = np.all(np.abs(guess - stage.truth[j]) <= 1e-9 * max(1.0, abs(stage.truth[j])))
+            if moved <= NOT_LEARNED_FRACTION * spread and not at_truth:
+                verdict = "not learned"
+            elif e1 <= tol[j]:
+                verdict = "learned"
+            elif at_truth:
+                verdict = "drifted"
+            elif e1 < e0:
+                verdict = "partly"
+            else:
+                verdict = "worse"
+            verdicts[fname] = (verdict, e0, e1, moved)
+        out[pname] = verdicts
+    return out
+
+
+def learning_summary(stage: Stage, tol, tol_text: str, scale=None, digits=None, window=None) -> str:
+    """Markdown paragraph, written from the numbers: which parameter each filter learned, which
+    it only moved part of the way, and which it left at its initial guess."""
+    n = len(stage.names)
+    scale = np.ones(n) if scale is None else np.asarray(scale)
+    digits = (3,) * n if digits is None else digits
+    verdicts = learning(stage, tol, window)
+    lines = [f"**What is learned and what is not.** Per parameter, the mean absolute error over "
+             f"runs of the initial guesses and of the final estimates (learned: within "
+             f"{tol_text}; not learned: the final estimate stays, on average, within "
+             f"{100 * NOT_LEARNED_FRACTION:.0f} % of the prior's spread (the std of the box the "
+             "guesses are drawn from) of the run's own initial estimate)."]
+    box = np.asarray(stage.box, float)
+    centre_is_truth = np.allclose(box.mean(axis=1), stage.truth, rtol=1e-9, atol=0.0)
+    box_filters = [f for f in BOX_PRIOR if f in stage.results]
+    if box_filters and centre_is_truth:
+        lines[-1] += (f" {_names_and(box_filters)} starts from the centre of its prior box, not "
+                      "from the guesses; that centre is the truth here, so its error can only "
+                      "grow and its point estimates cannot show what it learned.")
+    lines[-1] += "\n"
+    for j, pname in enumerate(stage.names):
+        s, d, u = scale[j], digits[j], _unit(stage.param_units[j], scale[j])
+        v = verdicts[pname]
+        if not v:
+            lines.append(f"- {pname}: every run of every filter diverged.")
+            continue
+        g_all = np.asarray(stage.theta0)[:, j]
+        e0 = float(np.mean(np.abs(g_all - stage.truth[j]))) / s
+        by = {k: [f for f, x in v.items() if x[0] == k]
+              for k in ("learned", "partly", "worse", "drifted", "not learned")}
+        parts = []
+        if by["learned"]:
+            parts.append("learned by " + _names_and(
+                f"{f} ({v[f][2] / s:.{d}f})" for f in by["learned"]))
+        if by["partly"]:
+            parts.append("partly learned by " + _names_and(
+                f"{f} ({v[f][2] / s:.{d}f}, {100 * (1 - v[f][2] / v[f][1]):.0f} % of the error "
+                "removed)"
+                for f in by["partly"]))
+        if by["worse"]:
+            parts.append("moved away from the truth by " + _names_and(
+                f"{f} ({v[f][2] / s:.{d}f})" for f in by["worse"]))
+        if by["drifted"]:
+            parts.append("drifted off the truth it started from by " + _names_and(
+                f"{f} ({v[f][2] / s:.{d}f})" for f in by["drifted"]))
+        if by["not learned"]:
+            moved = max(v[f][3] for f in by["not learned"]) / s
+            every = len(by["not learned"]) == len(v)
+            who = ("any filter" if every and len(v) > 1 else _names_and(by["not learned"]))
+            spread = float(np.diff(np.asarray(stage.box, float)[j])[0]) / np.sqrt(12.0) / s
+            guessed = [f for f in by["not learned"] if f not in BOX_PRIOR]
+            text = (f"**not learned by {who}**: the final estimates stay at the initial "
+                    f"estimates (moved {moved:.{d}f} on average, against a prior spread of "
+                    f"{spread:.{d}f})")
+            if guessed:
+                g = g_all / s
+                text += (f", so the mean +- std over runs in the table for {_names_and(guessed)} "
+                         f"is essentially the initial guesses' {_fmt_pm(g.mean(), g.std(), d)}, "
+                         "not a result of the data")
+            parts.append(text)
+        notes = []
+        for f in (f for f in BOX_PRIOR if f in v and not centre_is_truth):
+            c = float(np.asarray(stage.box, float)[j].mean())
+            notes.append(f"{f} starts from its prior's centre {c / s:.{d}f}, not from the guesses")
+        lines.append(f"- **{pname}** {u} (guess error {e0:.{d}f}): " + "; ".join(parts) + "."
+                     + (" " + "; ".join(notes) + "." if notes else ""))
+    return "\n".join(lines)
+
+
+def _raw_rmse(stage: Stage):
+    """RMSE of the raw measurements against the true states, when each output is a state."""
+    from .. import metrics
+
+    sim = stage.sim
+    if tuple(sim.output_names) != tuple(sim.state_names):
+        return None
+    return np.asarray(metrics.rmse(sim.measurements, sim.states))
+
+
 def table_states(stage: Stage, paper: dict):
-    """Markdown table: state RMSE over all runs and steps with its 95 % interval over runs."""
+    """Markdown table: state RMSE over all runs and steps with its 95 % interval over runs, and
+    the raw measurements' RMSE when the states are measured."""
     from .. import metrics
 
     names = stage.sim.state_names
-    lines = ["| filter | " + " | ".join(f"RMSE {n}" for n in names) + " |",
-             "|" + "---|" * (len(names) + 1)]
+    lines = ["| filter | " + " | ".join(f"RMSE {n} {_unit(u)}" for n, u in zip(names, stage.state_units))
+             + " |", "|" + "---|" * (len(names) + 1)]
+    raw = _raw_rmse(stage)
+    if raw is not None:
+        lines.append("| raw measurements | " + " | ".join(f"{v:.4f}" for v in raw) + " |")
     for name, res in stage.results.items():
         ok = _ok(res)
         per_run = metrics.rmse(res.states, stage.sim.states, axis="run", mask=ok)
@@ -288,21 +475,82 @@ def table_states(stage: Stage, paper: dict):
     return "\n".join(lines)
 
 
-def frequency_table(freq_results: dict, truth, dt: float, tol: float):
+def state_rmse(stage: Stage) -> dict:
+    """Filter -> (nx,) state RMSE over its converged runs and all steps (filters with any)."""
     from .. import metrics
 
-    lines = ["| steering frequency [Hz] | final lf [m] | final lr [m] | t_conv lf [s] | t_conv lr [s] |",
+    return {name: np.asarray(metrics.rmse(res.states, stage.sim.states, mask=_ok(res)))
+            for name, res in stage.results.items() if _ok(res).any()}
+
+
+def same_rmse_groups(rmse: dict, rtol: float = SAME_RMSE_RTOL) -> list:
+    """Groups (lists of two or more filter names) whose state RMSE rows agree within ``rtol``."""
+    groups, left = [], list(rmse)
+    while left:
+        first = left.pop(0)
+        same = [f for f in left if np.allclose(rmse[f], rmse[first], rtol=rtol, atol=0.0)]
+        left = [f for f in left if f not in same]
+        if same:
+            groups.append([first] + same)
+    return groups
+
+
+def states_summary(stage: Stage, tol=None) -> str:
+    """Markdown paragraph, written from the numbers: which filters' state RMSE rows are the same
+    and how the estimates compare with the raw measurements. With ``tol`` (the parameters'
+    "learned" tolerance) it also says when equal rows come from filters that learned the
+    parameters differently."""
+    rmse = state_rmse(stage)
+    if not rmse:
+        return "**State RMSE.** Every run of every filter diverged."
+    names = stage.sim.state_names
+    out = []
+    groups = same_rmse_groups(rmse)
+    differ = False
+    if tol is not None:
+        verdicts = learning(stage, tol)
+        differ = any(len({v[0] for v in per.values()}) > 1 for per in verdicts.values())
+    if len(groups) == 1 and len(groups[0]) == len(rmse) and len(rmse) > 1:
+        out.append(f"**State RMSE: every filter alike.** All {len(rmse)} filters have the same "
+                   f"state RMSE (within {100 * SAME_RMSE_RTOL:g} %)"
+                   + (f", although they learned {_names_and(stage.names)} differently (below): "
+                      "in these settings the state estimates do not depend on the parameter "
+                      "estimates" if differ else "")
+                   + "; this table does not tell the filters apart.")
+    elif groups:
+        out.append("**State RMSE.** " + "; ".join(
+            f"{_names_and(g)} have the same state RMSE (within {100 * SAME_RMSE_RTOL:g} %)"
+            for g in groups)
+            + ": this table does not tell them apart.")
+    else:
+        out.append("**State RMSE.** The filters' state RMSE rows differ.")
+    raw = _raw_rmse(stage)
+    if raw is not None:
+        ratios = np.array(list(rmse.values())) / raw
+        spans = [f"{n} {lo:.2f}" if abs(hi - lo) < 0.005 else f"{n} {lo:.2f}-{hi:.2f}"
+                 for n, lo, hi in zip(names, ratios.min(0), ratios.max(0))]
+        out.append("Estimate RMSE over raw-measurement RMSE (1: no better than the sensors): "
+                   + ", ".join(spans) + ".")
+    return " ".join(out)
+
+
+def frequency_table(freq_results: dict, truth, dt: float, tol: float, units=("m", "m")):
+    from .. import metrics
+
+    lines = [f"| steering frequency [Hz] | final lf {_unit(units[0])} | final lr {_unit(units[1])} "
+             "| t_conv lf [s] | t_conv lr [s] |",
              "|---|---|---|---|---|"]
     for f, res in freq_results.items():
         ok = _ok(res)
-        fin = _final(res.params, max(1, res.params.shape[1] // 10))[ok]
+        fin = _final(res.params, _window(res))[ok]
         conv = metrics.convergence_time(res.params, np.asarray(truth)[None, None], tol, dt, mask=ok)[ok]
         med = [np.median(c) if np.all(np.isfinite(c)) else
                (np.median(c[np.isfinite(c)]) if np.isfinite(c).any() else np.inf) for c in conv.T]
         err = np.abs(fin - np.asarray(truth)).mean(axis=0)
+        conv_s = [f"{c:.1f}" if np.isfinite(c) else "never" for c in med]
         lines.append(f"| {f:g} | {_fmt_pm(fin[:, 0].mean(), fin[:, 0].std(), 3)} ({err[0]:.3f}) | "
                      f"{_fmt_pm(fin[:, 1].mean(), fin[:, 1].std(), 3)} ({err[1]:.3f}) | "
-                     f"{med[0]:.1f} | {med[1]:.1f} |")
+                     f"{conv_s[0]} | {conv_s[1]} |")
     return "\n".join(lines)
 
 
@@ -310,116 +558,145 @@ def frequency_table(freq_results: dict, truth, dt: float, tol: float):
 # Figures
 
 
-def _band(ax, t, values, label, color):
-    """Mean over runs with a shaded 5-95 % band."""
-    lo, hi = np.nanpercentile(values, [5, 95], axis=0)
-    ax.fill_between(t, lo, hi, color=color, alpha=0.2, lw=0)
-    ax.plot(t, np.nanmean(values, axis=0), color=color, lw=1.2, label=label)
+def _runs_text(results: dict) -> str:
+    """'10 runs' or '10 runs, 2 diverged (left out)' over a dict of results."""
+    runs = max(len(np.asarray(r.diverged)) for r in results.values())
+    div = sum(int(np.sum(r.diverged)) for r in results.values())
+    return f"{runs} runs" + (f", {div} diverged run(s) left out" if div else "")
 
 
-def plot_parameters(stage: Stage, path, title: str, scale=None):
-    """One panel per parameter: each filter's mean and 5-95 % band over runs, and the truth."""
-    from ..plots import plt
+def plot_parameters(stage: Stage, path, title: str, scale=None, tol=None):
+    """Small multiples: one row per parameter, one column per filter; mean and 5-95 % band of
+    the estimate over runs, the truth on top. With ``tol`` each panel names the verdict of
+    :func:`learning` when it is not "learned"."""
+    from .. import plots
 
-    t = np.asarray(stage.sim.t)
     n = len(stage.names)
     scale = np.ones(n) if scale is None else np.asarray(scale)
-    fig, axes = plt.subplots(n, 1, figsize=(8, 2.6 * n), sharex=True, squeeze=False)
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for j, ax in enumerate(axes[:, 0]):
-        for k, (name, res) in enumerate(stage.results.items()):
-            ok = _ok(res)
-            if ok.any():
-                _band(ax, t, res.params[ok, :, j] / scale[j], name, colors[k % len(colors)])
-        ax.axhline(stage.truth[j] / scale[j], color="k", ls="--", lw=1, label="truth")
-        ax.set_ylabel(stage.names[j] + (f" (x{scale[j]:g})" if scale[j] != 1 else ""))
-        ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=7, ncol=3)
-    axes[-1, 0].set_xlabel("t [s]")
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    filters = list(stage.results)
+    series = [[(res.params[_ok(res), :, j] / scale[j]) if _ok(res).any() else None
+               for res in stage.results.values()] for j in range(n)]
+    rows = [plots.label(p, u, s) for p, u, s in zip(stage.names, stage.param_units, scale)]
+    notes = None
+    if tol is not None:
+        verdicts = learning(stage, tol)
+        text = {"not learned": "not learned: stays at its guess", "partly": "partly learned",
+                "worse": "moved away from truth",
+                "drifted": "starts at truth (prior centre), drifts off"}
+        notes = [[text.get(verdicts[p].get(f, ("",))[0], "") for f in filters] for p in stage.names]
+    return plots.plot_band_grid(path, stage.sim.t, series, rows, filters,
+                                f"{title}, {_runs_text(stage.results)}",
+                                truth=[v / s for v, s in zip(stage.truth, scale)], notes=notes)
 
 
-def plot_states(stage: Stage, path, title: str):
-    """One panel per state: truth of run 0 and each filter's estimate error band over runs."""
+def plot_states(stage: Stage, path, title: str, window_s: float = 1.0):
+    """Row per state. Left: the truth of run 0 (on top) and each filter's estimate of it. Then
+    one column per filter: its RMS error over a moving ``window_s`` window, mean and 5-95 %
+    band over runs, with the raw measurements' RMS error (grey) when the state is measured."""
+    from .. import plots
     from ..plots import plt
 
     t = np.asarray(stage.sim.t)
     names = stage.sim.state_names
-    fig, axes = plt.subplots(len(names), 2, figsize=(11, 2.6 * len(names)), sharex=True, squeeze=False)
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    filters = list(stage.results)
+    n_rows, n_cols = len(names), 1 + len(filters)
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(1.2 + 3.0 * n_cols, 1.4 + 2.3 * n_rows),
+                             sharex=True, squeeze=False)
+    cyc = plots.colors()
     truth = np.asarray(stage.sim.states)
-    for i, n in enumerate(names):
-        axes[i, 0].plot(t, truth[0, :, i], "k", lw=1, label="truth (run 0)")
+    window = max(1, int(round(window_s / (t[1] - t[0])))) if len(t) > 1 else 1
+    raw = None
+    if tuple(stage.sim.output_names) == tuple(names):
+        raw = plots.moving_rms(np.moveaxis(np.asarray(stage.sim.measurements) - truth, -1, 1), window)
+    for i, (n, u) in enumerate(zip(names, stage.state_units)):
+        ax = axes[i, 0]
+        n_f = len(filters)
+        for k, (name, res) in enumerate(stage.results.items()):  # first thickest: overlaps show
+            ax.plot(t, res.states[0, :, i], color=cyc[k % len(cyc)], label=name,
+                    lw=0.7 + 1.3 * (n_f - 1 - k) / max(1, n_f - 1))
+        plots.truth_line(ax, t, truth[0, :, i], label="truth")
+        ax.set_ylabel(plots.label(n, u))
         for k, (name, res) in enumerate(stage.results.items()):
-            c = colors[k % len(colors)]
-            axes[i, 0].plot(t, res.states[0, :, i], color=c, lw=0.8, label=name)
+            ax = axes[i, 1 + k]
+            if k:
+                ax.sharey(axes[i, 1])
             ok = _ok(res)
+            if raw is not None:
+                ax.plot(t, raw[:, i].mean(axis=0), color="0.55", lw=1.0, ls=":",
+                        label="raw measurements (mean over runs)", zorder=5)
             if ok.any():
-                _band(axes[i, 1], t, res.states[ok, :, i] - truth[ok, :, i], name, c)
-        axes[i, 0].set_ylabel(n)
-        axes[i, 1].set_ylabel(f"error {n}")
+                plots.band(ax, t, plots.moving_rms(res.states[ok, :, i] - truth[ok, :, i], window),
+                           cyc[k % len(cyc)])
+            ax.set_ylim(bottom=0)
+            ax.set_ylabel(plots.label(f"RMS error {n}", u) if k == 0 else "")
         for ax in axes[i]:
             ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=7)
-    axes[0, 1].legend(fontsize=7)
+    axes[0, 0].set_title("run 0: truth and estimates", fontsize=10)
+    for k, name in enumerate(filters):
+        axes[0, 1 + k].set_title(f"{name}: RMS error over {window_s:g} s", fontsize=10)
     for ax in axes[-1]:
         ax.set_xlabel("t [s]")
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    plots.figure_legend(fig, axes, f"{title}, {_runs_text(stage.results)}",
+                        extra=plots.band_handles("over runs of the RMS error"))
+    return plots.save(fig, path)
 
 
-def plot_frequency(freq_results: dict, t, truth, path):
-    from ..plots import plt
 
-    fig, axes = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
-    for j, ax in enumerate(axes):
-        for f, res in freq_results.items():
-            ok = _ok(res)
-            if ok.any():
-                ax.plot(t, res.params[ok, :, j].mean(axis=0), lw=1.2, label=f"{f:g} Hz")
-        ax.axhline(truth[j], color="k", ls="--", lw=1)
-        ax.set_ylabel(("lf", "lr")[j] + " [m]")
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8, title="steering sine")
-    axes[-1].set_xlabel("t [s]")
-    fig.suptitle("Dual UKF on the kinematic model: effect of input frequency (mean over runs)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+
+def plot_frequency(freq_results: dict, t, truth, path, units=("m", "m"), title: str = ""):
+    """Small multiples: rows lf, lr; one column per steering frequency; the Dual UKF's mean and
+    5-95 % band over runs, the truth on top."""
+    from .. import plots
+
+    freqs = list(freq_results)
+    series = [[res.params[_ok(res), :, j] if _ok(res).any() else None for res in freq_results.values()]
+              for j in range(2)]
+    rows = [plots.label(n, u) for n, u in zip(("lf", "lr"), units)]
+    head = title or "Dual UKF on the kinematic model: effect of the steering frequency"
+    return plots.plot_band_grid(path, t, series, rows, [f"steering sine {f:g} Hz" for f in freqs],
+                                f"{head}, {_runs_text(freq_results)}", truth=list(truth))
+
+
+def _figure(report: list, path: Path, caption: str) -> Path:
+    """Add a markdown link to ``path`` (written next to report.md) under ``caption``."""
+    report.append(f"![{caption}]({path.name})\n")
+    return path
 
 
 # ----------------------------------------------------------------------------------------------
 # Entry point
 
 
-def _parser():
+def parser():
+    """The study's options (``vehjax reproduce dutta2019 --help``); each help states its default."""
     p = argparse.ArgumentParser(
         prog="vehjax reproduce dutta2019",
         description="Dual EKF, Dual UKF and Liu-West Particle+UKF on the kinematic and the 3-DOF "
-                    "dynamic model (Dutta et al. 2019, Tables I-III, Fig. 4-12).",
+                    "dynamic model (Dutta et al. 2019, Tables I-III, Fig. 4-12). Writes report.md, "
+                    "which links the figures. A quick run: --runs 10.",
     )
-    p.add_argument("--runs", type=int, default=100, help="Monte-Carlo runs per filter (default 100)")
-    p.add_argument("--particles", type=int, default=1000, help="Particle+UKF particles M (default 1000)")
-    p.add_argument("--kinematic-duration", type=float, default=60.0, help="s (default 60)")
-    p.add_argument("--dynamic-duration", type=float, default=60.0, help="s (default 60)")
-    p.add_argument("--dt", type=float, default=0.02, help="sampling period, s (default 0.02)")
+    p.add_argument("--runs", type=int, default=100, help="Monte-Carlo runs per filter (default %(default)s)")
+    p.add_argument("--particles", type=int, default=1000,
+                   help="Particle+UKF particles M (default %(default)s)")
+    p.add_argument("--kinematic-duration", type=float, default=60.0,
+                   help="kinematic stage length, s (default %(default)g)")
+    p.add_argument("--dynamic-duration", type=float, default=60.0,
+                   help="dynamic stage length, s (default %(default)g)")
+    p.add_argument("--dt", type=float, default=0.02, help="sampling period, s (default %(default)g)")
     p.add_argument("--filters", default=",".join(_FILTERS),
-                   help=f"comma-separated subset of {', '.join(_FILTERS)}")
+                   help="comma-separated subset of the filters (default all: %(default)s)")
     p.add_argument("--settings", default=",".join(_SETTINGS),
                    help="filter settings: paper (section III as printed), matched (noise "
-                        "covariances of the simulation), or both (default paper,matched)")
-    p.add_argument("--no-frequency-study", action="store_true", help="skip the Fig. 6 study")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="out/dutta2019", help="folder for tables and figures")
+                        "covariances of the simulation), or both (default %(default)s)")
+    p.add_argument("--no-frequency-study", action="store_true",
+                   help="skip the Fig. 6 study (default: run it)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    p.add_argument("--out", default="out/dutta2019",
+                   help="folder for report.md and the figures (default %(default)s)")
     return p
+
+
+_parser = parser
 
 
 def _say(msg):
@@ -460,13 +737,18 @@ def _kinematic(args, filters, setting, key, out, report):
     st = _stage(kin, scn, ("lf", "lr"), cfg, _KIN_BOX, args.runs, k_main, ests, progress=_say)
     report += [f"### Table I: lf, lr from the kinematic model ({setting} settings)",
                "Final estimate (mean of the last 10 % of steps) as mean +- std over runs, "
-               "(mean absolute error over runs); the initial guesses are spread evenly around "
-               "the truth, so the std and the absolute error, not the mean, show what was "
-               "learned. t_conv: median time after which the error stays within 0.05 m (runs "
-               "that converged). Target: every filter within 0.05 m.\n",
-               table_parameters(st, PAPER_TABLE1, args.dt, tol=0.05, digits=(3, 3)), ""]
-    plot_parameters(st, out / f"fig4_5_kinematic_lf_lr_{setting}.png",
-                    f"lf, lr on the kinematic model ({setting} settings): mean and 5-95 % band")
+               "(mean absolute error over runs); the initial guesses (row \"initial guess\"; "
+               "every filter starts from them but Particle+UKF, whose prior is the box they are "
+               "drawn from) are spread evenly around the truth, so the std and the "
+               "absolute error, not the mean, show what was learned. t_conv: median time after "
+               "which the error stays within 0.05 m (runs that converged). Target: every filter "
+               "within 0.05 m.\n",
+               table_parameters(st, PAPER_TABLE1, args.dt, tol=0.05, digits=(3, 3)), "",
+               learning_summary(st, 0.05, "0.05 m", digits=(3, 3)), ""]
+    fig = plot_parameters(st, out / f"fig4_5_kinematic_lf_lr_{setting}.png",
+                          f"lf, lr on the kinematic model ({setting} settings)", tol=0.05)
+    _figure(report, fig, f"Fig. 4-5: lf, lr against time, each filter's mean and 5-95 % band over "
+                         f"runs ({setting} settings)")
     if not args.no_frequency_study and "Dual UKF" in ests:
         _say(f"[{setting}] input-frequency study (Dual UKF):")
         freq = {}
@@ -477,10 +759,15 @@ def _kinematic(args, filters, setting, key, out, report):
             freq[f] = res
             _say(f" {f:g} Hz")
         _say("\n")
+        units = tuple(kin.param_units[i] for i in kin.param_index(("lf", "lr")))
         report += [f"### Fig. 6: Dual UKF and the steering frequency ({setting} settings)\n",
-                   frequency_table(freq, truth, args.dt, 0.05), ""]
-        plot_frequency(freq, np.asarray(scn.t), truth,
-                       out / f"fig6_input_frequency_{setting}.png")
+                   frequency_table(freq, truth, args.dt, 0.05, units), ""]
+        fig = plot_frequency(freq, np.asarray(scn.t), truth,
+                             out / f"fig6_input_frequency_{setting}.png", units,
+                             f"Dual UKF on the kinematic model, steering frequency ({setting} settings)")
+        _figure(report, fig, f"Fig. 6: lf, lr of the Dual UKF under steering sines of "
+                             f"{', '.join(f'{f:g}' for f in _FREQUENCIES)} Hz, mean and 5-95 % "
+                             f"band over runs ({setting} settings)")
     return st
 
 
@@ -511,26 +798,34 @@ def _dynamic(args, filters, setting, key, out, report, kinematic: Stage):
     _say(f"[{setting}] dynamic model, {T} steps (each run uses its own lf, lr from above):\n")
     st = _stage(model, scn_m, ("m", "cx", "cy"), cfg, box, args.runs, key, ests, inputs=inputs,
                 progress=_say)
+    scale = (1.0, 1e4, 1e4)
     report += [f"### Table II: state RMSE on the dynamic model ({setting} settings)",
-               "RMSE over all runs and steps, [95 % interval of the per-run RMSE mean]. Target: "
+               "RMSE over all runs and steps, [95 % interval of the per-run RMSE mean]; "
+               "\"raw measurements\": the sensors' own RMSE (every state is measured). Target: "
                "Dual UKF at or below the paper's Particle+UKF row.\n",
-               table_states(st, PAPER_TABLE2), ""]
+               table_states(st, PAPER_TABLE2), "", states_summary(st, 0.03 * truth), ""]
+    fig = plot_states(st, out / f"fig7_9_dynamic_states_{setting}.png",
+                      f"Dynamic model states ({setting} settings)")
+    _figure(report, fig, f"Fig. 7-9: vx, vy, r of run 0 and each filter's error, mean and 5-95 % "
+                         f"band over runs ({setting} settings)")
     report += [f"### Table III: m, cx, cy from the dynamic model ({setting} settings)",
                "As Table I (initial guesses uniform within +-30 % of truth); t_conv: error within "
                "3 % of truth. Targets: Dual UKF within 3 %, "
                "Particle+UKF within 2 %.\n",
                table_parameters(st, PAPER_TABLE3, args.dt, tol=0.03 * truth, digits=(1, 3, 3),
-                                scale=(1.0, 1e4, 1e4)), ""]
-    plot_states(st, out / f"fig7_9_dynamic_states_{setting}.png",
-                f"Dynamic model states ({setting} settings): run 0, and error mean with 5-95 % band")
-    plot_parameters(st, out / f"fig10_12_dynamic_m_cx_cy_{setting}.png",
-                    f"m, cx, cy on the dynamic model ({setting} settings): mean and 5-95 % band",
-                    scale=(1.0, 1e4, 1e4))
+                                scale=scale), "",
+               learning_summary(st, 0.03 * truth, "3 % of the truth", scale=scale, digits=(1, 3, 3)),
+               ""]
+    fig = plot_parameters(st, out / f"fig10_12_dynamic_m_cx_cy_{setting}.png",
+                          f"m, cx, cy on the dynamic model ({setting} settings)", scale=scale,
+                          tol=0.03 * truth)
+    _figure(report, fig, f"Fig. 10-12: m, cx, cy against time, each filter's mean and 5-95 % band "
+                         f"over runs ({setting} settings)")
     return st
 
 
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    args = parser().parse_args(argv)
     filters, settings = _check_args(args)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

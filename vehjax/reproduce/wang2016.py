@@ -54,7 +54,18 @@ PAPER = ("W. Wang, S. Bei, K. Zhu, L. Zhang, Y. Wang, Vehicle state and paramete
          "on adaptive cubature Kalman filter, ICIC Express Letters 10(8), 2016 (paper 001)")
 
 QUANTITIES = ("u", "v", "ax", "ay", "r", "beta")
-UNITS = ("m/s", "m/s", "m/s^2", "m/s^2", "rad/s", "rad")
+
+
+def _quantity_units():
+    """Units of QUANTITIES, from SevenDOF's eq. 18 output set."""
+    from vehjax.models.sevendof import SevenDOF
+
+    m = SevenDOF(outputs="eq18")
+    units = dict(zip(m.output_names, m.output_units))
+    return tuple(units[q] for q in QUANTITIES)
+
+
+UNITS = _quantity_units()
 FILTERS = ("ekf", "ukf", "ckf", "ackf")
 
 #: Table 1 of the paper: metric -> quantity -> (EKF, UKF, ACKF).
@@ -86,19 +97,28 @@ _FORGETTING = 0.98
 _P0_STD = (0.1, 0.05, 0.01, 0.1, 0.1, 0.1, 0.1)
 
 
-def _parser():
-    p = argparse.ArgumentParser(prog="vehjax reproduce wang2016", description=PAPER)
-    p.add_argument("--runs", type=int, default=100, help="Monte-Carlo runs (default 100)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--out", default="out/wang2016", help="output folder (default out/wang2016)")
+def parser():
+    """The study's options (``vehjax reproduce wang2016 --help``); each help states its default."""
+    p = argparse.ArgumentParser(
+        prog="vehjax reproduce wang2016",
+        description=f"EKF, UKF, CKF and ACKF on the 7-DOF model in a double lane change: {PAPER}. "
+                    "Writes report.md (table and figures), table1.md, table1.csv, results.npz.")
+    p.add_argument("--runs", type=int, default=100, help="Monte-Carlo runs (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    p.add_argument("--out", default="out/wang2016", help="output folder (default %(default)s)")
     p.add_argument("--filters", default=",".join(FILTERS),
-                   help=f"comma-separated subset of {','.join(FILTERS)} (default all)")
-    p.add_argument("--duration", type=float, default=10.0, help="seconds (default 10, the paper's)")
-    p.add_argument("--speed", type=float, default=80.0 / 3.6, help="m/s (default 22.2 = 80 km/h)")
+                   help="comma-separated subset of the filters (default all: %(default)s)")
+    p.add_argument("--duration", type=float, default=10.0,
+                   help="manoeuvre length, s (default %(default)g, the paper's)")
+    p.add_argument("--speed", type=float, default=80.0 / 3.6,
+                   help="m/s (default 22.2 = 80 km/h, the ISO 3888-1 test speed)")
     p.add_argument("--param-error", type=float, default=0.1,
-                   help="relative error of the filters' m and iz (default 0.1)")
-    p.add_argument("--no-plots", action="store_true", help="skip the figures")
+                   help="relative error of the filters' m and iz (default %(default)g)")
+    p.add_argument("--no-plots", action="store_true", help="skip the figures (default: draw them)")
     return p
+
+
+_parser = parser
 
 
 def _check(args):
@@ -271,65 +291,123 @@ def _write_csv(path, table, filters):
                                 float(iv.mean), float(iv.low), float(iv.high), paper])
 
 
-def plot_fig3(path, study, results, run=0):
-    """Fig. 3 of the paper: truth and each filter's estimate of u, v, ax, ay, r, beta, one run."""
-    import matplotlib
+def _runs(study, results) -> str:
+    n = study["sim"].measurements.shape[0]
+    div = sum(int((~r["mask"]).sum()) for r in results)
+    return f"{n} runs" + (f", {div} diverged run(s) left out" if div else "")
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+
+def plot_fig3(path, study, results, run=0):
+    """Fig. 3 of the paper: truth and each filter's estimate of u, v, ax, ay, r, beta, one run;
+    the measurement under everything, the truth on top."""
+    from vehjax import plots
+    from vehjax.plots import plt
 
     t = np.asarray(study["sim"].t)
     truth = study["truth_derived"][run]
     meas = np.asarray(study["sim"].measurements)[run]
-    fig, axes = plt.subplots(3, 2, figsize=(11, 9), sharex=True)
+    n = study["sim"].measurements.shape[0]
+    fig, axes = plt.subplots(3, 2, figsize=(11, 9.4), sharex=True)
+    cyc = plots.colors()
+    labels = _labels(study, results)
     for i, (ax, q, unit) in enumerate(zip(axes.flat, QUANTITIES, UNITS)):
         if q in _MEASURED:
-            ax.plot(t, meas[:, _MEASURED[q]], color="0.75", lw=0.5, label="measured")
-        ax.plot(t, truth[:, i], color="k", lw=1.6, label="truth")
-        for res in results:
-            ax.plot(t, res["derived"][run, :, i], lw=0.9, label=res["name"].upper())
-        ax.set_ylabel(f"{q} [{unit}]")
+            ax.plot(t, meas[:, _MEASURED[q]], color="0.75", lw=0.5, label="measured", zorder=1)
+        for k, res in enumerate(results):  # first filters thickest: identical lines stay visible
+            ax.plot(t, res["derived"][run, :, i], lw=_width(k, len(results)),
+                    color=cyc[k % len(cyc)], label=labels[k])
+        plots.truth_line(ax, t, truth[:, i])
+        ax.set_ylabel(plots.label(q, unit))
         ax.grid(alpha=0.3)
     for ax in axes[-1]:
         ax.set_xlabel("t [s]")
-    axes[0, 0].legend(fontsize=8, ncol=2)
-    fig.suptitle(f"Double lane change, run {run}: truth and estimates (cf. Wang et al. 2016, Fig. 3)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    plots.figure_legend(fig, axes, f"Double lane change, run {run} of {n}: truth and estimates "
+                                   "(cf. Wang et al. 2016, Fig. 3)", ncol=8)
+    return plots.save(fig, path)
 
 
-def plot_errors(path, study, results):
-    """RMSE over runs against time of each quantity, one line per filter."""
-    import matplotlib
+def _labels(study, results, rel: float = 0.03):
+    """Legend label per filter; a filter whose estimates of every quantity differ from an earlier
+    filter's by an RMS of at most ``rel`` times the quantity's spread is marked
+    "(≈ EARLIER)": at the figures' scale the lines coincide."""
+    scale = np.std(study["truth_derived"], axis=(0, 1))
+    labels = []
+    for k, res in enumerate(results):
+        lab = res["name"].upper()
+        for prev in results[:k]:
+            both = res["mask"] & prev["mask"]
+            diff = res["derived"][both] - prev["derived"][both]
+            if both.any() and np.all(np.sqrt(np.mean(diff**2, axis=(0, 1))) <= rel * scale):
+                lab += f" (≈ {prev['name'].upper()})"
+                break
+        labels.append(lab)
+    return labels
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    from vehjax import metrics
+def _width(k, n):
+    """Line width of the k-th of n overlapping lines: the first thickest."""
+    return 0.8 + 1.4 * (n - 1 - k) / max(1, n - 1)
+
+
+def plot_errors(path, study, results, window_s: float = 0.2):
+    """RMSE over runs and a moving ``window_s`` window against time of each quantity, one line
+    per filter; the raw sensor's (grey) on the measured quantities."""
+    from vehjax import metrics, plots
+    from vehjax.plots import plt
 
     t = np.asarray(study["sim"].t)
-    fig, axes = plt.subplots(3, 2, figsize=(11, 9), sharex=True)
+    truth = study["truth_derived"]
+    meas = np.asarray(study["sim"].measurements)
+    w = max(1, int(round(window_s / (t[1] - t[0])))) if len(t) > 1 else 1
+    skip = max(1, len(t) // 100)  # the first steps start at the true state: keep them off the scale
+    fig, axes = plt.subplots(3, 2, figsize=(11, 9.4), sharex=True)
+    cyc = plots.colors()
+    labels = _labels(study, results)
     for i, (ax, q, unit) in enumerate(zip(axes.flat, QUANTITIES, UNITS)):
-        for res in results:
-            e = metrics.rmse(res["derived"][..., i:i + 1], study["truth_derived"][..., i:i + 1],
-                             axis="time", mask=res["mask"])[:, 0]
-            ax.semilogy(t, e, lw=0.9, label=res["name"].upper())
-        ax.set_ylabel(f"RMSE {q} [{unit}]")
+        shown = []
+        if q in _MEASURED:
+            j = _MEASURED[q]
+            e = plots.moving_rms(metrics.rmse(meas[..., j:j + 1], truth[..., i:i + 1],
+                                              axis="time")[:, 0], w)
+            ax.semilogy(t, e, lw=1.0, color="0.6", label="raw sensor (meas.)", zorder=1)
+            shown.append(e[skip:])
+        for k, res in enumerate(results):
+            e = plots.moving_rms(metrics.rmse(res["derived"][..., i:i + 1], truth[..., i:i + 1],
+                                              axis="time", mask=res["mask"])[:, 0], w)
+            ax.semilogy(t, e, lw=_width(k, len(results)), color=cyc[k % len(cyc)],
+                        label=labels[k])
+            shown.append(e[skip:])
+        vals = np.concatenate(shown)
+        vals = vals[np.isfinite(vals) & (vals > 0)]
+        if vals.size:
+            ax.set_ylim(np.percentile(vals, 1) / 2, vals.max() * 1.5)
+        ax.set_ylabel(plots.label(f"RMSE {q}", unit))
         ax.grid(alpha=0.3, which="both")
     for ax in axes[-1]:
         ax.set_xlabel("t [s]")
-    axes[0, 0].legend(fontsize=8)
-    fig.suptitle("RMSE over runs against time")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    plots.figure_legend(fig, axes, f"RMSE over runs and a {window_s:g} s window against time, "
+                                   f"{_runs(study, results)}", ncol=8)
+    return plots.save(fig, path)
+
+
+def plot_error_bands(path, study, results):
+    """Small multiples: rows the quantities, one column per filter; the estimation error's mean
+    and 5-95 % band over runs, zero on top."""
+    from vehjax import plots
+
+    truth = study["truth_derived"]
+    series = [[(r["derived"][r["mask"], :, i] - truth[r["mask"], :, i]) if r["mask"].any() else None
+               for r in results] for i in range(len(QUANTITIES))]
+    rows = [plots.label(f"error {q}", u) for q, u in zip(QUANTITIES, UNITS)]
+    return plots.plot_band_grid(path, study["sim"].t, series, rows,
+                                [r["name"].upper() for r in results],
+                                f"Estimation error over runs, double lane change, {_runs(study, results)}",
+                                truth=[0.0] * len(QUANTITIES), truth_label="zero error",
+                                panel_height=1.7)
 
 
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    args = parser().parse_args(argv)
     filters = _check(args)
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -339,10 +417,13 @@ def main(argv=None) -> int:
     T = study["sim"].measurements.shape[1]
     print(f"truth: {args.runs} runs x {T} steps of SevenDOF (RK4, 1 ms), DLC at {args.speed:.1f} m/s, "
           f"{time.perf_counter() - t0:.1f} s")
-    print("process noise std (peak) " + ", ".join(
-        f"{n} {s:.3g}" for n, s in zip(study["sim"].state_names, study["process_std"])))
-    print("measurement noise std (peak) " + ", ".join(
-        f"{n} {s:.3g}" for n, s in zip(study["sim"].output_names, study["meas_std"])))
+    tm = study["truth_model"]
+    noise_text = tuple(
+        ", ".join(f"{n} {s:.3g} {u}" for n, s, u in zip(names, std, units))
+        for names, std, units in ((tm.state_names, study["process_std"], tm.state_units),
+                                  (tm.output_names, study["meas_std"], tm.output_units)))
+    print(f"process noise std per step (peak) {noise_text[0]}")
+    print(f"measurement noise std (peak) {noise_text[1]}")
     print(f"filters: SevenDOF (ROS2, 10 ms) with m, iz x {1 + args.param_error:g}")
     results = [run_filter(name, study) for name in filters]
     table = error_table(results, study)
@@ -360,9 +441,33 @@ def main(argv=None) -> int:
              **{r["name"]: r["derived"] for r in results},
              **{f"{r['name']}_diverged": ~r["mask"] for r in results})
     written = [out_dir / "table1.md", out_dir / "table1.csv", out_dir / "results.npz"]
+    report = [f"# vehjax reproduce wang2016\n\n{PAPER}.\n",
+              f"{args.runs} Monte-Carlo runs, seed {args.seed}, double lane change at "
+              f"{args.speed:.1f} m/s for {args.duration:g} s; truth SevenDOF (RK4, 1 ms), filters "
+              f"SevenDOF (ROS2, 10 ms) with m and iz x {1 + args.param_error:g}. Every choice the "
+              "paper leaves open is listed in the docstring of `vehjax/reproduce/wang2016.py`.\n",
+              f"Process noise std per step (peak): {noise_text[0]}.",
+              f"Measurement noise std (peak): {noise_text[1]}.\n",
+              "## Table 1\n",
+              "Per quantity and filter: each run's MAE and RMSE over time, mean over runs ± 95 % "
+              "interval; the paper's values right; \"meas.\": the raw sensor's error on the "
+              "measured quantities. Also in `table1.csv`.\n", md, ""]
     if not args.no_plots:
-        written.append(plot_fig3(out_dir / "fig3.png", study, results))
-        written.append(plot_errors(out_dir / "rmse_time.png", study, results))
+        figures = [
+            (plot_fig3(out_dir / "fig3.png", study, results),
+             "Fig. 3: truth, measurement and each filter's estimate, run 0"),
+            (plot_errors(out_dir / "rmse_time.png", study, results),
+             "RMSE over runs (and a 0.2 s window) against time, each filter and the raw sensor"),
+            (plot_error_bands(out_dir / "error_bands.png", study, results),
+             "Estimation error against time, each filter's mean and 5-95 % band over runs"),
+        ]
+        report += ["## Figures\n",
+                   "The true ax carries white noise: eq. 31's process noise on the wheel speeds "
+                   "moves the tyre forces from step to step (see the module docstring); no filter "
+                   "follows it.\n"] + [f"![{cap}]({p.name})\n" for p, cap in figures]
+        written += [p for p, _ in figures]
+    (out_dir / "report.md").write_text("\n".join(report) + "\n")
+    written.insert(0, out_dir / "report.md")
     print("wrote " + ", ".join(str(p) for p in written))
     print(f"total {time.perf_counter() - t0:.1f} s")
     return 0
