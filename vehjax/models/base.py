@@ -239,6 +239,11 @@ class Model(BaseModel):
         state_names, param_names, input_names, output_names: names of the vector components.
         theta: nominal parameters, shape (len(param_names),); zeros when omitted.
         units: optional dict name -> unit string for any of the names.
+        fast_math: evaluate the functions with ``jnp.sin``, ``cos``, ``tan``, ``arctan`` and
+            ``arctan2`` replaced by :mod:`vehjax.math`'s vectorisable versions (same results
+            to a few ulps, gradients intact; see :func:`vehjax._substitute.fast_elementary`),
+            which XLA on CPU fuses into vector loops: about twice as fast a filter on a model
+            written with trigonometry. False keeps the functions exactly as given.
 
     Example::
 
@@ -266,11 +271,16 @@ class Model(BaseModel):
         output_names=None,
         theta=None,
         units: dict | None = None,
+        fast_math: bool = True,
     ):
         if not callable(transition):
             raise ValueError(f"transition: expected a function f(x, u, theta), got {transition!r}")
         if not callable(observe):
             raise ValueError(f"observe: expected a function h(x, u, theta), got {observe!r}")
+        if fast_math:
+            from .._substitute import fast_elementary
+
+            transition, observe = fast_elementary(transition), fast_elementary(observe)
         self.transition_fn = transition
         self.observe_fn = observe
         self.dt = _check_dt(dt)
