@@ -8,7 +8,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-BENCHMARKS = ("gaussian", "particle")
+BENCHMARKS = ("gaussian", "particle", "marginalized")
 
 
 def _cmd_models(args) -> int:

@@ -126,7 +126,7 @@ def ess(w):
 
 def _gather(a, idx):
     """``a[..., idx]``; small 2-D leaves row by row (measured faster on CPU than one gather)."""
-    if a.ndim == 2 and a.shape[0] * a.shape[0] <= _UNROLL:
+    if a.ndim == 2 and 0 < a.shape[0] and a.shape[0] * a.shape[0] <= _UNROLL:
         return jnp.stack([a[i][idx] for i in range(a.shape[0])])
     return jnp.take(a, idx, axis=-1)
 

@@ -14,6 +14,7 @@ import importlib
 REGISTRY = {
     "wang2016": "wang2016",
     "dutta2019": "dutta2019",
+    "berntorp2018": "berntorp2018",
 }
 
 
