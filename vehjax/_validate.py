@@ -71,6 +71,18 @@ def names(name: str, value, known, *, allow_empty: bool = False) -> tuple[str, .
     return out
 
 
+def keyed(name: str, value, known, what: str = "names") -> dict:
+    """A dict whose keys are among ``known`` (None is {}); ValueError naming ``name``."""
+    if value is None:
+        return {}
+    if not isinstance(value, dict) and not hasattr(value, "keys"):
+        raise ValueError(f"{name}: expected a dict name -> value or None, got {value!r}")
+    bad = [k for k in value if k not in known]
+    if bad:
+        raise ValueError(f"{name}: unknown name(s) {bad}; expected {what} from {tuple(known)}")
+    return dict(value)
+
+
 def cov(name: str, value, n: int, allow_diag: bool = True, allow_psd: bool = False):
     """A symmetric positive-definite (n, n) covariance from ``value``, as a float64 numpy array.
 

@@ -209,13 +209,7 @@ def _param_map(kind: str, lo: float, hi: float):
 
 def _param_kinds(params, bounds, theta0: np.ndarray, names: tuple) -> list:
     """[(index, kind, lo, hi)] for the fitted parameters; ValueError naming ``bounds``."""
-    if bounds is None:
-        bounds = {}
-    if not isinstance(bounds, Mapping):
-        raise ValueError(f"bounds: expected a dict name -> (lo, hi), got {bounds!r}")
-    extra = [k for k in bounds if k not in params]
-    if extra:
-        raise ValueError(f"bounds: name(s) {extra} are not among the fitted params {params}")
+    bounds = _validate.keyed("bounds", bounds, params, "the fitted params")
     out = []
     for p in params:
         i = names.index(p)

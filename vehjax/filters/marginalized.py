@@ -706,13 +706,7 @@ def marginalized_pf(
     unknown_names = (noisy_input,) + sensors
     std0 = _std_dict("std0", {} if std0 is None else std0, unknown_names, unknown_names,
                      "input and output units")
-    if mean0 is None:
-        mean0 = {}
-    if not isinstance(mean0, dict):
-        raise ValueError(f"mean0: expected a dict name -> mean or None, got {mean0!r}")
-    bad = [k for k in mean0 if k not in unknown_names]
-    if bad:
-        raise ValueError(f"mean0: unknown name(s) {bad}; expected names from {unknown_names}")
+    mean0 = _validate.keyed("mean0", mean0, unknown_names)
     mean0v = []
     for k in unknown_names:
         try:
