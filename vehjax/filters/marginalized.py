@@ -1005,7 +1005,7 @@ def marginalized_pf(
         out = StepOutput(
             mean=mean,
             cov=cov,
-            loglik=jnp.where(jnp.isfinite(rw.loglik), rw.loglik, smc.log_tiny(dtype)),
+            loglik=smc.step_loglik(rw),
             nis=nis,
             n_obs=n_obs,
             params=params,

@@ -278,7 +278,7 @@ def bootstrap_pf(
         out = StepOutput(
             mean=mean_out,
             cov=cov_out,
-            loglik=jnp.where(jnp.isfinite(rw.loglik), rw.loglik, smc.log_tiny(dtype)),
+            loglik=smc.step_loglik(rw),
             nis=nis,
             n_obs=n_obs,
             params=jnp.zeros((0,), dtype),

@@ -44,7 +44,7 @@ from ._linalg import LOG_2PI, cholesky, solve_lower
 __all__ = [
     "Reweighted", "reweight", "ess", "resample", "reinitialise", "moments", "normals",
     "uniforms", "split", "raw_key", "jax_keys", "log_tiny", "check_n_particles",
-    "check_ess_threshold", "masked_chol", "gaussian_logliks",
+    "check_ess_threshold", "masked_chol", "gaussian_logliks", "step_loglik",
 ]
 
 _UNROLL = 64  # matrices with at most this many entries are handled with unrolled scalar code
@@ -117,6 +117,12 @@ def gaussian_logliks(e, obs, L=None, var=None):
         q = jnp.sum(solve_lower(L, e) ** 2, axis=0)
         half_logdet = jnp.sum(jnp.log(jnp.diagonal(L)))
     return -0.5 * q - (0.5 * LOG_2PI * n_obs + half_logdet)
+
+
+def step_loglik(r: Reweighted):
+    """The step's reported log-likelihood: the increment when finite, ``log(finfo.tiny)`` after
+    an underflow (a run that re-initialises keeps a finite log-likelihood)."""
+    return jnp.where(jnp.isfinite(r.loglik), r.loglik, log_tiny(r.log_w.dtype))
 
 
 def ess(w):
