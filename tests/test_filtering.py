@@ -164,3 +164,19 @@ def test_liu_west_needs_no_theta0():
     out = vj.run(est, ys, us, x0=X0, P0=P0, key=jax.random.key(0), progress=False)
     assert out.params.shape == (RUNS, T, 1) and np.all(np.isfinite(out.params))
     assert np.all((out.params > 1.0) & (out.params < 3.0))
+
+
+def test_dual_filter_without_theta0_reports_its_parameters():
+    """theta0 omitted (a dual filter starts from the model's nominal values): params has the
+    estimated parameters' width, not (T, 0), and starts at the nominal values."""
+    from vehjax.filters import dual_ekf
+
+    m = vj.models.KinematicBicycle(dt=0.05)
+    est = dual_ekf(m, np.full(4, 1e-3), np.full(4, 1e-2), np.full(2, 1e-6), estimate=("lf", "lr"))
+    sim = vj.simulate(m, vj.scenarios.sine_steer(m, speed=5.0, duration=2.0), runs=1,
+                      meas_std=0.1, key=jax.random.key(0))
+    r = vj.filter(est, sim.measurements[0], sim.inputs, x0=np.asarray(sim.states[0, 0]),
+                  P0=np.full(4, 0.1), P_theta0=np.eye(2) * 0.01)
+    assert r.params.shape == (40, 2) and r.params_cov.shape == (40, 2, 2)
+    lf, lr = (float(m.theta[i]) for i in m.param_index(("lf", "lr")))
+    np.testing.assert_allclose(r.params[0], [lf, lr], atol=1e-3)

@@ -68,7 +68,9 @@ def test_drive_study(tmp_path):
                      "--out", str(tmp_path)])
     assert rc == 0
     report, links = _links_exist(tmp_path)
-    assert len(links) == 2 and "EKF" in report
+    assert len(links) == 3 and "EKF" in report  # Fig. 8, 9, 10 (bank)
+    roll = _row(text, "bank angle - pose roll")
+    assert float(roll[0].split()[1]) < 2.0  # deg: the bank estimate follows the car's roll
     off = float(_row(text, "steering offset, road wheel")[0])
     assert abs(off) < 1.0  # deg at the road wheel
     for label in ("raw gyro", "gyro - MPF bias", "gyro - EKF bias"):

@@ -12,16 +12,66 @@ from vehjax import cli
 from vehjax.reproduce import dutta2019
 
 
-def test_reduced_study_writes_tables_and_figures(tmp_path, capsys):
+def _check_tuning(args, tuning):
+    """One stage's tuned settings, from the arguments ``tuned_settings`` was called with."""
+    paper, model, scn, estimate, truth, box, key = args
+    dt = model.dt
+    # (b) fitted on training runs drawn for this stage, which are not the study's runs
+    ys_t = np.asarray(tuning.sim.measurements)
+    np.testing.assert_array_equal(ys_t, dutta2019.training_runs(model, scn, 3, key).measurements)
+    ys_s = np.asarray(dutta2019.study_runs(model, scn, 3, key).measurements)
+    assert np.abs(ys_t[:, None] - ys_s[None, :]).max(axis=(2, 3)).min() > 0.1  # no run shared
+    # (a) Q and R near the simulation's noise, and nearer than the paper's where it is off
+    for which, sim_var, factor in (("Q", 0.1**2 * dt, 5.0), ("R", 0.1**2, 2.0)):
+        tuned, printed = np.asarray(tuning.settings[which]), np.asarray(paper[which])
+        np.testing.assert_allclose(tuned, np.diag(getattr(tuning.fit, which)))
+        assert np.all(np.abs(np.log(tuned / sim_var)) < np.log(factor)), (which, tuned)
+        off = np.abs(np.log(printed / sim_var)) > np.log(2.0)
+        assert off.sum() >= 2
+        assert np.all(np.abs(np.log(tuned / sim_var))[off] < np.abs(np.log(printed / sim_var))[off])
+    # everything but Q and R as in the matched setting
+    matched = dutta2019.matched_settings(paper, model, truth, box)
+    for k in ("P0", "P_theta0", "Q_theta"):
+        np.testing.assert_allclose(tuning.settings[k], matched[k])
+    return tuning
+
+
+def test_reduced_study_writes_tables_and_figures(tmp_path, capsys, monkeypatch):
+    # the tuned setting: Q, R fitted on training runs, the rest as matched (matched_settings is
+    # checked on its own below); the real tuned_settings runs, watched
+    calls = []
+    real = dutta2019.tuned_settings
+
+    def watched(*args, **kwargs):
+        out = real(*args, **kwargs)
+        calls.append((args, kwargs, out))
+        return out
+
+    monkeypatch.setattr(dutta2019, "tuned_settings", watched)
     rc = cli.main([
-        "reproduce", "dutta2019", "--runs", "3", "--particles", "64", "--settings", "matched",
+        "reproduce", "dutta2019", "--runs", "3", "--particles", "64", "--settings", "tuned",
         "--filters", "Dual EKF,Dual UKF,Particle+UKF",
         "--kinematic-duration", "4", "--dynamic-duration", "3", "--out", str(tmp_path),
     ])
     assert rc == 0
     report = (tmp_path / "report.md").read_text()
     for heading in ("Table I", "Table II", "Table III", "Fig. 6"):
-        assert f"### {heading}" in report
+        assert f"### {heading}" in report and f"### {heading}: " in report.split("## tuned")[1]
+    assert "(tuned settings)" in report and "(matched settings)" not in report
+    # the tuned Q and R of both stages, printed beside the paper's and the simulation's
+    assert [c[0][3] for c in calls] == [("lf", "lr"), ("m", "cx", "cy")]
+    for (args, kwargs, tuning), stage in zip(calls, ("kinematic model", "dynamic model")):
+        _check_tuning(args, tuning)
+        part = report.split(f"### Tuned Q and R, {stage}")[1].split("###")[0]
+        assert "Training set: 3 runs x" in part and "not the study's runs" in part
+        model, paper = args[1], args[0]
+        for which, names, sim_var in (("Q", model.state_names, 0.1**2 * model.dt),
+                                      ("R", model.output_names, 0.1**2)):
+            for n, a, b in zip(names, paper[which], tuning.settings[which]):
+                assert re.search(rf"\| {which} {n} \[[^]]+\] \| {a:.3g} \| {b:.3g} \| "
+                                 rf"{sim_var:.3g} \|", part), (which, n)
+    # the dynamic fit holds lf, lr at what the kinematic fit found
+    assert calls[1][1]["fixed"] == calls[0][2].fit.params
     for name in ("Dual EKF", "Dual UKF", "Particle+UKF"):
         assert f"| {name} (vehjax) |" in report
     assert "| Joint EKF (vehjax) |" not in report
@@ -30,7 +80,7 @@ def test_reduced_study_writes_tables_and_figures(tmp_path, capsys):
     assert "nan" not in report.lower()
     for png in ("fig4_5_kinematic_lf_lr", "fig6_input_frequency", "fig7_9_dynamic_states",
                 "fig10_12_dynamic_m_cx_cy"):
-        assert (tmp_path / f"{png}_matched.png").stat().st_size > 10_000
+        assert (tmp_path / f"{png}_tuned.png").stat().st_size > 10_000
     # report.md links every figure it wrote, and every link is a file
     pngs = sorted(p.name for p in tmp_path.glob("*.png"))
     links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", report)
@@ -40,7 +90,8 @@ def test_reduced_study_writes_tables_and_figures(tmp_path, capsys):
     assert "RMSE vx [m/s]" in report and "| raw measurements |" in report
     assert report.count("| initial guess |") == 2
     assert report.count("**What is learned and what is not.**") == 2
-    assert "Table III" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "Table III" in printed and "Tuned Q and R, dynamic model" in printed
 
 
 def _stage(frozen=(), runs=6, steps=50, same_states=False, seed=0):
@@ -163,6 +214,29 @@ def test_bad_options_are_refused():
     with pytest.raises(ValueError, match="--filters"):
         dutta2019.main(["--filters", "Dual KF"])
     with pytest.raises(ValueError, match="--settings"):
-        dutta2019.main(["--settings", "tuned"])
+        dutta2019.main(["--settings", "tuning"])
     with pytest.raises(ValueError, match="--runs"):
         dutta2019.main(["--runs", "1"])
+
+
+def test_settings_option_accepts_tuned_and_runs_all_three_by_default():
+    p = dutta2019.parser()
+    assert dutta2019._check_args(p.parse_args([]))[1] == ("paper", "matched", "tuned")
+    assert dutta2019._check_args(p.parse_args(["--settings", "tuned"]))[1] == ("tuned",)
+    assert "vehjax.tune" in p.format_help()
+
+
+def test_settings_side_by_side():
+    a, b = _stage(), _stage(frozen=("cx",))
+    table = dutta2019.table_settings({"matched": a, "tuned": b}, scale=(1, 1e4, 1e4),
+                                     digits=(1, 3, 3))
+    err = np.abs(b.results["B"].params[:, -5:].mean(axis=1) - b.truth).mean(axis=0) / [1, 1e4, 1e4]
+    assert f"| B | tuned | {err[0]:.1f} | {err[1]:.3f} | {err[2]:.3f} | 0/6 |" in table
+    assert "| filter | setting | error m [kg] | error cx [1e4 N] |" in table
+    assert table.count("| matched |") == table.count("| tuned |") == 3
+    states = dutta2019.table_settings_states({"matched": a, "tuned": b})
+    assert "| filter | setting | RMSE vx [m/s] |" in states and states.count("| tuned |") == 3
+    text = "\n".join(dutta2019._report_settings({"matched": (a, a), "tuned": (b, b)}))
+    for heading in ("Table I", "Table II", "Table III"):
+        assert f"### {heading}: " in text
+    assert table in text and states in text

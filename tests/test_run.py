@@ -106,7 +106,9 @@ def _data(R=R_RUNS, seed=0):
 
 
 def _assert_close(a: RunResult, b: RunResult, rtol=1e-12):
-    for f in RunResult._fields[:-1]:
+    for f in RunResult._fields:
+        if f in ("name", "param_names"):
+            continue
         x, y = getattr(a, f), getattr(b, f)
         if x is None or y is None:
             assert x is None and y is None, f
@@ -394,3 +396,57 @@ def test_sharded_over_two_devices_equals_one_device():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "sharded ok" in res.stdout
+
+
+# ----------------------------------------------------------------------------------------------
+# What a notebook user sees and exports
+
+
+def test_repr_summary_and_exports(tmp_path):
+    xr = pytest.importorskip("xarray")
+    from vehjax.models import Model
+
+    ys, us = _data()
+    est = kalman_estimator(F, B, H, Q, RN, name="kf", param_view=True)
+    out = run(est, ys, us, x0=X0, P0=P0, theta0=np.zeros(1), P_theta0=np.eye(1),
+              return_covariances=True)
+    text = repr(out)
+    assert text.startswith("RunResult(kf: 3 runs x 40 steps, 2 states, parameters (a), 0 diverged")
+    ll_step = np.mean(out.loglik / (out.n_obs > 0).sum(axis=1))
+    assert f"{ll_step:.4g}" in text
+
+    model = Model(transition=lambda x, u, th: F @ x + B @ u, observe=lambda x, u, th: H @ x,
+                  theta=np.array([1.0]), dt=DT, state_names=("pos", "vel"), param_names=("a",),
+                  input_names=("acc",), output_names=("y1", "y2"),
+                  units={"pos": "m", "vel": "m/s", "a": "m"})
+    truth = out.states + np.array([0.1, -0.2])  # a known error per state
+    lines = out.summary(truth, model).splitlines()
+    assert lines[1].split() == ["RMSE", "over", "3", "runs:"]
+    assert lines[2].split() == ["pos", "0.1", "m"] and lines[3].split() == ["vel", "0.2", "m/s"]
+
+    path = out.to_npz(tmp_path / "study", model)
+    with np.load(path) as f:
+        np.testing.assert_array_equal(f["states"], out.states)
+        np.testing.assert_array_equal(f["diverged_at"], out.diverged_at)
+        import json
+        labels = json.loads(str(f["labels"]))
+    assert labels == {"state_names": ["pos", "vel"], "state_units": ["m", "m/s"],
+                      "param_names": ["a"], "param_units": ["m"], "name": "kf"}
+
+    ds = out.to_xarray(model)
+    assert dict(ds.sizes) == {"run": 3, "time": 40, "state": 2, "param": 1, "state2": 2,
+                              "param2": 1}
+    np.testing.assert_allclose(ds["time"].values, np.arange(40) * DT)
+    np.testing.assert_array_equal(ds["states"].sel(state="vel").values, out.states[..., 1])
+    assert ds["states"].attrs["units"] == ["m", "m/s"] and ds.attrs["filter"] == "kf"
+    assert isinstance(ds, xr.Dataset)
+
+
+def test_summary_names_diverged_runs_and_leaves_them_out_of_the_rmse():
+    ys, us = _data()
+    ys[1, 20:] = 1e200  # run 1 overflows
+    out = run(EST, ys, us, x0=X0, P0=P0)
+    assert out.diverged.tolist() == [False, True, False]
+    text = out.summary(np.zeros(2))
+    assert "1 diverged" in text and "diverged runs: [1]" in text and "RMSE over 2 runs" in text
+    assert "x0" in text and "nan" not in text.lower()

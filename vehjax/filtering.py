@@ -18,6 +18,15 @@ run is ``diverged``. A step with ``StepOutput.reinit`` (a particle filter that r
 after its weights underflowed) flags the run ``diverged`` too but changes none of its outputs.
 Holding the outputs after the first bad step gives exactly what freezing the filter state there
 would give, since a frozen state is never used again.
+
+Estimates on a bound: for a filter that declares parameter domains (``Estimator.bounds``), a run
+is ``at_bound`` when, for some estimated parameter, the reported estimate (as held above) lies
+within ``AT_BOUND_RTOL`` times the bound's scale of a finite bound on more than
+``AT_BOUND_FRACTION`` of the run's T steps. The scale of a two-sided domain is its width
+high - low; of a one-sided one, max(|bound|, |theta0|) with theta0 the run's initial estimate
+(the first step's estimate when the filter's own default was used). Such a run is not frozen or
+flagged ``diverged``: its estimate is simply pressed against the edge of its domain, which
+usually means the domain or the model is wrong for the data.
 """
 
 from __future__ import annotations
@@ -29,10 +38,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .filters._bounds import check_inside
 from .filters._linalg import is_pd
 from .filters.base import Estimator, StepOutput
 
-__all__ = ["FilterResult", "filter"]
+__all__ = ["FilterResult", "filter", "AT_BOUND_RTOL", "AT_BOUND_FRACTION"]
+
+#: Distance to a finite bound, relative to the bound's scale, within which an estimate is on it.
+AT_BOUND_RTOL = 1e-2
+#: A run is ``at_bound`` when a parameter is on a bound on more than this fraction of its steps.
+AT_BOUND_FRACTION = 0.2
 
 
 class FilterResult(NamedTuple):
@@ -51,6 +66,8 @@ class FilterResult(NamedTuple):
             freedom of ``nis``); 0 from the step the run diverged.
         diverged: bool scalar, the run diverged or re-initialised.
         diverged_at: int32 scalar, the first step it did, or -1.
+        at_bound: bool scalar, a parameter estimate sat on a bound of its domain for more than
+            ``AT_BOUND_FRACTION`` of the steps (module docstring); False without domains.
         state: the filter's state after the last step (its ``init``/``step`` pytree), to go on
             filtering from; not held on divergence. None from :func:`finish` alone.
     """
@@ -64,6 +81,7 @@ class FilterResult(NamedTuple):
     n_obs: jnp.ndarray
     diverged: jnp.ndarray
     diverged_at: jnp.ndarray
+    at_bound: jnp.ndarray
     state: Any = None
 
 
@@ -97,11 +115,13 @@ def start(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
 
     if p and th0 is None and estimator.param_prior is not None:
         th0, Pth0 = estimator.param_prior
+    # no prior given (a filter that starts from the model's nominal values): NaN until the
+    # first step's estimate, which is what the held value is for
     held0 = (
         cast(x0, out_shape.mean),
         cast(P0, out_shape.cov),
-        cast(jnp.zeros((0,)) if th0 is None else th0, out_shape.params),
-        cast(jnp.zeros((0, 0)) if Pth0 is None else Pth0, out_shape.params_cov),
+        cast(jnp.full((p,), jnp.nan) if th0 is None else th0, out_shape.params),
+        cast(jnp.full((p, p), jnp.nan) if Pth0 is None else Pth0, out_shape.params_cov),
     )
     return state0, held0
 
@@ -138,9 +158,47 @@ def scan_body(step, ok, return_cov: bool):
     return body
 
 
-def finish(per_step, held0) -> FilterResult:
+def on_bound(params, theta0, bounds):
+    """Whether a run's parameter estimates sat on a bound (module docstring): bool scalar.
+
+    Args:
+        params: the run's estimates per step, (T, p), physical units.
+        theta0: its initial estimate, (p,); where NaN (no initial estimate known) the first
+            step's estimate stands in.
+        bounds: ``Estimator.bounds``, (low, high) p floats each with +-inf open ends, or None.
+    """
+    if bounds is None or params.shape[-1] == 0:
+        return jnp.zeros((), bool)
+    low, high = (np.asarray(b, dtype=float) for b in bounds)
+    has_lo, has_hi = np.isfinite(low), np.isfinite(high)
+    if not (has_lo.any() or has_hi.any()):
+        return jnp.zeros((), bool)
+    dt = params.dtype
+    theta0 = theta0.astype(dt)
+    ref = jnp.abs(jnp.where(jnp.isfinite(theta0), theta0, params[0]))
+    width = jnp.asarray(np.where(has_lo & has_hi, high - low, 0.0), dt)
+    two = has_lo & has_hi
+    lo = jnp.asarray(np.where(has_lo, low, 0.0), dt)
+    hi = jnp.asarray(np.where(has_hi, high, 0.0), dt)
+    tol_lo = AT_BOUND_RTOL * jnp.where(two, width, jnp.maximum(jnp.abs(lo), ref))
+    tol_hi = AT_BOUND_RTOL * jnp.where(two, width, jnp.maximum(jnp.abs(hi), ref))
+    near = (has_lo & (params - lo <= tol_lo)) | (has_hi & (hi - params <= tol_hi))
+    return jnp.any(jnp.mean(near, axis=0) > AT_BOUND_FRACTION)
+
+
+def check_theta0(estimator: Estimator, theta0) -> None:
+    """ValueError naming ``theta0`` when a concrete theta0 ((p,) or (R, p)) is not strictly
+    inside the domains ``estimator.bounds``; traced or absent values are not checked."""
+    if theta0 is None or estimator.bounds is None or np.shape(theta0)[-1:] != (
+            len(estimator.param_names),):
+        return  # absent, no domains, or a wrong shape (someone else's error)
+    check_inside("theta0", theta0, *estimator.bounds, tuple(estimator.param_names))
+
+
+def finish(per_step, held0, bounds=None) -> FilterResult:
     """Outputs of one run from the stacked per-step outputs of :func:`scan_body` (leading axis
-    T): everything from the first bad step on is held (module docstring)."""
+    T): everything from the first bad step on is held (module docstring); ``bounds``
+    (``Estimator.bounds``) for ``at_bound``."""
     mean, cov, params, pcov, loglik, nis, n_obs, ok, reinit = per_step
     T = mean.shape[0]
     bad = jnp.cumsum(~ok) > 0
@@ -156,16 +214,18 @@ def finish(per_step, held0) -> FilterResult:
 
     x0, P0, th0, Pth0 = held0
     flag = bad | reinit
+    params = hold(params, th0)
     return FilterResult(
         states=hold(mean, x0),
         covariances=hold(cov, P0),
-        params=hold(params, th0),
+        params=params,
         params_cov=hold(pcov, Pth0),
         loglik=jnp.where(bad, 0.0, loglik).astype(loglik.dtype),
         nis=jnp.where(bad, jnp.nan, nis),
         n_obs=jnp.where(bad, 0, n_obs).astype(jnp.int32),
         diverged=jnp.any(flag),
         diverged_at=jnp.where(jnp.any(flag), jnp.argmax(flag), -1).astype(jnp.int32),
+        at_bound=on_bound(params, th0, bounds),
     )
 
 
@@ -175,7 +235,7 @@ def one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key
     state0, held0 = start(estimator, y, u, x0, P0, th0, Pth0, key)
     body = scan_body(estimator.step, partial(output_ok, p=p), return_cov)
     state, per_step = jax.lax.scan(body, state0, (y, u))
-    return finish(per_step, held0)._replace(state=state)
+    return finish(per_step, held0, estimator.bounds)._replace(state=state)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -216,6 +276,7 @@ def _shape_check(estimator, ys, us, x0, P0, theta0, P_theta0, key):
         raise ValueError(
             f"key: estimator {estimator.name!r} draws random numbers; pass key=jax.random.key(...)"
         )
+    check_theta0(estimator, theta0)
 
 
 def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_theta0=None,
@@ -240,11 +301,11 @@ def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_th
         return_covariances: also return ``covariances`` and ``params_cov``.
 
     Returns:
-        :class:`FilterResult` of arrays (module docstring for divergence).
+        :class:`FilterResult` of arrays (module docstring for divergence and ``at_bound``).
 
     Raises:
         ValueError: naming the argument, for shapes that do not fit (checked on shapes, so also
-            under ``jit``), a missing key.
+            under ``jit``), a missing key, a concrete theta0 outside ``estimator.bounds``.
     """
     _shape_check(estimator, measurements, inputs, x0, P0, theta0, P_theta0, key)
     ys = jnp.asarray(measurements)

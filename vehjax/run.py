@@ -29,6 +29,11 @@ diverged at the first step), its ``nis`` is NaN, its ``n_obs`` 0 and its ``logli
 accumulating. A particle filter that re-initialises (``StepOutput.reinit``) flags the run but
 keeps going. The other runs are not touched.
 
+Estimates on a bound (as in :mod:`vehjax.filtering`): a run of a filter with parameter domains
+(``Estimator.bounds``) whose estimate of some parameter lies on a finite bound (within
+``filtering.AT_BOUND_RTOL`` of the bound's scale) on more than ``filtering.AT_BOUND_FRACTION`` of
+its steps is flagged ``at_bound``; it is neither frozen nor ``diverged``.
+
 Large studies are split into chunks of runs, each one jitted call (one compilation per chunk
 shape; the last chunk is padded); results come back to host memory chunk by chunk, so device
 memory stays bounded. When several JAX devices are visible the runs of each chunk are sharded over
@@ -61,6 +66,7 @@ from . import _validate, filtering
 from .filtering import FilterResult
 from .filters import runs_last as _runs_last
 from .filters.base import Estimator
+from .result import RunResult
 
 __all__ = ["RunResult", "CompiledRun", "run", "compile_run"]
 
@@ -73,37 +79,6 @@ _STATE_TEMPORARIES = 16
 # Auto chunk size: at most this many (state number x step) per chunk, so that a long study is
 # several chunks and the progress bar moves (about 5-10 s a chunk for a particle filter on CPU).
 _CHUNK_WORK = 2e9
-
-
-class RunResult(NamedTuple):
-    """Outputs of a study of R runs over T steps (numpy arrays on the host).
-
-    Attributes:
-        states: filtered state estimates, (R, T, nx), in the model's state units.
-        covariances: their covariances, (R, T, nx, nx); None unless ``return_covariances``.
-        params: parameter estimates, (R, T, p); p = 0 for state-only filters.
-        params_cov: their covariances, (R, T, p, p); None unless ``return_covariances``.
-        loglik: total log-likelihood log p(y_1:T) of the observed components, (R,); for a
-            diverged run, the sum over the steps before it diverged.
-        nis: normalised innovation squared of the observed components per step, (R, T);
-            NaN from the step a run diverged.
-        n_obs: number of observed (non-NaN) measurement components per step, (R, T); the
-            degrees of freedom of ``nis``. 0 from the step a run diverged.
-        diverged: whether the run diverged, (R,) bool.
-        diverged_at: index of the step at which it diverged, or -1, (R,) int.
-        name: the estimator's name.
-    """
-
-    states: np.ndarray
-    covariances: np.ndarray | None
-    params: np.ndarray
-    params_cov: np.ndarray | None
-    loglik: np.ndarray
-    nis: np.ndarray
-    n_obs: np.ndarray
-    diverged: np.ndarray
-    diverged_at: np.ndarray
-    name: str
 
 
 # ----------------------------------------------------------------------------------------------
@@ -157,7 +132,7 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, per_run, ys, us, x0
     # the prepared inputs go through the carry, see _scan_prefetched
     _, per_step = _scan_prefetched(body, state0, y_t, batch.prepare(u_t))
     per_step = jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), per_step)  # (C, T, ...)
-    return jax.vmap(filtering.finish)(per_step, held0)
+    return jax.vmap(partial(filtering.finish, bounds=estimator.bounds))(per_step, held0)
 
 
 @eqx.filter_jit
@@ -182,7 +157,8 @@ def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh):
                 in_axes=tuple(0 if r else None for r in per_run),
             )(*args)
         return (res.states, res.covariances, res.params, res.params_cov,
-                jnp.sum(res.loglik, axis=1), res.nis, res.n_obs, res.diverged, res.diverged_at)
+                jnp.sum(res.loglik, axis=1), res.nis, res.n_obs, res.diverged, res.diverged_at,
+                res.at_bound)
 
     if mesh is not None:
         f = jax.shard_map(
@@ -364,6 +340,7 @@ def _plan(
                 "P_theta0", _validate.array("P_theta0", P_theta0), (p, p), R, f"parameters {names}"
             )
             _validate.batched_cov("P_theta0", Pth0)
+            filtering.check_theta0(estimator, th0)
 
     if estimator.needs_key and key is None:
         raise ValueError(
@@ -497,8 +474,9 @@ def _execute(plan: _Plan, fn, progress) -> RunResult:
             return None
         return np.array(parts[0][k]) if len(parts) == 1 else np.concatenate([q[k] for q in parts])
 
-    states, covs, params, pcov, ll, nis, n_obs, div, div_at = (cat(k) for k in range(9))
-    return RunResult(states, covs, params, pcov, ll, nis, n_obs, div, div_at, plan.estimator.name)
+    states, covs, params, pcov, ll, nis, n_obs, div, div_at, at_b = (cat(k) for k in range(10))
+    return RunResult(states, covs, params, pcov, ll, nis, n_obs, div, div_at, plan.estimator.name,
+                     tuple(plan.estimator.param_names), at_bound=at_b)
 
 
 def run(
@@ -550,7 +528,8 @@ def run(
 
     Raises:
         ValueError: naming the argument, for wrong shapes, non-finite inputs/x0/P0, a P0 that is
-            not symmetric positive definite, a missing key or theta0, before anything is traced.
+            not symmetric positive definite, a missing key or theta0, a theta0 outside the
+            estimator's parameter domains (``Estimator.bounds``), before anything is traced.
     """
     plan = _plan(
         estimator, measurements, inputs, x0, P0, theta0, P_theta0, key, return_covariances,

@@ -29,7 +29,8 @@ Parameterisations (unconstrained vector -> physical value), chosen from the star
   (``lo + (hi - lo) sigmoid(s)``), ``(lo, None)`` a lower bound (``lo + exp(s)``), ``(None, hi)`` an
   upper bound, ``(None, None)`` none; a parameter not in ``bounds`` is kept positive
   (``exp(s)``) when its starting value is positive, else left free. The starting values are
-  ``model.theta`` (set them with ``model.with_theta(...)``).
+  ``model.theta`` (set them with ``model.with_theta(...)``). The maps are the parameter-domain
+  transforms the filters use, :mod:`vehjax.filters._bounds` (unit scale).
 * ``x0`` (``fit_x0=True``): free, shared (nx,) or one per run (R, nx) as given.
 
 Optimisers: ``"adam"`` (default; learning rate 0.05 with a cosine decay to 5 % of it over
@@ -71,6 +72,7 @@ import optax
 
 from . import _validate
 from .filtering import filter as _filter
+from .filters import _bounds
 from .filters import resampling as _rs
 from .filters import smc
 from .filters.base import Estimator
@@ -194,48 +196,27 @@ class _Cov:
         return L @ L.T
 
 
-def _param_map(kind: str, lo: float, hi: float):
-    """(to physical, from physical) for one parameter."""
-    if kind == "free":
-        return (lambda s: s), (lambda v: v)
-    if kind == "lower":
-        return (lambda s: lo + jnp.exp(s)), (lambda v: math.log(v - lo))
-    if kind == "upper":
-        return (lambda s: hi - jnp.exp(s)), (lambda v: math.log(hi - v))
-    span = hi - lo
-    return ((lambda s: lo + span * jax.nn.sigmoid(s)),
-            (lambda v: math.log((v - lo) / span) - math.log1p(-(v - lo) / span)))
-
-
-def _param_kinds(params, bounds, theta0: np.ndarray, names: tuple) -> list:
-    """[(index, kind, lo, hi)] for the fitted parameters; ValueError naming ``bounds``."""
+def _param_transform(params, bounds, theta0: np.ndarray, names: tuple):
+    """(indices (q,) in ``names``, :class:`vehjax.filters._bounds.Transform`) of the fitted
+    parameters; ValueError naming ``bounds``. A parameter not in ``bounds`` is kept positive when
+    its starting value is positive, else left free (module docstring)."""
     bounds = _validate.keyed("bounds", bounds, params, "the fitted params")
-    out = []
-    for p in params:
-        i = names.index(p)
-        v = float(theta0[i])
+    idx = np.array([names.index(p) for p in params], dtype=int)
+    low, high = np.empty(len(params)), np.empty(len(params))
+    for j, p in enumerate(params):
+        v = float(theta0[idx[j]])
         if p in bounds:
-            b = bounds[p]
-            try:
-                lo, hi = b
-            except (TypeError, ValueError):
-                raise ValueError(f"bounds: expected a pair (lo, hi) for {p!r}, got {b!r}") from None
-            lo = None if lo is None else _validate.number(f"bounds[{p!r}] lower", lo)
-            hi = None if hi is None else _validate.number(f"bounds[{p!r}] upper", hi)
-            if lo is not None and hi is not None and not lo < hi:
-                raise ValueError(f"bounds: expected lo < hi for {p!r}, got ({lo}, {hi})")
-            if (lo is not None and not v > lo) or (hi is not None and not v < hi):
+            low[j], high[j] = _bounds.check_pair("bounds", p, bounds[p])
+            if not low[j] < v < high[j]:
+                show = lambda b: None if np.isinf(b) else float(b)  # noqa: E731
                 raise ValueError(
                     f"bounds: the starting value {p} = {v} (model.theta) must lie strictly "
-                    f"inside ({lo}, {hi}); set it with model.with_theta({p}=...)"
+                    f"inside ({show(low[j])}, {show(high[j])}); set it with "
+                    f"model.with_theta({p}=...)"
                 )
-            kind = ("free" if lo is None and hi is None else "lower" if hi is None
-                    else "upper" if lo is None else "box")
         else:
-            lo, hi = (0.0, None) if v > 0 else (None, None)
-            kind = "lower" if v > 0 else "free"
-        out.append((i, kind, lo, hi))
-    return out
+            low[j], high[j] = (0.0 if v > 0 else -np.inf), np.inf
+    return idx, _bounds.Transform(low, high)
 
 
 def _units(model, attr: str, n: int) -> tuple:
@@ -385,7 +366,7 @@ def _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bound
                          "bounds={name: (lo, hi)}")
     params = _validate.names("params", params, names, allow_empty=True)
     theta0 = np.asarray(model.theta, dtype=float)
-    kinds = _param_kinds(params, bounds, theta0, names)
+    idx, theta_map = _param_transform(params, bounds, theta0, names)
     if not isinstance(fit_x0, (bool, np.bool_)):
         raise ValueError(f"fit_x0: expected True or False, got {fit_x0!r}")
     if not noise and not params and not fit_x0:
@@ -444,25 +425,22 @@ def _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bound
             raise ValueError(f"key: expected a jax.random.key, got {key!r}") from None
 
     covQ, covR = _Cov(Qa, diagQ), _Cov(Ra, diagR)
-    maps = [_param_map(k, lo, hi) for (_, k, lo, hi) in kinds]
     z0 = {}
     if "Q" in noise:
         z0["Q"] = jnp.asarray(covQ.z0)
     if "R" in noise:
         z0["R"] = jnp.asarray(covR.z0)
     if params:
-        z0["theta"] = jnp.asarray([inv(float(theta0[i])) for (i, *_), (_, inv) in zip(kinds, maps)])
+        z0["theta"] = theta_map.to_unconstrained(jnp.asarray(theta0[idx]))
     if fit_x0:
         z0["x0"] = jnp.asarray(x0a)
-    idx = np.array([i for (i, *_) in kinds], dtype=int)
 
     def unpack(z):
         Q = covQ(z["Q"]) if "Q" in z else jnp.asarray(Qa)
         R = covR(z["R"]) if "R" in z else jnp.asarray(Ra)
         theta = jnp.asarray(theta0)
         if "theta" in z:
-            vals = jnp.stack([fwd(z["theta"][j]) for j, (fwd, _) in enumerate(maps)])
-            theta = theta.at[idx].set(vals)
+            theta = theta.at[idx].set(theta_map.to_physical(z["theta"]))
         return {"Q": Q, "R": R, "theta": theta, "x0": z["x0"] if "x0" in z else jnp.asarray(x0a)}
 
     def loss(z, data):

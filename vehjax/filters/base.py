@@ -9,7 +9,7 @@ An estimator is a pair of pure functions, like optax's ``GradientTransformation`
 Everything that configures a filter (model, Q, R, tuning) is closed over, so ``run`` treats
 every filter alike and ``jax.vmap``/``jax.lax.scan`` see only arrays.
 
-Two optional parts of the contract are declared fields too, so that ``run`` reads nothing else:
+Three optional parts of the contract are declared fields too, so that ``run`` reads nothing else:
 
 * ``StepOutput.reinit``: the filter had to re-initialise this step (a particle filter whose
   weights all underflowed). ``run`` reports such a run as diverged but does not freeze it.
@@ -22,6 +22,12 @@ Two optional parts of the contract are declared fields too, so that ``run`` read
   started with ``theta0=None``. ``vehjax.run`` uses it instead of ``vmap``-ing ``step``. It is a
   field: ``est._replace(step=...)`` keeps it, so replace ``batch=None`` too when the new step
   computes something else.
+* ``Estimator.bounds``: ``(low, high)``, two tuples of p Python floats (static under ``jit``),
+  the domain of each estimated parameter in physical units (-inf / +inf for an open end), which
+  the filter keeps its estimate in (:mod:`vehjax.filters._bounds`); None for state-only filters
+  and filters without domains.
+  :func:`vehjax.filtering.finish` reads it to flag a run whose estimate sits on a bound
+  (``at_bound``), and ``run`` to check ``theta0``.
 """
 
 from __future__ import annotations
@@ -81,6 +87,8 @@ class Estimator(NamedTuple):
         batch: optional runs-last form of ``step`` (module docstring); None to ``vmap`` it.
         ny: measurement width the filter expects (the model's outputs); None: not checked.
         nu: input width the filter expects (the model's inputs); None: not checked.
+        bounds: ``(low, high)`` domains of the estimated parameters, two tuples of p floats in
+            physical units with -inf / +inf for open ends; None: no domains.
     """
 
     init: Callable[..., Any]
@@ -93,6 +101,7 @@ class Estimator(NamedTuple):
     batch: Callable | None = None
     ny: int | None = None
     nu: int | None = None
+    bounds: tuple | None = None
 
 
 def check_estimate(model, estimate) -> tuple[tuple[str, ...], tuple[int, ...]]:

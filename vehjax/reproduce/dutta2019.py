@@ -22,12 +22,26 @@ How the paper is read (it leaves these open; each choice is ours and printed wit
 * The sampling period is not given: dt = 0.02 s (50 Hz). The paper's noise covariances are used per
   step as printed.
 * The parameter noise decay gamma (R_p <- gamma R_p) is not given: 0.99 per step.
-* Two filter settings are run (``--settings``): "paper", section III as printed, and "matched",
+* Three filter settings are run (``--settings``): "paper", section III as printed; "matched",
   the covariances a user who knows the sensors would set: Q and R equal to the simulation's
   process and measurement noise, Q_theta = (1e-3 |truth|)^2 per step with the same decay, and
-  P_theta0 the variance of the uniform box the initial guesses are drawn from. The paper's
-  process noise is 100-10^4 times the simulated one, so its filters follow the measurements
-  and learn the parameters slowly or not at all.
+  P_theta0 the variance of the uniform box the initial guesses are drawn from; and "tuned", the
+  covariances a user who knows neither the sensors nor the parameters would get from data:
+  Q and R fitted by :func:`vehjax.tune.fit`, everything else (P0, Q_theta, its decay,
+  P_theta0) as in "matched". The paper's process noise is 100-10^4 times the simulated one, so
+  its filters follow the measurements and learn the parameters slowly or not at all.
+* How "tuned" is made (:func:`tuned_settings`), per stage: a training set of 3 runs of the
+  stage's model, noise and excitation, at most 20 s long (the stage's length when shorter),
+  simulated from a random stream of their own (``fold_in`` of the stage's key), so they are
+  never the study's runs. vehjax.tune rejects the dual, joint and Liu-West filters, so the fit
+  uses a plain UKF on the same model: maximum likelihood (adam, at most 150 iterations) of
+  diagonal Q and R, started from the paper's Q and R, jointly with the unknown parameters
+  (lf, lr; m, cx, cy), started from one guess drawn from the prior box, since Q fitted with
+  wrong parameters would absorb the model error. The fitted parameters are not passed on: the
+  study's filters start from the same guesses as in the other settings and learn them from the
+  study's runs. The dynamic fit holds lf, lr at the kinematic fit's values, as the study's
+  dynamic stage uses the kinematic stage's estimates. The Fig. 6 study uses the Q and R
+  tuned on the 0.5 Hz training runs for every steering frequency.
 * Initial parameter guesses are not given: per run, uniform in the box the Particle+UKF uses
   as its prior (lf, lr in [0.5, 2.5] m; m, cx, cy within +-30 % of truth), the same guesses for
   every filter.
@@ -82,8 +96,15 @@ PAPER_TABLE3 = {"Dual UKF": (1620.0, 13.2e4, 4.75e4), "Particle+UKF": (1715.0, 1
 _KIN_BOX = ((0.5, 2.5), (0.5, 2.5))
 _DYN_REL_BOX = 0.3
 _FILTERS = ("Dual EKF", "Dual UKF", "Particle+UKF", "Joint EKF", "Joint UKF")
-_SETTINGS = ("paper", "matched")
+_SETTINGS = ("paper", "matched", "tuned")
 _Q_THETA_REL = 1e-3  # matched settings: parameter random-walk std per step, relative to truth
+# tuned settings: training runs and the fit (vehjax.tune.fit, adam on log standard deviations)
+_TUNE_RUNS = 3  # training runs per stage
+_TUNE_DURATION = 20.0  # s, longest training run (the stage's duration when shorter)
+_TUNE_LR = 0.3  # adam's peak step on the unconstrained (log) scale
+_TUNE_STEPS = 150  # adam iterations at most
+_TUNE_PATIENCE = 20  # iterations without improvement before the fit stops
+_TRAINING_STREAM = 1  # jax.random.fold_in data of the training runs' random stream
 _FREQUENCIES = (0.1, 0.25, 0.5, 1.0)  # Hz, input-frequency study
 
 
@@ -99,6 +120,7 @@ class Stage(NamedTuple):
     param_units: tuple  # units of the estimated parameters
     state_units: tuple  # units of the states
     box: np.ndarray  # (p, 2) the box theta0 is drawn from, the prior of the BOX_PRIOR filters
+    tuning: object = None  # Tuning of the "tuned" setting; None for the others
 
 
 #: filters whose parameter prior is the uniform box itself (theta0 unused): their initial
@@ -185,6 +207,132 @@ def matched_settings(paper: dict, model, truth, box) -> dict:
     )
 
 
+def _simulate(model, scn, runs: int, key):
+    """``runs`` noisy runs of ``scn`` on ``model`` (its ``theta`` is the truth): process noise of
+    ``_SIM_STD`` per square-root second and measurement noise of std ``_SIM_STD`` on every
+    component."""
+    from .. import simulate
+
+    return simulate(model, scn, runs=runs, key=key, process_std=_SIM_STD * np.sqrt(model.dt),
+                    meas_std=_SIM_STD)
+
+
+def study_runs(model, scn, runs: int, key):
+    """The study's runs of a stage, on which the filters of every setting are evaluated.
+
+    Parameters
+    ----------
+    model : vehjax model
+        The true model (``model.theta``).
+    scn : vehjax.scenarios.Scenario
+        The excitation, T steps of ``model.dt`` s.
+    runs : int
+        Number of runs R.
+    key : jax.random.key
+        The stage's key (the one :func:`_stage` is given).
+
+    Returns
+    -------
+    vehjax.Simulation
+        (R, T, nx) states, (R, T, ny) measurements.
+    """
+    return _simulate(model, scn, runs, jax.random.split(key, 3)[0])
+
+
+def _training_keys(key):
+    """(simulation, starting guess) keys of the training runs of the stage whose key is ``key``:
+    a random stream of their own (``fold_in``), never one the study draws from."""
+    return tuple(jax.random.split(jax.random.fold_in(key, _TRAINING_STREAM), 2))
+
+
+def training_runs(model, scn, runs: int, key):
+    """The training runs of the "tuned" setting: the same model, noise and excitation as the
+    study's runs, simulated from a random stream of their own.
+
+    Parameters
+    ----------
+    model, scn, runs
+        As for :func:`study_runs` (``scn`` may be shorter than the study's).
+    key : jax.random.key
+        The stage's key, the same one :func:`study_runs` is given; the training stream is
+        ``fold_in(key, _TRAINING_STREAM)``, which the study never draws from.
+
+    Returns
+    -------
+    vehjax.Simulation
+        (R, T, nx) states, (R, T, ny) measurements.
+    """
+    return _simulate(model, scn, runs, _training_keys(key)[0])
+
+
+class Tuning(NamedTuple):
+    """How the "tuned" settings of one stage were made."""
+
+    settings: dict  # the filter settings (P0, P_theta0, Q, Q_theta, R as diagonals)
+    fit: object  # vehjax.tune.TuneResult of the fit on the training runs
+    sim: object  # the training runs, a vehjax Simulation with (runs, T, ny) measurements
+    names: tuple  # the model parameters fitted with Q and R
+    start: np.ndarray  # (p,) their starting values in the fit
+    fixed: dict  # model parameters held at given values in the fit (name -> value)
+
+
+def tuned_settings(paper: dict, model, scn, estimate, truth, box, key, runs: int = _TUNE_RUNS,
+                   fixed=None, steps: int = _TUNE_STEPS) -> Tuning:
+    """The "tuned" settings: Q and R fitted by :func:`vehjax.tune.fit` on training runs.
+
+    ``runs`` training runs of ``scn`` (:func:`training_runs`, a random stream the study does not
+    use) are filtered by a UKF on ``model``; Q and R (diagonal, from the paper's ``paper["Q"]``,
+    ``paper["R"]``) and the unknown parameters ``estimate`` (from one guess drawn uniformly from
+    ``box`` with the training stream) are fitted jointly by maximum likelihood (adam). P0 is the
+    paper's; Q_theta and P_theta0 are those of :func:`matched_settings`.
+
+    Parameters
+    ----------
+    paper : dict
+        The paper's settings (``KINEMATIC_SETTINGS`` or ``DYNAMIC_SETTINGS``): diagonals of P0
+        (nx,), Q (nx,) [state units^2 per step], R (ny,) [output units^2].
+    model : vehjax model
+        The true model; ``model.theta`` simulates the training runs.
+    scn : vehjax.scenarios.Scenario
+        Excitation of the training runs (T steps).
+    estimate : sequence of str
+        The parameters fitted with Q and R, (p,) names.
+    truth : array_like
+        (p,) true values of ``estimate`` (for the matched Q_theta only).
+    box : array_like
+        (p, 2) low and high ends of the box the starting guess is drawn from, parameter units.
+    key : jax.random.key
+        The stage's key; the training stream is derived from it.
+    runs : int
+        Number of training runs.
+    fixed : dict, optional
+        Model parameters (name -> value) to hold at values other than the truth in the fit.
+    steps : int
+        Most adam iterations.
+
+    Returns
+    -------
+    Tuning
+    """
+    from .. import tune
+    from ..filters import ukf
+
+    sim = training_runs(model, scn, runs, key)
+    low, high = np.asarray(box, dtype=float).T
+    start = np.asarray(jax.random.uniform(_training_keys(key)[1], (len(estimate),),
+                                          minval=low, maxval=high), dtype=float)
+    fixed = {k: float(v) for k, v in (fixed or {}).items()}
+    guess = model.with_theta(**fixed, **{n: float(v) for n, v in zip(estimate, start)})
+    fit = tune.fit(ukf, guess, np.asarray(paper["Q"], float), np.asarray(paper["R"], float),
+                   sim.measurements, sim.inputs, x0=np.asarray(scn.x0, float),
+                   P0=np.diag(np.asarray(paper["P0"], float)), params=tuple(estimate),
+                   optimizer="adam", learning_rate=_TUNE_LR, steps=steps,
+                   patience=_TUNE_PATIENCE, progress=False)
+    cfg = matched_settings(paper, model, truth, box)
+    cfg.update(Q=tuple(float(v) for v in np.diag(fit.Q)), R=tuple(float(v) for v in np.diag(fit.R)))
+    return Tuning(cfg, fit, sim, tuple(estimate), start, fixed)
+
+
 # ----------------------------------------------------------------------------------------------
 # Filters
 
@@ -207,14 +355,12 @@ def _builders(model, s, estimate, box, particles: int):
 
 
 def _stage(model, scn, estimate, settings, box, runs, key, estimators, inputs=None,
-           progress=None) -> Stage:
+           progress=None, tuning=None) -> Stage:
     """Simulate ``runs`` runs of ``scn`` and run each of ``estimators`` (name -> Estimator)."""
-    from .. import run, simulate
+    from .. import run
 
-    k_sim, k_guess, k_run = jax.random.split(key, 3)
-    dt = model.dt
-    sim = simulate(model, scn, runs=runs, key=k_sim,
-                   process_std=_SIM_STD * np.sqrt(dt), meas_std=_SIM_STD)
+    _, k_guess, k_run = jax.random.split(key, 3)
+    sim = study_runs(model, scn, runs, key)
     truth = np.asarray(model.theta)[list(model.param_index(estimate))]
     low, high = np.asarray(box).T
     theta0 = np.asarray(jax.random.uniform(k_guess, (runs, len(estimate)), minval=low, maxval=high))
@@ -235,7 +381,7 @@ def _stage(model, scn, estimate, settings, box, runs, key, estimators, inputs=No
             progress(f" {seconds[name]:.1f} s" + (f", {n_div} diverged" if n_div else "") + "\n")
     p_units = tuple(model.param_units[i] for i in model.param_index(estimate))
     return Stage(sim, results, truth, tuple(estimate), seconds, theta0, p_units,
-                 tuple(model.state_units), np.asarray(box, dtype=float))
+                 tuple(model.state_units), np.asarray(box, dtype=float), tuning)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -554,6 +700,156 @@ def frequency_table(freq_results: dict, truth, dt: float, tol: float, units=("m"
     return "\n".join(lines)
 
 
+def table_noise(tuning: Tuning, paper: dict, model) -> str:
+    """Markdown table: per component the paper's, the tuned and the simulation's (matched)
+    variance of Q (process, per step) and R (measurement), and tuned over simulation.
+
+    Parameters
+    ----------
+    tuning : Tuning
+        The tuned setting of the stage (:func:`tuned_settings`).
+    paper : dict
+        The paper's settings of the stage; ``paper["Q"]`` (nx,), ``paper["R"]`` (ny,).
+    model : vehjax model
+        The stage's model (names; ``dt`` [s] for the simulation's Q per step).
+
+    Returns
+    -------
+    str
+        One row per state (Q) and per output (R), variances in the component's unit squared.
+    """
+    fit = tuning.fit
+    lines = ["| covariance | paper | tuned | simulation (matched) | tuned / simulation |",
+             "|---|---|---|---|---|"]
+    sim_var = {"Q": _SIM_STD**2 * model.dt, "R": _SIM_STD**2}
+    for which, names in (("Q", model.state_names), ("R", model.output_names)):
+        for i, n in enumerate(names):
+            key = f"{which}[{n},{n}]"
+            tuned = float(tuning.settings[which][i])
+            lines.append(f"| {which} {n} [{fit.units[key]}] | {paper[which][i]:.3g} | "
+                         f"{tuned:.3g} | {sim_var[which]:.3g} | {tuned / sim_var[which]:.2f} |")
+    return "\n".join(lines)
+
+
+def tuning_summary(tuning: Tuning, truth, units, scale=None, digits=None, fixed_note="") -> str:
+    """Markdown paragraph: the training set and what the fit did (parameters from their start
+    to their fitted values, the loss, iterations, time).
+
+    Parameters
+    ----------
+    tuning : Tuning
+        The tuned setting of the stage.
+    truth : array_like
+        (p,) true values of ``tuning.names``.
+    units : sequence of str
+        (p,) their units.
+    scale : array_like, optional
+        (p,) divisors for printing (e.g. 1e4 for N); default ones.
+    digits : sequence of int, optional
+        (p,) decimals printed; default 3.
+    fixed_note : str
+        Where the values of ``tuning.fixed`` come from.
+
+    Returns
+    -------
+    str
+    """
+    fit, sim = tuning.fit, tuning.sim
+    n_runs, T = np.shape(sim.measurements)[:2]
+    n = len(tuning.names)
+    scale = np.ones(n) if scale is None else np.asarray(scale, float)
+    digits = (3,) * n if digits is None else digits
+    params = ", ".join(
+        f"{p} {_unit(u, s)} {a / s:.{d}f} -> {fit.params[p] / s:.{d}f} (truth {t / s:.{d}f})"
+        for p, u, s, d, a, t in zip(tuning.names, units, scale, digits, tuning.start, truth))
+    held = ""
+    if tuning.fixed:
+        held = (" Held fixed in the fit: "
+                + ", ".join(f"{k} {v:.3f}" for k, v in tuning.fixed.items())
+                + (f" ({fixed_note})" if fixed_note else "") + ".")
+    loss_end = -fit.loglik / (n_runs * T)
+    return (f"**How Q and R were tuned.** Training set: {n_runs} runs x {T} steps "
+            f"({T * fit.model.dt:g} s) of the same model, noise "
+            "and excitation as the study, simulated from a random stream of their own (not the "
+            "study's runs). vehjax.tune.fit (UKF, maximum likelihood, adam) started from the "
+            "paper's Q and R and fitted them (diagonal) jointly with the unknown parameters, "
+            f"started from a guess drawn from the prior box: {params}.{held} Loss (negative "
+            f"log-likelihood per step) {fit.history[0]:.3f} -> {loss_end:.3f} in "
+            f"{fit.iterations} iterations ({'stopped early' if fit.converged else 'at the limit'}"
+            f"), {fit.seconds:.0f} s. The study's filters then run with the tuned Q and R on the "
+            "study's runs; P0 is the paper's, Q_theta and P_theta0 as in the matched setting.")
+
+
+def _mean_abs_error(stage: Stage, name: str) -> np.ndarray:
+    """(p,) mean absolute error over the filter's converged runs of its final estimates."""
+    res = stage.results[name]
+    ok = _ok(res)
+    if not ok.any():
+        return np.full(len(stage.names), np.nan)
+    return np.abs(_final(res.params, _window(res))[ok] - stage.truth).mean(axis=0)
+
+
+def table_settings(stages: dict, scale=None, digits=None) -> str:
+    """Markdown table: per filter and setting, the final estimates' mean absolute error over
+    runs (converged runs) and how many runs diverged.
+
+    Parameters
+    ----------
+    stages : dict
+        Setting name -> Stage, all on the same runs with the same filters.
+    scale : array_like, optional
+        (p,) divisors of the parameters for printing; default ones.
+    digits : sequence of int, optional
+        (p,) decimals printed; default 3.
+
+    Returns
+    -------
+    str
+        Rows (filter, setting), errors in the parameters' units divided by ``scale``.
+    """
+    first = next(iter(stages.values()))
+    n = len(first.names)
+    scale = np.ones(n) if scale is None else np.asarray(scale, float)
+    digits = (3,) * n if digits is None else digits
+    lines = ["| filter | setting | " + " | ".join(
+        f"error {p} {_unit(u, s)}" for p, u, s in zip(first.names, first.param_units, scale))
+        + " | diverged |", "|" + "---|" * (n + 3)]
+    for name in first.results:
+        for setting, st in stages.items():
+            err = _mean_abs_error(st, name) / scale
+            div = np.asarray(st.results[name].diverged)
+            lines.append(f"| {name} | {setting} | " + " | ".join(
+                "-" if not np.isfinite(e) else f"{e:.{d}f}" for e, d in zip(err, digits))
+                + f" | {int(div.sum())}/{len(div)} |")
+    return "\n".join(lines)
+
+
+def table_settings_states(stages: dict) -> str:
+    """Markdown table: per filter and setting, the state RMSE over its converged runs and all
+    steps, in the states' units.
+
+    Parameters
+    ----------
+    stages : dict
+        Setting name -> Stage, all on the same runs with the same filters.
+
+    Returns
+    -------
+    str
+    """
+    first = next(iter(stages.values()))
+    names = first.sim.state_names
+    lines = ["| filter | setting | " + " | ".join(
+        f"RMSE {n} {_unit(u)}" for n, u in zip(names, first.state_units)) + " |",
+        "|" + "---|" * (len(names) + 2)]
+    for name in first.results:
+        for setting, st in stages.items():
+            r = state_rmse(st).get(name)
+            cells = ["-"] * len(names) if r is None else [f"{v:.4f}" for v in r]
+            lines.append(f"| {name} | {setting} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 # ----------------------------------------------------------------------------------------------
 # Figures
 
@@ -686,8 +982,11 @@ def parser():
     p.add_argument("--filters", default=",".join(_FILTERS),
                    help="comma-separated subset of the filters (default all: %(default)s)")
     p.add_argument("--settings", default=",".join(_SETTINGS),
-                   help="filter settings: paper (section III as printed), matched (noise "
-                        "covariances of the simulation), or both (default %(default)s)")
+                   help="comma-separated filter settings: paper (section III as printed), "
+                        "matched (Q, R of the simulation's noise), tuned (Q, R fitted by "
+                        "vehjax.tune by maximum likelihood on separate training runs, "
+                        f"{_TUNE_RUNS} per stage of at most {_TUNE_DURATION:g} s, from the "
+                        "paper's values; the rest as matched) (default all: %(default)s)")
     p.add_argument("--no-frequency-study", action="store_true",
                    help="skip the Fig. 6 study (default: run it)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
@@ -722,19 +1021,53 @@ def _check_args(args):
     return filters, settings
 
 
+def _config(setting: str, paper: dict, model, truth, box, make_tuning):
+    """(filter settings, Tuning or None) of ``setting``; ``make_tuning()`` makes the Tuning of
+    the "tuned" setting (only called for it)."""
+    if setting == "paper":
+        return paper, None
+    if setting == "matched":
+        return matched_settings(paper, model, truth, box), None
+    tuning = make_tuning()
+    return tuning.settings, tuning
+
+
+def _report_tuning(report: list, tuning, paper: dict, model, stage_name: str, units, scale=None,
+                   digits=None, fixed_note=""):
+    """Add the tuned setting's Q, R beside the paper's and the simulation's, and how."""
+    if tuning is None:
+        return
+    truth = np.asarray(model.theta)[list(model.param_index(tuning.names))]
+    report += [f"### Tuned Q and R, {stage_name}",
+               tuning_summary(tuning, truth, units, scale, digits, fixed_note) + "\n",
+               table_noise(tuning, paper, model), ""]
+
+
+def _tuned(stage_name: str, make_tuning):
+    """``make_tuning()`` with a progress line."""
+    _say(f"[tuned] {stage_name}: fitting Q, R on {_TUNE_RUNS} training runs ...")
+    tuning = make_tuning()
+    _say(f" {tuning.fit.iterations} iterations, {tuning.fit.seconds:.1f} s\n")
+    return tuning
+
+
 def _kinematic(args, filters, setting, key, out, report):
     from ..models import KinematicBicycle
 
     kin = KinematicBicycle(dt=args.dt)
     scn = kinematic_scenario(kin, args.kinematic_duration)
     truth = np.asarray(kin.theta)
-    cfg = KINEMATIC_SETTINGS if setting == "paper" else matched_settings(
-        KINEMATIC_SETTINGS, kin, truth, _KIN_BOX)
+    k_main, k_freq = jax.random.split(key)
+    train = kinematic_scenario(kin, min(args.kinematic_duration, _TUNE_DURATION))
+    cfg, tuning = _config(setting, KINEMATIC_SETTINGS, kin, truth, _KIN_BOX, lambda: _tuned(
+        "kinematic model", lambda: tuned_settings(KINEMATIC_SETTINGS, kin, train, ("lf", "lr"),
+                                                  truth, _KIN_BOX, k_main)))
     builders = _builders(kin, cfg, ("lf", "lr"), _KIN_BOX, args.particles)
     ests = {name: builders[name]() for name in filters}
-    k_main, k_freq = jax.random.split(key)
     _say(f"[{setting}] kinematic model, {scn.name} steering at 5 m/s, {len(scn.t)} steps:\n")
-    st = _stage(kin, scn, ("lf", "lr"), cfg, _KIN_BOX, args.runs, k_main, ests, progress=_say)
+    st = _stage(kin, scn, ("lf", "lr"), cfg, _KIN_BOX, args.runs, k_main, ests, progress=_say,
+                tuning=tuning)
+    _report_tuning(report, tuning, KINEMATIC_SETTINGS, kin, "kinematic model", st.param_units)
     report += [f"### Table I: lf, lr from the kinematic model ({setting} settings)",
                "Final estimate (mean of the last 10 % of steps) as mean +- std over runs, "
                "(mean absolute error over runs); the initial guesses (row \"initial guess\"; "
@@ -791,14 +1124,23 @@ def _dynamic(args, filters, setting, key, out, report, kinematic: Stage):
              np.broadcast_to(lf_lr[:, None, :], (args.runs, T, 2))], 2)
     truth = np.asarray(dyn.theta)[list(dyn.param_index(("m", "cx", "cy")))]
     box = [(v * (1 - _DYN_REL_BOX), v * (1 + _DYN_REL_BOX)) for v in truth]
-    cfg = DYNAMIC_SETTINGS if setting == "paper" else matched_settings(
-        DYNAMIC_SETTINGS, dyn, truth, box)
+    # the training fit holds lf, lr at what the kinematic training fit found, as the study's
+    # dynamic stage uses the kinematic stage's estimates
+    train = dynamic_scenario(dyn, min(args.dynamic_duration, _TUNE_DURATION))
+    cfg, tuning = _config(setting, DYNAMIC_SETTINGS, dyn, truth, box, lambda: _tuned(
+        "dynamic model", lambda: tuned_settings(DYNAMIC_SETTINGS, dyn, train, ("m", "cx", "cy"),
+                                                truth, box, key,
+                                                fixed=kinematic.tuning.fit.params)))
     builders = _builders(model, cfg, ("m", "cx", "cy"), box, args.particles)
     ests = {name: builders[name]() for name in filters}
     _say(f"[{setting}] dynamic model, {T} steps (each run uses its own lf, lr from above):\n")
     st = _stage(model, scn_m, ("m", "cx", "cy"), cfg, box, args.runs, key, ests, inputs=inputs,
-                progress=_say)
+                progress=_say, tuning=tuning)
     scale = (1.0, 1e4, 1e4)
+    _report_tuning(report, tuning, DYNAMIC_SETTINGS, dyn, "dynamic model", st.param_units,
+                   scale=scale, digits=(1, 3, 3),
+                   fixed_note="the kinematic training fit's values; truth "
+                   + ", ".join(f"{n} {v:.3f}" for n, v in zip(("lf", "lr"), lf_lr_true)))
     report += [f"### Table II: state RMSE on the dynamic model ({setting} settings)",
                "RMSE over all runs and steps, [95 % interval of the per-run RMSE mean]; "
                "\"raw measurements\": the sensors' own RMSE (every state is measured). Target: "
@@ -824,6 +1166,21 @@ def _dynamic(args, filters, setting, key, out, report, kinematic: Stage):
     return st
 
 
+def _report_settings(stages: dict) -> list:
+    """Report lines: Tables I-III's main numbers, every setting side by side (``stages``:
+    setting -> (kinematic Stage, dynamic Stage), all on the same runs)."""
+    kin = {k: v[0] for k, v in stages.items()}
+    dyn = {k: v[1] for k, v in stages.items()}
+    return ["## The settings side by side\n",
+            "Same study runs and initial guesses in every setting; the settings differ only in "
+            "the filters' covariances. Parameters: mean absolute error over runs of the final "
+            "estimates (mean of the last 10 % of steps); states: RMSE over all runs and steps.\n",
+            "### Table I: lf, lr (kinematic model)\n", table_settings(kin), "",
+            "### Table II: state RMSE (dynamic model)\n", table_settings_states(dyn), "",
+            "### Table III: m, cx, cy (dynamic model)\n",
+            table_settings(dyn, scale=(1.0, 1e4, 1e4), digits=(1, 3, 3)), ""]
+
+
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     filters, settings = _check_args(args)
@@ -836,15 +1193,20 @@ def main(argv=None) -> int:
               "with Dynamic3DOF (MATLAB's vehicledata, which the paper used, cannot ship). "
               "Every choice the paper leaves open is listed in the docstring of "
               "`vehjax/reproduce/dutta2019.py`.\n"]
-    times = {}
+    times, stages = {}, {}
     for setting in settings:
-        key = jax.random.key(args.seed)  # the same data and guesses for both settings
+        key = jax.random.key(args.seed)  # the same data and guesses for every setting
         k_kin, k_dyn = jax.random.split(key)
         report.append(f"## {setting} settings\n")
         st1 = _kinematic(args, filters, setting, k_kin, out, report)
         st2 = _dynamic(args, filters, setting, k_dyn, out, report, st1)
-        times.update({f"{setting}, kinematic, {k}": v for k, v in st1.seconds.items()})
-        times.update({f"{setting}, dynamic, {k}": v for k, v in st2.seconds.items()})
+        stages[setting] = (st1, st2)
+        for stage_name, st in (("kinematic", st1), ("dynamic", st2)):
+            if st.tuning is not None:
+                times[f"{setting}, {stage_name}, tuning Q and R"] = st.tuning.fit.seconds
+            times.update({f"{setting}, {stage_name}, {k}": v for k, v in st.seconds.items()})
+    if len(stages) > 1:
+        report += _report_settings(stages)
     report += ["## Wall time per call (compile included)\n"]
     report += [f"- {k}: {v:.1f} s" for k, v in times.items()]
     report += [f"\nTotal: {time.perf_counter() - t_start:.0f} s"]
