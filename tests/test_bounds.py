@@ -230,9 +230,10 @@ def test_pinned_run_is_flagged_and_a_free_one_is_not():
 
 
 def test_liu_west_particles_stay_in_the_box():
-    """Truth b = 1 outside the prior box [1.2, 3]: with the default domain (the box) no particle
-    ever leaves it, and the run is flagged at_bound; with bounds={} (Liu and West's kernel on b
-    itself) the kernel moves particles out of the box."""
+    """Truth b = 1 outside the prior box [1.2, 3]: with the box as the domain no particle ever
+    leaves it; with the default domain of a positive box, (0, inf), none becomes negative;
+    with bounds={} (Liu and West's kernel on b itself) the kernel moves particles out of the
+    box."""
     ys, us = _gain_data(1.0, T=150, runs=1)
     ys, us = jnp.asarray(ys[0]), jnp.asarray(us[0])
 
@@ -248,8 +249,10 @@ def test_liu_west_particles_stay_in_the_box():
         return jax.jit(lambda s: jax.lax.scan(body, s, (ys, us))[1])(state0)
 
     kw = dict(Q=[QV], R=[RV], n_particles=100, estimate="b", theta_low=[1.2], theta_high=[3.0])
-    lo, hi = extremes(F.liu_west_ukf(_gain_model(2.0), **kw))
+    lo, hi = extremes(F.liu_west_ukf(_gain_model(2.0), **kw, bounds={"b": (1.2, 3.0)}))
     assert np.all(np.asarray(lo) >= 1.2) and np.all(np.asarray(hi) <= 3.0)
+    lo_pos, _ = extremes(F.liu_west_ukf(_gain_model(2.0), **kw))
+    assert np.all(np.asarray(lo_pos) > 0.0)
     lo_old, _ = extremes(F.liu_west_ukf(_gain_model(2.0), **kw, bounds={}))
     assert np.mean(np.asarray(lo_old) < 1.2) > 0.5
 
@@ -288,10 +291,8 @@ def test_declared_bounds_and_defaults():
     inf = float("inf")
     for name, build in BUILDERS.items():
         default = build().bounds
-        if name == "liu_west_ukf":  # the prior box
-            assert default == ((0.5, 0.5), (2.5, 2.5))
-        else:  # positive nominal values: positive
-            assert default == ((0.0, 0.0), (inf, inf))
+        # positive nominal values (Liu-West: a positive prior box): positive
+        assert default == ((0.0, 0.0), (inf, inf))
         assert build(bounds={}).bounds == ((-inf, -inf), (inf, inf))
         assert build(bounds={"lf": (0.1, None)}).bounds == ((0.1, -inf), (inf, inf))
     assert F.ukf(KIN, np.full(4, 1e-4), np.full(4, 1e-2)).bounds is None

@@ -91,20 +91,29 @@ def _numpy_joint_kf(ys, us):
     return {k: np.array(v) for k, v in out.items()}
 
 
-def _numpy_dual_kf(ys, us, predictive=True):
-    """Algorithm 1 written out for the bias model (df/db = I, so Hp = H)."""
+def _numpy_dual_kf(ys, us, predictive=True, recurrent=False):
+    """Algorithm 1 written out for the bias model (df/db = I, so Hp = H without the recurrent
+    derivative; with it (Wan & Nelson), Hp = H D- with D- = A D + I the derivative of the
+    predicted state in b and D = D- - K Hp that of the filtered state, K the state gain)."""
     x, P, b, Pb, Qb = X0.copy(), P0.copy(), B0.copy(), PB0.copy(), QB.copy()
+    Dx = np.zeros((2, 2))
     out = {"x": [], "Px": [], "b": [], "Pb": [], "ll": []}
     for y, u in zip(ys, us):
         Pb = Pb + Qb
         x_pred = A @ x + B @ u + b
         P_pred = A @ P @ A.T + Q_X
         y_hat = H @ x_pred
+        D_pred = A @ Dx + np.eye(2) if recurrent else np.eye(2)
+        Hp = H @ D_pred
         x, P, e, S, o = _gain_update(x_pred, P_pred, y, y_hat, H, R_Y)
         if o.any():
             N = np.full((2, 2), np.nan)
             N[np.ix_(o, o)] = S if predictive else R_Y[np.ix_(o, o)]
-            b, Pb, _, _, _ = _gain_update(b, Pb, y, y_hat, H, N)
+            b, Pb, _, _, _ = _gain_update(b, Pb, y, y_hat, Hp, N)
+            K = P_pred @ H[o].T @ np.linalg.inv(S)
+            Dx = D_pred - K @ Hp[o]
+        else:
+            Dx = D_pred
         Qb = GAMMA * Qb
         for k, v in (("x", x), ("Px", P), ("b", b), ("Pb", Pb), ("ll", _loglik(e, S))):
             out[k].append(v)
@@ -130,7 +139,9 @@ def _assert_matches(out, ref, ys):
     np.testing.assert_array_equal(out.n_obs, np.isfinite(ys).sum(axis=1))
 
 
-BIAS_KW = dict(Q=Q_X, R=R_Y, Q_theta=QB, estimate=("b1", "b2"), theta_decay=GAMMA)
+# bounds={}: the filters on b itself, as the numpy references (b1's positive nominal value would
+# otherwise keep it positive, and B0 = 0 is on that bound)
+BIAS_KW = dict(Q=Q_X, R=R_Y, Q_theta=QB, estimate=("b1", "b2"), theta_decay=GAMMA, bounds={})
 
 
 @pytest.mark.parametrize("builder", [joint_ekf, joint_ukf])
@@ -143,20 +154,26 @@ def test_joint_filter_on_bias_model_equals_augmented_kalman_filter(builder):
 
 
 @pytest.mark.parametrize(
-    "builder, innovation, scale",
+    "builder, innovation, scale, recurrent",
     [
-        (dual_ekf, "predictive", None),  # internal units |nominal b|
-        (dual_ekf, "measurement", [1e-3, 1e4]),  # far-off internal units, same results
-        (dual_ukf, "predictive", [1e-3, 1e4]),
+        (dual_ekf, "predictive", None, False),  # internal units |nominal b|
+        (dual_ekf, "measurement", [1e-3, 1e4], False),  # far-off internal units, same results
+        (dual_ukf, "predictive", [1e-3, 1e4], False),
+        (dual_ekf, "predictive", None, True),  # the default: with the recurrent derivative
+        (dual_ekf, "measurement", [1e-3, 1e4], True),
+        (dual_ukf, "predictive", [1e-3, 1e4], True),
     ],
 )
-def test_dual_filter_on_bias_model_equals_algorithm_1_in_numpy(builder, innovation, scale):
-    """b enters linearly, so DEKF and DUKF both equal Algorithm 1 in numpy, with NaNs."""
+def test_dual_filter_on_bias_model_equals_algorithm_1_in_numpy(builder, innovation, scale,
+                                                               recurrent):
+    """b enters linearly, so DEKF and DUKF both equal Algorithm 1 in numpy, with NaNs, with and
+    without Wan & Nelson's recurrent derivative (the gain does not depend on b here)."""
     ys2, us = _bias_data(1)
-    est = builder(BIAS, **BIAS_KW, param_innovation=innovation, theta_scale=scale)
+    est = builder(BIAS, **BIAS_KW, param_innovation=innovation, theta_scale=scale,
+                  recurrent=recurrent)
     outs = _scan_runs(est, ys2, us)
     for out, ys in zip(outs, ys2):
-        _assert_matches(out, _numpy_dual_kf(ys, us, innovation == "predictive"), ys)
+        _assert_matches(out, _numpy_dual_kf(ys, us, innovation == "predictive", recurrent), ys)
 
 
 # ---- all-missing steps -----------------------------------------------------------------------
@@ -166,10 +183,15 @@ KIN_R = np.array([0.1, 0.1, 0.02, 0.1]) ** 2
 
 
 def _augmented_kinematic():
-    """KIN with (lf, lr) appended to the state as constants, for the state-only filters."""
+    """KIN with the unconstrained coordinates s of (lf, lr) appended to the state as constants,
+    for the state-only filters: lf, lr = 1.5 exp(s), the default positive domain of the joint
+    filters (scale = the nominal 1.5 m)."""
+    def g(s):
+        return 1.5 * jnp.exp(s)
+
     return Model(
-        transition=lambda a, u, th: jnp.concatenate([KIN.transition(a[:4], u, a[4:]), a[4:]]),
-        observe=lambda a, u, th: KIN.observe(a[:4], u, a[4:]),
+        transition=lambda a, u, th: jnp.concatenate([KIN.transition(a[:4], u, g(a[4:])), a[4:]]),
+        observe=lambda a, u, th: KIN.observe(a[:4], u, g(a[4:])),
         dt=KIN.dt,
         state_names=KIN.state_names + KIN.param_names,
         input_names=KIN.input_names,
@@ -180,7 +202,9 @@ def _augmented_kinematic():
 def test_all_missing_step_predicts_state_and_keeps_parameters(builder):
     """A NaN measurement: the state is predicted, the parameter mean unchanged, its covariance
     grown by Q_theta. The reference is vehjax's EKF/UKF (tested against numpy and filterpy):
-    at the current parameters for the dual filters, on the augmented state for the joint ones."""
+    at the current parameters for the dual filters, on the augmented state for the joint ones,
+    whose parameter part is the log coordinate of the default positive domain (prior and random
+    walk mapped by the delta method, J = diag(theta))."""
     q_th = np.array([1e-4, 4e-4])
     est = builder(KIN, KIN_Q, KIN_R, Q_theta=q_th, estimate=("lf", "lr"), theta_decay=0.5)
     x0 = np.array([1.0, -0.5, 0.1, 12.0])
@@ -199,9 +223,11 @@ def test_all_missing_step_predicts_state_and_keeps_parameters(builder):
         _, ref = jax.jit(ref_est.step)(ref_est.init(x0, P0, th0), nan, u)
         np.testing.assert_allclose(out.cov, ref.cov, rtol=1e-10, atol=1e-14)
     else:
-        ref_est = state_only(_augmented_kinematic(), np.concatenate([KIN_Q, q_th]), KIN_R)
-        P_aug = np.block([[P0, np.zeros((4, 2))], [np.zeros((2, 4)), Pth0]])
-        _, ref = jax.jit(ref_est.step)(ref_est.init(np.concatenate([x0, th0]), P_aug), nan, u)
+        ref_est = state_only(_augmented_kinematic(), np.concatenate([KIN_Q, q_th / th0**2]),
+                             KIN_R)
+        P_aug = np.block([[P0, np.zeros((4, 2))], [np.zeros((2, 4)), Pth0 / np.outer(th0, th0)]])
+        s0 = np.log(th0 / 1.5)
+        _, ref = jax.jit(ref_est.step)(ref_est.init(np.concatenate([x0, s0]), P_aug), nan, u)
         np.testing.assert_allclose(out.cov, ref.cov[:4, :4], rtol=1e-10, atol=1e-14)
         ref = ref._replace(mean=ref.mean[:4])
     np.testing.assert_allclose(out.mean, ref.mean, rtol=1e-12)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import vehjax as vj
+from vehjax.filters._bounds import Transform
 from vehjax.filters.gaussian import GaussianState, ukf
 from vehjax.filters.liu_west import _kernel, liu_west_ukf
 
@@ -96,25 +97,37 @@ def test_kernel_keeps_weighted_mean_and_covariance():
     assert np.allclose(np.cov(resid.T), (1 - a * a) * V, rtol=0.03)
 
 
-def test_step_without_information_keeps_the_cloud():
+@pytest.mark.parametrize("bounds", [{"b": (1000.0, 2500.0)}, {}], ids=["box-domain", "unbounded"])
+def test_step_without_information_keeps_the_cloud(bounds):
     """Measurements that do not depend on b: weights stay equal, the kernel keeps the moments
-    of the uniform prior (mean at the centre, variance width^2 / 12)."""
+    of the cloud in the coordinate it acts on (the particles: logit of the prior box here,
+    b itself with bounds={}, where they are those of the uniform prior: mean at the centre,
+    variance width^2 / 12), and the estimate is the moments of the particles in physical units
+    (inside the box by default)."""
     model = vj.models.Model(
         transition=lambda x, u, th: A * x + 0.0 * th[0], observe=lambda x, u, th: x, dt=0.1,
         state_names=("x",), param_names=("b",), input_names=("u",), theta=[1.0],
     )
     M = 20_000
     est = liu_west_ukf(model, Q=[QV], R=[RV], n_particles=M, estimate="b", theta_low=[1000.0],
-                       theta_high=[2500.0], a=0.8, ess_threshold=0.0)
+                       theta_high=[2500.0], a=0.8, ess_threshold=0.0, bounds=bounds)
+    to_physical = Transform(*est.bounds).to_physical
     state = est.init(jnp.zeros(1), jnp.eye(1), key=jax.random.key(0))
     before = np.asarray(state.particles[0])  # particles (p, M)
     state, out = jax.jit(est.step)(state, jnp.array([0.3]), jnp.array([0.0]))
     after = np.asarray(state.particles[0])
     assert np.allclose(np.asarray(state.log_weights), -np.log(M))
     assert not np.allclose(after, before)
-    assert abs(out.params[0] - before.mean()) < 4 * before.std() / np.sqrt(M)
-    assert np.isclose(out.params_cov[0, 0], before.var(), rtol=0.03)
-    assert np.isclose(after.mean(), out.params[0]) and np.isclose(after.var(), out.params_cov[0, 0])
+    assert abs(after.mean() - before.mean()) < 4 * before.std() / np.sqrt(M)
+    assert np.isclose(after.var(), before.var(), rtol=0.03)
+    phys = np.asarray(to_physical(state.particles, axis=0)[0])
+    assert np.isclose(phys.mean(), out.params[0]) and np.isclose(phys.var(), out.params_cov[0, 0])
+    if bounds:
+        assert 1000.0 < phys.min() and phys.max() < 2500.0
+    else:
+        np.testing.assert_array_equal(phys, after)
+        assert abs(out.params[0] - 1750.0) < 4 * 1500.0 / np.sqrt(12 * M)
+        assert np.isclose(out.params_cov[0, 0], 1500.0**2 / 12, rtol=0.03)
 
 
 def _two_output_model(outputs=(0, 1)):
@@ -205,7 +218,7 @@ def test_weights_underflow_reinitialises_from_the_box_with_finite_outputs():
     state, out = _scan(est, ys[:4], us[:4], jax.random.key(2))
     assert bool(state.flag_diverged) and int(state.n_reinit) == 1
     assert np.all(np.isfinite(np.asarray(out.params))) and np.all(np.isfinite(out.params_cov))
-    p = np.asarray(state.particles).T  # (M, p)
+    p = np.asarray(Transform(*est.bounds).to_physical(state.particles, axis=0)).T  # (M, p)
     assert np.all((p >= [0.0, 0.0]) & (p <= [2.0, 1.0]))
     np.testing.assert_allclose(state.log_weights, -np.log(64))
 
@@ -279,3 +292,13 @@ def test_bad_init_raises_value_error_naming_it():
         est.init(np.zeros(1), np.eye(1), np.zeros(2), key=jax.random.key(0))
     with pytest.raises(ValueError, match="P0"):
         est.init(np.zeros(1), -np.eye(1), key=jax.random.key(0))
+
+
+def test_default_domain_is_positive_for_a_positive_box_else_the_box():
+    """bounds=None: (0, inf) (log coordinate) for a box with theta_low > 0, the box itself
+    otherwise (issue #17: the logit of the box biased the estimates)."""
+    est = liu_west_ukf(_two_output_model(), Q=[0.05, 0.05], R=[0.1, 0.2], n_particles=8,
+                       estimate=("b1", "b2"), theta_low=[0.5, -1.0], theta_high=[2.0, 1.0])
+    low, high = (np.asarray(b, float) for b in est.bounds[:2])
+    np.testing.assert_array_equal(low, [0.0, -1.0])
+    np.testing.assert_array_equal(high, [np.inf, 1.0])

@@ -1,22 +1,64 @@
 """Liu-West particle filter for the parameters + UKF for the state (Dutta et al. 2019, Alg. 3).
 
-The parameters named in ``estimate`` are carried as M weighted particles theta_i (physical units),
-drawn at ``init`` from a uniform prior on the box [theta_low, theta_high]. The state is estimated
-by a UKF (:func:`vehjax.filters.gaussian.ukf`) that runs the model at the weighted parameter mean.
-One step, with (mu, P) the UKF's filtered state from the last step and W_i the carried weights::
+The parameters named in ``estimate`` are carried as M weighted particles, drawn at ``init`` from a
+uniform prior on the box [theta_low, theta_high]. Each particle lives in the domain of the
+parameters, ``bounds`` (default: (0, inf) for a box with theta_low > 0, the log coordinate, else
+the prior box itself), and is carried in the unconstrained
+coordinate s_i of that domain (:mod:`vehjax.filters._bounds`, unit scale: ``theta = s``
+unbounded, ``low + exp(s)`` / ``high - exp(s)`` one-sided, ``low + (high - low) sigmoid(s)`` for a
+box), theta_i = g(s_i). The state is estimated by a UKF (:func:`vehjax.filters.gaussian.ukf`)
+that runs the model at the weighted parameter mean. One step, with (mu, P) the UKF's filtered
+state from the last step and W_i the carried weights::
 
-    y_i   = h(f(mu, u_t, theta_i), u_t, theta_i)                           (one-step prediction)
+    y_i   = h(f(mu + D (theta_i - theta_bar'), u_t, theta_i), u_t, theta_i)  (one-step prediction)
     log W_i <- log W_i + log N(y_t; y_i, S)  then normalised                (weigh, log space)
-    mean, V = weighted mean and covariance of the theta_i
+    mean, V = weighted mean and covariance of the s_i
     resample when ESS = 1 / sum W_i^2 < ess_threshold * M                   (vehjax resampling)
-    m_i = a theta_i + (1 - a) mean,  theta_i <- N(m_i, h^2 V),  h^2 = 1 - a^2   (Liu-West kernel)
-    theta_bar = sum_i W_i theta_i                                           (StepOutput.params)
+    m_i = a s_i + (1 - a) mean,  s_i <- N(m_i, h^2 V),  h^2 = 1 - a^2       (Liu-West kernel)
+    theta_bar = sum_i W_i g(s_i)                                            (StepOutput.params)
     W_i <- gamma W_i + (1 - gamma) / M                                      (residual weight)
-    UKF predict + update with theta_bar
+    UKF predict + update with theta_bar, D <- d mu / d theta_bar through that step
 
-The kernel keeps the weighted mean and covariance of the cloud: E[sum W_i m_i] = mean and the
-mixture covariance is a^2 V + h^2 V = V (Liu & West 2001), so it restores diversity without the
-over-dispersion of plain jittering.
+(theta_bar' the estimate the UKF ran with at the last step, D = 0 with ``recurrent=False``.)
+
+Bias (issue #17), and what removed it. Measured as the mean over runs of the final estimate
+(mean over the last 10 % of the steps) relative to the truth, in %, with its standard error:
+
+* ``vehjax.reproduce.dutta2019`` kinematic stage, matched settings, lf = lr = 1.5 m in the box
+  [0.5, 2.5]: before (box domain, no recurrent derivative), 20 runs, M = 500: lf +4.2 (2.3),
+  lr +2.7 (2.0), mean |err| 9.1, 6.8; after, 100 runs, M = 1000 (the study's): lf 0.0 (0.4),
+  lr -0.8 (0.5), mean |err| 3.3, 3.8 (M = 500: -0.5 (0.5), -1.4 (0.5)); the joint EKF's mean
+  |err| is 3.0, 3.2 on the same data.
+* Dynamic3DOF with m, cx, cy at 1.10, 0.92, 1.06 times nominal (box +-30 % of nominal,
+  ``dutta2019.dynamic_scenario``), M = 500: before, 20 runs: +4.3 (1.4), +4.1 (1.4),
+  +5.0 (1.4); after, 100 runs, M = 1000: -0.7 (0.3), -1.1 (0.4), -0.8 (0.3), mean |err| 2.5,
+  3.6, 2.5 (M = 500: -0.8, -1.0, -0.9); with ``likelihood="measurement"`` -0.4, -0.8, -0.5.
+* The dutta2019 dynamic stage's model at its true (nominal) parameters, box centred on them,
+  true lf, lr, 100 runs, M = 1000, after: m -0.5 (0.3), cx -1.1 (0.4), cy -0.6 (0.3).
+
+What is left: cx ends about 1 % low on both 3-DOF cases (2.6 standard errors), still falling
+at the end (-2.2 % at a third of the run), so partly the slow learning of the weakest
+parameter; not resolved here.
+
+Two causes, each measured alone on the 3-DOF data (20 runs, M = 500, mean error %): the logit
+coordinate of the box domain (box -> (0, inf): +4.3, +4.1, +5.0 -> +0.4, +1.0, +0.7 without
+the recurrent derivative), and the one-step prediction from a filtered state mu computed with
+theta_bar instead of theta_i (recurrent derivative alone: -> +2.5, +2.3, +2.5; both: +0.2,
++0.8, +0.5). The logit map has a steep Jacobian near the box's ends; the kernel's shrinkage and
+jitter preserve the weighted mean and covariance of s, not of theta, and repeated over
+thousands of steps through a map so curved they move the theta cloud. The log map is nearly
+linear over a box of +-30 %. The other suspects, varied one at a time on the old filter, did
+not remove it: the likelihood covariance S = R (``likelihood="measurement"``) +3.5, +4.5, +4.1;
+shrinkage a = 0.995 +2.1, +2.7, +2.2 and a = 0.9 +2.2, +1.7, +2.6 (se 1-2.6); gamma was not
+varied (it is 1, plain Liu-West, by default).
+
+The kernel keeps the weighted mean and covariance of the cloud of s_i: E[sum W_i m_i] = mean and
+the mixture covariance is a^2 V + h^2 V = V (Liu & West 2001), so it restores diversity without
+the over-dispersion of plain jittering. Acting on s, it can never move a particle out of the
+domain (with ``bounds={}``, s = theta and this is Liu and West's kernel on theta itself, which
+can). The reported estimate is in physical units: ``params`` the weighted mean of the mapped
+particles g(s_i), ``params_cov`` their weighted covariance (both inside the domain's convex
+hull; no delta method is needed for a particle cloud).
 
 Choices where the transcription of Algorithm 3 is unclear:
 
@@ -35,11 +77,13 @@ Choices where the transcription of Algorithm 3 is unclear:
   then keeps at least (1 - gamma) / M of the weight going into the next step (and the ESS at
   least ~1 / gamma^2); gamma = 1 is Liu and West's filter.
 * V is the weighted covariance of the particles (the transcription's formula for V is garbled).
-  To keep it positive definite when the cloud collapses, 1e3 * eps * (theta_high - theta_low)^2
-  is added to its diagonal (eps the dtype's machine epsilon: a standard deviation of 5e-7 of the
-  box width in float64), both in the kernel and in ``params_cov``.
-* The kernel does not confine particles to the box; a particle whose prediction is not finite
-  (e.g. a negative mass) gets weight zero.
+  To keep it positive definite when the cloud collapses, 1e3 * eps * w^2 is added to its
+  diagonal (eps the dtype's machine epsilon: a standard deviation of 5e-7 of w in float64), with
+  w the width of the prior box: theta_high - theta_low in ``params_cov``, and in the kernel the
+  same width in s, (theta_high - theta_low) / |dg/ds| at the box's centre (equal to it for an
+  unbounded parameter).
+* A particle whose prediction is not finite (e.g. a model that fails inside its nominal
+  domain) gets weight zero.
 * The parameter prior is the box: ``theta0``/``P_theta0`` are not needed. ``run`` and ``filter``
   report the box's centre and covariance diag((high - low)^2 / 12) as the estimate of a run
   that diverges at its first step (``Estimator.param_prior``).
@@ -71,6 +115,7 @@ import numpy as np
 from .. import _validate
 from . import resampling as _rs
 from . import sigma, smc
+from ._bounds import Transform, check_inside, parse as _parse_bounds
 from ._linalg import cholesky
 from .base import Estimator, check_estimate
 from ._model import check_model, in_dtype, model_dims, prior
@@ -87,8 +132,10 @@ class LiuWestState(NamedTuple):
     Attributes:
         x: (nx,) the UKF's filtered state mean (x0 before the first step).
         P: (nx, nx) its covariance.
-        particles: (p, M) parameter particles (particle axis last), physical units, after the
-            last step's kernel.
+        particles: (p, M) parameter particles (particle axis last) after the last step's kernel,
+            in the unconstrained coordinates s of the parameter domains (module docstring;
+            physical units for an unbounded parameter). ``vehjax.filters._bounds.Transform(
+            *estimator.bounds).to_physical(particles, axis=0)`` gives them in physical units.
         log_weights: (M,) their normalised log weights (``logsumexp == 0``), residual weight
             applied.
         key: (2,) uint32 threefry2x32 key data for the next step's draws.
@@ -99,6 +146,8 @@ class LiuWestState(NamedTuple):
             that diverged).
         flag_diverged: bool, True once any step had to re-initialise (see module docstring).
         n_reinit: int32, how many steps re-initialised.
+        D: (nx, p) recurrent derivative d x / d theta of the UKF's filtered state in the
+            parameter estimate it ran with, physical units (zeros when ``recurrent=False``).
     """
 
     x: jnp.ndarray
@@ -111,6 +160,7 @@ class LiuWestState(NamedTuple):
     ess: jnp.ndarray
     flag_diverged: jnp.ndarray
     n_reinit: jnp.ndarray
+    D: jnp.ndarray
 
 
 # -- validation (before anything is traced) --------------------------------------------------
@@ -183,6 +233,8 @@ def liu_west_ukf(
     alpha: float = 1.0,
     beta: float = 2.0,
     kappa: float = 0.0,
+    bounds=None,
+    recurrent: bool = True,
 ) -> Estimator:
     """Liu-West particle filter for the parameters ``estimate`` plus a UKF for the state.
 
@@ -209,6 +261,18 @@ def liu_west_ukf(
             "measurement" (S = R, as in the paper); see the module docstring.
         alpha, beta, kappa: the UKF's sigma-point scaling
             (:func:`vehjax.filters.sigma.unscented_rule`).
+        bounds: ``{name: (low, high)}`` domains of the estimated parameters in physical units,
+            None for an open end; the particles never leave them (the kernel acts on the
+            unconstrained coordinate, module docstring). Default (None): (0, inf) for a
+            parameter whose prior box has theta_low > 0, else the prior box
+            [theta_low, theta_high] itself (the logit of a box biases the estimate, module
+            docstring). A dict is the whole specification: parameters it
+            does not name are unbounded, so ``bounds={}`` is the kernel on theta itself (Liu and
+            West's, whose particles can leave the box). Each domain must contain its prior box.
+        recurrent: True (default): predict each particle from the UKF's state moved to first
+            order to its own parameters, mu + D (theta_i - theta_bar), D = d mu / d theta_bar
+            carried through the UKF's recursion (``jax.jacfwd`` of its step); False: from mu
+            (module docstring).
 
     Returns:
         ``Estimator`` with ``needs_key=True`` and ``param_names = estimate``:
@@ -216,7 +280,8 @@ def liu_west_ukf(
         ``init(x0, P0, theta0=None, P_theta0=None, key=None) -> LiuWestState``: x0 (nx,), P0
         (nx, nx) or (nx,) variances: the UKF's prior (their dtype sets the filter's). The
         parameter prior is the uniform box, M draws with equal weights; ``theta0`` (p,) and
-        ``P_theta0`` (p, p) are only checked for shape and otherwise not used (``vehjax.run``
+        ``P_theta0`` (p, p) are only checked (shapes, theta0 inside the domains) and otherwise
+        not used (``vehjax.run``
         requires them of parameter-estimating filters and reports them as the estimate of a run
         that diverges at its first step: the box's centre and covariance diag((high - low)^2 /
         12) are natural values). ``key`` is required.
@@ -229,9 +294,11 @@ def liu_west_ukf(
 
     Raises:
         ValueError: naming the argument, for a wrong model, Q or R of the wrong shape or not
-            positive definite, n_particles < 1, unknown or empty ``estimate``, bounds of the wrong
-            length or not low < high, a outside (0, 1), gamma outside (0, 1], an unknown
-            resampling scheme or likelihood, ess_threshold outside [0, 1].
+            positive definite, n_particles < 1, unknown or empty ``estimate``, theta_low /
+            theta_high of the wrong length or not low < high, ``bounds`` naming other
+            parameters, not pairs with low < high, or not containing the prior box, a outside
+            (0, 1), gamma outside (0, 1], an unknown resampling scheme or likelihood,
+            ess_threshold outside [0, 1].
     """
     nx, ny = check_model(model)
     names, idx = check_estimate(model, estimate)
@@ -241,6 +308,24 @@ def liu_west_ukf(
             "theta_low, theta_high: required, the bounds of the uniform prior of " f"{names}"
         )
     low_n, high_n = _check_box(theta_low, theta_high, names)
+    if bounds is None:
+        # (0, inf) for a positive box (log coordinate), else the box itself (module docstring)
+        pos = low_n > 0
+        dom_lo = np.where(pos, 0.0, low_n)
+        dom_hi = np.where(pos, np.inf, high_n)
+    else:
+        dom_lo, dom_hi = _parse_bounds(bounds, names, np.asarray(model.theta, float)[list(idx)])
+        outside = (low_n < dom_lo) | (high_n > dom_hi)
+        if np.any(outside):
+            bad = [n for n, o in zip(names, outside) if o]
+            raise ValueError(
+                f"bounds: each domain must contain the prior box [theta_low, theta_high]; not so "
+                f"for {bad} (domain low {dom_lo}, high {dom_hi}; box {low_n}, {high_n})"
+            )
+    tf = Transform(dom_lo, dom_hi)
+    # the prior box's width in s (delta method at its centre), for the kernel's jitter
+    centre = 0.5 * (low_n + high_n)
+    width_s = (high_n - low_n) / np.abs(np.asarray(tf.jacobian(tf.to_unconstrained(centre))))
     n = smc.check_n_particles(n_particles)
     a = _validate.number("a", a, 0.0, 1.0)
     gamma = _validate.number("gamma", gamma, 0.0, 1.0, high_open=False)
@@ -266,9 +351,13 @@ def liu_west_ukf(
 
     predict_all = jax.vmap(predict_one, in_axes=(None, None, 0))
 
-    def jitter(dtype):
+    def jitter(dtype, width):
         eps = float(np.finfo(np.dtype(dtype)).eps)
-        return jnp.asarray(np.diag(1e3 * eps * (high_n - low_n) ** 2), dtype)
+        return jnp.asarray(np.diag(1e3 * eps * width**2), dtype)
+
+    def draw(key, low, high):
+        """M draws from the uniform prior box, in s: (p, M)."""
+        return tf.to_unconstrained(_draw_box(key, low, high, n), axis=0)
 
     def init(x0, P0, theta0=None, P_theta0=None, key=None):
         x0, P0 = prior(nx, x0, P0)
@@ -278,6 +367,8 @@ def liu_west_ukf(
                 f"theta0: expected shape ({p},) for parameters {names} or None (the prior is "
                 f"the box), got shape {np.shape(theta0)}"
             )
+        if theta0 is not None:
+            check_inside("theta0", theta0, dom_lo, dom_hi, names)
         if P_theta0 is not None and np.shape(P_theta0) != (p, p):
             raise ValueError(
                 f"P_theta0: expected shape ({p}, {p}) for parameters {names} or None, "
@@ -290,7 +381,7 @@ def liu_west_ukf(
         return LiuWestState(
             x=x0,
             P=P0,
-            particles=_draw_box(k_draw, low, high, n),
+            particles=draw(k_draw, low, high),
             log_weights=jnp.full((n,), -log_n, dtype),
             key=smc.raw_key(k_run),
             theta_mean=0.5 * (low + high),
@@ -298,6 +389,7 @@ def liu_west_ukf(
             ess=jnp.asarray(float(n), dtype),
             flag_diverged=jnp.asarray(False),
             n_reinit=jnp.asarray(0, jnp.int32),
+            D=jnp.zeros((nx, p), dtype),
         )
 
     def step(state: LiuWestState, y, u):
@@ -312,7 +404,14 @@ def liu_west_ukf(
         theta_prev = full_theta(base, state.theta_mean)
 
         # weigh: one-step prediction of every particle from the UKF's filtered mean
-        y_i = predict_all(state.x, u, full_theta(base, state.particles.T))  # (M, ny)
+        theta_i = tf.to_physical(state.particles, axis=0)  # (p, M) inside the domains
+        if recurrent:
+            # each particle from the state the UKF would have filtered with its parameters,
+            # to first order: x + D (theta_i - theta_mean)
+            y_i = jax.vmap(lambda th: predict_one(state.x + state.D @ (th - state.theta_mean), u,
+                                                  full_theta(base, th)))(theta_i.T)
+        else:
+            y_i = predict_all(state.x, u, full_theta(base, theta_i.T))  # (M, ny)
         e = jnp.where(obs, y[None, :] - y_i, 0.0)
         bad = ~jnp.all(jnp.isfinite(e), axis=1)
         e = jnp.where(bad[:, None], 0.0, e)
@@ -336,14 +435,14 @@ def liu_west_ukf(
         ess = smc.ess(w)
         u_res = jax.random.uniform(k_res, (n_unif,), dtype=dtype)
         parts, lw_k, _, _ = smc.resample(state.particles, w, lw, u_res, scheme, thr)
-        moved = _kernel(k_kernel, parts, mean, V + jitter(dtype), a)
+        moved = _kernel(k_kernel, parts, mean, V + jitter(dtype, width_s), a)
         move = ~keep & jnp.all(jnp.isfinite(moved))
         parts = jnp.where(move, moved, state.particles)
         lw_k = jnp.where(move, lw_k, lw)
 
-        # parameter estimate: weighted moments of the moved cloud
-        theta_bar, cov_bar = smc.moments(jnp.exp(lw_k), parts)
-        cov_bar = cov_bar + jitter(dtype)
+        # parameter estimate: weighted moments of the moved cloud, in physical units
+        theta_bar, cov_bar = smc.moments(jnp.exp(lw_k), tf.to_physical(parts, axis=0))
+        cov_bar = cov_bar + jitter(dtype, high_n - low_n)
 
         # residual weight: a fraction gamma of each weight goes on, the rest evenly
         if gamma < 1.0:
@@ -353,14 +452,25 @@ def liu_west_ukf(
         lw_next = jnp.where(move, lw_next, lw_k)
 
         # divergence: the next step starts from fresh draws from the prior box
-        fresh = _draw_box(k_box, low, high, n)
+        fresh = draw(k_box, low, high)
         parts_next, lw_next, _ = smc.reinitialise(diverged, fresh, parts, lw_next,
                                                   jnp.exp(lw_next))
 
         # state: UKF at the parameter estimate
-        ukf_state, out = state_filter.step(
-            GaussianState(state.x, state.P, full_theta(base, theta_bar)), y, u
-        )
+        def ukf_step(th):
+            # the UKF's step from x(th) = x + D (th - theta_bar) at th; the step itself at
+            # th = theta_bar, its Jacobian in th the recurrent derivative
+            st, o = state_filter.step(
+                GaussianState(state.x + state.D @ (th - theta_bar), state.P,
+                              full_theta(base, th)), y, u
+            )
+            return st.x, (st, o)
+
+        if recurrent:
+            D_next, (ukf_state, out) = jax.jacfwd(ukf_step, has_aux=True)(theta_bar)
+            D_next = jnp.where(jnp.all(jnp.isfinite(D_next)), D_next, 0.0)
+        else:
+            D_next, (ukf_state, out) = state.D, ukf_step(theta_bar)[1]
         new_state = LiuWestState(
             x=ukf_state.x,
             P=ukf_state.P,
@@ -372,11 +482,12 @@ def liu_west_ukf(
             ess=jnp.where(diverged, 0.0, jnp.where(has_obs, ess, state.ess)),
             flag_diverged=state.flag_diverged | diverged,
             n_reinit=state.n_reinit + diverged.astype(jnp.int32),
+            D=D_next,
         )
         return new_state, out._replace(params=theta_bar, params_cov=cov_bar, reinit=diverged)
 
     box = (0.5 * (low_n + high_n), np.diag((high_n - low_n) ** 2 / 12.0))
     return Estimator(
         init=init, step=step, nx=nx, param_names=names, name="liu_west_ukf", needs_key=True,
-        param_prior=box, **model_dims(model),
+        param_prior=box, bounds=tf.bounds, **model_dims(model),
     )
