@@ -78,6 +78,14 @@ def test_reduced_study_writes_tables_and_figures(tmp_path, capsys, monkeypatch):
     assert "| Dual UKF (paper) | 1.580 | 1.390 |" in report
     assert "| Particle+UKF (paper) | 0.1727 | 0.1566 | 0.0630 |" in report
     assert "nan" not in report.lower()
+    # consistency (NEES, NIS, parameter coverage) per filter and stage, shares in [0, 1]
+    for stage, n_par in (("kinematic model", 2), ("dynamic model", 3)):
+        part = report.split(f"### Consistency, {stage} (tuned settings)")[1].split("###")[0]
+        for name in ("Dual EKF", "Dual UKF", "Particle+UKF"):
+            cells = next(ln for ln in part.splitlines() if ln.startswith(f"| {name} |")).split("|")
+            shares = [float(cells[2]), float(cells[4])] + [float(v) for v in cells[6].split(",")]
+            assert len(shares) == 2 + n_par and all(0.0 <= v <= 1.0 for v in shares), (name, cells)
+            assert float(cells[3]) > 0 and float(cells[5]) > 0
     for png in ("fig4_5_kinematic_lf_lr", "fig6_input_frequency", "fig7_9_dynamic_states",
                 "fig10_12_dynamic_m_cx_cy"):
         assert (tmp_path / f"{png}_tuned.png").stat().st_size > 10_000

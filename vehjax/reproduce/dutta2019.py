@@ -373,7 +373,7 @@ def _stage(model, scn, estimate, settings, box, runs, key, estimators, inputs=No
         results[name] = run(
             est, sim.measurements, sim.inputs if inputs is None else inputs[name],
             x0=x0, P0=np.diag(settings["P0"]), theta0=theta0,
-            P_theta0=np.diag(settings["P_theta0"]), key=k_run,
+            P_theta0=np.diag(settings["P_theta0"]), key=k_run, return_covariances=True,
         )
         seconds[name] = time.perf_counter() - t0
         if progress:
@@ -386,6 +386,47 @@ def _stage(model, scn, estimate, settings, box, runs, key, estimators, inputs=No
 
 # ----------------------------------------------------------------------------------------------
 # Tables
+
+
+def table_consistency(stage: Stage) -> str:
+    """Markdown table: is each filter's reported uncertainty right (issue 17, item 4)?
+
+    Per filter: the share of steps at which the run-averaged NEES of the states (truth from the
+    simulation, nx degrees of freedom) and the NIS (``n_obs`` degrees of freedom) lie in their
+    95 % chi-square band (:func:`vehjax.metrics.consistency`), the mean NEES / nx and NIS per
+    degree of freedom (1 = consistent; > 1 over-confident, < 1 under-confident), and per
+    parameter the share of runs whose true value lies in the final 95 % interval
+    (estimate +- 1.96 sqrt(params_cov)); diverged runs are left out.
+    """
+    from ..metrics import consistency, nees
+
+    names = ", ".join(stage.names)
+    lines = [f"| filter | NEES in band | mean NEES / nx | NIS in band | mean NIS / dof | "
+             f"truth in 95 % interval ({names}) |", "|---|---|---|---|---|---|"]
+    X = np.asarray(stage.sim.states)
+    nx = X.shape[-1]
+    for name, res in stage.results.items():
+        keep = ~np.asarray(res.diverged, bool)
+        e = nees(res.states, res.covariances, X)
+        ce = consistency(e, nx, mask=keep)
+        cn = consistency(res.nis, res.n_obs, mask=keep)
+        dof = np.where(res.n_obs > 0, res.n_obs, np.nan)
+        nis_rate = np.nanmean((res.nis / dof)[keep]) if keep.any() else np.nan
+        sd = np.sqrt(np.diagonal(res.params_cov[:, -1], axis1=-2, axis2=-1))
+        inside = np.abs(res.params[:, -1] - stage.truth) <= 1.96 * sd
+        cover = ", ".join(f"{v:.2f}" for v in inside[keep].mean(axis=0)) if keep.any() else "-"
+        lines.append(f"| {name} | {ce.inside:.2f} | {np.nanmean(e[keep]) / nx:.3g} | "
+                     f"{cn.inside:.2f} | {nis_rate:.3g} | {cover} |")
+    return "\n".join(lines)
+
+
+def _report_consistency(report: list, stage: Stage, what: str, setting: str) -> None:
+    report += [f"### Consistency, {what} ({setting} settings)",
+               "Share of steps with the run-averaged NEES / NIS inside the 95 % chi-square "
+               "band (a consistent filter: about 0.95), their mean per degree of freedom "
+               "(1 = consistent, > 1 over-confident, < 1 under-confident), and the share of runs "
+               "whose true parameter lies in the final 95 % interval (about 0.95 if the "
+               "parameter covariance is right).\n", table_consistency(stage), ""]
 
 
 #: "not learned": on average over runs the final estimate lies within this fraction of the
@@ -1078,6 +1119,7 @@ def _kinematic(args, filters, setting, key, out, report):
                "within 0.05 m.\n",
                table_parameters(st, PAPER_TABLE1, args.dt, tol=0.05, digits=(3, 3)), "",
                learning_summary(st, 0.05, "0.05 m", digits=(3, 3)), ""]
+    _report_consistency(report, st, "kinematic model", setting)
     fig = plot_parameters(st, out / f"fig4_5_kinematic_lf_lr_{setting}.png",
                           f"lf, lr on the kinematic model ({setting} settings)", tol=0.05)
     _figure(report, fig, f"Fig. 4-5: lf, lr against time, each filter's mean and 5-95 % band over "
@@ -1158,6 +1200,7 @@ def _dynamic(args, filters, setting, key, out, report, kinematic: Stage):
                                 scale=scale), "",
                learning_summary(st, 0.03 * truth, "3 % of the truth", scale=scale, digits=(1, 3, 3)),
                ""]
+    _report_consistency(report, st, "dynamic model", setting)
     fig = plot_parameters(st, out / f"fig10_12_dynamic_m_cx_cy_{setting}.png",
                           f"m, cx, cy on the dynamic model ({setting} settings)", scale=scale,
                           tol=0.03 * truth)
