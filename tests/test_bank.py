@@ -9,6 +9,8 @@ import scipy.linalg
 import vehjax  # noqa: F401  (float64)
 from vehjax.models.bank import G, SingleTrackBank, virtual_yaw_rate
 
+from _bank_ref import continuous_matrices
+
 MODEL = SingleTrackBank(dt=0.01)
 TH = np.asarray(MODEL.theta)
 
@@ -23,20 +25,6 @@ def _ref_derivative(x, u, th):
     vy_dot = (-m * vx * r + cf * af + cr * ar - m * G * phi) / m
     r_dot = (lf * cf * af - lr * cr * ar) / iz
     return np.array([vy_dot, r_dot, phid, phidd, 0.0])
-
-
-def _ref_matrices(vx, th):
-    """Continuous x' = A x + B delta of the same equations, in numpy."""
-    m, iz, lf, lr, cf, cr = th
-    a = np.zeros((5, 5))
-    a[0, 0] = -(cf + cr) / (m * vx)
-    a[0, 1] = -vx + (lr * cr - lf * cf) / (m * vx)
-    a[0, 2] = -G
-    a[1, 0] = (lr * cr - lf * cf) / (iz * vx)
-    a[1, 1] = -(lf**2 * cf + lr**2 * cr) / (iz * vx)
-    a[2, 3] = a[3, 4] = 1.0
-    b = np.array([cf / m, lf * cf / iz, 0.0, 0.0, 0.0])
-    return a, b
 
 
 def _simulate(model, x0, u, steps, theta=None):
@@ -74,7 +62,7 @@ def test_transition_matches_exact_zoh_discretisation():
     us[:, 0] = np.linspace(10.0, 30.0, len(us))
     dt = MODEL.dt
     for x, u in zip(xs, us):
-        a, b = _ref_matrices(u[0], TH)
+        a, b = continuous_matrices(u[0], TH)
         big = np.zeros((6, 6))
         big[:5, :5], big[:5, 5] = a, b
         taylor = sum(
@@ -148,7 +136,7 @@ def test_constant_bank_makes_car_drift_down_slope():
     assert np.all(xs[:, 0] < 0.0)  # lateral velocity down the slope from the first step on
     assert np.all(xs[:, 2] == phi)
     # steady state from the 2x2 linear system of eq. 2 solved in numpy
-    a, _ = _ref_matrices(vx, TH)
+    a, _ = continuous_matrices(vx, TH)
     ss = np.linalg.solve(a[:2, :2], -a[:2, 2] * phi)
     np.testing.assert_allclose(xs[-1, :2], ss, rtol=1e-9)
     assert ss[1] < 0.0  # the understeering nominal car also yaws down the slope

@@ -63,25 +63,29 @@ def _documented(parser):
             if a.option_strings and a.dest != "help"]
 
 
+def _assert_listed_with_defaults(text, command, parsers):
+    """Every sub-command of ``vehjax <command>`` is in ``text`` with each of its options, and
+    each option's help states its default."""
+    for name, parser in parsers.items():
+        assert f"vehjax {command} {name}" in text
+        for opt, helptext in _documented(parser):
+            assert opt in text, (name, opt)
+            assert "default" in helptext, (name, opt)
+
+
 def test_reproduce_help_lists_every_study_option_with_its_default(capsys):
     from vehjax import reproduce
 
     text = _help_text(capsys, ["reproduce", "--help"])
-    for name in reproduce.REGISTRY:
-        assert f"vehjax reproduce {name}" in text
-        for opt, helptext in _documented(reproduce.load(name).parser()):
-            assert opt in text, (name, opt)
-            assert "default" in helptext, (name, opt)
+    _assert_listed_with_defaults(text, "reproduce",
+                                 {n: reproduce.load(n).parser() for n in reproduce.REGISTRY})
     assert "(default 100)" in text and "(default 1000)" in text  # --runs, dutta2019 --particles
 
 
 def test_bench_help_lists_every_option_with_its_default(capsys):
     text = _help_text(capsys, ["bench", "--help"])
-    for which in cli.BENCHMARKS:
-        assert f"vehjax bench {which}" in text
-        for opt, helptext in _documented(cli.load_benchmark(which).parser()):
-            assert opt in text, (which, opt)
-            assert "default" in helptext, (which, opt)
+    _assert_listed_with_defaults(text, "bench",
+                                 {w: cli.load_benchmark(w).parser() for w in cli.BENCHMARKS})
 
 
 def test_bad_input_is_a_clear_error(capsys):

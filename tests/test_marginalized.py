@@ -22,7 +22,9 @@ from vehjax.filters.marginalized import (
     marginalized_pf,
 )
 from vehjax.filters.particle import bootstrap_pf
-from vehjax.models.bank import G, SingleTrackBank
+from vehjax.models.bank import SingleTrackBank
+
+from _bank_ref import continuous_matrices
 
 DT = 0.01
 VX = 20.0
@@ -169,14 +171,7 @@ def _discrete_matrices():
     X+ = Ad X + Bd delta, y = C X + Dd delta (eq. 1-3 and the ay, r, roll_rate, phi, r_virt
     outputs)."""
     m, iz, lf, lr, cf, cr = np.asarray(MODEL.theta)
-    a = np.zeros((5, 5))
-    a[0, 0] = -(cf + cr) / (m * VX)
-    a[0, 1] = -VX + (lr * cr - lf * cf) / (m * VX)
-    a[0, 2] = -G
-    a[1, 0] = (lr * cr - lf * cf) / (iz * VX)
-    a[1, 1] = -(lf**2 * cf + lr**2 * cr) / (iz * VX)
-    a[2, 3] = a[3, 4] = 1.0
-    b = np.array([cf / m, lf * cf / iz, 0.0, 0.0, 0.0])
+    a, b = continuous_matrices(VX, (m, iz, lf, lr, cf, cr))
     M = DT * a
     Ad = sum(np.linalg.matrix_power(M, k) / math.factorial(k) for k in range(5))
     Bd = DT * sum(np.linalg.matrix_power(M, k) / math.factorial(k + 1) for k in range(4)) @ b
