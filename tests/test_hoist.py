@@ -62,3 +62,64 @@ def test_split_keeps_functions_with_effects_whole():
 def test_split_rejects_wrong_number_of_flags():
     with pytest.raises(ValueError, match="late"):
         split(lambda x, u: x + u, (SD((2,), jnp.float64), SD((2,), jnp.float64)), late=(True,))
+
+
+# -- dependence: which output entries are constants of the function --------------------------
+
+from vehjax._hoist import dependence  # noqa: E402
+
+
+def test_dependence_follows_entries_through_moves_and_elementwise_ops():
+    def fn(x, u):
+        a = jnp.stack([x[0] * u[1], 2.0 + u[0] * 0.0, jnp.sin(x[1])])  # u[0] * 0.0 still "depends"
+        b = jnp.concatenate([a[:1], jnp.array([3.0, 0.0]), jnp.cos(u[1:2])])
+        c = jnp.zeros(4).at[1].add(x[1]).at[3].set(7.0)  # scatters at fixed indices
+        return {"a": a, "b": b, "c": c, "k": jnp.ones((2, 2)) * 5.0, "s": jnp.sum(x) + 1.0}
+
+    d = dependence(fn, (jnp.ones(2), jnp.ones(2)))
+    np.testing.assert_array_equal(d["a"], [True, True, True])
+    np.testing.assert_array_equal(d["b"], [True, False, False, True])
+    np.testing.assert_array_equal(d["c"], [False, True, False, False])
+    np.testing.assert_array_equal(d["k"], np.zeros((2, 2), bool))
+    assert d["s"].shape == () and bool(d["s"])
+
+
+def test_dependence_is_conservative_for_reductions_and_products():
+    def fn(x):
+        M = jnp.diag(x) @ jnp.eye(2)  # a matrix product: every entry depends
+        return M, jnp.cumsum(jnp.array([1.0, 0.0]) * x[0])
+
+    M, c = dependence(fn, (jnp.ones(2),))
+    assert M.all() and c.all()
+
+
+@pytest.mark.parametrize("model", [vj.models.SingleTrackBank(dt=0.01),
+                                   vj.models.Dynamic3DOF(dt=0.01),
+                                   vj.models.KinematicBicycle(dt=0.01)],
+                         ids=lambda m: type(m).__name__)
+def test_entries_found_constant_are_the_same_at_random_points(model):
+    """Sound on the built-in models: every Jacobian entry of transition and observe that
+    ``dependence`` calls constant takes that one value at 20 random states and inputs; and the
+    structural zeros and ones of SingleTrackBank's bank dynamics are found."""
+    theta = jnp.asarray(model.theta)
+
+    def jac(x, u):
+        return (jax.jacfwd(model.transition)(x, u, theta), jax.jacfwd(model.observe)(x, u, theta),
+                jax.jacfwd(model.transition, argnums=1)(x, u, theta))
+
+    x0, u0 = jnp.asarray(model.initial_state(15.0)), jnp.full(model.nu, 0.01)
+    deps = dependence(jac, (x0, u0))
+    rng = np.random.default_rng(3)
+    X = x0 + 0.3 * rng.standard_normal((20, model.nx)) * (1.0 + np.abs(np.asarray(x0)))
+    U = np.asarray(u0) + 0.1 * rng.standard_normal((20, model.nu))
+    vals = jax.vmap(jac)(jnp.asarray(X), jnp.asarray(U))
+    n_const = 0
+    for d, v in zip(deps, vals):
+        v = np.asarray(v)
+        const = ~np.asarray(d)
+        n_const += int(const.sum())
+        np.testing.assert_array_equal(np.broadcast_to(v[0], v.shape)[:, const], v[:, const])
+    assert n_const > 0
+    if isinstance(model, vj.models.SingleTrackBank):
+        A = ~np.asarray(deps[0])[2:, 2:]  # d(phi, phi_dot, phi_ddot)' / d(phi, phi_dot, phi_ddot)
+        assert A.all()

@@ -18,7 +18,9 @@ from __future__ import annotations
 from typing import Callable, NamedTuple, Sequence
 
 import jax
-from jax.extend.core import ClosedJaxpr, DebugInfo, Jaxpr, Var, jaxpr_as_fun
+import jax.numpy as jnp
+import numpy as np
+from jax.extend.core import ClosedJaxpr, DebugInfo, Jaxpr, Literal, Var, jaxpr_as_fun
 
 
 class Split(NamedTuple):
@@ -96,3 +98,105 @@ def split(fn: Callable, args: Sequence, late: Sequence[bool]) -> Split:
 
     return Split(lambda *a: tuple(early_fn(*a)), late_fn, len(residuals))
 
+
+
+# ---------------------------------------------------------------------------------------------
+# Which output entries depend on the arguments at all
+
+# Primitives that move entries without combining them: evaluated on the dependence masks (data
+# operands) and the true values (index operands).
+_INDEX_OPERANDS = {
+    "gather": (1,), "scatter-add": (1,), "scatter": (1,), "scatter_add": (1,),
+    "dynamic_slice": None, "dynamic_update_slice": None,  # indices: every operand after the data
+}
+_DATA_OPERANDS = {"dynamic_slice": 1, "dynamic_update_slice": 2}
+_MOVES = {
+    "broadcast_in_dim", "slice", "squeeze", "concatenate", "reshape", "transpose", "rev", "pad",
+    "expand_dims", "unstack", "stack", "split", "gather", "scatter-add", "scatter", "scatter_add",
+    "dynamic_slice", "dynamic_update_slice",
+}
+_PASS = {"convert_element_type", "copy", "copy_p", "reduce_precision", "stop_gradient"}
+
+
+def dependence(fn: Callable, args: Sequence):
+    """Which entries of ``fn(*args)`` depend on the arguments: a pytree like the output, each
+    leaf a numpy bool array of the leaf's shape, False where the entry is the same number for
+    every value of the arguments (a constant of ``fn``, e.g. a structural zero or one of a
+    Jacobian).
+
+    Found from the traced equations, entry by entry, evaluating ``fn`` only at ``args``: an entry
+    is independent when no chain of equations leads to it from an argument. Equations that only
+    move entries (slices, concatenations, broadcasts, gathers and scatters at fixed indices) are
+    followed entry by entry, elementwise ones combine the entries at the same position, calls
+    (jit, custom derivatives) are followed inside, and any other equation (reductions, matrix
+    products, loops) makes every entry of its result depend on every dependent entry of its
+    operands. The answer can only err towards "depends" (e.g. ``0 * x`` depends on x), never the
+    other way.
+    """
+    closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*args)
+    out_tree = jax.tree.structure(out_shape)
+    _, masks = _eval_dependence(closed, list(args), [np.ones(np.shape(a), bool) for a in args])
+    return jax.tree.unflatten(out_tree, masks)
+
+
+def _inner_jaxpr(params):
+    for key in ("jaxpr", "call_jaxpr", "fun_jaxpr"):
+        j = params.get(key)
+        if isinstance(j, ClosedJaxpr):
+            return j
+    return None
+
+
+def _eval_dependence(closed, args, arg_masks):
+    """(values, dependence masks) of the outputs of ``closed`` at ``args`` whose entries depend
+    on the arguments where ``arg_masks`` is True."""
+    jaxpr = closed.jaxpr
+    val, dep = {}, {}
+
+    def read(v):
+        if isinstance(v, Literal):
+            return v.val, np.zeros(np.shape(v.val), bool)
+        return val[v], dep[v]
+
+    for v, c in zip(jaxpr.constvars, closed.consts):
+        val[v], dep[v] = c, np.zeros(np.shape(c), bool)
+    for v, a, m in zip(jaxpr.invars, args, arg_masks):
+        val[v], dep[v] = a, m
+    for eqn in jaxpr.eqns:
+        ins = [read(v) for v in eqn.invars]
+        values, masks = [x for x, _ in ins], [m for _, m in ins]
+        outs = eqn.primitive.bind(*values, **eqn.primitive.get_bind_params(eqn.params))
+        outs = outs if eqn.primitive.multiple_results else [outs]
+        shapes = [np.shape(o) for o in outs]
+        name = eqn.primitive.name
+        inner = _inner_jaxpr(eqn.params)
+        if not any(m.any() for m in masks):
+            out_dep = [np.zeros(s, bool) for s in shapes]
+        elif inner is not None and len(inner.jaxpr.invars) == len(values) and len(
+                inner.jaxpr.outvars) == len(outs):
+            _, out_dep = _eval_dependence(inner, values, masks)
+        elif name in _PASS:
+            out_dep = [masks[0]]
+        elif name in _MOVES:
+            n_data = _DATA_OPERANDS.get(name)
+            index_pos = (set(range(n_data, len(ins))) if n_data is not None
+                         else set(_INDEX_OPERANDS.get(name, ())))
+            if any(masks[i].any() for i in index_pos):
+                out_dep = [np.ones(s, bool) for s in shapes]
+            else:
+                # the same move applied to the masks (in the data dtype: scatters add), indices
+                # as they are
+                moved = eqn.primitive.bind(
+                    *[x if i in index_pos else jnp.asarray(m).astype(jnp.result_type(x))
+                      for i, (x, m) in enumerate(zip(values, masks))], **eqn.params)
+                moved = moved if eqn.primitive.multiple_results else [moved]
+                out_dep = [np.asarray(o) != 0 for o in moved]
+        elif not eqn.primitive.multiple_results and all(
+                np.shape(m) in ((), shapes[0]) for m in masks):
+            out_dep = [np.logical_or.reduce([np.broadcast_to(m, shapes[0]) for m in masks])]
+        else:
+            out_dep = [np.ones(s, bool) for s in shapes]
+        for v, o, d in zip(eqn.outvars, outs, out_dep):
+            val[v], dep[v] = o, d
+    outs = [read(v) for v in jaxpr.outvars]
+    return [o for o, _ in outs], [d for _, d in outs]

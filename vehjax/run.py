@@ -37,9 +37,36 @@ its steps is flagged ``at_bound``; it is neither frozen nor ``diverged``.
 Large studies are split into chunks of runs, each one jitted call (one compilation per chunk
 shape; the last chunk is padded); results come back to host memory chunk by chunk, so device
 memory stays bounded. When several JAX devices are visible the runs of each chunk are sharded over
-them (``jax.shard_map`` over a 1-D mesh, no communication between devices). Results do not depend
-on chunking or sharding beyond rounding: the number of runs computed together can change the last
-bit of a result (XLA vectorises differently), never more.
+them (``jax.shard_map`` over a 1-D mesh, no communication between devices; across processes see
+below). Results do not depend on chunking or sharding beyond rounding: the number of runs
+computed together can change the last bit of a result (XLA vectorises differently), never more.
+
+Past one machine (multi-controller JAX): after ``jax.distributed.initialize`` in every process,
+``run`` called in every process with the same arguments (the SPMD convention: the same data,
+key, ``chunk_size`` and ``devices``) shards each chunk's runs over the devices of all processes
+(``jax.devices()``, the global mesh) and returns the whole :class:`RunResult`, all R runs, in
+every process, equal to a one-process run up to rounding::
+
+    # on each of N hosts (or N local processes), process_id = 0 .. N-1
+    jax.distributed.initialize(coordinator_address="host0:1234", num_processes=N,
+                               process_id=process_id)   # before any other JAX call
+    out = vehjax.run(est, measurements, inputs, x0=x0, P0=P0, key=jax.random.key(0))
+    if jax.process_index() == 0:
+        out.to_npz("study.npz")                         # every process holds all of out
+
+Every process holds the full host arrays; it places on its own devices only the runs they
+compute (``jax.make_array_from_callback``). Each chunk's results are all-gathered over the mesh
+inside the jitted call (so every device, and every process, holds the chunk's outputs) and come
+back to host memory in every process. Chunks, the padding of the last one and the device order
+are computed from the arguments alone, hence the same in every process; before the first chunk
+``run`` checks this with one small all-gather of a hash of the arguments and raises ValueError
+in every process when they differ (a process that does not call ``run``, or fails before that
+check, leaves the others waiting). Processes may have different numbers of local devices. On
+CPU the processes exchange data through gloo (``jax_cpu_collectives_implementation``, JAX's
+default); ``jax_num_cpu_devices`` gives a process several CPU devices. ``devices=False`` makes
+every process run the whole study alone on its first local device, without communication; a
+sequence of devices is either all the calling process's (a local study, as with one process)
+or includes devices of every process. The progress bar shows on process 0 only.
 
 Compile and execution time can be measured apart with :func:`compile_run`::
 
@@ -50,6 +77,7 @@ Compile and execution time can be measured apart with :func:`compile_run`::
 
 from __future__ import annotations
 
+import hashlib
 import math
 import sys
 import time
@@ -168,7 +196,12 @@ def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh):
             out_specs=PartitionSpec(_AXIS),
             check_vma=False,  # no collectives; shared inputs are replicated constants
         )
-    return f(ys, us, x0, P0, th0, Pth0, keys)
+    out = f(ys, us, x0, P0, th0, Pth0, keys)
+    if mesh is not None and mesh.is_multi_process:
+        # Multi-controller: replicate the chunk's results on every device (one all-gather), so
+        # that every process holds all of them and can bring them to host memory.
+        out = jax.lax.with_sharding_constraint(out, NamedSharding(mesh, PartitionSpec()))
+    return out
 
 
 # ----------------------------------------------------------------------------------------------
@@ -189,7 +222,8 @@ def _resolve_devices(devices):
     if devices is None or devices is True:
         return list(jax.devices())
     if devices is False:
-        return [jax.devices()[0]]
+        # jax.devices()[0] belongs to process 0; under jax.distributed each process uses its own
+        return [jax.devices()[0] if jax.process_count() == 1 else jax.local_devices()[0]]
     try:
         devices = list(devices)
     except TypeError:
@@ -199,6 +233,13 @@ def _resolve_devices(devices):
         ) from None
     if not devices or not all(isinstance(d, jax.Device) for d in devices):
         raise ValueError(f"devices: expected a non-empty sequence of jax devices, got {devices!r}")
+    owners = {d.process_index for d in devices}
+    if owners != {jax.process_index()} and owners != set(range(jax.process_count())):
+        raise ValueError(
+            f"devices: under jax.distributed the devices must be either all this process's "
+            f"(jax.local_devices()) or include devices of every process "
+            f"({jax.process_count()}); got devices of processes {sorted(owners)}"
+        )
     return devices
 
 
@@ -238,6 +279,7 @@ class _Plan(NamedTuple):
     devices: tuple
     mesh: Any
     progress: bool | None
+    spans_processes: bool = False  # the mesh holds other processes' devices (jax.distributed)
 
 
 def _plan(
@@ -369,6 +411,7 @@ def _plan(
     chunk = math.ceil(chunk / n_dev) * n_dev
     n_chunks = math.ceil(R / chunk)
     mesh = Mesh(np.array(devs), (_AXIS,)) if n_dev > 1 else None
+    spans = mesh is not None and mesh.is_multi_process
 
     dtype = np.result_type(*(a for a in (ys, us, x0, P0, th0, Pth0) if a is not None))
     arrays = tuple(
@@ -376,20 +419,86 @@ def _plan(
     )
     per_run = (True, us.ndim == 3, x0.ndim == 2, P0.ndim == 3)
     per_run += (th0 is not None and th0.ndim == 2, Pth0 is not None and Pth0.ndim == 3)
-    return _Plan(
+    plan = _Plan(
         estimator, arrays, per_run, keys, R, chunk, n_chunks, bool(return_covariances), devs, mesh,
-        progress,
+        progress, spans,
     )
+    if spans:
+        _check_same_study(plan)
+    return plan
+
+
+def _digest(plan: _Plan) -> np.ndarray:
+    """What must be equal in every process of a multi-process study (shapes, chunking, devices,
+    the data and the keys; of the estimator only its name and sizes), hashed: 8 uint32 words."""
+    h = hashlib.sha256(str(plan.estimator.name).encode())
+    nums = [plan.R, plan.chunk, plan.n_chunks, plan.return_cov, plan.estimator.nx,
+            len(plan.estimator.param_names), *(d.id for d in plan.devices)]
+    h.update(np.array(nums, np.int64).tobytes())
+    data = list(plan.arrays)
+    if plan.keys is not None:
+        data.append(np.asarray(jax.random.key_data(plan.keys)))
+    for a in data:
+        if a is None:
+            h.update(b"None")
+            continue
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(memoryview(a).cast("B"))
+    return np.frombuffer(h.digest(), np.uint32)
+
+
+def _check_same_study(plan: _Plan) -> None:
+    """Every process must call ``run`` with the same arguments (SPMD); a process whose chunks
+    differ would wait for the others forever, one whose data differ would be silently mixed.
+
+    Each device of the mesh gets its process's digest; one all-gather brings all to every
+    process.
+    """
+    mine = _digest(plan)
+    n = len(plan.devices)
+    digests = jax.make_array_from_callback(
+        (n, mine.size), NamedSharding(plan.mesh, PartitionSpec(_AXIS)),
+        lambda index: np.broadcast_to(mine, (n, mine.size))[index],
+    )
+    every = np.asarray(_replicate(digests, NamedSharding(plan.mesh, PartitionSpec())))
+    if not np.all(every == mine[None]):
+        raise ValueError(
+            f"vehjax.run under jax.distributed ({jax.process_count()} processes): every process "
+            f"must call it with the same arguments (measurements, inputs, x0, P0, theta0, "
+            f"P_theta0, key, chunk_size, return_covariances, devices); process "
+            f"{jax.process_index()} found them to differ between processes"
+        )
+
+
+@partial(jax.jit, static_argnums=1)
+def _replicate(a, sharding):
+    return jax.lax.with_sharding_constraint(a, sharding)
 
 
 # ----------------------------------------------------------------------------------------------
 # Execution
 
 
+def _global_array(a, sharding):
+    """A global array over the processes' devices from ``a``, which every process holds whole:
+    each process places the slices of its own devices."""
+    return jax.make_array_from_callback(a.shape, sharding, lambda index: a[index])
+
+
 def _chunk_args(plan: _Plan, i: int):
     """Device-placed arguments of chunk ``i`` (padded with copies of the last run)."""
     start, stop = i * plan.chunk, min((i + 1) * plan.chunk, plan.R)
     idx = np.minimum(np.arange(start, start + plan.chunk), stop - 1)
+    if plan.spans_processes:
+        split = NamedSharding(plan.mesh, PartitionSpec(_AXIS))
+        whole = NamedSharding(plan.mesh, PartitionSpec())
+        args = [
+            None if a is None else _global_array(a[idx] if r else a, split if r else whole)
+            for a, r in zip(plan.arrays, plan.per_run)
+        ]
+        keys = None if plan.keys is None else _global_array(plan.keys[idx], split)
+        return (*args, keys), stop - start
     if plan.mesh is not None:
         split = NamedSharding(plan.mesh, PartitionSpec(_AXIS))
         whole = NamedSharding(plan.mesh, PartitionSpec())
@@ -453,6 +562,8 @@ class _Progress:
 
 def _execute(plan: _Plan, fn, progress) -> RunResult:
     show = plan.n_chunks > 1 if progress is None else bool(progress)
+    if show and jax.process_count() > 1:
+        show = jax.process_index() == 0  # one bar, process 0's
     bar = _Progress(plan.n_chunks, plan.R, show)
     parts = []
     pending = None  # (device outputs, n valid); the next chunk is dispatched before fetching
@@ -520,7 +631,11 @@ def run(
         progress: progress bar per chunk (tqdm's, which renders in Jupyter, when installed;
             else a text line on stderr); default shown when there are several chunks.
         devices: None shards runs over all ``jax.devices()``; False uses the default device only;
-            or a sequence of devices.
+            or a sequence of devices. Under ``jax.distributed`` (see the module docstring):
+            None shards over the devices of all processes and returns all runs in every
+            process; False runs the whole study in each process on its first local device; a
+            sequence is all this process's devices, or includes devices of every process and
+            is the same in every process.
 
     Returns:
         :class:`RunResult` of numpy arrays. All inputs are cast to their common floating dtype
@@ -529,7 +644,13 @@ def run(
     Raises:
         ValueError: naming the argument, for wrong shapes, non-finite inputs/x0/P0, a P0 that is
             not symmetric positive definite, a missing key or theta0, a theta0 outside the
-            estimator's parameter domains (``Estimator.bounds``), before anything is traced.
+            estimator's parameter domains (``Estimator.bounds``), before anything is traced;
+            under ``jax.distributed``, in every process, when the processes' arguments differ.
+
+    Under ``jax.distributed`` call it in every process with the same arguments::
+
+        jax.distributed.initialize(coordinator_address, num_processes, process_id)
+        out = vehjax.run(est, ys, us, x0=x0, P0=P0, key=jax.random.key(0))  # all runs, each
     """
     plan = _plan(
         estimator, measurements, inputs, x0, P0, theta0, P_theta0, key, return_covariances,
@@ -577,7 +698,8 @@ def compile_run(
 ) -> CompiledRun:
     """Validate and compile a study without running it, for timing compilation apart.
 
-    Same arguments as :func:`run`. ``compile_run(...)()`` returns what ``run(...)`` returns.
+    Same arguments as :func:`run`. ``compile_run(...)()`` returns what ``run(...)`` returns,
+    under ``jax.distributed`` too: call both in every process with the same arguments.
     """
     plan = _plan(
         estimator, measurements, inputs, x0, P0, theta0, P_theta0, key, return_covariances,

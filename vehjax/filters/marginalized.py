@@ -131,7 +131,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
 
-from .. import _validate
+from .. import _hoist, _validate
 from . import resampling as _rs
 from . import smc
 from .base import Estimator, StepOutput
@@ -188,7 +188,7 @@ class MPFState(NamedTuple):
 
 
 def _barrier(tree, start=None):
-    """The array leaves of ``tree`` (structural zeros pass through), materialised: they go
+    """The array leaves of ``tree`` (structural constants pass through), materialised: they go
     through a while loop whose body multiplies by one and whose trip count (0 or 1) XLA cannot
     know at compile time. Without it XLA on CPU fuses long chains of elementwise producers into
     every consumer and recomputes them there (7x the operation count of the step);
@@ -199,7 +199,9 @@ def _barrier(tree, start=None):
     ``vmap``. Default: from the first leaf.
     """
     leaves, treedef = jax.tree.flatten(tree)
-    idx = [i for i, v in enumerate(leaves) if not _zero(v)]
+    idx = [i for i, v in enumerate(leaves) if not _const(v)]
+    if not idx:
+        return tree
     arrs = [leaves[i] for i in idx]
     if start is None:
         probe = jnp.ravel(arrs[0])[0]
@@ -219,6 +221,11 @@ def _zero(a) -> bool:
     return isinstance(a, float) and a == 0.0
 
 
+def _const(a) -> bool:
+    """A structural constant: a Python float (known when the step is traced)."""
+    return isinstance(a, float)
+
+
 def _add(a, b):
     if _zero(a):
         return b
@@ -230,7 +237,23 @@ def _add(a, b):
 def _mul(a, b):
     if _zero(a) or _zero(b):
         return 0.0
+    if isinstance(a, float) and a == 1.0:
+        return b
+    if isinstance(b, float) and b == 1.0:
+        return a
     return a * b
+
+
+def _sub(a, b):
+    if _zero(b):
+        return a
+    if _zero(a):
+        return -b
+    return a - b
+
+
+def _div(a, b):
+    return 0.0 if _zero(a) else a / b
 
 
 def _dot(a, b):
@@ -353,44 +376,48 @@ def _kf_e(lin, P, dx, y, obs, mu_w, b_y, sig_w2, R_y, Qz, start=None):
     nz = len(lin.zb)
     g, A, gz, d, Cz = lin.g, lin.A, lin.gz, lin.d, lin.Cz
     gg = _dot(g, g)
-    gp = [gi / jnp.where(gg > 0, gg, 1.0) for gi in g]
+    gp = [_div(gi, jnp.where(gg > 0, gg, 1.0)) for gi in g]
     a = [_dot(gp, [row[j] for row in lin.Ab]) for j in range(nz)]
     r1 = _dot(gp, dx) - mu_w
     Pa = _mv(P, a)
     S1 = _dot(a, Pa) + sig_w2
-    kz = [v / S1 for v in Pa]
+    kz = [_div(v, S1) for v in Pa]
     kw = sig_w2 / S1
-    m1 = [k * r1 for k in kz]
+    m1 = [_mul(k, r1) for k in kz]
     mw = kw * r1
-    P1 = [[P[i][j] - kz[i] * Pa[j] for j in range(nz)] for i in range(nz)]
-    c1 = [-k * sig_w2 for k in kz]  # cov(s1, s2)
+    P1 = [[_sub(P[i][j], _mul(kz[i], Pa[j])) for j in range(nz)] for i in range(nz)]
+    c1 = [_mul(k, -sig_w2) for k in kz]  # cov(s1, s2)
     v1 = sig_w2 - kw * sig_w2
     m1, mw, P1, c1, v1 = _barrier((m1, mw, P1, c1, v1), start)
     # predict (s2, s3)
     Ac = _mv(A, c1)
-    mt = [_dot(A[i], m1) + gz[i] * mw for i in range(nz)]
-    czw = [Ac[i] + gz[i] * v1 for i in range(nz)]
+    mt = [_add(_dot(A[i], m1), _mul(gz[i], mw)) for i in range(nz)]
+    czw = [_add(Ac[i], _mul(gz[i], v1)) for i in range(nz)]
     AP = _mm(A, P1)
-    Czz = [[_add(_dot(AP[i], A[j]) + Ac[i] * gz[j] + gz[i] * Ac[j] + gz[i] * gz[j] * v1, Qz[i][j])
+    Czz = [[_add(_add(_add(_dot(AP[i], A[j]), _mul(Ac[i], gz[j])), _mul(gz[i], Ac[j])),
+                 _add(_mul(_mul(gz[i], gz[j]), v1), Qz[i][j]))
             for j in range(nz)] for i in range(nz)]
     # state (s2, s3): mean, covariance
     mean = [mw] + mt
     cov = [[v1] + czw] + [[czw[i]] + Czz[i] for i in range(nz)]
     ny = len(y)
     H = [[d[i]] + list(Cz[i]) for i in range(ny)]
-    o2 = [jnp.where(obs[i], y[i] - lin.yb[i] - _dot(lin.Cx[i], dx)
-                    - (_dot(Cz[i], gz) + d[i]) * mu_w - b_y[i], 0.0) for i in range(ny)]
+    o2 = [jnp.where(obs[i], _sub(_sub(_sub(y[i] - lin.yb[i], _dot(lin.Cx[i], dx)),
+                                      _mul(_add(_dot(Cz[i], gz), d[i]), mu_w)), b_y[i]), 0.0)
+          for i in range(ny)]
     mean, cov, o2 = _barrier((mean, cov, o2), start)
     HS = _mm(H, cov)  # (ny, 1 + nz)
     S2 = [[_add(_dot(HS[i], H[j]), R_y[i][j]) for j in range(ny)] for i in range(ny)]
     HS, S2 = _barrier((HS, S2), start)
     L = _chol_masked_e(S2, obs)
-    alpha = forward_entries(L, [jnp.where(obs[i], o2[i] - _dot(H[i], mean), 0.0)
+    alpha = forward_entries(L, [jnp.where(obs[i], _sub(o2[i], _dot(H[i], mean)), 0.0)
                                 for i in range(ny)])
-    B = [forward_entries(L, [jnp.where(obs[i], HS[i][k], 0.0) for i in range(ny)])
+    B = [forward_entries(L, [0.0 if _zero(HS[i][k]) else jnp.where(obs[i], HS[i][k], 0.0)
+                             for i in range(ny)])
          for k in range(1 + nz)]  # B[k] = L^-1 (H S)[:, k]
     post = [_add(mean[k], _dot(B[k], alpha)) for k in range(1 + nz)]
-    P3 = [[cov[1 + i][1 + j] - _dot(B[1 + i], B[1 + j]) for j in range(nz)] for i in range(nz)]
+    P3 = [[_sub(cov[1 + i][1 + j], _dot(B[1 + i], B[1 + j])) for j in range(nz)]
+          for i in range(nz)]
     P3 = [[0.5 * (P3[i][j] + P3[j][i]) for j in range(nz)] for i in range(nz)]
     return post[1:], P3, o2, post[0]
 
@@ -476,6 +503,40 @@ def _linearise(f, h, x, m, u, theta, nl, li, i_in):
 
 def _lin_entries(lin):
     return _Lin(*(_ent(a) for a in lin))
+
+
+def _constant_entries(f, h, theta, nl, li, i_in, n_u, rows):
+    """:class:`_Lin` of nested lists: the entries of the linearisation that are the same number
+    at every particle, bank mean and input (found from the traced model, :func:`vehjax._hoist.
+    dependence`), as Python floats (structural constants: the step's algebra skips zeros and
+    ones and folds the rest), None elsewhere. ``rows``: the output rows the filter uses.
+
+    For SingleTrackBank 36 of the 60 entries are constants (gz, A, most of Cx, Cz and d): 26 %
+    fewer operations per particle and step, measured 19 % faster (one run, N = 500)."""
+    probe = (jnp.zeros(len(nl)), jnp.zeros(len(li)), jnp.ones(n_u))
+
+    def lin_one(x, m, u):
+        lin = _linearise(f, h, x, m, u, theta, nl, li, i_in)
+        return lin._replace(yb=lin.yb[rows], Cx=lin.Cx[rows], Cz=lin.Cz[rows], d=lin.d[rows])
+
+    dep = _hoist.dependence(lin_one, probe)
+    val = lin_one(*probe)
+
+    def entries(d, v):
+        if d.ndim == 2:
+            return [entries(di, vi) for di, vi in zip(d, v)]
+        return [None if di else float(vi) for di, vi in zip(d, np.asarray(v))]
+
+    return _Lin(*(entries(np.asarray(d), v) for d, v in zip(dep, val)))
+
+
+def _with_constants(lin, const):
+    """Entries of ``lin`` (nested lists) with the known constants put in."""
+    def put(e, c):
+        if isinstance(c, list):
+            return [put(ei, ci) for ei, ci in zip(e, c)]
+        return e if c is None else c
+    return _Lin(*(put(e, c) for e, c in zip(lin, const)))
 
 
 # -- the same on arrays, for the tests ----------------------------------------------------------
@@ -830,6 +891,8 @@ def marginalized_pf(
         in_axes=(-1, -1, None, None), out_axes=-1,
     )
 
+    lin_const = _constant_entries(f, h, mth, nl, li, i_in, len(input_names), u_idx)
+
     def particle_update(x, m, P, mu, lam_w, lam_e, z1, z2, y, obs, u, theta, gam, nu_p):
         start = (u[0] != u[0]).astype(jnp.int32)  # 0 unless NaN, the same for every run
         """One step for all particles (entries over the last axis) before the weights are
@@ -839,7 +902,7 @@ def marginalized_pf(
         lin = lin_all(x, m, u, theta)
         lin = _lin_entries(lin._replace(yb=lin.yb[u_idx], Cx=lin.Cx[u_idx], Cz=lin.Cz[u_idx],
                                         d=lin.d[u_idx]))
-        lin = _barrier(lin, start)
+        lin = _barrier(_with_constants(lin, lin_const), start)
         ye = [y[i] for i in range(nyu)]
         ob = [obs[i] for i in range(nyu)]
         Pe, lee = _ent(P), _ent(lam_e)
@@ -860,25 +923,25 @@ def marginalized_pf(
         D, M = _barrier((D, M), start)
         MP = _mm(M, Pe)
         CQ = _mm(lin.Cz, Qe)
-        mu_y = [lin.yb[i] + D[i] * mu_w + _add(0.0, b_y[i]) for i in range(nyu)]
+        mu_y = [_add(_add(lin.yb[i], _mul(D[i], mu_w)), b_y[i]) for i in range(nyu)]
         S = [[None] * nyu for _ in range(nyu)]
         for i in range(nyu):
             for j in range(i + 1):
                 K = _add(_dot(MP[i], M[j]), _dot(CQ[i], lin.Cz[j]))
                 if i == j:
                     K = _add(K, kvu[i])
-                v = sw * D[i] * D[j]
+                v = _mul(sw, _mul(D[i], D[j]))
                 if i in spos and j in spos:
-                    v = v + c * lee[spos[i]][spos[j]]
+                    v = _add(v, c * lee[spos[i]][spos[j]])
                 S[i][j] = S[j][i] = _add(v, _mul(mm, K)) if not _zero(K) else v
         S, mu_y, D = _barrier((S, mu_y, D), start)
         ll, shift, sc, dfy, eta = _barrier(_t_weight_and_proposal_e(
-            ye, ob, mu_y, S, [sw * v for v in D], sw, df), start)
+            ye, ob, mu_y, S, [_mul(sw, v) for v in D], sw, df), start)
         # draw w_t from eq. 30 (Student-t via Wilson-Hilferty) and propagate (eq. 6)
         w = mu_w + shift + jnp.sqrt(sc) * z1 / jnp.sqrt(_wilson_hilferty(z2, dfy))
         dw = w - mu_w
-        dx = [gk * w for gk in lin.g]
-        x_new = [lin.xb[k] + dx[k] for k in range(nxs)]
+        dx = [_mul(gk, w) for gk in lin.g]
+        x_new = [_add(lin.xb[k], dx[k]) for k in range(nxs)]
         w, dw, dx, x_new = _barrier((w, dw, dx, x_new), start)
         # bank Kalman step and the sensor residuals, with the point estimates of eq. 23
         inv_den = 1.0 / (nu_p - d - 1.0)
@@ -889,14 +952,15 @@ def marginalized_pf(
         if nz:
             s3, P3, o2, _ = _barrier(_kf_e(lin, Pe, dx, ye, ob, mu_w, b_y, sig_w2, R_y, Qe, start),
                                      start)
-            z_new = [lin.zb[i] + lin.gz[i] * mu_w + s3[i] for i in range(nz)]
-            eta_e = [o2[r] - _dot(lin.Cz[r], s3) - lin.d[r] * dw for r in srow]
+            z_new = [_add(_add(lin.zb[i], _mul(lin.gz[i], mu_w)), s3[i]) for i in range(nz)]
+            eta_e = [_sub(_sub(o2[r], _dot(lin.Cz[r], s3)), _mul(lin.d[r], dw)) for r in srow]
             CP = _mm([lin.Cz[r] for r in srow], P3)
             V = [[_dot(CP[i], lin.Cz[srow[j]]) for j in range(ns)] for i in range(ns)]
         else:
             z_new, P3 = [], []
             # o2 = y - yb - Cx dx - d mu_w - b_y = eta - Cx g (w - mu_w)
-            eta_e = [eta[r] - _dot(lin.Cx[r], lin.g) * dw - lin.d[r] * dw for r in srow]
+            eta_e = [_sub(_sub(eta[r], _mul(_dot(lin.Cx[r], lin.g), dw)), _mul(lin.d[r], dw))
+                     for r in srow]
             V = [[0.0] * ns for _ in range(ns)]
         eta_e, V = _barrier((eta_e, V), start)
         ob_e = [ob[r] for r in srow]
