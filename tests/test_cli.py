@@ -100,3 +100,19 @@ def test_bench_gaussian_smoke(capsys):
     out = capsys.readouterr().out
     assert "dynamax" in out and "filterpy" in out and "same estimates" in out
     assert "vehjax/x: vehjax's run time divided by this library's" in out  # the ratio column
+
+
+def test_bench_all_smoke(capsys):
+    """Tiny sizes, the EKF row (vehjax, dynamax, cuthbert): the estimates are checked equal
+    before any timing, and the table has a line per library and the row's ratio. One row only:
+    each row compiles five to eight studies, about 20 s here; the ukf, pf and liu_west rows
+    take as long each (``vehjax bench all`` runs them all)."""
+    assert cli.main(["bench", "all", "--runs", "2", "--steps", "20", "--repeat", "1",
+                     "--rows", "ekf"]) == 0
+    out = capsys.readouterr().out
+    assert "[EKF] check: max |vehjax - peer| of the filtered means: dynamax" in out
+    assert "cuthbert" in out and "(tol 1e-06): ok" in out
+    table = [line for line in out.splitlines() if line.startswith("EKF ")]
+    assert [line.split()[1] for line in table] == ["vehjax", "dynamax", "cuthbert"]
+    assert "ratio EKF: vehjax / fastest peer" in out
+    assert "every row at most 0.5x the fastest peer:" in out

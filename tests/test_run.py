@@ -235,6 +235,25 @@ def test_chunked_equals_unchunked_and_progress(capsys):
     assert capsys.readouterr().err == ""
 
 
+def test_runs_in_blocks_equal_runs_side_by_side(monkeypatch):
+    """A chunk's runs go through in blocks of vehjax.run._BLOCK_NUMBERS carried numbers (for
+    filters with a large state, e.g. particles): the same results as all runs vmapped at once,
+    per-run keys included, also when the block does not divide the chunk."""
+    run_mod = sys.modules["vehjax.run"]  # the module (vehjax.run is also the function)
+
+    est = _key_reporting_estimator()
+    ys, us = _data(R=10, seed=6)
+    key = jax.random.key(3)
+    whole = run(est, ys, us, x0=X0, P0=P0, key=key)
+    kf = run(EST, ys, us, x0=X0, P0=P0, return_covariances=True)
+    monkeypatch.setattr(run_mod, "_BLOCK_NUMBERS", 1)  # blocks of _MIN_BLOCK = 4 runs
+    plan = run_mod._plan(EST, ys, us, X0, P0, None, None, None, False, None, None, None)
+    assert plan.block == run_mod._MIN_BLOCK < plan.chunk == 10
+    blocked = run(est, ys, us, x0=X0, P0=P0, key=key)
+    np.testing.assert_array_equal(blocked.states, whole.states)
+    _assert_close(run(EST, ys, us, x0=X0, P0=P0, return_covariances=True), kf)
+
+
 def test_compile_run_times_compilation_apart():
     ys, us = _data(R=7, seed=4)
     kw = dict(x0=X0, P0=P0, return_covariances=True, chunk_size=3, progress=False)

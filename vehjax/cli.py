@@ -8,7 +8,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-BENCHMARKS = ("gaussian", "particle", "marginalized")
+BENCHMARKS = ("gaussian", "particle", "marginalized", "scale", "all")
 
 
 def _cmd_models(args) -> int:

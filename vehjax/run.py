@@ -107,6 +107,13 @@ _STATE_TEMPORARIES = 16
 # Auto chunk size: at most this many (state number x step) per chunk, so that a long study is
 # several chunks and the progress bar moves (about 5-10 s a chunk for a particle filter on CPU).
 _CHUNK_WORK = 2e9
+# Runs computed side by side (vmapped) inside a chunk: about this many carried state numbers at a
+# time, so that a step's arrays stay in the processor's caches; the chunk's runs go through in
+# blocks of that many, one block after the other (``lax.map`` with ``batch_size``). A bootstrap
+# PF with 1,000 particles on a 3-state model (5,000 numbers a run): blocks of 13 runs, 27-30 %
+# faster per particle-step than 100-300 runs side by side on a 2-core CPU.
+_BLOCK_NUMBERS = 65536
+_MIN_BLOCK = 4  # fewer runs side by side lose more to per-step overheads than caches give
 
 
 # ----------------------------------------------------------------------------------------------
@@ -163,9 +170,34 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, per_run, ys, us, x0
     return jax.vmap(partial(filtering.finish, bounds=estimator.bounds))(per_step, held0)
 
 
+def _vmapped_study(estimator, return_cov, per_run, block, *args):
+    """:func:`filtering.one_run` over the runs (leading axis of the per-run arguments), in
+    blocks of ``block`` runs vmapped side by side."""
+    one = partial(filtering.one_run, estimator, return_cov)
+    C = args[0].shape[0]
+    side_by_side = jax.vmap(one, in_axes=tuple(0 if r else None for r in per_run))
+    if block >= C:
+        return side_by_side(*args)
+    n_blocks = -(-C // block)
+    pad = n_blocks * block - C  # the last block is filled with copies of the last run
+
+    def blocked(a):
+        a = jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]) if pad else a
+        return a.reshape((n_blocks, block) + a.shape[1:])
+
+    def one_block(mapped):
+        it = iter(mapped)
+        return side_by_side(*(next(it) if r else a for a, r in zip(args, per_run)))
+
+    res = jax.lax.map(one_block, [blocked(a) for a, r in zip(args, per_run) if r])
+    return jax.tree.map(lambda a: a.reshape((n_blocks * block,) + a.shape[2:])[:C], res)
+
+
 @eqx.filter_jit
-def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh):
-    """A chunk of runs: ys (C, T, ny); the others per run (leading C) or shared, by rank."""
+def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh, block):
+    """A chunk of runs: ys (C, T, ny); the others per run (leading C) or shared, by rank. The
+    vmapped form computes ``block`` runs side by side at a time (all when the chunk, or a
+    device's share of it, has no more)."""
     per_run = (
         True,
         us.ndim == 3,
@@ -180,10 +212,7 @@ def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh):
         if estimator.batch is not None:
             res = _runs_last_study(estimator, return_cov, per_run, *args)
         else:
-            res = jax.vmap(
-                partial(filtering.one_run, estimator, return_cov),
-                in_axes=tuple(0 if r else None for r in per_run),
-            )(*args)
+            res = _vmapped_study(estimator, return_cov, per_run, block, *args)
         return (res.states, res.covariances, res.params, res.params_cov,
                 jnp.sum(res.loglik, axis=1), res.nis, res.n_obs, res.diverged, res.diverged_at,
                 res.at_bound)
@@ -243,15 +272,8 @@ def _resolve_devices(devices):
     return devices
 
 
-def _auto_chunk(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov: bool) -> int:
-    """Runs per chunk from a memory budget (outputs plus what the filter holds per run: its
-    state from ``init``, times the temporaries of a step) and a work budget (module constants).
-    """
-    R, T, _ = ys.shape
-    nx, p = estimator.nx, len(estimator.param_names)
-    itemsize = np.dtype(ys.dtype).itemsize
-    out_bytes = T * itemsize * (nx + p + 4 + (nx * nx + p * p if return_cov else 0))
-
+def _state_numbers(estimator, x0, P0, th0, Pth0, keys) -> int:
+    """How many numbers the filter carries for one run (its state from ``init``)."""
     def first(a, per_run_ndim):
         return None if a is None else (a[0] if a.ndim == per_run_ndim else a)
 
@@ -259,8 +281,17 @@ def _auto_chunk(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov: bool) ->
         estimator.init, first(x0, 2), first(P0, 3), first(th0, 2), first(Pth0, 3),
         None if keys is None else keys[0],
     )
-    leaves = jax.tree.leaves(state)
-    state_numbers = sum(int(np.prod(a.shape)) for a in leaves)
+    return sum(int(np.prod(a.shape)) for a in jax.tree.leaves(state))
+
+
+def _auto_chunk(estimator, ys, state_numbers: int, return_cov: bool) -> int:
+    """Runs per chunk from a memory budget (outputs plus what the filter holds per run: its
+    state from ``init``, times the temporaries of a step) and a work budget (module constants).
+    """
+    R, T, _ = ys.shape
+    nx, p = estimator.nx, len(estimator.param_names)
+    itemsize = np.dtype(ys.dtype).itemsize
+    out_bytes = T * itemsize * (nx + p + 4 + (nx * nx + p * p if return_cov else 0))
     state_bytes = 8 * state_numbers  # at most float64 (typed PRNG keys have no numpy dtype)
     by_memory = _AUTO_CHUNK_BYTES // (out_bytes + _STATE_TEMPORARIES * state_bytes)
     by_work = int(_CHUNK_WORK // (T * max(state_numbers, 1)))
@@ -280,6 +311,7 @@ class _Plan(NamedTuple):
     mesh: Any
     progress: bool | None
     spans_processes: bool = False  # the mesh holds other processes' devices (jax.distributed)
+    block: int = 2**31 - 1  # runs vmapped side by side inside a chunk (see _BLOCK_NUMBERS)
 
 
 def _plan(
@@ -403,9 +435,10 @@ def _plan(
 
     devs = tuple(_resolve_devices(devices))
     n_dev = len(devs)
+    numbers = _state_numbers(estimator, x0, P0, th0, Pth0, keys)
+    block = max(_MIN_BLOCK, _BLOCK_NUMBERS // max(numbers, 1))
     if chunk_size is None:
-        chunk_size = _auto_chunk(estimator, ys, us, x0, P0, th0, Pth0, keys,
-                                 bool(return_covariances))
+        chunk_size = _auto_chunk(estimator, ys, numbers, bool(return_covariances))
     # Balance the chunks and make each a multiple of the device count.
     chunk = math.ceil(R / math.ceil(R / min(int(chunk_size), R)))
     chunk = math.ceil(chunk / n_dev) * n_dev
@@ -421,7 +454,7 @@ def _plan(
     per_run += (th0 is not None and th0.ndim == 2, Pth0 is not None and Pth0.ndim == 3)
     plan = _Plan(
         estimator, arrays, per_run, keys, R, chunk, n_chunks, bool(return_covariances), devs, mesh,
-        progress, spans,
+        progress, spans, block,
     )
     if spans:
         _check_same_study(plan)
@@ -516,7 +549,7 @@ def _chunk_args(plan: _Plan, i: int):
 
 def _call_args(plan: _Plan, i: int):
     args, n = _chunk_args(plan, i)
-    return (plan.estimator, *args, plan.return_cov, plan.mesh), n
+    return (plan.estimator, *args, plan.return_cov, plan.mesh, plan.block), n
 
 
 class _Progress:
