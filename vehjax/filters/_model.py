@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _validate
+from ..models.base import Model
 
 def validate_prior(est, x0, P0) -> None:
     """Check a prior before tracing; ``est`` is an Estimator or the state dimension nx.
@@ -89,9 +90,22 @@ def in_dtype(fn):
     return lambda x, u, theta: jnp.asarray(fn(x, u, theta)).astype(x.dtype)
 
 
+def per_point(model):
+    """(transition, observe) of ``model`` for evaluation one point at a time (a filter step
+    vmapped over runs): a user's :class:`~vehjax.models.Model` as written, without the
+    vectorisable substitutes of ``fast_math``, which pay off only on long batches of points
+    (runs-last steps, particles); built-in models as they are."""
+    if isinstance(model, Model):
+        f, h = model.written_fns
+        return ((lambda x, u, th: jnp.asarray(f(x, u, th))),
+                (lambda x, u, th: jnp.atleast_1d(jnp.asarray(h(x, u, th)))))
+    return model.transition, model.observe
+
+
 def point_fns(model, u, theta):
-    """The model's transition and observation as functions of one state point, at (u, theta)."""
-    f, h = in_dtype(model.transition), in_dtype(model.observe)
+    """The model's transition and observation as functions of one state point, at (u, theta)
+    (:func:`per_point`)."""
+    f, h = (in_dtype(g) for g in per_point(model))
     return (lambda x: f(x, u, theta)), (lambda x: h(x, u, theta))
 
 

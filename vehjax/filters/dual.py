@@ -112,7 +112,7 @@ from . import sigma
 from ._bounds import Transform, check_inside, parse as _parse_bounds
 from ._linalg import sym
 from .base import Estimator, StepOutput, check_estimate
-from ._model import cast_yu, check_model, model_dims
+from ._model import cast_yu, check_model, model_dims, per_point
 from ._model import prior as _state_prior
 from .kalman import linearized_measure, linearized_predict, masked_update
 from .sigma import unscented_rule
@@ -251,16 +251,17 @@ def _model_fns(model, cfg: _Setup):
     """f(x, u, z) and h(x, u, z) on unconstrained parameters z (p,), outputs in the dtype of x;
     z is mapped to physical units (inside the bounds) before the model is called."""
     idx = cfg.idx
+    tr, ob = per_point(model)  # the step is per run, vmapped over runs
 
     def full(z):
         th = jnp.asarray(cfg.theta_nom, z.dtype)
         return th.at[idx].set(cfg.tf.to_physical(z))
 
     def f(x, u, z):
-        return jnp.asarray(model.transition(x, u, full(z))).astype(x.dtype)
+        return jnp.asarray(tr(x, u, full(z))).astype(x.dtype)
 
     def h(x, u, z):
-        return jnp.asarray(model.observe(x, u, full(z))).astype(x.dtype)
+        return jnp.asarray(ob(x, u, full(z))).astype(x.dtype)
 
     return f, h
 
