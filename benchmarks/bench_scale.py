@@ -57,15 +57,10 @@ def _peak_rss_gib() -> float:
 
 
 def _problem(runs: int, steps: int):
-    model = vj.models.Dynamic3DOF(dt=0.01)
-    scn = vj.scenarios.sine_steer(model, speed=20.0, amplitude=0.05, frequency=0.5,
-                                  duration=steps * model.dt)
-    Q = np.diag([0.05, 0.05, 0.01]) ** 2
-    R = np.diag([0.2, 0.2, 0.05]) ** 2
-    sim = vj.simulate(model, scn, runs=runs, key=jax.random.key(0),
-                      process_std=np.sqrt(np.diag(Q)), meas_std=np.sqrt(np.diag(R)))
-    x0 = np.asarray(scn.x0) + np.array([0.5, 0.1, 0.02])
-    P0 = np.diag([1.0, 0.2, 0.05]) ** 2
+    """bench_particle's problem (Dynamic3DOF, sine steer, Q, R, prior), as numpy arrays."""
+    from vehjax.cli import load_benchmark
+
+    model, sim, Q, R, x0, P0 = load_benchmark("particle")._problem(runs, steps)
     return model, np.asarray(sim.measurements), np.asarray(sim.inputs), Q, R, x0, P0
 
 
