@@ -8,7 +8,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-BENCHMARKS = ("gaussian", "particle", "marginalized", "scale", "all")
+BENCHMARKS = ("gaussian", "particle", "marginalized", "sevendof", "scale", "all")
 
 
 def _cmd_models(args) -> int:
