@@ -105,11 +105,8 @@ def split(fn: Callable, args: Sequence, late: Sequence[bool]) -> Split:
 
 # Primitives that move entries without combining them: evaluated on the dependence masks (data
 # operands) and the true values (index operands).
-_INDEX_OPERANDS = {
-    "gather": (1,), "scatter-add": (1,), "scatter": (1,), "scatter_add": (1,),
-    "dynamic_slice": None, "dynamic_update_slice": None,  # indices: every operand after the data
-}
-_DATA_OPERANDS = {"dynamic_slice": 1, "dynamic_update_slice": 2}
+_INDEX_OPERANDS = {"gather": (1,), "scatter-add": (1,), "scatter": (1,), "scatter_add": (1,)}
+_DATA_OPERANDS = {"dynamic_slice": 1, "dynamic_update_slice": 2}  # the rest are indices
 _MOVES = {
     "broadcast_in_dim", "slice", "squeeze", "concatenate", "reshape", "transpose", "rev", "pad",
     "expand_dims", "unstack", "stack", "split", "gather", "scatter-add", "scatter", "scatter_add",
