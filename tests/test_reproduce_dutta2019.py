@@ -50,7 +50,7 @@ def test_reduced_study_writes_tables_and_figures(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(dutta2019, "tuned_settings", watched)
     rc = cli.main([
         "reproduce", "dutta2019", "--runs", "3", "--particles", "64", "--settings", "tuned",
-        "--filters", "Dual EKF,Dual UKF,Particle+UKF",
+        "--filters", "Dual UKF,Particle+UKF",
         "--kinematic-duration", "4", "--dynamic-duration", "3", "--out", str(tmp_path),
     ])
     assert rc == 0
@@ -72,16 +72,16 @@ def test_reduced_study_writes_tables_and_figures(tmp_path, capsys, monkeypatch):
                                  rf"{sim_var:.3g} \|", part), (which, n)
     # the dynamic fit holds lf, lr at what the kinematic fit found
     assert calls[1][1]["fixed"] == calls[0][2].fit.params
-    for name in ("Dual EKF", "Dual UKF", "Particle+UKF"):
+    for name in ("Dual UKF", "Particle+UKF"):
         assert f"| {name} (vehjax) |" in report
-    assert "| Joint EKF (vehjax) |" not in report
+    assert "| Joint EKF (vehjax) |" not in report and "| Dual EKF (vehjax) |" not in report
     assert "| Dual UKF (paper) | 1.580 | 1.390 |" in report
     assert "| Particle+UKF (paper) | 0.1727 | 0.1566 | 0.0630 |" in report
     assert "nan" not in report.lower()
     # consistency (NEES, NIS, parameter coverage) per filter and stage, shares in [0, 1]
     for stage, n_par in (("kinematic model", 2), ("dynamic model", 3)):
         part = report.split(f"### Consistency, {stage} (tuned settings)")[1].split("###")[0]
-        for name in ("Dual EKF", "Dual UKF", "Particle+UKF"):
+        for name in ("Dual UKF", "Particle+UKF"):
             cells = next(ln for ln in part.splitlines() if ln.startswith(f"| {name} |")).split("|")
             shares = [float(cells[2]), float(cells[4])] + [float(v) for v in cells[6].split(",")]
             assert len(shares) == 2 + n_par and all(0.0 <= v <= 1.0 for v in shares), (name, cells)

@@ -15,6 +15,7 @@ REGISTRY = {
     "wang2016": "wang2016",
     "dutta2019": "dutta2019",
     "berntorp2018": "berntorp2018",
+    "consistency": "consistency",
 }
 
 

@@ -1,0 +1,88 @@
+"""`vehjax reproduce consistency` at a reduced size: NEES / NIS of filters with matched noise
+(issue 17, item 4). The full study (every filter on every built-in model, 100 runs x 3 s) is
+the command's default; here 100 runs x 1 s on the 3-DOF model and the bank model."""
+
+import contextlib
+import io
+
+import numpy as np
+import pytest
+
+from vehjax.reproduce import consistency, load
+
+
+def test_registered_with_its_defaults():
+    assert load("consistency") is consistency
+    p = consistency.parser()
+    assert p.get_default("runs") == 100
+    assert p.get_default("models").split(",") == list(consistency.MODELS)
+    assert p.get_default("filters").split(",") == list(consistency.FILTERS)
+
+
+@pytest.mark.parametrize("argv, name", [
+    (["--models", "Dynamic3DOF,Unicycle"], "--models"),
+    (["--filters", "EKF,KF"], "--filters"),
+    (["--runs", "1"], "--runs"),
+    (["--particles", "1"], "--particles"),
+    (["--filters", "MPF", "--models", "Dynamic3DOF"], "--filters"),
+])
+def test_bad_options_name_the_option(argv, name, tmp_path):
+    with pytest.raises(ValueError, match=name):
+        consistency.main(argv + ["--out", str(tmp_path)])
+
+
+def _study(tmp_path, models, filters, particles):
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        rc = consistency.main(["--models", models, "--filters", filters, "--runs", "100",
+                               "--duration", "1", "--particles", str(particles),
+                               "--out", str(tmp_path)])
+    assert rc == 0
+    rows = {(r["model"], r["filter"]): r for r in _csv(tmp_path / "consistency.csv")}
+    for key, r in rows.items():
+        assert r["runs"] == 100 and r["steps"] == 100 and r["diverged"] == 0, key
+    return rows, (tmp_path / "report.md").read_text()
+
+
+def test_matched_filters_are_consistent_and_the_paper_ackf_is_not(tmp_path):
+    """With the noise matched, the EKF and the bootstrap PF (1000 particles) keep the
+    run-averaged NEES and NIS inside the 95 % band on at least 90 % of the steps; the Sage-Husa
+    ACKF as the paper prints it (d_1 = 1: the first innovation replaces the correct prior) is
+    over-confident, and the report says so."""
+    rows, report = _study(tmp_path, "Dynamic3DOF", "EKF,ACKF (paper),bootstrap PF", 1000)
+    assert set(rows) == {("Dynamic3DOF", f) for f in ("EKF", "ACKF (paper)", "bootstrap PF")}
+    for key, r in rows.items():
+        if key[1] == "ACKF (paper)":
+            assert r["nees_in"] < 0.5 and r["nees_per_dof"] > 2.0, (key, r)
+        else:
+            assert r["nees_in"] >= 0.9 and r["nis_in"] >= 0.9, (key, r)
+            assert 0.8 < r["nees_per_dof"] < 1.25 and 0.8 < r["nis_per_dof"] < 1.25, (key, r)
+    assert "| Dynamic3DOF | ACKF (paper) | 100 x 100 |" in report
+    assert report.count("**not consistent** (over-confident)") == 1
+    assert "2 of 3 filter-model pairs run" in report
+    assert "not ACKF (paper) on Dynamic3DOF." in report
+
+
+def test_mpf_with_known_statistics_is_near_consistent(tmp_path):
+    """The MPF with its noise statistics as good as known, on data from its own noise model
+    (paper 004 eq. 3-10): the NIS stays in the band and the NEES averages within 20 % of its
+    degrees of freedom. (Its NEES leaves the band early in the run, under-confident on the
+    bank states: the full study's report gives the numbers.)"""
+    rows, report = _study(tmp_path, "SingleTrackBank", "MPF (known noise)", 300)
+    r = rows[("SingleTrackBank", "MPF (known noise)")]
+    assert r["nis_in"] >= 0.9 and 0.8 < r["nis_per_dof"] < 1.25, r
+    assert 0.8 < r["nees_per_dof"] < 1.2, r
+    assert "| SingleTrackBank | MPF (known noise) | 100 x 100 |" in report
+
+
+def _csv(path):
+    lines = path.read_text().splitlines()
+    keys = lines[0].split(",")
+    out = []
+    for ln in lines[1:]:
+        vals = dict(zip(keys, ln.split(",")))
+        out.append({k: v if k in ("model", "filter") else
+                    (int(v) if k in ("runs", "steps", "diverged") else float(v))
+                    for k, v in vals.items()})
+    assert all(np.isfinite(r["seconds"]) for r in out)
+    return out

@@ -1,0 +1,365 @@
+"""NEES / NIS consistency of every state filter on every built-in model, with the noise matched.
+
+    vehjax reproduce consistency [--runs 100] [--duration 3] [--models ...] [--filters ...]
+                                 [--particles 1000] [--seed 0] [--out out/consistency]
+
+A filter is consistent (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4) when its errors agree with
+the covariance it reports: averaged over R independent runs, the normalised estimation error
+squared NEES_t = e_t^T P_t^-1 e_t (e_t = estimate - truth) has mean nx, the normalised innovation
+squared NIS_t mean n_obs, and the run average lies in the two-sided 95 % chi-square region of
+R nx (R n_obs) degrees of freedom divided by R on about 95 % of the steps
+(:func:`vehjax.metrics.consistency`). The study reports, per model and filter, that share of
+steps for NEES and NIS and their mean per degree of freedom (1: consistent; > 1 over-confident,
+the covariance too small; < 1 under-confident). Target: at least 0.90 of the steps in the band.
+
+What "matched" means here (nothing below is tuned per filter):
+
+* Gaussian filters (EKF, UKF, CKF, their square-root forms, the Sage-Husa ACKF) and the
+  bootstrap PF: the model's own equations generate the data (:func:`vehjax.simulate`, RK4 as
+  the filters), ISO double lane change at 20 m/s, ``--duration`` s. Additive white process noise
+  of std 0.2 % of each state's range over the noise-free drive per step, measurement noise of std
+  2 % of each output's range (a state or output that does not move, e.g. the bank of a flat road,
+  takes 1 % of its largest magnitude plus 1e-3 of its unit as its range); the initial state of
+  each run drawn around the scenario's start with std 5x the process std. Every filter gets these
+  Q, R, x0 and P0 exactly.
+* ACKF: run twice. "ACKF" as a user would set it when Q is known: R adapted alone, forgetting
+  b = 0.995, the prior counted as 200 steps (``ackf(adapt=("R",), forgetting=0.995,
+  prior_steps=200)``); "ACKF (paper)": Wang et al.'s eq. 21-30 as printed (Q and R adapted,
+  b = 0.98, d_1 = 1). The second shows what the paper's start does to the covariance: the first
+  innovation replaces the (correct) prior, and the filter is over-confident for the whole run.
+* MPF (:func:`vehjax.filters.marginalized_pf`, SingleTrackBank only): the data follow the
+  filter's own noise model (paper 004 eq. 3-10): the true steering is the measured one plus
+  w_t ~ N(0.28 deg, (0.3 deg)^2) white, the bank jerk is white with std sigma_phi = 0.05 rad/s^3
+  through ``bank_noise_gain`` (eq. 3), ay, r, roll_rate read with constant biases
+  (0.1 m/s^2, 0.3 deg/s, -0.2 deg/s) and white noise of fixed stds (0.2 m/s^2, 0.6 deg/s,
+  0.6 deg/s), phi and the virtual yaw rate unbiased with known stds 0.5 and 0.3 deg(/s). The
+  filter is given the true offset, biases and stds as its prior means (gamma0 = 1, nu0 = d + 4,
+  lambda = 1: constant statistics) and learns them like any prior; its x0, P0 are the truth's.
+  "MPF (known noise)" makes the same prior as good as known (nu0 = 1e7, gamma0 = 1e-9): the
+  fully adapted PF of the Gaussian model, the check of the filter's algebra apart from what
+  learning the statistics adds.
+  Steering: two sines (0.02 rad at 0.4 Hz, 0.015 rad at 0.11 Hz), vx = 20 m/s.
+
+The parameter-estimating filters (dual and joint EKF/UKF, Liu-West PF + UKF) are checked with
+matched noise in ``vehjax reproduce dutta2019`` ("Consistency" tables, kinematic bicycle and
+3-DOF model, NEES over the augmented state and the parameter coverage).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+PAPER = ("NEES / NIS consistency (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4) of every state "
+         "filter on every built-in model, noise matched")
+
+MODELS = ("KinematicBicycle", "Dynamic3DOF", "SevenDOF", "SingleTrackBank")
+FILTERS = ("EKF", "UKF", "CKF", "SR-UKF", "SR-CKF", "ACKF", "ACKF (paper)", "bootstrap PF", "MPF",
+           "MPF (known noise)")
+_MPFS = ("MPF", "MPF (known noise)")
+TARGET = 0.90
+
+#: pairs the study does not run, with the reason printed in their row
+SKIPPED = {
+    ("SevenDOF", "bootstrap PF"): "not run: XLA takes over 10 minutes to compile the bootstrap "
+                                  "PF's step vmapped over runs on SevenDOF (one run's step: "
+                                  "7 s); an open defect",
+}
+
+_PROCESS_FRACTION = 0.002
+_MEAS_FRACTION = 0.02
+_X0_FACTOR = 5.0
+
+# the MPF's study (SingleTrackBank, paper 004's noise model)
+_VX = 20.0
+_OFFSET = math.radians(0.28)
+_DELTA_STD = math.radians(0.3)
+_SIGMA_PHI = 0.05
+_SENSORS = ("ay", "r", "roll_rate")
+_BIAS = {"ay": 0.1, "r": math.radians(0.3), "roll_rate": math.radians(-0.2)}
+_STD = {"ay": 0.2, "r": math.radians(0.6), "roll_rate": math.radians(0.6)}
+_KNOWN = {"phi": math.radians(0.5), "r_virt": math.radians(0.3)}
+
+
+def parser():
+    """The study's options (``vehjax reproduce consistency --help``); each help states its
+    default."""
+    p = argparse.ArgumentParser(
+        prog="vehjax reproduce consistency",
+        description=f"{PAPER}. Writes report.md and consistency.csv.")
+    p.add_argument("--runs", type=int, default=100, help="Monte-Carlo runs (default %(default)s)")
+    p.add_argument("--duration", type=float, default=3.0,
+                   help="seconds per run at 100 Hz (default %(default)s)")
+    p.add_argument("--models", default=",".join(MODELS),
+                   help="comma-separated built-in models (default: all, %(default)s)")
+    p.add_argument("--filters", default=",".join(FILTERS),
+                   help="comma-separated filters (default: all, %(default)s; the MPFs run "
+                        "on SingleTrackBank only)")
+    p.add_argument("--particles", type=int, default=1000,
+                   help="particles of the bootstrap PF and the MPF (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    p.add_argument("--out", default="out/consistency", help="output folder (default %(default)s)")
+    return p
+
+
+def _choices(option, text, allowed):
+    names = tuple(v.strip() for v in str(text).split(",") if v.strip())
+    bad = [n for n in names if n not in allowed]
+    if bad or not names:
+        raise ValueError(f"{option}: unknown {bad or 'empty list'}; expected some of {allowed}")
+    return names
+
+
+# ---------------------------------------------------------------------------------------------
+# data
+
+
+def matched_noise(model, scenario):
+    """Process std per step (nx,), measurement std (ny,) and initial-state std (nx,) of the
+    study's rule (module docstring), from the noise-free drive of ``scenario``."""
+    from ..simulate import simulate
+
+    nx, ny = len(model.state_names), len(model.output_names)
+    nom = simulate(model, scenario, runs=1, process_std=np.zeros(nx), meas_std=np.zeros(ny))
+
+    def spread(a):
+        a = np.asarray(a[0], float)
+        return np.maximum(np.ptp(a, axis=0), 1e-2 * np.abs(a).max(axis=0) + 1e-3)
+
+    q = _PROCESS_FRACTION * spread(nom.states)
+    return q, _MEAS_FRACTION * spread(nom.measurements), _X0_FACTOR * q
+
+
+def gaussian_filters(model, Q, R, n_particles):
+    """name -> builder() of every filter of the study but the MPF."""
+    from ..filters import ackf, bootstrap_pf, ckf, ekf, ukf
+
+    return {
+        "EKF": lambda: ekf(model, Q, R),
+        "UKF": lambda: ukf(model, Q, R),
+        "CKF": lambda: ckf(model, Q, R),
+        "SR-UKF": lambda: ukf(model, Q, R, sqrt=True),
+        "SR-CKF": lambda: ckf(model, Q, R, sqrt=True),
+        "ACKF": lambda: ackf(model, Q, R, forgetting=0.995, adapt=("R",), prior_steps=200),
+        "ACKF (paper)": lambda: ackf(model, Q, R),
+        "bootstrap PF": lambda: bootstrap_pf(model, Q, R, n_particles=n_particles),
+    }
+
+
+def mpf_inputs(T):
+    """(T, 2) inputs (vx, delta) of the MPF's study."""
+    t = np.arange(T) * 0.01
+    delta = 0.02 * np.sin(2 * np.pi * 0.4 * t) + 0.015 * np.sin(2 * np.pi * 0.11 * t + 1.0)
+    return np.stack([np.full(T, _VX), delta], 1)
+
+
+def simulate_mpf(model, runs, T, seed):
+    """Truth (R, T, 5), measurements (R, T, 5) and inputs (T, 2) from the MPF's own noise model
+    (module docstring); the observation at step t sees the same steering error as the
+    transition into it, as in eq. 9."""
+    U = mpf_inputs(T)
+    rng = np.random.default_rng([seed, 2018])
+    W = _OFFSET + _DELTA_STD * rng.standard_normal((T, runs))
+    J = _SIGMA_PHI * rng.standard_normal((T, runs))
+    B = model.bank_noise_gain()
+    th = model.theta
+
+    def body(X, k):
+        delta, w, jerk = k
+        uu = jnp.stack([jnp.full(runs, _VX), delta + w], 1)
+        Xn = jax.vmap(lambda x, u: model.transition(x, u, th))(X, uu) + jerk[:, None] * B
+        Y = jax.vmap(lambda x, u: model.observe(x, u, th))(Xn, uu)
+        return Xn, (Xn, Y)
+
+    X0 = jnp.zeros((runs, len(model.state_names)))
+    _, (Xs, Ys) = jax.jit(lambda X0, xs: jax.lax.scan(body, X0, xs))(
+        X0, (jnp.asarray(U[:, 1]), jnp.asarray(W), jnp.asarray(J)))
+    Xs, Ys = np.moveaxis(np.asarray(Xs), 0, 1), np.moveaxis(np.asarray(Ys), 0, 1)
+    names = model.output_names
+    bias = np.array([_BIAS.get(n, 0.0) for n in names])
+    std = np.array([_STD.get(n, _KNOWN.get(n, 0.0)) for n in names])
+    return Xs, Ys + bias + std * rng.standard_normal(Ys.shape), U
+
+
+def mpf_filter(model, n_particles, known=False):
+    """The MPF given the true noise statistics as its prior (module docstring); ``known``: as
+    good as known (nu0 = 1e7, gamma0 = 1e-9)."""
+    from ..filters import marginalized_pf
+
+    sure = dict(nu0=1e7, gamma0=1e-9) if known else {}
+    return marginalized_pf(
+        model, n_particles, sensors=_SENSORS, known_std=_KNOWN, linear_noise_std=_SIGMA_PHI,
+        std0={"delta": _DELTA_STD, **_STD}, mean0={"delta": _OFFSET, **_BIAS}, forgetting=1.0,
+        **sure)
+
+
+# ---------------------------------------------------------------------------------------------
+# the check
+
+
+def check(estimator, Y, U, X, x0, P0, key):
+    """Run ``estimator`` over the study and measure its consistency: a dict of the NEES and NIS
+    shares of steps in the 95 % band, their means per degree of freedom (over steps), the
+    number of diverged runs and the wall time (compile included)."""
+    from .. import metrics
+    from ..run import run
+
+    t0 = time.perf_counter()
+    out = run(estimator, Y, U, x0=x0, P0=P0, key=key if estimator.needs_key else None,
+              return_covariances=True)
+    seconds = time.perf_counter() - t0
+    nx = X.shape[-1]
+    keep = ~out.diverged
+    e = metrics.nees(out.states, out.covariances, X)
+    ce = metrics.consistency(e, nx, mask=keep)
+    cn = metrics.consistency(out.nis, out.n_obs, mask=keep)
+    dof = np.where(keep[:, None], out.n_obs, 0).sum(axis=0) / max(int(keep.sum()), 1)
+    return dict(nees_in=ce.inside, nees_per_dof=float(np.nanmean(ce.mean) / nx),
+                nis_in=cn.inside, nis_per_dof=float(np.nanmean(cn.mean / np.where(dof > 0, dof,
+                                                                                  np.nan))),
+                diverged=int(out.diverged.sum()), seconds=seconds)
+
+
+#: why a filter may miss the band (shown under the table for the filters that do); "likely"
+#: where the cause was not isolated by an experiment
+_WHY = {
+    "ACKF (paper)": "eq. 21-30 as printed start with d_1 = 1: the first innovations' few-sample "
+                    "estimates replace the correct Q0 and R0 and swing far from them (one "
+                    "3-DOF run, after 20 / 60 steps: Q 130-1400x / 40-410x too large, the vy "
+                    "sensor's R 0.0015x / 0.06x too small), so the filter leans on its "
+                    "measurements and reports a covariance far too small; the ACKF row (R "
+                    "only, the prior counted as 200 steps) does not have this start.",
+    "bootstrap PF": "likely sample impoverishment: states whose process noise is small next to "
+                    "what the measurements say of them (the kinematic bicycle's position, the "
+                    "bank states of SingleTrackBank) keep few distinct particle values after "
+                    "resampling, so the particle covariance is too small.",
+    "MPF": "likely the learnt statistics: each particle's noise statistics come from its own "
+           "ancestry, and resampling leaves few ancestries (the path degeneracy of static "
+           "parameters in a particle filter), so the mixture under-states how uncertain the "
+           "statistics are; compare the row with the statistics as good as known.",
+    "MPF (known noise)": "close to the band: the state errors per degree of freedom are near "
+                         "1 on average; the bank states start under-confident (their NEES below "
+                         "the band in the first steps).",
+}
+
+
+def _verdict(row):
+    ok = row["nees_in"] >= TARGET and row["nis_in"] >= TARGET
+    if ok:
+        return "consistent"
+    side = "over-confident" if row["nees_per_dof"] > 1.0 else "under-confident"
+    return f"**not consistent** ({side})"
+
+
+def study(models, filters, runs, duration, n_particles, seed, log=print):
+    """Every (model, filter) pair asked for: a list of row dicts (``check``'s plus model,
+    filter, runs, steps)."""
+    from .. import models as _models
+    from .. import scenarios
+    from ..simulate import simulate
+
+    rows = []
+    T = int(round(duration / 0.01))
+    for mi, name in enumerate(models):
+        model = _models.REGISTRY[name](dt=0.01)
+        todo = [f for f in filters if f not in _MPFS]
+        if todo:
+            scn = scenarios.double_lane_change(model, speed=20.0, duration=duration)
+            q, r, s0 = matched_noise(model, scn)
+            sim = simulate(model, scn, runs=runs, key=jax.random.key(seed * 101 + mi),
+                           process_std=q, meas_std=r, x0_std=s0)
+            X, Y, U = (np.asarray(a) for a in (sim.states, sim.measurements, sim.inputs))
+            build = gaussian_filters(model, q**2, r**2, n_particles)
+            for f in todo:
+                if (name, f) in SKIPPED:
+                    rows.append(dict(model=name, filter=f, runs=runs, steps=Y.shape[1],
+                                     skipped=SKIPPED[(name, f)]))
+                    log(f"  {name}, {f}: {SKIPPED[(name, f)]}")
+                    continue
+                log(f"  {name}, {f}: {runs} runs x {Y.shape[1]} steps ...", end=" ", flush=True)
+                row = check(build[f](), Y, U, X, np.asarray(scn.x0, float), s0**2,
+                            jax.random.key(seed * 101 + mi + 7))
+                rows.append(dict(model=name, filter=f, runs=runs, steps=Y.shape[1], **row))
+                log(f"{row['seconds']:.1f} s")
+        mpfs = [f for f in filters if f in _MPFS] if name == "SingleTrackBank" else []
+        if mpfs:
+            X, Y, U = simulate_mpf(model, runs, T, seed)
+            P0 = np.full(len(model.state_names), 1e-12)
+        for f in mpfs:
+            log(f"  {name}, {f}: {runs} runs x {T} steps ...", end=" ", flush=True)
+            row = check(mpf_filter(model, n_particles, known=f != "MPF"), Y, U, X, np.zeros(5),
+                        P0, jax.random.key(seed * 101 + 99))
+            rows.append(dict(model=name, filter=f, runs=runs, steps=T, **row))
+            log(f"{row['seconds']:.1f} s")
+    return rows
+
+
+def table(rows):
+    """The markdown table of the rows."""
+    head = ("| model | filter | runs x steps | NEES in band | NEES / nx | NIS in band | NIS / dof "
+            "| diverged | verdict |\n|---|---|---|---|---|---|---|---|---|")
+    lines = [head]
+    for r in rows:
+        if "skipped" in r:
+            lines.append(f"| {r['model']} | {r['filter']} | - | - | - | - | - | - | "
+                         f"{r['skipped']} |")
+            continue
+        lines.append(f"| {r['model']} | {r['filter']} | {r['runs']} x {r['steps']} | "
+                     f"{r['nees_in']:.3f} | {r['nees_per_dof']:.3g} | {r['nis_in']:.3f} | "
+                     f"{r['nis_per_dof']:.3g} | {r['diverged']} | {_verdict(r)} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    from .. import models as _models
+
+    models = _choices("--models", args.models, tuple(_models.REGISTRY))
+    filters = _choices("--filters", args.filters, FILTERS)
+    if args.runs < 2:
+        raise ValueError(f"--runs: expected at least 2, got {args.runs}")
+    if not (math.isfinite(args.duration) and args.duration >= 0.05):
+        raise ValueError(f"--duration: expected at least 0.05 s, got {args.duration}")
+    if args.particles < 2:
+        raise ValueError(f"--particles: expected at least 2, got {args.particles}")
+    if set(filters) <= set(_MPFS) and "SingleTrackBank" not in models:
+        raise ValueError("--filters: the MPF runs on SingleTrackBank only; add it to --models")
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    print(PAPER)
+    rows = study(models, filters, args.runs, args.duration, args.particles, args.seed)
+    done = [r for r in rows if "skipped" not in r]
+    bad = [r for r in done if _verdict(r) != "consistent"]
+    tab = table(rows)
+    summary = (f"{len(done) - len(bad)} of {len(done)} filter-model pairs run have at least "
+               f"{TARGET:.0%} of the steps inside the 95 % band for both NEES and NIS"
+               + (": not " + ", ".join(f"{r['filter']} on {r['model']}" for r in bad) + "."
+                  if bad else "."))
+    why = [f"- {f}: {_WHY[f]}" for f in dict.fromkeys(r["filter"] for r in bad) if f in _WHY]
+    report = "\n".join([
+        "# vehjax reproduce consistency", "", PAPER + ".", "",
+        f"{args.runs} runs per pair, {args.particles} particles, seed {args.seed}. How the data "
+        "and the filters are matched: the docstring of `vehjax/reproduce/consistency.py`. "
+        "NEES / nx and NIS / dof: the run average per degree of freedom, averaged over the "
+        "steps (1 = consistent, > 1 over-confident, < 1 under-confident). Wall time includes "
+        "compilation.", "", tab, "", summary, ""]
+        + (["Why the others miss it:", ""] + why + [""] if why else []))
+    (out_dir / "report.md").write_text(report)
+    with open(out_dir / "consistency.csv", "w") as fh:
+        keys = ("model", "filter", "runs", "steps", "nees_in", "nees_per_dof", "nis_in",
+                "nis_per_dof", "diverged", "seconds")
+        fh.write(",".join(keys) + "\n")
+        for r in done:
+            fh.write(",".join(str(r[k]) for k in keys) + "\n")
+    print()
+    print(tab)
+    print()
+    print(summary)
+    print(f"wrote {out_dir / 'report.md'}, {out_dir / 'consistency.csv'}")
+    return 0
