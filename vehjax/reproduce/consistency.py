@@ -230,9 +230,8 @@ def check(estimator, Y, U, X, x0, P0, key):
 #: where the cause was not isolated by an experiment
 _WHY = {
     "ACKF (paper)": "eq. 21-30 as printed start with d_1 = 1: the first innovations' few-sample "
-                    "estimates replace the correct Q0 and R0 and swing far from them (one "
-                    "3-DOF run, after 20 / 60 steps: Q 130-1400x / 40-410x too large, the vy "
-                    "sensor's R 0.0015x / 0.06x too small), so the filter leans on its "
+                    "estimates replace the correct Q0 and R0 and swing far from them (Q "
+                    "too large, R too small by orders of magnitude), so the filter leans on its "
                     "measurements and reports a covariance far too small; the ACKF row (R "
                     "only, the prior counted as 200 steps) does not have this start.",
     "bootstrap PF": "likely sample impoverishment: states whose process noise is small next to "
