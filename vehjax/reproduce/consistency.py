@@ -234,10 +234,14 @@ _WHY = {
                     "too large, R too small by orders of magnitude), so the filter leans on its "
                     "measurements and reports a covariance far too small; the ACKF row (R "
                     "only, the prior counted as 200 steps) does not have this start.",
-    "bootstrap PF": "likely sample impoverishment: states whose process noise is small next to "
-                    "what the measurements say of them (the kinematic bicycle's position, the "
-                    "bank states of SingleTrackBank) keep few distinct particle values after "
-                    "resampling, so the particle covariance is too small.",
+    "bootstrap PF": "too few particles: states whose process noise is small next to what the "
+                    "measurements say of them (the kinematic bicycle's position, the bank "
+                    "states of SingleTrackBank) keep few distinct particle values after "
+                    "resampling, so the particle covariance is too small. Measured with this "
+                    "study's defaults and more particles (--particles): SingleTrackBank 0.507 "
+                    "of steps in band with 1000 particles, 0.970 with 5000 (consistent); "
+                    "KinematicBicycle 0.830 with 1000, 0.893 with 5000, 0.920 with 20000 "
+                    "(consistent); NEES per dof 1.00-1.01 from 5000 on.",
     "MPF": "likely the learnt statistics: each particle's noise statistics come from its own "
            "ancestry, and resampling leaves few ancestries (the path degeneracy of static "
            "parameters in a particle filter), so the mixture under-states how uncertain the "
