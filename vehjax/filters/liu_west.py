@@ -303,7 +303,8 @@ def liu_west_ukf(
         resampling: "systematic", "stratified", "multinomial" or "residual"
             (see :mod:`vehjax.filters.resampling`).
         ess_threshold: resample when ESS < ess_threshold * M, in [0, 1]; 1 resamples every step
-            whose weights are not all equal, 0 never.
+            whose weights are not all equal, 0 never (with ``move="resampled"`` the kernel then
+            never moves the particles either).
         likelihood: "predictive" (S = the UKF's one-step innovation covariance) or
             "measurement" (S = R, as in the paper); see the module docstring.
         alpha, beta, kappa: the UKF's sigma-point scaling
