@@ -383,7 +383,7 @@ def liu_west_ukf(
     scheme = _rs.check_scheme(resampling)
     thr = smc.check_ess_threshold(ess_threshold)
     likelihood = _validate.choice("likelihood", likelihood, _LIKELIHOODS)
-    move_when = _validate.choice("move", move, _MOVES)
+    move = _validate.choice("move", move, _MOVES)
     Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
     rule = sigma.unscented_rule(nx, alpha, beta, kappa)
     state_filter = ukf(model, Qn, Rn, alpha=alpha, beta=beta, kappa=kappa)
@@ -482,17 +482,18 @@ def liu_west_ukf(
         lw = jnp.where(keep, state.log_weights, rw.log_w)
         w = jnp.exp(lw)
 
-        # Liu-West: resample when the weights degenerate, then shrink towards the mean and jitter
+        # Liu-West: resample when the weights degenerate, then (at the steps that resample, or
+        # at every step with move="every") shrink towards the mean and jitter
         mean, V = smc.moments(w, state.particles)
         ess = smc.ess(w)
         u_res = jax.random.uniform(k_res, (n_unif,), dtype=dtype)
         parts, lw_k, _, resampled = smc.resample(state.particles, w, lw, u_res, scheme, thr)
         moved = _kernel(k_kernel, parts, mean, V + jitter(dtype, width_s), a)
-        move = ~keep & jnp.all(jnp.isfinite(moved))
-        if move_when == "resampled":
-            move = move & resampled
-        parts = jnp.where(move, moved, state.particles)
-        lw_k = jnp.where(move, lw_k, lw)
+        do_move = ~keep & jnp.all(jnp.isfinite(moved))
+        if move == "resampled":
+            do_move = do_move & resampled
+        parts = jnp.where(do_move, moved, state.particles)
+        lw_k = jnp.where(do_move, lw_k, lw)
 
         # parameter estimate: weighted moments of the moved cloud, in physical units
         theta_bar, cov_bar = smc.moments(jnp.exp(lw_k), tf.to_physical(parts, axis=0))
