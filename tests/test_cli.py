@@ -102,6 +102,19 @@ def test_bench_gaussian_smoke(capsys):
     assert "vehjax/x: vehjax's run time divided by this library's" in out  # the ratio column
 
 
+def test_bench_liu_west_bias_smoke(capsys):
+    """Tiny sizes, the scalar skewed-posterior piece: both kernel timings are compared with the
+    exact posterior mean; an unknown piece is refused naming --parts."""
+    assert cli.main(["bench", "liu_west_bias", "--parts", "skewed", "--small-runs", "4"]) == 0
+    out = capsys.readouterr().out
+    lines = [line for line in out.splitlines() if "(estimate - exact mean) / std" in line]
+    assert len(lines) == 4 and all(np.isfinite(float(line.split("mean ")[1].split()[0]))
+                                   for line in lines)
+    assert sum("move=every" in line for line in lines) == 2
+    with pytest.raises(SystemExit, match="--parts"):
+        cli.main(["bench", "liu_west_bias", "--parts", "bogus"])
+
+
 def test_bench_all_smoke(capsys):
     """Tiny sizes, the EKF row (vehjax, dynamax, cuthbert): the estimates are checked equal
     before any timing, and the table has a line per library and the row's ratio. One row only:

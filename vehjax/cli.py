@@ -8,7 +8,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-BENCHMARKS = ("gaussian", "particle", "marginalized", "sevendof", "scale", "all")
+BENCHMARKS = ("gaussian", "particle", "marginalized", "sevendof", "scale", "all", "liu_west_bias")
 
 
 def _cmd_models(args) -> int:
