@@ -25,43 +25,47 @@ state from the last step and W_i the carried weights::
 When the kernel moves the particles (``move``). Liu and West (2001) move them at every step, and
 so does Dutta et al.'s Algorithm 3; vehjax moves them only at the steps that resample (default
 ``move="resampled"``), where the kernel has duplicates to spread; ``move="every"`` is the
-original. Why, measured (by scripts not in the repository, except where a command is named)
-against an exact reference nobody tuned: the posterior mean of the
-parameters under the same per-parameter UKF likelihood and the uniform prior, computed per run
-on a grid (11^3 points over +-5 posterior standard deviations, refined twice, one UKF per point
-over the whole run), on Dynamic3DOF at nominal, ``dutta2019.dynamic_scenario`` 60 s, matched
-noise, 100 runs. That posterior mean ends +0.5, +0.3, +0.7 % (se 0.3, 0.5, 0.3) from the true
-m, cx, cy (the posterior is skewed, its mean above its mode). Liu-West minus the reference, mean
-over runs in % (se), and the per-run scatter of the difference:
+original. Why: ``vehjax bench liu_west_bias`` (benchmarks/bench_liu_west_bias.py, its
+defaults plus ``--reference dutta2019``; about 35 minutes on 2 cores) measures both against an
+exact reference nobody tuned: the posterior mean of the parameters under the same
+per-parameter UKF likelihood and the uniform prior, per run on a grid (11^3 points over +-5
+posterior standard deviations, refined twice, one UKF per point over the whole run). Dynamic3DOF
+at nominal, ``dutta2019.dynamic_scenario`` 60 s, matched noise, true lf, lr, 100 runs, M = 1000.
+The exact posterior mean ends +0.5, +0.3, +0.7 % (se 0.3, 0.5, 0.3) from the true m, cx, cy
+(the posterior is skewed, its mean above its mode). Liu-West minus the reference, mean over runs
+in % (se), the per-run scatter of the difference, and the share of runs whose truth lies in the
+final 95 % interval:
 
-* ``move="every"``, M = 2000: -0.6 (0.16), -0.8 (0.18), -0.6 (0.15); scatter 1.5-1.8 %.
-* the same with one UKF per particle instead of the recurrent derivative (20 runs, M = 1000):
-  -1.2, -1.4, -1.1 (se 0.4-0.6), so not the first-order state; a per-particle innovation
-  covariance S (first order in theta, with d P / d theta carried like D): no change.
-* ``move="resampled"``, M = 1000: +0.1 (0.13), +0.2 (0.18), +0.2 (0.13); scatter 1.3-1.8 %.
-* share of runs whose truth lies in the final 95 % interval (M = 1000, same runs; the
-  root-mean-square of (estimate - truth) / reported std): ``"every"`` 0.81, 0.82, 0.84
-  (1.5-1.6), ``"resampled"`` 0.93, 0.89, 0.90 (1.09-1.22).
+* ``move="every"``: -0.3 (0.20), -0.3 (0.27), -0.3 (0.19); scatter 1.9-2.7 %; 0.81, 0.78, 0.83.
+* ``move="resampled"``: -0.1 (0.12), -0.2 (0.15), 0.0 (0.12); scatter 1.2-1.5 %; 0.93, 0.89,
+  0.93.
 
-Each kernel move pulls the cloud towards the Gaussian with its mean and covariance (of s). At
-every one of 3000 steps, each adding about 1/3000 of the run's information, that pull shapes the
-cloud more than the data do, and the weights settle on a Gaussian (assumed-density)
-approximation (the joint UKF, another one, ends -0.3, -0.5, -0.3 from the reference). Moved
-only after resampling, which grows rarer as the posterior settles, the weights carry the
-likelihood's shape. On a second excitation (chirp steering 0.1-1.5 Hz, 15 m/s with a +-0.8 m/s^2
-speed swing of 12 s period, truth 1.10, 0.92, 1.06 x nominal, box +-30 % of nominal so not
-centred on it, 100 runs, M = 1000) the final estimate relative to the truth: ``"every"`` -1.4,
--1.0, -1.3 % (se 0.4-0.5; -3.4, -2.6, -3.4 after 6 s), ``"resampled"`` -0.2, +0.3, +0.2 (after
-6 s -0.2, -0.1, 0.0). On a scalar model whose posterior is skewed (x' = 0.9 x + u / g,
-``tests/test_liu_west.py``, 200 runs, 300 steps), both agree with the exact posterior mean to
-0.05 posterior standard deviations (``"every"`` +0.01 to +0.03 (se 0.02), ``"resampled"`` -0.05
-(se 0.01), for M = 500 and 2000) and ``"resampled"`` scatters less around it per run (0.14-0.17
-against 0.21-0.26 standard deviations). The price: with few particles the parameter
-covariance is over-confident, more so when moved after resampling only (the cloud is spread
-less often). KinematicBicycle, sine steering, lf and lr, 40 runs, root-mean-square of
-(estimate - truth) / reported std at the end (1 = calibrated): M = 100 "every" 1.37, 1.29,
-"resampled" 1.86, 1.43; M = 300 0.94, 0.91 and 1.16, 1.29; M = 1000 0.98, 1.01 and 0.94, 0.97.
-Use M >= 1000 (the default).
+On a second excitation (chirp steering 0.1-1.5 Hz, 15 m/s with a +-0.8 m/s^2 speed swing of
+12 s period, truth 1.10, 0.92, 1.06 x nominal, box +-30 % of nominal so not centred on it,
+same sizes) the final estimate relative to the truth: ``"every"`` -1.0, -0.6, -1.0 % (se
+0.4-0.5; -3.0, -2.1, -3.0 after 6 s), truth in the 95 % interval 0.85, 0.80, 0.88;
+``"resampled"`` -0.2, +0.1, 0.0 (after 6 s -0.4, -0.4, -0.3), 0.95, 0.92, 0.93. Diagnosis
+*(ad hoc scripts, not in the repository, on the same 3-DOF data with another filter key, where
+``"every"`` ended -0.6, -0.8, -0.6 from the reference)*: one UKF per particle instead of the
+recurrent derivative, kernel at every step (20 runs): -1.2, -1.4, -1.1 (se 0.4-0.6), so not the
+first-order state; a per-particle innovation covariance S (first order in theta, d P / d theta
+carried like D): no change. Each kernel move pulls the cloud towards the Gaussian with its mean
+and covariance (of s); at every one of 3000 steps, each adding about 1/3000 of the run's
+information, that pull shapes the cloud more than the data do, and the estimate settles near a
+Gaussian (mode-like) approximation of the skewed posterior. Moved only after resampling, which
+grows rarer as the posterior settles, the weights carry the likelihood's shape.
+
+On a scalar model whose posterior is skewed (x' = 0.9 x + u / g; the bench's "skewed" piece,
+200 runs x 300 steps; ``tests/test_liu_west.py`` has a smaller one), both agree with the exact
+posterior mean to about 0.05 posterior standard deviations (``"every"`` +0.02 (se 0.02) and
+-0.01 (0.01) for M = 500 and 2000, ``"resampled"`` -0.06 (0.01) and -0.05 (0.01)), and
+``"resampled"`` scatters less around it per run (0.16 and 0.13 against 0.30 and 0.20 standard
+deviations). The price: with few particles the parameter covariance is over-confident, more so
+when moved after resampling only (the cloud is spread less often). The bench's "few" piece
+(KinematicBicycle, sine steering, lf and lr, 40 runs): root-mean-square of (estimate - truth) /
+reported std at the end (1 = calibrated), ``"every"`` / ``"resampled"``: M = 100 2.19, 1.73 /
+2.06, 2.64; M = 300 1.35, 1.04 / 1.41, 1.17; M = 1000 1.16, 0.98 / 1.19, 1.11. Use M >= 1000
+(the default).
 
 Bias (issue #17), and what removed it (the first two causes below were measured with the kernel
 at every step, ``move="every"``). Measured as the mean over runs of the final estimate
