@@ -113,6 +113,20 @@ _MOVES = {
     "dynamic_slice", "dynamic_update_slice",
 }
 _PASS = {"convert_element_type", "copy", "copy_p", "reduce_precision", "stop_gradient"}
+# Primitives that combine the entries at the same position only (a whitelist: cumsum, sort and
+# the like keep the shape but mix entries)
+_ELEMENTWISE = {
+    "add", "sub", "mul", "div", "neg", "max", "min", "pow", "integer_pow", "square", "sqrt",
+    "rsqrt", "cbrt", "exp", "exp2", "expm1", "log", "log1p", "sin", "cos", "tan", "asin", "acos",
+    "atan", "atan2", "sinh", "cosh", "tanh", "asinh", "acosh", "atanh", "logistic", "abs", "sign",
+    "floor", "ceil", "round", "rem", "select_n", "clamp", "erf", "erfc", "erf_inv", "lgamma",
+    "digamma", "is_finite", "nextafter", "eq", "ne", "lt", "le", "gt", "ge", "and", "or", "not",
+    "xor", "add_any",
+}
+# Elementwise primitives whose result is zero wherever the listed operands are constant zeros
+# (for finite values of the others: 0 * inf is NaN). Forward-mode derivatives multiply state-
+# dependent partials by tangents that are zero in every direction but one.
+_ZERO_ABSORBS = {"mul": (0, 1), "div": (0,)}
 
 
 def dependence(fn: Callable, args: Sequence):
@@ -124,11 +138,13 @@ def dependence(fn: Callable, args: Sequence):
     Found from the traced equations, entry by entry, evaluating ``fn`` only at ``args``: an entry
     is independent when no chain of equations leads to it from an argument. Equations that only
     move entries (slices, concatenations, broadcasts, gathers and scatters at fixed indices) are
-    followed entry by entry, elementwise ones combine the entries at the same position, calls
-    (jit, custom derivatives) are followed inside, and any other equation (reductions, matrix
-    products, loops) makes every entry of its result depend on every dependent entry of its
-    operands. The answer can only err towards "depends" (e.g. ``0 * x`` depends on x), never the
-    other way.
+    followed entry by entry, elementwise ones (a list) combine the entries at the same position,
+    calls (jit, custom derivatives) are followed inside, and any other equation (reductions,
+    matrix products, scans such as cumsum, loops) makes every entry of its result depend on every dependent entry of its
+    operands. A product with an entry that is a constant zero (and a quotient of one) is that
+    constant zero, as it is for every finite value of the other operand: so a Jacobian entry
+    that is a sum of partials times zero tangents is found constant. Otherwise the answer can
+    only err towards "depends" (e.g. ``x - x`` depends on x), never the other way.
     """
     closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*args)
     out_tree = jax.tree.structure(out_shape)
@@ -188,9 +204,13 @@ def _eval_dependence(closed, args, arg_masks):
                       for i, (x, m) in enumerate(zip(values, masks))], **eqn.params)
                 moved = moved if eqn.primitive.multiple_results else [moved]
                 out_dep = [np.asarray(o) != 0 for o in moved]
-        elif not eqn.primitive.multiple_results and all(
-                np.shape(m) in ((), shapes[0]) for m in masks):
+        elif name in _ELEMENTWISE and all(np.shape(m) in ((), shapes[0]) for m in masks):
             out_dep = [np.logical_or.reduce([np.broadcast_to(m, shapes[0]) for m in masks])]
+            if name in _ZERO_ABSORBS:
+                # a product with (a quotient of) an entry that is a constant zero is that zero
+                for i in _ZERO_ABSORBS[name]:
+                    zero = ~masks[i] & (np.asarray(values[i]) == 0)
+                    out_dep[0] = out_dep[0] & ~np.broadcast_to(zero, shapes[0])
         else:
             out_dep = [np.ones(s, bool) for s in shapes]
         for v, o, d in zip(eqn.outvars, outs, out_dep):

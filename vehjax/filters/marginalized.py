@@ -106,7 +106,11 @@ particle: g = d f / d delta, A_bar = d f_x / d z, the bank transition, C = d h /
 d = d h / d delta. For models affine in the states, the linear states and the noisy input
 (:class:`~vehjax.models.bank.SingleTrackBank` at a given speed) every formula is exact; for
 others it is first order in the offset and the bank (an EKF-like step inside each particle).
-Affinity in the linear states is checked numerically when the filter is built.
+Affinity in the linear states is checked numerically when the filter is built. Which entries
+of these derivatives are constants, which depend on the input alone (computed once per step,
+not per particle) and which on the particle is read off the traced model when the filter is
+built (:func:`_entry_kinds`): for SingleTrackBank only the predicted x_t, z_t and y_t are
+per particle.
 
 Implementation. Particles are last in every leaf. The per-particle algebra is written entry by
 entry (every matrix entry one (N,) vector, structural zeros skipped, the Cholesky and forward
@@ -505,14 +509,20 @@ def _lin_entries(lin):
     return _Lin(*(_ent(a) for a in lin))
 
 
-def _constant_entries(f, h, theta, nl, li, i_in, n_u, rows):
-    """:class:`_Lin` of nested lists: the entries of the linearisation that are the same number
-    at every particle, bank mean and input (found from the traced model, :func:`vehjax._hoist.
-    dependence`), as Python floats (structural constants: the step's algebra skips zeros and
-    ones and folds the rest), None elsewhere. ``rows``: the output rows the filter uses.
+def _entry_kinds(f, h, theta, nl, li, i_in, n_u, rows):
+    """:class:`_Lin` of nested lists saying how each entry of the linearisation varies, found
+    from the traced model (:func:`vehjax._hoist.dependence`); ``rows``: the output rows the
+    filter uses. An entry is
 
-    For SingleTrackBank 36 of the 60 entries are constants (gz, A, most of Cx, Cz and d): 26 %
-    fewer operations per particle and step, measured 19 % faster (one run, N = 500)."""
+    * a Python float: the same number at every particle, bank mean and input (a structural
+      constant: the step's algebra skips zeros and ones and folds the rest);
+    * ``"step"``: a function of the input alone, the same for every particle: computed once per
+      step at one point and broadcast;
+    * None: it depends on the particle (its sampled states or its bank mean).
+
+    For SingleTrackBank 36 of the 60 Jacobian entries are constants (gz, A, most of Cx, Cz and
+    d) and the other 24 depend on the speed only (the model is affine in (vy, r), the bank and
+    the steering at a given speed): per particle only x_t, z_t and y_t at w = 0 remain."""
     probe = (jnp.zeros(len(nl)), jnp.zeros(len(li)), jnp.ones(n_u))
 
     def lin_one(x, m, u):
@@ -520,23 +530,28 @@ def _constant_entries(f, h, theta, nl, li, i_in, n_u, rows):
         return lin._replace(yb=lin.yb[rows], Cx=lin.Cx[rows], Cz=lin.Cz[rows], d=lin.d[rows])
 
     dep = _hoist.dependence(lin_one, probe)
+    dep_particle = _hoist.dependence(lambda x, m: lin_one(x, m, probe[2]), probe[:2])
     val = lin_one(*probe)
 
-    def entries(d, v):
+    def kinds(d, dp, v):
         if d.ndim == 2:
-            return [entries(di, vi) for di, vi in zip(d, v)]
-        return [None if di else float(vi) for di, vi in zip(d, np.asarray(v))]
+            return [kinds(di, dpi, vi) for di, dpi, vi in zip(d, dp, v)]
+        return [None if dpi else ("step" if di else float(vi))
+                for di, dpi, vi in zip(d, dp, np.asarray(v))]
 
-    return _Lin(*(entries(np.asarray(d), v) for d, v in zip(dep, val)))
+    return _Lin(*(kinds(np.asarray(d), np.asarray(dp), v)
+                  for d, dp, v in zip(dep, dep_particle, val)))
 
 
-def _with_constants(lin, const):
-    """Entries of ``lin`` (nested lists) with the known constants put in."""
-    def put(e, c):
-        if isinstance(c, list):
-            return [put(ei, ci) for ei, ci in zip(e, c)]
-        return e if c is None else c
-    return _Lin(*(put(e, c) for e, c in zip(lin, const)))
+def _merge_entries(per_particle, per_step, kinds):
+    """Entries of the linearisation: the constants of ``kinds`` (:func:`_entry_kinds`), the
+    entries of ``per_step`` (one point) where the kind is "step", those of ``per_particle``
+    elsewhere (all nested lists)."""
+    def put(e, s, k):
+        if isinstance(k, list):
+            return [put(ei, si, ki) for ei, si, ki in zip(e, s, k)]
+        return e if k is None else (s if k == "step" else k)
+    return _Lin(*(put(e, s, k) for e, s, k in zip(per_particle, per_step, kinds)))
 
 
 # -- the same on arrays, for the tests ----------------------------------------------------------
@@ -891,7 +906,7 @@ def marginalized_pf(
         in_axes=(-1, -1, None, None), out_axes=-1,
     )
 
-    lin_const = _constant_entries(f, h, mth, nl, li, i_in, len(input_names), u_idx)
+    lin_kinds = _entry_kinds(f, h, mth, nl, li, i_in, len(input_names), u_idx)
 
     def particle_update(x, m, P, mu, lam_w, lam_e, z1, z2, y, obs, u, theta, gam, nu_p):
         start = (u[0] != u[0]).astype(jnp.int32)  # 0 unless NaN, the same for every run
@@ -899,10 +914,14 @@ def marginalized_pf(
         normalised: the log-likelihood, the draw, the Kalman step and the statistics update.
         The statistics come in predicted (eq. 20). y, obs: (n_yu,) used rows."""
         dtype = x.dtype
-        lin = lin_all(x, m, u, theta)
-        lin = _lin_entries(lin._replace(yb=lin.yb[u_idx], Cx=lin.Cx[u_idx], Cz=lin.Cz[u_idx],
-                                        d=lin.d[u_idx]))
-        lin = _barrier(_with_constants(lin, lin_const), start)
+        def used_rows(lin):
+            return _lin_entries(lin._replace(yb=lin.yb[u_idx], Cx=lin.Cx[u_idx],
+                                             Cz=lin.Cz[u_idx], d=lin.d[u_idx]))
+
+        lin = used_rows(lin_all(x, m, u, theta))  # entries not used below are compiled away
+        lin_step = used_rows(_linearise(f, h, jnp.zeros(nxs, dtype), jnp.zeros(nz, dtype), u,
+                                        theta, nl, li, i_in))
+        lin = _barrier(_merge_entries(lin, lin_step, lin_kinds), start)
         ye = [y[i] for i in range(nyu)]
         ob = [obs[i] for i in range(nyu)]
         Pe, lee = _ent(P), _ent(lam_e)
