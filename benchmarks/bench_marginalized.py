@@ -65,9 +65,11 @@ def _problem(runs: int, steps: int):
     return b18, model, U, X, Y
 
 
-def _compile(jitted, *args):
+def _compile(jitted, *args, options=None):
+    """Compiled ``jitted`` with XLA ``options`` (an estimator's ``compiler_options``, what
+    ``vehjax.run`` compiles it with), a function that runs it, and the compile time."""
     t0 = time.perf_counter()
-    compiled = jitted.lower(*args).compile()
+    compiled = jitted.lower(*args).compile(compiler_options=dict(options or ()) or None)
     compile_s = time.perf_counter() - t0
     return (lambda: jax.block_until_ready(compiled(*args))), compile_s
 
@@ -102,11 +104,13 @@ def _bootstrap(model, b18, n):
 
 
 def _step_flops(est, x0, P0, key, y, u, n):
-    """XLA's operation count of one ``step`` per particle (cost analysis of the compiled step)."""
+    """XLA's operation count and bytes accessed of one ``step`` per particle (cost analysis of
+    the step compiled with the estimator's ``compiler_options``)."""
     state = est.init(jnp.asarray(x0), jnp.asarray(P0), key=key)
-    ca = jax.jit(est.step).lower(state, jnp.asarray(y), jnp.asarray(u)).compile().cost_analysis()
+    lowered = jax.jit(est.step).lower(state, jnp.asarray(y), jnp.asarray(u))
+    ca = lowered.compile(compiler_options=dict(est.compiler_options) or None).cost_analysis()
     ca = ca[0] if isinstance(ca, (list, tuple)) else ca
-    return float(ca.get("flops", math.nan)) / n
+    return float(ca.get("flops", math.nan)) / n, float(ca.get("bytes accessed", math.nan)) / n
 
 
 def main(argv=None) -> int:
@@ -130,11 +134,21 @@ def main(argv=None) -> int:
           f"{jax.device_count()} device(s). The machine may be shared with other jobs: the "
           f"times are upper bounds.")
     rows = {}
+    ref = 500 if 500 in Ns else max(Ns)
     for n in Ns:
         est = b18.build_sim_filter(model, n)
-        rows[(n, "MPF", 1)] = _compile(_driver(est, U, x0, P0, False), keys[0], Yj[0])
+        opts = est.compiler_options
+        rows[(n, "MPF", 1)] = _compile(_driver(est, U, x0, P0, False), keys[0], Yj[0],
+                                       options=opts)
         if args.runs > 1:
-            rows[(n, "MPF", args.runs)] = _compile(_driver(est, U, x0, P0, True), keys, Yj)
+            rows[(n, "MPF", args.runs)] = _compile(_driver(est, U, x0, P0, True), keys, Yj,
+                                                   options=opts)
+        if n == ref and opts:  # the same with XLA's defaults, to show what the options buy
+            rows[(n, "MPF default", 1)] = _compile(_driver(est, U, x0, P0, False), keys[0],
+                                                   Yj[0])
+            if args.runs > 1:
+                rows[(n, "MPF default", args.runs)] = _compile(_driver(est, U, x0, P0, True),
+                                                               keys, Yj)
         if not args.no_bootstrap:
             bs = _bootstrap(model, b18, n)
             rows[(n, "bootstrap", 1)] = _compile(_driver(bs, U, x0, P0, False), keys[0], Yj[0])
@@ -168,6 +182,11 @@ def main(argv=None) -> int:
         print(f"{n:>6}{ms[(n, 'MPF', 1)]:>12.4f}{ms[(n, 'MPF', R)]:>14.5f}{b1:>12.4f}{bR:>15.5f}"
               f"{ms[(n, 'MPF', 1)] / b1:>10.2f}"
               f"{sum(rows[k][1] for k in rows if k[:2] == (n, 'MPF')):>17.1f}")
+    if (ref, "MPF default", 1) in ms:
+        opts = ", ".join(f"{k}={v}" for k, v in b18.build_sim_filter(model, ref).compiler_options)
+        print(f"MPF at N = {ref} compiled with XLA's defaults instead of the filter's "
+              f"compiler_options ({opts}): {ms[(ref, 'MPF default', 1)]:.4f} ms (1 run), "
+              f"{ms[(ref, 'MPF default', R)]:.5f} ms per run-step ({R} runs)")
     # targets
     if len(Ns) >= 2:
         n_lo, n_hi = min(Ns), max(Ns)
@@ -177,7 +196,6 @@ def main(argv=None) -> int:
         print(f"linearity: 1-run time = {fit[1]:.4f} ms + {fit[0] * 1e3:.4f} us x N "
               f"(worst relative deviation from the line {resid:.2f}); slope end to end "
               f"{slope * 1e3:.4f} us per particle")
-    ref = 500 if 500 in Ns else max(Ns)
     one = ms[(ref, "MPF", 1)]
     amort = ms[(ref, "MPF", R)]
     print(f"target: 1 run at N = {ref}: {one:.4f} ms/step (target <= 0.3; paper 1.4 ms in C) "
@@ -190,15 +208,21 @@ def main(argv=None) -> int:
         print(f"target: MPF / bootstrap PF per particle <= 4: worst {ratio:.2f} (1 run), "
               f"{ratio_r:.2f} ({R} runs) -> {'met' if max(ratio, ratio_r) <= 4 else 'NOT met'}")
     # what the amortized target asks of the machine
-    f_mpf = _step_flops(b18.build_sim_filter(model, ref), x0, P0, keys[0], Y[0, 0], U[0], ref)
-    line = f"operations per particle-step (XLA cost analysis of one step): MPF {f_mpf:.0f}"
+    f_mpf, b_mpf = _step_flops(b18.build_sim_filter(model, ref), x0, P0, keys[0], Y[0, 0],
+                               U[0], ref)
+    line = (f"operations and bytes accessed per particle-step (XLA cost analysis of one step): "
+            f"MPF {f_mpf:.0f}, {b_mpf / 1e3:.1f} kB")
     if not args.no_bootstrap:
-        f_bs = _step_flops(_bootstrap(model, b18, ref), x0, P0, keys[0], Y[0, 0], U[0], ref)
-        line += f", bootstrap PF {f_bs:.0f} (ratio {f_mpf / f_bs:.1f})"
+        f_bs, b_bs = _step_flops(_bootstrap(model, b18, ref), x0, P0, keys[0], Y[0, 0], U[0],
+                                 ref)
+        line += (f"; bootstrap PF {f_bs:.0f}, {b_bs / 1e3:.1f} kB (ratios {f_mpf / f_bs:.1f}, "
+                 f"{b_mpf / b_bs:.1f})")
     print(line)
     need = f_mpf * ref / 0.05e-3 / 1e9
-    line = (f"the {R}-run target at N = {ref} needs {need:.1f} GFLOP/s sustained (XLA's "
-            f"operations); amortized now: MPF {f_mpf * ref / (amort * 1e-3) / 1e9:.1f} GFLOP/s")
+    line = (f"the {R}-run target at N = {ref} needs {need:.1f} GFLOP/s and "
+            f"{b_mpf * ref / 0.05e-3 / 1e9:.0f} GB/s sustained (XLA's counts); amortized now: "
+            f"MPF {f_mpf * ref / (amort * 1e-3) / 1e9:.1f} GFLOP/s, "
+            f"{b_mpf * ref / (amort * 1e-3) / 1e9:.0f} GB/s")
     if not args.no_bootstrap:
         line += (f", bootstrap PF "
                  f"{f_bs * ref / (ms[(ref, 'bootstrap', R)] * 1e-3) / 1e9:.1f} GFLOP/s")

@@ -86,4 +86,5 @@ def test_bench_marginalized_smoke(capsys):
     assert bench.main(["--particles", "20,40", "--steps", "20", "--runs", "1", "--repeat", "1"]) == 0
     out = capsys.readouterr().out
     assert "target: 1 run" in out and "linearity" in out
-    assert "operations per particle-step" in out and "GFLOP/s" in out
+    assert "operations and bytes accessed per particle-step" in out and "GFLOP/s" in out
+    assert "compiled with XLA's defaults" in out

@@ -265,6 +265,30 @@ def test_compile_run_times_compilation_apart():
     _assert_close(a, b, rtol=0)
 
 
+def test_compiler_options_reach_xla_and_keep_the_results():
+    """compiler_options compile the study with those XLA options (run and compile_run): at LLVM
+    level 1 the results are the exact Kalman recursions' still; an option XLA does not know is
+    a ValueError naming the argument."""
+    ys, us = _data(R=3, seed=9)
+    opts = {"xla_backend_optimization_level": 1}
+    out = run(EST, ys, us, x0=X0, P0=P0, compiler_options=opts)
+    prepared = compile_run(EST, ys, us, x0=X0, P0=P0, compiler_options=opts)
+    for res in (out, prepared()):
+        for r in range(3):
+            np.testing.assert_allclose(res.states[r], numpy_kf(ys[r], us[r], X0, P0)[0],
+                                       rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="compiler_options.*xla_no_such_option"):
+        run(EST, ys, us, x0=X0, P0=P0, compiler_options={"xla_no_such_option": 1})
+    # an estimator's declared options are used, and the caller's override them by name
+    declared = EST._replace(compiler_options=(("xla_no_such_option", 1),))
+    with pytest.raises(ValueError, match="compiler_options.*xla_no_such_option"):
+        run(declared, ys, us, x0=X0, P0=P0)
+    declared = EST._replace(compiler_options=(("xla_backend_optimization_level", "no level"),))
+    out = run(declared, ys, us, x0=X0, P0=P0, compiler_options=opts)
+    np.testing.assert_allclose(out.states[0], numpy_kf(ys[0], us[0], X0, P0)[0], rtol=1e-10,
+                               atol=1e-12)
+
+
 def _key_reporting_estimator():
     """Needs a key: carries it in its state and reports the key's two uint32 words as its mean."""
 
@@ -351,6 +375,8 @@ def _exploding():
         (dict(return_covariances="yes"), "return_covariances"),
         (dict(theta0=[1.0]), "theta0"),
         (dict(estimator="ukf"), "estimator"),
+        (dict(compiler_options=[("xla_backend_optimization_level", 1)]), "compiler_options"),
+        (dict(compiler_options={"xla_backend_optimization_level": [1]}), "compiler_options"),
     ],
 )
 def test_bad_input_raises_before_tracing(change, arg):
