@@ -81,7 +81,7 @@ import hashlib
 import math
 import sys
 import time
-from functools import partial
+from functools import lru_cache, partial
 from typing import Any, NamedTuple, Sequence
 
 import equinox as eqx
@@ -710,7 +710,8 @@ def run(
 
 def _compiler_options(estimator, options) -> dict | None:
     """The estimator's declared XLA options updated with the caller's; None when empty."""
-    own = dict(estimator.compiler_options) if isinstance(estimator, Estimator) else {}
+    own = {k: v for k, v in (estimator.compiler_options if isinstance(estimator, Estimator)
+                             else ()) if _xla_knows(k, v)}
     if options is None:
         return own or None
     if not isinstance(options, dict) or not all(isinstance(k, str) for k in options):
@@ -721,6 +722,17 @@ def _compiler_options(estimator, options) -> dict | None:
         raise ValueError(f"compiler_options: values must be str, bool, int or float; {bad} are "
                          f"not")
     return {**own, **options} or None
+
+
+@lru_cache(maxsize=None)
+def _xla_knows(name: str, value) -> bool:
+    """Whether this XLA takes the compile option (an estimator's declared options are
+    measured choices, not requirements: one that a newer XLA dropped is skipped)."""
+    try:
+        jax.jit(lambda x: x).lower(jnp.zeros(())).compile(compiler_options={name: value})
+    except jax.errors.JaxRuntimeError:
+        return False
+    return True
 
 
 def _compile(plan: _Plan, options: dict | None):

@@ -40,7 +40,7 @@ import numpy as np
 from .. import _validate
 from . import sigma
 from ._linalg import sym
-from .base import Estimator, state_output
+from .base import ELEMENTAL_EMITTER, Estimator, state_output
 from ._model import (
     cast_yu, chol_const, check_model, model_dims, model_theta, point_fns, prior,
 )
@@ -169,4 +169,5 @@ def ackf(
         new = AckfState(r.x, r.P, Qh, Rh, k_new, theta)
         return new, state_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
 
-    return Estimator(init=init, step=step, nx=nx, name="ACKF", **model_dims(model))
+    return Estimator(init=init, step=step, nx=nx, name="ACKF", compiler_options=ELEMENTAL_EMITTER,
+                     **model_dims(model))

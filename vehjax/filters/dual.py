@@ -111,7 +111,7 @@ from .. import _validate
 from . import sigma
 from ._bounds import Transform, check_inside, parse as _parse_bounds
 from ._linalg import sym
-from .base import Estimator, StepOutput, check_estimate
+from .base import ELEMENTAL_EMITTER, Estimator, StepOutput, check_estimate
 from ._model import cast_yu, check_model, model_dims, per_point
 from ._model import prior as _state_prior
 from .kalman import linearized_measure, linearized_predict, masked_update
@@ -283,7 +283,7 @@ def _walk(cfg: _Setup, z, Q_theta):
 def _estimator(cfg: _Setup, model, init, step, name: str) -> Estimator:
     return Estimator(
         init=init, step=step, nx=cfg.nx, param_names=cfg.names, name=name,
-        bounds=cfg.tf.bounds, **model_dims(model)
+        bounds=cfg.tf.bounds, compiler_options=ELEMENTAL_EMITTER, **model_dims(model)
     )
 
 

@@ -50,7 +50,7 @@ from ._model import (
     prior,
     validate_prior,
 )
-from .base import Estimator, state_output
+from .base import ELEMENTAL_EMITTER, Estimator, state_output
 from .kalman import UpdateResult, linearized_measure, linearized_predict, masked_update
 from .sigma import SigmaRule, cubature_rule, unscented_rule
 
@@ -135,7 +135,7 @@ def ekf(model, Q, R) -> Estimator:
         return GaussianState(r.x, r.P, theta), state_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
 
     return Estimator(init=_prior_init(model, False), step=step, nx=nx, name="EKF",
-                     **model_dims(model))
+                     compiler_options=ELEMENTAL_EMITTER, **model_dims(model))
 
 
 # --------------------------------------------------------------------------------------------
@@ -174,7 +174,7 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str) -> Estima
             batch = runs_last
 
         return Estimator(init=_prior_init(model, False), step=step, nx=nx, name=name, batch=batch,
-                         **model_dims(model))
+                         compiler_options=ELEMENTAL_EMITTER, **model_dims(model))
 
     LQn, LRn = chol_const(Qn), chol_const(Rn)
 
@@ -190,7 +190,7 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str) -> Estima
         return SqrtGaussianState(x_new, L_new, theta), out
 
     return Estimator(init=_prior_init(model, True), step=sqrt_step, nx=nx, name="SR-" + name,
-                     **model_dims(model))
+                     compiler_options=ELEMENTAL_EMITTER, **model_dims(model))
 
 
 def ukf(

@@ -138,17 +138,12 @@ from jax.scipy.special import gammaln
 from .. import _hoist, _validate
 from . import resampling as _rs
 from . import smc
-from .base import Estimator, StepOutput
+from .base import ELEMENTAL_EMITTER, Estimator, StepOutput
 from ._linalg import chol_entries, forward_entries
 from .sigma import cholesky, solve_lower
 
 __all__ = ["MPFState", "marginalized_pf"]
 
-#: XLA options of this filter's studies (``Estimator.compiler_options``): XLA:CPU's fusion
-#: emitters (its default code generator for fusions) run this filter's hundreds of elementwise
-#: kernels per step about half as fast as the classic elemental emitter (``vehjax bench
-#: marginalized`` prints both); the bootstrap PF is faster with them, so the choice is per filter
-_COMPILER_OPTIONS = (("xla_cpu_use_fusion_emitters", False),)
 
 
 class MPFState(NamedTuple):
@@ -1120,5 +1115,5 @@ def marginalized_pf(
     return Estimator(
         init=init, step=step, nx=nx, param_names=param_names, name="marginalized_pf",
         needs_key=True, param_prior=(theta_prior, P_prior), ny=ny, nu=len(input_names),
-        compiler_options=_COMPILER_OPTIONS,
+        compiler_options=ELEMENTAL_EMITTER,
     )
