@@ -283,6 +283,17 @@ def test_compiler_options_reach_xla_and_keep_the_results():
     for declared in ((("xla_no_such_option", 1),), (("xla_backend_optimization_level", 1),)):
         res = run(EST._replace(compiler_options=declared), ys, us, x0=X0, P0=P0)
         np.testing.assert_allclose(res.states, out.states, rtol=1e-10, atol=1e-12)
+    # the compiled study is reused by the next call with the same estimator, options, shapes
+    run_mod = sys.modules["vehjax.run"]
+    est = EST._replace(compiler_options=(("xla_backend_optimization_level", 1),))
+    run(est, ys, us, x0=X0, P0=P0)
+    n = len(run_mod._COMPILED)
+    again = run(est, ys + 1.0, us, x0=X0, P0=P0)
+    assert len(run_mod._COMPILED) == n
+    np.testing.assert_allclose(again.states[1], numpy_kf(ys[1] + 1.0, us[1], X0, P0)[0],
+                               rtol=1e-10, atol=1e-12)
+    run(est, ys[:2], us[:2], x0=X0, P0=P0)  # other shapes: compiled anew
+    assert len(run_mod._COMPILED) == min(n + 1, run_mod._COMPILED_MAX)
     assert sys.modules["vehjax.run"]._compiler_options(EST._replace(compiler_options=(
         ("xla_backend_optimization_level", 1), ("xla_no_such_option", 1))),
         {"xla_backend_optimization_level": 2}) == {"xla_backend_optimization_level": 2}

@@ -673,14 +673,15 @@ def run(
         compiler_options: XLA options for compiling this study, e.g.
             ``{"xla_backend_optimization_level": 1}``, on top of the estimator's own
             (``Estimator.compiler_options``; these override them name by name). Default None:
-            the estimator's, else XLA's defaults (LLVM at level 3 on CPU). Without options the
-            compiled study is cached across calls; with options it is compiled for the call. Use level 1 for a particle filter on
-            :class:`~vehjax.models.SevenDOF`: at level 3 LLVM takes over 10 minutes on its step
-            vmapped over runs, at level 1 about 20 s, and the model runs as fast (measured ad
-            hoc: the RK4 transition vmapped over 1000 states 175 us per state at either
-            level; the bootstrap PF, 4 runs x 100 particles, compiled in 18 s and ran 0.19 ms
-            per particle-step). Elsewhere keep level 3: ``vehjax bench particle`` (3-DOF
-            model) runs 2.8x slower at level 1 and 2.7x at level 2.
+            the estimator's, else XLA's defaults (LLVM at level 3 on CPU). A compiled study
+            is reused by the next call with the same estimator object, options and shapes.
+            Use level 1 for a particle filter on :class:`~vehjax.models.SevenDOF`: at level 3
+            LLVM takes over 10 minutes on its step vmapped over runs, at level 1 about 20 s,
+            and the model runs as fast (measured ad hoc: the RK4 transition vmapped over 1000
+            states 175 us per state at either level; the bootstrap PF, 4 runs x 100
+            particles, compiled in 18 s and ran 0.19 ms per particle-step). Elsewhere keep
+            level 3: ``vehjax bench particle`` (3-DOF model) runs 2.8x slower at level 1 and
+            2.7x at level 2.
 
     Returns:
         :class:`RunResult` of numpy arrays. All inputs are cast to their common floating dtype
@@ -705,7 +706,7 @@ def run(
     )
     if options is None:
         return _execute(plan, _study, progress)
-    return _execute(plan, _compile(plan, options), progress)
+    return _execute(plan, _compile(plan, options, cache=True), progress)
 
 
 def _compiler_options(estimator, options) -> dict | None:
@@ -735,16 +736,33 @@ def _xla_knows(name: str, value) -> bool:
     return True
 
 
-def _compile(plan: _Plan, options: dict | None):
+_COMPILED: dict = {}  # (estimator id, options, signature) -> (estimator, compiled study)
+_COMPILED_MAX = 16
+
+
+def _compile(plan: _Plan, options: dict | None, cache: bool = False):
     """The study's chunk function compiled for ``plan``'s first chunk (all chunks have its
-    shapes), with XLA ``options``."""
+    shapes), with XLA ``options``. ``cache``: reuse (and keep) the compiled study of the same
+    estimator object, options and argument shapes, as jit's cache does without options."""
     args, _ = _call_args(plan, 0)
+    leaves, tree = jax.tree.flatten(args[1:])
+    sig = (tree, tuple((np.shape(a), str(a.dtype)) if hasattr(a, "dtype") else a
+                       for a in leaves))
+    key = (id(plan.estimator), tuple(sorted((options or {}).items())), sig)
+    hit = _COMPILED.get(key) if cache else None
+    if hit is not None and hit[0] is plan.estimator:
+        return hit[1]
     try:
-        return _study.lower(*args).compile(compiler_options=options)
+        compiled = _study.lower(*args).compile(compiler_options=options)
     except jax.errors.JaxRuntimeError as err:
         if options and ("compile option" in str(err) or "setting option" in str(err)):
             raise ValueError(f"compiler_options: {err}") from None
         raise
+    if cache:
+        if len(_COMPILED) >= _COMPILED_MAX:
+            _COMPILED.pop(next(iter(_COMPILED)))
+        _COMPILED[key] = (plan.estimator, compiled)
+    return compiled
 
 
 class CompiledRun:
