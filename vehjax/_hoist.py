@@ -140,8 +140,8 @@ def dependence(fn: Callable, args: Sequence):
     move entries (slices, concatenations, broadcasts, gathers and scatters at fixed indices) are
     followed entry by entry, elementwise ones (a list) combine the entries at the same position,
     calls (jit, custom derivatives) are followed inside, and any other equation (reductions,
-    matrix products, scans such as cumsum, loops) makes every entry of its result depend on every dependent entry of its
-    operands. A product with an entry that is a constant zero (and a quotient of one) is that
+    matrix products, scans such as cumsum, loops) makes every entry of its result depend on
+    every dependent entry of its operands. A product with an entry that is a constant zero (and a quotient of one) is that
     constant zero, as it is for every finite value of the other operand: so a Jacobian entry
     that is a sum of partials times zero tangents is found constant. Otherwise the answer can
     only err towards "depends" (e.g. ``x - x`` depends on x), never the other way.

@@ -691,7 +691,8 @@ def run(
         ValueError: naming the argument, for wrong shapes, non-finite inputs/x0/P0, a P0 that is
             not symmetric positive definite, a missing key or theta0, a theta0 outside the
             estimator's parameter domains (``Estimator.bounds``), compiler_options that are
-            not a dict of option names or that XLA does not know, before anything is traced;
+            not a dict of option names to values, before anything is traced; options XLA does
+            not take, when the study is compiled;
             under ``jax.distributed``, in every process, when the processes' arguments differ.
 
     Under ``jax.distributed`` call it in every process with the same arguments::

@@ -145,7 +145,6 @@ from .sigma import cholesky, solve_lower
 __all__ = ["MPFState", "marginalized_pf"]
 
 
-
 class MPFState(NamedTuple):
     """State of :func:`marginalized_pf` for one run; the particle axis N is last.
 
