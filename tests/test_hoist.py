@@ -123,3 +123,37 @@ def test_entries_found_constant_are_the_same_at_random_points(model):
     if isinstance(model, vj.models.SingleTrackBank):
         A = ~np.asarray(deps[0])[2:, 2:]  # d(phi, phi_dot, phi_ddot)' / d(phi, phi_dot, phi_ddot)
         assert A.all()
+
+
+def test_numpy_evaluation_of_equations_equals_the_primitives():
+    """``dependence`` evaluates common primitives in numpy (_hoist._apply); each such equation of
+    a function using them gives what binding the primitive gives, dtype and shape included."""
+    from vehjax import _hoist
+
+    def fn(x, i):
+        a = jnp.stack([x[0] * x[1] - x[2] / x[1], -x[0], jnp.abs(x[2]) + jnp.floor(x[1])])
+        b = jnp.concatenate([a, jnp.sin(x) * jnp.cos(x), jnp.arctan2(x, a) + jnp.tanh(x)])
+        c = jnp.where(b > 0.1, b ** 3, jnp.maximum(b, -x[0]) + jnp.sqrt(jnp.exp(x[1])))
+        m = jnp.broadcast_to(c[:3, None], (3, 2)).T.reshape(6)
+        k = (jax.lax.bitcast_convert_type(x[0], jnp.int64) >> 3) + i
+        return m[1:4], (c >= 0) & (c != 0.5) | ~(c < -1.0), k.astype(jnp.float64), \
+            jnp.log(jnp.abs(c) + 1.0), jnp.arange(4) * 2.0, x.astype(jnp.float32)
+
+    args = (np.array([0.7, -1.3, 2.1]), np.int64(5))
+    closed = jax.make_jaxpr(fn)(*args)
+    env = dict(zip(closed.jaxpr.invars, args))
+    env.update(zip(closed.jaxpr.constvars, closed.consts))
+    n_numpy = 0
+    for eqn in closed.jaxpr.eqns:
+        vals = [v.val if isinstance(v, jax.extend.core.Literal) else env[v] for v in eqn.invars]
+        got = _hoist._apply(eqn, vals)
+        ref = eqn.primitive.bind(*vals, **eqn.params)
+        ref = list(ref) if eqn.primitive.multiple_results else [ref]
+        for g, r in zip(got, ref):
+            assert np.shape(g) == np.shape(r) and np.asarray(g).dtype == np.asarray(r).dtype, eqn
+            np.testing.assert_allclose(np.asarray(g, float), np.asarray(r, float), rtol=1e-14,
+                                       err_msg=str(eqn))
+        n_numpy += all(isinstance(g, np.ndarray) for g in got) and eqn.primitive.name in (
+            _hoist._NUMPY)
+        env.update(zip(eqn.outvars, got))
+    assert n_numpy >= 20

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import vehjax as vj
-from vehjax.filters import ckf, ukf
+from vehjax.filters import ckf, ekf, ukf
 
 R_RUNS, T = 6, 60
 
@@ -39,7 +39,7 @@ def study():
     return model, Q, R, ys, np.asarray(sim.inputs), x0, P0
 
 
-@pytest.mark.parametrize("build", [ukf, ckf], ids=["ukf", "ckf"])
+@pytest.mark.parametrize("build", [ukf, ckf, ekf], ids=["ukf", "ckf", "ekf"])
 def test_runs_last_equals_vmapped_step(study, build):
     model, Q, R, ys, us, x0, P0 = study
     est = build(model, Q, R)
@@ -116,24 +116,27 @@ def test_only_small_models_and_constant_noise_get_a_runs_last_step():
     assert seen["runs_last"] is None
 
 
-def test_runs_last_input_dependent_outputs(study):
-    """The 'matlab' outputs (vx, ay, r) make observe depend on the input as well."""
+@pytest.mark.parametrize("build", [ukf, ekf], ids=["ukf", "ekf"])
+def test_runs_last_input_dependent_outputs(study, build):
+    """The 'matlab' outputs (vx, ay, r) make observe depend on the input as well (and the
+    EKF's measurement Jacobian has entries that vary besides its constant ones)."""
     _, Q, R, ys, us, x0, P0 = study
     model = vj.models.Dynamic3DOF(dt=0.01, outputs="matlab")
-    est = ukf(model, Q, R)
+    est = build(model, Q, R)
     us_runs = np.tile(us, (R_RUNS, 1, 1)) * np.linspace(0.9, 1.1, R_RUNS)[:, None, None]
     for inputs in (us, us_runs):
         kw = dict(x0=x0, P0=P0, return_covariances=True, progress=False)
         _assert_same(vj.run(est, ys, inputs, **kw), vj.run(_vmapped(est), ys, inputs, **kw), 1e-9)
 
 
+@pytest.mark.parametrize("build", [ukf, ekf], ids=["ukf", "ekf"])
 @pytest.mark.parametrize("per_run_inputs", [False, True])
-def test_runs_last_step_reads_theta_from_state_unless_constant(study, per_run_inputs):
+def test_runs_last_step_reads_theta_from_state_unless_constant(study, per_run_inputs, build):
     """With ``default_theta=False`` the batch step uses each run's theta from the state; with
     True it uses model.theta as a constant. Same result when the state holds model.theta,
     different when it does not."""
     model, Q, R, ys, us, x0, P0 = study
-    est = ukf(model, Q, R)
+    est = build(model, Q, R)
     n = 4
     theta = np.tile(np.asarray(model.theta), (n, 1)) * np.linspace(0.8, 1.2, n)[:, None]
     u = np.tile(us[:3][..., None], (1, 1, n)) if per_run_inputs else us[:3]  # (T, nu[, R])
@@ -160,3 +163,27 @@ def test_runs_last_step_reads_theta_from_state_unless_constant(study, per_run_in
             s, _ = est.step(s, ys[r, t], u[t, :, r] if per_run_inputs else u[t])
         np.testing.assert_allclose(per_run[:, r], s.x, rtol=1e-12)
     assert np.max(np.abs(per_run - first_steps(theta, True))) > 1e-6
+
+
+def test_ekf_measurement_jacobian_constants_are_the_jacobian():
+    """The entries of dh/dx the runs-last EKF folds as constants are exactly those that are the
+    same at random states, inputs and parameters, with those values; the others vary."""
+    from vehjax.filters.runs_last import _jacobian_constants
+
+    model = vj.models.Dynamic3DOF(dt=0.01, outputs="matlab")  # vx, ay (nonlinear), r
+    h = model.observe
+    consts = _jacobian_constants(h, 3, len(model.input_names), len(model.param_names),
+                                 np.float64, None)
+    rng = np.random.default_rng(0)
+    jac = jax.jit(jax.jacfwd(h))
+    J = np.stack([np.asarray(jac(jnp.asarray([15.0, 0.0, 0.0]) + rng.normal(size=3),
+                                 jnp.asarray(rng.normal(size=len(model.input_names)) * 0.1),
+                                 jnp.asarray(model.theta) * rng.uniform(0.8, 1.2)))
+                  for _ in range(20)])
+    assert consts[0] == [1.0, 0.0, 0.0] and consts[2] == [0.0, 0.0, 1.0]
+    for i in range(3):
+        for j in range(3):
+            if consts[i][j] is None:
+                assert np.ptp(J[:, i, j]) > 1e-9, (i, j)
+            else:
+                np.testing.assert_array_equal(J[:, i, j], consts[i][j])

@@ -148,8 +148,19 @@ def dependence(fn: Callable, args: Sequence):
     """
     closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*args)
     out_tree = jax.tree.structure(out_shape)
-    _, masks = _eval_dependence(closed, list(args), [np.ones(np.shape(a), bool) for a in args])
+    with jax.ensure_compile_time_eval():  # concrete even when called while tracing
+        _, masks = _eval_dependence(closed, [np.asarray(a) for a in args],
+                                    [np.ones(np.shape(a), bool) for a in args])
     return jax.tree.unflatten(out_tree, masks)
+
+
+def evaluate(fn: Callable, args: Sequence):
+    """``fn(*args)`` at concrete ``args`` as one compiled call, with numpy leaves; it runs even
+    while an enclosing function is being traced (outside ``jit`` every primitive would be
+    compiled apart, tens of ms each)."""
+    a = [np.asarray(x) for x in args]
+    out = jax.jit(fn).lower(*a).compile()(*a)
+    return jax.tree.map(np.asarray, out)
 
 
 def _inner_jaxpr(params):
@@ -178,8 +189,7 @@ def _eval_dependence(closed, args, arg_masks):
     for eqn in jaxpr.eqns:
         ins = [read(v) for v in eqn.invars]
         values, masks = [x for x, _ in ins], [m for _, m in ins]
-        outs = eqn.primitive.bind(*values, **eqn.primitive.get_bind_params(eqn.params))
-        outs = outs if eqn.primitive.multiple_results else [outs]
+        outs = _apply(eqn, values)
         shapes = [np.shape(o) for o in outs]
         name = eqn.primitive.name
         inner = _inner_jaxpr(eqn.params)
@@ -199,10 +209,9 @@ def _eval_dependence(closed, args, arg_masks):
             else:
                 # the same move applied to the masks (in the data dtype: scatters add), indices
                 # as they are
-                moved = eqn.primitive.bind(
-                    *[x if i in index_pos else jnp.asarray(m).astype(jnp.result_type(x))
-                      for i, (x, m) in enumerate(zip(values, masks))], **eqn.params)
-                moved = moved if eqn.primitive.multiple_results else [moved]
+                moved = _apply(eqn, [
+                    x if i in index_pos else np.asarray(m).astype(jnp.result_type(x))
+                    for i, (x, m) in enumerate(zip(values, masks))])
                 out_dep = [np.asarray(o) != 0 for o in moved]
         elif name in _ELEMENTWISE and all(np.shape(m) in ((), shapes[0]) for m in masks):
             out_dep = [np.logical_or.reduce([np.broadcast_to(m, shapes[0]) for m in masks])]
@@ -217,3 +226,100 @@ def _eval_dependence(closed, args, arg_masks):
             val[v], dep[v] = o, d
     outs = [read(v) for v in jaxpr.outvars]
     return [o for o, _ in outs], [d for _, d in outs]
+
+
+# -- evaluating an equation: numpy where it can, the primitive otherwise ------------------------
+# Binding a primitive outside jit compiles it for its shapes and parameters, tens of ms each:
+# seconds for the walk over a model's Jacobian. The common elementwise and moving primitives
+# are evaluated in numpy instead; the result is used only when it has the dtype and shape the
+# equation declares.
+
+
+def _broadcast_in_dim(x, shape, broadcast_dimensions, **_):
+    full = [1] * len(shape)
+    for i, d in enumerate(broadcast_dimensions):
+        full[d] = np.shape(x)[i]
+    return np.broadcast_to(np.reshape(x, full), shape)
+
+
+def _slice(x, start_indices, limit_indices, strides=None, **_):
+    strides = strides or (1,) * len(start_indices)
+    return x[tuple(slice(a, b, c) for a, b, c in zip(start_indices, limit_indices, strides))]
+
+
+def _iota(dtype, shape, dimension, **_):
+    idx = np.arange(shape[dimension], dtype=dtype)
+    return np.broadcast_to(idx.reshape([-1 if d == dimension else 1 for d in range(len(shape))]),
+                           shape)
+
+
+def _select_n(pred, *cases):
+    return np.choose(np.asarray(pred).astype(int), np.broadcast_arrays(*cases))
+
+
+def _float_div(a, b):
+    if not np.issubdtype(np.result_type(a, b), np.floating):
+        raise TypeError  # lax.div rounds integers toward zero: left to the primitive
+    return np.divide(a, b)
+
+
+_NUMPY = {
+    "add": np.add, "add_any": np.add, "sub": np.subtract, "mul": np.multiply, "div": _float_div,
+    "neg": np.negative, "max": np.maximum, "min": np.minimum, "abs": np.abs, "sign": np.sign,
+    "floor": np.floor, "ceil": np.ceil, "sqrt": np.sqrt, "exp": np.exp, "log": np.log,
+    "sin": np.sin, "cos": np.cos, "tan": np.tan, "atan": np.arctan, "atan2": np.arctan2,
+    "tanh": np.tanh, "square": np.square, "pow": np.power,
+    "eq": np.equal, "ne": np.not_equal, "lt": np.less, "le": np.less_equal,
+    "gt": np.greater, "ge": np.greater_equal, "and": np.bitwise_and, "or": np.bitwise_or,
+    "not": np.invert, "xor": np.bitwise_xor, "shift_right_arithmetic": np.right_shift,
+    "select_n": _select_n, "copy": np.copy, "copy_p": np.copy,
+    "integer_pow": lambda x, y: np.power(x, y),
+    "convert_element_type": lambda x, new_dtype, **_: np.asarray(x).astype(new_dtype),
+    "bitcast_convert_type": lambda x, new_dtype: np.asarray(x).view(new_dtype),
+    "squeeze": lambda x, dimensions: np.squeeze(x, axis=tuple(dimensions)),
+    "reshape": lambda x, new_sizes, dimensions=None, **_: np.reshape(x, new_sizes),
+    "transpose": lambda x, permutation: np.transpose(x, permutation),
+    "concatenate": lambda *xs, dimension: np.concatenate(xs, axis=dimension),
+    "stack": lambda *xs, axis: np.stack(xs, axis=axis),
+    "broadcast_in_dim": _broadcast_in_dim, "slice": _slice,
+}
+_NUMPY_NO_PARAMS = {"add", "add_any", "sub", "mul", "div", "neg", "max", "min", "abs", "sign",
+                    "floor", "ceil", "sqrt", "exp", "log", "sin", "cos", "tan", "atan", "atan2",
+                    "tanh", "square", "pow", "eq", "ne", "lt", "le", "gt", "ge", "and", "or",
+                    "not", "xor", "shift_right_arithmetic", "select_n", "copy", "copy_p"}
+_NUMPY_MULTI = {"unstack": lambda x, axis: [np.take(x, i, axis=axis)
+                                            for i in range(np.shape(x)[axis])]}
+
+
+def _apply(eqn, values) -> list:
+    """The outputs of ``eqn`` at ``values`` (a list)."""
+    name, params = eqn.primitive.name, eqn.params
+    fn = _NUMPY.get(name) or _NUMPY_MULTI.get(name)
+    if fn is not None and not any(isinstance(v, jax.Array) and not isinstance(
+            v, np.ndarray) and _is_tracer(v) for v in values):
+        try:
+            with np.errstate(all="ignore"):
+                args = [np.asarray(v) for v in values]
+                if name == "iota":
+                    r = fn(**params)
+                elif name in _NUMPY_NO_PARAMS:
+                    r = fn(*args)
+                elif name == "integer_pow":
+                    r = fn(args[0], params["y"])
+                else:
+                    r = fn(*args, **{k: v for k, v in params.items()
+                                     if k not in ("sharding", "weak_type", "accuracy")})
+            outs = list(r) if name in _NUMPY_MULTI else [r]
+            avals = [v.aval for v in eqn.outvars]
+            if len(outs) == len(avals):
+                outs = [np.asarray(o) for o in outs]
+                if all(o.shape == a.shape and o.dtype == a.dtype for o, a in zip(outs, avals)):
+                    return outs
+        except (TypeError, ValueError):
+            pass
+    outs = eqn.primitive.bind(*values, **eqn.primitive.get_bind_params(params))
+    return list(outs) if eqn.primitive.multiple_results else [outs]
+
+
+def _is_tracer(v) -> bool:
+    return isinstance(v, jax.core.Tracer)

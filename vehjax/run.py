@@ -11,7 +11,7 @@ step ``t`` predicts with ``inputs[..., t, :]``, then updates with ``measurements
 ``out.states[:, t]`` is the filtered estimate after the ``t``-th measurement.
 
 Each run is :func:`vehjax.filter`'s traced logic (``vehjax.filtering.one_run``), vmapped over
-the runs of a chunk. Estimators with a runs-last ``batch`` form (UKF and CKF on models with at
+the runs of a chunk. Estimators with a runs-last ``batch`` form (EKF, UKF and CKF on models with at
 most 8 states and outputs, :mod:`vehjax.filters.runs_last`) are not vmapped: one scan runs the batched
 step with the runs axis last, which XLA on CPU vectorises across runs, and what the model
 computes from the inputs alone is computed once for the whole input sequence before the time
@@ -159,7 +159,7 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, per_run, ys, us, x0
     batch = estimator.batch(per_run_u, held0[0].dtype, th0 is None)
     state0 = jax.tree.map(lambda a: jnp.moveaxis(a, 0, -1), state0)
 
-    ok = partial(filtering.output_ok, p=p, pd=_runs_last.is_pd, axis=0)
+    ok = partial(_runs_last.output_ok, p=p)
     body = filtering.scan_body(batch.step, ok, return_cov)
 
     y_t = jnp.moveaxis(ys, 0, -1)  # (T, ny, C)

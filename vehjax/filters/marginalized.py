@@ -531,7 +531,7 @@ def _entry_kinds(f, h, theta, nl, li, i_in, n_u, rows):
 
     dep = _hoist.dependence(lin_one, probe)
     dep_particle = _hoist.dependence(lambda x, m: lin_one(x, m, probe[2]), probe[:2])
-    val = lin_one(*probe)
+    val = _hoist.evaluate(lin_one, probe)
 
     def kinds(d, dp, v):
         if d.ndim == 2:
