@@ -250,10 +250,9 @@ def test_hoisting_still_finds_the_steering_trigonometry():
 
 
 def test_per_point_filter_steps_use_the_functions_as_written():
-    """A user Model with fast_math: the runs-last UKF and the particle filters get the
-    substitutes, the per-run steps (EKF, dual filters; vmapped over runs, short vectors where
-    the substitutes were measured slower) the functions as written, with the same estimates
-    to rounding."""
+    """A user Model with fast_math: the runs-last EKF/UKF and the particle filters get the
+    substitutes, the per-run steps (vmapped over runs, short vectors where the substitutes were
+    measured slower) the functions as written, with the same estimates to rounding."""
     from vehjax.filters._model import per_point
 
     names = ("vx", "vy", "r")
@@ -269,6 +268,9 @@ def test_per_point_filter_steps_use_the_functions_as_written():
     Q, R = np.diag([0.05, 0.05, 0.01]) ** 2, np.diag([0.2, 0.3, 0.05]) ** 2
     ys = np.asarray(jax.vmap(lambda x, u: user_h(x, u, THETA))(X, U))[None].repeat(2, 0)
     kw_run = dict(x0=np.asarray(X[0]), P0=np.diag([1.0, 0.2, 0.05]) ** 2, progress=False)
-    a = vj.run(vj.filters.ekf(fast, Q, R), ys, np.asarray(U), **kw_run)
-    b = vj.run(vj.filters.ekf(plain, Q, R), ys, np.asarray(U), **kw_run)
+    ekf_fast, ekf_plain = vj.filters.ekf(fast, Q, R), vj.filters.ekf(plain, Q, R)
+    a = vj.run(ekf_fast._replace(batch=None), ys, np.asarray(U), **kw_run)
+    b = vj.run(ekf_plain._replace(batch=None), ys, np.asarray(U), **kw_run)
     np.testing.assert_array_equal(a.states, b.states)  # the very same computation
+    c = vj.run(ekf_fast, ys, np.asarray(U), **kw_run)  # runs-last: the substitutes
+    np.testing.assert_allclose(c.states, b.states, rtol=1e-12)

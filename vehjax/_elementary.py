@@ -11,7 +11,8 @@ arctan (Moshier's Cephes ``atan``): reduce |x| to [0, tan(pi/8)] with
 atan(x) = pi/2 - atan(1/x) above tan(3 pi/8) and pi/4 + atan((x - 1)/(x + 1)) above 0.66, then
 a degree 4/5 rational function in x^2; the low-order bits of pi/2 and pi/4 are added back
 separately. The derivative is defined exactly as 1/(1 + x^2) (``custom_jvp``), so Jacobians
-by ``jax.jacfwd`` are those of the true arctan.
+by ``jax.jacfwd`` are those of the true arctan; arctan2's likewise as (x dy - y dx) / (x^2 + y^2)
+(a tenth of the operations of differentiating its quadrant folding).
 
 sin, cos (Cephes ``sin``/``cos``): x = j pi/4 + r with j even and |r| <= pi/4, the product j pi/4
 subtracted in three parts (Cody-Waite) so r keeps its bits for |x| up to about 1e8, then degree-6
@@ -68,9 +69,11 @@ def _arctan_jvp(primals, tangents):
     return arctan(x), tx / (1.0 + jnp.asarray(x) ** 2)
 
 
+@jax.custom_jvp
 def arctan2(y, x):
     """Elementwise arctan2(y, x), rad in [-pi, pi], with numpy's quadrants and signed zeros
-    handled as ``jnp.arctan2`` does for finite arguments (both zero gives 0 or +-pi)."""
+    handled as ``jnp.arctan2`` does for finite arguments (both zero gives 0 or +-pi). The
+    derivative is that of the true arctan2, (x dy - y dx) / (x^2 + y^2) (``custom_jvp``)."""
     y, x = jnp.asarray(y), jnp.asarray(x)
     dtype = jnp.result_type(y.dtype, x.dtype, float)
     y, x = y.astype(dtype), x.astype(dtype)
@@ -83,6 +86,14 @@ def arctan2(y, x):
     t = jnp.where(swap, np.pi / 2 - t, t)
     t = jnp.where(jnp.signbit(x), np.pi - t, t)
     return jnp.where(jnp.signbit(y), -t, t)
+
+
+@arctan2.defjvp
+def _arctan2_jvp(primals, tangents):
+    (y, x), (ty, tx) = primals, tangents
+    out = arctan2(y, x)
+    y, x = jnp.asarray(y, out.dtype), jnp.asarray(x, out.dtype)
+    return out, (x * ty - y * tx) / (x * x + y * y)
 
 
 # pi/4 in three parts whose products with the octant index j are exact (Cephes sin.c, sinf.c).
