@@ -31,6 +31,13 @@ def test_arctan2_matches_numpy_in_every_quadrant():
     zeros_y = np.array([0.0, 0.0, -0.0, -0.0, 1.0, -1.0, 2.0, -2.0])
     zeros_x = np.array([0.0, -0.0, 0.0, -0.0, 0.0, -0.0, -1e-300, 1e-300])
     np.testing.assert_array_equal(np.asarray(arctan2(zeros_y, zeros_x)), np.arctan2(zeros_y, zeros_x))
+    # the reduction's edges: |y| = |x|, ratios next to 0.66 and 1/0.66, tiny and huge ratios
+    edge = np.array([1.0, 0.66, 0.66 * (1 + 1e-15), 0.66 * (1 - 1e-15), 1 / 0.66, 1e-300, 1e300])
+    for sy in (1.0, -1.0):
+        for sx in (1.0, -1.0):
+            got = np.asarray(arctan2(sy * edge, sx * np.ones_like(edge)))
+            assert np.max(_ulps(got, np.arctan2(sy * edge, sx))) <= 2.0
+    assert np.isnan(np.asarray(arctan2(jnp.array([np.nan, 1.0]), jnp.array([1.0, np.nan])))).all()
 
 
 def test_derivative_is_that_of_arctan():

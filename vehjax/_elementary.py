@@ -78,11 +78,16 @@ def arctan2(y, x):
     dtype = jnp.result_type(y.dtype, x.dtype, float)
     y, x = y.astype(dtype), x.astype(dtype)
     ay, ax = jnp.abs(y), jnp.abs(x)
-    # atan of the ratio that is at most 1 in magnitude, then fold to the right octant.
+    # atan(num / den) with num <= den, reduced as arctan's (its tan(3 pi / 8) branch cannot
+    # occur): above 0.66, pi/4 + atan((num - den) / (num + den)), one division either way
     swap = ay > ax
     num = jnp.where(swap, ax, ay)
     den = jnp.where(swap, ay, ax)
-    t = arctan(num / jnp.where(den == 0, 1.0, den))
+    mid = num > 0.66 * den
+    r = jnp.where(mid, num - den, num) / jnp.where(mid, num + den, jnp.where(den == 0, 1.0, den))
+    z = r * r
+    p = z * _horner(z, _P, monic=False) / _horner(z, _Q, monic=True)
+    t = jnp.where(mid, np.pi / 4, 0.0) + (r * p + r + jnp.where(mid, 0.5 * _MOREBITS, 0.0))
     t = jnp.where(swap, np.pi / 2 - t, t)
     t = jnp.where(jnp.signbit(x), np.pi - t, t)
     return jnp.where(jnp.signbit(y), -t, t)

@@ -120,13 +120,17 @@ _MIN_BLOCK = 4  # fewer runs side by side lose more to per-step overheads than c
 # Traced part: the per-run logic is vehjax.filtering's; here only the batching
 
 
+def _scan(body, carry0, xs, pre):
+    """``lax.scan(body, carry0, (xs, pre))``."""
+    return jax.lax.scan(body, carry0, (xs, pre))
+
+
 def _scan_prefetched(body, carry0, xs, pre):
     """``lax.scan(body, carry0, (xs, pre))``, except that ``pre[t]`` reaches the body through
     the carry: it is read at the end of step t - 1 (of the first step, before the loop).
 
-    XLA on CPU fuses a slice of a scanned-over array into every kernel that reads it, and its
-    loop emitter then runs several times slower (0.90 against 0.50 us per run-step for the
-    UKF benchmark); a carried value is a plain buffer.
+    XLA on CPU fuses a slice of a scanned-over array into every kernel that reads it; a carried
+    value is a plain buffer. Which is faster depends on the step (``runs_last.Batch.prefetch``).
     """
     T = jax.tree.leaves(xs)[0].shape[0]
     if T == 0 or not jax.tree.leaves(pre):
@@ -165,7 +169,8 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, per_run, ys, us, x0
     y_t = jnp.moveaxis(ys, 0, -1)  # (T, ny, C)
     u_t = jnp.moveaxis(us, 0, -1) if per_run_u else us  # (T, nu, C) or (T, nu)
     # the prepared inputs go through the carry, see _scan_prefetched
-    _, per_step = _scan_prefetched(body, state0, y_t, batch.prepare(u_t))
+    scan = _scan_prefetched if batch.prefetch else _scan
+    _, per_step = scan(body, state0, y_t, batch.prepare(u_t))
     per_step = jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), per_step)  # (C, T, ...)
     return jax.vmap(partial(filtering.finish, bounds=estimator.bounds))(per_step, held0)
 

@@ -95,10 +95,16 @@ class Batch(NamedTuple):
             to what ``step`` takes in its place at each time: a pytree of arrays with leading
             axis T. Called once, before the time loop.
         step: ``step(state, y, prepared_t) -> (state, StepOutput)``.
+        prefetch: whether :func:`vehjax.run` hands ``prepared_t`` to the step through the scan's
+            carry (read at the end of the previous step) rather than as a slice of the scanned
+            sequence, which XLA fuses into the kernels that read it. Measured per step (3-DOF
+            user model, 100 runs x 1000 steps, interleaved): the EKF about 11 % faster with it,
+            the UKF about 10 % faster without.
     """
 
     prepare: Callable
     step: Callable
+    prefetch: bool = True
 
 
 def _point_model(fn, nx: int, nu: int, n_params: int, dtype, theta_const) -> Split:
@@ -240,7 +246,7 @@ def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int
         x_new, P_new, loglik, nis, n_obs = _update(xp, Pp, y, yh, S, C)
         return state._replace(x=x_new, P=P_new), _output(x_new, P_new, loglik, nis, n_obs)
 
-    return Batch(prepare, step)
+    return Batch(prepare, step, prefetch=False)
 
 
 # -- the Kalman update, shared by the UKF/CKF and EKF steps -------------------------------------
