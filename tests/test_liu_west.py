@@ -8,6 +8,7 @@ import pytest
 import vehjax as vj
 from vehjax.filters._bounds import Transform
 from vehjax.filters.gaussian import GaussianState, ukf
+from vehjax.filters import smc
 from vehjax.filters.liu_west import _kernel, liu_west_ukf
 
 # Scalar linear model with an unknown input gain b: x' = A x + b u + w, y = x + v.
@@ -116,7 +117,9 @@ def test_kernel_keeps_weighted_mean_and_covariance():
     mean = w @ parts
     V = ((parts - mean) * w[:, None]).T @ (parts - mean)
     a = 0.9
-    moved = np.asarray(_kernel(jax.random.key(3), jnp.asarray(parts.T), jnp.asarray(mean),
+    # the normals the filter draws: the particle core's counter-based ones
+    z = smc.normals(smc.raw_key(jax.random.key(3)), 2, M, jnp.float64)
+    moved = np.asarray(_kernel(z, jnp.asarray(parts.T), jnp.asarray(mean),
                                jnp.asarray(V), a)).T  # particles (p, M) in the filter
     new_mean = w @ moved
     new_V = ((moved - new_mean) * w[:, None]).T @ (moved - new_mean)

@@ -161,7 +161,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import _random, _validate
 from . import resampling as _rs
 from . import sigma, smc
 from ._bounds import Transform, check_inside, parse as _parse_bounds
@@ -245,22 +245,18 @@ def _check_box(theta_low, theta_high, names) -> tuple[np.ndarray, np.ndarray]:
 # -- helpers ----------------------------------------------------------------------------------
 
 
-def _kernel(key, particles, mean, V, a: float):
+def _kernel(z, particles, mean, V, a: float):
     """Liu-West move of particles (p, M): N(a theta_i + (1 - a) mean, (1 - a^2) V), V (p, p).
 
     With weights W summing to 1 whose weighted mean and covariance of ``particles`` are
     ``mean`` and ``V``, the moved cloud has the same weighted mean and covariance in expectation.
     """
     L_V = cholesky(V)
-    # drawn (M, p) and transposed: the same normals per particle and parameter as in the
-    # (M, p) layout this filter had before the shared particle core
-    z = jax.random.normal(key, particles.shape[::-1], dtype=particles.dtype).T
     return a * particles + (1.0 - a) * mean[:, None] + math.sqrt(1.0 - a * a) * (L_V @ z)
 
 
-def _draw_box(key, low, high, n):
-    """n uniform draws from the box, (p, n)."""
-    u = jax.random.uniform(key, (n, low.shape[0]), dtype=low.dtype).T  # as drawn (M, p) before
+def _draw_box(u, low, high):
+    """Uniform draws from the box, (p, n), from uniforms u (p, n) in [0, 1)."""
     return low[:, None] + (high - low)[:, None] * u
 
 
@@ -393,8 +389,8 @@ def liu_west_ukf(
     state_filter = ukf(model, Qn, Rn, alpha=alpha, beta=beta, kappa=kappa)
     idx_a = np.asarray(idx)
     log_n = math.log(n)
-    n_unif = _rs.uniforms_needed(scheme, n)
     predictive = likelihood == "predictive"
+    s_box = (p + 1) // 2  # counter streams: kernel normals below, box uniforms, resampling
     f, hobs = in_dtype(model.transition), in_dtype(model.observe)
 
     def full_theta(base, values):
@@ -411,9 +407,9 @@ def liu_west_ukf(
         eps = float(np.finfo(np.dtype(dtype)).eps)
         return jnp.asarray(np.diag(1e3 * eps * width**2), dtype)
 
-    def draw(key, low, high):
-        """M draws from the uniform prior box, in s: (p, M)."""
-        return tf.to_unconstrained(_draw_box(key, low, high, n), axis=0)
+    def draw(u, low, high):
+        """M draws from the uniform prior box, in s: (p, M), from uniforms u (p, M)."""
+        return tf.to_unconstrained(_draw_box(u, low, high), axis=0)
 
     def init(x0, P0, theta0=None, P_theta0=None, key=None):
         x0, P0 = prior(nx, x0, P0)
@@ -433,13 +429,13 @@ def liu_west_ukf(
         if key is None:
             raise ValueError("key: liu_west_ukf draws random numbers; pass key=jax.random.key(...)")
         low, high = jnp.asarray(low_n, dtype), jnp.asarray(high_n, dtype)
-        k_run, k_draw = jax.random.split(key)
+        k_run, k_draw = smc.split(smc.raw_key(key))
         return LiuWestState(
             x=x0,
             P=P0,
-            particles=draw(k_draw, low, high),
+            particles=draw(_random.uniforms(k_draw, p * n, dtype).reshape(p, n), low, high),
             log_weights=jnp.full((n,), -log_n, dtype),
-            key=smc.raw_key(k_run),
+            key=k_run,
             theta_mean=0.5 * (low + high),
             theta_cov=jnp.diag((high - low) ** 2 / 12.0),
             ess=jnp.asarray(float(n), dtype),
@@ -454,7 +450,12 @@ def liu_west_ukf(
         base = jnp.asarray(model.theta).astype(dtype)
         low, high = jnp.asarray(low_n, dtype), jnp.asarray(high_n, dtype)
         Rd = jnp.asarray(Rn, dtype)
-        k_next, k_res, k_kernel, k_box = smc.jax_keys(state.key, 4)
+        k_next, k_step = smc.split(state.key)
+        # the step's random numbers, each from its own counter stream of the particle core:
+        # kernel normals (p, M), uniforms for a fresh box draw (p, M) and for resampling
+        z = smc.normals(k_step, p, n, dtype)
+        u_box = _random.uniforms(k_step, p * n, dtype, stream=s_box).reshape(p, n)
+        u_res = smc.uniforms(k_step, scheme, n, dtype, stream=s_box + 1)
         obs = jnp.isfinite(y)
         has_obs = jnp.any(obs)
         theta_prev = full_theta(base, state.theta_mean)
@@ -490,9 +491,8 @@ def liu_west_ukf(
         # at every step with move="every") shrink towards the mean and jitter
         mean, V = smc.moments(w, state.particles)
         ess = smc.ess(w)
-        u_res = jax.random.uniform(k_res, (n_unif,), dtype=dtype)
         parts, lw_k, _, resampled = smc.resample(state.particles, w, lw, u_res, scheme, thr)
-        moved = _kernel(k_kernel, parts, mean, V + jitter(dtype, width_s), a)
+        moved = _kernel(z, parts, mean, V + jitter(dtype, width_s), a)
         do_move = ~keep & jnp.all(jnp.isfinite(moved))
         if move == "resampled":
             do_move = do_move & resampled
@@ -511,7 +511,7 @@ def liu_west_ukf(
         lw_next = jnp.where(keep, lw_k, lw_next)
 
         # divergence: the next step starts from fresh draws from the prior box
-        fresh = draw(k_box, low, high)
+        fresh = draw(u_box, low, high)
         parts_next, lw_next, _ = smc.reinitialise(diverged, fresh, parts, lw_next,
                                                   jnp.exp(lw_next))
 
@@ -535,7 +535,7 @@ def liu_west_ukf(
             P=ukf_state.P,
             particles=parts_next,
             log_weights=lw_next,
-            key=jax.random.key_data(k_next),
+            key=k_next,
             theta_mean=theta_bar,
             theta_cov=cov_bar,
             ess=jnp.where(diverged, 0.0, jnp.where(has_obs, ess, state.ess)),
