@@ -116,9 +116,10 @@ class Estimator(NamedTuple):
 #: compile times halve (EKF 3.9 -> 1.8 s, UKF 4.5 -> 2.4 s, CKF 4.4 -> 2.3 s, dual UKF 10.7 ->
 #: 6.3 s), run times within the machine's noise (0.87-1.11x); the marginalized PF runs about
 #: twice as fast (``vehjax bench marginalized`` prints both). Not the bootstrap PF, which runs
-#: 1.2-1.3x slower with it, and not the EKF's runs-last step (compiles in about half the time
-#: with the fusion emitters). On other platforms the option is ignored; an XLA that no longer
-#: knows it is skipped (:func:`vehjax.run`).
+#: 1.2-1.3x slower with it. The EKF's runs-last step: compile 2.5-4.0 s against 3.3-4.9 s with
+#: the fusion emitters, run time within noise (20 x 500 and 100 x 1000, alternated in one
+#: process). On other platforms the option is ignored; an XLA that no longer knows it is
+#: skipped (:func:`vehjax.run`).
 ELEMENTAL_EMITTER = (("xla_cpu_use_fusion_emitters", False),)
 
 

@@ -111,6 +111,10 @@ def ekf(model, Q, R) -> Estimator:
     """Extended Kalman filter, Jacobians of transition and observe by ``jax.jacfwd``; the
     covariance update in Joseph form (stays positive definite for very wide priors).
 
+    :func:`vehjax.run` runs models with at most 8 states and outputs and constant ``Q``, ``R``
+    through the same step written for all runs at once (:func:`vehjax.filters.runs_last.ekf_step`,
+    results equal to rounding).
+
     Args:
         model: a vehjax model (nx states, ny outputs).
         Q: process noise covariance, (nx, nx), or (nx,) variances; in state units squared.
@@ -136,11 +140,8 @@ def ekf(model, Q, R) -> Estimator:
         return GaussianState(r.x, r.P, theta), state_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
 
     batch = _runs_last_form(model, Qn, Rn, _runs_last.ekf_step)
-    # the runs-last step compiles in half the time with XLA's default (fusion) emitters and runs
-    # as fast; the vmapped one compiles faster with the elemental emitter (base.py)
     return Estimator(init=_prior_init(model, False), step=step, nx=nx, name="EKF", batch=batch,
-                     compiler_options=() if batch is not None else ELEMENTAL_EMITTER,
-                     **model_dims(model))
+                     compiler_options=ELEMENTAL_EMITTER, **model_dims(model))
 
 
 def _runs_last_form(model, Qn, Rn, build):

@@ -87,7 +87,8 @@ What was left with the kernel at every step (cx about 1 % low on both 3-DOF case
 kernel's timing: see "When the kernel moves the particles" above. With ``move="resampled"``
 the dutta2019 study (``vehjax reproduce dutta2019 --settings matched --filters Particle+UKF``,
 100 runs, M = 1000, each dynamic run with its own kinematic lf, lr estimate) ends lf +0.1, lr
-+0.4, m +0.4, cx +0.6, cy -0.1 % from the truth.
++0.4, m +0.4, cx +0.6, cy -0.1 % from the truth (drawn with ``jax.random``; with the particle
+core's counter-based draws used since: +0.1, +0.3, +0.1, +0.3, -0.3 %).
 
 Two causes, each measured alone on the 3-DOF data (20 runs, M = 500, mean error %): the logit
 coordinate of the box domain (box -> (0, inf): +4.3, +4.1, +5.0 -> +0.4, +1.0, +0.7 without
