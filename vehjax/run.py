@@ -527,7 +527,9 @@ def _global_array(a, sharding):
 def _chunk_args(plan: _Plan, i: int):
     """Device-placed arguments of chunk ``i`` (padded with copies of the last run)."""
     start, stop = i * plan.chunk, min((i + 1) * plan.chunk, plan.R)
-    idx = np.minimum(np.arange(start, start + plan.chunk), stop - 1)
+    # a full chunk is a slice (a view, no copy); the last one is padded with its last run
+    idx = (slice(start, stop) if stop - start == plan.chunk
+           else np.minimum(np.arange(start, start + plan.chunk), stop - 1))
     if plan.spans_processes:
         split = NamedSharding(plan.mesh, PartitionSpec(_AXIS))
         whole = NamedSharding(plan.mesh, PartitionSpec())
