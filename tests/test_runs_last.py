@@ -1,5 +1,5 @@
-"""vehjax.run's runs-last UKF/CKF step (vehjax.filters.runs_last) against the vmapped per-run
-step it replaces: the same study both ways agrees to rounding, field by field."""
+"""vehjax.run's runs-last EKF and UKF/CKF steps (vehjax.filters.runs_last) against the vmapped
+per-run step they replace: the same study both ways agrees to rounding, field by field."""
 
 import jax
 import jax.numpy as jnp
@@ -54,7 +54,8 @@ def test_runs_last_equals_vmapped_step(study, build):
         assert not fast.diverged.any()
 
 
-def test_runs_last_diverging_run_is_frozen_others_untouched():
+@pytest.mark.parametrize("build", [ukf, ekf], ids=["ukf", "ekf"])
+def test_runs_last_diverging_run_is_frozen_others_untouched(build):
     dt = 0.1
     model = vj.models.Model(  # NaN once the input goes negative
         transition=lambda x, u, th: jnp.stack([x[0] + dt * x[1], x[1] + dt * jnp.sqrt(u[0])]),
@@ -65,7 +66,7 @@ def test_runs_last_diverging_run_is_frozen_others_untouched():
     us = np.ones((runs, steps, 1))
     us[1, 5:] = -1.0
     ys = np.cumsum(np.ones((runs, steps, 1)) * 0.1, axis=1)
-    est = ukf(model, np.eye(2) * 1e-3, [1e-2])
+    est = build(model, np.eye(2) * 1e-3, [1e-2])
     assert est.batch is not None
     kw = dict(x0=[0.0, 1.0], P0=np.eye(2), return_covariances=True, progress=False)
     fast = vj.run(est, ys, us, **kw)
@@ -78,18 +79,20 @@ def test_runs_last_diverging_run_is_frozen_others_untouched():
                                                               **kw).states, rtol=1e-12)
 
 
-def test_runs_last_chunked_equals_one_chunk(study):
+@pytest.mark.parametrize("build", [ukf, ekf], ids=["ukf", "ekf"])
+def test_runs_last_chunked_equals_one_chunk(study, build):
     model, Q, R, ys, us, x0, P0 = study
-    est = ukf(model, Q, R)
+    est = build(model, Q, R)
     kw = dict(x0=x0, P0=P0, return_covariances=True, progress=False)
     one = vj.run(est, ys, us, **kw)
     chunked = vj.run(est, ys, us, chunk_size=4, **kw)  # 6 runs: a full and a padded chunk
     _assert_same(chunked, one, 1e-12)
 
 
-def test_runs_last_float32(study):
+@pytest.mark.parametrize("build", [ukf, ekf], ids=["ukf", "ekf"])
+def test_runs_last_float32(study, build):
     model, Q, R, ys, us, x0, P0 = study
-    est = ukf(model, Q, R)
+    est = build(model, Q, R)
     kw = dict(x0=x0[:4].astype(np.float32), P0=P0.astype(np.float32), progress=False,
               return_covariances=True)
     fast = vj.run(est, ys[:4].astype(np.float32), us.astype(np.float32), **kw)
