@@ -281,7 +281,7 @@ _NUMPY = {
     "transpose": lambda x, permutation: np.transpose(x, permutation),
     "concatenate": lambda *xs, dimension: np.concatenate(xs, axis=dimension),
     "stack": lambda *xs, axis: np.stack(xs, axis=axis),
-    "broadcast_in_dim": _broadcast_in_dim, "slice": _slice,
+    "broadcast_in_dim": _broadcast_in_dim, "slice": _slice, "iota": _iota,
 }
 _NUMPY_NO_PARAMS = {"add", "add_any", "sub", "mul", "div", "neg", "max", "min", "abs", "sign",
                     "floor", "ceil", "sqrt", "exp", "log", "sin", "cos", "tan", "atan", "atan2",
@@ -295,8 +295,7 @@ def _apply(eqn, values) -> list:
     """The outputs of ``eqn`` at ``values`` (a list)."""
     name, params = eqn.primitive.name, eqn.params
     fn = _NUMPY.get(name) or _NUMPY_MULTI.get(name)
-    if fn is not None and not any(isinstance(v, jax.Array) and not isinstance(
-            v, np.ndarray) and _is_tracer(v) for v in values):
+    if fn is not None and not any(isinstance(v, jax.core.Tracer) for v in values):
         try:
             with np.errstate(all="ignore"):
                 args = [np.asarray(v) for v in values]
@@ -320,6 +319,3 @@ def _apply(eqn, values) -> list:
     outs = eqn.primitive.bind(*values, **eqn.primitive.get_bind_params(params))
     return list(outs) if eqn.primitive.multiple_results else [outs]
 
-
-def _is_tracer(v) -> bool:
-    return isinstance(v, jax.core.Tracer)

@@ -374,7 +374,7 @@ def _linearise(model: Split, x, theta, residuals, per_run: bool, consts):
     res_axes = (-1 if per_run else None,) * len(residuals)
     gv = jax.vmap(g, in_axes=(1, th_axis) + res_axes, out_axes=1)
     # the n tangents as one batch (n, ..., R): the model's primal once, its tangent equations
-    # once over (n, R) (as many equations as one tangent: half the compile time of n jvps)
+    # once over (n, R) (as many equations as one tangent: a shorter compile than n jvps)
     basis = jnp.broadcast_to(jnp.eye(n, dtype=X.dtype)[:, :, None], (n,) + X.shape)
     Y, cols = jax.vmap(lambda t: jax.jvp(lambda z: gv(z, th, *residuals), (X,), (t,)),
                        out_axes=(None, 0))(basis)
