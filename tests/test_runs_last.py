@@ -132,8 +132,8 @@ def test_runs_last_input_dependent_outputs(study, build):
         _assert_same(vj.run(est, ys, inputs, **kw), vj.run(_vmapped(est), ys, inputs, **kw), 1e-9)
 
 
-@pytest.mark.parametrize("build", [ukf, ekf], ids=["ukf", "ekf"])
-@pytest.mark.parametrize("per_run_inputs", [False, True])
+@pytest.mark.parametrize("build, per_run_inputs", [(ukf, False), (ukf, True), (ekf, True)],
+                         ids=["ukf-shared", "ukf-per-run", "ekf-per-run"])
 def test_runs_last_step_reads_theta_from_state_unless_constant(study, per_run_inputs, build):
     """With ``default_theta=False`` the batch step uses each run's theta from the state; with
     True it uses model.theta as a constant. Same result when the state holds model.theta,
@@ -150,20 +150,21 @@ def test_runs_last_step_reads_theta_from_state_unless_constant(study, per_run_in
         state = vj.filters.gaussian.GaussianState(
             jnp.asarray(x0[:n].T), jnp.broadcast_to(jnp.asarray(P0)[..., None], (3, 3, n)),
             jnp.asarray(th.T))
-        prepared = batch.prepare(jnp.asarray(u))
+        prepared = jax.jit(batch.prepare)(jnp.asarray(u))
+        step = jax.jit(batch.step)  # one compile, not every operation on its own
         for t in range(3):
-            state, out = batch.step(state, jnp.asarray(y[t]),
-                                    jax.tree.map(lambda a: a[t], prepared))
+            state, out = step(state, jnp.asarray(y[t]), jax.tree.map(lambda a: a[t], prepared))
         return np.asarray(state.x)
 
     nominal = np.tile(np.asarray(model.theta), (n, 1))
     np.testing.assert_allclose(first_steps(nominal, False), first_steps(nominal, True), rtol=1e-12)
     per_run = first_steps(theta, False)
     # each run's own theta, through the per-run (vmapped) step
+    one_step = jax.jit(est.step)
     for r in range(n):
         s = est.init(x0[r], P0, theta[r])
         for t in range(3):
-            s, _ = est.step(s, ys[r, t], u[t, :, r] if per_run_inputs else u[t])
+            s, _ = one_step(s, ys[r, t], u[t, :, r] if per_run_inputs else u[t])
         np.testing.assert_allclose(per_run[:, r], s.x, rtol=1e-12)
     assert np.max(np.abs(per_run - first_steps(theta, True))) > 1e-6
 
