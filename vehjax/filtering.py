@@ -126,13 +126,18 @@ def start(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
     return state0, held0
 
 
-def output_ok(out: StepOutput, p: int, pd=is_pd, axis=None):
+def _all_finite(a):
+    return jnp.all(jnp.isfinite(a))
+
+
+def output_ok(out: StepOutput, p: int, pd=is_pd, all_finite=_all_finite):
     """Whether a step's output is good (module docstring): a scalar for one run, or (C,) for a
-    runs-last batch (``axis=0`` and ``pd`` on (n, n, C))."""
-    good = jnp.all(jnp.isfinite(out.mean), axis=axis) & pd(out.cov)
+    runs-last batch (``pd`` and ``all_finite`` of :mod:`vehjax.filters.runs_last`, on arrays
+    with the runs axis last)."""
+    good = all_finite(out.mean) & pd(out.cov)
     good = good & jnp.isfinite(out.loglik) & jnp.isfinite(out.nis)
     if p:
-        good = good & jnp.all(jnp.isfinite(out.params), axis=axis) & pd(out.params_cov)
+        good = good & all_finite(out.params) & pd(out.params_cov)
     return good
 
 

@@ -163,7 +163,8 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, per_run, ys, us, x0
     batch = estimator.batch(per_run_u, held0[0].dtype, th0 is None)
     state0 = jax.tree.map(lambda a: jnp.moveaxis(a, 0, -1), state0)
 
-    ok = partial(_runs_last.output_ok, p=p)
+    ok = partial(filtering.output_ok, p=p, pd=_runs_last.is_pd,
+                 all_finite=_runs_last.all_finite)
     body = filtering.scan_body(batch.step, ok, return_cov)
 
     y_t = jnp.moveaxis(ys, 0, -1)  # (T, ny, C)

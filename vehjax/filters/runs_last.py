@@ -421,7 +421,7 @@ def ekf_step(f, h, Qn: np.ndarray, Rn: np.ndarray, *, nu: int, n_params: int,
     return Batch(prepare, step)
 
 
-def _all_finite(a):
+def all_finite(a):
     """(R,) bool: whether every entry of a (..., R) is finite, entry by entry (one fused
     elementwise kernel rather than a reduction)."""
     flat = a.reshape((-1, a.shape[-1]))
@@ -442,13 +442,4 @@ def is_pd(C):
                                                                 axis=(1, 2))
     L = _chol([[C[i, j] for j in range(n)] for i in range(n)])
     # a NaN pivot makes every later column NaN (chol_entries), the last pivot included
-    return _all_finite(C) & jnp.isfinite(L[n - 1][n - 1])
-
-
-def output_ok(out: StepOutput, p: int):
-    """:func:`vehjax.filtering.output_ok` for a runs-last StepOutput: (R,) bool."""
-    good = _all_finite(out.mean) & is_pd(out.cov) & jnp.isfinite(out.loglik)
-    good = good & jnp.isfinite(out.nis)
-    if p:
-        good = good & _all_finite(out.params) & is_pd(out.params_cov)
-    return good
+    return all_finite(C) & jnp.isfinite(L[n - 1][n - 1])
