@@ -73,6 +73,14 @@ def test_mpf_with_known_statistics_is_near_consistent(tmp_path):
     assert r["nis_in"] >= 0.9 and 0.8 < r["nis_per_dof"] < 1.25, r
     assert 0.8 < r["nees_per_dof"] < 1.2, r
     assert "| SingleTrackBank | MPF (known noise) | 100 x 100 |" in report
+    # the parameter table: with the statistics as good as known every final estimate sits on
+    # its true value, inside its interval in every run, with no spread over runs
+    line = next(ln for ln in report.splitlines()
+                if ln.startswith("| SingleTrackBank | MPF (known noise) |") and " / " in ln)
+    cells = [c.strip().split(" / ") for c in line.strip("| ").split(" | ")[2:]]
+    assert len(cells) == 8, line  # offset, std, then bias and std of each of the 3 sensors
+    for cover, spread in cells:
+        assert float(cover) == 1.0 and float(spread) < 0.05, line
 
 
 def _csv(path):
