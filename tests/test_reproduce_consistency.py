@@ -17,6 +17,8 @@ def test_registered_with_its_defaults():
     assert p.get_default("runs") == 100
     assert p.get_default("models").split(",") == list(consistency.MODELS)
     assert p.get_default("filters").split(",") == list(consistency.FILTERS)
+    assert p.get_default("particles") is None  # per model: consistency.PARTICLES
+    assert consistency.PARTICLES == {"KinematicBicycle": 20000, "SingleTrackBank": 20000}
 
 
 @pytest.mark.parametrize("argv, name", [
@@ -41,6 +43,7 @@ def _study(tmp_path, models, filters, particles):
     rows = {(r["model"], r["filter"]): r for r in _csv(tmp_path / "consistency.csv")}
     for key, r in rows.items():
         assert r["runs"] == 100 and r["steps"] == 100 and r["diverged"] == 0, key
+        assert r["particles"] == (particles if "PF" in key[1] else None), key
     return rows, (tmp_path / "report.md").read_text()
 
 
@@ -90,7 +93,8 @@ def _csv(path):
     for ln in lines[1:]:
         vals = dict(zip(keys, ln.split(",")))
         out.append({k: v if k in ("model", "filter") else
-                    (int(v) if k in ("runs", "steps", "diverged") else float(v))
+                    (int(v) if k in ("runs", "steps", "diverged") else
+                     (int(v) if v else None) if k == "particles" else float(v))
                     for k, v in vals.items()})
     assert all(np.isfinite(r["seconds"]) for r in out)
     return out

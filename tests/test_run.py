@@ -230,7 +230,7 @@ def test_chunked_equals_unchunked_and_progress(capsys):
         part = run(EST, ys, us, x0=X0, P0=P0, return_covariances=True, chunk_size=chunk)
         _assert_close(part, whole)
     err = capsys.readouterr().err
-    assert "chunk 3/3" in err and "7/7 runs" in err
+    assert "chunk 3/3" in err and "7/7 runs" in err and ", ," not in err
     run(EST, ys, us, x0=X0, P0=P0, return_covariances=True, chunk_size=3, progress=False)
     assert capsys.readouterr().err == ""
 

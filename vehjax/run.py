@@ -576,9 +576,9 @@ class _Progress:
             self.update(0, 0)
             return
         self.bar = tqdm(total=n_chunks, desc="vehjax.run", unit="chunk", file=sys.stderr,
-                        bar_format="{desc} [{bar:30}] chunk {n_fmt}/{total_fmt}, {postfix}, "
-                                   "{elapsed}")
-        self.bar.set_postfix_str(f"0/{n_runs} runs")
+                        bar_format="{desc} [{bar:30}] chunk {n_fmt}/{total_fmt}{postfix}, "
+                                   "{elapsed}",  # tqdm puts ", " before a postfix
+                        postfix=f"0/{n_runs} runs")
 
     def update(self, chunks: int, runs: int):
         if not self.enabled:

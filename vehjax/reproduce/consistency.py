@@ -1,7 +1,7 @@
 """NEES / NIS consistency of every state filter on every built-in model, with the noise matched.
 
     vehjax reproduce consistency [--runs 100] [--duration 3] [--models ...] [--filters ...]
-                                 [--particles 1000] [--seed 0] [--out out/consistency]
+                                 [--particles N] [--seed 0] [--out out/consistency]
 
 A filter is consistent (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4) when its errors agree with
 the covariance it reports: averaged over R independent runs, the normalised estimation error
@@ -27,6 +27,11 @@ What "matched" means here (nothing below is tuned per filter):
   prior_steps=200)``); "ACKF (paper)": Wang et al.'s eq. 21-30 as printed (Q and R adapted,
   b = 0.98, d_1 = 1). The second shows what the paper's start does to the covariance: the first
   innovation replaces the (correct) prior, and the filter is over-confident for the whole run.
+* bootstrap PF: as many particles as the model needs for its own Monte-Carlo error not to show
+  (:data:`PARTICLES`: 20000 on KinematicBicycle and SingleTrackBank, 1000 on the others; the
+  numbers with fewer are in its comment); ``--particles N`` sets one number for every particle
+  filter. Each pair draws its own data from the seed and the model's place in the registry, so
+  a pair's row does not depend on which other models are run.
 * MPF (:func:`vehjax.filters.marginalized_pf`, SingleTrackBank only): the data follow the
   filter's own noise model (paper 004 eq. 3-10): the true steering is the measured one plus
   w_t ~ N(0.28 deg, (0.3 deg)^2) white, the bank jerk is white with std sigma_phi = 0.05 rad/s^3
@@ -79,6 +84,17 @@ TARGET = 0.90
 #: 2-core CPU (one RK4 transition with 10 sub-steps costs about 0.13-0.18 ms per particle)
 COMPILER_OPTIONS = {("SevenDOF", "bootstrap PF"): {"xla_backend_optimization_level": 1}}
 
+#: the bootstrap PF's particles per model by default: enough that the particle cloud's own
+#: Monte-Carlo error does not show in the NEES. Measured with this study's data (100 runs x 3 s),
+#: share of steps with the NEES in the band: KinematicBicycle 0.830 with 1000 particles, 0.893
+#: with 5000, 0.920 with 20000 (seed 1: 0.923); SingleTrackBank 0.370 with 1000, 0.893 with
+#: 5000, 0.940 with 20000 (seed 1: 0.940 with 5000, 0.980 with 20000). States whose process
+#: noise is small next to what the measurements say of them (the bicycle's position, the bank)
+#: keep few distinct particle values after resampling. Other models and the MPF:
+#: DEFAULT_PARTICLES (Dynamic3DOF 0.933, SevenDOF 0.940 with 1000).
+PARTICLES = {"KinematicBicycle": 20000, "SingleTrackBank": 20000}
+DEFAULT_PARTICLES = 1000
+
 _PROCESS_FRACTION = 0.002
 _MEAS_FRACTION = 0.02
 _X0_FACTOR = 5.0
@@ -108,8 +124,11 @@ def parser():
     p.add_argument("--filters", default=",".join(FILTERS),
                    help="comma-separated filters (default: all, %(default)s; the MPFs run "
                         "on SingleTrackBank only)")
-    p.add_argument("--particles", type=int, default=1000,
-                   help="particles of the bootstrap PF and the MPF (default %(default)s)")
+    p.add_argument("--particles", type=int, default=None,
+                   help="particles of the bootstrap PF and the MPF on every model (default: "
+                        "what each model needs, PARTICLES: "
+                        + ", ".join(f"{k} {v}" for k, v in PARTICLES.items())
+                        + f", {DEFAULT_PARTICLES} otherwise)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
     p.add_argument("--out", default="out/consistency", help="output folder (default %(default)s)")
     return p
@@ -263,11 +282,9 @@ _WHY = {
     "bootstrap PF": "too few particles: states whose process noise is small next to what the "
                     "measurements say of them (the kinematic bicycle's position, the bank "
                     "states of SingleTrackBank) keep few distinct particle values after "
-                    "resampling, so the particle covariance is too small. Measured with this "
-                    "study's defaults and more particles (--particles): SingleTrackBank 0.507 "
-                    "of steps in band with 1000 particles, 0.970 with 5000 (consistent); "
-                    "KinematicBicycle 0.830 with 1000, 0.893 with 5000, 0.920 with 20000 "
-                    "(consistent); NEES per dof 1.00-1.01 from 5000 on.",
+                    "resampling, so the particle covariance is too small; the study's default "
+                    "particle numbers per model (PARTICLES in the module) are large enough "
+                    "for this data.",
     "MPF": "two causes, each isolated by a row that makes one part of the statistics as good "
            "as known: the biases (see MPF (covariances known)) and the covariances (see MPF "
            "(biases known)); on top of the known-noise row's own miss.",
@@ -314,14 +331,18 @@ def _verdict(row):
 
 def study(models, filters, runs, duration, n_particles, seed, log=print):
     """Every (model, filter) pair asked for: a list of row dicts (``check``'s plus model,
-    filter, runs, steps)."""
+    filter, runs, steps, particles). ``n_particles``: the particles of every particle filter,
+    or None for the defaults per model (:data:`PARTICLES`, the MPF :data:`DEFAULT_PARTICLES`)."""
     from .. import models as _models
     from .. import scenarios
     from ..simulate import simulate
 
     rows = []
     T = int(round(duration / 0.01))
-    for mi, name in enumerate(models):
+    for name in models:
+        # the model's own random streams (its place in the registry, not in ``models``): a
+        # pair's result does not depend on which other models are run
+        mi = list(_models.REGISTRY).index(name)
         model = _models.REGISTRY[name](dt=0.01)
         todo = [f for f in filters if f not in _MPFS]
         if todo:
@@ -330,12 +351,14 @@ def study(models, filters, runs, duration, n_particles, seed, log=print):
             sim = simulate(model, scn, runs=runs, key=jax.random.key(seed * 101 + mi),
                            process_std=q, meas_std=r, x0_std=s0)
             X, Y, U = (np.asarray(a) for a in (sim.states, sim.measurements, sim.inputs))
-            build = gaussian_filters(model, q**2, r**2, n_particles)
+            n_pf = n_particles or PARTICLES.get(name, DEFAULT_PARTICLES)
+            build = gaussian_filters(model, q**2, r**2, n_pf)
             for f in todo:
                 log(f"  {name}, {f}: {runs} runs x {Y.shape[1]} steps ...", end=" ", flush=True)
                 row = check(build[f](), Y, U, X, np.asarray(scn.x0, float), s0**2,
                             jax.random.key(seed * 101 + mi + 7), COMPILER_OPTIONS.get((name, f)))
-                rows.append(dict(model=name, filter=f, runs=runs, steps=Y.shape[1], **row))
+                rows.append(dict(model=name, filter=f, runs=runs, steps=Y.shape[1],
+                                 particles=n_pf if f == "bootstrap PF" else None, **row))
                 log(f"{row['seconds']:.1f} s")
         mpfs = [f for f in filters if f in _MPFS] if name == "SingleTrackBank" else []
         if mpfs:
@@ -343,21 +366,23 @@ def study(models, filters, runs, duration, n_particles, seed, log=print):
             P0 = np.full(len(model.state_names), 1e-12)
         for f in mpfs:
             log(f"  {name}, {f}: {runs} runs x {T} steps ...", end=" ", flush=True)
-            est = mpf_filter(model, n_particles, f)
+            n_mpf = n_particles or DEFAULT_PARTICLES
+            est = mpf_filter(model, n_mpf, f)
             row = check(est, Y, U, X, np.zeros(5), P0, jax.random.key(seed * 101 + 99),
                         theta=mpf_truth(est.param_names))
-            rows.append(dict(model=name, filter=f, runs=runs, steps=T, **row))
+            rows.append(dict(model=name, filter=f, runs=runs, steps=T, particles=n_mpf, **row))
             log(f"{row['seconds']:.1f} s")
     return rows
 
 
 def table(rows):
     """The markdown table of the rows."""
-    head = ("| model | filter | runs x steps | NEES in band | NEES / nx | NIS in band | NIS / dof "
-            "| diverged | verdict |\n|---|---|---|---|---|---|---|---|---|")
+    head = ("| model | filter | runs x steps | particles | NEES in band | NEES / nx | NIS in band "
+            "| NIS / dof | diverged | verdict |\n|---|---|---|---|---|---|---|---|---|---|")
     lines = [head]
     for r in rows:
         lines.append(f"| {r['model']} | {r['filter']} | {r['runs']} x {r['steps']} | "
+                     f"{r.get('particles') or '-'} | "
                      f"{r['nees_in']:.3f} | {r['nees_per_dof']:.3g} | {r['nis_in']:.3f} | "
                      f"{r['nis_per_dof']:.3g} | {r['diverged']} | {_verdict(r)} |")
     return "\n".join(lines)
@@ -388,7 +413,7 @@ def main(argv=None) -> int:
         raise ValueError(f"--runs: expected at least 2, got {args.runs}")
     if not (math.isfinite(args.duration) and args.duration >= 0.05):
         raise ValueError(f"--duration: expected at least 0.05 s, got {args.duration}")
-    if args.particles < 2:
+    if args.particles is not None and args.particles < 2:
         raise ValueError(f"--particles: expected at least 2, got {args.particles}")
     if set(filters) <= set(_MPFS) and "SingleTrackBank" not in models:
         raise ValueError("--filters: the MPF runs on SingleTrackBank only; add it to --models")
@@ -406,7 +431,7 @@ def main(argv=None) -> int:
     why = [f"- {f}: {_WHY[f]}" for f in dict.fromkeys(r["filter"] for r in bad) if f in _WHY]
     report = "\n".join([
         "# vehjax reproduce consistency", "", PAPER + ".", "",
-        f"{args.runs} runs per pair, {args.particles} particles, seed {args.seed}. How the data "
+        f"{args.runs} runs per pair, seed {args.seed}. How the data "
         "and the filters are matched: the docstring of `vehjax/reproduce/consistency.py`. "
         "NEES / nx and NIS / dof: the run average per degree of freedom, averaged over the "
         "steps (1 = consistent, > 1 over-confident, < 1 under-confident). Wall time includes "
@@ -418,11 +443,11 @@ def main(argv=None) -> int:
         + (["Why the others miss it:", ""] + why + [""] if why else []))
     (out_dir / "report.md").write_text(report)
     with open(out_dir / "consistency.csv", "w") as fh:
-        keys = ("model", "filter", "runs", "steps", "nees_in", "nees_per_dof", "nis_in",
+        keys = ("model", "filter", "runs", "steps", "particles", "nees_in", "nees_per_dof", "nis_in",
                 "nis_per_dof", "diverged", "seconds")
         fh.write(",".join(keys) + "\n")
         for r in done:
-            fh.write(",".join(str(r[k]) for k in keys) + "\n")
+            fh.write(",".join("" if r.get(k) is None else str(r[k]) for k in keys) + "\n")
     print()
     print(tab)
     print()
