@@ -48,11 +48,13 @@ def _study(tmp_path, models, filters, particles):
 
 
 def test_matched_filters_are_consistent_and_the_paper_ackf_is_not(tmp_path):
-    """With the noise matched, the EKF and the bootstrap PF (1000 particles) keep the
+    """With the noise matched, the EKF and the bootstrap PF (3000 particles: on this 1 s data
+    the PF's own Monte-Carlo error shows at 1000, 0.890 of the steps in the band and NEES 1.04
+    per dof against 0.950 and 1.02 with 3000, measured when the data's seed moved) keep the
     run-averaged NEES and NIS inside the 95 % band on at least 90 % of the steps; the Sage-Husa
     ACKF as the paper prints it (d_1 = 1: the first innovation replaces the correct prior) is
     over-confident, and the report says so."""
-    rows, report = _study(tmp_path, "Dynamic3DOF", "EKF,ACKF (paper),bootstrap PF", 1000)
+    rows, report = _study(tmp_path, "Dynamic3DOF", "EKF,ACKF (paper),bootstrap PF", 3000)
     assert set(rows) == {("Dynamic3DOF", f) for f in ("EKF", "ACKF (paper)", "bootstrap PF")}
     for key, r in rows.items():
         if key[1] == "ACKF (paper)":
