@@ -75,47 +75,7 @@ FILTERS = ("EKF", "UKF", "CKF", "SR-UKF", "SR-CKF", "ACKF", "ACKF (paper)", "boo
 #: the MPF rows: what each makes as good as known (``marginalized_pf``'s gamma0 for the offset
 #: and the biases, nu0 for the covariances); the plain "MPF" learns all of them
 _MPFS = {"MPF": {}, "MPF (known noise)": dict(nu0=1e7, gamma0=1e-9),
-         "MPF (biases known)": "the learnt sensor covariances: the ay sensor's std ends 6-8 % "
-                          "low on average (its spread over runs also exceeds the reported std, "
-                          "see the parameter table) and the steering std 1-2 % high, so the "
-                          "filter leans on ay and vy, r are over-confident (their NEES per "
-                          "state about 1.4 and 1.2). The same with the bank's process noise "
-                          "100x smaller (ay std 0.942 of the truth), so not the bank; likely "
-                          "the ay sensor seeing the steering error directly (d w, eq. 9): over "
-                          "3 s part of ay's noise is taken for steering noise (not isolated; "
-                          "numbers measured ad hoc).",
-    "MPF (covariances known)": "the learnt sensor biases: the bank's Kalman filter (sec. 3.4) "
-                               "takes each particle's bias estimates as exact, and the NiW "
-                               "update (eq. 18) counts each step's residual as a direct "
-                               "observation of the bias; but the roll-rate sensor sees the "
-                               "bank rate plus its bias (only the bank-angle sensor, through "
-                               "the integral, tells them apart), so the bias posterior is too "
-                               "narrow (its spread over runs is about twice its reported std: "
-                               "see the parameter table) and the bank states inherit the "
-                               "error (the bank angle's NEES per state about 1.4-1.8, "
-                               "measured ad hoc). Not a Monte-Carlo effect (the same with 2000 "
-                               "particles); putting the biases into the Kalman filter would "
-                               "remove it (not the paper's algorithm; not done).",
-    "MPF (biases known)": "the learnt sensor covariances: the ay sensor's std is learnt about "
-                          "8 % low on average (and its spread over runs exceeds the reported "
-                          "std, see the parameter table), so the filter leans on ay and vy, r "
-                          "are over-confident (their NEES per state about 1.4 and 1.2, "
-                          "measured ad hoc); why the ay residuals are too small on average "
-                          "was not isolated.",
-    "MPF (known noise)": "a narrow miss from the paper's bank filter (sec. 3.4): a particle's "
-                         "x_t is built from the bank's mean (x_t = f + A_bar z_hat + g w), so "
-                         "the bank's uncertainty A_bar P A_bar^T is missing from the particles: "
-                         "vy over-confident (NEES per state 1.08-1.11). Shrinking the bank's "
-                         "process noise in the data and the filter (sigma_phi 0.05 / 0.005 / "
-                         "0.0005 rad/s^3, measured ad hoc) takes vy to 1.08 / 1.03 / 1.01 per "
-                         "state. The bank states are under-confident (phi 0.86 per state; 0.71 "
-                         "/ 0.61 at the smaller sigma_phi; cause not isolated). Sampling x_t "
-                         "with the bank's covariance and conditioning the bank on the whole x_t "
-                         "(the RBPF of Schoen et al. 2005) would be the exact form, but the "
-                         "model has no process noise on x across g, so that conditioning is "
-                         "singular (not the paper's; not done). More particles do not help "
-                         "(4000: 0.883 in band).",
-    "MPF (biases known)": dict(gamma0=1e-9), "MPF (covariances known)": dict(nu0=1e7)}
+         "MPF (biases known)": dict(gamma0=1e-9), "MPF (covariances known)": dict(nu0=1e7)}
 TARGET = 0.90
 
 #: XLA options of the pairs that need them (``vehjax.run``'s ``compiler_options``): LLVM at
@@ -340,24 +300,28 @@ _WHY = {
                                "measured ad hoc). Not a Monte-Carlo effect (the same with 2000 "
                                "particles); putting the biases into the Kalman filter would "
                                "remove it (not the paper's algorithm; not done).",
-    "MPF (biases known)": "the learnt sensor covariances: the ay sensor's std is learnt about "
-                          "8 % low on average (and its spread over runs exceeds the reported "
-                          "std, see the parameter table), so the filter leans on ay and vy, r "
-                          "are over-confident (their NEES per state about 1.4 and 1.2, "
-                          "measured ad hoc); why the ay residuals are too small on average "
-                          "was not isolated.",
+    "MPF (biases known)": "the learnt sensor covariances: the ay sensor's std ends 6-8 % "
+                          "low on average (its spread over runs also exceeds the reported std, "
+                          "see the parameter table) and the steering std 1-2 % high, so the "
+                          "filter leans on ay and vy, r are over-confident (their NEES per "
+                          "state about 1.4 and 1.2). The same with the bank's process noise "
+                          "100x smaller (ay std 0.942 of the truth), so not the bank; likely "
+                          "the ay sensor seeing the steering error directly (d w, eq. 9): over "
+                          "3 s part of ay's noise is taken for steering noise (not isolated; "
+                          "numbers measured ad hoc).",
     "MPF (known noise)": "a narrow miss from the paper's bank filter (sec. 3.4): a particle's "
                          "x_t is built from the bank's mean (x_t = f + A_bar z_hat + g w), so "
-                         "the bank's uncertainty A_bar P A_bar^T is missing from the particles "
-                         "(vy over-confident, NEES per state 1.08-1.11), and the vehicle model "
-                         "informs the bank only along g (the bank states under-confident: "
-                         "phi 0.86). Measured ad hoc by shrinking the bank's process noise in "
-                         "the data and the filter: sigma_phi 0.05 / 0.005 / 0.0005 rad/s^3 "
-                         "gives vy 1.08 / 1.03 / 1.01 and phi 0.86 / 0.71 / 0.61 per state. "
-                         "Sampling x_t with the bank's covariance and conditioning the bank on "
-                         "the whole x_t (the RBPF of Schoen et al. 2005) would be the exact "
-                         "form (not the paper's; not done). More particles do not help (4000: "
-                         "0.883 in band).",
+                         "the bank's uncertainty A_bar P A_bar^T is missing from the particles: "
+                         "vy over-confident (NEES per state 1.08-1.11). Shrinking the bank's "
+                         "process noise in the data and the filter (sigma_phi 0.05 / 0.005 / "
+                         "0.0005 rad/s^3, measured ad hoc) takes vy to 1.08 / 1.03 / 1.01 per "
+                         "state. The bank states are under-confident (phi 0.86 per state; 0.71 "
+                         "/ 0.61 at the smaller sigma_phi; cause not isolated). Sampling x_t "
+                         "with the bank's covariance and conditioning the bank on the whole x_t "
+                         "(the RBPF of Schoen et al. 2005) would be the exact form, but the "
+                         "model has no process noise on x across g, so that conditioning is "
+                         "singular (not the paper's; not done). More particles do not help "
+                         "(4000: 0.883 in band).",
 }
 
 
