@@ -265,7 +265,7 @@ def check(estimator, Y, U, X, x0, P0, key, compiler_options=None, theta=None):
         names = estimator.param_names
         params = dict(coverage=dict(zip(names, np.mean(np.abs(err) <= 1.96 * sd, axis=0))),
                       spread=dict(zip(names, err.std(axis=0) / sd.mean(axis=0))))
-    return dict(**params,nees_in=ce.inside, nees_per_dof=float(np.nanmean(ce.mean) / nx),
+    return dict(**params, nees_in=ce.inside, nees_per_dof=float(np.nanmean(ce.mean) / nx),
                 nis_in=cn.inside, nis_per_dof=float(np.nanmean(cn.mean / np.where(dof > 0, dof,
                                                                                   np.nan))),
                 diverged=int(out.diverged.sum()), seconds=seconds)
