@@ -103,25 +103,6 @@ def test_mpf_with_known_statistics_is_near_consistent(tmp_path):  # and the Kalm
         assert float(cover) >= 0.85 and 0.7 < float(spread) < 1.2, line
 
 
-def test_bias_state_model_adds_constant_states_to_the_sensors():
-    from vehjax.models import SingleTrackBank
-
-    base = SingleTrackBank(dt=0.01)
-    m = consistency.bias_state_model(base)
-    assert m.state_names == base.state_names + ("ay_bias", "r_bias", "roll_rate_bias")
-    rng = np.random.default_rng(0)
-    x, u = rng.normal(size=8) * 0.1, np.array([20.0, 0.01])
-    np.testing.assert_allclose(m.transition(x, u, m.theta)[:5], base.transition(x[:5], u, m.theta))
-    np.testing.assert_array_equal(m.transition(x, u, m.theta)[5:], x[5:])
-    y, y0 = m.observe(x, u, m.theta), base.observe(x[:5], u, m.theta)
-    for j, name in enumerate(("ay", "r", "roll_rate")):
-        k = base.output_names.index(name)
-        np.testing.assert_allclose(y[k], y0[k] + x[5 + j])
-    others = [k for k, n in enumerate(base.output_names) if n not in ("ay", "r", "roll_rate")]
-    np.testing.assert_array_equal(np.asarray(y)[others], np.asarray(y0)[others])
-    np.testing.assert_array_equal(m.bank_noise_gain(), np.r_[base.bank_noise_gain(), 0, 0, 0])
-
-
 def _csv(path):
     lines = path.read_text().splitlines()
     keys = lines[0].split(",")

@@ -2,12 +2,13 @@
 
 from .bank import SingleTrackBank, virtual_yaw_rate
 from .base import BaseModel, Model, VehicleModel, integrate
+from .biases import with_output_biases
 from .dynamic import Dynamic3DOF
 from .kinematic import KinematicBicycle
 from .sevendof import SevenDOF
 
 __all__ = ["BaseModel", "Model", "VehicleModel", "integrate", "KinematicBicycle", "Dynamic3DOF",
-           "SingleTrackBank", "SevenDOF", "virtual_yaw_rate"]
+           "SingleTrackBank", "SevenDOF", "virtual_yaw_rate", "with_output_biases"]
 
 #: name -> class, for the CLI.
 REGISTRY = {

@@ -46,8 +46,8 @@ What "matched" means here (nothing below is tuned per filter):
   good as known (gamma0 = 1e-9) and learns the covariances; "MPF (covariances known)" the
   reverse (nu0 = 1e7): the two rows say which part of the learning costs the consistency. "MPF
   (covariances known; biases as Kalman states)" is not the paper's algorithm: the model gets a
-  constant state per sensor added to its output (:func:`bias_state_model`) that the
-  per-particle Kalman filter estimates with the bank (prior: the other rows' bias prior). For
+  constant state per sensor added to its output (:func:`vehjax.models.with_output_biases`)
+  that the per-particle Kalman filter estimates with the bank (prior: the other rows'). For
   every MPF row the report also gives the parameter coverage: the fraction of runs whose final
   95 % interval (estimate +- 1.96 reported std) holds the true value, and the spread of the
   final estimates over runs divided by their mean reported std (1 = honest, > 1 over-confident).
@@ -65,12 +65,9 @@ import math
 import time
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from ..models import Model as _Model
 
 PAPER = ("NEES / NIS consistency (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4) of every state "
          "filter on every built-in model, noise matched")
@@ -231,46 +228,12 @@ def mpf_truth(param_names):
     return np.array([value[n] for n in param_names])
 
 
-class _WithBiasStates(_Model):
-    """A model with constant states added to some outputs (built by :func:`bias_state_model`);
-    ``gain``: its bank process-noise gain (eq. 3), zero on the added states."""
-
-    gain: tuple = eqx.field(static=True)
-
-    def __init__(self, gain, **kwargs):
-        self.gain = gain
-        super().__init__(**kwargs)
-
-    def bank_noise_gain(self):
-        return jnp.asarray(self.gain)
-
-
-def bias_state_model(model):
-    """SingleTrackBank ``model`` with one constant state per sensor, ``<sensor>_bias``, added to
-    that sensor's output (the study's row "MPF (covariances known; biases as Kalman states)":
-    the MPF then estimates the biases in its per-particle Kalman filter, jointly with the bank,
-    instead of in the NiW statistics)."""
-    nx, outs = len(model.state_names), list(model.output_names)
-    S = np.zeros((len(outs), len(_SENSORS)))
-    for j, s in enumerate(_SENSORS):
-        S[outs.index(s), j] = 1.0
-    S = jnp.asarray(S)
-    return _WithBiasStates(
-        tuple(float(v) for v in np.r_[np.asarray(model.bank_noise_gain()),
-                                      np.zeros(len(_SENSORS))]),
-        transition=lambda x, u, th: jnp.concatenate([model.transition(x[:nx], u, th), x[nx:]]),
-        observe=lambda x, u, th: model.observe(x[:nx], u, th) + S @ x[nx:],
-        dt=model.dt, state_names=tuple(model.state_names) + tuple(f"{s}_bias" for s in _SENSORS),
-        param_names=model.param_names, input_names=model.input_names, output_names=outs,
-        theta=model.theta, fast_math=False)
-
-
 def mpf_filter(model, n_particles, row="MPF"):
     """The MPF of the study's row ``row`` (a key of ``_MPFS``): the true noise statistics as
     its prior (module docstring), some made as good as known. For the row with the biases as
-    Kalman states ``model`` is :func:`bias_state_model`'s and the NiW's bias means are pinned at
-    zero (gamma0 = 1e-9, which pins the steering offset at its prior mean too: the NiW has one
-    gamma for both)."""
+    Kalman states ``model`` has bias states (:func:`vehjax.models.with_output_biases`) and the
+    NiW's bias means are pinned at zero (gamma0 = 1e-9, which pins the steering offset at its
+    prior mean too: the NiW has one gamma for both)."""
     from ..filters import marginalized_pf
 
     sure = _MPFS[row]
@@ -359,9 +322,9 @@ _WHY = {
                                "the biases as Kalman states (not the paper's algorithm).",
     _KALMAN_BIASES: "the known-noise row's miss (vy over-confident), no more: the model "
                     "gets one constant state per sensor added to its output "
-                    "(bias_state_model) and the per-particle Kalman filter estimates them "
-                    "with the bank, so the bias and bank-rate confounding is in its "
-                    "covariance; the bias intervals are honest (parameter table). The NiW "
+                    "(vehjax.models.with_output_biases) and the per-particle Kalman filter "
+                    "estimates them with the bank, so the bias and bank-rate confounding is "
+                    "in its covariance; the bias intervals are honest (parameter table). The NiW "
                     "has one gamma for the offset and the biases, so pinning its bias means "
                     "(gamma0 = 1e-9) pins the steering offset at its prior mean too.",
     "MPF (biases known)": "the learnt sensor covariances: the ay sensor's std ends 6-8 % "
@@ -440,7 +403,8 @@ def study(models, filters, runs, duration, n_particles, seed, log=print):
                 x0 = np.r_[x0, [_BIAS[s] for s in _SENSORS]]
                 P0_f = np.r_[P0, [_STD[s] ** 2 for s in _SENSORS]]
                 by_state = {f"{s}_bias": 5 + j for j, s in enumerate(_SENSORS)}
-            est = mpf_filter(bias_state_model(model) if by_state else model, n_mpf, f)
+            est = mpf_filter(_models.with_output_biases(model, _SENSORS) if by_state else model,
+                             n_mpf, f)
             row = check(est, Y, U, X, x0, P0_f, jax.random.key(seed * 101 + 99),
                         theta=mpf_truth(est.param_names), state_params=by_state)
             rows.append(dict(model=name, filter=f, runs=runs, steps=T, particles=n_mpf, **row))
@@ -516,8 +480,8 @@ def main(argv=None) -> int:
         + (["Why the others miss it:", ""] + why + [""] if why else []))
     (out_dir / "report.md").write_text(report)
     with open(out_dir / "consistency.csv", "w") as fh:
-        keys = ("model", "filter", "runs", "steps", "particles", "nees_in", "nees_per_dof", "nis_in",
-                "nis_per_dof", "diverged", "seconds")
+        keys = ("model", "filter", "runs", "steps", "particles", "nees_in", "nees_per_dof",
+                "nis_in", "nis_per_dof", "diverged", "seconds")
         fh.write(",".join(keys) + "\n")
         for r in done:
             fh.write(",".join("" if r.get(k) is None else str(r[k]) for k in keys) + "\n")

@@ -1,0 +1,88 @@
+"""Sensor biases as states: a model with one constant state per biased output.
+
+``with_output_biases(model, ("ay", "roll_rate"))`` returns a :class:`~vehjax.models.Model`
+whose state is the model's followed by ``ay_bias``, ``roll_rate_bias`` (in the outputs' units):
+the transition keeps them, the observation adds each to its output. Any state filter then
+estimates the biases jointly with the state (the EKF/UKF as an augmented state; the
+marginalized PF as linear states in its per-particle Kalman filter, where a bias that a
+sensor cannot tell apart from a state, e.g. a roll-rate bias from the bank rate, keeps its
+correlation with that state: see ``vehjax reproduce consistency``).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from .base import Model
+
+__all__ = ["with_output_biases"]
+
+
+class _Biased(Model):
+    """A model with constant bias states (built by :func:`with_output_biases`)."""
+
+
+class _BiasedBank(_Biased):
+    """The same for a model with a bank process-noise gain (eq. 3 of paper 004), kept on the
+    model's states and zero on the biases: ``marginalized_pf`` builds its Q from it."""
+
+    gain: tuple = eqx.field(static=True)
+
+    def __init__(self, gain, **kwargs):
+        self.gain = gain
+        super().__init__(**kwargs)
+
+    def bank_noise_gain(self):
+        return jnp.asarray(self.gain)
+
+
+def with_output_biases(model, outputs) -> Model:
+    """``model`` with a constant additive bias state per output in ``outputs``.
+
+    Args:
+        model: any vehjax model (built-in or :class:`~vehjax.models.Model`).
+        outputs: names in ``model.output_names``, each at most once.
+
+    Returns:
+        A :class:`~vehjax.models.Model` with states ``model.state_names`` then
+        ``<output>_bias`` per output (unit: the output's), the same inputs, parameters,
+        nominal ``theta``, outputs and ``dt``; ``transition`` keeps the biases, ``observe``
+        adds them. Initial state and covariance of a filter: the model's, then the biases'
+        prior mean and variance. A model with ``bank_noise_gain()`` keeps it (zeros on the
+        biases).
+
+    Raises:
+        ValueError: ``outputs`` empty, repeated or not outputs of the model.
+    """
+    names = (outputs,) if isinstance(outputs, str) else tuple(outputs)
+    known = list(model.output_names)
+    if not names or len(set(names)) != len(names) or not all(n in known for n in names):
+        raise ValueError(f"outputs: expected distinct names among {tuple(known)}, got {outputs!r}")
+    nx = len(model.state_names)
+    rows = np.array([known.index(n) for n in names])
+    units = {}
+    for kind in ("state", "input", "param", "output"):
+        names_k = getattr(model, f"{kind}_names")
+        units.update(zip(names_k, getattr(model, f"{kind}_units", ("-",) * len(names_k))))
+
+    def transition(x, u, theta):
+        return jnp.concatenate([model.transition(x[:nx], u, theta), x[nx:]])
+
+    def observe(x, u, theta):
+        return model.observe(x[:nx], u, theta).at[rows].add(x[nx:])
+
+    kwargs = dict(
+        transition=transition, observe=observe, dt=model.dt,
+        state_names=tuple(model.state_names) + tuple(f"{n}_bias" for n in names),
+        param_names=tuple(model.param_names), input_names=tuple(model.input_names),
+        output_names=tuple(known), theta=model.theta,
+        units={k: v for k, v in {**units, **{f"{n}_bias": units[n] for n in names}}.items()
+               if v != "-"},
+        fast_math=False,  # the model's own functions are called as they are
+    )
+    if hasattr(model, "bank_noise_gain"):
+        gain = np.r_[np.asarray(model.bank_noise_gain(), float), np.zeros(len(names))]
+        return _BiasedBank(tuple(float(g) for g in gain), **kwargs)
+    return _Biased(**kwargs)
