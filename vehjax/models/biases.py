@@ -20,11 +20,7 @@ from .base import Model
 __all__ = ["with_output_biases"]
 
 
-class _Biased(Model):
-    """A model with constant bias states (built by :func:`with_output_biases`)."""
-
-
-class _BiasedBank(_Biased):
+class _BiasedBank(Model):
     """The same for a model with a bank process-noise gain (eq. 3 of paper 004), kept on the
     model's states and zero on the biases: ``marginalized_pf`` builds its Q from it."""
 
@@ -85,4 +81,4 @@ def with_output_biases(model, outputs) -> Model:
     if hasattr(model, "bank_noise_gain"):
         gain = np.r_[np.asarray(model.bank_noise_gain(), float), np.zeros(len(names))]
         return _BiasedBank(tuple(float(g) for g in gain), **kwargs)
-    return _Biased(**kwargs)
+    return Model(**kwargs)

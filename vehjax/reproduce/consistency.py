@@ -231,19 +231,36 @@ def mpf_truth(param_names):
 def mpf_filter(model, n_particles, row="MPF"):
     """The MPF of the study's row ``row`` (a key of ``_MPFS``): the true noise statistics as
     its prior (module docstring), some made as good as known. For the row with the biases as
-    Kalman states ``model`` has bias states (:func:`vehjax.models.with_output_biases`) and the
-    NiW's bias means are pinned at zero (gamma0 = 1e-9, which pins the steering offset at its
-    prior mean too: the NiW has one gamma for both)."""
+    Kalman states ``model`` must have the bias states (:func:`mpf_setup`) and the NiW's bias
+    means are pinned at zero (gamma0 = 1e-9, which pins the steering offset at its prior mean
+    too: the NiW has one gamma for both)."""
     from ..filters import marginalized_pf
 
-    sure = _MPFS[row]
     kalman = row == _KALMAN_BIASES
     return marginalized_pf(
         model, n_particles, sensors=_SENSORS, known_std=_KNOWN, linear_noise_std=_SIGMA_PHI,
         std0={"delta": _DELTA_STD, **_STD},
         mean0={"delta": _OFFSET} if kalman else {"delta": _OFFSET, **_BIAS}, forgetting=1.0,
         linear_states=("phi", "phi_dot", "phi_ddot")
-        + (tuple(f"{s}_bias" for s in _SENSORS) if kalman else ()), **sure)
+        + (tuple(f"{s}_bias" for s in _SENSORS) if kalman else ()), **_MPFS[row])
+
+
+def mpf_setup(model, n_particles, row, P0):
+    """(estimator, x0, P0, state_params) of the MPF row ``row``, ``P0`` the truth's. The row
+    with the biases as Kalman states runs on the model with bias states
+    (:func:`vehjax.models.with_output_biases`), starting them from the other rows' bias prior
+    (mean the truth, variance gamma0 = 1 times the noise's), and reads its bias estimates from
+    those states (``check``'s ``state_params``)."""
+    from ..models import with_output_biases
+
+    x0 = np.zeros(len(model.state_names))
+    if row != _KALMAN_BIASES:
+        return mpf_filter(model, n_particles, row), x0, P0, None
+    nx = len(x0)
+    est = mpf_filter(with_output_biases(model, _SENSORS), n_particles, row)
+    return (est, np.r_[x0, [_BIAS[s] for s in _SENSORS]],
+            np.r_[P0, [_STD[s] ** 2 for s in _SENSORS]],
+            {f"{s}_bias": nx + j for j, s in enumerate(_SENSORS)})
 
 
 # ---------------------------------------------------------------------------------------------
@@ -398,13 +415,7 @@ def study(models, filters, runs, duration, n_particles, seed, log=print):
         for f in mpfs:
             log(f"  {name}, {f}: {runs} runs x {T} steps ...", end=" ", flush=True)
             n_mpf = n_particles or DEFAULT_PARTICLES
-            x0, P0_f, by_state = np.zeros(5), P0, None
-            if f == _KALMAN_BIASES:  # the biases' prior as the other rows' NiW prior
-                x0 = np.r_[x0, [_BIAS[s] for s in _SENSORS]]
-                P0_f = np.r_[P0, [_STD[s] ** 2 for s in _SENSORS]]
-                by_state = {f"{s}_bias": 5 + j for j, s in enumerate(_SENSORS)}
-            est = mpf_filter(_models.with_output_biases(model, _SENSORS) if by_state else model,
-                             n_mpf, f)
+            est, x0, P0_f, by_state = mpf_setup(model, n_mpf, f, P0)
             row = check(est, Y, U, X, x0, P0_f, jax.random.key(seed * 101 + 99),
                         theta=mpf_truth(est.param_names), state_params=by_state)
             rows.append(dict(model=name, filter=f, runs=runs, steps=T, particles=n_mpf, **row))
