@@ -108,6 +108,9 @@ def parser():
     p.add_argument("--variant", choices=("planar", "bank"), default="bank",
                    help="--drive filter: planar (Remark 2) or bank (phi unmeasured) "
                         "(default %(default)s)")
+    p.add_argument("--kalman-states", choices=("linear", "all"), default="linear",
+                   help="marginalized_pf's kalman_states: linear (the paper's Algorithm 1) or "
+                        "all (each particle a Gaussian over all states) (default %(default)s)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures (default: draw them)")
     return p
 
@@ -177,7 +180,9 @@ def simulate_truth(model, inputs, acc, runs, key):
     return jax.jit(jax.vmap(one))(jax.random.split(key, runs))
 
 
-def build_sim_filter(model, n_particles):
+def build_sim_filter(model, n_particles, kalman_states="linear"):
+    """The simulation study's filter (sec. 4): N = ``n_particles``, lambda = 0.995, initial
+    std guesses twice the truth; ``kalman_states`` as in ``marginalized_pf``."""
     from vehjax.filters.marginalized import marginalized_pf
 
     return marginalized_pf(
@@ -185,7 +190,7 @@ def build_sim_filter(model, n_particles):
         known_std={"phi": PHI_STD, "r_virt": RVIRT_STD},
         linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=BANK_JERK_STD,
         std0={"delta": 2 * STEER_STD, **{s: 2 * SENSOR_STD[s] for s in SENSORS}},
-        forgetting=0.995)
+        forgetting=0.995, kalman_states=kalman_states)
 
 
 def _rms(a, axis=None):
@@ -208,7 +213,7 @@ def run_simulation(args, log=print):
                                                         jax.random.key(args.seed)))
     log(f"truth: {args.runs} runs x {T} steps ({duration:g} s) of SingleTrackBank, "
         f"{time.perf_counter() - t0:.1f} s; max |bank| {np.degrees(np.abs(X[0, :, 2]).max()):.2f} deg")
-    est = build_sim_filter(model, N)
+    est = build_sim_filter(model, N, args.kalman_states)
     P0 = np.diag([0.1, 0.5 * DEG, 0.5 * DEG, 0.2 * DEG, 0.2 * DEG]) ** 2
     t0 = time.perf_counter()
     out = vj.run(est, Y, U, x0=np.zeros(5), P0=P0, key=jax.random.key(args.seed + 1))
@@ -315,7 +320,7 @@ def main_simulation(args, out_dir):
     report = [
         "# vehjax reproduce berntorp2018 (simulation, sec. 4)\n", f"{PAPER}.\n",
         f"{args.runs} Monte-Carlo runs, seed {args.seed}, N = {res['N']} particles, lambda = "
-        f"0.995, {res['duration']:g} s at 10 ms. Inputs: speed and steering of the shipped "
+        f"0.995, kalman_states = {args.kalman_states!r}, {res['duration']:g} s at 10 ms. Inputs: speed and steering of the shipped "
         "60 s comma2k19 RAV4 highway segment, looped forward/backward in time (a palindrome, "
         "continuous at the joints) to the duration. Truth: SingleTrackBank with the true "
         "steering = measured + 0.28 deg + N(0, 0.02 deg); bank path prescribed through phi_ddot "
@@ -378,16 +383,19 @@ def _sim_verdict(res):
 DRIVE_STD0 = {"delta": 0.2 * DEG, "ay": 0.4, "r": 0.5 * DEG}
 
 
-def build_drive_filter(model, n_particles, forgetting=0.999, variant="bank"):
+def build_drive_filter(model, n_particles, forgetting=0.999, variant="bank",
+                       kalman_states="linear"):
     """The drive's filter: ``planar`` (Remark 2: ay, r; r_virt known; no bank) or ``bank``
-    (sensors ay, r, roll rate; phi (NaN on this log) and r_virt known; bank in a KF)."""
+    (sensors ay, r, roll rate; phi (NaN on this log) and r_virt known; bank in a KF);
+    ``kalman_states`` as in ``marginalized_pf`` (no difference for ``planar``)."""
     from vehjax.filters.marginalized import marginalized_pf
 
     if variant == "bank":
         return marginalized_pf(
             model, n_particles, noisy_input="delta", sensors=("ay", "r", "roll_rate"),
             known_std={"phi": PHI_STD, "r_virt": RVIRT_STD}, linear_noise_std=BANK_JERK_STD,
-            std0={**DRIVE_STD0, "roll_rate": DRIVE_STD0["r"]}, forgetting=forgetting)
+            std0={**DRIVE_STD0, "roll_rate": DRIVE_STD0["r"]}, forgetting=forgetting,
+            kalman_states=kalman_states)
     return marginalized_pf(model, n_particles, noisy_input="delta", sensors=("ay", "r"),
                            known_std={"r_virt": RVIRT_STD}, linear_states=(),
                            std0=DRIVE_STD0, forgetting=forgetting)
@@ -429,7 +437,8 @@ def run_drive(args, log=print):
     ref_roll = np.asarray(drive.reference["roll"])[:T]
     N = 500 if args.particles is None else args.particles
     R = args.runs
-    est = build_drive_filter(model, N, variant=args.variant)
+    est = build_drive_filter(model, N, variant=args.variant,
+                             kalman_states=args.kalman_states)
     bank_sd = 1e-3 if args.variant == "bank" else 1e-10  # planar: the bank states held at 0
     P0 = np.diag([0.1, 0.5 * DEG, bank_sd, bank_sd, bank_sd]) ** 2
     from vehjax.run import compile_run
@@ -617,7 +626,7 @@ def main_drive(args, out_dir):
         f"The shipped comma2k19 RAV4 segment, {dur:.1f} s of highway at 8-20 m/s with little "
         f"steering. Variant `{res['variant']}` ({_VARIANT_TEXT[res['variant']]}); "
         f"N = {res['N']}, lambda = "
-        f"0.999, {res['R']} executions in one `vehjax.run` call (same data, different keys). "
+        f"0.999, kalman_states = {args.kalman_states!r}, {res['R']} executions in one `vehjax.run` call (same data, different keys). "
         "Beside it Remark 1's common approach: an EKF "
         "on the single-track model with the steering offset and the ay and gyro biases as "
         "random-walk states, fixed noise covariances (the MPF's initial guesses).\n",
