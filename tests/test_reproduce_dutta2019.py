@@ -218,10 +218,9 @@ def test_dynamic_excitation_is_of_the_vehicledata_kind():
     assert np.all(np.asarray(scn.inputs)[:, 2:4] == 0.0)  # front-wheel drive
 
 
-def test_chirp_excitation_sweeps_and_sets_other_true_values(tmp_path, capsys):
-    """--excitation chirp (#17 item 3's second excitation): the speed swings around 15 m/s, the
-    steering sweeps up in frequency, and the study's truth is m, cx, cy at CHIRP_TRUTH x nominal
-    while the box (initial guesses) stays around the nominal values."""
+def test_chirp_excitation_sweeps_up_around_15_m_s():
+    """--excitation chirp's scenario (#17 item 3's second excitation): the speed swings around
+    15 m/s and the steering sweeps up in frequency."""
     dyn = vj.models.Dynamic3DOF(dt=0.02)
     scn = dutta2019.chirp_scenario(dyn, duration=60.0)
     sim = vj.simulate(dyn, scn, runs=1, key=jax.random.key(0))
@@ -231,15 +230,7 @@ def test_chirp_excitation_sweeps_and_sets_other_true_values(tmp_path, capsys):
     crossings = np.flatnonzero(np.diff(np.sign(delta)) != 0)
     first, last = np.sum(crossings < 1000), np.sum(crossings >= 2000)  # first / last 20 s
     assert last > 3 * first  # 0.1 Hz -> 1.5 Hz
-    rc = dutta2019.main(["--runs", "2", "--settings", "matched", "--filters", "Joint EKF",
-                         "--kinematic-duration", "1", "--dynamic-duration", "1",
-                         "--no-frequency-study", "--excitation", "chirp", "--out", str(tmp_path)])
-    assert rc == 0
-    report = (tmp_path / "report.md").read_text()
-    nominal = np.array([1700.0, 15.0, 4.0])  # kg, 1e4 N, 1e4 N/rad
-    m, cx, cy = nominal * np.array(dutta2019.CHIRP_TRUTH)
-    assert f"| truth | {m:.1f} | {cx:.3f} | {cy:.3f} |" in report
-    assert "not centred on the truth" in report and "chirp" in report
+    assert np.all(np.asarray(scn.inputs)[:, 2:4] == 0.0)
 
 
 def test_bad_options_are_refused():
