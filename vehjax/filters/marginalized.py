@@ -457,12 +457,13 @@ def _update_e(mean, cov, H, r, R_y, obs, start=None):
     return post, [[0.5 * _add(C[i][j], C[j][i]) for j in range(n)] for i in range(n)]
 
 
-def _kf_joint_e(lin, P, w, y, obs, b_y, R_y, Qz, start=None):
+def _kf_joint_e(lin, P, w, y, obs, b_y, R_y, Qz, D, start=None):
     """The Kalman step of Gaussian particle states: the deviations xi = (x_{t-1} - x_hat,
     z_{t-1} - m) ~ N(0, P) of one particle whose offset draw w is taken as known, predicted
     through the model's Jacobians (x_t = lin.xb + g w and z_t = lin.zb + gz w are the predicted
     means, the bank's process noise Qz on z), then updated with the observed components of
-    y_t, o = y - yb - (Cx g + Cz gz + d) w - b_y = Cx dx_t + Cz dz_t + noise(R_y).
+    y_t, o = y - yb - D w - b_y = Cx dx_t + Cz dz_t + noise(R_y), D = Cx g + Cz gz + d (the
+    predictive's, eq. 26).
 
     Returns:
         (posterior mean of (dx_t, dz_t), their covariance (nested lists), o with zeros on
@@ -477,9 +478,7 @@ def _kf_joint_e(lin, P, w, y, obs, b_y, R_y, Qz, start=None):
            for j in range(n)] for i in range(n)]
     ny = len(y)
     H = [list(lin.Cx[i]) + list(lin.Cz[i]) for i in range(ny)]
-    o = [jnp.where(obs[i], _sub(_sub(y[i] - lin.yb[i], _mul(_add(_add(_dot(lin.Cx[i], lin.g),
-                                                                         _dot(lin.Cz[i], lin.gz)),
-                                                                    lin.d[i]), w)), b_y[i]), 0.0)
+    o = [jnp.where(obs[i], _sub(_sub(y[i] - lin.yb[i], _mul(D[i], w)), b_y[i]), 0.0)
          for i in range(ny)]
     Cp, o = _barrier((Cp, o), start)
     post, C = _update_e([0.0] * n, Cp, H, o, R_y, obs, start)
@@ -1055,7 +1054,7 @@ def marginalized_pf(
         R_y = [[R_s[spos[i]][spos[j]] if (i in spos and j in spos) else (kvu[i] if i == j else 0.0)
                 for j in range(nyu)] for i in range(nyu)]
         if gauss:
-            xi, C, o2 = _barrier(_kf_joint_e(lin, Pe, w, ye, ob, b_y, R_y, Qe, start), start)
+            xi, C, o2 = _barrier(_kf_joint_e(lin, Pe, w, ye, ob, b_y, R_y, Qe, D, start), start)
             x_new = [_add(x_new[k], xi[k]) for k in range(nxs)]
             z_new = [_add(_add(lin.zb[i], _mul(lin.gz[i], w)), xi[nxs + i]) for i in range(nz)]
             P3 = C
