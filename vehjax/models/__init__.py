@@ -6,9 +6,10 @@ from .biases import with_output_biases
 from .dynamic import Dynamic3DOF
 from .kinematic import KinematicBicycle
 from .sevendof import SevenDOF
+from .single_track import SingleTrack
 
 __all__ = ["BaseModel", "Model", "VehicleModel", "integrate", "KinematicBicycle", "Dynamic3DOF",
-           "SingleTrackBank", "SevenDOF", "virtual_yaw_rate", "with_output_biases"]
+           "SingleTrackBank", "SevenDOF", "SingleTrack", "virtual_yaw_rate", "with_output_biases"]
 
 #: name -> class, for the CLI.
 REGISTRY = {
@@ -16,4 +17,5 @@ REGISTRY = {
     "Dynamic3DOF": Dynamic3DOF,
     "SevenDOF": SevenDOF,
     "SingleTrackBank": SingleTrackBank,
+    "SingleTrack": SingleTrack,
 }

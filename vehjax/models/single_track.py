@@ -1,0 +1,242 @@
+"""Planar single-track (bicycle) model for identification: lateral velocity and yaw rate.
+
+The car is reduced to one front and one rear axle (both tyres of an axle lumped), moving in the
+road plane at a known longitudinal speed ``vx`` (an input, e.g. from the wheel speeds). Sign
+conventions as in the rest of :mod:`vehjax.models` (ISO 8855, x forward, y left, z up):
+``vy`` > 0 moves the car to its left, ``r`` > 0 turns it left, ``delta`` > 0 steers left, and a
+positive slip angle gives a positive (leftward) lateral tyre force.
+
+Equations of motion (rigid body in the plane, lateral and yaw balance at the CoG)::
+
+    m (vy' + vx r) = Ff cos(delta) + Fr
+    iz r'          = lf Ff cos(delta) - lr Fr
+    ay             = (Ff cos(delta) + Fr) / m          (what a lateral accelerometer at the CoG reads)
+
+with the axle forces Ff = F_f(alpha_f), Fr = F_r(alpha_r) from one of three tyre curves
+(``tyres=``):
+
+* ``"linear"``: the textbook linear single-track model, small angles throughout:
+  alpha_f = delta - (vy + lf r) / vx, alpha_r = (lr r - vy) / vx, Ff = cf alpha_f,
+  Fr = cr alpha_r and cos(delta) = 1. For a constant vx it is linear time-invariant in
+  (vy, r); its steady-state yaw-rate gain is r / delta = vx / (L + K vx^2) with the understeer
+  gradient K = m (lr cr - lf cf) / (L cf cr) [rad s^2/m], L = lf + lr.
+* ``"pacejka"``: Pacejka's magic formula per axle, F = D sin(C arctan(B alpha)) (E = 0, no
+  shifts; :func:`magic_formula_axle`) with the peak D = mu Fz and the static axle load Fz
+  (Fzf = m g lr / L, Fzr = m g lf / L, no load transfer). It is parameterised by its slope at
+  zero slip, the cornering stiffness c = B C D [N/rad], so that B = c / (C D): the same cf, cr
+  as the linear model (the small-slip slope equals them), plus the friction coefficient mu and
+  the shape factors C (``shape_f``, ``shape_r``; 1 < C < 2 gives a peak and a fall-off to
+  D sin(C pi / 2)).
+* ``"brush"``: Fiala's brush model with a parabolic contact pressure and one friction
+  coefficient mu (:func:`brush_axle`): with t = tan(alpha) and the full-sliding slip
+  t_sl = 3 mu Fz / c, F = c t - c^2 / (3 mu Fz) |t| t + c^3 / (27 mu^2 Fz^2) t^3 for
+  |t| < t_sl, and mu Fz sign(t) beyond; slope c at zero slip, saturating at mu Fz.
+
+For the two saturating curves the slip angles are the exact ones of the axle velocities,
+alpha_f = delta - arctan((vy + lf r) / vx), alpha_r = -arctan((vy - lr r) / vx), and the front
+force enters the body y axis as Ff cos(delta) (its x component, Ff sin(delta), is taken up by the
+speed input). All forms are valid for vx > 0 (the slip angles divide by vx).
+
+Discretisation: ``transition`` integrates the continuous equations over ``dt`` with the input
+held (zero-order hold) by ``substeps`` classical Runge-Kutta steps of dt / substeps (default 2,
+i.e. RK4 at 5 ms for dt = 0.01 s). The fastest mode of the linear model has a rate of about
+(cf + cr) / (m vx) (nominal values: 17 1/s at 10 m/s, 58 1/s at 3 m/s), so at the defaults
+|lambda h| <= 0.3 down to 3 m/s, far inside RK4's stability interval (2.78) and with a local
+error of order (lambda h)^5 / 120 < 2e-5 relative per step; use more substeps for lower speeds
+or larger dt. The elementary functions are jax.numpy's (they compile in a fraction of the time of
+:mod:`vehjax._elementary`'s vectorisable ones, which pay off only in large particle filters).
+tests/test_single_track.py checks the rollout against scipy's ``solve_ivp`` of
+these equations.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from jax.numpy import arctan, cos, sin
+from .base import VehicleModel, _check_dt, _check_integrator, _check_theta
+
+#: Gravitational acceleration [m/s^2].
+G = 9.81
+
+TYRES = ("linear", "pacejka", "brush")
+
+_BODY = ("m", "iz", "lf", "lr", "cf", "cr")
+_BODY_UNITS = ("kg", "kg m^2", "m", "m", "N/rad", "N/rad")
+_BODY_NOMINAL = (1500.0, 2700.0, 1.2, 1.5, 1.2e5, 1.4e5)
+
+#: tyres -> (parameter names, units, nominal values)
+_PARAMS = {
+    "linear": (_BODY, _BODY_UNITS, _BODY_NOMINAL),
+    "pacejka": (_BODY + ("mu", "shape_f", "shape_r"), _BODY_UNITS + ("-", "-", "-"),
+                _BODY_NOMINAL + (1.0, 1.3, 1.3)),
+    "brush": (_BODY + ("mu",), _BODY_UNITS + ("-",), _BODY_NOMINAL + (1.0,)),
+}
+
+
+def axle_loads(m, lf, lr):
+    """Static vertical loads (Fzf, Fzr) [N] of a car of mass ``m`` [kg] with its CoG ``lf``,
+    ``lr`` [m] behind the front and ahead of the rear axle: m g lr / L and m g lf / L."""
+    wheelbase = lf + lr
+    return m * G * lr / wheelbase, m * G * lf / wheelbase
+
+
+def magic_formula_axle(alpha, stiffness, mu, fz, shape):
+    """Magic-formula axle force D sin(C arctan(B alpha)) [N] with D = mu fz, C = ``shape`` and
+    B = stiffness / (C D), so that the slope at zero slip is ``stiffness``.
+
+    Args:
+        alpha: slip angle [rad], any shape (broadcasts with the rest).
+        stiffness: cornering stiffness B C D [N/rad], > 0.
+        mu: friction coefficient [-], > 0; fz: vertical axle load [N], > 0.
+        shape: shape factor C [-], in (0, 2).
+    """
+    peak = mu * fz
+    return peak * sin(shape * arctan(stiffness / (shape * peak) * alpha))
+
+
+def brush_axle(alpha, stiffness, mu, fz):
+    """Fiala's brush-model axle force [N] (parabolic pressure, one friction coefficient).
+
+    With t = tan(alpha) and t_sl = 3 mu fz / stiffness: ``stiffness t - stiffness^2 / (3 mu fz)
+    |t| t + stiffness^3 / (27 mu^2 fz^2) t^3`` for |t| < t_sl, ``mu fz sign(t)`` beyond. The
+    slope at zero slip is ``stiffness`` [N/rad]; the force reaches mu fz at t_sl with zero slope.
+
+    Args:
+        alpha: slip angle [rad], |alpha| < pi / 2, any shape.
+        stiffness: cornering stiffness [N/rad]; mu: friction coefficient [-]; fz: load [N].
+    """
+    t = sin(alpha) / cos(alpha)
+    peak = mu * fz
+    ts = jnp.clip(t, -3.0 * peak / stiffness, 3.0 * peak / stiffness)  # |t| <= t_sl
+    adhesion = (stiffness * ts - stiffness**2 / (3.0 * peak) * jnp.abs(ts) * ts
+                + stiffness**3 / (27.0 * peak**2) * ts**3)
+    # the cubic equals peak sign(t) at |t| = t_sl, so the clip continues it as the sliding branch
+    return adhesion
+
+
+class SingleTrack(VehicleModel):
+    """Planar single-track model: lateral velocity and yaw rate (see the module docstring).
+
+    States x = (vy, r): lateral velocity of the CoG [m/s] and yaw rate [rad/s].
+    Inputs u = (delta, vx): road-wheel steering angle [rad] (> 0 left) and longitudinal speed
+        [m/s] (> 0).
+    Outputs y = (ay, r): lateral acceleration (specific force) at the CoG [m/s^2] and yaw rate
+        [rad/s].
+    Parameters theta, by ``tyres``:
+
+    * ``"linear"``: (m, iz, lf, lr, cf, cr) [kg, kg m^2, m, m, N/rad, N/rad];
+    * ``"pacejka"``: those and (mu, shape_f, shape_r) [-];
+    * ``"brush"``: those and (mu,) [-].
+
+    Nominal values (plausible for a mid-size car, not measured): 1500 kg, 2700 kg m^2, 1.2 m,
+    1.5 m, 1.2e5 and 1.4e5 N/rad (understeer gradient 2.2e-3 rad s^2/m), mu = 1, C = 1.3.
+
+    Args:
+        dt: sampling period [s], > 0.
+        integrator: ``"rk4"`` (default) or ``"euler"``, applied ``substeps`` times per step.
+        theta: parameter vector in the order above; None for the nominal values.
+        tyres: ``"linear"``, ``"pacejka"`` or ``"brush"``.
+        substeps: integration steps per sampling period (int >= 1, default 2).
+    """
+
+    tyres: str = eqx.field(static=True)
+    substeps: int = eqx.field(static=True)
+
+    STATE_NAMES = ("vy", "r")
+    STATE_UNITS = ("m/s", "rad/s")
+    INPUT_NAMES = ("delta", "vx")
+    INPUT_UNITS = ("rad", "m/s")
+    PARAM_NAMES, PARAM_UNITS, PARAM_NOMINAL = _PARAMS["linear"]  # per instance: ``param_names``
+
+    def __init__(self, dt: float = 0.01, integrator: str = "rk4", theta=None,
+                 tyres: str = "linear", substeps: int = 2):
+        from .. import _validate
+
+        self.tyres = _validate.choice("tyres", tyres, TYRES)
+        self.substeps = _validate.integer("substeps", substeps, 1)
+        names, _, nominal = _PARAMS[self.tyres]
+        self.dt = _check_dt(dt)
+        self.integrator = _check_integrator(integrator)
+        self.theta = _check_theta(nominal if theta is None else theta, names)
+
+    param_names = property(lambda self: _PARAMS[self.tyres][0])
+    param_units = property(lambda self: _PARAMS[self.tyres][1])
+    output_names = property(lambda self: ("ay", "r"))
+    output_units = property(lambda self: ("m/s^2", "rad/s"))
+
+    def axle_forces(self, x, u, theta):
+        """(Ff, Fr): front and rear axle lateral forces [N], each in its wheel's frame."""
+        vy, r = x[0], x[1]
+        delta, vx = u[0], u[1]
+        m, _, lf, lr, cf, cr = (theta[i] for i in range(6))
+        if self.tyres == "linear":
+            return cf * (delta - (vy + lf * r) / vx), cr * (lr * r - vy) / vx
+        alpha_f = delta - arctan((vy + lf * r) / vx)
+        alpha_r = -arctan((vy - lr * r) / vx)
+        fzf, fzr = axle_loads(m, lf, lr)
+        mu = theta[6]
+        if self.tyres == "pacejka":
+            return (magic_formula_axle(alpha_f, cf, mu, fzf, theta[7]),
+                    magic_formula_axle(alpha_r, cr, mu, fzr, theta[8]))
+        return brush_axle(alpha_f, cf, mu, fzf), brush_axle(alpha_r, cr, mu, fzr)
+
+    def _body_forces(self, x, u, theta):
+        """(Fy [N], Mz [N m]): lateral force and yaw moment at the CoG."""
+        ff, fr = self.axle_forces(x, u, theta)
+        if self.tyres != "linear":
+            ff = ff * cos(u[0])
+        return ff + fr, theta[2] * ff - theta[3] * fr
+
+    def derivative(self, x, u, theta):
+        """(vy', r') [m/s^2, rad/s^2], shape (2,)."""
+        fy, mz = self._body_forces(x, u, theta)
+        return jnp.stack([fy / theta[0] - u[1] * x[1], mz / theta[1]])
+
+    def transition(self, x, u, theta):
+        """State after ``dt`` seconds, input held: ``substeps`` integrator steps, shape (2,)."""
+        h = self.dt / self.substeps
+        for _ in range(self.substeps):
+            x = _step(self.derivative, x, u, theta, h, self.integrator)
+        return x
+
+    def lateral_acceleration(self, x, u, theta):
+        """ay = Fy / m = vy' + vx r [m/s^2]."""
+        return self._body_forces(x, u, theta)[0] / theta[0]
+
+    def observe(self, x, u, theta):
+        """(ay [m/s^2], r [rad/s]), shape (2,)."""
+        return jnp.stack([self.lateral_acceleration(x, u, theta), x[1]])
+
+    def understeer_gradient(self, theta=None):
+        """K = m (lr cr - lf cf) / (L cf cr) [rad s^2/m] of the linear tyres (or the saturating
+        ones at small slip); > 0 understeer."""
+        m, _, lf, lr, cf, cr = (self.theta if theta is None else theta)[:6]
+        return m * (lr * cr - lf * cf) / ((lf + lr) * cf * cr)
+
+    # -- used by scenarios' driver model ----------------------------------------------------
+    def body_velocity(self, x, u, theta):
+        """(vx, vy, r) [m/s, m/s, rad/s]; vx is the input."""
+        return u[1], x[0], x[1]
+
+    def pose(self, x):
+        return None
+
+    def speed(self, x):
+        """None: the speed is the input vx, not a state."""
+        return None
+
+    def drive_input(self, x, delta, accel, speed, theta):
+        """(delta, vx) = (``delta``, ``speed``)."""
+        return jnp.stack([delta, speed])
+
+    def initial_state(self, speed):
+        """Straight driving: zeros, shape (2,). ``speed`` enters as the input."""
+        return jnp.zeros(2)
+
+
+def _step(derivative, x, u, theta, h, integrator):
+    from .base import integrate
+
+    return integrate(derivative, x, u, theta, h, integrator)
