@@ -107,7 +107,9 @@ from typing import Mapping
 
 import numpy as np
 
-__all__ = ["Drive", "load_comma2k19"]
+from .drive import Drive
+
+__all__ = ["Comma2k19Drive", "load_comma2k19"]
 
 _PACKAGED = Path(__file__).resolve().parent / "comma2k19_rav4"
 
@@ -144,9 +146,13 @@ _UNITS = {
 }
 
 
-@dataclass(frozen=True, eq=False)
-class Drive:
+@dataclass(frozen=True, eq=False, kw_only=True)
+class Comma2k19Drive(Drive):
     """One recorded drive on a uniform time grid (returned by :func:`load_comma2k19`).
+
+    A :class:`~vehjax.data.Drive` with the segment's IMU mount and pose offset; its raw signals
+    keep their comma2k19 names, and :meth:`to_drive` gives a plain Drive with model-named
+    columns (``delta``, ``vx``, ``ay``, ``r``, ...) for :meth:`~vehjax.data.Drive.for_model`.
 
     Frozen; its arrays are read-only (treat the dicts as read-only too).
 
@@ -241,13 +247,40 @@ class Drive:
                 f"model: its dt = {model.dt} s differs from the drive's grid step {self.dt} s; "
                 f"build it with dt=drive.dt or load with rate=1/model.dt")
 
+    def to_drive(self, steer_ratio: float = 16.88, track: float = 1.61) -> Drive:
+        """A plain :class:`~vehjax.data.Drive` with the raw signals, model-named columns and the
+        references prefixed ``ref_`` (``ref_vy``, ``ref_yaw_rate``, ...: the pose's).
+
+        Model-named columns (for SingleTrack, SingleTrackBank and your own models):
+        ``delta`` [rad] = steering-wheel angle / ``steer_ratio``, ``vx`` [m/s] = mean rear wheel
+        speed (see :meth:`inputs`), ``ay`` [m/s^2] = ``accel_y``, ``r`` [rad/s] = ``gyro_z``,
+        ``roll_rate`` [rad/s] = ``gyro_x``, ``r_virt`` [rad/s] as in :meth:`measurements`.
+        """
+        steer_ratio, track = _positive("steer_ratio", steer_ratio), _positive("track", track)
+        from ..models.bank import virtual_yaw_rate
+
+        s = self.signals
+        derived = {
+            "delta": s["steering_wheel_angle"] / steer_ratio,
+            "vx": 0.5 * (s["wheel_speed_rl"] + s["wheel_speed_rr"]),
+            "ay": s["accel_y"], "r": s["gyro_z"], "roll_rate": s["gyro_x"],
+            "r_virt": np.asarray(virtual_yaw_rate(s["wheel_speed_rl"], s["wheel_speed_rr"], 1.0,
+                                                  track)),
+        }
+        units = {"delta": "rad", "vx": "m/s", "ay": "m/s^2", "r": "rad/s", "roll_rate": "rad/s",
+                 "r_virt": "rad/s"}
+        units.update({k: self.units[k] for k in s})
+        units.update({"ref_" + k: self.units[k] for k in self.reference})
+        return Drive(t=self.t, signals={**s, **derived}, units=units, dt=self.dt,
+                     reference={"ref_" + k: v for k, v in self.reference.items()})
+
     def __repr__(self) -> str:
-        return (f"Drive({len(self.t)} samples, t = {self.t[0]:.3f}..{self.t[-1]:.3f} s, "
+        return (f"Comma2k19Drive({len(self.t)} samples, t = {self.t[0]:.3f}..{self.t[-1]:.3f} s, "
                 f"dt = {self.dt} s, folder = {self.folder!r})")
 
 
 def load_comma2k19(folder=None, rate: float = 100.0, *, start=None, stop=None,
-                   mount=None) -> Drive:
+                   mount=None) -> Comma2k19Drive:
     """Load a comma2k19 segment folder onto a uniform grid (see the module docstring).
 
     Args:
@@ -366,7 +399,7 @@ def load_comma2k19(folder=None, rate: float = 100.0, *, start=None, stop=None,
     for a in (t, *signals.values(), *reference.values()):
         a.setflags(write=False)
     offset = float(np.mean(signals["gyro_z"] - reference["yaw_rate"]))
-    return Drive(
+    return Comma2k19Drive(
         t=t, dt=dt,
         signals=signals,
         reference=reference,

@@ -1,0 +1,422 @@
+"""Your own recorded drive: named signals with units on a time axis, mapped onto a model.
+
+A :class:`Drive` holds time stamps ``t`` [s] (strictly increasing, any rate, not necessarily
+uniform) and named signals on them, every one stored in SI units (rad, rad/s, m/s, m/s^2, ...):
+the units given when the drive is made are converted once (deg -> rad, deg/s -> rad/s,
+km/h -> m/s, g -> m/s^2, ...; :data:`UNITS` lists the known ones). A NaN sample is a missing one.
+Signals used only to judge an estimate (a sideslip from an INS, a pose-derived velocity) go in
+``reference`` so that they cannot be mistaken for a model input by name.
+
+Typical use::
+
+    drive = Drive.from_csv("lap.csv", time="time", units={"time": "s", "steer": "deg",
+                           "speed": "km/h", "ay": "g", "yaw_rate": "deg/s"},
+                           reference=("beta_ins",))
+    us, ys = drive.for_model(model, names={"steer": "delta", "speed": "vx", "yaw_rate": "r"})
+
+``for_model`` resamples onto the model's ``dt`` (:meth:`Drive.resample`: linear interpolation,
+NaN across gaps longer than ``max_gap`` and outside a signal's recorded span) and returns the
+inputs (T, nu) and the measurements (T, ny) in the model's order. :func:`vehjax.data.load_comma2k19`
+is one producer of a Drive (``load_comma2k19().to_drive()`` gives one with model-named columns).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+__all__ = ["Drive", "UNITS", "to_si"]
+
+#: Standard gravity [m/s^2], the unit "g" of accelerometers.
+STANDARD_GRAVITY = 9.80665
+
+#: unit -> (SI unit, factor): value_SI = factor * value.
+UNITS = {
+    "s": ("s", 1.0), "ms": ("s", 1e-3), "us": ("s", 1e-6), "ns": ("s", 1e-9),
+    "m": ("m", 1.0), "km": ("m", 1e3), "mm": ("m", 1e-3), "cm": ("m", 1e-2),
+    "m/s": ("m/s", 1.0), "km/h": ("m/s", 1.0 / 3.6), "kph": ("m/s", 1.0 / 3.6),
+    "mph": ("m/s", 0.44704),
+    "m/s^2": ("m/s^2", 1.0), "g": ("m/s^2", STANDARD_GRAVITY),
+    "rad": ("rad", 1.0), "deg": ("rad", math.pi / 180.0),
+    "rad/s": ("rad/s", 1.0), "deg/s": ("rad/s", math.pi / 180.0),
+    "rpm": ("rad/s", 2.0 * math.pi / 60.0),
+    "rad/s^2": ("rad/s^2", 1.0), "deg/s^2": ("rad/s^2", math.pi / 180.0),
+    "N": ("N", 1.0), "kN": ("N", 1e3), "N m": ("N m", 1.0), "Nm": ("N m", 1.0),
+    "kg": ("kg", 1.0), "-": ("-", 1.0), "1": ("-", 1.0), "%": ("-", 1e-2),
+}
+
+_HEADER = re.compile(r"^\s*(?P<name>[^\[\]]*?)\s*\[(?P<unit>[^\[\]]*)\]\s*$")
+
+
+def to_si(name: str, values, unit: str):
+    """``values`` converted from ``unit`` to its SI unit: (array, SI unit string).
+
+    ValueError naming ``name`` for a unit not in :data:`UNITS`.
+    """
+    if not isinstance(unit, str) or unit.strip() not in UNITS:
+        raise ValueError(f"units: unknown unit {unit!r} for {name!r}; known units: "
+                         f"{', '.join(sorted(UNITS))}")
+    si, factor = UNITS[unit.strip()]
+    return np.asarray(values, dtype=float) * factor, si
+
+
+def _check_time(t) -> np.ndarray:
+    try:
+        t = np.array(t, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError("t: expected a 1-D array of time stamps in seconds") from None
+    if t.ndim != 1 or len(t) < 2:
+        raise ValueError(f"t: expected a 1-D array of at least 2 time stamps, got shape {t.shape}")
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f"t: {int(np.sum(~np.isfinite(t)))} non-finite time stamps")
+    bad = np.flatnonzero(np.diff(t) <= 0.0)
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(f"t: time stamps must be strictly increasing; {bad.size} steps are not, "
+                         f"the first at index {i}: {t[i]!r} -> {t[i + 1]!r} s")
+    return t
+
+
+def _uniform_step(t: np.ndarray) -> float | None:
+    """The common step of ``t`` [s] if every step equals it to 1e-6 relative, else None."""
+    d = np.diff(t)
+    step = (t[-1] - t[0]) / (len(t) - 1)
+    return float(step) if np.all(np.abs(d - step) <= 1e-6 * step) else None
+
+
+def interpolate_with_gaps(t_new, t, y, max_gap: float) -> np.ndarray:
+    """Linear interpolation of samples (t, y) at ``t_new`` [s], NaN where it would bridge a gap.
+
+    Only finite samples of ``y`` are used. A point of ``t_new`` gets NaN when it lies outside
+    the span of the finite samples, or strictly inside an interval between two consecutive
+    finite samples that is longer than ``max_gap`` [s]. Points on a sample get its value.
+    """
+    t_new = np.asarray(t_new, dtype=float)
+    ok = np.isfinite(y)
+    ts, ys = t[ok], y[ok]
+    out = np.full(t_new.shape, np.nan)
+    if ts.size == 0:
+        return out
+    inside = (t_new >= ts[0]) & (t_new <= ts[-1])
+    out[inside] = np.interp(t_new[inside], ts, ys)
+    if ts.size > 1:
+        j = np.clip(np.searchsorted(ts, t_new, side="right"), 1, ts.size - 1)
+        lo, hi = ts[j - 1], ts[j]
+        on_sample = (t_new == lo) | (t_new == hi)
+        out[inside & ((hi - lo) > max_gap) & ~on_sample] = np.nan
+    return out
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class Drive:
+    """A recorded drive: time stamps and named signals in SI units (NaN = missing).
+
+    Frozen; its arrays are read-only.
+
+    Attributes:
+        t: (T,) time stamps [s], strictly increasing (any rate).
+        signals: name -> (T,) array in SI units.
+        units: name -> SI unit string, for every key of ``signals`` and ``reference``.
+        reference: name -> (T,) array: signals for validation only (default none).
+        dt: the grid step [s] when ``t`` is uniform (to 1e-6 relative), else None; filled in
+            when not given.
+
+    Make one with :meth:`from_arrays` or :meth:`from_csv` (they convert units); the
+    constructor takes arrays already in SI units.
+    """
+
+    t: np.ndarray
+    signals: Mapping[str, np.ndarray]
+    units: Mapping[str, str]
+    reference: Mapping[str, np.ndarray] = field(default_factory=dict)
+    dt: float | None = None
+
+    def __post_init__(self):
+        t = _check_time(self.t)
+        groups = {}
+        for arg in ("signals", "reference"):
+            group = getattr(self, arg)
+            if not isinstance(group, Mapping):
+                raise ValueError(f"{arg}: expected a mapping name -> (T,) array, got {group!r}")
+            groups[arg] = {str(k): _column(arg, k, v, len(t)) for k, v in group.items()}
+        both = set(groups["signals"]) & set(groups["reference"])
+        if both:
+            raise ValueError(f"reference: names also in signals: {sorted(both)}")
+        units = dict(self.units)
+        for name in (*groups["signals"], *groups["reference"]):
+            if name not in units:
+                raise ValueError(f"units: no unit for {name!r}")
+            if units[name] not in {si for si, _ in UNITS.values()}:
+                raise ValueError(f"units: {name!r} has {units[name]!r}, not an SI unit of "
+                                 f"UNITS (use from_arrays / from_csv to convert)")
+        step = _uniform_step(t)
+        if self.dt is not None and (step is None or abs(float(self.dt) - step) > 1e-6 * step):
+            raise ValueError(f"dt: {self.dt!r} s does not match the time stamps' step {step}")
+        t.setflags(write=False)
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "signals", groups["signals"])
+        object.__setattr__(self, "reference", groups["reference"])
+        object.__setattr__(self, "units", units)
+        object.__setattr__(self, "dt", step if self.dt is None else float(self.dt))
+
+    # -- making one -------------------------------------------------------------------------
+    @classmethod
+    def from_arrays(cls, t, values: Mapping, units: Mapping, *, reference=(),
+                    time_unit: str = "s") -> "Drive":
+        """A drive from arrays: ``t`` (T,) in ``time_unit``, ``values`` name -> (T,) in
+        ``units[name]`` (every name needs one; see :data:`UNITS`). Names listed in
+        ``reference`` go to :attr:`reference`. Raises ValueError for a missing or unknown unit,
+        a misshaped column, time stamps that are not strictly increasing."""
+        if not isinstance(values, Mapping) or not isinstance(units, Mapping):
+            raise ValueError("values, units: expected mappings name -> array and name -> unit")
+        reference = _names("reference", reference, values)
+        t, _ = to_si("t", _check_time(t), time_unit)
+        sig, ref, si_units = {}, {}, {}
+        for name, v in values.items():
+            if name not in units:
+                raise ValueError(f"units: no unit for {name!r}; give units={{{name!r}: ...}}")
+            (ref if name in reference else sig)[name], si_units[name] = to_si(name, v, units[name])
+        return cls(t=t, signals=sig, reference=ref, units=si_units)
+
+    @classmethod
+    def from_csv(cls, path, time: str = "t", units: Mapping | None = None, *, columns=None,
+                 reference=(), delimiter: str = ",") -> "Drive":
+        """A drive from a CSV file with a header row of column names.
+
+        A header may carry its unit in brackets, ``"steer [deg]"``; ``units`` (name -> unit)
+        gives or overrides them, the time column's too (default s). Empty fields are missing
+        (NaN). ``columns`` selects the columns to read (default all); ``reference`` names those
+        that go to :attr:`reference`. Raises ValueError naming a missing column, a column
+        without a unit or with an unknown one, unreadable numbers, non-monotonic time.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"path: {str(path)!r} is not a file")
+        with open(path, newline="") as fh:
+            header = next(csv.reader(fh, delimiter=delimiter), None)
+        if not header:
+            raise ValueError(f"path: {str(path)!r} has no header row")
+        names, header_units = [], {}
+        for h in header:
+            m = _HEADER.match(h)
+            name = m["name"] if m else h.strip()
+            if m:
+                header_units[name] = m["unit"].strip()
+            names.append(name)
+        given = dict(header_units, **dict(units or {}))
+        want = list(names) if columns is None else list(_names("columns", columns, names))
+        if time not in names:
+            raise ValueError(f"time: no column {time!r} in {str(path)!r}; columns: {names}")
+        want = [c for c in want if c != time]
+        for c in want:
+            if c not in given:
+                raise ValueError(f"units: no unit for column {c!r}: give units={{{c!r}: ...}} "
+                                 f"or write it in the header as '{c} [unit]'")
+        data = _read_table(path, delimiter, [names.index(c) for c in [time] + want], len(names))
+        values = {c: data[:, i + 1] for i, c in enumerate(want)}
+        return cls.from_arrays(data[:, 0], values, {c: given[c] for c in want},
+                               reference=reference, time_unit=given.get(time, "s"))
+
+    def to_csv(self, path) -> None:
+        """Write ``t`` and every signal and reference column, headers ``"name [unit]"``, missing
+        samples as empty fields; :meth:`from_csv` reads it back (pass ``reference=``)."""
+        names = [*self.signals, *self.reference]
+        cols = [self.t] + [self.signals.get(n, self.reference.get(n)) for n in names]
+        with open(path, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["t [s]"] + [f"{n} [{self.units[n]}]" for n in names])
+            for row in np.stack(cols, axis=1):
+                w.writerow(["" if np.isnan(v) else repr(float(v)) for v in row])
+
+    # -- time -------------------------------------------------------------------------------
+    def resample(self, dt: float, *, start=None, stop=None, max_gap=None) -> "Drive":
+        """This drive on the uniform grid start, start + dt, ... <= stop [s].
+
+        Every signal is interpolated linearly from its own finite samples
+        (:func:`interpolate_with_gaps`); grid points inside a gap longer than ``max_gap`` [s]
+        (default 2.5 median sample intervals of ``t``, so one dropped sample is bridged, two
+        are not) or outside the signal's recorded span are NaN. No anti-alias filtering: to
+        downsample noisy signals by a large factor, average them first.
+
+        Args:
+            dt: grid step [s], > 0.
+            start, stop: grid ends [s], inside [t[0], t[-1]] (default those).
+            max_gap: longest gap [s] interpolated across, > 0.
+        """
+        dt = _positive("dt", dt)
+        lo, hi = float(self.t[0]), float(self.t[-1])
+        t0 = lo if start is None else _within("start", start, lo, hi)
+        t1 = hi if stop is None else _within("stop", stop, lo, hi)
+        if not t1 > t0:
+            raise ValueError(f"stop: {t1} s is not after start = {t0} s")
+        gap = 2.5 * float(np.median(np.diff(self.t))) if max_gap is None else _positive(
+            "max_gap", max_gap)
+        n = int(math.floor((t1 - t0) / dt * (1.0 + 1e-12))) + 1
+        if n < 2:
+            raise ValueError(f"dt: {dt} s gives fewer than 2 samples between {t0} and {t1} s")
+        grid = t0 + dt * np.arange(n)
+
+        def on_grid(group):
+            return {k: interpolate_with_gaps(grid, self.t, v, gap) for k, v in group.items()}
+
+        return Drive(t=grid, signals=on_grid(self.signals), reference=on_grid(self.reference),
+                     units=dict(self.units), dt=dt)
+
+    def between(self, start=None, stop=None) -> "Drive":
+        """The samples with start <= t <= stop [s] (no resampling), at least 2."""
+        keep = np.ones(len(self.t), bool)
+        if start is not None:
+            keep &= self.t >= float(start)
+        if stop is not None:
+            keep &= self.t <= float(stop)
+        if keep.sum() < 2:
+            raise ValueError(f"start, stop: fewer than 2 samples in [{start}, {stop}] s")
+        return Drive(t=self.t[keep], signals={k: v[keep] for k, v in self.signals.items()},
+                     reference={k: v[keep] for k, v in self.reference.items()},
+                     units=dict(self.units))
+
+    # -- a model's arrays -------------------------------------------------------------------
+    def for_model(self, model, names: Mapping | None = None, *, missing_outputs=(),
+                  max_gap=None):
+        """(inputs (T, nu), measurements (T, ny)) for ``model`` on its grid, in its order.
+
+        The drive is resampled to ``model.dt`` unless it is already on that grid. Each model
+        input and output is read from the signal of the same name, or from the column that
+        ``names`` (column name -> model name) maps onto it; its unit must match the model's
+        (both in SI, so a column given in deg feeds a model input in rad). Missing samples of
+        the measurements stay NaN (a filter skips them); inputs must be complete.
+
+        Args:
+            model: any vehjax model (``dt``, ``input_names``/``output_names``, optionally
+                ``input_units``/``output_units``).
+            names: column name -> model input/output name.
+            missing_outputs: model outputs with no column in this drive, returned as NaN
+                (e.g. a bank angle that was not measured); any other absent one is an error.
+            max_gap: passed to :meth:`resample`.
+
+        Raises:
+            ValueError: an unknown name in ``names``, a model input or output with no column,
+                mismatched units, NaN inputs (naming the input and the first time).
+        """
+        names = dict(names or {})
+        for col, target in names.items():
+            if col not in self.signals:
+                raise ValueError(f"names: no signal {col!r} in this drive; signals: "
+                                 f"{sorted(self.signals)}")
+            if target not in (*model.input_names, *model.output_names):
+                raise ValueError(f"names: {target!r} is not an input or output of the model "
+                                 f"({model.input_names}, {model.output_names})")
+        missing_outputs = _names("missing_outputs", missing_outputs, model.output_names)
+        drive = self
+        if self.dt is None or abs(self.dt - float(model.dt)) > 1e-9 * float(model.dt):
+            drive = self.resample(float(model.dt), max_gap=max_gap)
+        source = {target: col for col, target in names.items()}
+        u = drive._columns("input", model.input_names, _units(model, "input"), source, ())
+        bad = ~np.isfinite(u)
+        if bad.any():
+            k, j = np.argwhere(bad)[0]
+            raise ValueError(f"inputs: {int(bad[:, j].sum())} missing samples of input "
+                             f"{model.input_names[j]!r}, the first at t = {drive.t[k]:.6g} s; cut "
+                             f"the drive with between() or fill the gap")
+        y = drive._columns("output", model.output_names, _units(model, "output"), source,
+                           missing_outputs)
+        return u, y
+
+    def _columns(self, kind, targets, units, source, absent):
+        cols = []
+        for target, unit in zip(targets, units):
+            col = source.get(target, target)
+            if target in absent:
+                cols.append(np.full(len(self.t), np.nan))
+                continue
+            if col not in self.signals:
+                raise ValueError(
+                    f"names: the model's {kind} {target!r} has no signal; map a column onto it "
+                    f"with names={{'<column>': {target!r}}}"
+                    + (" or list it in missing_outputs" if kind == "output" else "")
+                    + f" (signals: {sorted(self.signals)})")
+            if unit in UNITS and UNITS[unit][0] != self.units[col]:
+                raise ValueError(f"units: signal {col!r} is in {self.units[col]!r} but the "
+                                 f"model's {kind} {target!r} is in {unit!r}")
+            cols.append(self.signals[col] / (UNITS[unit][1] if unit in UNITS else 1.0))
+        return np.stack(cols, axis=1)
+
+    def __repr__(self) -> str:
+        rate = f"dt = {self.dt} s" if self.dt is not None else "non-uniform"
+        return (f"Drive({len(self.t)} samples, t = {self.t[0]:.3f}..{self.t[-1]:.3f} s, {rate}, "
+                f"signals {sorted(self.signals)}, reference {sorted(self.reference)})")
+
+
+def _read_table(path, delimiter, cols, width) -> np.ndarray:
+    """Columns ``cols`` of a CSV file below its header as floats (empty field -> NaN)."""
+    rows = []
+    with open(path, newline="") as fh:
+        reader = csv.reader(fh, delimiter=delimiter)
+        next(reader)
+        for line, row in enumerate(reader, start=2):
+            if not row:
+                continue
+            if len(row) != width:
+                raise ValueError(f"path: {str(path)!r} line {line}: {len(row)} fields, expected "
+                                 f"{width} like the header")
+            try:
+                rows.append([float(row[c]) if row[c].strip() else math.nan for c in cols])
+            except ValueError:
+                raise ValueError(f"path: {str(path)!r} line {line}: not a number in "
+                                 f"{[row[c] for c in cols]}") from None
+    if len(rows) < 2:
+        raise ValueError(f"path: {str(path)!r}: fewer than 2 rows of data")
+    return np.array(rows, dtype=float)
+
+
+def _units(model, kind):
+    names = getattr(model, f"{kind}_names")
+    units = tuple(getattr(model, f"{kind}_units", ()) or ())
+    return units if len(units) == len(names) else ("-?",) * len(names)
+
+
+def _column(arg, name, value, n):
+    try:
+        a = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{arg}: {name!r} is not numeric") from None
+    if a.shape != (n,):
+        raise ValueError(f"{arg}: {name!r} has shape {a.shape}, expected ({n},) like t")
+    if np.any(np.isinf(a)):
+        raise ValueError(f"{arg}: {name!r} has infinite values (use NaN for missing samples)")
+    a.setflags(write=False)
+    return a
+
+
+def _names(arg, value, known):
+    value = (value,) if isinstance(value, str) else tuple(value)
+    unknown = [v for v in value if v not in known]
+    if unknown:
+        raise ValueError(f"{arg}: unknown name(s) {unknown}; expected some of {list(known)}")
+    return value
+
+
+def _positive(name, value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = float("nan")
+    if not math.isfinite(v) or v <= 0.0:
+        raise ValueError(f"{name}: expected a positive number of seconds, got {value!r}")
+    return v
+
+
+def _within(name, value, lo, hi) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = float("nan")
+    if not (math.isfinite(v) and lo <= v <= hi):
+        raise ValueError(f"{name}: {value!r} s is outside the drive [{lo}, {hi}] s")
+    return v
