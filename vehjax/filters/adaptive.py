@@ -38,11 +38,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _validate
+from . import input_noise as _inoise
 from . import sigma
 from ._linalg import sym
 from .base import ELEMENTAL_EMITTER, Estimator, state_output
 from ._model import (
-    cast_yu, chol_const, check_model, model_dims, model_theta, point_fns, prior,
+    cast_yu, chol_const, check_model, in_dtype, model_dims, model_theta, per_point, point_fns,
+    prior,
 )
 from .kalman import masked_update
 
@@ -95,12 +97,15 @@ def ackf(
     adapt=("Q", "R"),
     floor: float = 1e-6,
     prior_steps: float = 0.0,
+    input_noise=None,
 ) -> Estimator:
     """Sage-Husa adaptive CKF of Wang et al. 2016, eq. 21-30.
 
     Args:
         model: a vehjax model (nx states, ny outputs).
         Q0: initial process noise covariance, (nx, nx) or (nx,) variances; state units squared.
+            Positive definite when ``adapt`` includes "Q" (it is the metric of the projection
+            below); otherwise positive semi-definite (zero with ``input_noise``).
         R0: initial measurement noise covariance, (ny, ny) or (ny,) variances.
         forgetting: forgetting factor b in (0, 1]; the memory index is d_k = (1-b)/(1-b^k), so
             past steps fade with weight b per step (memory of about 1/(1-b) steps). The paper
@@ -117,21 +122,31 @@ def ackf(
             prior s0 of the order of the memory 1/(1-b) damps that start-up transient. (While
             P- is large next to R, e e^T - P_zz0 is a small difference of large terms, so an R0
             that is too small can still be driven onto the floor early on.)
+        input_noise: noise entering through the inputs (:mod:`vehjax.filters.input_noise`):
+            ``{input name: std}`` in the input's units or an (nu, nu) covariance in input units
+            squared; None (default) for none. The cubature points of the prediction are those
+            of the state augmented with the k noisy input components, so P_xx0 includes the
+            input noise and the adapted Q is the process noise beyond it.
 
     Returns:
         ``Estimator`` with state :class:`AckfState` (x, P, Q, R, k, theta).
     """
     nx, ny = check_model(model)
-    Q0n, R0n = _validate.cov("Q0", Q0, nx), _validate.cov("R0", R0, ny)
-    b = _validate.number("forgetting", forgetting, 0.0, 1.0, high_open=False)
     if isinstance(adapt, str):
         adapt = (adapt,)
     adapt = _validate.names("adapt", adapt, _ADAPT, allow_empty=True)
+    Q0n = _validate.cov("Q0", Q0, nx, allow_psd="Q" not in adapt)
+    R0n = _validate.cov("R0", R0, ny)
+    b = _validate.number("forgetting", forgetting, 0.0, 1.0, high_open=False)
+    Lu = _inoise.input_factor(input_noise, model.input_names)
+    tr = in_dtype(per_point(model)[0])
     floor = _validate.number("floor", floor, 0.0, 1.0)
     s0 = _validate.number("prior_steps", prior_steps, 0.0, low_open=False)
 
     rule = sigma.cubature_rule(nx)
-    project_Q, project_R = _projector(Q0n, floor), _projector(R0n, floor)
+    rule_a = None if Lu is None else sigma.cubature_rule(nx + Lu.shape[1])
+    project_Q = _projector(Q0n, floor) if "Q" in adapt else None
+    project_R = _projector(R0n, floor)
 
     def init(x0, P0, theta0=None, P_theta0=None, key=None):
         """State from the prior x0 (nx,), P0 (nx, nx) or (nx,); theta0 (np,) or model.theta."""
@@ -145,7 +160,11 @@ def ackf(
         dt = x.dtype
         y, u = cast_yu(y, u, dt)
         f, h = point_fns(model, u, theta)
-        x_pred, Pxx0 = sigma.predict(rule, x, P, f)
+        if Lu is None:
+            x_pred, Pxx0 = sigma.predict(rule, x, P, f)
+        else:
+            x_pred, Pxx0 = _inoise.sigma_predict(rule_a, x, P, lambda v, w: tr(v, w, theta), u,
+                                                 Lu)
         P_pred = sym(Pxx0 + Qh)
         m = sigma.measure(rule, x_pred, P_pred, h)
         Pzz0 = m.S

@@ -108,6 +108,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _validate
+from . import input_noise as _inoise
 from . import sigma
 from ._bounds import Transform, check_inside, parse as _parse_bounds
 from ._linalg import sym
@@ -172,13 +173,15 @@ class _Setup(NamedTuple):
     R: np.ndarray
     Q_theta: np.ndarray  # (p, p) physical units
     decay: float
+    Lu: np.ndarray | None = None  # (nu, k) factor of the input noise covariance, input units
 
 
 # --------------------------------------------------------------------------------------------
 # validation (numpy, before tracing)
 
 
-def _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds) -> _Setup:
+def _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds,
+           input_noise=None) -> _Setup:
     nx, ny = check_model(model)
     names, idx = check_estimate(model, estimate)
     idx = np.array(idx, dtype=int)
@@ -211,7 +214,8 @@ def _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds) -> 
         raise ValueError("Q_theta: expected a concrete array (it is decayed in the filter state)")
     low, high = _parse_bounds(bounds, names, theta_nom[idx])
     tf = Transform(low, high, scale)
-    return _Setup(nx, ny, names, idx, tf, theta_nom, Qn, Rn, Qth, decay)
+    Lu = _inoise.input_factor(input_noise, model.input_names)
+    return _Setup(nx, ny, names, idx, tf, theta_nom, Qn, Rn, Qth, decay, Lu)
 
 
 def _check_param_innovation(value) -> bool:
@@ -329,6 +333,11 @@ _ARGS_DOC = """
             unbounded, so ``bounds={}`` turns the domains off (the filter on theta itself). The
             filter works on an unconstrained coordinate and reports physical units (module
             docstring); ``theta0`` must lie strictly inside.
+        input_noise: noise entering through the inputs (:mod:`vehjax.filters.input_noise`):
+            ``{input name: std}`` in the input's units or an (nu, nu) covariance in input units
+            squared; None (default) for none. The EKF forms add ``G Sigma_u G^T`` (G = df/du by
+            ``jax.jacfwd``) to the state's process noise, the UKF forms augment the prediction's
+            sigma points with the noisy input components; Q may then be zero.
 """
 
 
@@ -338,7 +347,7 @@ _ARGS_DOC = """
 
 def dual_ekf(
     model, Q, R, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
-    param_innovation: str = "predictive", bounds=None, recurrent: bool = True,
+    param_innovation: str = "predictive", bounds=None, recurrent: bool = True, input_noise=None,
 ) -> Estimator:
     """Dual extended Kalman filter (Dutta et al. 2019, Algorithm 1), Jacobians by ``jax.jacfwd``.
     {args}
@@ -350,7 +359,7 @@ def dual_ekf(
         ``Estimator`` with state :class:`DualState`; ``param_names`` = ``estimate``;
         ``init(x0, P0, theta0, P_theta0)`` with theta0 (p,), P_theta0 (p, p) in physical units.
     """
-    cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds)
+    cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds, input_noise)
     predictive = _check_param_innovation(param_innovation)
     f, h = _model_fns(model, cfg)
 
@@ -359,6 +368,8 @@ def dual_ekf(
         dt = x.dtype
         y, u = cast_yu(y, u, dt)
         Qn, Rn = jnp.asarray(cfg.Q, dt), jnp.asarray(cfg.R, dt)
+        if cfg.Lu is not None:
+            Qn = Qn + _inoise.linearized_input_noise(lambda v, w: f(v, w, z), x, u, cfg.Lu)
         # parameter prediction
         Pz_pred = sym(Pz + _walk(cfg, z, Qth))
         # state prediction and correction
@@ -392,7 +403,7 @@ def dual_ekf(
 def dual_ukf(
     model, Q, R, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
     alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0,
-    param_innovation: str = "predictive", bounds=None, recurrent: bool = True,
+    param_innovation: str = "predictive", bounds=None, recurrent: bool = True, input_noise=None,
 ) -> Estimator:
     """Dual unscented Kalman filter (Dutta et al. 2019, Algorithm 2).
 
@@ -410,9 +421,11 @@ def dual_ukf(
     Returns:
         ``Estimator`` with state :class:`DualState`; ``param_names`` = ``estimate``.
     """
-    cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds)
+    cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds, input_noise)
     predictive = _check_param_innovation(param_innovation)
     rule_s = unscented_rule(cfg.nx, alpha, beta, kappa)
+    rule_a = None if cfg.Lu is None else unscented_rule(cfg.nx + cfg.Lu.shape[1], alpha, beta,
+                                                        kappa)
     rule_p = unscented_rule(len(cfg.names), alpha, beta, kappa)
     f, h = _model_fns(model, cfg)
 
@@ -428,7 +441,12 @@ def dual_ukf(
         def state_step(v):
             # the state filter's step from x_{t-1}(v) = x + D (v - z) at parameters v; at v = z
             # it is the step itself, its Jacobian in v the recurrent derivative
-            x_pred, P_pred = sigma.predict(rule_s, x + D @ (v - z), P, lambda w: f(w, u, v), Qn)
+            xv = x + D @ (v - z)
+            if cfg.Lu is None:
+                x_pred, P_pred = sigma.predict(rule_s, xv, P, lambda w: f(w, u, v), Qn)
+            else:
+                x_pred, P_pred = _inoise.sigma_predict(rule_a, xv, P, lambda w, uu: f(w, uu, v),
+                                                       u, cfg.Lu, Qn)
             m = sigma.measure(rule_s, x_pred, P_pred, lambda w: h(w, u, v), Rn)
             r = masked_update(x_pred, P_pred, y, m.y_hat, m.S, m.C)
             return r.x, (m, r)
@@ -470,23 +488,28 @@ def _joint_out(cfg: _Setup, a, Pa, r) -> StepOutput:
     return _out(cfg, a[:nx], Pa[:nx, :nx], a[nx:], Pa[nx:, nx:], r)
 
 
-def _noise_aug(cfg: _Setup, a, Q_theta, dt):
-    """Process noise of [x; z]: Q and the random walk mapped to z at the estimate a[nx:]."""
+def _noise_aug(cfg: _Setup, a, Q_theta, dt, fa=None, u=None):
+    """Process noise of [x; z]: Q and the random walk mapped to z at the estimate a[nx:]; with
+    ``fa`` (and input noise) plus ``G Sigma_u G^T``, G = d fa / du at (a, u)."""
     nx = cfg.nx
     n = nx + Q_theta.shape[0]
     Qz = _walk(cfg, a[nx:], Q_theta)
-    return jnp.zeros((n, n), dt).at[:nx, :nx].set(jnp.asarray(cfg.Q, dt)).at[nx:, nx:].set(Qz)
+    Qa = jnp.zeros((n, n), dt).at[:nx, :nx].set(jnp.asarray(cfg.Q, dt)).at[nx:, nx:].set(Qz)
+    if fa is not None and cfg.Lu is not None:
+        Qa = Qa + _inoise.linearized_input_noise(fa, a, u, cfg.Lu)
+    return Qa
 
 
 def joint_ekf(
     model, Q, R, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None, bounds=None,
+    input_noise=None,
 ) -> Estimator:
     """Joint EKF on the augmented state [x; theta] with random-walk parameters.
     {args}
     Returns:
         ``Estimator`` with state :class:`JointState`; ``param_names`` = ``estimate``.
     """
-    cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds)
+    cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds, input_noise)
     fa, ha = _augmented(model, cfg)
 
     def step(state, y, u):
@@ -495,7 +518,7 @@ def joint_ekf(
         y, u = cast_yu(y, u, dt)
         Rn = jnp.asarray(cfg.R, dt)
         a_pred, P_pred, _ = linearized_predict(a, Pa, lambda v: fa(v, u),
-                                               _noise_aug(cfg, a, Qth, dt))
+                                               _noise_aug(cfg, a, Qth, dt, fa, u))
         m = linearized_measure(a_pred, P_pred, lambda v: ha(v, u), Rn)
         r = masked_update(a_pred, P_pred, y, m.y_hat, m.S, m.C, joseph=(m.H, Rn))
         return JointState(r.x, r.P, cfg.decay * Qth), _joint_out(cfg, r.x, r.P, r)
@@ -505,7 +528,7 @@ def joint_ekf(
 
 def joint_ukf(
     model, Q, R, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
-    alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, bounds=None,
+    alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, bounds=None, input_noise=None,
 ) -> Estimator:
     """Joint UKF on the augmented state [x; theta] (nx + p sigma-point dimensions).
     {args}
@@ -514,16 +537,21 @@ def joint_ukf(
     Returns:
         ``Estimator`` with state :class:`JointState`; ``param_names`` = ``estimate``.
     """
-    cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds)
+    cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds, input_noise)
     rule = unscented_rule(cfg.nx + len(cfg.names), alpha, beta, kappa)
+    rule_a = None if cfg.Lu is None else unscented_rule(
+        cfg.nx + len(cfg.names) + cfg.Lu.shape[1], alpha, beta, kappa)
     fa, ha = _augmented(model, cfg)
 
     def step(state, y, u):
         a, Pa, Qth = state
         dt = a.dtype
         y, u = cast_yu(y, u, dt)
-        a_pred, P_pred = sigma.predict(rule, a, Pa, lambda v: fa(v, u),
-                                       _noise_aug(cfg, a, Qth, dt))
+        Qa = _noise_aug(cfg, a, Qth, dt)
+        if cfg.Lu is None:
+            a_pred, P_pred = sigma.predict(rule, a, Pa, lambda v: fa(v, u), Qa)
+        else:
+            a_pred, P_pred = _inoise.sigma_predict(rule_a, a, Pa, fa, u, cfg.Lu, Qa)
         r = sigma.update(rule, a_pred, P_pred, lambda v: ha(v, u), y, jnp.asarray(cfg.R, dt))
         return JointState(r.x, r.P, cfg.decay * Qth), _joint_out(cfg, r.x, r.P, r)
 

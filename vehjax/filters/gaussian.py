@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _validate
+from . import input_noise as _inoise
 from . import runs_last as _runs_last
 from . import sigma
 from ._model import (
@@ -47,6 +48,7 @@ from ._model import (
     in_dtype,
     model_dims,
     model_theta,
+    per_point,
     point_fns,
     prior,
     validate_prior,
@@ -107,7 +109,7 @@ def _prior_init(model, sqrt: bool):
 # EKF
 
 
-def ekf(model, Q, R) -> Estimator:
+def ekf(model, Q, R, input_noise=None) -> Estimator:
     """Extended Kalman filter, Jacobians of transition and observe by ``jax.jacfwd``; the
     covariance update in Joseph form (stays positive definite for very wide priors).
 
@@ -120,26 +122,37 @@ def ekf(model, Q, R) -> Estimator:
         Q: process noise covariance, (nx, nx), or (nx,) variances; in state units squared.
             Positive semi-definite: zero variances for noise-free states are allowed.
         R: measurement noise covariance, (ny, ny), or (ny,) variances; in output units squared.
+        input_noise: noise entering through the inputs (:mod:`vehjax.filters.input_noise`):
+            ``{input name: std}`` in the input's units (rad, m/s, ...) or an (nu, nu)
+            covariance in input units squared; None (default) for none. The step's process
+            noise becomes ``Q + G Sigma_u G^T``, ``G = df/du`` at the filtered mean by
+            ``jax.jacfwd``; Q may then be zero. Such a filter has no runs-last form
+            (``batch=None``): :func:`vehjax.run` vmaps this per-run step.
 
     Returns:
         ``Estimator`` with state :class:`GaussianState` (x, P, theta).
     """
     nx, ny = check_model(model)
     Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
+    Lu = _inoise.input_factor(input_noise, model.input_names)
+    tr = in_dtype(per_point(model)[0])
 
     def step(state, y, u):
         x, P, theta = state
         dt = x.dtype
         y, u = cast_yu(y, u, dt)
         f, h = point_fns(model, u, theta)
-        x_pred, P_pred, _ = linearized_predict(x, P, f, jnp.asarray(Qn, dt))
+        Qd = jnp.asarray(Qn, dt)
+        if Lu is not None:
+            Qd = Qd + _inoise.linearized_input_noise(lambda v, w: tr(v, w, theta), x, u, Lu)
+        x_pred, P_pred, _ = linearized_predict(x, P, f, Qd)
         Rd = jnp.asarray(Rn, dt)
         m = linearized_measure(x_pred, P_pred, h, Rd)
         # Joseph form: with a very wide prior (P0 ~ 1e16) P- - K S K^T cancels to rounding noise
         r = masked_update(x_pred, P_pred, y, m.y_hat, m.S, m.C, joseph=(m.H, Rd))
         return GaussianState(r.x, r.P, theta), state_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
 
-    batch = _runs_last_form(model, Qn, Rn, _runs_last.ekf_step)
+    batch = None if Lu is not None else _runs_last_form(model, Qn, Rn, _runs_last.ekf_step)
     return Estimator(init=_prior_init(model, False), step=step, nx=nx, name="EKF", batch=batch,
                      compiler_options=ELEMENTAL_EMITTER, **model_dims(model))
 
@@ -167,9 +180,27 @@ def _runs_last_form(model, Qn, Rn, build):
 # UKF / CKF
 
 
-def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str) -> Estimator:
+def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str, input_noise=None,
+                  make_rule=None) -> Estimator:
+    """The UKF/CKF and their square-root forms with ``rule`` (nx dimensions); with
+    ``input_noise`` the prediction uses ``make_rule(nx + k)`` on the state augmented with the
+    k standardised input-noise components (:mod:`vehjax.filters.input_noise`)."""
     nx, ny = check_model(model)
     Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
+    Lu = _inoise.input_factor(input_noise, model.input_names)
+    tr = in_dtype(per_point(model)[0])
+    rule_a = None if Lu is None else make_rule(nx + Lu.shape[1])
+
+    def predict(x, P, f, u, theta, Qd):
+        if Lu is None:
+            return sigma.predict(rule, x, P, f, Qd)
+        return _inoise.sigma_predict(rule_a, x, P, lambda v, w: tr(v, w, theta), u, Lu, Qd)
+
+    def sqrt_predict(x, L, f, u, theta, LQd):
+        if Lu is None:
+            return sigma.sqrt_predict(rule, x, L, f, LQd)
+        return _inoise.sqrt_sigma_predict(rule_a, x, L, lambda v, w: tr(v, w, theta), u, Lu,
+                                          LQd)
 
     if not sqrt:
 
@@ -178,11 +209,12 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str) -> Estima
             dt = x.dtype
             y, u = cast_yu(y, u, dt)
             f, h = point_fns(model, u, theta)
-            x_pred, P_pred = sigma.predict(rule, x, P, f, jnp.asarray(Qn, dt))
+            x_pred, P_pred = predict(x, P, f, u, theta, jnp.asarray(Qn, dt))
             r = sigma.update(rule, x_pred, P_pred, h, y, jnp.asarray(Rn, dt))
             return GaussianState(r.x, r.P, theta), state_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
 
-        batch = _runs_last_form(model, Qn, Rn, partial(_runs_last.sigma_step, rule=rule))
+        batch = None if Lu is not None else _runs_last_form(
+            model, Qn, Rn, partial(_runs_last.sigma_step, rule=rule))
 
         return Estimator(init=_prior_init(model, False), step=step, nx=nx, name=name, batch=batch,
                          compiler_options=ELEMENTAL_EMITTER, **model_dims(model))
@@ -194,7 +226,7 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str) -> Estima
         dt = x.dtype
         y, u = cast_yu(y, u, dt)
         f, h = point_fns(model, u, theta)
-        x_pred, L_pred = sigma.sqrt_predict(rule, x, L, f, jnp.asarray(LQn, dt))
+        x_pred, L_pred = sqrt_predict(x, L, f, u, theta, jnp.asarray(LQn, dt))
         x_new, L_new, loglik, nis, n_obs = sigma.sqrt_update(
             rule, x_pred, L_pred, h, y, jnp.asarray(LRn, dt))
         out = state_output(x_new, L_new @ L_new.T, loglik, nis, n_obs)
@@ -205,7 +237,8 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str) -> Estima
 
 
 def ukf(
-    model, Q, R, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, sqrt: bool = False
+    model, Q, R, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, sqrt: bool = False,
+    input_noise=None,
 ) -> Estimator:
     """Unscented Kalman filter with the scaled sigma points of Dutta et al. 2019 eq. 14-19.
 
@@ -222,16 +255,22 @@ def ukf(
             weight is handled by a rank-1 Cholesky downdate. Use it for priors far wider than
             the measurement noise (P0 ~ 1e12 R and more): the plain form's P- - K S K^T then
             cancels to rounding noise and the run is flagged diverged.
+        input_noise: noise entering through the inputs (:mod:`vehjax.filters.input_noise`):
+            ``{input name: std}`` in the input's units or an (nu, nu) covariance in input units
+            squared; None (default) for none. The prediction's sigma points are those of the
+            state augmented with the k noisy input components (the rule in nx + k dimensions,
+            same alpha, beta, kappa); Q may then be zero. No runs-last form (``batch=None``).
 
     Returns:
         ``Estimator`` with state :class:`GaussianState` (x, P, theta), or
         :class:`SqrtGaussianState` (x, L, theta) when ``sqrt``.
     """
     nx, _ = check_model(model)
-    return _sigma_filter(model, Q, R, unscented_rule(nx, alpha, beta, kappa), bool(sqrt), "UKF")
+    return _sigma_filter(model, Q, R, unscented_rule(nx, alpha, beta, kappa), bool(sqrt), "UKF",
+                         input_noise, lambda n: unscented_rule(n, alpha, beta, kappa))
 
 
-def ckf(model, Q, R, sqrt: bool = False) -> Estimator:
+def ckf(model, Q, R, sqrt: bool = False, input_noise=None) -> Estimator:
     """Cubature Kalman filter: third-degree spherical-radial rule, 2 nx equally weighted points.
 
     Args:
@@ -241,10 +280,13 @@ def ckf(model, Q, R, sqrt: bool = False) -> Estimator:
         R: measurement noise covariance, (ny, ny), or (ny,) variances; in output units squared.
         sqrt: propagate the Cholesky factor of P by QR (square-root CKF, Arasaratnam & Haykin
             2009).
+        input_noise: as for :func:`ukf`: the prediction's cubature points are those of the
+            state augmented with the k noisy input components (2 (nx + k) points).
 
     Returns:
         ``Estimator`` with state :class:`GaussianState` (x, P, theta), or
         :class:`SqrtGaussianState` (x, L, theta) when ``sqrt``.
     """
     nx, _ = check_model(model)
-    return _sigma_filter(model, Q, R, cubature_rule(nx), bool(sqrt), "CKF")
+    return _sigma_filter(model, Q, R, cubature_rule(nx), bool(sqrt), "CKF", input_noise,
+                         cubature_rule)

@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _validate
+from . import input_noise as _inoise
 from . import resampling as _rs
 from . import smc
 from ._linalg import cholesky, is_pd, solve_lower
@@ -126,6 +127,7 @@ def bootstrap_pf(
     n_particles: int = 1000,
     resampling: str = "systematic",
     ess_threshold: float = 0.5,
+    input_noise=None,
 ) -> Estimator:
     """Bootstrap particle filter: propagate through the model plus Gaussian noise, weigh by the
     Gaussian measurement likelihood, resample when the effective sample size drops.
@@ -141,6 +143,12 @@ def bootstrap_pf(
             (see :mod:`vehjax.filters.resampling`).
         ess_threshold: resample when ESS < ess_threshold * N; 0 never resamples, 1 resamples
             whenever the weights are not all equal.
+        input_noise: noise entering through the inputs (:mod:`vehjax.filters.input_noise`):
+            ``{input name: std}`` in the input's units or an (nu, nu) covariance in input units
+            squared; None (default) for none. Each particle is propagated with its own input
+            ``u_t + Lu z_i`` (z_i standard normal, drawn with the process noise), so the
+            transition sees the input noise exactly; the measurement uses u_t. Q may then be
+            zero.
 
     Returns:
         ``Estimator`` with ``needs_key=True``:
@@ -171,12 +179,15 @@ def bootstrap_pf(
     thr = smc.check_ess_threshold(ess_threshold)
     Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
     LQn = chol_const(Qn)
+    Lu = _inoise.input_factor(input_noise, model.input_names)
+    k_u = 0 if Lu is None else Lu.shape[1]
     r_diag = np.diagonal(Rn).copy() if _is_diagonal(Rn) else None
-    uniform_stream = (nx + 1) // 2  # after the noise rows' counters
+    uniform_stream = (nx + k_u + 1) // 2  # after the noise rows' counters
     log_n = math.log(n)
     f = in_dtype(model.transition)
     h = in_dtype(model.observe)
     f_all = jax.vmap(f, in_axes=(1, None, None), out_axes=1)
+    f_each = jax.vmap(f, in_axes=(1, 1, None), out_axes=1)  # one input per particle
     h_all = jax.vmap(h, in_axes=(1, None, None), out_axes=1)
 
     def init(x0, P0, theta0=None, P_theta0=None, key=None):
@@ -210,7 +221,8 @@ def bootstrap_pf(
         LQ = _const(LQn, dtype)
         theta = state.theta
         key_next, key_step = smc.split(state.key)
-        z = smc.normals(key_step, nx, n, dtype)  # (nx, N)
+        z = smc.normals(key_step, nx + k_u, n, dtype)  # (nx + k, N): state, then input noise
+        z, z_u = z[:nx], z[nx:]
 
         # propagate (a re-initialisation pending from the last step draws the particles
         # around its estimate instead: all from the mean, noise covariance P + Q)
@@ -218,7 +230,9 @@ def bootstrap_pf(
         L_re = cholesky(state.cov + Qd)
         L_re = jnp.where(jnp.all(jnp.isfinite(L_re)), L_re, LQ)
         start = jnp.where(pending, state.mean[:, None], state.particles)
-        x = _add_noise(f_all(start, u, theta), jnp.where(pending, L_re, LQ), z)
+        fx = (f_all(start, u, theta) if Lu is None
+              else f_each(start, _inoise.perturbed_inputs(u, Lu, z_u), theta))
+        x = _add_noise(fx, jnp.where(pending, L_re, LQ), z)
         prior_lw = jnp.where(pending, -log_n, state.log_weights)
         prior_w = jnp.where(pending, 1.0 / n, state.weights)
 
@@ -252,8 +266,11 @@ def bootstrap_pf(
 
         # resample for the next step; after an underflow, equal weights (re-drawn next step)
         u_res = smc.uniforms(key_step, scheme, n, dtype, stream=uniform_stream)
-        x_next, lw_next, w_next, _ = smc.resample(x, rw.w, rw.log_w, u_res, scheme, thr)
+        identity = jnp.arange(n, dtype=jnp.int32)
+        (x_next, anc), lw_next, w_next, _ = smc.resample(
+            (x, identity), rw.w, rw.log_w, u_res, scheme, thr)
         x_next, lw_next, w_next = smc.reinitialise(diverged, x_next, x_next, lw_next, w_next)
+        anc = jnp.where(pending | diverged, identity, anc)
 
         # divergence: the estimate moves on with the model, its covariance grows by Q, and the
         # next step re-draws the particles around it
