@@ -1,0 +1,155 @@
+"""vehjax.calibrate: PMMH with the bootstrap PF recovers a posterior computed here on a grid from
+the exact Kalman likelihood (numpy) and the prior (scipy); split R-hat and ESS against BDA3
+written out here, tensorflow-probability, and the AR(1) closed form."""
+
+import math
+
+import jax
+import numpy as np
+import pytest
+from scipy import stats
+
+import vehjax as vj
+from vehjax.calibrate import LogNormal, Normal, Uniform, effective_sample_size, pmmh, split_rhat
+
+A, Q, SIGMA_R, T = 0.8, 0.3**2, 0.5, 40
+
+
+def _data():
+    rng = np.random.default_rng(11)
+    x, ys = 0.0, []
+    for _ in range(T):
+        x = A * x + math.sqrt(Q) * rng.standard_normal()
+        ys.append(x + SIGMA_R * rng.standard_normal())
+    return np.array(ys)[:, None]
+
+
+def _kalman_loglik(ys, a, q, r, m0=0.0, p0=1.0):
+    """The scalar Kalman filter's exact log-likelihood, written out."""
+    m, p, ll = m0, p0, 0.0
+    for y in ys[:, 0]:
+        m, p = a * m, a * a * p + q
+        s = p + r
+        ll += -0.5 * (math.log(2 * math.pi * s) + (y - m) ** 2 / s)
+        k = p / s
+        m, p = m + k * (y - m), (1 - k) * p
+    return ll
+
+
+def _model():
+    return vj.models.Model(transition=lambda x, u, th: th[0] * x, observe=lambda x, u, th: x,
+                           dt=1.0, state_names=("x",), param_names=("a",), input_names=(),
+                           output_names=("y",), theta=[A])
+
+
+def test_pmmh_recovers_the_grid_posterior_of_a_noise_std():
+    ys = _data()
+    prior = LogNormal(median=0.6, sigma=0.5)
+    grid = np.linspace(0.05, 1.6, 3000)
+    logpost = np.array([_kalman_loglik(ys, A, Q, s**2) for s in grid]) + stats.lognorm.logpdf(
+        grid, s=0.5, scale=0.6)
+    w = np.exp(logpost - logpost.max())
+    w /= w.sum()
+    mean = float(np.sum(w * grid))
+    std = float(np.sqrt(np.sum(w * (grid - mean) ** 2)))
+    assert w[0] < 1e-8 and w[-1] < 1e-8                          # the grid holds the posterior
+
+    res = pmmh(vj.filters.bootstrap_pf, _model(), ys, None, x0=[0.0], P0=[1.0], Q=[Q], R=[1.0],
+               priors={"R:y": prior}, key=jax.random.key(3), chains=4, samples=600,
+               warmup=150, builder_kwargs={"n_particles": 100})
+    assert res.samples.shape == (4, 600, 1) and res.names == ("R:y",)
+    assert np.all(res.rhat < 1.05), res.rhat
+    ess = float(res.ess[0])
+    assert ess > 300, ess
+    # Monte-Carlo errors: mean std / sqrt(ESS), std about std / sqrt(2 ESS); 4 of them allowed
+    assert abs(res.mean[0] - mean) < 4 * std / math.sqrt(ess), (res.mean, mean, std, ess)
+    assert abs(res.std[0] - std) < 4 * std / math.sqrt(2 * ess), (res.std, std, ess)
+    assert 0.15 < res.acceptance.mean() < 0.9
+    # reproducible from one key
+    again = pmmh(vj.filters.bootstrap_pf, _model(), ys, None, x0=[0.0], P0=[1.0], Q=[Q], R=[1.0],
+                 priors={"R:y": prior}, key=jax.random.key(3), chains=4, samples=600,
+                 warmup=150, builder_kwargs={"n_particles": 100})
+    np.testing.assert_array_equal(again.samples, res.samples)
+    assert "R:y" in res.summary()
+
+
+def _rhat_bda3(x):
+    """BDA3 split R-hat written out with plain loops."""
+    m0, n0 = x.shape
+    n = n0 // 2
+    halves = [c[:n] for c in x] + [c[n0 - n:] for c in x]
+    means = [sum(h) / n for h in halves]
+    grand = sum(means) / len(halves)
+    B = n / (len(halves) - 1) * sum((mj - grand) ** 2 for mj in means)
+    W = sum(sum((v - mj) ** 2 for v in h) / (n - 1) for h, mj in zip(halves, means)) / len(halves)
+    return math.sqrt(((n - 1) / n * W + B / n) / W)
+
+
+def _ar1_chains(rho, m, n, seed, shift=0.0):
+    rng = np.random.default_rng(seed)
+    x = np.empty((m, n))
+    x[:, 0] = rng.standard_normal(m)
+    for t in range(1, n):
+        x[:, t] = rho * x[:, t - 1] + math.sqrt(1 - rho**2) * rng.standard_normal(m)
+    return x + shift * np.arange(m)[:, None]
+
+
+def test_rhat_and_ess_on_synthetic_chains():
+    x = _ar1_chains(0.7, 4, 600, 0)
+    assert split_rhat(x) == pytest.approx(_rhat_bda3(x), rel=1e-12)
+    assert split_rhat(x) < 1.02
+    shifted = _ar1_chains(0.7, 4, 600, 1, shift=1.0)
+    assert split_rhat(shifted) == pytest.approx(_rhat_bda3(shifted), rel=1e-12)
+    assert split_rhat(shifted) > 1.5                               # chains that disagree
+    # (chains, draws, d) gives each column's value
+    both = np.stack([x, shifted], axis=-1)
+    np.testing.assert_allclose(split_rhat(both), [split_rhat(x), split_rhat(shifted)])
+    # ESS: an AR(1) chain of coefficient rho has ESS = N (1 - rho) / (1 + rho)
+    for rho in (0.0, 0.5, 0.9):
+        y = _ar1_chains(rho, 4, 5000, 2)
+        theory = y.size * (1 - rho) / (1 + rho)
+        assert effective_sample_size(y) == pytest.approx(theory, rel=0.15), rho
+
+
+def test_ess_and_rhat_agree_with_tensorflow_probability():
+    tfp = pytest.importorskip("tensorflow_probability.substrates.jax")
+    x = _ar1_chains(0.6, 4, 400, 5)
+    ref_r = float(tfp.mcmc.potential_scale_reduction(x.T, split_chains=True))
+    # tfp returns Brooks & Gelman's (1998) corrected form on the variance scale, built from the
+    # same B and W: (m + 1) / m var+ / W - (n - 1) / (m n), with m = 8 half-chains of n = 200
+    m, n = 8, 200
+    assert (m + 1) / m * split_rhat(x) ** 2 - (n - 1) / (m * n) == pytest.approx(ref_r, rel=1e-9)
+    ref_ess = float(tfp.mcmc.effective_sample_size(x.T, cross_chain_dims=1,
+                                                   filter_beyond_positive_pairs=True))
+    assert effective_sample_size(x) == pytest.approx(ref_ess, rel=0.05)
+
+
+def test_priors_and_bad_input():
+    for p, x in ((Normal(1.0, 2.0), 0.3), (LogNormal(2.0, 0.4), 1.3), (Uniform(-1.0, 3.0), 0.5)):
+        z = p.to_unconstrained(x)
+        assert float(p.from_unconstrained(z)) == pytest.approx(x, rel=1e-12)
+        # log |dx/dz| by a central difference
+        h = 1e-6
+        jac = (float(p.from_unconstrained(z + h)) - float(p.from_unconstrained(z - h))) / (2 * h)
+        assert float(p.log_jacobian(z)) == pytest.approx(math.log(jac), abs=1e-7)
+    assert float(LogNormal(2.0, 0.4).log_density(1.3)) == pytest.approx(
+        stats.lognorm.logpdf(1.3, s=0.4, scale=2.0), rel=1e-12)
+    assert float(Normal(1.0, 2.0).log_density(0.3)) == pytest.approx(
+        stats.norm.logpdf(0.3, 1.0, 2.0), rel=1e-12)
+    assert float(Uniform(-1.0, 3.0).log_density(0.5)) == pytest.approx(math.log(0.25))
+    with pytest.raises(ValueError, match="Normal.std"):
+        Normal(0.0, -1.0)
+    ys = _data()
+    kw = dict(x0=[0.0], P0=[1.0], Q=[Q], R=[1.0], key=jax.random.key(0))
+    with pytest.raises(ValueError, match="priors: unknown name 'b'"):
+        pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"b": Normal(0, 1)}, **kw)
+    with pytest.raises(ValueError, match=r"priors: 'R:z'"):
+        pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"R:z": Normal(0, 1)}, **kw)
+    with pytest.raises(ValueError, match="priors"):
+        pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"a": (0, 1)}, **kw)
+    with pytest.raises(ValueError, match="chains"):
+        pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"a": Normal(0, 1)}, chains=1,
+             **kw)
+    with pytest.raises(ValueError, match="key"):
+        pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"a": Normal(0, 1)},
+             **{**kw, "key": 0})

@@ -1,0 +1,502 @@
+"""Offline calibration by particle marginal Metropolis-Hastings (PMMH).
+
+Andrieu, Doucet & Holenstein (2010), "Particle Markov chain Monte Carlo methods", JRSS B 72(3):
+a Metropolis-Hastings chain over the unknown quantities phi whose acceptance ratio uses a particle
+filter's estimate of the likelihood p(y_1:T | phi) in place of the exact one. The estimate is
+unbiased, so the chain's stationary distribution is the exact posterior p(phi | y_1:T), whatever
+the number of particles (fewer particles only make the chain stickier). Paper 004 (Berntorp &
+Di Cairano) judges its online estimates against such an offline reference (its sec. 5, ref. [28]).
+
+What is calibrated (``priors``, a dict name -> prior):
+
+* a model parameter by its name (``"cf"``), in the parameter's units;
+* ``"R:<output>"``: the measurement-noise std of that output [output units];
+* ``"Q:<state>"``: the process-noise std of that state [state units per step];
+* ``"bias:<output>"``: a constant sensor bias, y = h(x, u) + bias + noise [output units];
+* ``"input:<input>"``: the std of noise entering through that input [input units], for builders
+  that take ``input_noise`` (every vehjax filter).
+
+Each prior (:class:`Normal`, :class:`LogNormal`, :class:`Uniform`) carries its bijection to the
+real line (identity, log, logit). The chain moves in that unconstrained space with a Gaussian
+random walk, and the target there is the posterior times the Jacobian of the map back:
+log p(y | x(z)) + log p(x(z)) + log |dx/dz|.
+
+Proposal: the random-walk covariance starts as ``(0.1 * prior scale)^2`` per coordinate
+(unconstrained units) unless ``proposal_std`` is given; with ``adapt`` the first half of the
+warm-up runs with it, and the rest of the run uses (2.38^2 / d) times the covariance of those
+draws pooled over chains (Roberts & Rosenthal 2001's scaling), fixed from then on so the chain
+after warm-up is a plain Metropolis-Hastings chain.
+
+Random streams: one ``key`` is split into one key per chain; iteration i of chain c draws its
+proposal, its accept uniform and its particle filter's key from ``fold_in(key_c, i + 1)``
+(the starting values' likelihood from ``fold_in(key_c, 0)``), so a run
+is reproducible and a chain's draws do not depend on the number of chains.
+
+Chains are vmapped (one particle filter per chain per iteration, all in one ``lax.scan``).
+Diagnostics: split R-hat (:func:`split_rhat`, Gelman et al., BDA3 sec. 11.4) and the
+effective sample size (:func:`effective_sample_size`, BDA3 sec. 11.5 with Geyer's initial
+positive sequence) of every quantity.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _validate
+
+__all__ = ["Normal", "LogNormal", "Uniform", "PMMHResult", "pmmh", "log_likelihood_fn",
+           "split_rhat", "effective_sample_size"]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+# -- priors ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Normal:
+    """Normal prior N(mean, std^2) on the real line; unconstrained coordinate z = x."""
+
+    mean: float
+    std: float
+
+    def __post_init__(self):
+        _validate.number("Normal.mean", self.mean)
+        _validate.number("Normal.std", self.std, 0.0)
+
+    def to_unconstrained(self, x):
+        return jnp.asarray(x, float)
+
+    def from_unconstrained(self, z):
+        return z
+
+    def log_density(self, x):
+        return -0.5 * ((x - self.mean) / self.std) ** 2 - math.log(self.std) - 0.5 * _LOG_2PI
+
+    def log_jacobian(self, z):
+        """log |dx/dz| at z."""
+        return 0.0 * z
+
+    center = property(lambda self: self.mean)
+    scale = property(lambda self: self.std)  # in unconstrained units
+
+
+@dataclass(frozen=True)
+class LogNormal:
+    """Positive quantity with log x ~ N(log median, sigma^2); z = log x."""
+
+    median: float
+    sigma: float
+
+    def __post_init__(self):
+        _validate.number("LogNormal.median", self.median, 0.0)
+        _validate.number("LogNormal.sigma", self.sigma, 0.0)
+
+    def to_unconstrained(self, x):
+        return jnp.log(jnp.asarray(x, float))
+
+    def from_unconstrained(self, z):
+        return jnp.exp(z)
+
+    def log_density(self, x):
+        lx = jnp.log(x)
+        return (-0.5 * ((lx - math.log(self.median)) / self.sigma) ** 2 - math.log(self.sigma)
+                - 0.5 * _LOG_2PI - lx)
+
+    def log_jacobian(self, z):
+        return z
+
+    center = property(lambda self: self.median)
+    scale = property(lambda self: self.sigma)
+
+
+@dataclass(frozen=True)
+class Uniform:
+    """Uniform prior on (low, high); z = logit((x - low) / (high - low))."""
+
+    low: float
+    high: float
+
+    def __post_init__(self):
+        lo = _validate.number("Uniform.low", self.low)
+        _validate.number("Uniform.high", self.high, lo)
+
+    def to_unconstrained(self, x):
+        p = (jnp.asarray(x, float) - self.low) / (self.high - self.low)
+        return jnp.log(p) - jnp.log1p(-p)
+
+    def from_unconstrained(self, z):
+        return self.low + (self.high - self.low) * jax.nn.sigmoid(z)
+
+    def log_density(self, x):
+        inside = (x > self.low) & (x < self.high)
+        return jnp.where(inside, -math.log(self.high - self.low), -jnp.inf)
+
+    def log_jacobian(self, z):
+        return math.log(self.high - self.low) + jax.nn.log_sigmoid(z) + jax.nn.log_sigmoid(-z)
+
+    center = property(lambda self: 0.5 * (self.low + self.high))
+    scale = property(lambda self: 1.8)  # logistic std of a uniform on (0, 1)
+
+
+PRIORS = (Normal, LogNormal, Uniform)
+
+
+def log_prior_unconstrained(priors, z):
+    """log p(x(z)) + log |dx/dz| summed over the coordinates: the prior density of z, (d,) -> ()."""
+    total = 0.0
+    for i, p in enumerate(priors):
+        x = p.from_unconstrained(z[i])
+        total = total + p.log_density(x) + p.log_jacobian(z[i])
+    return total
+
+
+def to_physical(priors, z):
+    """(d,) unconstrained -> (d,) physical values."""
+    return jnp.stack([p.from_unconstrained(z[i]) for i, p in enumerate(priors)])
+
+
+# -- the likelihood -------------------------------------------------------------------------
+class _Targets(NamedTuple):
+    params: tuple      # (index in priors, index in theta)
+    r_std: tuple       # (index in priors, output index)
+    q_std: tuple       # (index in priors, state index)
+    bias: tuple        # (index in priors, output index)
+    inputs: tuple      # (index in priors, input name)
+
+
+def _targets(model, names) -> _Targets:
+    params, r_std, q_std, bias, inputs = [], [], [], [], []
+    for i, name in enumerate(names):
+        kind, _, what = name.partition(":")
+        table = {"R": (model.output_names, r_std), "Q": (model.state_names, q_std),
+                 "bias": (model.output_names, bias), "input": (model.input_names, inputs)}
+        if what and kind in table:
+            known, dest = table[kind]
+            if what not in known:
+                raise ValueError(f"priors: {name!r}: no {what!r} among {tuple(known)}")
+            dest.append((i, what if kind == "input" else known.index(what)))
+        elif name in model.param_names:
+            params.append((i, model.param_names.index(name)))
+        else:
+            raise ValueError(
+                f"priors: unknown name {name!r}; expected a model parameter {model.param_names} "
+                f"or 'R:<output>', 'Q:<state>', 'bias:<output>', 'input:<input>'")
+    return _Targets(tuple(params), tuple(r_std), tuple(q_std), tuple(bias), tuple(inputs))
+
+
+def log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R, names,
+                      builder_kwargs=None):
+    """``loglik(values (d,), key) -> ()``: the filter's log-likelihood estimate of the data with
+    the quantities ``names`` (see the module docstring) set to ``values`` (physical units).
+
+    ``builder(model, Q, R, **builder_kwargs)`` builds the filter (``vehjax.filters.bootstrap_pf``
+    for PMMH; a Kalman filter's exact likelihood gives plain Metropolis-Hastings). Q, R: (n,)
+    variances or (n, n) covariances; named stds replace their diagonal entries. A run that
+    diverges (or re-initialises its particles) has likelihood zero (-inf).
+    """
+    from .filtering import filter as run_filter
+
+    tg = _targets(model, names)
+    ys, us = _validate.data(measurements, inputs, model.ny, model.nu, "one")
+    ys, us = jnp.asarray(ys, float), jnp.asarray(us, float)
+    Q = jnp.asarray(_validate.cov("Q", Q, model.nx, allow_psd=True))
+    R = jnp.asarray(_validate.cov("R", R, model.ny))
+    kwargs = dict(builder_kwargs or {})
+    if tg.inputs and "input_noise" in kwargs:
+        raise ValueError("builder_kwargs: input_noise is calibrated ('input:' priors); drop it")
+    theta_base = jnp.asarray(model.theta, float)
+
+    def loglik(values, key):
+        theta = theta_base
+        for i, j in tg.params:
+            theta = theta.at[j].set(values[i])
+        Qv, Rv = Q, R
+        for i, j in tg.q_std:
+            Qv = Qv.at[j, j].set(values[i] ** 2)
+        for i, j in tg.r_std:
+            Rv = Rv.at[j, j].set(values[i] ** 2)
+        y = ys
+        for i, j in tg.bias:
+            y = y.at[:, j].add(-values[i])
+        kw = dict(kwargs)
+        if tg.inputs:
+            kw["input_noise"] = {name: values[i] for i, name in tg.inputs}
+        est = builder(model, Qv, Rv, **kw)
+        res = run_filter(est, y, us, x0=x0, P0=P0, theta0=theta, key=key,
+                         return_covariances=False)
+        ll = jnp.sum(res.loglik)
+        return jnp.where(res.diverged | ~jnp.isfinite(ll), -jnp.inf, ll)
+
+    return loglik
+
+
+# -- the chain ------------------------------------------------------------------------------
+class _Chain(NamedTuple):
+    z: jnp.ndarray          # (d,) unconstrained
+    log_target: jnp.ndarray  # () log-lik estimate + log prior of z
+    loglik: jnp.ndarray      # () the estimate held with z
+
+
+def _mh_iteration(loglik, priors, L_prop, key_chain):
+    """One PMMH step of one chain: ``(chain, i) -> (chain, (z, loglik, accepted))``."""
+
+    def step(chain: _Chain, i):
+        k = jax.random.fold_in(key_chain, i + 1)
+        k_prop, k_acc, k_pf = jax.random.split(k, 3)
+        z_new = chain.z + L_prop @ jax.random.normal(k_prop, chain.z.shape, chain.z.dtype)
+        ll_new = loglik(to_physical(priors, z_new), k_pf)
+        lt_new = ll_new + log_prior_unconstrained(priors, z_new)
+        lt_new = jnp.where(jnp.isfinite(lt_new), lt_new, -jnp.inf)
+        accept = jnp.log(jax.random.uniform(k_acc, (), chain.z.dtype)) < lt_new - chain.log_target
+        new = _Chain(jnp.where(accept, z_new, chain.z), jnp.where(accept, lt_new, chain.log_target),
+                     jnp.where(accept, ll_new, chain.loglik))
+        return new, (new.z, new.loglik, accept)
+
+    return step
+
+
+def _adapted_factor(s1, s2, count, L0):
+    """The adapted random-walk factor from pooled sums of draws: cholesky of (2.38^2 / d) times
+    their covariance (plus a 1e-10 relative jitter), or ``L0`` when that is not positive
+    definite (chains that never moved)."""
+    d = L0.shape[0]
+    mean = s1 / count
+    cov = (s2 - count * jnp.outer(mean, mean)) / (count - 1)
+    cov = 0.5 * (cov + cov.T)
+    cov = cov + 1e-10 * jnp.maximum(1.0, jnp.max(jnp.diag(cov))) * jnp.eye(d)
+    L = jnp.linalg.cholesky((2.38**2 / d) * cov)
+    return jnp.where(jnp.all(jnp.isfinite(L)), L, L0)
+
+
+def _sampler(loglik, priors, n_iter: int, adapt_at: int):
+    """``(keys (C,), z0 (C, d), L0 (d, d)) -> (draws (C, n, d), logliks (C, n), accepted (C, n),
+    L)``: the starting values' likelihoods, then ``n_iter`` iterations of every chain (one
+    ``lax.scan`` over iterations, the chains vmapped inside it), the proposal replaced after
+    ``adapt_at`` iterations by :func:`_adapted_factor` of the draws so far (0: never)."""
+
+    def first(key, z):
+        ll = loglik(to_physical(priors, z), jax.random.fold_in(key, 0))
+        return _Chain(z, ll + log_prior_unconstrained(priors, z), ll)
+
+    def run(keys, z0, L0):
+        chains = jax.vmap(first)(keys, z0)
+        d = z0.shape[1]
+
+        def body(carry, i):
+            chains, L, s1, s2 = carry
+            chains, out = jax.vmap(lambda k, c: _mh_iteration(loglik, priors, L, k)(c, i))(
+                keys, chains)
+            z = out[0]
+            s1, s2 = s1 + z.sum(axis=0), s2 + z.T @ z
+            if adapt_at:
+                L = jnp.where(i + 1 == adapt_at,
+                              _adapted_factor(s1, s2, adapt_at * z.shape[0], L0), L)
+            return (chains, L, s1, s2), out
+
+        init = (chains, L0, jnp.zeros(d), jnp.zeros((d, d)))
+        (_, L, _, _), (zs, lls, acc) = jax.lax.scan(body, init, jnp.arange(n_iter))
+        return (jnp.swapaxes(zs, 0, 1), jnp.swapaxes(lls, 0, 1), jnp.swapaxes(acc, 0, 1), L,
+                chains.log_target)
+
+    return jax.jit(run)
+
+
+class PMMHResult(NamedTuple):
+    """The draws of :func:`pmmh` after warm-up and their diagnostics.
+
+    Attributes:
+        names: the calibrated quantities, d names.
+        samples: (chains, samples, d) draws in physical units.
+        loglik: (chains, samples) the likelihood estimate held with each draw.
+        acceptance: (chains,) acceptance rate after warm-up.
+        mean, std: (d,) posterior mean and std over all chains' draws.
+        rhat: (d,) split R-hat (< 1.01 to 1.05 for well-mixed chains).
+        ess: (d,) effective sample size over all chains.
+        proposal_cov: (d, d) the random walk's covariance after warm-up (unconstrained units).
+    """
+
+    names: tuple
+    samples: np.ndarray
+    loglik: np.ndarray
+    acceptance: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    rhat: np.ndarray
+    ess: np.ndarray
+    proposal_cov: np.ndarray
+
+    def summary(self) -> str:
+        """A table: name, mean, std, 2.5 / 97.5 % quantiles, R-hat, ESS."""
+        flat = self.samples.reshape(-1, len(self.names))
+        lines = [f"{'quantity':>14} {'mean':>12} {'std':>11} {'2.5%':>12} {'97.5%':>12} "
+                 f"{'R-hat':>6} {'ESS':>7}"]
+        for k, name in enumerate(self.names):
+            lo, hi = np.percentile(flat[:, k], [2.5, 97.5])
+            lines.append(f"{name:>14} {self.mean[k]:12.5g} {self.std[k]:11.4g} {lo:12.5g} "
+                         f"{hi:12.5g} {self.rhat[k]:6.3f} {self.ess[k]:7.0f}")
+        lines.append(f"acceptance {np.mean(self.acceptance):.2f} ({self.samples.shape[0]} chains "
+                     f"x {self.samples.shape[1]} draws)")
+        return "\n".join(lines)
+
+
+def _check_priors(priors) -> tuple:
+    if not isinstance(priors, Mapping) or not priors:
+        raise ValueError("priors: expected a non-empty dict name -> Normal/LogNormal/Uniform")
+    for name, p in priors.items():
+        if not isinstance(p, PRIORS):
+            raise ValueError(f"priors: {name!r}: expected Normal, LogNormal or Uniform, got {p!r}")
+    return tuple(priors), tuple(priors.values())
+
+
+def _proposal_factor(priors, proposal_std):
+    d = len(priors)
+    if proposal_std is None:
+        return np.diag([0.1 * p.scale for p in priors])
+    s = np.broadcast_to(np.asarray(proposal_std, float), (d,)) if np.ndim(proposal_std) <= 1 \
+        else None
+    if s is None or not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise ValueError(f"proposal_std: expected a positive number or {d} positive numbers "
+                         f"(unconstrained units), got {proposal_std!r}")
+    return np.diag(s)
+
+
+def _starting_values(priors, init, names) -> np.ndarray:
+    """(d,) unconstrained starting values: ``init`` where given, else the priors' centres."""
+    init = _validate.keyed("init", init, names)
+    z0 = np.array([float(p.to_unconstrained(init.get(n, p.center))) for n, p in zip(names, priors)])
+    if not np.all(np.isfinite(z0)):
+        raise ValueError(f"init: a starting value lies outside its prior's support: {init!r}")
+    return z0
+
+
+def pmmh(builder, model, measurements, inputs=None, *, x0, P0, Q, R, priors, key,
+         chains: int = 4, samples: int = 1000, warmup: int = 500, proposal_std=None,
+         adapt: bool = True, init=None, builder_kwargs=None) -> PMMHResult:
+    """Particle marginal Metropolis-Hastings over named quantities of a model and its noise.
+
+    Args:
+        builder: filter builder ``builder(model, Q, R, **builder_kwargs)``: for PMMH
+            ``vehjax.filters.bootstrap_pf`` (``builder_kwargs={"n_particles": N}``), whose
+            likelihood estimate is unbiased; a Kalman filter gives exact Metropolis-Hastings.
+        model: a vehjax model; its ``theta`` holds the parameters that are not calibrated.
+        measurements: (T, ny) one drive, NaN components missing; inputs (T, nu) or None.
+        x0, P0: the prior of the state before the first step.
+        Q, R: process / measurement noise, (n,) variances or (n, n); named stds replace their
+            diagonal entries.
+        priors: dict name -> :class:`Normal` / :class:`LogNormal` / :class:`Uniform` (module
+            docstring for the names).
+        key: PRNG key; every random number of the run comes from it.
+        chains: number of chains C >= 2 (vmapped); samples: draws kept per chain; warmup:
+            iterations discarded per chain (>= 2 when ``adapt``).
+        proposal_std: random-walk std per quantity in unconstrained units (scalar or (d,));
+            default 0.1 x the prior's scale.
+        adapt: replace the proposal after half the warm-up (module docstring).
+        init: dict name -> starting value (physical); default the prior's centre (median).
+
+    Returns:
+        :class:`PMMHResult`.
+
+    Raises:
+        ValueError: naming the argument, for unknown names, bad priors or sizes, or a zero
+            likelihood at the starting values.
+    """
+    names, prs = _check_priors(priors)
+    chains = _validate.integer("chains", chains, 2)
+    samples = _validate.integer("samples", samples, 4)
+    warmup = _validate.integer("warmup", warmup, 2 if adapt else 0)
+    loglik = log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0, Q=Q, R=R,
+                               names=names, builder_kwargs=builder_kwargs)
+    L0 = _proposal_factor(prs, proposal_std)
+    z0 = np.tile(_starting_values(prs, init, names), (chains, 1))
+    keys = _validate.key(key, chains)
+    run = _sampler(loglik, prs, warmup + samples, warmup // 2 if adapt else 0)
+    zs, lls, acc, L, lt0 = run(keys, jnp.asarray(z0), jnp.asarray(L0))
+    if not np.all(np.isfinite(np.asarray(lt0))):
+        raise ValueError("init: the likelihood estimate at the starting values is zero (the "
+                         "filter diverged or the prior excludes them); give other init values "
+                         "or more particles")
+    zs = np.asarray(zs)[:, warmup:]
+    x = np.asarray(jax.vmap(jax.vmap(lambda z: to_physical(prs, z)))(jnp.asarray(zs)))
+    flat = x.reshape(-1, len(names))
+    L = np.asarray(L)
+    return PMMHResult(
+        names=names, samples=x, loglik=np.asarray(lls)[:, warmup:],
+        acceptance=np.asarray(acc)[:, warmup:].mean(axis=1),
+        mean=flat.mean(axis=0), std=flat.std(axis=0, ddof=1),
+        rhat=split_rhat(x), ess=effective_sample_size(x), proposal_cov=L @ L.T)
+
+
+# -- diagnostics ----------------------------------------------------------------------------
+def _as_chains(draws) -> np.ndarray:
+    x = np.asarray(draws, float)
+    if x.ndim == 2:
+        x = x[..., None]
+    if x.ndim != 3 or x.shape[0] < 1 or x.shape[1] < 4:
+        raise ValueError(f"draws: expected (chains, draws) or (chains, draws, d) with at least 4 "
+                         f"draws, got shape {np.shape(draws)}")
+    return x
+
+
+def _split(x: np.ndarray) -> np.ndarray:
+    """(M, N, d) -> (2M, N // 2, d): each chain's first and second half (a middle draw of an odd
+    N dropped)."""
+    n = x.shape[1] // 2
+    return np.concatenate([x[:, :n], x[:, x.shape[1] - n:]], axis=0)
+
+
+def split_rhat(draws) -> np.ndarray:
+    """Split R-hat (Gelman et al., BDA3 eq. 11.4) of every quantity: (d,) or () for 2-D input.
+
+    The chains (M, N[, d]) are cut in halves, giving m = 2M chains of n draws; with B the
+    between-chain variance n / (m - 1) sum_j (mean_j - mean)^2 and W the mean within-chain
+    variance (ddof 1), var+ = (n - 1) / n W + B / n and R-hat = sqrt(var+ / W).
+    """
+    x0 = np.asarray(draws)
+    x = _split(_as_chains(draws))
+    n = x.shape[1]
+    means = x.mean(axis=1)
+    B = n * means.var(axis=0, ddof=1)
+    W = x.var(axis=1, ddof=1).mean(axis=0)
+    var_plus = (n - 1) / n * W + B / n
+    r = np.sqrt(var_plus / W)
+    return r[0] if x0.ndim == 2 else r
+
+
+def _autocov(x: np.ndarray) -> np.ndarray:
+    """Biased autocovariance (divisor n) along axis 1 by FFT: (m, n, d) -> (m, n, d)."""
+    n = x.shape[1]
+    xc = x - x.mean(axis=1, keepdims=True)
+    size = 1 << (2 * n - 1).bit_length()
+    f = np.fft.rfft(xc, size, axis=1)
+    return np.fft.irfft(f * np.conj(f), size, axis=1)[:, :n] / n
+
+
+def effective_sample_size(draws) -> np.ndarray:
+    """Effective sample size over all chains (BDA3 sec. 11.5, on split chains): (d,) or ().
+
+    rho_t = 1 - (W - mean_j acov_j(t)) / var+, summed as tau = -1 + 2 sum_k (rho_2k + rho_2k+1)
+    over Geyer's initial positive sequence (pairs while positive, made non-increasing);
+    ESS = m n / tau.
+    """
+    x0 = np.asarray(draws)
+    x = _split(_as_chains(draws))
+    m, n, d = x.shape
+    acov = _autocov(x)
+    W = (acov[:, 0] * n / (n - 1)).mean(axis=0)
+    B_over_n = x.mean(axis=1).var(axis=0, ddof=1)
+    var_plus = (n - 1) / n * W + B_over_n
+    rho = 1.0 - (W[None] - acov.mean(axis=0)) / var_plus[None]          # (n, d)
+    ess = np.empty(d)
+    for k in range(d):
+        pairs = rho[: 2 * (n // 2), k].reshape(-1, 2).sum(axis=1)
+        stop = np.flatnonzero(pairs <= 0.0)
+        pairs = pairs[: stop[0] if stop.size else len(pairs)]
+        pairs = np.minimum.accumulate(pairs) if pairs.size else pairs
+        tau = max(-1.0 + 2.0 * pairs.sum(), 1.0 / np.log10(max(m * n, 10)))
+        ess[k] = m * n / tau
+    return ess[0] if x0.ndim == 2 else ess
