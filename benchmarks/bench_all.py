@@ -549,6 +549,51 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+def measure(rows, p, args):
+    """Build, check and time each row's contenders (interleaved, best of ``args.repeat``):
+    ([(row, contenders)], any check failed)."""
+    results, failed = [], False
+    for row in rows:
+        contenders = BUILDERS[row](p, args)
+        ok, line = _check(row, contenders, p, args)
+        print(f"[{TITLES[row]}] check: {line}: {'ok' if ok else 'FAILED'}")
+        if not ok:
+            print(f"[{TITLES[row]}] the filters disagree: this row is not timed")
+            failed = True
+            continue
+        for c in contenders:
+            c.fn()  # warm
+        for _ in range(args.repeat):
+            for c in contenders:
+                t0 = time.perf_counter()
+                c.fn()
+                c.best = min(c.best, time.perf_counter() - t0)
+        results.append((row, contenders))
+    return results, failed
+
+
+def table(results, n_work) -> list:
+    """Print the timing table of :func:`measure`'s results; [(title, vehjax / fastest peer,
+    peer name)] per row (NaN when no peer is installed)."""
+    print()
+    print(f"{'row':<14}{'library':<18}{'compile [s]':>12}{'run [s]':>10}{'ms/run-step':>13}"
+          f"{'vehjax/x':>10}  note")
+    verdicts = []
+    for row, contenders in results:
+        vj_t = contenders[0].best * contenders[0].scale
+        for c in contenders:
+            t = c.best * c.scale
+            print(f"{TITLES[row]:<14}{c.name:<18}{c.compile_s:>12.2f}{t:>10.3f}"
+                  f"{t / n_work * 1e3:>13.5f}{vj_t / t:>10.3f}  {c.note}")
+        peers = [(c.best * c.scale, c.name) for c in contenders[1:]]
+        if peers:
+            t, name = min(peers)
+            verdicts.append((TITLES[row], vj_t / t, name))
+        else:
+            verdicts.append((TITLES[row], math.nan, "no peer installed"))
+    return verdicts
+
+
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     for name in ("runs", "steps", "particles", "repeat", "filterpy_runs"):
@@ -572,40 +617,8 @@ def main(argv=None) -> int:
             print(f"note: {dist} is not installed: its entries are skipped "
                   f"(pip install 'vehjax[bench]')")
 
-    results, failed = [], False
-    for row in rows:
-        contenders = BUILDERS[row](p, args)
-        ok, line = _check(row, contenders, p, args)
-        print(f"[{TITLES[row]}] check: {line}: {'ok' if ok else 'FAILED'}")
-        if not ok:
-            print(f"[{TITLES[row]}] the filters disagree: this row is not timed")
-            failed = True
-            continue
-        for c in contenders:
-            c.fn()  # warm
-        for _ in range(args.repeat):
-            for c in contenders:
-                t0 = time.perf_counter()
-                c.fn()
-                c.best = min(c.best, time.perf_counter() - t0)
-        results.append((row, contenders))
-
-    print()
-    print(f"{'row':<14}{'library':<18}{'compile [s]':>12}{'run [s]':>10}{'ms/run-step':>13}"
-          f"{'vehjax/x':>10}  note")
-    verdicts = []
-    for row, contenders in results:
-        vj_t = contenders[0].best * contenders[0].scale
-        for c in contenders:
-            t = c.best * c.scale
-            print(f"{TITLES[row]:<14}{c.name:<18}{c.compile_s:>12.2f}{t:>10.3f}"
-                  f"{t / n_work * 1e3:>13.5f}{vj_t / t:>10.3f}  {c.note}")
-        peers = [(c.best * c.scale, c.name) for c in contenders[1:]]
-        if peers:
-            t, name = min(peers)
-            verdicts.append((TITLES[row], vj_t / t, name))
-        else:
-            verdicts.append((TITLES[row], math.nan, "no peer installed"))
+    results, failed = measure(rows, p, args)
+    verdicts = table(results, n_work)
     if "pf" in rows:
         print(f"{'bootstrap PF':<14}{'particles 0.4':<18}{'':>12}{'':>10}{'':>13}{'':>10}  "
               "not installable beside jax 0.10 (it requires numpy < 2): not run")

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import vehjax  # noqa: F401  (float64)
+from vehjax import execution
 from vehjax.filters.base import Estimator, StepOutput
 from vehjax.run import RunResult, compile_run, run
 
@@ -235,23 +236,27 @@ def test_chunked_equals_unchunked_and_progress(capsys):
     assert capsys.readouterr().err == ""
 
 
-def test_runs_in_blocks_equal_runs_side_by_side(monkeypatch):
-    """A chunk's runs go through in blocks of vehjax.run._BLOCK_NUMBERS carried numbers (for
-    filters with a large state, e.g. particles): the same results as all runs vmapped at once,
-    per-run keys included, also when the block does not divide the chunk."""
+def test_runs_in_blocks_equal_runs_side_by_side():
+    """A chunk's runs go through in blocks of the strategy's ``block_numbers`` carried numbers
+    (the CPU rule, for filters with a large state, e.g. particles): the same results as all
+    runs vmapped at once (the GPU rule), per-run keys included, also when the block does not
+    divide the chunk."""
     run_mod = sys.modules["vehjax.run"]  # the module (vehjax.run is also the function)
 
     est = _key_reporting_estimator()
     ys, us = _data(R=10, seed=6)
     key = jax.random.key(3)
-    whole = run(est, ys, us, x0=X0, P0=P0, key=key)
+    side_by_side = execution.for_platform("cpu")._replace(block_numbers=None)
+    whole = run(est, ys, us, x0=X0, P0=P0, key=key, strategy=side_by_side)
     kf = run(EST, ys, us, x0=X0, P0=P0, return_covariances=True)
-    monkeypatch.setattr(run_mod, "_BLOCK_NUMBERS", 1)  # blocks of _MIN_BLOCK = 4 runs
-    plan = run_mod._plan(EST, ys, us, X0, P0, None, None, None, False, None, None, None)
-    assert plan.block == run_mod._MIN_BLOCK < plan.chunk == 10
-    blocked = run(est, ys, us, x0=X0, P0=P0, key=key)
+    tiny = execution.for_platform("cpu")._replace(block_numbers=1)  # blocks of 4 runs
+    plan = run_mod._plan(EST, ys, us, X0, P0, None, None, None, False, None, None, None, tiny)
+    assert plan.block == 4 < plan.chunk == 10
+    assert run_mod._plan(EST, ys, us, X0, P0, None, None, None, False, None, None, None,
+                         "gpu").block is None
+    blocked = run(est, ys, us, x0=X0, P0=P0, key=key, strategy=tiny)
     np.testing.assert_array_equal(blocked.states, whole.states)
-    _assert_close(run(EST, ys, us, x0=X0, P0=P0, return_covariances=True), kf)
+    _assert_close(run(EST, ys, us, x0=X0, P0=P0, return_covariances=True, strategy=tiny), kf)
 
 
 def test_compile_run_times_compilation_apart():
@@ -279,24 +284,25 @@ def test_compiler_options_reach_xla_and_keep_the_results():
                                        rtol=1e-10, atol=1e-12)
     with pytest.raises(ValueError, match="compiler_options.*xla_no_such_option"):
         run(EST, ys, us, x0=X0, P0=P0, compiler_options={"xla_no_such_option": 1})
-    # an estimator's declared options are used; one this XLA does not take is skipped
-    for declared in ((("xla_no_such_option", 1),), (("xla_backend_optimization_level", 1),)):
-        res = run(EST._replace(compiler_options=declared), ys, us, x0=X0, P0=P0)
-        np.testing.assert_allclose(res.states, out.states, rtol=1e-10, atol=1e-12)
     # the compiled study is reused by the next call with the same estimator, options, shapes
     run_mod = sys.modules["vehjax.run"]
-    est = EST._replace(compiler_options=(("xla_backend_optimization_level", 1),))
-    run(est, ys, us, x0=X0, P0=P0)
     n = len(run_mod._COMPILED)
-    again = run(est, ys + 1.0, us, x0=X0, P0=P0)
+    again = run(EST, ys + 1.0, us, x0=X0, P0=P0, compiler_options=opts)
     assert len(run_mod._COMPILED) == n
     np.testing.assert_allclose(again.states[1], numpy_kf(ys[1] + 1.0, us[1], X0, P0)[0],
                                rtol=1e-10, atol=1e-12)
-    run(est, ys[:2], us[:2], x0=X0, P0=P0)  # other shapes: compiled anew
+    run(EST, ys[:2], us[:2], x0=X0, P0=P0, compiler_options=opts)  # other shapes: anew
     assert len(run_mod._COMPILED) == min(n + 1, run_mod._COMPILED_MAX)
-    assert sys.modules["vehjax.run"]._compiler_options(EST._replace(compiler_options=(
-        ("xla_backend_optimization_level", 1), ("xla_no_such_option", 1))),
-        {"xla_backend_optimization_level": 2}) == {"xla_backend_optimization_level": 2}
+    # the strategy's options (by the estimator's workload) under the caller's, name by name
+    cpu = execution.for_platform("cpu")
+    assert execution.compiler_options(cpu, "small_dense") == {"xla_cpu_use_fusion_emitters": False}
+    assert execution.compiler_options(cpu, "particles") is None
+    assert execution.compiler_options(cpu, "small_dense", {"xla_cpu_use_fusion_emitters": True,
+                                                           "xla_backend_optimization_level": 2}
+                                      ) == {"xla_cpu_use_fusion_emitters": True,
+                                            "xla_backend_optimization_level": 2}
+    res = run(EST._replace(workload="small_dense"), ys, us, x0=X0, P0=P0)
+    np.testing.assert_allclose(res.states, out.states, rtol=1e-10, atol=1e-12)
 
 
 def _key_reporting_estimator():

@@ -33,7 +33,7 @@ import numpy as np
 from jax import lax
 from jax.extend.core import ClosedJaxpr, DropVar, Jaxpr, Literal, jaxpr_as_fun, jaxprs_in_params
 
-from . import _elementary
+from . import _elementary, execution
 
 try:  # restores a weak type after substitution; without it weakly typed operands are skipped
     from jax._src.lax.lax import _convert_element_type as _convert_weak
@@ -285,7 +285,9 @@ def fast_elementary(fn: Callable) -> Callable:
         see them as if written out.
 
     ``fn`` is called as it is (same results, bit for bit) when its trace has effects, when it
-    cannot be traced, or when it holds nothing to substitute (vehjax's built-in models).
+    cannot be traced, when it holds nothing to substitute (vehjax's built-in models), or when
+    the execution strategy in force says not to substitute on its platform
+    (:func:`vehjax.execution.current`; e.g. on a GPU).
     Wrapping is idempotent, and wrapping the same function twice gives the same wrapper.
     """
     if getattr(fn, _MARK, None) is fn:
@@ -297,6 +299,8 @@ def fast_elementary(fn: Callable) -> Callable:
 
     @functools.wraps(fn)
     def fast(*args, **kwargs):
+        if not execution.current().substitute_elementary:  # the platform's rule
+            return fn(*args, **kwargs)
         leaves, treedef = jax.tree.flatten((args, kwargs))
         dyn_idx = tuple(i for i, leaf in enumerate(leaves) if _is_dynamic(leaf))
         avals = tuple(jax.typeof(leaves[i]) for i in dyn_idx)

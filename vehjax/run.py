@@ -12,10 +12,15 @@ step ``t`` predicts with ``inputs[..., t, :]``, then updates with ``measurements
 
 Each run is :func:`vehjax.filter`'s traced logic (``vehjax.filtering.one_run``), vmapped over
 the runs of a chunk. Estimators with a runs-last ``batch`` form (EKF, UKF and CKF on models with at
-most 8 states and outputs, :mod:`vehjax.filters.runs_last`) are not vmapped: one scan runs the batched
-step with the runs axis last, which XLA on CPU vectorises across runs, and what the model
+most 8 states and outputs, :mod:`vehjax.filters.runs_last`) are not vmapped where the execution
+strategy says so: one scan runs the batched step with the runs axis last, and what the model
 computes from the inputs alone is computed once for the whole input sequence before the time
 loop (:mod:`vehjax._hoist`); results agree to rounding.
+
+How a study executes on its platform (chunk budget, blocking of runs inside a chunk, runs-last
+or vmapped step, XLA options, trigonometric substitutes, results to the host) is decided in one
+place, :mod:`vehjax.execution`, from the device the study runs on; ``strategy=`` overrides it.
+This module holds no platform rule.
 
 A NaN measurement component is missing; ``run`` passes it to the filter untouched and the filter
 skips that component's update. Every filter treats any non-finite component as missing; ``run``
@@ -81,7 +86,7 @@ import hashlib
 import math
 import sys
 import time
-from functools import lru_cache, partial
+from functools import partial
 from typing import Any, NamedTuple, Sequence
 
 import equinox as eqx
@@ -90,30 +95,20 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from . import _validate, filtering
+from . import _validate, execution, filtering
 from .filtering import FilterResult
 from .filters import runs_last as _runs_last
 from .filters.base import Estimator
 from .result import RunResult
 
-__all__ = ["RunResult", "CompiledRun", "run", "compile_run"]
+__all__ = ["RunResult", "CompiledRun", "run", "compile_run", "Strategy"]
+
+Strategy = execution.Strategy
 
 _AXIS = "runs"
-# Auto chunk size: keep the per-chunk stacked outputs near this many bytes of device memory.
-_AUTO_CHUNK_BYTES = 512 * 2**20
 # A filter step holds temporaries of about this many times its carried state (particles through
 # the model, predicted measurements, resampled copies).
 _STATE_TEMPORARIES = 16
-# Auto chunk size: at most this many (state number x step) per chunk, so that a long study is
-# several chunks and the progress bar moves (about 5-10 s a chunk for a particle filter on CPU).
-_CHUNK_WORK = 2e9
-# Runs computed side by side (vmapped) inside a chunk: about this many carried state numbers at a
-# time, so that a step's arrays stay in the processor's caches; the chunk's runs go through in
-# blocks of that many, one block after the other (``lax.map`` with ``batch_size``). A bootstrap
-# PF with 1,000 particles on a 3-state model (5,000 numbers a run): blocks of 13 runs, 27-30 %
-# faster per particle-step than 100-300 runs side by side on a 2-core CPU.
-_BLOCK_NUMBERS = 65536
-_MIN_BLOCK = 4  # fewer runs side by side lose more to per-step overheads than caches give
 
 
 # ----------------------------------------------------------------------------------------------
@@ -178,11 +173,11 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, per_run, ys, us, x0
 
 def _vmapped_study(estimator, return_cov, per_run, block, *args):
     """:func:`filtering.one_run` over the runs (leading axis of the per-run arguments), in
-    blocks of ``block`` runs vmapped side by side."""
+    blocks of ``block`` runs vmapped side by side (all at once when ``block`` is None)."""
     one = partial(filtering.one_run, estimator, return_cov)
     C = args[0].shape[0]
     side_by_side = jax.vmap(one, in_axes=tuple(0 if r else None for r in per_run))
-    if block >= C:
+    if block is None or block >= C:
         return side_by_side(*args)
     n_blocks = -(-C // block)
     pad = n_blocks * block - C  # the last block is filled with copies of the last run
@@ -200,10 +195,18 @@ def _vmapped_study(estimator, return_cov, per_run, block, *args):
 
 
 @eqx.filter_jit
-def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh, block):
+def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh, block, strategy):
     """A chunk of runs: ys (C, T, ny); the others per run (leading C) or shared, by rank. The
-    vmapped form computes ``block`` runs side by side at a time (all when the chunk, or a
-    device's share of it, has no more)."""
+    vmapped form computes ``block`` runs side by side at a time (all when None, or when the
+    chunk, or a device's share of it, has no more). Traced under ``strategy``
+    (:func:`vehjax.execution.using`), which also says whether the runs-last step is used."""
+    with execution.using(strategy):
+        return _study_traced(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh,
+                             block, strategy.runs_last)
+
+
+def _study_traced(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh, block,
+                  runs_last):
     per_run = (
         True,
         us.ndim == 3,
@@ -215,7 +218,7 @@ def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh, block):
     )
 
     def f(*args):
-        if estimator.batch is not None:
+        if runs_last and estimator.batch is not None:
             res = _runs_last_study(estimator, return_cov, per_run, *args)
         else:
             res = _vmapped_study(estimator, return_cov, per_run, block, *args)
@@ -290,18 +293,15 @@ def _state_numbers(estimator, x0, P0, th0, Pth0, keys) -> int:
     return sum(int(np.prod(a.shape)) for a in jax.tree.leaves(state))
 
 
-def _auto_chunk(estimator, ys, state_numbers: int, return_cov: bool) -> int:
-    """Runs per chunk from a memory budget (outputs plus what the filter holds per run: its
-    state from ``init``, times the temporaries of a step) and a work budget (module constants).
-    """
-    R, T, _ = ys.shape
+def _per_run_bytes(estimator, ys, state_numbers: int, return_cov: bool) -> tuple[int, int]:
+    """(bytes one run holds on the device: its outputs plus what the filter holds, its state
+    from ``init`` times the temporaries of a step; bytes of one run's results on the host)."""
+    _, T, _ = ys.shape
     nx, p = estimator.nx, len(estimator.param_names)
     itemsize = np.dtype(ys.dtype).itemsize
     out_bytes = T * itemsize * (nx + p + 4 + (nx * nx + p * p if return_cov else 0))
     state_bytes = 8 * state_numbers  # at most float64 (typed PRNG keys have no numpy dtype)
-    by_memory = _AUTO_CHUNK_BYTES // (out_bytes + _STATE_TEMPORARIES * state_bytes)
-    by_work = int(_CHUNK_WORK // (T * max(state_numbers, 1)))
-    return max(1, min(by_memory, by_work))
+    return out_bytes + _STATE_TEMPORARIES * state_bytes, out_bytes
 
 
 class _Plan(NamedTuple):
@@ -317,7 +317,8 @@ class _Plan(NamedTuple):
     mesh: Any
     progress: bool | None
     spans_processes: bool = False  # the mesh holds other processes' devices (jax.distributed)
-    block: int = 2**31 - 1  # runs vmapped side by side inside a chunk (see _BLOCK_NUMBERS)
+    block: int | None = None  # runs vmapped side by side inside a chunk (None: all)
+    strategy: execution.Strategy | None = None  # how it executes (vehjax.execution)
 
 
 def _plan(
@@ -333,6 +334,7 @@ def _plan(
     chunk_size,
     progress,
     devices,
+    strategy=None,
 ) -> _Plan:
     if not isinstance(estimator, Estimator):
         raise ValueError(
@@ -441,10 +443,13 @@ def _plan(
 
     devs = tuple(_resolve_devices(devices))
     n_dev = len(devs)
+    strat = execution.resolve(strategy, devs[0])
     numbers = _state_numbers(estimator, x0, P0, th0, Pth0, keys)
-    block = max(_MIN_BLOCK, _BLOCK_NUMBERS // max(numbers, 1))
+    per_run_bytes, result_bytes = _per_run_bytes(estimator, ys, numbers, bool(return_covariances))
+    execution.check_fits(per_run_bytes, R * result_bytes, devs[0])
+    block = execution.block_size(strat, numbers)
     if chunk_size is None:
-        chunk_size = _auto_chunk(estimator, ys, numbers, bool(return_covariances))
+        chunk_size = execution.chunk_runs(strat, per_run_bytes, T, numbers)
     # Balance the chunks and make each a multiple of the device count.
     chunk = math.ceil(R / math.ceil(R / min(int(chunk_size), R)))
     chunk = math.ceil(chunk / n_dev) * n_dev
@@ -460,7 +465,7 @@ def _plan(
     per_run += (th0 is not None and th0.ndim == 2, Pth0 is not None and Pth0.ndim == 3)
     plan = _Plan(
         estimator, arrays, per_run, keys, R, chunk, n_chunks, bool(return_covariances), devs, mesh,
-        progress, spans, block,
+        progress, spans, block, strat,
     )
     if spans:
         _check_same_study(plan)
@@ -557,7 +562,7 @@ def _chunk_args(plan: _Plan, i: int):
 
 def _call_args(plan: _Plan, i: int):
     args, n = _chunk_args(plan, i)
-    return (plan.estimator, *args, plan.return_cov, plan.mesh, plan.block), n
+    return (plan.estimator, *args, plan.return_cov, plan.mesh, plan.block, plan.strategy), n
 
 
 class _Progress:
@@ -606,6 +611,7 @@ def _execute(plan: _Plan, fn, progress) -> RunResult:
     if show and jax.process_count() > 1:
         show = jax.process_index() == 0  # one bar, process 0's
     bar = _Progress(plan.n_chunks, plan.R, show)
+    to_host = plan.strategy is None or plan.strategy.results_to_host
     parts = []
     pending = None  # (device outputs, n valid); the next chunk is dispatched before fetching
     done = 0
@@ -616,7 +622,8 @@ def _execute(plan: _Plan, fn, progress) -> RunResult:
             nxt = (fn(*args), n)
         if pending is not None:
             out, n = pending
-            parts.append(tuple(None if a is None else np.asarray(a)[:n] for a in out))
+            parts.append(tuple(None if a is None else (np.asarray(a)[:n] if to_host else a[:n])
+                               for a in out))
             done += n
             bar.update(len(parts), done)
         pending = nxt
@@ -624,6 +631,8 @@ def _execute(plan: _Plan, fn, progress) -> RunResult:
     def cat(k):  # np.array copies: writable results, device buffers released
         if parts[0][k] is None:
             return None
+        if not to_host:  # stays on the device (strategy.results_to_host False)
+            return parts[0][k] if len(parts) == 1 else jnp.concatenate([q[k] for q in parts])
         return np.array(parts[0][k]) if len(parts) == 1 else np.concatenate([q[k] for q in parts])
 
     states, covs, params, pcov, ll, nis, n_obs, div, div_at, at_b = (cat(k) for k in range(10))
@@ -646,6 +655,7 @@ def run(
     progress: bool | None = None,
     devices: Sequence | bool | None = None,
     compiler_options: dict | None = None,
+    strategy: execution.Strategy | str | None = None,
 ) -> RunResult:
     """Run ``estimator`` over R runs of T steps in one jitted call per chunk of runs.
 
@@ -679,28 +689,30 @@ def run(
             sequence is all this process's devices, or includes devices of every process and
             is the same in every process.
         compiler_options: XLA options for compiling this study, e.g.
-            ``{"xla_backend_optimization_level": 1}``, on top of the estimator's own
-            (``Estimator.compiler_options``; these override them name by name). Default None:
-            the estimator's, else XLA's defaults (LLVM at level 3 on CPU). A compiled study
-            is reused by the next call with the same estimator object, options and shapes.
-            Use level 1 for a particle filter on :class:`~vehjax.models.SevenDOF`: at level 3
-            LLVM takes over 10 minutes on its step vmapped over runs, at level 1 about 20 s,
-            and the model runs as fast (measured ad hoc: the RK4 transition vmapped over 1000
-            states 175 us per state at either level; the bootstrap PF, 4 runs x 100
-            particles, compiled in 18 s and ran 0.19 ms per particle-step). Elsewhere keep
-            level 3: ``vehjax bench particle`` (3-DOF model) runs 2.8x slower at level 1 and
-            2.7x at level 2.
+            ``{"xla_backend_optimization_level": 1}``, on top of the strategy's own (these
+            override them name by name). A compiled study is reused by the next call with the
+            same estimator object, options and shapes. Level 1 helps a particle filter on
+            :class:`~vehjax.models.SevenDOF` on CPU, whose step LLVM at level 3 takes over 10
+            minutes to compile (``vehjax reproduce consistency`` passes it).
+        strategy: how the study executes on its platform (:mod:`vehjax.execution`: chunk
+            budget, blocking of runs, runs-last step, XLA options, trigonometric substitutes,
+            results on the host or the device): None for the rules of the platform of the
+            first device used, ``"cpu"``/``"gpu"``/``"tpu"`` for that platform's, or a
+            :class:`vehjax.execution.Strategy`. Results do not depend on it beyond rounding.
 
     Returns:
-        :class:`RunResult` of numpy arrays. All inputs are cast to their common floating dtype
+        :class:`RunResult` of numpy arrays (jax arrays on the device when the strategy's
+        ``results_to_host`` is False). All inputs are cast to their common floating dtype
         (pass every array as float32 for a single-precision study).
 
     Raises:
         ValueError: naming the argument, for wrong shapes, non-finite inputs/x0/P0, a P0 that is
             not symmetric positive definite, a missing key or theta0, a theta0 outside the
             estimator's parameter domains (``Estimator.bounds``), compiler_options that are
-            not a dict of option names to values, before anything is traced; options XLA does
-            not take, when the study is compiled;
+            not a dict of option names to values, an unknown strategy, a study whose one run
+            cannot fit the device's memory or whose results cannot fit the host's (with the
+            estimate and the limit), before anything is traced; options XLA does not take,
+            when the study is compiled;
             under ``jax.distributed``, in every process, when the processes' arguments differ.
 
     Under ``jax.distributed`` call it in every process with the same arguments::
@@ -708,41 +720,15 @@ def run(
         jax.distributed.initialize(coordinator_address, num_processes, process_id)
         out = vehjax.run(est, ys, us, x0=x0, P0=P0, key=jax.random.key(0))  # all runs, each
     """
-    options = _compiler_options(estimator, compiler_options)
+    execution.check_options(compiler_options)
     plan = _plan(
         estimator, measurements, inputs, x0, P0, theta0, P_theta0, key, return_covariances,
-        chunk_size, progress, devices,
+        chunk_size, progress, devices, strategy,
     )
+    options = execution.compiler_options(plan.strategy, estimator.workload, compiler_options)
     if options is None:
         return _execute(plan, _study, progress)
     return _execute(plan, _compile(plan, options, cache=True), progress)
-
-
-def _compiler_options(estimator, options) -> dict | None:
-    """The estimator's declared XLA options updated with the caller's; None when empty."""
-    own = {k: v for k, v in (estimator.compiler_options if isinstance(estimator, Estimator)
-                             else ()) if _xla_knows(k, v)}
-    if options is None:
-        return own or None
-    if not isinstance(options, dict) or not all(isinstance(k, str) for k in options):
-        raise ValueError(f"compiler_options: expected a dict of XLA option names (str) to "
-                         f"values, got {options!r}")
-    bad = [k for k, v in options.items() if not isinstance(v, (str, bool, int, float))]
-    if bad:
-        raise ValueError(f"compiler_options: values must be str, bool, int or float; {bad} are "
-                         f"not")
-    return {**own, **options} or None
-
-
-@lru_cache(maxsize=None)
-def _xla_knows(name: str, value) -> bool:
-    """Whether this XLA takes the compile option (an estimator's declared options are
-    measured choices, not requirements: one that a newer XLA dropped is skipped)."""
-    try:
-        jax.jit(lambda x: x).lower(jnp.zeros(())).compile(compiler_options={name: value})
-    except jax.errors.JaxRuntimeError:
-        return False
-    return True
 
 
 _COMPILED: dict = {}  # (estimator id, options, signature) -> (estimator, compiled study)
@@ -811,17 +797,24 @@ def compile_run(
     progress: bool | None = None,
     devices: Sequence | bool | None = None,
     compiler_options: dict | None = None,
+    strategy: execution.Strategy | str | None = None,
 ) -> CompiledRun:
     """Validate and compile a study without running it, for timing compilation apart.
 
     Same arguments as :func:`run`. ``compile_run(...)()`` returns what ``run(...)`` returns,
-    under ``jax.distributed`` too: call both in every process with the same arguments.
+    under ``jax.distributed`` too: call both in every process with the same arguments. The
+    prepared study holds its own copy of the arrays: calling it again repeats the same study.
     """
-    options = _compiler_options(estimator, compiler_options)
+    execution.check_options(compiler_options)
     plan = _plan(
         estimator, measurements, inputs, x0, P0, theta0, P_theta0, key, return_covariances,
-        chunk_size, progress, devices,
+        chunk_size, progress, devices, strategy,
     )
+    options = execution.compiler_options(plan.strategy, estimator.workload, compiler_options)
+    # its own copy of the data: "call again to repeat" repeats this study, whatever the
+    # caller writes into its arrays afterwards
+    plan = plan._replace(arrays=tuple(None if a is None else np.array(a, copy=True)
+                                      for a in plan.arrays))
     t0 = time.perf_counter()
     compiled = _compile(plan, options)
     return CompiledRun(plan, compiled, time.perf_counter() - t0)

@@ -1,0 +1,303 @@
+"""The execution seam: every decision that depends on the platform (CPU, GPU, TPU), in one place.
+
+A study's :class:`Strategy` says how :func:`vehjax.run` executes it: how many runs go in one
+compiled call (chunk), whether runs inside a chunk go through in cache-sized blocks, whether a
+filter's runs-last batched step is used, which XLA options the study is compiled with, whether a
+model's trigonometry is replaced by vectorisable substitutes, and whether results come back to
+host memory per chunk. ``run`` and ``compile_run`` pick the strategy of the device the study
+runs on (:func:`for_device`); ``strategy=`` overrides it (a :class:`Strategy`, or a platform
+name: ``"cpu"``, ``"gpu"``, ``"tpu"``)::
+
+    out = vehjax.run(est, ys, us, x0=x0, P0=P0, strategy="gpu")          # GPU rules anywhere
+    s = vehjax.execution.for_platform("cpu")._replace(block_numbers=None)  # CPU, no blocking
+    out = vehjax.run(est, ys, us, x0=x0, P0=P0, strategy=s)
+
+Nothing else in vehjax reads the platform: filters, models and the rest of ``run`` describe
+their work (an estimator's :attr:`~vehjax.filters.Estimator.workload`, its optional runs-last
+``batch`` form, a model built with ``fast_math``) and this module decides what that means on
+each platform. The one exception is traced code outside ``run`` (:func:`vehjax.filter` under a
+user's ``jax.jit``): it follows :func:`current`, the strategy of JAX's default backend.
+
+The rules and the measurements behind them
+------------------------------------------
+
+CPU (measured on a 2-core x86-64 machine, float64, ``vehjax bench all``/``bench particle``):
+
+* **Blocking** (``block_numbers``): a chunk's runs are vmapped in blocks of about 65,536 carried
+  numbers (``lax.map`` over blocks), at least 4 runs a block, so that a step's arrays stay in the
+  caches: a bootstrap PF with 1,000 particles on a 3-state model computes 13 runs side by side
+  and is 27-30 % faster per particle-step than 100-300 runs side by side.
+* **Chunks** (``chunk_bytes``, ``chunk_work``): at most 512 MiB of outputs and working memory
+  per chunk, and at most 2e9 carried numbers x steps, so that a long study is several chunks of
+  5-10 s and the progress bar moves.
+* **XLA options** (``elemental_emitter``): the filters whose steps are many small dense
+  operations (``workload="small_dense"``: Gaussian, adaptive, dual/joint, Liu-West, marginalized)
+  compile with XLA:CPU's classic elemental emitter instead of its fusion emitters: compile times
+  halve (3-DOF user model, 100 x 1000: EKF 3.9 -> 1.8 s, UKF 4.5 -> 2.4 s, dual UKF 10.7 -> 6.3 s),
+  run times within noise, the marginalized PF about twice as fast. The bootstrap PF
+  (``workload="particles"``) runs 1.2-1.3x slower with it and does not get it.
+* **Substitutes** (``substitute_elementary``): XLA:CPU evaluates float64 sin/cos/tan/atan/atan2
+  by one scalar library call per element; a model built with ``fast_math=True`` evaluates them
+  with :mod:`vehjax._elementary`'s arithmetic forms, which vectorise: about twice as fast a
+  filter on a model written with trigonometry.
+* **Runs-last step** (``runs_last``): a filter's batched step with the runs axis last
+  (:mod:`vehjax.filters.runs_last`) vectorises across runs: 1.3-2x faster than vmapping.
+
+GPU (one H100, float64, jax 0.11.2, measured once through the public API, issue #28):
+
+* **No blocking**: ``lax.map`` over blocks serialises the runs on a GPU (bootstrap PF, 100 runs
+  x 1000 steps x 1000 particles: 1,078 ms with CPU blocking, 137 ms without; the marginalized PF
+  at N = 500, 100 x 500: 10.6 s with, 0.54 s without).
+* **No CPU XLA options**: XLA's GPU compiler refuses ``xla_cpu_use_fusion_emitters``.
+* **Substitutes off**: the GPU has vector sin/cos; measured within 5 % either way, so the
+  model's functions are used as written.
+* **Runs-last step on**: 1.35-1.6x faster than the vmapped step there too (UKF 59-61 vs 80-87 ms,
+  EKF 67-73 vs 110 ms at 1000 x 1000).
+* **Chunks from the device's memory**: a quarter of the device's memory limit
+  (``memory_stats()["bytes_limit"]``) per chunk, no work limit (a chunk is milliseconds).
+
+TPU: the GPU rules (no measurement; nothing in them is GPU-specific).
+
+Random numbers are the same on every platform by design: the particle filters hash counters
+with Threefry-2x32 (:mod:`vehjax._random`), several times cheaper than ``jax.random`` in float64
+on CPU, and the same draws everywhere, so that a strategy changes timings, never results beyond
+rounding (``tests/test_execution.py`` holds every family's GPU strategy, forced on the CPU, to
+its CPU strategy's results).
+
+Memory: :func:`memory_limit` is the device's memory (GPU/TPU) or the host's physical memory
+(CPU); ``run`` refuses up front a study whose one-run working set, or whose results on the
+host, cannot fit (:func:`check_fits`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import os
+from functools import lru_cache
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["Strategy", "for_platform", "for_device", "current", "using", "resolve",
+           "compiler_options", "check_options", "block_size", "memory_limit", "check_fits", "WORKLOADS"]
+
+#: What an estimator may declare its step to be (``Estimator.workload``).
+WORKLOADS = ("default", "small_dense", "particles")
+
+_CPU_CHUNK_BYTES = 512 * 2**20
+_CPU_CHUNK_WORK = 2e9
+_CPU_BLOCK_NUMBERS = 65536
+_MIN_BLOCK = 4  # fewer runs side by side lose more to per-step overheads than caches give
+_DEVICE_CHUNK_FRACTION = 0.25
+_DEVICE_CHUNK_FALLBACK = 4 * 2**30  # a device that reports no memory limit
+
+
+class Strategy(NamedTuple):
+    """How a study is executed on one platform (every field a plain, hashable value).
+
+    Attributes:
+        platform: "cpu", "gpu" or "tpu": the rules it was made from (informative).
+        chunk_bytes: bytes of device memory a chunk's outputs and working set may take.
+        chunk_work: at most this many carried numbers x steps per chunk (so that a long study
+            shows progress); None: no limit.
+        block_numbers: runs inside a chunk go through in blocks of about this many carried
+            numbers (``lax.map`` over blocks of vmapped runs); None: all runs side by side.
+        runs_last: use an estimator's runs-last ``batch`` step where it declares one.
+        elemental_emitter: compile ``small_dense`` estimators with XLA:CPU's elemental emitter.
+        substitute_elementary: evaluate ``fast_math`` models with the vectorisable
+            trigonometric substitutes (:mod:`vehjax._substitute`).
+        results_to_host: bring each chunk's results to host memory (numpy) as it finishes;
+            False keeps them on the device (``RunResult`` of jax arrays, one device).
+    """
+
+    platform: str
+    chunk_bytes: int
+    chunk_work: float | None
+    block_numbers: int | None
+    runs_last: bool
+    elemental_emitter: bool
+    substitute_elementary: bool
+    results_to_host: bool = True
+
+
+def for_platform(platform: str, device_memory: int | None = None) -> Strategy:
+    """The strategy of a platform ("cpu", "gpu"/"cuda"/"rocm", "tpu"); ``device_memory`` in
+    bytes sets a GPU/TPU chunk budget (default: a fallback of 4 GiB a chunk)."""
+    name = str(platform).lower()
+    if name == "cpu":
+        return Strategy("cpu", _CPU_CHUNK_BYTES, _CPU_CHUNK_WORK, _CPU_BLOCK_NUMBERS,
+                        runs_last=True, elemental_emitter=True, substitute_elementary=True)
+    if name in ("gpu", "cuda", "rocm", "tpu"):
+        budget = (_DEVICE_CHUNK_FALLBACK if device_memory is None
+                  else int(_DEVICE_CHUNK_FRACTION * device_memory))
+        return Strategy("tpu" if name == "tpu" else "gpu", budget, None, None, runs_last=True,
+                        elemental_emitter=False, substitute_elementary=False)
+    raise ValueError(f"strategy: unknown platform {platform!r}; expected 'cpu', 'gpu' or 'tpu'")
+
+
+def for_device(device) -> Strategy:
+    """The strategy for a jax device: its platform's rules, chunk budget from its memory."""
+    return for_platform(device.platform, None if device.platform == "cpu"
+                        else _device_memory(device))
+
+
+def _device_memory(device) -> int | None:
+    try:
+        stats = device.memory_stats()
+    except Exception:  # some backends do not report memory
+        return None
+    return int(stats["bytes_limit"]) if stats and "bytes_limit" in stats else None
+
+
+def memory_limit(device) -> int | None:
+    """Bytes a study may hold on ``device``: the device's memory limit (GPU/TPU), the host's
+    physical memory (CPU); None when unknown."""
+    if device.platform != "cpu":
+        return _device_memory(device)
+    return host_memory()
+
+
+def host_memory() -> int | None:
+    """The host's physical memory in bytes (None when the OS does not say)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_fits(per_run_bytes: int, results_bytes: int, device) -> None:
+    """Refuse a study that cannot fit: ``per_run_bytes`` (one run's outputs and working set,
+    the smallest chunk) against the device's memory, ``results_bytes`` (all runs' results)
+    against the host's. Raises ValueError with the estimate and the limit."""
+    limit = memory_limit(device)
+    if limit is not None and per_run_bytes > limit:
+        raise ValueError(
+            f"study too large for {device.platform} device {device.id}: one run needs about "
+            f"{per_run_bytes / 2**30:.1f} GiB (outputs plus the filter's working set, e.g. its "
+            f"particles) and the device has {limit / 2**30:.1f} GiB; use fewer particles or "
+            f"steps, or split the run")
+    host = host_memory()
+    if host is not None and results_bytes > host:
+        raise ValueError(
+            f"study too large: its results need about {results_bytes / 2**30:.1f} GiB of host "
+            f"memory and the host has {host / 2**30:.1f} GiB; use fewer runs or steps, or "
+            f"return_covariances=False")
+
+
+def resolve(strategy, device) -> Strategy:
+    """``strategy`` as given to ``run``: None (``device``'s), a platform name, or a Strategy."""
+    if strategy is None:
+        return for_device(device)
+    if isinstance(strategy, Strategy):
+        _check(strategy)
+        return strategy
+    if isinstance(strategy, str):
+        return for_platform(strategy, None if strategy.lower() == "cpu"
+                            else _device_memory(device) if device.platform != "cpu" else None)
+    raise ValueError(f"strategy: expected None, 'cpu', 'gpu', 'tpu' or a "
+                     f"vehjax.execution.Strategy, got {strategy!r}")
+
+
+def _check(s: Strategy) -> None:
+    def positive(name, v, allow_none):
+        if v is None and allow_none:
+            return
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0 or v != v:
+            raise ValueError(f"strategy: {name} must be a positive number"
+                             f"{' or None' if allow_none else ''}, got {v!r}")
+    positive("chunk_bytes", s.chunk_bytes, False)
+    positive("chunk_work", s.chunk_work, True)
+    positive("block_numbers", s.block_numbers, True)
+    for name in ("runs_last", "elemental_emitter", "substitute_elementary", "results_to_host"):
+        if not isinstance(getattr(s, name), bool):
+            raise ValueError(f"strategy: {name} must be True or False, got "
+                             f"{getattr(s, name)!r}")
+
+
+# ----------------------------------------------------------------------------------------------
+# the strategy in force while a study is traced
+
+
+_ACTIVE: contextvars.ContextVar[Strategy | None] = contextvars.ContextVar("vehjax_strategy",
+                                                                          default=None)
+
+
+def current() -> Strategy:
+    """The strategy in force: the one ``run`` traces a study under, else that of JAX's default
+    backend (for :func:`vehjax.filter` and the filters under a user's own ``jit``)."""
+    s = _ACTIVE.get()
+    return s if s is not None else _default(jax.default_backend())
+
+
+@lru_cache(maxsize=None)
+def _default(backend: str) -> Strategy:
+    return for_platform(backend)
+
+
+@contextlib.contextmanager
+def using(strategy: Strategy):
+    """Trace under ``strategy`` (what :func:`current` returns inside)."""
+    token = _ACTIVE.set(strategy)
+    try:
+        yield strategy
+    finally:
+        _ACTIVE.reset(token)
+
+
+# ----------------------------------------------------------------------------------------------
+# decisions
+
+
+def block_size(strategy: Strategy, numbers: int) -> int | None:
+    """Runs vmapped side by side inside a chunk for a filter carrying ``numbers`` numbers a run;
+    None: all of them (no blocking)."""
+    if strategy.block_numbers is None:
+        return None
+    return max(_MIN_BLOCK, int(strategy.block_numbers) // max(int(numbers), 1))
+
+
+def chunk_runs(strategy: Strategy, per_run_bytes: int, steps: int, numbers: int) -> int:
+    """Runs per chunk: the memory budget over one run's bytes, and the work budget."""
+    by_memory = int(strategy.chunk_bytes // max(per_run_bytes, 1))
+    if strategy.chunk_work is None:
+        return max(1, by_memory)
+    by_work = int(strategy.chunk_work // (steps * max(numbers, 1)))
+    return max(1, min(by_memory, by_work))
+
+
+def compiler_options(strategy: Strategy, workload: str, user: dict | None = None) -> dict | None:
+    """XLA options for compiling a study of an estimator with ``workload`` under ``strategy``,
+    updated by the caller's ``user`` options (name by name); None when empty. Options this XLA
+    does not know are dropped from the strategy's (they are measured choices, not needs)."""
+    own = {}
+    if strategy.elemental_emitter and workload == "small_dense":
+        own["xla_cpu_use_fusion_emitters"] = False
+    own = {k: v for k, v in own.items() if _xla_knows(k, v)}
+    check_options(user)
+    return {**own, **(user or {})} or None
+
+
+def check_options(user) -> None:
+    """A caller's ``compiler_options``: None or a dict of option names (str) to str, bool, int
+    or float values; ValueError naming the argument otherwise (checked before any tracing)."""
+    if user is None:
+        return
+    if not isinstance(user, dict) or not all(isinstance(k, str) for k in user):
+        raise ValueError(f"compiler_options: expected a dict of XLA option names (str) to "
+                         f"values, got {user!r}")
+    bad = [k for k, v in user.items() if not isinstance(v, (str, bool, int, float))]
+    if bad:
+        raise ValueError(f"compiler_options: values must be str, bool, int or float; {bad} are "
+                         f"not")
+
+
+@lru_cache(maxsize=None)
+def _xla_knows(name: str, value) -> bool:
+    """Whether this XLA (on the default backend) takes the compile option."""
+    try:
+        jax.jit(lambda x: x).lower(jnp.zeros(())).compile(compiler_options={name: value})
+    except jax.errors.JaxRuntimeError:
+        return False
+    return True
