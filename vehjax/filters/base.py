@@ -72,6 +72,22 @@ def state_output(x, P, loglik, nis, n_obs) -> StepOutput:
     )
 
 
+class ParticleTransition(NamedTuple):
+    """A particle filter's transition density, what backward simulation over its particles
+    needs: x_t = transition(x_{t-1}, u_t, theta) + v_t, v_t ~ N(0, chol_Q chol_Q^T), in the
+    filter's time convention (step t predicts with u_t, then updates with y_t).
+
+    Attributes:
+        transition: ``f(x, u, theta) -> x'`` for one point, x (nx,), u (nu,), theta (np,),
+            returning (nx,) in x's dtype.
+        chol_Q: (nx, nx) lower-triangular Cholesky factor of the process-noise covariance Q
+            (state units per step); None when Q is only positive semi-definite (no density).
+    """
+
+    transition: Callable[..., Any]
+    chol_Q: Any
+
+
 class Estimator(NamedTuple):
     """``Estimator(init, step)``: see the module docstring for the signatures.
 
@@ -89,6 +105,12 @@ class Estimator(NamedTuple):
         nu: input width the filter expects (the model's inputs); None: not checked.
         bounds: ``(low, high)`` domains of the estimated parameters, two tuples of p floats in
             physical units with -inf / +inf for open ends; None: no domains.
+        particle_transition: :class:`ParticleTransition`, set by a particle filter whose
+            particles move by the model's transition plus Gaussian noise (``bootstrap_pf``),
+            for backward simulation over its particles (:mod:`vehjax.smoothers.particle`);
+            its state then has ``particles`` (nx, N), ``log_weights`` (N,), ``ancestors``
+            (N,) and ``theta``. None for every other filter (and for a bootstrap PF with
+            input noise, whose transition density is not that Gaussian).
         compiler_options: ``((name, value), ...)`` XLA options that :func:`vehjax.run` compiles
             this filter's studies with, where a filter measured them to be faster than XLA's
             defaults; a ``compiler_options`` given to ``run`` overrides them name by name.
@@ -107,6 +129,7 @@ class Estimator(NamedTuple):
     ny: int | None = None
     nu: int | None = None
     bounds: tuple | None = None
+    particle_transition: ParticleTransition | None = None
     compiler_options: tuple = ()
 
 

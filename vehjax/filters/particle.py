@@ -50,7 +50,7 @@ from . import input_noise as _inoise
 from . import resampling as _rs
 from . import smc
 from ._linalg import cholesky, is_pd, solve_lower
-from .base import Estimator, StepOutput
+from .base import Estimator, ParticleTransition, StepOutput
 from ._model import chol_const, check_model, in_dtype, model_dims, model_theta, prior
 
 __all__ = ["PFState", "bootstrap_pf"]
@@ -74,6 +74,10 @@ class PFState(NamedTuple):
         pending_reinit: bool, the last step diverged; this step draws the particles afresh.
         flag_diverged: bool, True once any step had to re-initialise (see module docstring).
         n_reinit: int32, how many steps re-initialised.
+        ancestors: (N,) int32, the genealogy for ancestor tracing: particle j descends from
+            column ``ancestors[j]`` of the previous state's ``particles`` (its resampling index;
+            ``arange(N)`` after a step that did not resample, at ``init``, and after a
+            re-initialisation, which draws every particle afresh and breaks the genealogy).
     """
 
     particles: jnp.ndarray
@@ -87,6 +91,7 @@ class PFState(NamedTuple):
     pending_reinit: jnp.ndarray
     flag_diverged: jnp.ndarray
     n_reinit: jnp.ndarray
+    ancestors: jnp.ndarray
 
 
 def _is_diagonal(A) -> bool:
@@ -115,6 +120,17 @@ def _add_noise(fx, L, z):
     if n * n > 64:
         return fx + noise
     return jnp.stack([fx[i] + noise[i] for i in range(n)])
+
+
+def _chol_or_none(Q):
+    """Lower Cholesky factor of Q (numpy for a constant, jax for a traced Q), None for a
+    constant Q that is only positive semi-definite (its transition has no density)."""
+    if not isinstance(Q, np.ndarray):
+        return jnp.linalg.cholesky(Q)
+    try:
+        return np.linalg.cholesky(Q)
+    except np.linalg.LinAlgError:
+        return None
 
 
 # -- the filter -------------------------------------------------------------------------------
@@ -212,6 +228,7 @@ def bootstrap_pf(
             pending_reinit=jnp.asarray(False),
             flag_diverged=jnp.asarray(False),
             n_reinit=jnp.asarray(0, jnp.int32),
+            ancestors=jnp.arange(n, dtype=jnp.int32),
         )
 
     def step(state: PFState, y, u):
@@ -291,6 +308,7 @@ def bootstrap_pf(
             pending_reinit=diverged,
             flag_diverged=state.flag_diverged | diverged,
             n_reinit=state.n_reinit + diverged.astype(jnp.int32),
+            ancestors=anc,
         )
         out = StepOutput(
             mean=mean_out,
@@ -306,5 +324,7 @@ def bootstrap_pf(
 
     return Estimator(
         init=init, step=step, nx=nx, param_names=(), name="bootstrap_pf", needs_key=True,
+        # with input noise the transition density is not N(f(x, u), Q): no backward simulation
+        particle_transition=None if Lu is not None else ParticleTransition(f, _chol_or_none(Qn)),
         **model_dims(model)
     )
