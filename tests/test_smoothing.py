@@ -1,0 +1,286 @@
+"""vehjax.smooth: the filters' own RTS smoothers against a numpy RTS written here from the
+textbook recursion (Rauch, Tung & Striebel 1965; Särkkä, Bayesian Filtering and Smoothing, Alg.
+4.3 and 8.2), square-root forms against plain ones, the smoother moments against the filter
+step, joint filters, NaN components, divergence, bad input."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import vehjax as vj
+from vehjax.smoothing import smooth_one_run
+
+from _linear import linear_gaussian_data
+
+A = np.array([[1.0, 0.1, 0.0], [0.0, 0.95, 0.1], [0.0, -0.2, 0.9]])
+B = np.array([[0.0], [0.1], [0.05]])
+H = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+Q = np.diag([1e-3, 4e-3, 2e-3])
+R = np.diag([0.05, 0.02])
+X0 = np.array([0.5, -0.2, 0.1])
+P0 = np.diag([0.3, 0.2, 0.1])
+T = 25
+
+
+def linear_model():
+    return vj.models.Model(
+        transition=lambda x, u, th: jnp.asarray(A) @ x + jnp.asarray(B) @ u,
+        observe=lambda x, u, th: jnp.asarray(H) @ x,
+        dt=0.1, state_names=("p", "v", "a"), input_names=("u",), output_names=("y1", "y2"))
+
+
+def numpy_rts(ys, us):
+    """Kalman filter + RTS smoother in numpy, missing (NaN) components dropped from the update.
+    Returns smoothed means (T, n), covariances (T, n, n), lag-one cross-covariances (T-1, n, n)
+    Cov(x_t, x_{t+1} | y) and the log-likelihood per step."""
+    m, P = X0.copy(), P0.copy()
+    mf, Pf, mp_, Pp_, ll = [], [], [], [], []
+    for t in range(len(ys)):
+        mp = A @ m + B @ us[t]
+        Pp = A @ P @ A.T + Q
+        obs = np.isfinite(ys[t])
+        Ho, Ro = H[obs], R[np.ix_(obs, obs)]
+        S = Ho @ Pp @ Ho.T + Ro
+        e = ys[t][obs] - Ho @ mp
+        K = Pp @ Ho.T @ np.linalg.inv(S)
+        m = mp + K @ e
+        P = Pp - K @ S @ K.T
+        k = obs.sum()
+        ll.append(-0.5 * (e @ np.linalg.solve(S, e) + np.linalg.slogdet(S)[1] + k * np.log(2 * np.pi)))
+        mf.append(m), Pf.append(P), mp_.append(mp), Pp_.append(Pp)
+    ms, Ps = [mf[-1]], [Pf[-1]]
+    cross = []
+    for t in range(len(ys) - 2, -1, -1):
+        G = Pf[t] @ A.T @ np.linalg.inv(Pp_[t + 1])
+        cross.insert(0, G @ Ps[0])
+        ms.insert(0, mf[t] + G @ (ms[0] - mp_[t + 1]))
+        Ps.insert(0, Pf[t] + G @ (Ps[0] - Pp_[t + 1]) @ G.T)
+    return np.array(ms), np.array(Ps), np.array(cross), np.array(ll)
+
+
+@pytest.fixture(scope="module")
+def data():
+    ys, us = linear_gaussian_data(A, B, H, Q, R, X0, P0, T, seed=3)
+    ys[4, 0] = np.nan
+    ys[9] = np.nan
+    ys[17, 1] = np.nan
+    return ys, us
+
+
+BUILDERS = {
+    "ekf": lambda m: vj.filters.ekf(m, Q, R),
+    "ukf": lambda m: vj.filters.ukf(m, Q, R),
+    "ukf_small_alpha": lambda m: vj.filters.ukf(m, Q, R, alpha=0.5),
+    "ckf": lambda m: vj.filters.ckf(m, Q, R),
+    "sr_ukf": lambda m: vj.filters.ukf(m, Q, R, sqrt=True),
+    "sr_ckf": lambda m: vj.filters.ckf(m, Q, R, sqrt=True),
+}
+
+
+@pytest.mark.parametrize("name", list(BUILDERS))
+def test_rts_equals_numpy_textbook_rts(name, data):
+    """On a linear-Gaussian model every Gaussian smoother is the exact RTS smoother: same
+    means, covariances, cross-covariances and log-likelihood as the numpy recursion, to 1e-10,
+    with NaN components skipped (also a step with all missing)."""
+    ys, us = data
+    ref_m, ref_P, ref_C, ref_ll = numpy_rts(ys, us)
+    est = BUILDERS[name](linear_model())
+    sm = vj.smooth(est, ys, us, x0=X0, P0=P0)
+    assert not bool(sm.diverged)
+    np.testing.assert_allclose(sm.states, ref_m, atol=1e-10)
+    np.testing.assert_allclose(sm.covariances, ref_P, atol=1e-10)
+    np.testing.assert_allclose(sm.cross_covariances, ref_C, atol=1e-10)
+    np.testing.assert_allclose(sm.loglik, ref_ll, atol=1e-10)
+    assert sm.params.shape == (T, 0)
+
+
+def test_parallel_rts_equals_numpy_textbook_rts(data):
+    """parallel=True (associative-scan filter and smoother on the UKF's own statistical
+    linearisation) gives the same numbers, NaN components included."""
+    ys, us = data
+    ref_m, ref_P, ref_C, ref_ll = numpy_rts(ys, us)
+    est = BUILDERS["ukf"](linear_model())
+    sm = jax.jit(lambda y, u: vj.smooth(est, y, u, x0=X0, P0=P0, parallel=True))(ys, us)
+    np.testing.assert_allclose(sm.states, ref_m, atol=1e-9)
+    np.testing.assert_allclose(sm.covariances, ref_P, atol=1e-9)
+    np.testing.assert_allclose(sm.cross_covariances, ref_C, atol=1e-9)
+    np.testing.assert_allclose(sm.loglik, ref_ll, atol=1e-9)
+
+
+def _pendulum(dt=0.05):
+    """A nonlinear model (pendulum, observed through sin): x = (angle, rate)."""
+    def f(x, u, th):
+        return jnp.array([x[0] + dt * x[1], x[1] - dt * th[0] * jnp.sin(x[0]) + dt * u[0]])
+
+    def h(x, u, th):
+        return jnp.array([jnp.sin(x[0]), x[1]])
+
+    return vj.models.Model(transition=f, observe=h, dt=dt, state_names=("a", "w"),
+                           param_names=("g",), input_names=("u",), output_names=("s", "w"),
+                           theta=np.array([9.81]))
+
+
+def _pendulum_data(T=30, seed=0):
+    rng = np.random.default_rng(seed)
+    model = _pendulum()
+    x = np.array([0.8, 0.0])
+    us = 0.3 * np.sin(np.arange(T) * 0.2)[:, None]
+    ys = []
+    for t in range(T):
+        x = np.asarray(model.transition(x, us[t], model.theta)) + rng.normal(0, [0.01, 0.05])
+        ys.append(np.asarray(model.observe(x, us[t], model.theta)) + rng.normal(0, [0.1, 0.1]))
+    return model, np.array(ys), us
+
+
+@pytest.mark.parametrize("sqrt_of, plain", [("sr_ukf", "ukf"), ("sr_ckf", "ckf")])
+def test_square_root_equals_plain_on_nonlinear_model(sqrt_of, plain):
+    """The square-root unscented / cubature RTS (Cholesky factors throughout) gives the plain
+    one's results on a nonlinear model."""
+    model, ys, us = _pendulum_data()
+    Qp, Rp = np.diag([1e-4, 2.5e-3]), np.diag([0.01, 0.01])
+    mk = {"ukf": vj.filters.ukf, "ckf": vj.filters.ckf}[plain]
+    a = vj.smooth(mk(model, Qp, Rp, sqrt=True), ys, us, x0=[0.7, 0.0], P0=[0.1, 0.1])
+    b = vj.smooth(mk(model, Qp, Rp), ys, us, x0=[0.7, 0.0], P0=[0.1, 0.1])
+    np.testing.assert_allclose(a.states, b.states, atol=1e-10)
+    np.testing.assert_allclose(a.covariances, b.covariances, atol=1e-10)
+    np.testing.assert_allclose(a.cross_covariances, b.cross_covariances, atol=1e-10)
+
+
+@pytest.mark.parametrize("name", ["ekf", "ukf", "sr_ckf"])
+@pytest.mark.parametrize("noise", [None, {"u": 0.3}])
+def test_smoother_prediction_is_the_filter_step(name, noise):
+    """Estimator.smoother.predict is the step's own prediction: the step with every component
+    missing (a pure prediction) reports the same mean and covariance, with and without input
+    noise (which must reach the smoother through the step's prediction code)."""
+    model, ys, us = _pendulum_data(T=3)
+    Qp, Rp = np.diag([1e-4, 2.5e-3]), np.diag([0.01, 0.01])
+    build = {"ekf": lambda **k: vj.filters.ekf(model, Qp, Rp, **k),
+             "ukf": lambda **k: vj.filters.ukf(model, Qp, Rp, **k),
+             "sr_ckf": lambda **k: vj.filters.ckf(model, Qp, Rp, sqrt=True, **k)}[name]
+    est = build() if noise is None else build(input_noise=noise)
+    state = est.init(jnp.array([0.4, 0.2]), jnp.array([[0.2, 0.05], [0.05, 0.3]]))
+    _, out = est.step(state, jnp.full(2, jnp.nan), jnp.asarray(us[1]))
+    m, S, aux = est.smoother.split(state)
+    pred = est.smoother.predict(m, S, jnp.asarray(us[1]), aux)
+    if est.smoother.sqrt:
+        P_pred = pred[1] @ pred[1].T
+        P = S @ S.T
+        # the joint factor reproduces the state's own covariance: L21 L21^T + L22 L22^T = P
+        np.testing.assert_allclose(pred[2] @ pred[2].T + pred[3] @ pred[3].T, P, atol=1e-12)
+    else:
+        P_pred = pred[1]
+    np.testing.assert_allclose(pred[0], out.mean, atol=1e-12)
+    np.testing.assert_allclose(P_pred, out.cov, atol=1e-12)
+
+
+def test_joint_filter_smooths_parameters_as_states():
+    """A joint EKF on a linear model with one parameter of a bias random walk (the parameter
+    enters linearly): the smoothed state and parameter equal a numpy RTS on the augmented
+    linear model, and the smoothed parameter covariance shrinks below the filtered one at t=0."""
+    Tj = 20
+    model = vj.models.Model(
+        transition=lambda x, u, th: jnp.array([0.9 * x[0] + th[0] + u[0]]),
+        observe=lambda x, u, th: jnp.array([x[0]]),
+        dt=0.1, state_names=("x",), param_names=("b",), input_names=("u",),
+        output_names=("y",), theta=np.array([0.0]))
+    rng = np.random.default_rng(1)
+    us = rng.normal(size=(Tj, 1))
+    x, ys = 0.0, []
+    for t in range(Tj):
+        x = 0.9 * x + 0.5 + us[t, 0] + rng.normal(0, 0.1)
+        ys.append([x + rng.normal(0, 0.2)])
+    ys = np.array(ys)
+    qx, qb, r = 0.01, 1e-4, 0.04
+    est = vj.filters.joint_ekf(model, [qx], [r], [qb], estimate="b", bounds={})
+    sm = vj.smooth(est, ys, us, x0=[0.0], P0=[0.5], theta0=[0.0], P_theta0=[1.0])
+    # numpy RTS on z = (x, b): z' = [[0.9, 1], [0, 1]] z + [u, 0], y = [1, 0] z
+    Aa, Qa, Ha = np.array([[0.9, 1.0], [0.0, 1.0]]), np.diag([qx, qb]), np.array([[1.0, 0.0]])
+    m, P = np.zeros(2), np.diag([0.5, 1.0])
+    mf, Pf, mp_, Pp_ = [], [], [], []
+    for t in range(Tj):
+        mp, Pp = Aa @ m + np.array([us[t, 0], 0.0]), Aa @ P @ Aa.T + Qa
+        S = Ha @ Pp @ Ha.T + r
+        K = Pp @ Ha.T / S
+        m, P = mp + (K * (ys[t] - Ha @ mp)).ravel(), Pp - K @ S @ K.T
+        mf.append(m), Pf.append(P), mp_.append(mp), Pp_.append(Pp)
+    ms, Ps = [mf[-1]], [Pf[-1]]
+    for t in range(Tj - 2, -1, -1):
+        G = Pf[t] @ Aa.T @ np.linalg.inv(Pp_[t + 1])
+        ms.insert(0, mf[t] + G @ (ms[0] - mp_[t + 1]))
+        Ps.insert(0, Pf[t] + G @ (Ps[0] - Pp_[t + 1]) @ G.T)
+    ms, Ps = np.array(ms), np.array(Ps)
+    np.testing.assert_allclose(sm.states[:, 0], ms[:, 0], atol=1e-10)
+    np.testing.assert_allclose(sm.params[:, 0], ms[:, 1], atol=1e-10)
+    np.testing.assert_allclose(sm.params_cov[:, 0, 0], Ps[:, 1, 1], atol=1e-10)
+    np.testing.assert_allclose(sm.covariances[:, 0, 0], Ps[:, 0, 0], atol=1e-10)
+    assert sm.params_cov[0, 0, 0] < 0.5 * sm.filtered.params_cov[0, 0, 0]
+
+
+def test_jit_vmap_and_one_divergent_run_flagged(data):
+    """smooth_one_run under jit and vmap over three runs; a run whose data are absurd (1e200)
+    is flagged diverged and reports finite held values; the other runs are unchanged."""
+    ys, us = data
+    est = vj.filters.ukf(linear_model(), Q, R)
+    bad = ys.copy()
+    bad[5:] = 1e200
+    Y = jnp.asarray(np.stack([ys, bad, ys[::-1].copy()]))
+
+    @jax.jit
+    def many(Y):
+        return jax.vmap(lambda y: smooth_one_run(est, y, jnp.asarray(us), jnp.asarray(X0),
+                                                 jnp.asarray(P0)))(Y)
+
+    out = many(Y)
+    assert [bool(v) for v in out.diverged] == [False, True, False]
+    assert np.all(np.isfinite(out.states)) and np.all(np.isfinite(out.covariances))
+    one = vj.smooth(est, ys, us, x0=X0, P0=P0)
+    np.testing.assert_allclose(out.states[0], one.states, atol=1e-12)
+    ref_m = numpy_rts(ys[::-1].copy(), us)[0]
+    np.testing.assert_allclose(out.states[2], ref_m, atol=1e-10)
+
+
+def test_loglik_gradient_equals_finite_differences(data):
+    """d/dq of the smoothed run's log-likelihood (the RTS reports the filter's) by jax.grad
+    equals central finite differences of the same function."""
+    ys, us = data
+    model = linear_model()
+
+    def ll(q):
+        est = vj.filters.ckf(model, q * Q, R)
+        return vj.smooth(est, ys, us, x0=X0, P0=P0).loglik.sum()
+
+    g = jax.jit(jax.grad(ll))(1.3)
+    llj = jax.jit(ll)
+    h = 1e-5
+    fd = (llj(1.3 + h) - llj(1.3 - h)) / (2 * h)
+    assert np.isfinite(g)
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+def test_bad_input_names_the_argument(data):
+    ys, us = data
+    model = linear_model()
+    est = vj.filters.ekf(model, Q, R)
+    cases = [
+        (dict(estimator=vj.filters.dual_ekf(_pendulum(), np.diag([1e-4, 1e-3]), [0.01, 0.01],
+                                            [0.1], estimate="g")), "estimator"),
+        (dict(method="nope"), "method"),
+        (dict(method="ipls"), "method"),                  # the EKF iterates Jacobians
+        (dict(method="ieks", max_iter=0), "max_iter"),
+        (dict(method="ieks", tol=0.0), "tol"),
+        (dict(method="ieks", initial=np.zeros((3, 3))), "initial"),
+        (dict(P0=np.eye(2)), "P0"),
+        (dict(inputs=us[:-1]), "inputs"),
+        (dict(n_trajectories=10), "particle_options"),
+    ]
+    for kw, arg in cases:
+        call = dict(estimator=est, measurements=ys, inputs=us, x0=X0, P0=P0)
+        call.update(kw)
+        if kw.get("estimator") is not None and kw["estimator"].name.startswith("D"):
+            call.update(measurements=np.zeros((5, 2)), inputs=np.zeros((5, 1)), x0=[0.1, 0.0],
+                        P0=[0.1, 0.1], P_theta0=[1.0])
+        with pytest.raises(ValueError, match=arg):
+            vj.smooth(**call)
+    with pytest.raises(ValueError, match="method"):
+        vj.smooth(vj.filters.ukf(model, Q, R), ys, us, x0=X0, P0=P0, method="ieks")

@@ -1,0 +1,284 @@
+"""``vehjax.smooth``: one run forward-backward, pure and traceable (``jax.jit``, ``jax.vmap``,
+``jax.grad``), and the traced per-run function :func:`smooth_one_run` that ``vehjax.run``
+builds on.
+
+::
+
+    sm = vehjax.smooth(est, ys, us, x0=x0, P0=P0)                  # ys (T, ny), us (T, nu)
+    sm.states, sm.covariances, sm.cross_covariances, sm.loglik.sum()
+    sm = vehjax.smooth(est, ys, us, x0=x0, P0=P0, method="ieks", parallel=True)
+
+Time convention of :mod:`vehjax.filtering`: x0/P0 describe the state before the first step;
+``states[t]`` is the smoothed estimate after step t (predict with ``inputs[t]``, update with
+``measurements[t]``); ``cross_covariances[t]`` is Cov(x_t, x_{t+1} | y_1:T).
+
+Methods, for a Gaussian filter (one with ``Estimator.smoother``: EKF, UKF, CKF, their
+square-root forms, joint EKF/UKF):
+
+* ``None`` / ``"rts"``: the filter's own RTS: extended RTS for the EKF, unscented / cubature RTS
+  (Särkkä 2008) for the UKF / CKF, in Cholesky factors throughout for the square-root forms
+  (:mod:`vehjax.smoothers.gaussian`). With ``parallel=True`` the filter's own linearisation
+  (about its filtered and predicted moments) is smoothed by the parallel-in-time Kalman filter
+  and RTS smoother (:mod:`vehjax.smoothers.parallel`): the same numbers, to rounding; the
+  forward filter that provides the linearisation is still sequential.
+* ``"ieks"`` (EKF, joint EKF) / ``"ipls"`` (sigma-point filters): the iterated smoothers of
+  :mod:`vehjax.smoothers.iterated`, started from the filter's own RTS (or ``initial``), each
+  pass sequential or (``parallel=True``) parallel in time; ``loglik`` is that of the model
+  linearised about the fixed point, differentiable by implicit differentiation.
+
+Joint filters: the parameters are states of the augmented model and are smoothed with them
+(``params``, ``params_cov`` in physical units by the filter's own map and delta method). Dual
+filters have no smoother: their two filters never form the joint Gaussian of state and
+parameters that a Gaussian smoother needs (a ValueError naming ``estimator``).
+
+Particle filters (``Estimator.particle_transition``, the bootstrap PF) go to
+:func:`vehjax.smoothers.particle.smooth` (backward simulation), with ``method`` and the
+``particle_options``.
+
+NaN measurement components are missing (skipped), as in the filters. Divergence: a run whose
+filter diverged (:mod:`vehjax.filtering`) or whose smoothed moments are not finite and positive
+definite is ``diverged``; it reports the filter's (held) estimates with zero cross-covariances,
+so that one bad run never puts NaN into a study.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _validate
+from .filtering import FilterResult, _checked, finish, output_ok, scan_body, start
+from .filters._linalg import is_pd, sym
+from .filters.base import Estimator
+from .smoothers import gaussian as _gauss
+from .smoothers import iterated as _iter
+
+__all__ = ["SmoothResult", "smooth", "smooth_one_run", "METHODS"]
+
+#: Gaussian smoothing methods (module docstring).
+METHODS = ("rts", "ieks", "ipls")
+
+
+class SmoothResult(NamedTuple):
+    """One run smoothed (a leading runs axis under ``vmap``).
+
+    Attributes:
+        states: smoothed means, (T, nx).
+        covariances: their covariances, (T, nx, nx).
+        cross_covariances: Cov(x_t, x_{t+1} | y_1:T), (T-1, nx, nx).
+        params: smoothed parameters (joint filters), (T, p), physical units; p = 0 otherwise.
+        params_cov: their covariances, (T, p, p).
+        loglik: log p(y_t | y_1:t-1) per step, (T,): the filter's (``"rts"``), or the Kalman
+            filter's on the model linearised about the fixed point (``"ieks"``/``"ipls"``);
+            the filter's held values on a diverged run.
+        diverged: bool scalar (module docstring).
+        iterations: int32 scalar, passes of an iterated smoother (0 for ``"rts"``).
+        converged: bool scalar, the iterated smoother met its tolerance (True for ``"rts"``).
+        filtered: the forward filter's :class:`vehjax.filtering.FilterResult`.
+    """
+
+    states: jnp.ndarray
+    covariances: jnp.ndarray
+    cross_covariances: jnp.ndarray
+    params: jnp.ndarray
+    params_cov: jnp.ndarray
+    loglik: jnp.ndarray
+    diverged: jnp.ndarray
+    iterations: jnp.ndarray
+    converged: jnp.ndarray
+    filtered: FilterResult
+
+
+# ----------------------------------------------------------------------------------------------
+# the traced core
+
+
+def forward(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
+    """The filter over one run, keeping its states: (states at t = 0..T stacked, FilterResult)."""
+    p = len(estimator.param_names)
+    state0, held0 = start(estimator, y, u, x0, P0, th0, Pth0, key)
+    inner = scan_body(estimator.step, lambda out: output_ok(out, p), True)
+
+    def body(state, yu):
+        new, per_step = inner(state, yu)
+        return new, (new, per_step)
+
+    _, (states, per_step) = jax.lax.scan(body, state0, (y, u))
+    states = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), state0, states)
+    return states, finish(per_step, held0, estimator.bounds)
+
+
+def _report(spec, M, P, cross, nx):
+    """(states, covariances, cross, params, params_cov) of smoothed moments at t = 1..T."""
+    M, P, cross = M[1:], P[1:], cross[1:]
+    if spec.report is None:
+        p0 = jnp.zeros((M.shape[0], 0), M.dtype)
+        return M, P, cross, p0, jnp.zeros((M.shape[0], 0, 0), M.dtype)
+    x, Px, th, Pth = jax.vmap(spec.report)(M, P)
+    return x, Px, cross[:, :nx, :nx], th, Pth
+
+
+def _iterated(estimator, spec, states, y, u, parallel, tol, max_iter, initial):
+    """(M, P, cross, loglik (T+1,), passes, converged) of IEKS / IPLS (module docstring)."""
+    m, S, aux = jax.vmap(spec.split)(states)
+    aux = jax.tree_util.tree_map(lambda a: a[:-1], aux)
+    P = sym(S @ jnp.swapaxes(S, -1, -2)) if spec.sqrt else S
+    ny = y.shape[1]
+    ys = jnp.concatenate([jnp.full((1, ny), jnp.nan, y.dtype), y])
+    if initial is None:
+        M0, P0s, _ = _gauss.backward(spec, states, u)
+    else:
+        M0 = jnp.concatenate([m[:1], jnp.asarray(initial, m.dtype)])
+        P0s = jnp.broadcast_to(P[:1], P.shape)
+
+    def phi(z, args):
+        Mz, Pz = z
+        us, ax, yy, x_0, P_0 = args
+        mod = _gauss.linearize(spec, Mz, Pz, us, ax, x_0, P_0, ny)
+        return _iter.linear_pass(mod, yy, parallel)[:2]
+
+    args = (u, aux, ys, m[0], P[0])
+    z, k, delta = _iter.fixed_point(phi, (M0, P0s), args, tol, max_iter)
+    mod = _gauss.linearize(spec, z[0], z[1], u, aux, m[0], P[0], ny)
+    M, Ps, cross, ll = _iter.linear_pass(mod, ys, parallel)
+    return M, Ps, cross, ll, k, delta <= tol
+
+
+def _rts(spec, states, y, u, parallel):
+    """(M, P, cross, loglik (T+1,) or None) of the filter's own RTS, sequential or parallel."""
+    if not parallel:
+        M, P, cross = _gauss.backward(spec, states, u)
+        return M, P, cross, None
+    ny = y.shape[1]
+    ys = jnp.concatenate([jnp.full((1, ny), jnp.nan, y.dtype), y])
+    mod = _gauss.linearize_filtered(spec, states, u, ny)
+    return _iter.linear_pass(mod, ys, True)
+
+
+def smooth_one_run(estimator: Estimator, y, u, x0, P0, th0=None, Pth0=None, key=None, *,
+                   method: str = "rts", parallel: bool = False, tol: float = 1e-6,
+                   max_iter: int = 20, initial=None) -> SmoothResult:
+    """One run smoothed, traced, without validation (what ``vehjax.run(..., smooth=True)``
+    vmaps): y (T, ny) with NaN missing, u (T, nu), x0 (nx,), P0 (nx, nx), th0/Pth0 as for
+    :func:`vehjax.filter`; ``method`` one of :data:`METHODS` (not None), ``parallel``, ``tol``,
+    ``max_iter``, ``initial`` as for :func:`smooth`. Gaussian filters only."""
+    spec = estimator.smoother
+    states, filt = forward(estimator, y, u, x0, P0, th0, Pth0, key)
+    if method == "rts":
+        M, P, cross, ll = _rts(spec, states, y, u, parallel)
+        k, conv = jnp.zeros((), jnp.int32), jnp.ones((), bool)
+    else:
+        M, P, cross, ll, k, conv = _iterated(estimator, spec, states, y, u, parallel, tol,
+                                             max_iter, initial)
+    loglik = filt.loglik if ll is None else ll[1:]
+    xs, Px, cross, th, Pth = _report(spec, M, P, cross, estimator.nx)
+    good = (jnp.all(jnp.isfinite(xs)) & jnp.all(is_pd(Px)) & jnp.all(jnp.isfinite(cross))
+            & jnp.all(jnp.isfinite(loglik)) & jnp.all(jnp.isfinite(th)))
+    if th.shape[-1]:
+        good = good & jnp.all(is_pd(Pth))
+    bad = filt.diverged | ~good
+    held_P = filt.covariances
+    return SmoothResult(
+        states=jnp.where(bad, filt.states, xs),
+        covariances=jnp.where(bad, held_P, Px),
+        cross_covariances=jnp.where(bad, 0.0, cross),
+        params=jnp.where(bad, filt.params, th),
+        params_cov=jnp.where(bad, filt.params_cov, Pth),
+        loglik=jnp.where(bad, filt.loglik, loglik),
+        diverged=bad,
+        iterations=k,
+        converged=conv,
+        filtered=filt,
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# the public single-run function
+
+
+def _check_method(estimator: Estimator, method):
+    """The Gaussian method name for ``estimator``; ValueError naming ``estimator`` or
+    ``method``."""
+    spec = estimator.smoother
+    if spec is None:
+        raise ValueError(
+            f"estimator: {estimator.name!r} has no smoother; vehjax.smooth smooths the EKF, "
+            f"UKF, CKF (plain and square-root), the joint EKF/UKF and the bootstrap PF (dual "
+            f"filters do not form the joint state-parameter Gaussian a smoother needs)")
+    method = "rts" if method is None else _validate.choice("method", method, METHODS)
+    if method == "ieks" and not spec.taylor:
+        raise ValueError(f"method: 'ieks' iterates Jacobian linearisations; {estimator.name!r} "
+                         f"linearises by sigma points, use method='ipls'")
+    if method == "ipls" and spec.taylor:
+        raise ValueError(f"method: 'ipls' iterates sigma-point linearisations; "
+                         f"{estimator.name!r} linearises by Jacobians, use method='ieks'")
+    return method
+
+
+def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=None,
+           P_theta0=None, key=None, method=None, parallel: bool = False, tol: float = 1e-6,
+           max_iter: int = 20, initial=None, **particle_options) -> SmoothResult:
+    """Smooth one run of T steps (module docstring for the methods).
+
+    Pure and traceable (``jax.jit`` with the options static, ``jax.vmap`` over runs,
+    ``jax.grad`` of ``smooth(...).loglik.sum()`` with the estimator built inside).
+
+    Args:
+        estimator: a :class:`vehjax.filters.Estimator` with a smoother (``Estimator.smoother``)
+            or a particle filter with ``particle_transition``.
+        measurements: (T, ny); NaN (or +-inf) components are missing.
+        inputs: (T, nu); None when the model has no inputs.
+        x0, P0: state before the first step, (nx,), and its covariance (nx, nx) or (nx,).
+        theta0, P_theta0, key: as for :func:`vehjax.filter`.
+        method: None (the filter's own RTS), ``"rts"``, ``"ieks"`` (Jacobian filters) or
+            ``"ipls"`` (sigma-point filters); for particle filters the particle smoother's
+            method (:func:`vehjax.smoothers.particle.smooth`).
+        parallel: run the Kalman filter and RTS smoother passes parallel in time.
+        tol: iterated smoothers: stop when no smoothed mean moves by more than ``tol`` of its
+            smoothed standard deviation in a pass (> 0).
+        max_iter: iterated smoothers: at most this many passes (>= 1); ``converged`` False in
+            the result when they did not meet ``tol``.
+        initial: iterated smoothers: the start, (T, n) means (n = nx, or nx + p unconstrained
+            for joint filters) with the prior covariance at every step; None: the filter's own
+            RTS.
+        particle_options: passed to the particle smoother (e.g. ``n_trajectories``).
+
+    Returns:
+        :class:`SmoothResult`; for particle filters what the particle smoother returns.
+
+    Raises:
+        ValueError: naming the argument: a filter without a smoother (``estimator``), an
+            unknown or unsuitable ``method``, ``tol`` <= 0, ``max_iter`` < 1, ``initial`` of
+            the wrong shape, and every shape error of :func:`vehjax.filter`.
+    """
+    ys, us, x0, P0, th0, Pth0 = _checked(estimator, measurements, inputs, x0, P0, theta0,
+                                         P_theta0, key)
+    if estimator.smoother is None and estimator.particle_transition is not None:
+        try:
+            from .smoothers import particle as _particle
+        except ImportError:
+            raise ValueError(
+                f"estimator: {estimator.name!r} is a particle filter and the particle smoothers "
+                f"(vehjax.smoothers.particle) are not available") from None
+        return _particle.smooth(estimator, measurements, inputs, x0=x0, P0=P0, key=key,
+                                method=method, **particle_options)
+    if particle_options:
+        raise ValueError(f"particle_options: {sorted(particle_options)} apply to particle "
+                         f"filters only")
+    method = _check_method(estimator, method)
+    tol = _validate.number("tol", tol, 0.0)
+    max_iter = _validate.integer("max_iter", max_iter, 1)
+    T = np.shape(ys)[0]
+    if initial is not None:
+        n = estimator.nx + len(estimator.param_names)
+        if method == "rts":
+            raise ValueError("initial: only the iterated smoothers ('ieks', 'ipls') take a start")
+        if np.shape(initial) != (T, n):
+            raise ValueError(f"initial: expected shape ({T}, {n}), got {np.shape(initial)}")
+    ys, us = jnp.asarray(ys), jnp.asarray(us)
+    return smooth_one_run(estimator, ys, us, jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key,
+                          method=method, parallel=bool(parallel), tol=tol, max_iter=max_iter,
+                          initial=initial)
