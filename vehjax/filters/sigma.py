@@ -46,6 +46,7 @@ __all__ = [
     "SigmaRule", "unscented_rule", "cubature_rule", "sigma_points", "unscented_transform",
     "cross_covariance", "triangularize", "chol_update", "weighted_sqrt_factor",
     "sqrt_unscented_transform", "predict", "measure", "update", "sqrt_predict", "sqrt_update",
+    "moments_cross", "sqrt_moments_joint",
     "cholesky", "solve_lower",
 ]
 
@@ -257,6 +258,29 @@ def sqrt_predict(rule: SigmaRule, x, L, f, LQ):
     square root LQ of Q."""
     Xf = _through(f, sigma_points(x, L, rule))
     return sqrt_unscented_transform(Xf, rule, LQ)
+
+
+def moments_cross(rule: SigmaRule, X, x, Y, Q=None):
+    """Moments of the images ``Y`` (m, d) of sigma points ``X`` (m, n) of N(x, .): the mean
+    (d,), the covariance (d, d) (+ ``Q`` when given) and the cross-covariance Cov[x, y] (n, d).
+    What a smoother needs from a prediction: ``C = Cov(x_t, x_{t+1})``."""
+    y_mean, cov = unscented_transform(Y, rule, Q)
+    return y_mean, cov, cross_covariance(X, x, Y, y_mean, rule)
+
+
+def sqrt_moments_joint(rule: SigmaRule, X, x, Y, LQ=None):
+    """Square-root :func:`moments_cross`: one QR of the joint deviations [Y - y^; X - x].
+
+    Returns ``(y^ (d,), L11 (d, d), L21 (n, d), L22 (n, n))``, the lower factor of the joint
+    covariance [[P_y, C^T], [C, P_x]] (``LQ`` (d, k) a square root of the noise added to P_y):
+    L11 L11^T = P_y, L21 = C L11^-T, L22 L22^T = P_x - C P_y^-1 C^T (the covariance of x given
+    y, what the square-root RTS smoother needs)."""
+    d, n = Y.shape[1], X.shape[1]
+    y_mean = jnp.asarray(rule.wm, Y.dtype) @ Y
+    dev = jnp.concatenate([Y - y_mean[None, :], X - x[None, :]], axis=1)
+    extra = None if LQ is None else jnp.concatenate([LQ, jnp.zeros((n, LQ.shape[1]), Y.dtype)])
+    Lj = weighted_sqrt_factor(dev, rule, extra)
+    return y_mean, Lj[:d, :d], Lj[d:, :d], Lj[d:, d:]
 
 
 def sqrt_update(rule: SigmaRule, x, L, h, y, LR):
