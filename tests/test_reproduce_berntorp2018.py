@@ -4,6 +4,7 @@ each test compiles it as few times as it can."""
 
 import contextlib
 import io
+import math
 import re
 
 import numpy as np
@@ -36,6 +37,31 @@ def test_registered_with_a_citation():
     assert load("berntorp2018") is berntorp2018
     assert "Berntorp" in berntorp2018.PAPER and "2018" in berntorp2018.PAPER
     assert berntorp2018.parser().get_default("runs") == 100
+
+
+def test_citation_as_published():
+    assert ("Noise-statistics learning of automotive-grade sensors using adaptive marginalized "
+            "particle filtering") in berntorp2018.PAPER
+    assert "Journal of Dynamic Systems, Measurement, and Control" in berntorp2018.PAPER
+    assert "TR2018-181" in berntorp2018.PAPER
+    assert "Noise-statistics learning" in berntorp2018.parser().description
+
+
+def test_virtual_yaw_scale_from_the_sensors_alone():
+    # synthetic: a yaw rate the estimate never sees, a gyro bias, a rolling-radius mismatch
+    rng = np.random.default_rng(0)
+    T, track, eps, bias = 6000, 1.61, -4e-4, 6e-4
+    t = np.arange(T) * 0.01
+    vx = 14.0 + 6.0 * np.sin(2 * np.pi * t / 40.0)
+    r = 0.02 * np.sin(2 * np.pi * t / 7.0) + 0.01 * rng.standard_normal(T).cumsum() / 50
+    gyro = r + bias + 0.003 * rng.standard_normal(T)
+    r_virt = r + eps * vx / track + 0.008 * rng.standard_normal(T)
+    r_virt[::97] = np.nan                                           # missing samples skipped
+    e, b = berntorp2018.virtual_yaw_scale(gyro, r_virt, vx, track)
+    # least-squares standard errors of the two coefficients, from the noise written above
+    A = np.stack([np.ones(T), -vx / track], 1)
+    se = np.sqrt(np.diag(np.linalg.inv(A.T @ A))) * math.hypot(0.003, 0.008)
+    assert abs(b - bias) < 4 * se[0] and abs(e - eps) < 4 * se[1], (b, e, se)
 
 
 def test_bank_path_and_looped_inputs():
@@ -73,9 +99,16 @@ def test_drive_study(tmp_path):
     assert float(roll[0].split()[1]) < 2.0  # deg: the bank estimate follows the car's roll
     off = float(_row(text, "steering offset, road wheel")[0])
     assert abs(off) < 1.0  # deg at the road wheel
-    for label in ("raw gyro", "gyro - MPF bias", "gyro - EKF bias"):
+    for label in ("raw gyro", "gyro - MPF bias", "gyro - EKF bias", "MPF yaw-rate estimate",
+                  "EKF yaw-rate estimate"):
         rms, mx, share = (float(v) for v in _row(text, label))
         assert 0 < rms < 1.0 and mx < 3.0 and 0 <= share <= 1, label
+    eps = float(re.search(r"rolling-radius mismatch eps = ([-+0-9.e]+)", text)[1])
+    assert -8e-4 < eps < -1e-4                       # 15 s of it; -4.0e-4 from the whole segment
+    for label in ("MPF vy estimate", "EKF vy estimate", "vy = 0"):
+        rms, mx = (float(v) for v in _row(text, label))
+        assert 0 < rms < 0.5 and mx < 1.0, label
+    assert "Virtual yaw rate's scale" in report
 
 
 def test_bench_marginalized_smoke(capsys):
