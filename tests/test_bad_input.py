@@ -121,20 +121,23 @@ def test_scaled_by_1e6_is_finite_or_flagged():
 
 
 def test_inf_measurements_one_rule():
-    """run refuses +-inf; a filter given +-inf directly treats it as missing, like NaN, in
-    every family."""
+    """One rule for +-inf measurements: refused by run and by filter (ValueError naming
+    measurements and the first bad index); under a trace, where values are unknown, a filter
+    treats +-inf as missing, like NaN, in every family."""
     bad = YS.copy()
     bad[0, 4, 1] = np.inf
     for family in ("ekf", "pf"):
         est = FAMILIES[family]()
-        with pytest.raises(ValueError, match="^measurements:.*inf"):
+        with pytest.raises(ValueError, match=r"^measurements:.*inf"):
             vj.run(est, bad, US, **_kw(est))
         key = jax.random.key(1) if est.needs_key else None
         y_inf, y_nan = bad[0].copy(), bad[0].copy()
         y_inf[7, 0] = -np.inf
         y_nan[4, 1] = y_nan[7, 0] = np.nan
-        a = vj.filter(est, y_inf, US, X0, P0, key=key)
-        b = vj.filter(est, y_nan, US, X0, P0, key=key)
+        with pytest.raises(ValueError, match=r"^measurements:.*inf.*\(4, 1\)"):
+            vj.filter(est, y_inf, US, X0, P0, key=key)
+        traced = jax.jit(lambda y: vj.filter(est, y, US, X0, P0, key=key))
+        a, b = traced(y_inf), traced(y_nan)
         np.testing.assert_array_equal(a.states, b.states)
         assert int(a.n_obs[4]) == 1 and int(a.n_obs[7]) == 1
 

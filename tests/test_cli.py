@@ -93,6 +93,71 @@ def test_bad_input_is_a_clear_error(capsys):
     assert "runs" in capsys.readouterr().err
 
 
+# ---- user errors: one line on stderr, exit code 2, never a traceback, before any work ---------
+
+def _user_error(capsys, argv):
+    """Exit code and stderr of ``vehjax argv``, which must fail at once as a user error."""
+    code = cli.main(argv)  # returns 2 also when argparse refused the option
+    return code, capsys.readouterr()
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["simulate", "KinematicBicycle", "step_steer", "--out", "{file}"], ["--out", "not a folder"]),
+        (["simulate", "KinematicBicycle", "step_steer", "--out", "{file}/sub"], ["--out", "not a folder"]),
+        (["simulate", "KinematicBicycle", "step_steer", "--runs", "0"], ["--runs", ">= 1"]),
+        (["simulate", "KinematicBicycle", "step_steer", "--runs", "2.5"], ["--runs", "integer"]),
+        (["simulate", "KinematicBicycle", "step_steer", "--speed", "inf"], ["--speed", "finite"]),
+        (["simulate", "KinematicBicycle", "step_steer", "--dt", "nan"], ["--dt", "finite"]),
+        (["simulate", "KinematicBicycle", "step_steer", "--dt", "-0.01"], ["--dt", "> 0"]),
+        (["simulate", "KinematicBicycle", "step_steer", "--meas-std", "0.1,inf"], ["--meas-std"]),
+        (["simulate", "KinematicBicycle", "step_steer", "--process-std", "x"], ["--process-std"]),
+        (["simulate", "NoSuchModel", "step_steer"], ["NoSuchModel"]),
+        (["simulate", "KinematicBicycle", "no_such_scenario"], ["no_such_scenario"]),
+        (["reproduce", "no_such_paper"], ["no_such_paper"]),
+        (["reproduce", "wang2016", "--duration", "inf"], ["--duration", "finite"]),
+        (["reproduce", "wang2016", "--out", "{file}"], ["--out", "not a folder"]),
+        (["reproduce", "wang2016", "--filters", "NOPE"], ["--filters"]),
+        (["reproduce", "wang2016", "--speed", "-inf"], ["--speed"]),
+        (["reproduce", "dutta2019", "--kinematic-duration", "inf"], ["--kinematic-duration"]),
+        (["reproduce", "dutta2019", "--dt", "0"], ["--dt", "> 0"]),
+        (["reproduce", "dutta2019", "--settings", "bogus"], ["--settings"]),
+        (["reproduce", "dutta2019", "--out", "{file}"], ["--out", "not a folder"]),
+        (["reproduce", "consistency", "--models", "NoSuchModel"], ["--models", "NoSuchModel"]),
+        (["reproduce", "consistency", "--duration", "nan"], ["--duration"]),
+        (["reproduce", "consistency", "--out", "{file}"], ["--out", "not a folder"]),
+        (["reproduce", "berntorp2018", "--particles", "0"], ["--particles"]),
+        (["reproduce", "berntorp2018", "--duration", "inf"], ["--duration"]),
+        (["reproduce", "berntorp2018", "--out", "{file}"], ["--out", "not a folder"]),
+        (["bench", "no_such_bench"], ["no_such_bench"]),
+    ],
+)
+def test_user_errors_are_one_line_and_exit_code_2(tmp_path, capsys, argv, words):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("not a folder")
+    argv = [a.replace("{file}", str(a_file)) for a in argv]
+    code, io = _user_error(capsys, argv)
+    assert code == 2, (argv, io.err)
+    lines = io.err.splitlines()
+    assert len(lines) == 1 and "Traceback" not in io.err, io.err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    assert io.out == ""  # refused before any work (nothing printed, nothing written)
+    assert a_file.read_text() == "not a folder" and sorted(tmp_path.iterdir()) == [a_file]
+
+
+def test_user_error_as_a_program_is_one_line_exit_2(tmp_path):
+    a_file = tmp_path / "f"
+    a_file.write_text("")
+    for argv in (["reproduce", "wang2016", "--duration", "inf"],
+                 ["simulate", "KinematicBicycle", "step_steer", "--out", str(a_file)]):
+        out = subprocess.run([sys.executable, "-m", "vehjax.cli", *argv], capture_output=True,
+                             text=True)
+        assert out.returncode == 2 and len(out.stderr.splitlines()) == 1, out.stderr
+        assert "Traceback" not in out.stderr
+
+
 def test_bench_gaussian_smoke(capsys):
     """Tiny sizes: the three libraries must agree before any timing is printed."""
     assert cli.main(["bench", "gaussian", "--runs", "2", "--steps", "30", "--filterpy-runs", "1",

@@ -1,8 +1,21 @@
-"""Validation of user arguments before anything is traced: one module for every builder.
+"""Validation of user arguments before anything is traced: the one set of checks that every
+public entry point (``filter``, ``run``/``compile_run``, ``simulate``, ``tune``, the data
+loaders, the filter builders) calls, so that an array is accepted or refused alike everywhere.
 
 Each function checks one kind of argument and raises ``ValueError`` whose message starts with
-the argument's name and says what was expected. Traced values (a builder called inside a
-function being differentiated, as when tuning Q and R) have only their shapes checked.
+the argument's name and says what was expected. The rules:
+
+* Arrays are real: complex, bool, string and object arrays are refused; integers become
+  float64, float32 stays float32.
+* Non-finite values: in measurements NaN marks a missing component (the filters skip it) and
+  +-inf is refused; in everything else (inputs, x0, P0, theta0, covariances, parameters) any
+  NaN or +-inf is refused. Messages name the first bad value and its index.
+* Traced values (under ``jit``, ``vmap``, ``grad``) have only their dtype and shape checked;
+  their values are not known. A filter given +-inf measurements under a trace treats them as
+  missing, like NaN (every filter skips any non-finite component).
+
+This module imports nothing of vehjax's (the model check is by attribute name), so that
+:mod:`vehjax.models.base` can use it at import time.
 """
 
 from __future__ import annotations
@@ -99,16 +112,13 @@ def cov(name: str, value, n: int, allow_diag: bool = True, allow_psd: bool = Fal
         return 0.5 * (A + A.T)
     if isinstance(value, (bool, np.bool_)):
         raise ValueError(f"{name}: expected a numeric array, got {value!r}")
-    try:
-        A = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a numeric array, got {value!r}") from None
+    A = np.array(_real(name, value), dtype=float)
     if allow_diag and A.shape == (n,):
         A = np.diag(A)
     if A.shape != (n, n):
         raise ValueError(f"{name}: expected shape {expect}, got shape {A.shape}")
     if not np.all(np.isfinite(A)):
-        raise ValueError(f"{name}: expected finite entries, got {A}")
+        raise ValueError(f"{name}: expected finite entries, found {first_bad(A, ~np.isfinite(A))}")
     scale = np.max(np.abs(A)) if A.size else 0.0
     if not np.allclose(A, A.T, rtol=1e-8, atol=1e-12 * scale):
         raise ValueError(f"{name}: expected a symmetric matrix, got {A}")
@@ -129,76 +139,280 @@ def cov(name: str, value, n: int, allow_diag: bool = True, allow_psd: bool = Fal
     return A
 
 
-def array(arg: str, value, allow_nan: bool = False) -> np.ndarray:
-    """A real floating numpy array from ``value`` (integers become float64); finite unless
-    ``allow_nan`` (then NaN and inf pass; the caller decides)."""
-    try:
-        a = np.asarray(value)
-    except Exception:  # ragged lists and the like
-        raise ValueError(f"{arg}: expected a numeric array, got {type(value).__name__}") from None
-    real = np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)
-    if a.dtype == bool or not real:
-        raise ValueError(f"{arg}: expected a real numeric array, got dtype {a.dtype}")
+def first_bad(a: np.ndarray, bad: np.ndarray) -> str:
+    """'nan at index (1, 0)': the value and index of the first True of ``bad`` (row-major)."""
+    idx = tuple(int(i) for i in np.argwhere(bad)[0])
+    return f"{a[idx].item()!r} at index {idx}"
+
+
+def _real(arg: str, value):
+    """``value`` as a real numeric array (numpy, or the tracer itself): ValueError naming
+    ``arg`` for complex, bool, strings, objects and ragged sequences."""
+    if is_tracer(value):
+        a = value
+    else:
+        try:
+            a = np.asarray(value)
+        except Exception:  # ragged lists and the like
+            raise ValueError(
+                f"{arg}: expected a numeric array, got {type(value).__name__}") from None
+    dt = np.dtype(a.dtype)
+    real = np.issubdtype(dt, np.floating) or np.issubdtype(dt, np.integer)
+    if dt == bool or not real:
+        what = "complex values" if np.issubdtype(dt, np.complexfloating) else f"dtype {dt}"
+        raise ValueError(f"{arg}: expected a real numeric array, got {what}")
+    return a
+
+
+def array(arg: str, value, allow_nan: bool = False, *, missing: bool = False) -> np.ndarray:
+    """A real floating numpy array from ``value`` (integers become float64, float32 stays).
+
+    The one rule for non-finite values: refused, naming ``arg``, the first bad value and its
+    index; with ``missing`` (measurements) NaN passes (a missing component) and +-inf is still
+    refused (more likely a fault than a gap). ``allow_nan`` lets every non-finite value pass
+    (the caller decides). Complex, bool, string and object arrays are refused. A traced
+    ``value`` is returned as it is after its dtype is checked (its values are not known).
+    """
+    a = _real(arg, value)
+    if is_tracer(a):
+        return a
     if not np.issubdtype(a.dtype, np.floating):
         a = a.astype(np.float64)
-    if not allow_nan and not np.all(np.isfinite(a)):
-        raise ValueError(f"{arg}: expected finite values, found NaN or inf")
+    if allow_nan:
+        return a
+    bad = np.isinf(a) if missing else ~np.isfinite(a)
+    if np.any(bad):
+        hint = "; mark missing components with NaN (a filter skips them)" if missing else ""
+        raise ValueError(f"{arg}: expected {'no +-inf' if missing else 'finite values'}, found "
+                         f"{first_bad(a, bad)}{hint}")
     return a
 
 
 def batched_cov(arg: str, P: np.ndarray):
-    """ValueError naming ``arg`` unless P, (n, n) or (R, n, n), is symmetric positive definite
-    (each of its matrices)."""
+    """ValueError unless P, (n, n) or (R, n, n), is symmetric positive definite (each of its
+    matrices); for (R, n, n) the message names the first bad run, ``P0[3]: ...``."""
+    P = np.asarray(P, dtype=np.float64)
     sym = np.swapaxes(P, -1, -2)
-    scale = max(float(np.max(np.abs(P))), np.finfo(np.float64).tiny)
-    if not np.allclose(P, sym, rtol=0.0, atol=1e-9 * scale):
-        raise ValueError(f"{arg}: expected a symmetric matrix (or one per run)")
+    scale = max(float(np.max(np.abs(P))) if P.size else 0.0, np.finfo(np.float64).tiny)
+    asym = ~np.isclose(P, sym, rtol=0.0, atol=1e-9 * scale).reshape(P.shape[:-2] + (-1,)).all(-1)
+    if np.any(asym):
+        where = f"{arg}[{int(np.flatnonzero(asym)[0])}]" if P.ndim == 3 else arg
+        raise ValueError(f"{where}: expected a symmetric matrix" + (
+            f" (runs {np.flatnonzero(asym)[:10].tolist()} of {arg} are not)" if P.ndim == 3 else ""))
     if P.shape[-1] == 0:
         return
     try:
-        np.linalg.cholesky(0.5 * (P + sym).astype(np.float64))
+        np.linalg.cholesky(0.5 * (P + sym))
     except np.linalg.LinAlgError:
+        low = np.linalg.eigvalsh(0.5 * (P + sym))
         if P.ndim == 3:
-            low = np.linalg.eigvalsh(0.5 * (P + sym).astype(np.float64)).min(axis=-1)
-            bad = np.flatnonzero(low <= 0)
+            bad = np.flatnonzero(~(low.min(axis=-1) > 0))
             raise ValueError(
-                f"{arg}: expected positive-definite covariances; runs {bad[:10].tolist()} are not"
-            ) from None
-        raise ValueError(f"{arg}: expected a positive-definite covariance") from None
+                f"{arg}[{int(bad[0])}]: expected positive-definite covariances; runs "
+                f"{bad[:10].tolist()} of {arg} are not (eigenvalues of the first "
+                f"{low[bad[0]]})") from None
+        raise ValueError(f"{arg}: expected a positive-definite covariance, got eigenvalues "
+                         f"{low}") from None
 
 
-def prior(nx: int, x0, P0):
-    """Check x0 (nx,) and P0 (nx, nx) or (nx,) variances; traced values by shape only."""
-    if np.ndim(x0) != 1 or np.shape(x0)[0] != nx:
-        raise ValueError(f"x0: expected shape ({nx},), got shape {np.shape(x0)}")
-    if np.shape(P0) not in ((nx, nx), (nx,)):
-        raise ValueError(
-            f"P0: expected shape ({nx}, {nx}) or ({nx},) variances, got shape {np.shape(P0)}"
-        )
-    if not is_tracer(x0) and not np.all(np.isfinite(np.asarray(x0, dtype=float))):
-        raise ValueError("x0: expected finite values")
-    if not is_tracer(P0):
-        cov("P0", P0, nx)
+#: ``runs`` of :func:`prior` and :func:`per_run`: a leading runs axis of any length.
+ANY_RUNS = -1
+
+
+def _runs_ok(shape: tuple, shared: tuple, runs) -> bool:
+    if shape == shared:
+        return True
+    if runs is None or len(shape) != len(shared) + 1 or shape[1:] != shared:
+        return False
+    return runs == ANY_RUNS or shape[0] == runs
+
+
+def per_run(arg: str, value, shared: tuple, runs=None, what: str = ""):
+    """A real array of shape ``shared``, or ``(runs,) + shared`` one per run (``runs`` None:
+    shared only; :data:`ANY_RUNS`: any number), finite; traced values by dtype and shape."""
+    a = array(arg, value)
+    if not _runs_ok(tuple(np.shape(a)), shared, runs):
+        alt = ("" if runs is None else " or " + (f"(runs,) + {shared}" if runs == ANY_RUNS
+                                                 else f"{(runs,) + shared} (one per run)"))
+        raise ValueError(f"{arg}: expected shape {shared}{alt}{what and ' for ' + what}, "
+                         f"got shape {np.shape(a)}")
+    return a
+
+
+def covariance(arg: str, value, n: int, runs=None, what: str = ""):
+    """A covariance argument (P0, P_theta0): (n, n), (n,) variances, or (runs, n, n) one per
+    run; symmetric positive definite, finite. Returns it as a matrix (variances made diagonal),
+    numpy when concrete, the traced array otherwise (shape checked only).
+
+    Per-run variances, (runs, n), are not a form of their own: when ``runs == n`` they would
+    read as one (n, n) matrix, so they are refused in every case with a message saying how
+    to give them (the diagonal matrices, (runs, n, n)).
+    """
+    a = array(arg, value)
+    shape = tuple(np.shape(a))
+    if shape == (n,):
+        if not is_tracer(a) and np.any(a <= 0):
+            raise ValueError(f"{arg}: expected positive variances, found "
+                             f"{first_bad(a, a <= 0)}")
+        a = jax.numpy.diag(a) if is_tracer(a) else np.diag(a)
+        shape = (n, n)
+    hint = (f"; per-run variances (runs, {n}) are given as diagonal matrices (runs, {n}, {n}), "
+            f"e.g. variances[:, :, None] * np.eye({n})")
+    if not _runs_ok(shape, (n, n), runs):
+        alt = ("" if runs is None else " or " + (f"(runs, {n}, {n})" if runs == ANY_RUNS
+                                                 else f"({runs}, {n}, {n}) (one per run)"))
+        per_run_vars = runs is not None and len(shape) == 2 and shape[1] == n
+        raise ValueError(f"{arg}: expected shape ({n}, {n}), ({n},) variances{alt}"
+                         f"{what and ' for ' + what}, got shape {np.shape(value)}"
+                         + (hint if per_run_vars else ""))
+    if is_tracer(a):
+        return a
+    scale = max(float(np.max(np.abs(a))), np.finfo(float).tiny) if a.size else 1.0
+    if a.ndim == 2 and not np.allclose(a, a.T, rtol=0.0, atol=1e-9 * scale):
+        # with as many runs as states, per-run variances (runs, n) have this shape
+        raise ValueError(f"{arg}: expected a symmetric ({n}, {n}) matrix, got a non-symmetric "
+                         f"one" + (hint if runs in (n, ANY_RUNS) else ""))
+    batched_cov(arg, a)
+    return a
+
+
+def prior(nx: int, x0, P0, runs=None):
+    """Check the state prior: x0 (nx,) and P0 (nx, nx) or (nx,) variances, or one per run
+    ((runs, nx), (runs, nx, nx); ``runs`` as in :func:`per_run`). Returns (x0, P0) with P0 a
+    matrix, numpy when concrete (traced values are checked by dtype and shape only). The one
+    check of x0/P0 for every entry point (filter, run, tune, the filters' init, scenarios)."""
+    what = f"nx = {nx} states"
+    x0 = per_run("x0", x0, (nx,), runs, what)
+    P0 = covariance("P0", P0, nx, runs, what)
+    return x0, P0
+
+
+def theta_prior(names: tuple, theta0, P_theta0, runs=None):
+    """Check a parameter prior theta0 (p,) and P_theta0 (p, p) or (p,) variances (or one per
+    run) of the parameters ``names``; None stays None. Returns (theta0, P_theta0)."""
+    what = f"parameters {tuple(names)}"
+    p = len(names)
+    th = None if theta0 is None else per_run("theta0", theta0, (p,), runs, what)
+    Pth = None if P_theta0 is None else covariance("P_theta0", P_theta0, p, runs, what)
+    return th, Pth
+
+
+def initial_params(names: tuple, theta0, P_theta0, runs=None, *, has_prior: bool,
+                   label: str = "estimator", model_theta: bool = True):
+    """The parameter arguments of ``filter``/``run``: (theta0, P_theta0) checked.
+
+    For a filter that estimates the parameters ``names`` (p > 0): theta0 (p,) and P_theta0
+    (p, p) or (p,) variances (or one per run). A filter with a prior of its own
+    (``has_prior``) takes both or neither; one without takes P_theta0 always and theta0
+    optionally (None: the filter starts from the model's nominal values). For a state-only filter (``names`` empty): theta0, when
+    given, replaces the model's parameter vector, (np,) or (runs, np), real and finite (its
+    length is checked against the model by the filter's ``init``); P_theta0 must be None.
+    Without ``model_theta`` (``run``: a study's filter is built on the model it runs at, and a
+    wrong length could only be found by tracing) a state-only filter takes no theta0 at all.
+    """
+    if not names:
+        if theta0 is not None and not model_theta:
+            raise ValueError(
+                f"theta0: {label} estimates no parameters; pass None, and build the filter on "
+                f"model.with_theta(...) to run it at other model parameters (vehjax.filter "
+                f"takes theta0 for one run)")
+        if P_theta0 is not None:
+            raise ValueError(f"P_theta0: {label} estimates no parameters; pass None (theta0 "
+                             f"alone replaces the model's parameters)")
+        if theta0 is None:
+            return None, None
+        th = array("theta0", theta0)
+        if np.ndim(th) != 1 and not (runs is not None and np.ndim(th) == 2 and (
+                runs == ANY_RUNS or np.shape(th)[0] == runs)):
+            alt = "" if runs is None else " or (runs, np) one per run"
+            raise ValueError(f"theta0: expected the model's parameters, shape (np,){alt}, got "
+                             f"shape {np.shape(th)}")
+        return th, None
+    if P_theta0 is None and (theta0 is not None or not has_prior):
+        raise ValueError(f"P_theta0: required" + (" with theta0" if theta0 is not None else "")
+                         + f", {label} estimates parameters {tuple(names)}; pass P_theta0 "
+                         f"(p, p) or (p,) variances")
+    if theta0 is None and P_theta0 is not None and has_prior:
+        raise ValueError(f"theta0: required with P_theta0 ({label} has a prior of its own: "
+                         f"pass both or neither)")
+    return theta_prior(names, theta0, P_theta0, runs)
+
+
+def data(measurements, inputs, ny, nu, runs: str):
+    """Check a study's data: measurements and inputs, concrete or traced.
+
+    Args:
+        measurements: ``runs == "one"``: (T, ny); ``"many"``: (R, T, ny); ``"either"``: one of
+            the two. NaN components are missing; +-inf, complex and non-numeric refused.
+        inputs: (T, nu) shared by the runs, or (R, T, nu) one per run (not for "one"); None
+            when the model has none (nu == 0).
+        ny, nu: the widths the filter expects, or None (not checked).
+
+    Returns:
+        (ys, us): ys as given in rank; us (T, 0) zeros when ``inputs`` is None.
+    """
+    ys = array("measurements", measurements, missing=True)
+    rank = {"one": (2,), "many": (3,), "either": (2, 3)}[runs]
+    shape = tuple(np.shape(ys))
+    if len(shape) not in rank or 0 in shape[:-1]:
+        want = {"one": "(T, ny) with T >= 1 for one run (for a study of several runs use "
+                       "vehjax.run)",
+                "many": "(runs, steps, ny) with none zero; for a single run pass "
+                        "measurements[None]",
+                "either": "(T, ny) for one run or (R, T, ny) for R runs, T >= 1"}[runs]
+        raise ValueError(f"measurements: expected shape {want}, got {shape}")
+    T = shape[-2]
+    R = shape[0] if len(shape) == 3 else None
+    if ny is not None and shape[-1] != ny:
+        raise ValueError(f"measurements: expected {ny} columns (the model's outputs), "
+                         f"got shape {shape}")
+    if inputs is None:
+        if nu:
+            alt = "" if R is None else f" shared or ({R}, {T}, {nu}) per run"
+            raise ValueError(f"inputs: required, shape ({T}, {nu}){alt} for this model's "
+                             f"{nu} inputs")
+        return ys, np.zeros((T, 0), ys.dtype) if not is_tracer(ys) else jax.numpy.zeros(
+            (T, 0), ys.dtype)
+    us = array("inputs", inputs)
+    ushape = tuple(np.shape(us))
+    n = "nu" if nu is None else nu
+    if len(ushape) in (2, 3) and nu is not None and ushape[-1] != nu:
+        raise ValueError(f"inputs: expected {nu} columns (the model's inputs), shape ({T}, {nu})"
+                         + ("" if R is None else f" or ({R}, {T}, {nu})") + f", got {ushape}")
+    if not (len(ushape) == 2 and ushape[0] == T) and not (
+            R is not None and len(ushape) == 3 and ushape[:2] == (R, T)):
+        alt = "" if R is None else f" (shared by all runs) or ({R}, {T}, {n}) (one per run)"
+        hint = "; for a single input pass inputs[:, None]" if len(ushape) == 1 else ""
+        raise ValueError(f"inputs: expected shape ({T}, {n}){alt} to match measurements "
+                         f"{shape}, got {ushape}{hint}")
+    return ys, us
+
+
+#: What a model must offer (:class:`vehjax.models.base.ModelProtocol`, checked here by name so
+#: that this module imports nothing of vehjax's).
+MODEL_ATTRS = ("dt", "theta", "state_names", "input_names", "param_names", "output_names",
+               "transition", "observe")
 
 
 def model(value):
-    """``value`` if it satisfies :class:`vehjax.models.base.ModelProtocol` (and, for a model
-    class of the user's own, its functions return the declared shapes), else ValueError."""
-    from .models.base import BaseModel, ModelProtocol
-
-    if not isinstance(value, ModelProtocol):
+    """``value`` if it has what :class:`vehjax.models.base.ModelProtocol` asks for (and, for a
+    model class of the user's own, its functions return real arrays of the declared shapes),
+    else ValueError naming ``model``. Models that checked themselves at construction declare it
+    with a class attribute ``shapes_checked = True`` (every vehjax model)."""
+    if isinstance(value, type) or not all(hasattr(value, a) for a in MODEL_ATTRS):
         raise ValueError(
             f"model: expected a vehjax model (transition, observe, theta and the names of its "
             f"states, inputs, parameters and outputs), got {type(value).__name__}"
         )
-    if not isinstance(value, BaseModel):  # vehjax's own models check at construction
+    if not getattr(type(value), "shapes_checked", False):
         model_shapes(value)
     return value
 
 
 def model_shapes(model) -> None:
     """ValueError naming ``transition`` or ``observe`` when the model's functions do not map
-    (nx,), (nu,), (np,) arrays to (nx,) and (ny,) arrays (traced once, by shape)."""
+    (nx,), (nu,), (np,) float64 arrays to real floating (nx,) and (ny,) arrays (traced once,
+    by shape and dtype: a function returning complex numbers is refused)."""
     nx, nu = len(model.state_names), len(model.input_names)
     ny, n_par = len(model.output_names), len(model.param_names)
     sd = jax.ShapeDtypeStruct
@@ -218,6 +432,10 @@ def model_shapes(model) -> None:
                 f"{name}: expected it to return shape ({n},) for the model's {n} {what}, "
                 f"got {shape if shape is not None else type(out).__name__}"
             )
+        dtype = np.dtype(out.dtype)
+        if not np.issubdtype(dtype, np.floating):
+            raise ValueError(f"{name}: expected it to return real floating values, got dtype "
+                             f"{dtype}")
 
 
 def key(value, n: int):

@@ -4,11 +4,67 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import math
 import sys
 import textwrap
 from pathlib import Path
 
-BENCHMARKS = ("gaussian", "particle", "marginalized", "sevendof", "scale", "all", "liu_west_bias")
+BENCHMARKS = ("gaussian", "particle", "marginalized", "sevendof", "scale", "all", "liu_west_bias",
+              "device")
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse's parser whose user errors are one line on stderr and exit code 2 (no usage
+    block): ``vehjax: error: --runs: expected an integer >= 1, got '0'``. Subparsers and the
+    reproductions' parsers use it too."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _number(kind, low=None, high=None, low_open=False):
+    """An argparse type: a finite ``kind`` (int or float) with low <= value (< when
+    ``low_open``) <= high; else a one-line error naming what was expected."""
+    rng = "" if low is None else (f" > {low:g}" if low_open else f" >= {low:g}")
+    rng += "" if high is None else (" and" if rng else "") + f" <= {high:g}"
+    what = ("an integer" if kind is int else "a finite number") + rng
+
+    def parse(text):
+        try:
+            v = kind(text)
+        except (TypeError, ValueError):
+            v = None
+        if v is None or not math.isfinite(v) or (low is not None and (
+                v <= low if low_open else v < low)) or (high is not None and v > high):
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return v
+
+    parse.__name__ = "integer" if kind is int else "number"
+    return parse
+
+
+#: argparse types of the command-line numbers (finite, in range)
+count = _number(int, 1)  # runs, particles: an integer >= 1
+integer = _number(int)  # random seed: any integer
+positive = _number(float, 0.0, low_open=True)  # seconds, m/s, factors: finite and > 0
+finite = _number(float)  # any finite number
+
+
+def at_least(kind, low):
+    """argparse type: a finite ``kind`` (int or float) >= ``low``."""
+    return _number(kind, low)
+
+
+def out_folder(text: str) -> str:
+    """argparse type of ``--out``: a folder that exists or can be made (no part of the path an
+    existing file), refused at parsing, before any work starts."""
+    path = Path(text)
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                raise argparse.ArgumentTypeError(f"{str(p)!r} exists and is not a folder")
+            break
+    return text
 
 
 def _cmd_models(args) -> int:
@@ -23,10 +79,13 @@ def _cmd_models(args) -> int:
 def _floats(text: str) -> list[float]:
     """``"0.1"`` or ``"0.1,0.1,0.02"`` -> list of floats (argparse type of the noise options)."""
     try:
-        return [float(v) for v in str(text).split(",") if v.strip()]
+        values = [float(v) for v in str(text).split(",") if v.strip()]
     except ValueError:
+        values = []
+    if not values or not all(math.isfinite(v) for v in values):
         raise argparse.ArgumentTypeError(
-            f"expected a number or comma-separated numbers, got {text!r}") from None
+            f"expected a finite number or comma-separated finite numbers, got {text!r}")
+    return values
 
 
 def _per_component(option: str, values: list[float], names, units) -> list[float]:
@@ -141,7 +200,7 @@ def _bench_studies():
 def build_parser() -> argparse.ArgumentParser:
     from . import models, scenarios
 
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="vehjax", description="Batched, jitted state and parameter estimation for road vehicles."
     )
     sub = parser.add_subparsers(dest="command", required=True)
@@ -156,9 +215,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "lists each model's states and outputs with their units.")
     p.add_argument("model", choices=sorted(models.REGISTRY))
     p.add_argument("scenario", choices=sorted(scenarios.REGISTRY))
-    p.add_argument("--runs", type=int, default=10, help="Monte-Carlo runs (default 10)")
-    p.add_argument("--speed", type=float, default=20.0, help="speed in m/s (default 20)")
-    p.add_argument("--dt", type=float, default=0.01, help="sampling period in s (default 0.01)")
+    p.add_argument("--runs", type=count, default=10, help="Monte-Carlo runs (default 10)")
+    p.add_argument("--speed", type=positive, default=20.0, help="speed in m/s (default 20)")
+    p.add_argument("--dt", type=positive, default=0.01, help="sampling period in s (default 0.01)")
     p.add_argument("--process-std", type=_floats, default=[0.0], metavar="STD[,STD...]",
                    help="process noise std per step, in state units: one value for every state "
                         "or one per state, comma-separated (default 0: no process noise, every "
@@ -167,8 +226,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="measurement noise std, in output units: one value for every output or "
                         "one per output, comma-separated, e.g. 0.1,0.1,0.01 for Dynamic3DOF's "
                         "vx [m/s], vy [m/s], r [rad/s] (default 0.1 on every output)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--out", default="out", help="output folder (default ./out)")
+    p.add_argument("--seed", type=integer, default=0, help="random seed (default 0)")
+    p.add_argument("--out", type=out_folder, default="out", help="output folder (default ./out)")
     p.set_defaults(func=_cmd_simulate)
 
     from . import reproduce
@@ -200,12 +259,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    """Run the command and return its exit code; a user error (a bad option, a ValueError
+    naming an argument, a path that cannot be written) is one line on stderr and code 2, never
+    a traceback. ``--help`` exits (SystemExit 0) as argparse does."""
     parser = build_parser()
-    args = parser.parse_args(argv)
     try:
+        args = parser.parse_args(argv)
         return int(args.func(args) or 0)
-    except ValueError as err:
-        print(f"vehjax: error: {err}", file=sys.stderr)
+    except SystemExit as done:  # --help (0) goes on; a refused option (2) is returned
+        if done.code == 2:
+            return 2
+        raise
+    except (ValueError, OSError) as err:
+        text = " ".join(str(err).split())  # one line
+        print(f"vehjax: error: {text}", file=sys.stderr)
         return 2
 
 

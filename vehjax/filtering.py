@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _validate
 from .filters._bounds import check_inside
 from .filters._linalg import is_pd
 from .filters.base import Estimator, StepOutput
@@ -115,6 +116,8 @@ def start(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
 
     if p and th0 is None and estimator.param_prior is not None:
         th0, Pth0 = estimator.param_prior
+    if not p:  # a state-only filter's theta0 is the model's parameters, not an estimate
+        th0 = Pth0 = None
     # no prior given (a filter that starts from the model's nominal values): NaN until the
     # first step's estimate, which is what the held value is for
     held0 = (
@@ -247,41 +250,25 @@ def one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key
 # The public single-run function
 
 
-def _shape_check(estimator, ys, us, x0, P0, theta0, P_theta0, key):
+def _checked(estimator, ys, us, x0, P0, theta0, P_theta0, key):
+    """The arguments of :func:`filter` checked by :mod:`vehjax._validate` (the rules every
+    entry point shares): concrete values in full, traced ones by dtype and shape."""
     if not isinstance(estimator, Estimator):
         raise ValueError(
             f"estimator: expected a vehjax.filters.Estimator, got {type(estimator).__name__}"
         )
-    nx = estimator.nx
-    ys_shape = np.shape(ys)
-    if len(ys_shape) != 2 or ys_shape[0] == 0:
-        raise ValueError(
-            f"measurements: expected shape (T, ny) with T >= 1 for one run, got {ys_shape}; "
-            f"for a study of several runs use vehjax.run"
-        )
-    T, ny = ys_shape
-    if estimator.ny is not None and ny != estimator.ny:
-        raise ValueError(
-            f"measurements: expected {estimator.ny} columns (the model's outputs), got {ny}"
-        )
-    nu = estimator.nu
-    if us is None:
-        if nu:
-            raise ValueError(f"inputs: required, shape ({T}, {nu}) for this model's inputs")
-    elif np.ndim(us) != 2 or np.shape(us)[0] != T or (nu is not None and np.shape(us)[1] != nu):
-        want = f"({T}, {nu if nu is not None else 'nu'})"
-        raise ValueError(f"inputs: expected shape {want} to match measurements {ys_shape}, "
-                         f"got {np.shape(us)}")
-    if np.shape(x0) != (nx,):
-        raise ValueError(f"x0: expected shape ({nx},), got {np.shape(x0)}")
-    if np.shape(P0) not in ((nx, nx), (nx,)):
-        raise ValueError(f"P0: expected shape ({nx}, {nx}) or ({nx},) variances, got "
-                         f"{np.shape(P0)}")
+    ys, us = _validate.data(ys, us, estimator.ny, estimator.nu, "one")
+    x0, P0 = _validate.prior(estimator.nx, x0, P0)
+    th0, Pth0 = _validate.initial_params(
+        tuple(estimator.param_names), theta0, P_theta0,
+        has_prior=estimator.param_prior is not None, label=f"estimator {estimator.name!r}")
     if estimator.needs_key and key is None:
         raise ValueError(
             f"key: estimator {estimator.name!r} draws random numbers; pass key=jax.random.key(...)"
         )
-    check_theta0(estimator, theta0)
+    if estimator.param_names:
+        check_theta0(estimator, th0)
+    return ys, us, x0, P0, th0, Pth0
 
 
 def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_theta0=None,
@@ -295,13 +282,15 @@ def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_th
 
     Args:
         estimator: a :class:`vehjax.filters.Estimator`.
-        measurements: (T, ny); NaN (or +-inf) components are missing.
+        measurements: (T, ny); NaN components are missing; +-inf is refused (under a trace,
+            where values are unknown, any non-finite component is treated as missing).
         inputs: (T, nu); None when the model has no inputs.
         x0: state before the first step, (nx,).
         P0: its covariance, (nx, nx) or (nx,) variances.
-        theta0, P_theta0: initial parameter estimate (p,) and covariance (p, p) for filters that
-            estimate parameters (``estimator.param_prior`` when None, if the filter has one);
-            for state-only filters ``theta0`` (np,) replaces the model's parameters.
+        theta0, P_theta0: initial parameter estimate (p,) and covariance (p, p) or (p,)
+            variances for filters that estimate parameters, both or neither
+            (``estimator.param_prior`` when None, if the filter has one); for state-only
+            filters ``theta0`` (np,) replaces the model's parameters and P_theta0 is None.
         key: PRNG key, required when ``estimator.needs_key``.
         return_covariances: also return ``covariances`` and ``params_cov``.
 
@@ -309,19 +298,14 @@ def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_th
         :class:`FilterResult` of arrays (module docstring for divergence and ``at_bound``).
 
     Raises:
-        ValueError: naming the argument, for shapes that do not fit (checked on shapes, so also
-            under ``jit``), a missing key, a concrete theta0 outside ``estimator.bounds``.
+        ValueError: naming the argument (and the first bad index), by the rules every entry
+            point shares (:mod:`vehjax._validate`): shapes that do not fit and complex or
+            non-numeric arrays (also under ``jit``); for concrete values also +-inf
+            measurements, non-finite inputs, x0, P0, theta0, P_theta0, covariances that are
+            not symmetric positive definite, a theta0 outside ``estimator.bounds``; a missing
+            key.
     """
-    _shape_check(estimator, measurements, inputs, x0, P0, theta0, P_theta0, key)
-    ys = jnp.asarray(measurements)
-    T = ys.shape[0]
-    us = jnp.zeros((T, 0), ys.dtype) if inputs is None else jnp.asarray(inputs)
-    if len(estimator.param_names) and estimator.param_prior is None and P_theta0 is None:
-        raise ValueError(
-            f"P_theta0: required, estimator {estimator.name!r} estimates parameters "
-            f"{tuple(estimator.param_names)}"
-        )
-    P0 = jnp.asarray(P0)
-    P0 = jnp.diag(P0) if P0.ndim == 1 else P0
-    return one_run(estimator, bool(return_covariances), ys, us, jnp.asarray(x0), P0, theta0,
-                   P_theta0, key)
+    ys, us, x0, P0, th0, Pth0 = _checked(estimator, measurements, inputs, x0, P0, theta0,
+                                         P_theta0, key)
+    return one_run(estimator, bool(return_covariances), jnp.asarray(ys), jnp.asarray(us),
+                   jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key)

@@ -237,18 +237,19 @@ def sine_with_dwell(model, speed: float = 22.0, amplitude: float = 0.08, frequen
 
 
 def from_inputs(model, inputs, x0, name: str = "custom"):
-    """Wrap an input sequence (T, nu) and initial state (nx,) of your own as a Scenario."""
-    inputs = np.asarray(inputs, dtype=float)
-    x0 = np.asarray(x0, dtype=float)
-    if inputs.ndim != 2 or inputs.shape[1] != len(model.input_names):
+    """Wrap an input sequence (T, nu) and initial state (nx,) of your own as a Scenario.
+
+    Checked by the rules every entry point shares (:mod:`vehjax._validate`): real, finite,
+    T >= 1; ValueError naming ``inputs`` or ``x0`` and the first bad index."""
+    _validate.model(model)
+    nu, nx = len(model.input_names), len(model.state_names)
+    inputs = np.asarray(_validate.array("inputs", inputs), dtype=float)
+    if inputs.ndim != 2 or inputs.shape[1] != nu or inputs.shape[0] == 0:
         raise ValueError(
-            f"inputs: expected shape (T, {len(model.input_names)}) for inputs "
+            f"inputs: expected shape (T, {nu}) with T >= 1 for inputs "
             f"{tuple(model.input_names)}, got {inputs.shape}"
         )
-    if x0.shape != (len(model.state_names),):
-        raise ValueError(f"x0: expected shape ({len(model.state_names)},), got {x0.shape}")
-    if not (np.all(np.isfinite(inputs)) and np.all(np.isfinite(x0))):
-        raise ValueError("inputs, x0: expected finite values")
+    x0 = np.asarray(_validate.per_run("x0", x0, (nx,), what=f"nx = {nx} states"), dtype=float)
     t = np.arange(inputs.shape[0]) * model.dt
     path = np.full((inputs.shape[0], 3), np.nan)
     return Scenario(name, t, jnp.asarray(inputs), jnp.asarray(x0), tuple(model.input_names), path)

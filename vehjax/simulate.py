@@ -100,6 +100,26 @@ def _scale(name: str, value, t: np.ndarray):
     return arr
 
 
+def _scenario(model, scenario):
+    """(inputs (T, nu), x0 (nx,)) of a Scenario, checked against ``model`` by the rules every
+    entry point shares (:mod:`vehjax._validate`: real, finite, naming ``scenario.inputs`` or
+    ``scenario.x0`` and the first bad index), also for a Scenario built directly."""
+    if not all(hasattr(scenario, a) for a in ("inputs", "x0")):
+        raise ValueError(f"scenario: expected a vehjax.scenarios.Scenario (inputs, x0), got "
+                         f"{type(scenario).__name__}")
+    nu, nx = len(model.input_names), len(model.state_names)
+    inputs = np.asarray(_validate.array("scenario.inputs", scenario.inputs), dtype=float)
+    if inputs.ndim != 2 or inputs.shape[1] != nu or inputs.shape[0] == 0:
+        raise ValueError(
+            f"scenario.inputs: expected shape (T, {nu}) with T >= 1 for {type(model).__name__}'s "
+            f"inputs {tuple(model.input_names)}, got {inputs.shape}; build the scenario for "
+            f"this model"
+        )
+    x0 = np.asarray(_validate.per_run("scenario.x0", scenario.x0, (nx,),
+                                      what=f"{type(model).__name__}'s {nx} states"), dtype=float)
+    return inputs, x0
+
+
 def simulate(
     model,
     scenario,
@@ -147,15 +167,7 @@ def simulate(
         raise ValueError(f"runs: expected an integer >= 1, got {runs!r}")
     runs = int(runs)
     nx, ny, n_par = len(model.state_names), len(model.output_names), len(model.param_names)
-    inputs = np.asarray(scenario.inputs, dtype=float)
-    if inputs.ndim != 2 or inputs.shape[1] != len(model.input_names):
-        raise ValueError(
-            f"scenario: its inputs have shape {inputs.shape}, expected (T, {len(model.input_names)}) "
-            f"for {type(model).__name__}; build the scenario for this model"
-        )
-    x0 = np.asarray(scenario.x0, dtype=float)
-    if x0.shape != (nx,):
-        raise ValueError(f"scenario: its x0 has shape {x0.shape}, expected ({nx},)")
+    inputs, x0 = _scenario(model, scenario)
     n_steps = inputs.shape[0]
     t = np.arange(n_steps) * model.dt
 
@@ -185,11 +197,9 @@ def simulate(
             )
         offset[list(model.input_names).index("delta")] = steering_offset
 
-    base_theta = np.asarray(model.theta if theta is None else theta, dtype=float)
-    if base_theta.shape not in ((n_par,), (runs, n_par)):
-        raise ValueError(f"theta: expected shape ({n_par},) or ({runs}, {n_par}), got {base_theta.shape}")
-    if not np.all(np.isfinite(base_theta)):
-        raise ValueError("theta: expected finite values")
+    base_theta = _validate.per_run("theta", np.asarray(model.theta) if theta is None else theta,
+                                   (n_par,), runs, f"parameters {tuple(model.param_names)}")
+    base_theta = np.asarray(base_theta, dtype=float)
     base_theta = np.broadcast_to(base_theta, (runs, n_par))
     keys = _validate.key(jax.random.key(0) if key is None else key, runs)
 

@@ -14,37 +14,21 @@ def validate_prior(est, x0, P0) -> None:
     """Check a prior before tracing; ``est`` is an Estimator or the state dimension nx.
 
     ``x0`` is (nx,) or batched (R, nx); ``P0`` is (nx, nx) or (nx,) variances, or batched
-    (R, nx, nx). Raises ValueError naming ``x0`` or ``P0`` for a wrong shape, non-finite
-    entries or a covariance that is not symmetric positive definite. Traced values are skipped
-    (only their shapes are checked).
+    (R, nx, nx). Raises ValueError naming ``x0`` or ``P0`` (:func:`vehjax._validate.prior`,
+    the one check of a prior).
     """
     nx = est if isinstance(est, (int, np.integer)) else est.nx
-    xs, Ps = np.shape(x0), np.shape(P0)
-    if len(xs) not in (1, 2) or xs[-1] != nx:
-        raise ValueError(f"x0: expected shape ({nx},) or (runs, {nx}), got shape {xs}")
-    if Ps not in ((nx,), (nx, nx)) and not (len(Ps) == 3 and Ps[1:] == (nx, nx)):
-        raise ValueError(
-            f"P0: expected shape ({nx}, {nx}), ({nx},) variances or (runs, {nx}, {nx}), "
-            f"got shape {Ps}"
-        )
-    if not _validate.is_tracer(x0) and not np.all(np.isfinite(np.asarray(x0, dtype=float))):
-        raise ValueError("x0: expected finite values")
-    if not _validate.is_tracer(P0):
-        P = np.asarray(P0, dtype=float)
-        for i, Pi in enumerate(P.reshape((-1,) + Ps[-2:]) if P.ndim == 3 else [P]):
-            _validate.cov("P0" if P.ndim < 3 else f"P0[{i}]", Pi, nx)
+    _validate.prior(nx, x0, P0, runs=_validate.ANY_RUNS)
 
 
 def prior(nx: int, x0, P0):
-    """x0, P0 as arrays of one float dtype, checked (shapes always, values when concrete);
-    P0 given as (nx,) variances becomes diagonal."""
-    _validate.prior(nx, x0, P0)
+    """x0, P0 as arrays of one float dtype, checked (:func:`vehjax._validate.prior`: shapes
+    always, values when concrete); P0 given as (nx,) variances becomes diagonal."""
+    x0, P0 = _validate.prior(nx, x0, P0)
     x0, P0 = jnp.asarray(x0), jnp.asarray(P0)
     dtype = jnp.result_type(x0.dtype, P0.dtype)
     if not jnp.issubdtype(dtype, jnp.floating):
         dtype = jnp.asarray(0.0).dtype  # the default float (float64 under vehjax)
-    if P0.ndim == 1:
-        P0 = jnp.diag(P0)
     return x0.astype(dtype), P0.astype(dtype)
 
 

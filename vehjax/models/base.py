@@ -26,6 +26,8 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _validate
+
 INTEGRATORS = ("euler", "rk4")
 
 
@@ -41,8 +43,6 @@ def integrate(derivative: Callable, x, u, theta, dt: float, integrator: str):
 
 
 def _check_dt(dt) -> float:
-    from .. import _validate
-
     return _validate.number("dt", dt, 0.0)
 
 
@@ -64,14 +64,13 @@ def _check_names(arg: str, names) -> tuple[str, ...]:
 
 
 def _check_theta(theta, param_names: tuple[str, ...]):
-    theta = np.asarray(theta, dtype=float).reshape(-1) if np.ndim(theta) <= 1 else np.asarray(theta)
+    theta = _validate.array("theta", theta)  # real and finite, or ValueError naming theta
+    theta = theta.astype(np.float64).reshape(-1) if theta.ndim <= 1 else theta
     if theta.ndim != 1 or theta.shape[0] != len(param_names):
         raise ValueError(
             f"theta: expected shape ({len(param_names)},) for parameters {param_names}, "
             f"got shape {np.shape(theta)}"
         )
-    if not np.all(np.isfinite(theta)):
-        raise ValueError(f"theta: expected finite values, got {theta}")
     return jnp.asarray(theta)
 
 
@@ -130,6 +129,9 @@ class BaseModel(eqx.Module):
 
     dt: float = eqx.field(static=True)
     theta: jnp.ndarray
+    #: its functions' shapes and dtypes were checked (:func:`vehjax._validate.model_shapes`):
+    #: at construction for :class:`Model`, by the tests for the built-in models
+    shapes_checked: ClassVar[bool] = True
 
     @property
     def nx(self) -> int:
@@ -301,8 +303,6 @@ class Model(BaseModel):
         theta = np.zeros(len(self.param_names)) if theta is None else theta
         self.theta = _check_theta(theta, self.param_names)
         self.units = tuple(sorted((units or {}).items()))
-        from .. import _validate
-
         _validate.model_shapes(self)  # transition -> (nx,), observe -> (ny,), or ValueError
 
     def _probe_output(self):

@@ -70,7 +70,6 @@ Drive (sec. 5, ``--drive``):
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
 from pathlib import Path
@@ -100,21 +99,23 @@ BANK_DEG = 6.0
 def parser():
     """The study's options (``vehjax reproduce berntorp2018 --help``); each help states its
     default."""
-    p = argparse.ArgumentParser(
+    from .. import cli as _cli  # one-line user errors, finite numbers in range
+
+    p = _cli.ArgumentParser(
         prog="vehjax reproduce berntorp2018",
         description=f"Adaptive marginalized PF, steering offset and IMU noise statistics: {PAPER}. "
                     "Writes report.md (tables and figures) and results.npz.")
     p.add_argument("--drive", action="store_true",
                    help="the real-drive study (sec. 5) instead of the simulation (default: simulation)")
-    p.add_argument("--runs", type=int, default=100,
+    p.add_argument("--runs", type=_cli.count, default=100,
                    help="Monte-Carlo runs / executions (default %(default)s)")
-    p.add_argument("--particles", type=int, default=None,
+    p.add_argument("--particles", type=_cli.count, default=None,
                    help="particles N (default 100 in simulation, 500 with --drive)")
-    p.add_argument("--duration", type=float, default=None,
+    p.add_argument("--duration", type=_cli.positive, default=None,
                    help="seconds of driving (default 180 in simulation; with --drive the whole "
                         "60 s segment)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
-    p.add_argument("--out", default="out/berntorp2018",
+    p.add_argument("--seed", type=_cli.integer, default=0, help="random seed (default %(default)s)")
+    p.add_argument("--out", type=_cli.out_folder, default="out/berntorp2018",
                    help="output folder (default %(default)s, with --drive %(default)s_drive)")
     p.add_argument("--variant", choices=("planar", "bank"), default="bank",
                    help="--drive filter: planar (Remark 2) or bank (phi unmeasured) "

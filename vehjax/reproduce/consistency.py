@@ -63,7 +63,6 @@ matched noise in ``vehjax reproduce dutta2019`` ("Consistency" tables, kinematic
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
 from pathlib import Path
@@ -127,24 +126,26 @@ _KNOWN = {"phi": math.radians(0.5), "r_virt": math.radians(0.3)}
 def parser():
     """The study's options (``vehjax reproduce consistency --help``); each help states its
     default."""
-    p = argparse.ArgumentParser(
+    from .. import cli as _cli  # one-line user errors, finite numbers in range
+
+    p = _cli.ArgumentParser(
         prog="vehjax reproduce consistency",
         description=f"{PAPER}. Writes report.md and consistency.csv.")
-    p.add_argument("--runs", type=int, default=100, help="Monte-Carlo runs (default %(default)s)")
-    p.add_argument("--duration", type=float, default=3.0,
+    p.add_argument("--runs", type=_cli.count, default=100, help="Monte-Carlo runs (default %(default)s)")
+    p.add_argument("--duration", type=_cli.positive, default=3.0,
                    help="seconds per run at 100 Hz (default %(default)s)")
     p.add_argument("--models", default=",".join(MODELS),
                    help="comma-separated built-in models (default: all, %(default)s)")
     p.add_argument("--filters", default=",".join(FILTERS),
                    help="comma-separated filters (default: all, %(default)s; the MPFs run "
                         "on SingleTrackBank only)")
-    p.add_argument("--particles", type=int, default=None,
+    p.add_argument("--particles", type=_cli.count, default=None,
                    help="particles of the bootstrap PF and the MPF on every model (default: "
                         "what each model needs, PARTICLES: "
                         + ", ".join(f"{k} {v}" for k, v in PARTICLES.items())
                         + f", {DEFAULT_PARTICLES} otherwise)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
-    p.add_argument("--out", default="out/consistency", help="output folder (default %(default)s)")
+    p.add_argument("--seed", type=_cli.integer, default=0, help="random seed (default %(default)s)")
+    p.add_argument("--out", type=_cli.out_folder, default="out/consistency", help="output folder (default %(default)s)")
     return p
 
 

@@ -65,7 +65,6 @@ How the paper is read (it leaves these open; each choice is ours and printed wit
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -1033,20 +1032,22 @@ def _figure(report: list, path: Path, caption: str) -> Path:
 
 def parser():
     """The study's options (``vehjax reproduce dutta2019 --help``); each help states its default."""
-    p = argparse.ArgumentParser(
+    from .. import cli as _cli  # one-line user errors, finite numbers in range
+
+    p = _cli.ArgumentParser(
         prog="vehjax reproduce dutta2019",
         description="Dual EKF, Dual UKF and Liu-West Particle+UKF on the kinematic and the 3-DOF "
                     "dynamic model (Dutta et al. 2019, Tables I-III, Fig. 4-12). Writes report.md, "
                     "which links the figures. A quick run: --runs 10.",
     )
-    p.add_argument("--runs", type=int, default=100, help="Monte-Carlo runs per filter (default %(default)s)")
-    p.add_argument("--particles", type=int, default=1000,
+    p.add_argument("--runs", type=_cli.count, default=100, help="Monte-Carlo runs per filter (default %(default)s)")
+    p.add_argument("--particles", type=_cli.count, default=1000,
                    help="Particle+UKF particles M (default %(default)s)")
-    p.add_argument("--kinematic-duration", type=float, default=60.0,
+    p.add_argument("--kinematic-duration", type=_cli.positive, default=60.0,
                    help="kinematic stage length, s (default %(default)g)")
-    p.add_argument("--dynamic-duration", type=float, default=60.0,
+    p.add_argument("--dynamic-duration", type=_cli.positive, default=60.0,
                    help="dynamic stage length, s (default %(default)g)")
-    p.add_argument("--dt", type=float, default=0.02, help="sampling period, s (default %(default)g)")
+    p.add_argument("--dt", type=_cli.positive, default=0.02, help="sampling period, s (default %(default)g)")
     p.add_argument("--filters", default=",".join(_FILTERS),
                    help="comma-separated subset of the filters (default all: %(default)s)")
     p.add_argument("--settings", default=",".join(_SETTINGS),
@@ -1061,8 +1062,8 @@ def parser():
                         "m, cx, cy; module docstring) (default %(default)s)")
     p.add_argument("--no-frequency-study", action="store_true",
                    help="skip the Fig. 6 study (default: run it)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
-    p.add_argument("--out", default="out/dutta2019",
+    p.add_argument("--seed", type=_cli.integer, default=0, help="random seed (default %(default)s)")
+    p.add_argument("--out", type=_cli.out_folder, default="out/dutta2019",
                    help="folder for report.md and the figures (default %(default)s)")
     return p
 

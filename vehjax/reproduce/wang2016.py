@@ -103,7 +103,6 @@ Reading (20 runs x 10 s, seed 0; RMSE, ACKF = the user settings):
 
 from __future__ import annotations
 
-import argparse
 import csv
 import math
 import time
@@ -201,27 +200,29 @@ def _large_prior(re):
 
 def parser():
     """The study's options (``vehjax reproduce wang2016 --help``); each help states its default."""
-    p = argparse.ArgumentParser(
+    from .. import cli as _cli  # one-line user errors, finite numbers in range
+
+    p = _cli.ArgumentParser(
         prog="vehjax reproduce wang2016",
         description=f"EKF, UKF, CKF and ACKF on the 7-DOF model in a double lane change: {PAPER}. "
                     "Writes report.md (tables and figures), table1.md, table1.csv, "
                     "consistency.csv, results.npz.")
-    p.add_argument("--runs", type=int, default=100, help="Monte-Carlo runs (default %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
-    p.add_argument("--out", default="out/wang2016", help="output folder (default %(default)s)")
+    p.add_argument("--runs", type=_cli.count, default=100, help="Monte-Carlo runs (default %(default)s)")
+    p.add_argument("--seed", type=_cli.integer, default=0, help="random seed (default %(default)s)")
+    p.add_argument("--out", type=_cli.out_folder, default="out/wang2016", help="output folder (default %(default)s)")
     p.add_argument("--cases", default=",".join(CASES),
                    help="comma-separated subset of the cases a (R varies), b (wrong Q/R guess), "
                         "c (control) (default all: %(default)s)")
     p.add_argument("--filters", default=",".join(FILTERS),
                    help="comma-separated subset of the filters (default all: %(default)s)")
-    p.add_argument("--duration", type=float, default=10.0,
+    p.add_argument("--duration", type=_cli.positive, default=10.0,
                    help="manoeuvre length, s (default %(default)g, the paper's)")
-    p.add_argument("--speed", type=float, default=80.0 / 3.6,
+    p.add_argument("--speed", type=_cli.positive, default=80.0 / 3.6,
                    help="m/s (default 22.2 = 80 km/h, the ISO 3888-1 test speed)")
-    p.add_argument("--param-error", type=float, default=0.3,
+    p.add_argument("--param-error", type=_cli.finite, default=0.3,
                    help="relative error of the filters' m and iz in cases a, b (default "
                         "%(default)g; the control keeps 0.1)")
-    p.add_argument("--r-factor", type=float, default=30.0,
+    p.add_argument("--r-factor", type=_cli.positive, default=30.0,
                    help="case b: the filters' R0 over the peak R (default %(default)g)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures (default: draw them)")
     return p
