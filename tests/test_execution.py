@@ -73,10 +73,11 @@ FAMILIES = _families()
 def test_each_platform_has_its_rules():
     cpu, gpu, tpu = (execution.for_platform(p) for p in ("cpu", "gpu", "tpu"))
     assert cpu.block_numbers and cpu.chunk_work and cpu.elemental_emitter
-    assert cpu.substitute_elementary and cpu.runs_last
+    assert cpu.substitute_elementary and cpu.runs_last and cpu.prefetch_inputs
     for s in (gpu, tpu):
         assert s.block_numbers is None and s.chunk_work is None
         assert not s.elemental_emitter and not s.substitute_elementary and s.runs_last
+        assert not s.prefetch_inputs
     assert execution.for_platform("cuda") == gpu
     assert execution.for_platform("gpu", device_memory=80 * 2**30).chunk_bytes == 20 * 2**30
     assert execution.for_device(jax.devices()[0]) == cpu  # this machine

@@ -41,7 +41,9 @@ CPU (measured on a 2-core x86-64 machine, float64, ``vehjax bench all``/``bench 
   with :mod:`vehjax._elementary`'s arithmetic forms, which vectorise: about twice as fast a
   filter on a model written with trigonometry.
 * **Runs-last step** (``runs_last``): a filter's batched step with the runs axis last
-  (:mod:`vehjax.filters.runs_last`) vectorises across runs: 1.3-2x faster than vmapping.
+  (:mod:`vehjax.filters.runs_last`) vectorises across runs: 1.3-2x faster than vmapping. Its
+  prepared inputs reach it through the scan's carry where the filter asks (``prefetch_inputs``;
+  EKF about 11 % faster, 3-DOF user model, 100 x 1000).
 
 GPU (one H100, float64, jax 0.11.2, measured once through the public API, issue #28):
 
@@ -52,7 +54,8 @@ GPU (one H100, float64, jax 0.11.2, measured once through the public API, issue 
 * **Substitutes off**: the GPU has vector sin/cos; measured within 5 % either way, so the
   model's functions are used as written.
 * **Runs-last step on**: 1.35-1.6x faster than the vmapped step there too (UKF 59-61 vs 80-87 ms,
-  EKF 67-73 vs 110 ms at 1000 x 1000).
+  EKF 67-73 vs 110 ms at 1000 x 1000). Inputs not prefetched through the carry (a CPU fusion
+  rule; not measured on a GPU).
 * **Chunks from the device's memory**: a quarter of the device's memory limit
   (``memory_stats()["bytes_limit"]``) per chunk, no work limit (a chunk is milliseconds).
 
@@ -110,6 +113,9 @@ class Strategy(NamedTuple):
             trigonometric substitutes (:mod:`vehjax._substitute`).
         results_to_host: bring each chunk's results to host memory (numpy) as it finishes;
             False keeps them on the device (``RunResult`` of jax arrays, one device).
+        prefetch_inputs: hand a runs-last step its prepared inputs through the scan's carry
+            where the filter's ``Batch.prefetch`` asks for it (a CPU measurement: XLA:CPU fuses
+            a slice of a scanned-over array into every kernel that reads it); False: never.
     """
 
     platform: str
@@ -120,6 +126,7 @@ class Strategy(NamedTuple):
     elemental_emitter: bool
     substitute_elementary: bool
     results_to_host: bool = True
+    prefetch_inputs: bool = True
 
 
 def for_platform(platform: str, device_memory: int | None = None) -> Strategy:
@@ -133,7 +140,8 @@ def for_platform(platform: str, device_memory: int | None = None) -> Strategy:
         budget = (_DEVICE_CHUNK_FALLBACK if device_memory is None
                   else int(_DEVICE_CHUNK_FRACTION * device_memory))
         return Strategy("tpu" if name == "tpu" else "gpu", budget, None, None, runs_last=True,
-                        elemental_emitter=False, substitute_elementary=False)
+                        elemental_emitter=False, substitute_elementary=False,
+                        prefetch_inputs=False)
     raise ValueError(f"strategy: unknown platform {platform!r}; expected 'cpu', 'gpu' or 'tpu'")
 
 
@@ -210,7 +218,8 @@ def _check(s: Strategy) -> None:
     positive("chunk_bytes", s.chunk_bytes, False)
     positive("chunk_work", s.chunk_work, True)
     positive("block_numbers", s.block_numbers, True)
-    for name in ("runs_last", "elemental_emitter", "substitute_elementary", "results_to_host"):
+    for name in ("runs_last", "elemental_emitter", "substitute_elementary", "results_to_host",
+                 "prefetch_inputs"):
         if not isinstance(getattr(s, name), bool):
             raise ValueError(f"strategy: {name} must be True or False, got "
                              f"{getattr(s, name)!r}")

@@ -19,7 +19,7 @@ import numpy as np
 from .metrics import rmse
 
 _ARRAYS = ("states", "covariances", "params", "params_cov", "loglik", "nis", "n_obs",
-           "diverged", "diverged_at", "at_bound")
+           "diverged", "diverged_at", "at_bound", "cross_covariances")
 
 
 class RunResult(NamedTuple):
@@ -42,8 +42,11 @@ class RunResult(NamedTuple):
         param_names: names of the estimated parameters, (p,) strings (the estimator's).
         at_bound: whether a parameter estimate of the run sat on a bound of its domain for more
             than ``vehjax.filtering.AT_BOUND_FRACTION`` of the steps, (R,) bool (the companion
-            of ``diverged``, see :mod:`vehjax.filtering`); None when not computed. Last field,
-            so that positional construction without it still works.
+            of ``diverged``, see :mod:`vehjax.filtering`); None when not computed.
+        cross_covariances: a smoothed study's (``vehjax.run(..., smooth=True,
+            return_covariances=True)``) lag-one cross-covariances Cov(x_t, x_t+1 | y_1:T),
+            (R, T-1, nx, nx); None otherwise.
+    (The optional fields come last, so that positional construction without them works.)
     """
 
     states: np.ndarray
@@ -58,6 +61,7 @@ class RunResult(NamedTuple):
     name: str
     param_names: tuple = ()
     at_bound: np.ndarray | None = None
+    cross_covariances: np.ndarray | None = None
 
     def __repr__(self) -> str:
         R, T, nx = np.shape(self.states)

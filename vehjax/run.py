@@ -144,8 +144,8 @@ def _scan_prefetched(body, carry0, xs, pre):
     return carry, outs
 
 
-def _runs_last_study(estimator: Estimator, return_cov: bool, per_run, ys, us, x0, P0, th0, Pth0,
-                     keys) -> FilterResult:
+def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per_run, ys, us, x0,
+                     P0, th0, Pth0, keys) -> FilterResult:
     """What ``vmap(filtering.one_run)`` computes, for an estimator with a runs-last ``batch``
     form: one scan over time of the batched step, every array with the runs axis last (see
     :mod:`vehjax.filters.runs_last`); the same per-run bookkeeping (``filtering.finish``)."""
@@ -164,8 +164,8 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, per_run, ys, us, x0
 
     y_t = jnp.moveaxis(ys, 0, -1)  # (T, ny, C)
     u_t = jnp.moveaxis(us, 0, -1) if per_run_u else us  # (T, nu, C) or (T, nu)
-    # the prepared inputs go through the carry, see _scan_prefetched
-    scan = _scan_prefetched if batch.prefetch else _scan
+    # the prepared inputs go through the carry where the filter and the platform say so
+    scan = _scan_prefetched if batch.prefetch and prefetch else _scan
     _, per_step = scan(body, state0, y_t, batch.prepare(u_t))
     per_step = jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), per_step)  # (C, T, ...)
     return jax.vmap(partial(filtering.finish, bounds=estimator.bounds))(per_step, held0)
@@ -175,8 +175,15 @@ def _vmapped_study(estimator, return_cov, per_run, block, *args):
     """:func:`filtering.one_run` over the runs (leading axis of the per-run arguments), in
     blocks of ``block`` runs vmapped side by side (all at once when ``block`` is None)."""
     one = partial(filtering.one_run, estimator, return_cov)
-    C = args[0].shape[0]
     side_by_side = jax.vmap(one, in_axes=tuple(0 if r else None for r in per_run))
+    return _blocked(side_by_side, per_run, block, args)
+
+
+def _blocked(side_by_side, per_run, block, args):
+    """``side_by_side(*args)`` (vmapped over the runs, the leading axis of the per-run
+    arguments) in blocks of ``block`` runs, one block after the other (``lax.map``); all at
+    once when ``block`` is None or covers the chunk."""
+    C = args[0].shape[0]
     if block is None or block >= C:
         return side_by_side(*args)
     n_blocks = -(-C // block)
@@ -194,19 +201,38 @@ def _vmapped_study(estimator, return_cov, per_run, block, *args):
     return jax.tree.map(lambda a: a.reshape((n_blocks * block,) + a.shape[2:])[:C], res)
 
 
+def _smoothed_study(estimator, method, return_cov, per_run, block, *args):
+    """:func:`vehjax.smoothing.smooth_one_run` over the runs (in blocks as the vmapped study),
+    as the study's outputs; ``cross`` (C, T-1, nx, nx) the lag-one cross-covariances."""
+    from . import smoothing
+
+    def one(*a):
+        sm = smoothing.smooth_one_run(estimator, *a, method=method)
+        f = sm.filtered
+        div_at = jnp.where(f.diverged, f.diverged_at, jnp.where(sm.diverged, 0, -1))
+        return FilterResult(sm.states, sm.covariances if return_cov else None, sm.params,
+                            sm.params_cov if return_cov else None, sm.loglik, f.nis, f.n_obs,
+                            sm.diverged, div_at.astype(f.diverged_at.dtype), f.at_bound), \
+            (sm.cross_covariances if return_cov else None)
+
+    return _blocked(jax.vmap(one, in_axes=tuple(0 if r else None for r in per_run)), per_run,
+                    block, args)
+
+
 @eqx.filter_jit
-def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh, block, strategy):
+def _study(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh, block, strategy,
+           smooth=None):
     """A chunk of runs: ys (C, T, ny); the others per run (leading C) or shared, by rank. The
     vmapped form computes ``block`` runs side by side at a time (all when None, or when the
     chunk, or a device's share of it, has no more). Traced under ``strategy``
     (:func:`vehjax.execution.using`), which also says whether the runs-last step is used."""
     with execution.using(strategy):
         return _study_traced(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh,
-                             block, strategy.runs_last)
+                             block, strategy, smooth)
 
 
 def _study_traced(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh, block,
-                  runs_last):
+                  strategy, smooth):
     per_run = (
         True,
         us.ndim == 3,
@@ -218,13 +244,17 @@ def _study_traced(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh, 
     )
 
     def f(*args):
-        if runs_last and estimator.batch is not None:
-            res = _runs_last_study(estimator, return_cov, per_run, *args)
+        cross = None
+        if smooth is not None:
+            res, cross = _smoothed_study(estimator, smooth, return_cov, per_run, block, *args)
+        elif strategy.runs_last and estimator.batch is not None:
+            res = _runs_last_study(estimator, return_cov, strategy.prefetch_inputs, per_run,
+                                   *args)
         else:
             res = _vmapped_study(estimator, return_cov, per_run, block, *args)
         return (res.states, res.covariances, res.params, res.params_cov,
                 jnp.sum(res.loglik, axis=1), res.nis, res.n_obs, res.diverged, res.diverged_at,
-                res.at_bound)
+                res.at_bound, cross)
 
     if mesh is not None:
         f = jax.shard_map(
@@ -319,6 +349,7 @@ class _Plan(NamedTuple):
     spans_processes: bool = False  # the mesh holds other processes' devices (jax.distributed)
     block: int | None = None  # runs vmapped side by side inside a chunk (None: all)
     strategy: execution.Strategy | None = None  # how it executes (vehjax.execution)
+    smooth: str | None = None  # the smoothing method (vehjax.smoothing.METHODS), or None
 
 
 def _plan(
@@ -335,6 +366,7 @@ def _plan(
     progress,
     devices,
     strategy=None,
+    smooth=False,
 ) -> _Plan:
     if not isinstance(estimator, Estimator):
         raise ValueError(
@@ -441,11 +473,15 @@ def _plan(
     ):
         raise ValueError(f"chunk_size: expected None or an integer >= 1, got {chunk_size!r}")
 
+    method = _smooth_method(estimator, smooth)
     devs = tuple(_resolve_devices(devices))
     n_dev = len(devs)
     strat = execution.resolve(strategy, devs[0])
     numbers = _state_numbers(estimator, x0, P0, th0, Pth0, keys)
     per_run_bytes, result_bytes = _per_run_bytes(estimator, ys, numbers, bool(return_covariances))
+    if method is not None:  # a smoother keeps the filter's states and its cross-covariances
+        per_run_bytes += 3 * T * 8 * numbers
+        result_bytes += T * 8 * nx * nx if return_covariances else 0
     execution.check_fits(per_run_bytes, R * result_bytes, devs[0])
     block = execution.block_size(strat, numbers)
     if chunk_size is None:
@@ -465,11 +501,27 @@ def _plan(
     per_run += (th0 is not None and th0.ndim == 2, Pth0 is not None and Pth0.ndim == 3)
     plan = _Plan(
         estimator, arrays, per_run, keys, R, chunk, n_chunks, bool(return_covariances), devs, mesh,
-        progress, spans, block, strat,
+        progress, spans, block, strat, method,
     )
     if spans:
         _check_same_study(plan)
     return plan
+
+
+def _smooth_method(estimator, smooth) -> str | None:
+    """``run``'s ``smooth``: False/None (filter only), True (the filter's own RTS smoother) or
+    a method of :data:`vehjax.smoothing.METHODS`; ValueError naming ``smooth`` otherwise."""
+    if smooth is None or (isinstance(smooth, (bool, np.bool_)) and not smooth):
+        return None
+    from . import smoothing
+
+    if not isinstance(smooth, (bool, np.bool_, str)):
+        raise ValueError(f"smooth: expected True, False or one of {smoothing.METHODS}, got "
+                         f"{smooth!r}")
+    try:
+        return smoothing._check_method(estimator, None if smooth is True else smooth)
+    except ValueError as err:
+        raise ValueError(f"smooth: {err}") from None
 
 
 def _digest(plan: _Plan) -> np.ndarray:
@@ -562,7 +614,8 @@ def _chunk_args(plan: _Plan, i: int):
 
 def _call_args(plan: _Plan, i: int):
     args, n = _chunk_args(plan, i)
-    return (plan.estimator, *args, plan.return_cov, plan.mesh, plan.block, plan.strategy), n
+    return (plan.estimator, *args, plan.return_cov, plan.mesh, plan.block, plan.strategy,
+            plan.smooth), n
 
 
 class _Progress:
@@ -635,9 +688,11 @@ def _execute(plan: _Plan, fn, progress) -> RunResult:
             return parts[0][k] if len(parts) == 1 else jnp.concatenate([q[k] for q in parts])
         return np.array(parts[0][k]) if len(parts) == 1 else np.concatenate([q[k] for q in parts])
 
-    states, covs, params, pcov, ll, nis, n_obs, div, div_at, at_b = (cat(k) for k in range(10))
-    return RunResult(states, covs, params, pcov, ll, nis, n_obs, div, div_at, plan.estimator.name,
-                     tuple(plan.estimator.param_names), at_bound=at_b)
+    states, covs, params, pcov, ll, nis, n_obs, div, div_at, at_b, cross = (cat(k)
+                                                                              for k in range(11))
+    name = plan.estimator.name + ("" if plan.smooth is None else f" ({plan.smooth} smoothed)")
+    return RunResult(states, covs, params, pcov, ll, nis, n_obs, div, div_at, name,
+                     tuple(plan.estimator.param_names), at_bound=at_b, cross_covariances=cross)
 
 
 def run(
@@ -656,6 +711,7 @@ def run(
     devices: Sequence | bool | None = None,
     compiler_options: dict | None = None,
     strategy: execution.Strategy | str | None = None,
+    smooth: bool | str = False,
 ) -> RunResult:
     """Run ``estimator`` over R runs of T steps in one jitted call per chunk of runs.
 
@@ -699,6 +755,15 @@ def run(
             results on the host or the device): None for the rules of the platform of the
             first device used, ``"cpu"``/``"gpu"``/``"tpu"`` for that platform's, or a
             :class:`vehjax.execution.Strategy`. Results do not depend on it beyond rounding.
+        smooth: False (filter), True (each run smoothed by the filter's own RTS smoother,
+            :func:`vehjax.smooth`), or ``"rts"``, ``"ieks"``, ``"ipls"``: then ``states``,
+            ``covariances``, ``params`` and ``params_cov`` are the smoothed ones, ``loglik``
+            the filter's (the linearised model's for the iterated smoothers), ``nis`` and
+            ``n_obs`` the filter's, ``cross_covariances`` Cov(x_t, x_t+1 | y_1:T) (with
+            ``return_covariances``), and a run whose filter or smoother fails is ``diverged``
+            (``diverged_at`` 0 when only the smoother failed). Gaussian filters with a smoother
+            (``Estimator.smoother``); particle smoothers run one run at a time
+            (:func:`vehjax.smooth`).
 
     Returns:
         :class:`RunResult` of numpy arrays (jax arrays on the device when the strategy's
@@ -709,7 +774,8 @@ def run(
         ValueError: naming the argument, for wrong shapes, non-finite inputs/x0/P0, a P0 that is
             not symmetric positive definite, a missing key or theta0, a theta0 outside the
             estimator's parameter domains (``Estimator.bounds``), compiler_options that are
-            not a dict of option names to values, an unknown strategy, a study whose one run
+            not a dict of option names to values, an unknown strategy, a ``smooth`` the
+            estimator has no smoother for, a study whose one run
             cannot fit the device's memory or whose results cannot fit the host's (with the
             estimate and the limit), before anything is traced; options XLA does not take,
             when the study is compiled;
@@ -723,7 +789,7 @@ def run(
     execution.check_options(compiler_options)
     plan = _plan(
         estimator, measurements, inputs, x0, P0, theta0, P_theta0, key, return_covariances,
-        chunk_size, progress, devices, strategy,
+        chunk_size, progress, devices, strategy, smooth,
     )
     options = execution.compiler_options(plan.strategy, estimator.workload, compiler_options)
     if options is None:
@@ -798,6 +864,7 @@ def compile_run(
     devices: Sequence | bool | None = None,
     compiler_options: dict | None = None,
     strategy: execution.Strategy | str | None = None,
+    smooth: bool | str = False,
 ) -> CompiledRun:
     """Validate and compile a study without running it, for timing compilation apart.
 
@@ -808,7 +875,7 @@ def compile_run(
     execution.check_options(compiler_options)
     plan = _plan(
         estimator, measurements, inputs, x0, P0, theta0, P_theta0, key, return_covariances,
-        chunk_size, progress, devices, strategy,
+        chunk_size, progress, devices, strategy, smooth,
     )
     options = execution.compiler_options(plan.strategy, estimator.workload, compiler_options)
     # its own copy of the data: "call again to repeat" repeats this study, whatever the

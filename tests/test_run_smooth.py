@@ -1,0 +1,108 @@
+"""vehjax.run(..., smooth=...): a whole study smoothed with run's chunking, blocking and
+divergence flags, equal to the textbook RTS smoother (numpy, written here) run by run."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import vehjax as vj
+from vehjax import execution
+
+DT = 0.1
+F = np.array([[1.0, DT], [0.0, 0.95]])
+B = np.array([[0.0], [DT]])
+H = np.array([[1.0, 0.0], [0.0, 1.0]])
+Q = np.array([[1e-3, 2e-4], [2e-4, 4e-3]])
+R = np.diag([0.05, 0.02])
+X0 = np.array([0.2, -0.1])
+P0 = np.diag([0.3, 0.2])
+
+MODEL = vj.models.Model(lambda x, u, th: jnp.asarray(F) @ x + jnp.asarray(B) @ u,
+                        lambda x, u, th: jnp.asarray(H) @ x, dt=DT, state_names=("p", "v"),
+                        input_names=("a",), output_names=("p", "v"))
+
+
+def rts(ys, us):
+    """Kalman filter (predict with u_t, update with the observed part of y_t) then the
+    Rauch-Tung-Striebel recursion: smoothed means, covariances and Cov(x_t, x_t+1 | y)."""
+    T = len(ys)
+    mf, Pf, mp, Pp = [], [], [], []
+    m, P = X0.copy(), P0.copy()
+    for t in range(T):
+        m, P = F @ m + B @ us[t], F @ P @ F.T + Q
+        mp.append(m), Pp.append(P)
+        o = ~np.isnan(ys[t])
+        if o.any():
+            Ho = H[o]
+            S = Ho @ P @ Ho.T + R[np.ix_(o, o)]
+            K = P @ Ho.T @ np.linalg.inv(S)
+            m = m + K @ (ys[t][o] - Ho @ m)
+            P = P - K @ S @ K.T
+        mf.append(m), Pf.append(P)
+    ms, Ps, cross = [mf[-1]], [Pf[-1]], []
+    for t in range(T - 2, -1, -1):
+        G = Pf[t] @ F.T @ np.linalg.inv(Pp[t + 1])
+        ms.insert(0, mf[t] + G @ (ms[0] - mp[t + 1]))
+        cross.insert(0, G @ Ps[0])
+        Ps.insert(0, Pf[t] + G @ (Ps[0] - Pp[t + 1]) @ G.T)
+    return np.array(ms), np.array(Ps), np.array(cross)
+
+
+def _data(runs=5, steps=15, seed=0):
+    rng = np.random.default_rng(seed)
+    us = np.sin(0.3 * np.arange(steps))[:, None]
+    ys = np.empty((runs, steps, 2))
+    for r in range(runs):
+        x = X0 + rng.normal(size=2) * np.sqrt(np.diag(P0))
+        for t in range(steps):
+            x = F @ x + B @ us[t] + rng.multivariate_normal(np.zeros(2), Q)
+            ys[r, t] = H @ x + rng.normal(size=2) * np.sqrt(np.diag(R))
+    if runs > 2:
+        ys[2, 3, 0] = ys[2, 7] = np.nan  # missing components and a whole missing step
+    return ys, us
+
+
+def test_smoothed_study_equals_the_textbook_rts_run_by_run():
+    ys, us = _data()
+    for est in (vj.filters.ekf(MODEL, Q, R), vj.filters.ukf(MODEL, Q, R)):
+        # in chunks of 2 and, inside them, blocks (the CPU rule forced small)
+        strat = execution.for_platform("cpu")._replace(block_numbers=1)
+        out = vj.run(est, ys, us, x0=X0, P0=P0, smooth=True, return_covariances=True,
+                     chunk_size=2, strategy=strat)
+        filt = vj.run(est, ys, us, x0=X0, P0=P0)
+        assert out.cross_covariances.shape == (5, 14, 2, 2) and "smoothed" in out.name
+        for r in range(5):
+            ms, Ps, cross = rts(ys[r], us)
+            np.testing.assert_allclose(out.states[r], ms, rtol=1e-9, atol=1e-11)
+            np.testing.assert_allclose(out.covariances[r], Ps, rtol=1e-9, atol=1e-11)
+            np.testing.assert_allclose(out.cross_covariances[r], cross, rtol=1e-9, atol=1e-11)
+        np.testing.assert_allclose(out.loglik, filt.loglik, rtol=1e-10)
+        np.testing.assert_array_equal(out.n_obs, filt.n_obs)
+        assert not out.diverged.any()
+        one = vj.smooth(est, ys[2], us, x0=X0, P0=P0)
+        np.testing.assert_allclose(out.states[2], one.states, rtol=1e-10, atol=1e-12)
+
+
+def test_a_diverging_run_is_flagged_and_the_others_are_untouched():
+    ys, us = _data()
+    bad = ys.copy()
+    bad[3, 5:] = 1e200  # the filter's covariance stays finite, its mean and loglik do not
+    est = vj.filters.ekf(MODEL, Q, R)
+    out = vj.run(est, bad, us, x0=X0, P0=P0, smooth="rts")
+    good = vj.run(est, ys, us, x0=X0, P0=P0, smooth=True)
+    assert out.diverged.tolist() == [False, False, False, True, False]
+    keep = [0, 1, 2, 4]
+    np.testing.assert_array_equal(out.states[keep], good.states[keep])
+    assert np.isfinite(out.states).all()
+
+
+def test_bad_smooth_is_refused_naming_it():
+    ys, us = _data(runs=2, steps=5)
+    est = vj.filters.ekf(MODEL, Q, R)
+    for smooth in ("bogus", 3, "ipls"):  # ipls needs a sigma-point filter
+        with pytest.raises(ValueError, match="smooth"):
+            vj.run(est, ys, us, x0=X0, P0=P0, smooth=smooth)
+    pf = vj.filters.bootstrap_pf(MODEL, Q, R, 16)
+    with pytest.raises(ValueError, match="smooth"):
+        vj.run(pf, ys, us, x0=X0, P0=P0, smooth=True, key=jax.random.key(0))
