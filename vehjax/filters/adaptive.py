@@ -41,7 +41,7 @@ from .. import _validate
 from . import input_noise as _inoise
 from . import sigma
 from ._linalg import sym
-from .base import ELEMENTAL_EMITTER, Estimator, state_output
+from .base import Estimator, state_output
 from ._model import (
     cast_yu, chol_const, check_model, in_dtype, model_dims, model_theta, per_point, point_fns,
     prior,
@@ -188,5 +188,5 @@ def ackf(
         new = AckfState(r.x, r.P, Qh, Rh, k_new, theta)
         return new, state_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
 
-    return Estimator(init=init, step=step, nx=nx, name="ACKF", compiler_options=ELEMENTAL_EMITTER,
+    return Estimator(init=init, step=step, nx=nx, name="ACKF", workload="small_dense",
                      **model_dims(model))

@@ -88,6 +88,40 @@ class ParticleTransition(NamedTuple):
     chol_Q: Any
 
 
+class GaussianSmoother(NamedTuple):
+    """A Gaussian filter's own moments, what the smoothers of :mod:`vehjax.smoothing` need (the
+    backward pass of the extended / unscented / cubature RTS, the parallel-in-time and iterated
+    smoothers). All functions are pure and of one point; ``S`` below is the covariance P (n, n),
+    or its lower Cholesky factor L when ``sqrt``; n = nx, or nx + p for a joint filter (state
+    and unconstrained parameters).
+
+    Attributes:
+        split: ``split(state) -> (m (n,), S, aux)``: the filtered Gaussian held in a filter
+            state and ``aux``, the pytree the filter's step runs with besides it (theta; the
+            joint filters' random-walk covariance).
+        predict: ``predict(m, S, u, aux)``: the step's prediction from N(m, S) with input u
+            (nu,): ``(m- (n,), P- (n, n), C (n, n))``, C = Cov(x_t, x_{t+1}); when ``sqrt``
+            ``(m-, L11, L21, L22)``, the lower factor [[L11, 0], [L21, L22]] of the joint
+            covariance [[P-, C^T], [C, P]] of (x_{t+1}, x_t): L11 the factor of P-, L21 = C L11^-T,
+            L22 that of P - C P-^-1 C^T, the covariance of x_t given x_{t+1}.
+        measure: ``measure(m, S, u, aux) -> Measurement(y_hat, S_y, C_xy, H)``: the step's
+            measurement moments at N(m, S), S_y with the measurement noise (H None for
+            sigma points).
+        taylor: the linearisation does not depend on the covariance (the EKF's Jacobians), so
+            the smoothers may linearise with an identity covariance.
+        sqrt: ``S`` is a Cholesky factor and ``predict`` returns the joint factor.
+        report: ``report(m, P) -> (x (nx,), P_x (nx, nx), params (p,), params_cov (p, p))`` in
+            physical units; None: the state is all of m (no parameters).
+    """
+
+    split: Callable[..., Any]
+    predict: Callable[..., Any]
+    measure: Callable[..., Any]
+    taylor: bool = False
+    sqrt: bool = False
+    report: Callable[..., Any] | None = None
+
+
 class Estimator(NamedTuple):
     """``Estimator(init, step)``: see the module docstring for the signatures.
 
@@ -111,11 +145,14 @@ class Estimator(NamedTuple):
             its state then has ``particles`` (nx, N), ``log_weights`` (N,), ``ancestors``
             (N,) and ``theta``. None for every other filter (and for a bootstrap PF with
             input noise, whose transition density is not that Gaussian).
-        compiler_options: ``((name, value), ...)`` XLA options that :func:`vehjax.run` compiles
-            this filter's studies with, where a filter measured them to be faster than XLA's
-            defaults; a ``compiler_options`` given to ``run`` overrides them name by name.
-            Empty: XLA's defaults. Under your own ``jax.jit``, pass
-            ``compiler_options=dict(est.compiler_options)`` to get the same.
+        smoother: :class:`GaussianSmoother`, the Gaussian filter's own prediction and
+            measurement moments for :func:`vehjax.smooth` (set by the EKF, UKF, CKF, their
+            square-root forms and the joint filters); None: no Gaussian smoother.
+        workload: what the step's computation is, for the execution seam
+            (:mod:`vehjax.execution`), which picks platform-specific options from it: "default",
+            "small_dense" (many small dense operations: the Gaussian, adaptive, dual/joint,
+            Liu-West and marginalized filters) or "particles" (long vectors over particles: the
+            bootstrap PF). It states no platform rule itself.
     """
 
     init: Callable[..., Any]
@@ -130,20 +167,8 @@ class Estimator(NamedTuple):
     nu: int | None = None
     bounds: tuple | None = None
     particle_transition: ParticleTransition | None = None
-    compiler_options: tuple = ()
-
-
-#: ``Estimator.compiler_options`` of the Gaussian, dual, joint, Liu-West and marginalized
-#: filters: XLA:CPU's classic elemental emitter instead of its fusion emitters. Measured on the
-#: 3-DOF user model of ``vehjax bench all`` (100 runs x 1000 steps, ad hoc A/B in one process):
-#: compile times halve (EKF 3.9 -> 1.8 s, UKF 4.5 -> 2.4 s, CKF 4.4 -> 2.3 s, dual UKF 10.7 ->
-#: 6.3 s), run times within the machine's noise (0.87-1.11x); the marginalized PF runs about
-#: twice as fast (``vehjax bench marginalized`` prints both). Not the bootstrap PF, which runs
-#: 1.2-1.3x slower with it. The EKF's runs-last step: compile 2.5-4.0 s against 3.3-4.9 s with
-#: the fusion emitters, run time within noise (20 x 500 and 100 x 1000, alternated in one
-#: process). On other platforms the option is ignored; an XLA that no longer knows it is
-#: skipped (:func:`vehjax.run`).
-ELEMENTAL_EMITTER = (("xla_cpu_use_fusion_emitters", False),)
+    workload: str = "default"
+    smoother: GaussianSmoother | None = None
 
 
 def check_estimate(model, estimate) -> tuple[tuple[str, ...], tuple[int, ...]]:

@@ -112,7 +112,7 @@ from . import input_noise as _inoise
 from . import sigma
 from ._bounds import Transform, check_inside, parse as _parse_bounds
 from ._linalg import sym
-from .base import ELEMENTAL_EMITTER, Estimator, StepOutput, check_estimate
+from .base import Estimator, GaussianSmoother, StepOutput, check_estimate
 from ._model import cast_yu, check_model, model_dims, per_point
 from ._model import prior as _state_prior
 from .kalman import linearized_measure, linearized_predict, masked_update
@@ -284,10 +284,10 @@ def _walk(cfg: _Setup, z, Q_theta):
     return cfg.tf.cov_to_unconstrained(z, Q_theta)
 
 
-def _estimator(cfg: _Setup, model, init, step, name: str) -> Estimator:
+def _estimator(cfg: _Setup, model, init, step, name: str, smoother=None) -> Estimator:
     return Estimator(
         init=init, step=step, nx=cfg.nx, param_names=cfg.names, name=name,
-        bounds=cfg.tf.bounds, compiler_options=ELEMENTAL_EMITTER, **model_dims(model)
+        bounds=cfg.tf.bounds, workload="small_dense", smoother=smoother, **model_dims(model)
     )
 
 
@@ -523,7 +523,7 @@ def joint_ekf(
         r = masked_update(a_pred, P_pred, y, m.y_hat, m.S, m.C, joseph=(m.H, Rn))
         return JointState(r.x, r.P, cfg.decay * Qth), _joint_out(cfg, r.x, r.P, r)
 
-    return _estimator(cfg, model, _joint_init(cfg), step, "JEKF")
+    return _estimator(cfg, model, _joint_init(cfg), step, "JEKF", _joint_smoother(cfg, model))
 
 
 def joint_ukf(
@@ -555,7 +555,42 @@ def joint_ukf(
         r = sigma.update(rule, a_pred, P_pred, lambda v: ha(v, u), y, jnp.asarray(cfg.R, dt))
         return JointState(r.x, r.P, cfg.decay * Qth), _joint_out(cfg, r.x, r.P, r)
 
-    return _estimator(cfg, model, _joint_init(cfg), step, "JUKF")
+    return _estimator(cfg, model, _joint_init(cfg), step, "JUKF",
+                      _joint_smoother(cfg, model, rule))
+
+
+def _joint_smoother(cfg: _Setup, model, rule=None) -> GaussianSmoother:
+    """``Estimator.smoother`` of the joint filters: the step's prediction and measurement on the
+    augmented state [x; z] (``rule`` None: the EKF's Jacobians), aux the random-walk covariance
+    the next step uses; the parameters are smoothed as states and reported in physical units
+    (delta method, as the filter's output). The dual filters have none: their two filters do
+    not share the state-parameter cross-covariance, so there is no joint Gaussian to smooth."""
+    fa, ha = _augmented(model, cfg)
+    nx = cfg.nx
+
+    def predict(a, P, u, Qth):
+        dt = a.dtype
+        u = jnp.asarray(u).astype(dt)
+        Qa = _noise_aug(cfg, a, Qth, dt)
+        if rule is None:
+            a_pred, P_pred, F = linearized_predict(a, P, lambda v: fa(v, u), Qa)
+            return a_pred, P_pred, P @ F.T
+        X = sigma.sigma_points(a, sigma.cholesky(P), rule)
+        return sigma.moments_cross(rule, X, a, sigma._through(lambda v: fa(v, u), X), Qa)
+
+    def measure(a, P, u, Qth):
+        dt = a.dtype
+        u = jnp.asarray(u).astype(dt)
+        if rule is None:
+            return linearized_measure(a, P, lambda v: ha(v, u), jnp.asarray(cfg.R, dt))
+        return sigma.measure(rule, a, P, lambda v: ha(v, u), jnp.asarray(cfg.R, dt))
+
+    def report(a, P):
+        z, Pz = a[nx:], P[nx:, nx:]
+        return a[:nx], P[:nx, :nx], cfg.tf.to_physical(z), sym(cfg.tf.cov_to_physical(z, Pz))
+
+    return GaussianSmoother(split=lambda st: (st.a, st.Pa, st.Q_theta), predict=predict,
+                            measure=measure, taylor=rule is None, report=report)
 
 
 for _fn in (dual_ekf, dual_ukf, joint_ekf, joint_ukf):

@@ -53,7 +53,7 @@ from ._model import (
     prior,
     validate_prior,
 )
-from .base import ELEMENTAL_EMITTER, Estimator, state_output
+from .base import Estimator, GaussianSmoother, state_output
 from .kalman import UpdateResult, linearized_measure, linearized_predict, masked_update
 from .sigma import SigmaRule, cubature_rule, unscented_rule
 
@@ -154,7 +154,8 @@ def ekf(model, Q, R, input_noise=None) -> Estimator:
 
     batch = None if Lu is not None else _runs_last_form(model, Qn, Rn, _runs_last.ekf_step)
     return Estimator(init=_prior_init(model, False), step=step, nx=nx, name="EKF", batch=batch,
-                     compiler_options=ELEMENTAL_EMITTER, **model_dims(model))
+                     workload="small_dense", smoother=_ekf_smoother(model, Qn, Rn, Lu, tr),
+                     **model_dims(model))
 
 
 def _runs_last_form(model, Qn, Rn, build):
@@ -217,7 +218,9 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str, input_noi
             model, Qn, Rn, partial(_runs_last.sigma_step, rule=rule))
 
         return Estimator(init=_prior_init(model, False), step=step, nx=nx, name=name, batch=batch,
-                         compiler_options=ELEMENTAL_EMITTER, **model_dims(model))
+                         workload="small_dense",
+                         smoother=_sigma_smoother(model, Qn, Rn, rule, rule_a, Lu, tr, False),
+                         **model_dims(model))
 
     LQn, LRn = chol_const(Qn), chol_const(Rn)
 
@@ -233,7 +236,9 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str, input_noi
         return SqrtGaussianState(x_new, L_new, theta), out
 
     return Estimator(init=_prior_init(model, True), step=sqrt_step, nx=nx, name="SR-" + name,
-                     compiler_options=ELEMENTAL_EMITTER, **model_dims(model))
+                     workload="small_dense",
+                     smoother=_sigma_smoother(model, Qn, Rn, rule, rule_a, Lu, tr, True),
+                     **model_dims(model))
 
 
 def ukf(
@@ -290,3 +295,67 @@ def ckf(model, Q, R, sqrt: bool = False, input_noise=None) -> Estimator:
     nx, _ = check_model(model)
     return _sigma_filter(model, Q, R, cubature_rule(nx), bool(sqrt), "CKF", input_noise,
                          cubature_rule)
+
+
+# --------------------------------------------------------------------------------------------
+# Estimator.smoother: the steps' own moments, for vehjax.smooth
+
+
+def _split(state):
+    """(mean, covariance or its factor, theta) of a :class:`GaussianState` / :class:`SqrtGaussianState`."""
+    return state[0], state[1], state[2]
+
+
+def _ekf_smoother(model, Qn, Rn, Lu, tr) -> GaussianSmoother:
+    """``Estimator.smoother`` of :func:`ekf`: the step's linearised prediction (with its input
+    noise) and measurement; ``C = P F^T``."""
+
+    def predict(x, P, u, theta):
+        dt = x.dtype
+        u = jnp.asarray(u).astype(dt)
+        f, _ = point_fns(model, u, theta)
+        Qd = jnp.asarray(Qn, dt)
+        if Lu is not None:
+            Qd = Qd + _inoise.linearized_input_noise(lambda v, w: tr(v, w, theta), x, u, Lu)
+        x_pred, P_pred, F = linearized_predict(x, P, f, Qd)
+        return x_pred, P_pred, P @ F.T
+
+    def measure(x, P, u, theta):
+        u = jnp.asarray(u).astype(x.dtype)
+        return linearized_measure(x, P, point_fns(model, u, theta)[1], jnp.asarray(Rn, x.dtype))
+
+    return GaussianSmoother(split=_split, predict=predict, measure=measure, taylor=True)
+
+
+def _sigma_smoother(model, Qn, Rn, rule, rule_a, Lu, tr, sqrt: bool) -> GaussianSmoother:
+    """``Estimator.smoother`` of the UKF/CKF (``sqrt``: their square-root forms): the step's
+    sigma points (augmented with the input noise when there is some) and their images, with
+    the cross-covariance C = Cov(x_t, x_{t+1}); the square-root form one QR of the joint
+    deviations (:func:`vehjax.filters.sigma.sqrt_moments_joint`)."""
+    nx = len(model.state_names)
+
+    def points(x, L, u, theta):
+        if Lu is None:
+            X = sigma.sigma_points(x, L, rule)
+            return X, sigma._through(point_fns(model, u, theta)[0], X), rule
+        A = _inoise.augmented_points(rule_a, x, L, Lu.shape[1])
+        return A[:, :nx], _inoise.through_inputs(lambda v, w: tr(v, w, theta), u, Lu, A, nx), rule_a
+
+    def predict(x, S, u, theta):
+        dt = x.dtype
+        u = jnp.asarray(u).astype(dt)
+        if sqrt:
+            X, Y, r = points(x, S, u, theta)
+            return sigma.sqrt_moments_joint(r, X, x, Y, jnp.asarray(chol_const(Qn), dt))
+        X, Y, r = points(x, sigma.cholesky(S), u, theta)
+        return sigma.moments_cross(r, X, x, Y, jnp.asarray(Qn, dt))
+
+    def measure(x, S, u, theta):
+        dt = x.dtype
+        u = jnp.asarray(u).astype(dt)
+        X = sigma.sigma_points(x, S if sqrt else sigma.cholesky(S), rule)
+        Z = sigma._through(point_fns(model, u, theta)[1], X)
+        y_hat, Sy = sigma.unscented_transform(Z, rule, jnp.asarray(Rn, dt))
+        return sigma.Measurement(y_hat, Sy, sigma.cross_covariance(X, x, Z, y_hat, rule))
+
+    return GaussianSmoother(split=_split, predict=predict, measure=measure, sqrt=sqrt)

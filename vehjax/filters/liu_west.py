@@ -167,7 +167,7 @@ from . import resampling as _rs
 from . import sigma, smc
 from ._bounds import Transform, check_inside, parse as _parse_bounds
 from ._linalg import cholesky
-from .base import ELEMENTAL_EMITTER, Estimator, check_estimate
+from .base import Estimator, check_estimate
 from ._model import check_model, in_dtype, model_dims, prior
 from .gaussian import GaussianState, ukf
 
@@ -549,6 +549,6 @@ def liu_west_ukf(
     box = (0.5 * (low_n + high_n), np.diag((high_n - low_n) ** 2 / 12.0))
     return Estimator(
         init=init, step=step, nx=nx, param_names=names, name="liu_west_ukf", needs_key=True,
-        param_prior=box, bounds=tf.bounds, compiler_options=ELEMENTAL_EMITTER,
+        param_prior=box, bounds=tf.bounds, workload="small_dense",
         **model_dims(model),
     )

@@ -161,7 +161,7 @@ from jax.scipy.special import gammaln
 from .. import _hoist, _validate
 from . import resampling as _rs
 from . import smc
-from .base import ELEMENTAL_EMITTER, Estimator, StepOutput
+from .base import Estimator, StepOutput
 from ._linalg import chol_entries, forward_entries
 from .sigma import cholesky, solve_lower
 
@@ -1208,5 +1208,5 @@ def marginalized_pf(
     return Estimator(
         init=init, step=step, nx=nx, param_names=param_names, name="marginalized_pf",
         needs_key=True, param_prior=(theta_prior, P_prior), ny=ny, nu=len(input_names),
-        compiler_options=ELEMENTAL_EMITTER,
+        workload="small_dense",
     )

@@ -326,5 +326,6 @@ def bootstrap_pf(
         init=init, step=step, nx=nx, param_names=(), name="bootstrap_pf", needs_key=True,
         # with input noise the transition density is not N(f(x, u), Q): no backward simulation
         particle_transition=None if Lu is not None else ParticleTransition(f, _chol_or_none(Qn)),
+        workload="particles",
         **model_dims(model)
     )
