@@ -29,14 +29,20 @@ Methods, each giving M trajectories x_{0:T-1}^m, m = 1..M:
     are drawn exactly as in ``"ffbsi"`` (the fallback, counted in ``fallbacks``). The draws
     have exactly FFBSi's distribution. O(N + M tries) per step when the fallback is not needed
     (one run under ``jit``); under ``vmap`` the fallback branch is evaluated for every run (a
-    ``lax.cond`` becomes a select), so that the cost is FFBSi's plus the tries.
+    ``lax.cond`` becomes a select), so that the cost is FFBSi's plus the tries. For a filter
+    cloud about N(m, P) and a model with Jacobian A the acceptance probability is at most
+    about sqrt(det Q / det(Q + A P A^T)): small when the process noise is small against the
+    filter's spread, and then most trajectories fall back (measured: 60 % of them after 4
+    tries on the linear model of tests/test_particle_smoothing.py).
 
 ``"ancestor"``  ancestor tracing: draw M of the filter's final particles by their weights and
     follow each one's genealogy back (``PFState.ancestors``). The cheapest (no transition
     density at all), but degenerate: resampling makes the genealogies coalesce, so at early
     times the M trajectories run through a handful of distinct particles (``n_unique``), and
-    early smoothed moments are poor; the spread of the trajectories at early times then
-    understates the smoothed covariance. It is the path-space smoother of Kitagawa 1996.
+    the early smoothed moments rest on those few points, whatever M: their Monte-Carlo error
+    is large (measured on the linear test model, T = 40, N = M = 100, resampling every step:
+    4-7 distinct particles at t = 0, and a covariance there between 0.1 and 2.4 times the
+    RTS's over 16 keys). It is the path-space smoother of Kitagawa 1996.
 
 Time convention: as :func:`vehjax.filter`, x0/P0 describe the state before the first step, and
 trajectory time t is the state after step t (0 .. T-1). NaN measurement components are
