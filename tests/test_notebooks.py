@@ -16,7 +16,7 @@ NAMES = sorted(p.name for p in NOTEBOOKS.glob("*.ipynb"))
 
 def test_the_walk_throughs_are_there():
     assert NAMES == ["01_quickstart.ipynb", "02_dutta2019.ipynb", "03_wang2016.ipynb",
-                     "04_berntorp2018.ipynb", "05_tuning.ipynb"]
+                     "04_berntorp2018.ipynb", "05_tuning.ipynb", "06_drive.ipynb"]
 
 
 @pytest.mark.parametrize("name", NAMES)
