@@ -22,9 +22,10 @@ square-root forms, joint EKF/UKF):
   and RTS smoother (:mod:`vehjax.smoothers.parallel`): the same numbers, to rounding; the
   forward filter that provides the linearisation is still sequential.
 * ``"ieks"`` (EKF, joint EKF) / ``"ipls"`` (sigma-point filters): the iterated smoothers of
-  :mod:`vehjax.smoothers.iterated`, started from the filter's own RTS (or ``initial``), each
-  pass sequential or (``parallel=True``) parallel in time; ``loglik`` is that of the model
-  linearised about the fixed point, differentiable by implicit differentiation.
+  :mod:`vehjax.smoothers.iterated`, started from the filter's own means and covariances (or
+  ``initial``), each pass sequential or (``parallel=True``) parallel in time; ``loglik`` is
+  that of the model linearised about the fixed point, differentiable by implicit
+  differentiation. The square-root filters' iterated and parallel passes run on covariances.
 
 Joint filters: the parameters are states of the augmented model and are smoothed with them
 (``params``, ``params_cov`` in physical units by the filter's own map and delta method). Dual
@@ -122,28 +123,28 @@ def _report(spec, M, P, cross, nx):
 
 
 def _iterated(estimator, spec, states, y, u, parallel, tol, max_iter, initial):
-    """(M, P, cross, loglik (T+1,), passes, converged) of IEKS / IPLS (module docstring)."""
+    """(M, P, cross, loglik (T+1,), passes, converged) of IEKS / IPLS (module docstring),
+    started from the filtered moments or ``initial``."""
     m, S, aux = jax.vmap(spec.split)(states)
     aux = jax.tree_util.tree_map(lambda a: a[:-1], aux)
     P = sym(S @ jnp.swapaxes(S, -1, -2)) if spec.sqrt else S
     ny = y.shape[1]
     ys = jnp.concatenate([jnp.full((1, ny), jnp.nan, y.dtype), y])
     if initial is None:
-        M0, P0s, _ = _gauss.backward(spec, states, u)
+        M0, P0s = m, P
     else:
         M0 = jnp.concatenate([m[:1], jnp.asarray(initial, m.dtype)])
         P0s = jnp.broadcast_to(P[:1], P.shape)
 
     def phi(z, args):
-        Mz, Pz = z
         us, ax, yy, x_0, P_0 = args
-        mod = _gauss.linearize(spec, Mz, Pz, us, ax, x_0, P_0, ny)
-        return _iter.linear_pass(mod, yy, parallel)[:2]
+        mod = _gauss.linearize(spec, z[0], z[1], us, ax, x_0, P_0, ny)
+        return _iter.linear_pass(mod, yy, parallel)
 
     args = (u, aux, ys, m[0], P[0])
-    z, k, delta = _iter.fixed_point(phi, (M0, P0s), args, tol, max_iter)
-    mod = _gauss.linearize(spec, z[0], z[1], u, aux, m[0], P[0], ny)
-    M, Ps, cross, ll = _iter.linear_pass(mod, ys, parallel)
+    T1 = m.shape[0]
+    z0 = (M0, P0s, jnp.zeros((T1 - 1,) + P.shape[1:], P.dtype), jnp.zeros((T1,), P.dtype))
+    (M, Ps, cross, ll), k, delta = _iter.fixed_point(phi, z0, args, tol, max_iter)
     return M, Ps, cross, ll, k, delta <= tol
 
 
@@ -243,7 +244,7 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
             the result when they did not meet ``tol``.
         initial: iterated smoothers: the start, (T, n) means (n = nx, or nx + p unconstrained
             for joint filters) with the prior covariance at every step; None: the filter's own
-            RTS.
+            filtered means and covariances.
         particle_options: passed to the particle smoother (e.g. ``n_trajectories``).
 
     Returns:
@@ -263,8 +264,12 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
             raise ValueError(
                 f"estimator: {estimator.name!r} is a particle filter and the particle smoothers "
                 f"(vehjax.smoothers.particle) are not available") from None
-        return _particle.smooth(estimator, measurements, inputs, x0=x0, P0=P0, key=key,
-                                method=method, **particle_options)
+        opts = dict(particle_options)
+        if method is not None:
+            opts["method"] = method
+        if theta0 is not None:
+            opts["theta0"] = theta0
+        return _particle.smooth(estimator, measurements, inputs, x0=x0, P0=P0, key=key, **opts)
     if particle_options:
         raise ValueError(f"particle_options: {sorted(particle_options)} apply to particle "
                          f"filters only")

@@ -10,7 +10,8 @@
   points about the last smoothed Gaussians N(m^s_t, P^s_t).
 
 Both are one map Phi: trajectory (M (T+1, n), P (T+1, n, n)) -> the smoothed moments of the
-model linearised about it (:func:`vehjax.smoothers.gaussian.linearize`), iterated from a start
+model linearised about it (:func:`vehjax.smoothers.gaussian.linearize`; with them the pass's
+cross-covariances and log-likelihood, which Phi does not read), iterated from a start
 until the largest change of a mean, in units of its smoothed standard deviation, is at most
 ``tol`` or ``max_iter`` passes have run; each pass sequential or parallel in time
 (:mod:`vehjax.smoothers.parallel`).
@@ -51,10 +52,11 @@ def linear_pass(model: linear.Affine, ys, parallel: bool):
 
 
 def change(z_new, z_old):
-    """Largest change of a mean between two trajectories (M, P), in units of the new smoothed
-    standard deviations: max |M_new - M_old| / sqrt(diag P_new). NaN when either is NaN."""
-    M1, P1 = z_new
-    M0, _ = z_old
+    """Largest change of a mean between two trajectories (M, P, ...), in units of the new
+    smoothed standard deviations: max |M_new - M_old| / sqrt(diag P_new). NaN when either is
+    NaN."""
+    M1, P1 = z_new[0], z_new[1]
+    M0 = z_old[0]
     sd = jnp.sqrt(jnp.maximum(jnp.diagonal(P1, axis1=-2, axis2=-1), jnp.finfo(M1.dtype).tiny))
     return jnp.max(jnp.abs(M1 - M0) / sd)
 
@@ -120,7 +122,8 @@ def fixed_point(phi, z0, args, tol: float, max_iter: int):
     Args:
         phi: ``phi(z, args) -> z``, pure; may close over traced values (they are hoisted with
             ``jax.closure_convert`` and differentiated too).
-        z0: start, a pytree (M, P) of (T+1, n), (T+1, n, n).
+        z0: start, a pytree (M, P, ...) of (T+1, n), (T+1, n, n) and anything else phi
+            returns (not read by phi).
         args: pytree of arrays phi depends on (differentiated).
         tol: stop when :func:`change` <= tol (smoothed standard deviations).
         max_iter: at most this many passes.
