@@ -1,6 +1,7 @@
-"""vehjax.calibrate: PMMH with the bootstrap PF recovers a posterior computed here on a grid from
-the exact Kalman likelihood (numpy) and the prior (scipy); split R-hat and ESS against BDA3
-written out here, tensorflow-probability, and the AR(1) closed form."""
+"""vehjax.calibrate: PMMH with the bootstrap PF and particle Gibbs with ancestor sampling recover
+posteriors computed here on grids from the exact Kalman likelihood (numpy) and the priors
+(scipy); split R-hat and ESS against BDA3 written out here, tensorflow-probability, and the AR(1)
+closed form."""
 
 import math
 
@@ -10,7 +11,8 @@ import pytest
 from scipy import stats
 
 import vehjax as vj
-from vehjax.calibrate import LogNormal, Normal, Uniform, effective_sample_size, pmmh, split_rhat
+from vehjax.calibrate import (LogNormal, Normal, Uniform, effective_sample_size, particle_gibbs,
+                              pmmh, split_rhat)
 
 A, Q, SIGMA_R, T = 0.8, 0.3**2, 0.5, 40
 
@@ -71,6 +73,44 @@ def test_pmmh_recovers_the_grid_posterior_of_a_noise_std():
                  warmup=150, builder_kwargs={"n_particles": 100})
     np.testing.assert_array_equal(again.samples, res.samples)
     assert "R:y" in res.summary()
+
+
+def _kalman_loglik_grid(ys, a, q, r, m0=0.0, p0=1.0):
+    """The same recursion vectorised over arrays of a and r (any broadcastable shapes)."""
+    m, p, ll = np.zeros(np.broadcast(a, r).shape) + m0, np.zeros(np.broadcast(a, r).shape) + p0, 0.0
+    for y in ys[:, 0]:
+        m, p = a * m, a * a * p + q
+        s = p + r
+        ll = ll - 0.5 * (np.log(2 * np.pi * s) + (y - m) ** 2 / s)
+        k = p / s
+        m, p = m + k * (y - m), (1 - k) * p
+    return ll
+
+
+def test_particle_gibbs_recovers_a_two_parameter_grid_posterior():
+    ys = _data()
+    a_grid = np.linspace(-1.0, 2.2, 500)[:, None]
+    s_grid = np.linspace(0.05, 1.6, 400)[None, :]
+    logpost = (_kalman_loglik_grid(ys, a_grid, Q, s_grid**2) + stats.norm.logpdf(a_grid, 0.5, 0.5)
+               + stats.lognorm.logpdf(s_grid, s=0.5, scale=0.6))
+    w = np.exp(logpost - logpost.max())
+    w /= w.sum()
+    assert w[0].max() < 1e-8 and w[-1].max() < 1e-8 and w[:, 0].max() < 1e-8
+    assert w[:, -1].max() < 1e-8                                    # the grid holds it
+    marg = {"a": (a_grid[:, 0], w.sum(axis=1)), "R:y": (s_grid[0], w.sum(axis=0))}
+    res = particle_gibbs(_model(), ys, None, x0=[0.0], P0=[1.0], Q=[Q], R=[1.0],
+                         priors={"a": Normal(0.5, 0.5), "R:y": LogNormal(0.6, 0.5)},
+                         key=jax.random.key(5), chains=4, samples=600, warmup=100,
+                         n_particles=20, proposal_std=[0.1, 0.3])
+    assert np.all(res.rhat < 1.05), res.rhat
+    for k, name in enumerate(res.names):
+        grid, p = marg[name]
+        mean = float(np.sum(p * grid))
+        std = float(np.sqrt(np.sum(p * (grid - mean) ** 2)))
+        ess = float(res.ess[k])
+        assert ess > 150, (name, ess)
+        assert abs(res.mean[k] - mean) < 4 * std / math.sqrt(ess), (name, res.mean[k], mean, ess)
+        assert abs(res.std[k] - std) < 4 * std / math.sqrt(2 * ess), (name, res.std[k], std, ess)
 
 
 def _rhat_bda3(x):
@@ -153,3 +193,7 @@ def test_priors_and_bad_input():
     with pytest.raises(ValueError, match="key"):
         pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"a": Normal(0, 1)},
              **{**kw, "key": 0})
+    with pytest.raises(ValueError, match="n_particles"):
+        particle_gibbs(_model(), ys, None, priors={"a": Normal(0, 1)}, n_particles=1, **kw)
+    with pytest.raises(ValueError, match=r"priors: 'Q:z': no 'z'"):
+        particle_gibbs(_model(), ys, None, priors={"Q:z": Normal(0, 1)}, **kw)
