@@ -33,14 +33,28 @@ Parameterisations (unconstrained vector -> physical value), chosen from the star
   transforms the filters use, :mod:`vehjax.filters._bounds` (unit scale).
 * ``x0`` (``fit_x0=True``): free, shared (nx,) or one per run (R, nx) as given.
 
-Optimisers: ``"adam"`` (default; learning rate 0.05 with a cosine decay to 5 % of it over
-``steps``, on the unconstrained scale, i.e. about 5 % relative change of a standard deviation per
-step at first), ``"lbfgs"`` (``optax.lbfgs`` with its zoom line search: few iterations, for
-smooth objectives such as the Gaussian filters'), or any ``optax.GradientTransformation``.
-Updates whose gradient is not finite (a run that diverged during a step) are skipped (adam,
-custom) or stop the fit (lbfgs). Early stopping: the fit ends when the best loss has not
-improved by more than ``tol * max(1, |best|)`` for ``patience`` iterations; the values at the best
-loss are returned.
+* the input noise (``noise=(..., "input")``, starting value ``builder_kwargs["input_noise"]``):
+  stds by input name as log standard deviations, a covariance like Q.
+
+Optimisers. ``"lbfgs"``, the default for deterministic filters (EKF, UKF, CKF and their
+square-root forms): L-BFGS (:func:`lbfgs_direction`) with a weak-Wolfe line search
+(:func:`wolfe_search`), stopping when every component of the gradient of the loss with respect
+to the unconstrained coordinates is at most ``gtol`` (the projected gradient: the coordinates are
+unconstrained), then one Newton step on the Hessian. ``"adam"``, the default for particle
+filters (learning rate 0.05 with a cosine decay to 5 % of it over ``steps``, on the unconstrained
+scale, i.e. about 5 % relative change of a standard deviation per step at first), or any
+``optax.GradientTransformation``: updates whose gradient is not finite are skipped, and the fit
+ends when the best loss has not improved by more than ``tol * max(1, |best|)`` for ``patience``
+iterations; the values at the best loss are returned. Every part of a fit (iterations, line
+search, curvature) evaluates one compiled program, the loss and its gradient.
+
+How sure. Every fit reports the standard error of each fitted quantity in its units and their
+correlations (``TuneResult.std_errors``, ``correlations``), from the observed information: the
+Hessian of minus the log-likelihood in the unconstrained coordinates (central differences of
+JAX's exact gradient, or ``hessian="jax"``), inverted over the directions the data determine and
+carried to the physical quantities by the delta method (:func:`uncertainty`). Directions with no
+or too little curvature are named (``TuneResult.undetermined`` and a warning): a parameter or
+noise entry the data cannot determine does not come back silently at its start value.
 
 Particle filter. A particle filter (``builder=vehjax.filters.bootstrap_pf``) is differentiated
 with stop-gradient resampling, :func:`stop_gradient` (Scibior & Wood 2021, "Differentiable
@@ -66,6 +80,7 @@ from typing import Any, Callable, Mapping, NamedTuple
 
 import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -73,6 +88,7 @@ import optax
 from . import _validate
 from .filtering import filter as _filter
 from .filters import _bounds
+from .filters import input_noise as _inoise
 from .filters import resampling as _rs
 from .filters import smc
 from .filters.base import Estimator
@@ -80,13 +96,17 @@ from .filters.particle import bootstrap_pf
 from .models.base import BaseModel
 
 __all__ = ["fit", "fit_noise", "objective", "Objective", "TuneResult", "stop_gradient",
-           "stop_gradient_pf"]
+           "stop_gradient_pf", "uncertainty", "Uncertainty", "fitted_quantities"]
 
 _NOISE = ("Q", "R")
+_NOISE_KINDS = ("Q", "R", "input")
 _OPTIMIZERS = ("adam", "lbfgs")
 _ADAM_LR = 0.05
 _ADAM_STEPS = 300
 _LBFGS_STEPS = 100
+_GTOL = 1e-6  # L-BFGS: max |d loss / dz| at convergence (loss per step, z unconstrained)
+_RCOND = 1e-8  # undetermined: eigenvalue of the scaled information below this x the largest
+_MAX_SCALED_STD = 1.0  # ... or a standard error above the quantity's own size (scaled units)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -110,13 +130,27 @@ class TuneResult(NamedTuple):
         history: loss per iteration, (iterations,): ``-sum loglik / (R T)`` at the values that
             iteration started from.
         iterations: how many optimiser iterations ran.
-        converged: the fit stopped early (no improvement for ``patience`` iterations).
+        converged: L-BFGS (and deterministic filters after the Newton polish): the gradient
+            reached ``gtol``; adam and custom optimisers: the loss stopped improving
+            (``patience``).
         diverged: how many runs diverged (``vehjax.filter``'s flag) at the fitted values.
         skipped: iterations whose gradient was not finite.
         values: every fitted quantity by name: ``"Q[x,x]"``, ``"R[y,y]"``, a parameter name,
             ``"x0[v]"`` (``"x0[r,v]"`` per run); covariances as variances/covariances.
         units: the unit of each entry of ``values`` (``"m^2"``, ``"kg"``, ...; ``"-"`` unknown).
         seconds: wall-clock time of the fit, including compilation.
+        std_errors: standard error of each entry of ``values`` in its units (same keys), from
+            the observed information (the Hessian of the log-likelihood by JAX in the
+            unconstrained coordinates, carried to the physical quantities by the delta method);
+            inf for a quantity the data do not determine; empty with
+            ``standard_errors=False``. For a particle filter a Monte-Carlo estimate.
+        correlations: (m, m) correlations of the entries of ``values`` (in their order); NaN
+            rows and columns for undetermined quantities.
+        undetermined: names of the fitted quantities (coordinates) along directions of no or
+            too little curvature (:func:`uncertainty`); a warning names them too.
+        gradient: max |d loss / dz| at the result (the loss per step, z unconstrained).
+        input_noise: the fitted input noise as the builder takes it (stds by name or a
+            covariance), or the given one, or None.
     """
 
     Q: np.ndarray
@@ -136,6 +170,11 @@ class TuneResult(NamedTuple):
     values: dict
     units: dict
     seconds: float
+    std_errors: dict = {}
+    correlations: np.ndarray | None = None
+    undetermined: tuple = ()
+    gradient: float = float("nan")
+    input_noise: Any = None
 
     def summary(self) -> str:
         """A text table of the fitted values with their units and the log-likelihood."""
@@ -146,7 +185,11 @@ class TuneResult(NamedTuple):
         ]
         width = max((len(k) for k in self.values), default=0)
         for k, v in self.values.items():
-            lines.append(f"  {k:<{width}} = {v:.6g} [{self.units[k]}]")
+            se = self.std_errors.get(k)
+            pm = "" if se is None else f" +- {se:.3g}"
+            lines.append(f"  {k:<{width}} = {v:.6g}{pm} [{self.units[k]}]")
+        if self.undetermined:
+            lines.append(f"  not determined by the data: {', '.join(self.undetermined)}")
         return "\n".join(lines)
 
 
@@ -194,6 +237,32 @@ class _Cov:
             return jnp.diag(jnp.exp(2.0 * z))
         L = jnp.diag(jnp.exp(z[:n])).at[self.rows, self.cols].set(z[n:])
         return L @ L.T
+
+
+class _InputNoise:
+    """Parameterisation of the input noise (``builder_kwargs["input_noise"]``, its starting
+    value): a dict ``{input name: std}`` is fitted by the log standard deviations of the named
+    inputs (the builder gets ``{name: exp(z)}``), an (nu, nu) covariance like Q0 (log-diagonal
+    or log-Cholesky, positive definite)."""
+
+    def __init__(self, spec, model):
+        names = tuple(model.input_names)
+        _inoise.input_factor(spec, names)  # the filters' own checks, ValueError naming it
+        if isinstance(spec, Mapping):
+            self.names = tuple(n for n in names if n in spec)
+            self.z0 = np.log(np.array([float(spec[n]) for n in self.names]))
+            self.cov = None
+        else:
+            S = _validate.cov("input_noise", np.asarray(spec, dtype=float), len(names),
+                              allow_diag=False)
+            self.names, self.diag = names, _is_diag(S)
+            self.cov = _Cov(S, self.diag)
+            self.z0 = self.cov.z0
+
+    def __call__(self, z):
+        if self.cov is None:
+            return {n: jnp.exp(z[i]) for i, n in enumerate(self.names)}
+        return self.cov(z)
 
 
 def _param_transform(params, bounds, theta0: np.ndarray, names: tuple):
@@ -354,12 +423,12 @@ def _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bound
     builder = _check_builder(builder)
     _validate.model(model)
     nx, ny, nu = len(model.state_names), len(model.output_names), len(model.input_names)
-    Qa = _validate.cov("Q0", _float_array("Q0", Q0), nx)
+    noise = _validate.names("noise", noise, _NOISE_KINDS, allow_empty=True)
+    # a Q0 that is not fitted may be singular (zero with the noise through the inputs)
+    Qa = _validate.cov("Q0", _float_array("Q0", Q0), nx, allow_psd="Q" not in noise)
     Ra = _validate.cov("R0", _float_array("R0", R0), ny)
     diagQ = np.ndim(Q0) == 1 or _is_diag(Qa)
     diagR = np.ndim(R0) == 1 or _is_diag(Ra)
-
-    noise = _validate.names("noise", noise, _NOISE, allow_empty=True)
     names = tuple(model.param_names)
     if isinstance(params, Mapping):
         raise ValueError("params: expected a sequence of parameter names; give their bounds in "
@@ -377,6 +446,12 @@ def _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bound
         raise ValueError(f"builder_kwargs: expected a dict of keyword arguments, got "
                          f"{builder_kwargs!r}")
     builder_kwargs = dict(builder_kwargs)
+    inp = None
+    if "input" in noise:
+        if builder_kwargs.get("input_noise") is None:
+            raise ValueError("noise: 'input' fits the input noise, whose starting value goes in "
+                             "builder_kwargs={'input_noise': {input name: std, ...}}")
+        inp = _InputNoise(builder_kwargs["input_noise"], model)
 
     ys = _float_array("measurements", measurements, allow_nan=True)
     if ys.ndim == 2:
@@ -424,12 +499,15 @@ def _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bound
         except Exception:
             raise ValueError(f"key: expected a jax.random.key, got {key!r}") from None
 
-    covQ, covR = _Cov(Qa, diagQ), _Cov(Ra, diagR)
+    covQ = _Cov(Qa, diagQ) if "Q" in noise else None
+    covR = _Cov(Ra, diagR)
     z0 = {}
     if "Q" in noise:
         z0["Q"] = jnp.asarray(covQ.z0)
     if "R" in noise:
         z0["R"] = jnp.asarray(covR.z0)
+    if inp is not None:
+        z0["input"] = jnp.asarray(inp.z0)
     if params:
         z0["theta"] = theta_map.to_unconstrained(jnp.asarray(theta0[idx]))
     if fit_x0:
@@ -441,7 +519,8 @@ def _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bound
         theta = jnp.asarray(theta0)
         if "theta" in z:
             theta = theta.at[idx].set(theta_map.to_physical(z["theta"]))
-        return {"Q": Q, "R": R, "theta": theta, "x0": z["x0"] if "x0" in z else jnp.asarray(x0a)}
+        return {"Q": Q, "R": R, "theta": theta, "x0": z["x0"] if "x0" in z else jnp.asarray(x0a),
+                "input": inp(z["input"]) if "input" in z else None}
 
     def loss(z, data):
         ys_, us_, x0_, P0_, keys_ = data
@@ -449,7 +528,8 @@ def _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bound
         Q = v["Q"] if "Q" in z else Qa  # constants stay numpy: the builder may specialise
         R = v["R"] if "R" in z else Ra
         mdl = eqx.tree_at(lambda m: m.theta, model, v["theta"]) if "theta" in z else model
-        est = builder(mdl, Q, R, **builder_kwargs)
+        kw = builder_kwargs if "input" not in z else {**builder_kwargs, "input_noise": v["input"]}
+        est = builder(mdl, Q, R, **kw)
         if est.needs_key:  # a particle filter: differentiated with stop-gradient resampling
             est = stop_gradient(est)
         x0v = v["x0"] if "x0" in z else x0_
@@ -467,7 +547,8 @@ def _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bound
             jnp.asarray(P0a), keys)
     info = dict(name=est0.name, builder=builder, builder_kwargs=builder_kwargs, params=params,
                 noise=noise, x0=x0a, Qa=Qa, Ra=Ra, diagQ=diagQ, diagR=diagR, theta0=theta0,
-                fit_x0=fit_x0)
+                fit_x0=fit_x0, input=inp, theta_map=theta_map, P0=P0a,
+                stochastic=bool(est0.needs_key))
     return Objective(loss, z0, data, unpack, n_runs * T), info
 
 
@@ -528,10 +609,6 @@ class _Progress:
         sys.stderr.flush()
 
 
-# ----------------------------------------------------------------------------------------------
-# fitting
-
-
 def _optimizer(optimizer, learning_rate, steps):
     """(optax transformation, is_lbfgs)."""
     if isinstance(optimizer, str):
@@ -540,7 +617,7 @@ def _optimizer(optimizer, learning_rate, steps):
             lr = _ADAM_LR if learning_rate is None else learning_rate
             sched = optax.cosine_decay_schedule(lr, max(steps, 1), alpha=0.05)
             return optax.apply_if_finite(optax.adam(sched), max_consecutive_errors=10), False
-        return optax.lbfgs(learning_rate=learning_rate), True
+        return None, True  # vehjax's own L-BFGS on the compiled loss (_lbfgs)
     if isinstance(optimizer, optax.GradientTransformation):
         if learning_rate is not None:
             raise ValueError("learning_rate: set it inside your own optax optimizer, not here")
@@ -549,11 +626,358 @@ def _optimizer(optimizer, learning_rate, steps):
                      f"got {optimizer!r}")
 
 
+# ----------------------------------------------------------------------------------------------
+# the fitted quantities, their coordinates, and how well the data determine them
+
+
+def _cov_names(prefix: str, names: tuple, n: int, diag: bool):
+    """Names of the (a <= b) entries of a fitted covariance, in the order :func:`fit` reports
+    them, and of its coordinates (log-diagonal, then the Cholesky entries below it)."""
+    entries = [(a, b) for a in range(n) for b in range(a, n if not diag else a + 1)]
+    values = [f"{prefix}[{names[a]},{names[b]}]" for a, b in entries]
+    rows, cols = np.tril_indices(n, -1)
+    coords = [f"{prefix}[{names[i]},{names[i]}]" for i in range(n)]
+    if not diag:
+        coords += [f"{prefix}[{names[c]},{names[r]}]" for r, c in zip(rows, cols)]
+    return entries, values, coords
+
+
+def fitted_quantities(info, model, v):
+    """The fitted quantities as ``[(name, unit, value)]`` from the physical values ``v``
+    (:attr:`Objective.unpack`'s dict; jax or numpy): covariance entries ``"Q[a,b]"``,
+    ``"R[a,b]"`` (variances / covariances, units squared), input-noise stds ``"input[u]"``
+    (the input's unit) or covariance entries ``"input[u,w]"``, parameters by name, ``"x0[v]"``
+    / ``"x0[r,v]"``. Traceable: the Jacobian of the values by JAX gives the delta method."""
+    out = []
+    su = _units(model, "state_units", len(model.state_names))
+    ou = _units(model, "output_units", len(model.output_names))
+    iu = _units(model, "input_units", len(model.input_names))
+    for name, diag, cnames, cu in (("Q", info["diagQ"], model.state_names, su),
+                                   ("R", info["diagR"], model.output_names, ou)):
+        if name not in info["noise"]:
+            continue
+        entries, names, _ = _cov_names(name, cnames, len(cnames), diag)
+        for (a, b), k in zip(entries, names):
+            out.append((k, _sq(cu[a]) if a == b else _prod(cu[a], cu[b]), v[name][a, b]))
+    inp = info["input"]
+    if inp is not None:
+        names = tuple(model.input_names)
+        if inp.cov is None:
+            for n in inp.names:
+                out.append((f"input[{n}]", iu[names.index(n)], v["input"][n]))
+        else:
+            entries, keys, _ = _cov_names("input", names, len(names), inp.diag)
+            for (a, b), k in zip(entries, keys):
+                out.append((k, _sq(iu[a]) if a == b else _prod(iu[a], iu[b]), v["input"][a, b]))
+    pu = _units(model, "param_units", len(model.param_names))
+    for p in info["params"]:
+        j = model.param_names.index(p)
+        out.append((p, pu[j], v["theta"][j]))
+    if info["fit_x0"]:
+        x0 = v["x0"]
+        for idx in np.ndindex(np.shape(x0)):
+            comp = model.state_names[idx[-1]]
+            k = f"x0[{comp}]" if np.ndim(x0) == 1 else f"x0[{idx[0]},{comp}]"
+            out.append((k, su[idx[-1]], x0[idx]))
+    return out
+
+
+def _coordinates(info, model, z0):
+    """(names (n,), scales (n,)) of the unconstrained coordinates, flattened in
+    ``jax.flatten_util.ravel_pytree`` order (dict keys sorted). A scale is the size of a change
+    of that coordinate that would be as large as the quantity itself: 1 for log standard
+    deviations and log/logit parameter maps, |theta0| for a free parameter, sqrt(A0_rr) for a
+    Cholesky entry below the diagonal, the prior standard deviation sqrt(P0_ii) for x0."""
+    per = {}
+    for name, diag, cnames, A0 in (("Q", info["diagQ"], model.state_names, info["Qa"]),
+                                   ("R", info["diagR"], model.output_names, info["Ra"])):
+        if name in z0:
+            n = len(cnames)
+            _, _, coords = _cov_names(name, cnames, n, diag)
+            rows, _ = np.tril_indices(n, -1)
+            sc = np.ones(n) if diag else np.concatenate([np.ones(n), np.sqrt(np.diag(A0))[rows]])
+            per[name] = (coords, sc)
+    inp = info["input"]
+    if inp is not None:
+        if inp.cov is None:
+            per["input"] = ([f"input[{n}]" for n in inp.names], np.ones(len(inp.names)))
+        else:
+            n = len(inp.names)
+            _, _, coords = _cov_names("input", inp.names, n, inp.diag)
+            L0 = np.exp(inp.z0[:n])  # the starting standard deviations
+            rows, _ = np.tril_indices(n, -1)
+            per["input"] = (coords, np.ones(n) if inp.diag else np.concatenate(
+                [np.ones(n), L0[rows]]))
+    if "theta" in z0:
+        th = info["theta0"][[model.param_names.index(p) for p in info["params"]]]
+        free = np.array([k == "none" for k in info["theta_map"].kinds])
+        per["theta"] = (list(info["params"]),
+                        np.where(free, np.where(th != 0, np.abs(th), 1.0), 1.0))
+    if "x0" in z0:
+        P0 = info["P0"]
+        sd = np.sqrt(np.diagonal(P0, axis1=-2, axis2=-1))
+        x0 = info["x0"]
+        names, sc = [], []
+        for idx in np.ndindex(x0.shape):
+            comp = model.state_names[idx[-1]]
+            names.append(f"x0[{comp}]" if x0.ndim == 1 else f"x0[{idx[0]},{comp}]")
+            sc.append(sd[idx[-1]] if sd.ndim == 1 else sd[idx[0], idx[-1]])
+        per["x0"] = (names, np.asarray(sc))
+    names, scales = [], []
+    for key in sorted(z0):
+        names += list(per[key][0])
+        scales.append(per[key][1])
+    return tuple(names), np.concatenate(scales)
+
+
+class Uncertainty(NamedTuple):
+    """What :func:`uncertainty` returns.
+
+    Attributes:
+        cov: (m, m) covariance of the fitted quantities in their units (delta method), with
+            inf on the diagonal of a quantity an undetermined direction moves.
+        std_errors: (m,) standard errors, sqrt of its diagonal (inf: undetermined).
+        correlations: (m, m), NaN in the rows and columns of undetermined quantities.
+        undetermined: names of the coordinates in the undetermined directions.
+        eigenvalues: (n,) eigenvalues of the scaled observed information, ascending.
+        determined: (n,) bool, which eigen-directions the data determine.
+    """
+
+    cov: np.ndarray
+    std_errors: np.ndarray
+    correlations: np.ndarray
+    undetermined: tuple
+    eigenvalues: np.ndarray
+    determined: np.ndarray
+
+
+def uncertainty(info_matrix, jac, scales, coord_names, rcond: float = _RCOND,
+                max_std: float = _MAX_SCALED_STD) -> Uncertainty:
+    """Standard errors and correlations of fitted quantities from the observed information.
+
+    With ``I`` (n, n) the observed information of the unconstrained coordinates z (the Hessian
+    of minus the log-likelihood), ``S = diag(scales)`` and ``I_s = S I S = V diag(lam) V^T``,
+    an eigen-direction is undetermined when ``lam <= rcond * max(lam)`` (no curvature: the data
+    do not move the likelihood along it) or ``lam < 1 / max_std^2`` (its standard error exceeds
+    ``max_std`` of the scale, the quantity's own size: not determined to within a factor of
+    about e for a log coordinate). The covariance of z over the determined directions is
+    ``S V_d diag(1/lam_d) V_d^T S``, that of the quantities ``J cov_z J^T`` (delta method,
+    ``jac`` = J = d quantities / dz, (m, n)). A coordinate is named undetermined when its
+    component in an undetermined direction is at least 0.3 (the largest always).
+    """
+    Iz = np.asarray(info_matrix, dtype=float)
+    J = np.asarray(jac, dtype=float)
+    scales = np.asarray(scales, dtype=float)
+    Is = 0.5 * (Iz + Iz.T) * np.outer(scales, scales)
+    if not np.all(np.isfinite(Is)):
+        n = len(scales)
+        return Uncertainty(np.full((J.shape[0],) * 2, np.nan), np.full(J.shape[0], np.nan),
+                           np.full((J.shape[0],) * 2, np.nan), tuple(coord_names),
+                           np.full(n, np.nan), np.zeros(n, bool))
+    lam, V = np.linalg.eigh(Is)
+    top = max(float(lam.max()), np.finfo(float).tiny)
+    det = (lam > rcond * top) & (lam >= 1.0 / max_std**2)
+    Vd = V[:, det]
+    cov_z = (scales[:, None] * Vd / lam[det]) @ (Vd.T * scales[None, :])
+    cov = J @ cov_z @ J.T
+    bad_coords = np.zeros(len(scales), bool)
+    for k in np.flatnonzero(~det):
+        v = np.abs(V[:, k])
+        bad_coords |= (v >= 0.3) | (v == v.max())
+    moved = np.any((J != 0) & bad_coords[None, :], axis=1)
+    se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    se[moved] = np.inf
+    cov[np.ix_(moved, moved)] = np.nan
+    cov[moved, moved] = np.inf
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(se, se)
+    corr[moved, :] = np.nan
+    corr[:, moved] = np.nan
+    names = tuple(n for n, b in zip(coord_names, bad_coords) if b)
+    return Uncertainty(cov, se, corr, names, lam, det)
+
+
+# ----------------------------------------------------------------------------------------------
+# fitting
+
+
+def _finite(*arrays) -> bool:
+    return all(bool(np.all(np.isfinite(np.asarray(a)))) for a in arrays)
+
+
+class _Loss(NamedTuple):
+    """The loss on a flat vector of coordinates (``ravel_pytree`` of z): ``vg(f) -> (loss,
+    aux, grad)`` compiled once per fit and used by every part of it (the optimiser, its line
+    search, the curvature, the Newton polish), so that a fit compiles one program."""
+
+    vg: Callable
+    unravel: Callable
+    x0: np.ndarray
+
+
+def _flat_loss(obj) -> _Loss:
+    flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
+    fn = jax.jit(jax.value_and_grad(lambda f, data: obj.loss(unravel(f), data), has_aux=True))
+
+    def vg(f):
+        (v, aux), g = fn(jnp.asarray(f), obj.data)
+        return float(v), aux, np.asarray(g, dtype=float)
+
+    return _Loss(vg, unravel, np.asarray(flat, dtype=float))
+
+
+def wolfe_search(vg, x, f0: float, g0, d, t: float = 1.0, c1: float = 1e-4, c2: float = 0.9,
+                 tries: int = 40):
+    """A step t along the descent direction d (n,) from x satisfying the weak Wolfe conditions
+    ``f(x + t d) <= f0 + c1 t g0.d`` and ``g(x + t d).d >= c2 g0.d``, by bracketing and
+    bisection (Lewis & Overton 2013); a non-finite value counts as too long a step.
+    Returns (t, (f, aux, g)) or None when no step decreases the loss (at the numerical
+    optimum, or d is no descent direction)."""
+    dg0 = float(g0 @ d)
+    if not dg0 < 0:
+        return None
+    lo, hi, armijo = 0.0, np.inf, None
+    for _ in range(tries):
+        f, aux, g = vg(x + t * d)
+        if not (np.isfinite(f) and _finite(g)) or f > f0 + c1 * t * dg0:
+            hi = t
+        else:
+            armijo = (t, (f, aux, g))
+            if float(g @ d) < c2 * dg0:
+                lo = t
+            else:
+                return armijo
+        t = 0.5 * (lo + hi) if np.isfinite(hi) else 2.0 * t
+    return armijo
+
+
+def lbfgs_direction(g, S: list, Y: list):
+    """-H g by the L-BFGS two-loop recursion from the pairs s_k = x_{k+1} - x_k, y_k = g_{k+1}
+    - g_k (oldest first), initial H = (s.y / y.y) I of the newest pair (Nocedal & Wright,
+    Algorithm 7.4)."""
+    q = np.array(g, dtype=float)
+    alphas = []
+    for s, y in zip(reversed(S), reversed(Y)):
+        a = (s @ q) / (y @ s)
+        alphas.append(a)
+        q -= a * y
+    if S:
+        q *= (S[-1] @ Y[-1]) / (Y[-1] @ Y[-1])
+    for (s, y), a in zip(zip(S, Y), reversed(alphas)):
+        q += (a - (y @ q) / (y @ s)) * s
+    return -q
+
+
+def _lbfgs(loss: _Loss, steps: int, gtol: float, bar, memory: int = 10):
+    """L-BFGS with a weak-Wolfe line search on the compiled loss. Stops, converged, when
+    max |grad| <= gtol, or when no step decreases the loss. Returns (x, aux, history,
+    iterations, converged)."""
+    x = loss.x0
+    f, aux, g = loss.vg(x)
+    if not (np.isfinite(f) and _finite(g)):
+        raise FloatingPointError(
+            "vehjax.tune: the log-likelihood or its gradient is not finite at the starting "
+            "values; check Q0, R0, x0, P0 and the measurements")
+    S, Y, history, converged, i = [], [], [], False, 0
+    for i in range(1, steps + 1):
+        history.append(f)
+        bar.update(i, f, f)
+        if np.max(np.abs(g)) <= gtol:
+            converged = True
+            break
+        d = lbfgs_direction(g, S, Y)
+        if not g @ d < 0:  # lost positive curvature: restart from steepest descent
+            S, Y, d = [], [], -g
+        t0 = 1.0 if S else min(1.0, 1.0 / max(np.max(np.abs(g)), 1e-12))
+        found = wolfe_search(loss.vg, x, f, g, d, t0)
+        if found is None:
+            break
+        t, (f_new, aux, g_new) = found
+        s, y = t * d, g_new - g
+        if s @ y > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y):
+            S, Y = (S + [s])[-memory:], (Y + [y])[-memory:]
+        x, f, g = x + s, f_new, g_new
+    bar.close(i, f, f)
+    return x, aux, history, i, converged
+
+
+def _first_order(loss: _Loss, opt, steps: int, tol: float, patience: int, bar):
+    """adam or a custom optax transformation on the compiled loss: steps with a non-finite
+    gradient are skipped (``apply_if_finite``); stops, converged, when the best loss has not
+    improved by ``tol * max(1, |best|)`` for ``patience`` iterations. Returns (best x, its aux,
+    history, iterations, converged, skipped)."""
+    update = jax.jit(opt.update)
+    x = jnp.asarray(loss.x0)
+    state = jax.tree.map(lambda a: jnp.array(a, dtype=jnp.asarray(a).dtype), opt.init(x))
+    history, best, best_x, best_aux = [], np.inf, loss.x0, None
+    since = skipped = i = 0
+    converged, f = False, np.nan
+    for i in range(1, steps + 1):
+        f, aux, g = loss.vg(x)
+        history.append(f)
+        if not (np.isfinite(f) and _finite(g)):
+            skipped += 1
+        if np.isfinite(f) and (not np.isfinite(best) or f < best - tol * max(1.0, abs(best))):
+            best, best_x, best_aux, since = f, np.asarray(x), aux, 0
+        else:
+            since += 1
+        bar.update(i, f, best)
+        updates, state = update(jnp.asarray(g), state, x)
+        x = optax.apply_updates(x, updates)
+        if since >= patience:
+            converged = True
+            break
+    bar.close(i, f, best)
+    if not np.isfinite(best):
+        raise FloatingPointError(
+            "vehjax.tune: the log-likelihood is not finite at the starting values; check Q0, R0, "
+            "x0, P0 and the measurements")
+    return best_x, best_aux, history, i, converged, skipped
+
+
+def hessian_from_gradients(vg, x, scales, rel: float = 1e-4):
+    """The Hessian (n, n) of the loss at x by central differences of its exact (JAX) gradient,
+    column i from steps +-rel * scales[i] (the coordinate's natural size, see
+    :func:`_coordinates`), symmetrised: 2 n gradient evaluations of the compiled loss, no
+    further compilation. Truncation error O(rel^2) relative."""
+    n = len(x)
+    H = np.zeros((n, n))
+    for i in range(n):
+        h = rel * scales[i]
+        e = np.zeros(n)
+        e[i] = h
+        H[:, i] = (vg(x + e)[2] - vg(x - e)[2]) / (2 * h)
+    return 0.5 * (H + H.T)
+
+
+def _newton(loss: _Loss, x, scales, gtol: float, hessian):
+    """The curvature at x and one Newton step on its determined directions, kept when the loss
+    does not increase (the curvature is then recomputed where the step was large). Returns
+    (x, aux, max |gradient|, Hessian of the mean loss)."""
+    f, aux, g = loss.vg(x)
+    Hm = hessian(x)
+    if not (np.all(np.isfinite(Hm)) and _finite(g)):
+        return x, aux, float(np.max(np.abs(g))), Hm
+    lam, V = np.linalg.eigh(Hm * np.outer(scales, scales))
+    keep = lam > _RCOND * max(float(lam.max()), np.finfo(float).tiny)
+    if np.max(np.abs(g)) <= 1e-3 * gtol or not np.any(keep):
+        return x, aux, float(np.max(np.abs(g))), Hm
+    step = -scales * (V[:, keep] @ ((V[:, keep].T @ (scales * g)) / lam[keep]))
+    f_new, aux_new, g_new = loss.vg(x + step)
+    if np.isfinite(f_new) and _finite(g_new) and f_new <= f + 1e-14 * max(1.0, abs(f)):
+        x, aux, g = x + step, aux_new, g_new
+        if np.max(np.abs(step / scales)) > 1e-3:  # moved far: the curvature there
+            Hm = hessian(x)
+    return x, aux, float(np.max(np.abs(g))), Hm
+
+
 def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(), bounds=None,
-        noise=_NOISE, fit_x0: bool = False, optimizer="adam", learning_rate=None,
-        steps: int | None = None, tol: float = 1e-7, patience: int | None = None, key=None,
-        builder_kwargs=None, progress: bool = True) -> TuneResult:
-    """Fit Q, R, named model parameters and optionally x0 by maximum likelihood.
+        noise=_NOISE, fit_x0: bool = False, optimizer=None, learning_rate=None,
+        steps: int | None = None, tol: float = 1e-7, patience: int | None = None,
+        gtol: float = _GTOL, key=None, builder_kwargs=None, progress: bool = True,
+        standard_errors: bool = True, hessian: str = "differences") -> TuneResult:
+    """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum likelihood,
+    with standard errors.
 
     Args:
         builder: a filter builder ``builder(model, Q, R, **builder_kwargs) -> Estimator``:
@@ -561,31 +985,51 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
             square-root forms), ``bootstrap_pf`` (differentiated with stop-gradient
             resampling, :func:`stop_gradient`), or one's own state-only builder.
         model: a vehjax model; ``model.theta`` holds the starting parameter values.
-        Q0, R0: starting covariances, (n, n) or (n,) variances, positive definite; diagonal
-            ones are fitted as diagonal, full ones as full (module docstring).
+        Q0, R0: starting covariances, (n, n) or (n,) variances; diagonal ones are fitted as
+            diagonal, full ones as full (module docstring). Positive definite when fitted; a Q0
+            that is not fitted may be positive semi-definite (zero, with input noise).
         measurements: (T, ny) one run or (R, T, ny) runs; NaN components are missing.
         inputs: (T, nu) shared or (R, T, nu) per run; None for a model without inputs.
         x0, P0: prior of every run: x0 (nx,) or (R, nx), P0 (nx, nx), (nx,) or (R, nx, nx).
         params: names of model parameters to fit (default none).
         bounds: ``{name: (lo, hi)}`` for fitted parameters, either end None (module docstring).
-        noise: which covariances to fit, a subset of ("Q", "R") (default both).
+        noise: which noise to fit, a subset of ("Q", "R", "input") (default ("Q", "R")).
+            "input" fits the input noise whose starting value is
+            ``builder_kwargs["input_noise"]``: stds by input name (log stds fitted, reported as
+            ``"input[name]"`` stds in the input's unit) or an (nu, nu) covariance (fitted like
+            Q0, reported in units squared).
         fit_x0: also fit x0 (the shape it was given in).
-        optimizer: "adam" (default), "lbfgs" or an ``optax.GradientTransformation``.
+        optimizer: None (default): "lbfgs" for deterministic filters, "adam" for particle
+            filters; "adam", "lbfgs" or an ``optax.GradientTransformation``.
         learning_rate: > 0; adam's peak rate (default 0.05, cosine decay to 5 % over
-            ``steps``), L-BFGS's fixed step instead of its line search (default: line search).
+            ``steps``); not for L-BFGS (line search).
         steps: maximum number of iterations, >= 1 (default 300 adam, 100 lbfgs).
-        tol: >= 0, the improvement of the best loss that resets ``patience``, relative to
-            max(1, |best loss|).
-        patience: >= 1, iterations without improvement before stopping (default 50 adam, whose
-            momentum can overshoot for a few tens of iterations; 5 lbfgs).
+        tol: >= 0 (adam, custom): the improvement of the best loss that resets ``patience``,
+            relative to max(1, |best loss|).
+        patience: >= 1 (adam, custom), iterations without improvement before stopping (default
+            50: adam's momentum can overshoot for a few tens of iterations).
+        gtol: > 0, L-BFGS stops, converged, when every component of the gradient of the loss
+            (the mean negative log-likelihood per step) with respect to the unconstrained
+            coordinates is at most gtol (the parameterisation is unconstrained: this is the
+            projected gradient), or when its line search finds no lower loss. For every
+            deterministic filter a Newton step on the Hessian then polishes the result, and
+            ``converged`` says whether the gradient there is at most gtol.
         key: PRNG key, required for particle filters; run r uses ``jax.random.split(key, R)[r]``
             at every iteration.
         builder_kwargs: further keyword arguments of ``builder`` (``sqrt``, ``alpha``,
-            ``n_particles``, ...).
+            ``n_particles``, ``input_noise``, ...).
         progress: show a progress bar (tqdm.auto when installed, else a line on stderr).
+        standard_errors: compute the observed information (the Hessian of the log-likelihood),
+            standard errors, correlations and the undetermined directions (default).
+        hessian: how the Hessian is formed from JAX's exact gradient: "differences" (default)
+            by central differences of the gradient, steps 1e-4 of each coordinate's natural
+            size, with the one compiled gradient program (2 n evaluations, relative error
+            ~1e-8); "jax": ``jax.hessian`` (forward over reverse), exact, one more program to
+            compile (on a vehicle model that compile can take longer than the fit).
 
     Returns:
-        :class:`TuneResult`.
+        :class:`TuneResult`. A warning names the quantities the data do not determine
+        (:func:`uncertainty`), also in ``TuneResult.undetermined``.
 
     Raises:
         ValueError: naming the argument, before anything is traced: an unknown parameter name,
@@ -595,69 +1039,64 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     t_start = time.perf_counter()
     if learning_rate is not None:
         learning_rate = _validate.number("learning_rate", learning_rate, 0.0)
-    lbfgs = isinstance(optimizer, str) and optimizer == "lbfgs"
-    steps = _validate.integer("steps", (_LBFGS_STEPS if lbfgs else _ADAM_STEPS)
-                              if steps is None else steps, 1)
-    patience = _validate.integer("patience", (5 if lbfgs else 50) if patience is None
-                                 else patience, 1)
     tol = _validate.number("tol", tol, 0.0, low_open=False)
-    opt, lbfgs = _optimizer(optimizer, learning_rate, steps)
+    gtol = _validate.number("gtol", gtol, 0.0)
+    _validate.choice("hessian", hessian, ("differences", "jax"))
+    if steps is not None:
+        _validate.integer("steps", steps, 1)
+    if patience is not None:
+        _validate.integer("patience", patience, 1)
+    if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
+        if not isinstance(optimizer, str):
+            raise ValueError(f"optimizer: expected 'adam', 'lbfgs' or an "
+                             f"optax.GradientTransformation, got {optimizer!r}")
+        _validate.choice("optimizer", optimizer, _OPTIMIZERS)
     obj, info = _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
                          noise, fit_x0, key, builder_kwargs)
+    if optimizer is None:
+        optimizer = "adam" if info["stochastic"] else "lbfgs"
+    lbfgs = isinstance(optimizer, str) and optimizer == "lbfgs"
+    if lbfgs and learning_rate is not None:
+        raise ValueError("learning_rate: L-BFGS takes its steps by a line search; leave it None")
+    steps = _LBFGS_STEPS if steps is None and lbfgs else _ADAM_STEPS if steps is None else steps
+    patience = 50 if patience is None else patience
+    opt = None if lbfgs else _optimizer(optimizer, learning_rate, steps)[0]
 
-    def finite(value, grad):
-        return jnp.isfinite(value) & jax.tree.reduce(
-            jnp.logical_and, jax.tree.map(lambda g: jnp.all(jnp.isfinite(g)), grad))
-
-    if lbfgs:
-        @jax.jit
-        def step(z, state, data):
-            fn = lambda zz: obj.loss(zz, data)[0]  # noqa: E731
-            value, grad = optax.value_and_grad_from_state(fn)(z, state=state)
-            updates, state = opt.update(grad, state, z, value=value, grad=grad, value_fn=fn)
-            return optax.apply_updates(z, updates), state, value, finite(value, grad), None
-    else:
-        @jax.jit
-        def step(z, state, data):
-            (value, aux), grad = jax.value_and_grad(obj.loss, has_aux=True)(z, data)
-            updates, state = opt.update(grad, state, z)
-            return optax.apply_updates(z, updates), state, value, finite(value, grad), aux
-
-    z = obj.z0
-    # strongly typed state: a weak-typed leaf that becomes strong after one update would make
-    # jit compile the step twice
-    state = jax.tree.map(lambda a: jnp.array(a, dtype=jnp.asarray(a).dtype), opt.init(z))
+    loss = _flat_loss(obj)
     bar = _Progress(steps, bool(progress), f"vehjax.tune ({info['name']})")
-    history, best, best_z, best_aux = [], np.inf, z, None
-    since = skipped = i = 0
-    converged = False
-    value = np.nan
-    for i in range(1, steps + 1):
-        z_new, state, value, ok, aux = step(z, state, obj.data)
-        value, ok = float(value), bool(ok)
-        history.append(value)
-        if not ok:
-            skipped += 1
-            if lbfgs:
-                break
-        if np.isfinite(value) and (not np.isfinite(best)
-                                   or value < best - tol * max(1.0, abs(best))):
-            best, best_z, best_aux, since = value, z, aux, 0
+    skipped = 0
+    if lbfgs:
+        x, aux, history, iters, converged = _lbfgs(loss, steps, gtol, bar)
+    else:
+        x, aux, history, iters, converged, skipped = _first_order(loss, opt, steps, tol,
+                                                                  patience, bar)
+    coord_names, scales = _coordinates(info, model, obj.z0)
+    unc, grad_max = None, float("nan")
+    if standard_errors:
+        if hessian == "jax":
+            hfn = jax.jit(jax.hessian(lambda f, data: obj.loss(loss.unravel(f), data)[0]))
+            hess = lambda f: np.asarray(hfn(jnp.asarray(f), obj.data))  # noqa: E731
         else:
-            since += 1
-        bar.update(i, value, best)
-        z = z_new
-        if since >= patience:
-            converged = True
-            break
-    bar.close(i, value, best)
-    if not np.isfinite(best):
-        raise FloatingPointError(
-            "vehjax.tune: the log-likelihood is not finite at the starting values; check Q0, R0, "
-            "x0, P0 and the measurements")
-    if best_aux is None:  # L-BFGS: its step does not return the per-run outputs
-        _, best_aux = jax.jit(obj.loss)(best_z, obj.data)
-    ll, div = best_aux
+            hess = lambda f: hessian_from_gradients(loss.vg, f, scales)  # noqa: E731
+        if info["stochastic"]:  # no Newton step on a Monte-Carlo objective
+            _, aux, g = loss.vg(x)
+            grad_max, Hm = float(np.max(np.abs(g))), hess(x)
+        else:
+            x, aux, grad_max, Hm = _newton(loss, x, scales, gtol, hess)
+            converged = converged or grad_max <= gtol
+        qfn = lambda f: jnp.stack([jnp.asarray(q[2]) for q in fitted_quantities(  # noqa: E731
+            info, model, obj.unpack(loss.unravel(f)))])
+        unc = uncertainty(obj.n_steps * Hm, np.asarray(jax.jacfwd(qfn)(jnp.asarray(x))), scales,
+                          coord_names)
+    return _result(obj, info, model, loss.unravel(jnp.asarray(x)), aux, history, iters,
+                   converged, skipped, unc, grad_max, t_start)
+
+
+def _result(obj, info, model, best_z, best_aux, history, iters, converged, skipped, unc,
+            grad_max, t_start) -> TuneResult:
+    """The :class:`TuneResult` at ``best_z``, with warnings for diverged runs and undetermined
+    quantities."""
+    ll, div = jax.jit(obj.loss)(best_z, obj.data)[1] if best_aux is None else best_aux
     v = jax.tree.map(np.asarray, obj.unpack(best_z))
     Q, R, theta, x0_fit = v["Q"], v["R"], v["theta"], v["x0"]
     Q, R = 0.5 * (Q + Q.T), 0.5 * (R + R.T)
@@ -665,42 +1104,36 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     if info["params"]:
         fitted_model = model.with_theta(**{p: float(theta[model.param_names.index(p)])
                                            for p in info["params"]})
-    estimator = info["builder"](fitted_model, Q, R, **info["builder_kwargs"])
+    kw = dict(info["builder_kwargs"])
+    if v["input"] is not None:
+        kw["input_noise"] = ({k: float(s) for k, s in v["input"].items()}
+                             if isinstance(v["input"], dict) else np.asarray(v["input"]))
+    estimator = info["builder"](fitted_model, Q, R, **kw)
     n_div = int(np.sum(np.asarray(div)))
     if n_div:
         warnings.warn(f"vehjax.tune: {n_div} of {len(div)} runs diverged at the fitted values; "
-                      f"their log-likelihood counts only the steps before", stacklevel=2)
-
-    values, units = {}, {}
-    su = _units(model, "state_units", model.nx if isinstance(model, BaseModel) else Q.shape[0])
-    ou = _units(model, "output_units", R.shape[0])
-    for name, M, diag, cnames, cu in (("Q", Q, info["diagQ"], model.state_names, su),
-                                      ("R", R, info["diagR"], model.output_names, ou)):
-        if name not in info["noise"]:
-            continue
-        n = M.shape[0]
-        for a in range(n):
-            for b in range(a, n if not diag else a + 1):
-                key_ = f"{name}[{cnames[a]},{cnames[b]}]"
-                values[key_] = float(M[a, b])
-                units[key_] = _sq(cu[a]) if a == b else _prod(cu[a], cu[b])
-    pu = _units(model, "param_units", len(model.param_names))
-    for p in info["params"]:
-        j = model.param_names.index(p)
-        values[p], units[p] = float(theta[j]), pu[j]
-    if info["fit_x0"]:
-        for idx in np.ndindex(x0_fit.shape):
-            comp = model.state_names[idx[-1]]
-            k = f"x0[{comp}]" if x0_fit.ndim == 1 else f"x0[{idx[0]},{comp}]"
-            values[k], units[k] = float(x0_fit[idx]), su[idx[-1]]
-
+                      f"their log-likelihood counts only the steps before", stacklevel=3)
+    qs = fitted_quantities(info, model, v)
+    values = {k: float(x) for k, _, x in qs}
+    units = {k: u for k, u, _ in qs}
+    se, corr, undetermined = {}, np.full((len(qs),) * 2, np.nan), ()
+    if unc is not None:
+        se = {k: float(s) for (k, _, _), s in zip(qs, unc.std_errors)}
+        corr, undetermined = unc.correlations, unc.undetermined
+        if undetermined:
+            warnings.warn(
+                f"vehjax.tune: the data do not determine {', '.join(undetermined)} (no or too "
+                f"little curvature of the log-likelihood; their standard errors are inf): "
+                f"fix them, or give data that excite them", stacklevel=3)
     return TuneResult(
         Q=Q, R=R, theta=np.asarray(theta),
         params={p: float(theta[model.param_names.index(p)]) for p in info["params"]},
         x0=x0_fit, model=fitted_model, estimator=estimator,
         loglik=float(np.sum(np.asarray(ll))), loglik0=-history[0] * obj.n_steps,
-        history=np.asarray(history), iterations=i, converged=converged, diverged=n_div,
+        history=np.asarray(history), iterations=iters, converged=converged, diverged=n_div,
         skipped=skipped, values=values, units=units, seconds=time.perf_counter() - t_start,
+        std_errors=se, correlations=corr, undetermined=undetermined, gradient=grad_max,
+        input_noise=kw.get("input_noise"),
     )
 
 
