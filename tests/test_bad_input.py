@@ -128,7 +128,7 @@ def test_inf_measurements_one_rule():
     bad[0, 4, 1] = np.inf
     for family in ("ekf", "pf"):
         est = FAMILIES[family]()
-        with pytest.raises(ValueError, match=r"^measurements:.*inf"):
+        with pytest.raises(ValueError, match=r"^measurements:.*inf.*\(0, 4, 1\)"):
             vj.run(est, bad, US, **_kw(est))
         key = jax.random.key(1) if est.needs_key else None
         y_inf, y_nan = bad[0].copy(), bad[0].copy()
@@ -257,8 +257,10 @@ def test_not_an_estimator_and_missing_parameter_priors():
     with pytest.raises(ValueError, match="^estimator:"):
         vj.run(F.ukf, YS, US, x0=X0, P0=P0)
     dual = FAMILIES["dual_ekf"]()
-    with pytest.raises(ValueError, match="^theta0:"):
+    with pytest.raises(ValueError, match="^P_theta0: required"):  # as vj.filter says
         vj.run(dual, YS, US, x0=X0, P0=P0)
+    with pytest.raises(ValueError, match="^P_theta0: required"):
+        vj.filter(dual, YS[0], US, x0=X0, P0=P0)
     with pytest.raises(ValueError, match="^theta0:"):
         vj.run(dual, YS, US, x0=X0, P0=P0, theta0=[1.0, 2.0], P_theta0=[[0.1]])
     with pytest.raises(ValueError, match="^key:"):

@@ -376,85 +376,17 @@ def _plan(
     if nx < 1:
         raise ValueError(f"estimator: nx must be >= 1, got {estimator.nx}")
 
-    ys = _validate.array("measurements", measurements, allow_nan=True)
-    if ys.ndim != 3 or 0 in ys.shape:
-        raise ValueError(
-            f"measurements: expected shape (runs, steps, ny) with none zero, got {ys.shape}; "
-            f"for a single run pass measurements[None]"
-        )
+    # the checks every entry point shares (vehjax._validate): real arrays, NaN measurements
+    # missing, +-inf and every other non-finite value refused naming the first bad index
+    ys, us = _validate.data(measurements, inputs, estimator.ny, estimator.nu, "many")
     R, T, ny = ys.shape
-    if np.any(np.isinf(ys)):
-        raise ValueError(
-            "measurements: +-inf found; mark missing components with NaN (a filter skips them)"
-        )
-    if estimator.ny is not None and ny != estimator.ny:
-        raise ValueError(
-            f"measurements: expected {estimator.ny} columns (the model's outputs) in shape "
-            f"(runs, steps, {estimator.ny}), got {ys.shape}"
-        )
-
-    if inputs is None:
-        if estimator.nu:
-            raise ValueError(
-                f"inputs: required, shape ({T}, {estimator.nu}) shared or ({R}, {T}, "
-                f"{estimator.nu}) per run, for this model's {estimator.nu} inputs"
-            )
-        us = np.zeros((T, 0), ys.dtype)
-    else:
-        us = _validate.array("inputs", inputs)
-        if us.ndim == 1 and T == us.shape[0]:
-            raise ValueError(
-                f"inputs: expected shape ({T}, nu) or ({R}, {T}, nu), got {us.shape}; "
-                f"for a single input pass inputs[:, None]"
-            )
-        shared_ok = us.ndim == 2 and us.shape[0] == T
-        nu = estimator.nu
-        if nu is not None and us.ndim in (2, 3) and us.shape[-1] != nu:
-            raise ValueError(
-                f"inputs: expected {nu} columns (the model's inputs), shape ({T}, {nu}) or "
-                f"({R}, {T}, {nu}), got {us.shape}"
-            )
-        if not shared_ok and not (us.ndim == 3 and us.shape[:2] == (R, T)):
-            raise ValueError(
-                f"inputs: expected shape ({T}, nu) (shared by all runs) or ({R}, {T}, nu) "
-                f"(one per run) to match measurements {ys.shape}, got {us.shape}"
-            )
-
-    x0 = _check_shape("x0", _validate.array("x0", x0), (nx,), R, f"nx = {nx} states")
-    P0 = _validate.array("P0", P0)
-    if P0.shape == (nx,):
-        if np.any(P0 <= 0):
-            raise ValueError(f"P0: expected positive variances, got {P0}")
-        P0 = np.diag(P0)  # (nx,) variances, the rule for every covariance argument
-    P0 = _check_shape("P0", P0, (nx, nx), R, f"nx = {nx} states (or ({nx},) variances)")
-    _validate.batched_cov("P0", P0)
-
-    if p == 0:
-        for arg, v in (("theta0", theta0), ("P_theta0", P_theta0)):
-            if v is not None:
-                raise ValueError(
-                    f"{arg}: estimator {estimator.name!r} estimates no parameters; pass None"
-                )
-        th0 = Pth0 = None
-    else:
-        names = tuple(estimator.param_names)
-        for arg, v in (("theta0", theta0), ("P_theta0", P_theta0)):
-            if v is None and estimator.param_prior is None:
-                raise ValueError(
-                    f"{arg}: required, estimator {estimator.name!r} estimates parameters {names}"
-                )
-        if theta0 is None and P_theta0 is None:
-            th0 = Pth0 = None  # the estimator's own prior (param_prior)
-        else:
-            if theta0 is None or P_theta0 is None:
-                raise ValueError("theta0, P_theta0: pass both or neither (the filter's own prior)")
-            th0 = _check_shape("theta0", _validate.array("theta0", theta0), (p,), R,
-                               f"parameters {names}")
-            Pth0 = _check_shape(
-                "P_theta0", _validate.array("P_theta0", P_theta0), (p, p), R, f"parameters {names}"
-            )
-            _validate.batched_cov("P_theta0", Pth0)
-            filtering.check_theta0(estimator, th0)
+    x0, P0 = _validate.prior(nx, x0, P0, runs=R)
+    th0, Pth0 = _validate.initial_params(
+        tuple(estimator.param_names), theta0, P_theta0, runs=R,
+        has_prior=estimator.param_prior is not None, label=f"estimator {estimator.name!r}",
+        model_theta=False)
+    if p and th0 is not None:
+        filtering.check_theta0(estimator, th0)
 
     if estimator.needs_key and key is None:
         raise ValueError(
@@ -475,6 +407,8 @@ def _plan(
 
     method = _smooth_method(estimator, smooth)
     devs = tuple(_resolve_devices(devices))
+    if len(set(devs)) != len(devs):  # a mesh of repeated devices fails deep inside JAX
+        raise ValueError(f"devices: expected each device at most once, got {list(devs)}")
     n_dev = len(devs)
     strat = execution.resolve(strategy, devs[0])
     numbers = _state_numbers(estimator, x0, P0, th0, Pth0, keys)

@@ -107,6 +107,7 @@ from typing import Mapping
 
 import numpy as np
 
+from .. import _validate
 from .drive import Drive
 
 __all__ = ["Comma2k19Drive", "load_comma2k19"]
@@ -416,10 +417,11 @@ def _load_array(path: Path) -> np.ndarray:
         raise ValueError(f"{path}: missing file")
     try:
         a = np.load(path, allow_pickle=False)
-        a = np.asarray(a, dtype=float)
     except (OSError, ValueError, TypeError, EOFError) as exc:
         raise ValueError(f"{path}: not a readable numeric NumPy array ({exc})") from None
-    return a
+    # real numbers only (complex, bool, text refused, naming the file); values checked by the
+    # callers, with the first bad sample
+    return np.asarray(_validate.array(str(path), a, allow_nan=True), dtype=float)
 
 
 def _load_times(folder: Path, rel: str) -> np.ndarray:
@@ -429,7 +431,8 @@ def _load_times(folder: Path, rel: str) -> np.ndarray:
         raise ValueError(f"{path}: expected a 1-D array of at least 2 time stamps, got shape "
                          f"{t.shape}")
     if not np.all(np.isfinite(t)):
-        raise ValueError(f"{path}: non-finite time stamps")
+        i = int(np.flatnonzero(~np.isfinite(t))[0])
+        raise ValueError(f"{path}: non-finite time stamps, the first {t[i]!r} at sample {i}")
     bad = np.flatnonzero(np.diff(t) <= 0.0)
     if bad.size:
         i = int(bad[0])
@@ -446,6 +449,11 @@ def _load_values(folder: Path, rel: str, n: int, ncol: int) -> np.ndarray:
     if v.ndim != 2 or v.shape != (n, ncol):
         raise ValueError(f"{path}: expected shape ({n}, {ncol}) to match its time stamps, got "
                          f"{v.shape}")
+    bad = ~np.isfinite(v)
+    if np.any(bad):  # NaN or inf in a recording is a fault of the file, not a missing value
+        i, j = (int(k) for k in np.argwhere(bad)[0])
+        raise ValueError(f"{path}: expected finite values, found {v[i, j]!r} at sample {i} "
+                         f"(column {j}); {int(bad.any(axis=1).sum())} of {n} samples are bad")
     return v
 
 
