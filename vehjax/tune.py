@@ -396,15 +396,8 @@ def stop_gradient_pf(model, Q, R, n_particles: int = 1000, resampling: str = "sy
 def _float_array(name: str, value, allow_nan: bool = False) -> np.ndarray:
     if _validate.is_tracer(value):
         raise ValueError(f"{name}: expected a concrete array; call vehjax.tune outside jit/grad")
-    try:
-        a = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a numeric array, got {type(value).__name__}") from None
-    bad = np.isinf(a) if allow_nan else ~np.isfinite(a)
-    if np.any(bad):
-        raise ValueError(f"{name}: expected finite values" + (" (NaN marks a missing component)"
-                                                            if allow_nan else ""))
-    return a
+    # the rules every entry point shares (real; NaN missing in measurements, else finite)
+    return np.array(_validate.array(name, value, missing=allow_nan), dtype=float)
 
 
 def _check_builder(builder):
@@ -453,36 +446,25 @@ def _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bound
                              "builder_kwargs={'input_noise': {input name: std, ...}}")
         inp = _InputNoise(builder_kwargs["input_noise"], model)
 
-    ys = _float_array("measurements", measurements, allow_nan=True)
-    if ys.ndim == 2:
-        ys = ys[None]
-    if ys.ndim != 3 or ys.shape[1] == 0 or ys.shape[2] != ny:
-        raise ValueError(f"measurements: expected shape (T, {ny}) for one run or (R, T, {ny}) "
-                         f"for R runs, got {np.shape(measurements)}")
+    # the checks every entry point shares (vehjax._validate): shapes, values, the prior
+    ys, us = _validate.data(_float_array("measurements", measurements, allow_nan=True),
+                            None if inputs is None else _float_array("inputs", inputs), ny, nu,
+                            "either")
+    ys = ys[None] if ys.ndim == 2 else ys
+    us = None if inputs is None else us
     n_runs, T, _ = ys.shape
-    if inputs is None:
-        if nu:
-            raise ValueError(f"inputs: required, shape ({T}, {nu}) or ({n_runs}, {T}, {nu})")
-        us = None
-    else:
-        us = _float_array("inputs", inputs)
-        if us.shape not in ((T, nu), (n_runs, T, nu)):
-            raise ValueError(f"inputs: expected shape ({T}, {nu}) shared by the runs or "
-                             f"({n_runs}, {T}, {nu}), got {us.shape}")
-    x0a = _float_array("x0", x0)
-    if x0a.shape not in ((nx,), (n_runs, nx)):
-        raise ValueError(f"x0: expected shape ({nx},) or ({n_runs}, {nx}), got {x0a.shape}")
-    P0a = _float_array("P0", P0)
-    if P0a.shape == (nx,):
-        P0a = np.diag(P0a)
-    if P0a.shape not in ((nx, nx), (n_runs, nx, nx)):
-        raise ValueError(f"P0: expected shape ({nx}, {nx}), ({nx},) variances or "
-                         f"({n_runs}, {nx}, {nx}), got {np.shape(P0)}")
-    for i, Pi in enumerate(P0a.reshape(-1, nx, nx)):
-        _validate.cov("P0" if P0a.ndim == 2 else f"P0[{i}]", Pi, nx)
+    x0a, P0a = _validate.prior(nx, _float_array("x0", x0), _float_array("P0", P0), runs=n_runs)
+    x0a, P0a = np.asarray(x0a, dtype=float), np.asarray(P0a, dtype=float)
 
     # the builder with the starting values: checks its own arguments, says whether it needs a key
-    est0 = builder(model, Qa, Ra, **builder_kwargs)
+    try:
+        est0 = builder(model, Qa, Ra, **builder_kwargs)
+    except TypeError as err:  # not a state-only builder(model, Q, R, **kw), or bad keywords
+        raise ValueError(
+            f"builder: calling it as builder(model, Q, R, **builder_kwargs) failed ({err}); tune "
+            f"takes a state-only filter builder (ekf, ukf, ckf, ackf, bootstrap_pf) and fits "
+            f"model parameters with params="
+        ) from None
     if not isinstance(est0, Estimator):
         raise ValueError(f"builder: expected a function returning a vehjax.filters.Estimator, "
                          f"got {type(est0).__name__}")
