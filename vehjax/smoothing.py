@@ -57,7 +57,7 @@ from .filters.base import Estimator
 from .smoothers import gaussian as _gauss
 from .smoothers import iterated as _iter
 
-__all__ = ["SmoothResult", "smooth", "smooth_one_run", "METHODS"]
+__all__ = ["SmoothResult", "smooth", "smooth_one_run", "check_options", "METHODS"]
 
 #: Gaussian smoothing methods (module docstring).
 METHODS = ("rts", "ieks", "ipls")
@@ -122,7 +122,7 @@ def _report(spec, M, P, cross, nx):
     return x, Px, cross[:, :nx, :nx], th, Pth
 
 
-def _iterated(estimator, spec, states, y, u, parallel, tol, max_iter, initial):
+def _iterated(spec, states, y, u, parallel, tol, max_iter, initial):
     """(M, P, cross, loglik (T+1,), passes, converged) of IEKS / IPLS (module docstring),
     started from the filtered moments or ``initial``."""
     m, S, aux = jax.vmap(spec.split)(states)
@@ -165,15 +165,16 @@ def smooth_one_run(estimator: Estimator, y, u, x0, P0, th0=None, Pth0=None, key=
     """One run smoothed, traced, without validation (what ``vehjax.run(..., smooth=True)``
     vmaps): y (T, ny) with NaN missing, u (T, nu), x0 (nx,), P0 (nx, nx), th0/Pth0 as for
     :func:`vehjax.filter`; ``method`` one of :data:`METHODS` (not None), ``parallel``, ``tol``,
-    ``max_iter``, ``initial`` as for :func:`smooth`. Gaussian filters only."""
+    ``max_iter``, ``initial`` as for :func:`smooth`, checked beforehand by
+    :func:`check_options`. Gaussian filters only (``estimator.smoother`` set)."""
     spec = estimator.smoother
     states, filt = forward(estimator, y, u, x0, P0, th0, Pth0, key)
     if method == "rts":
         M, P, cross, ll = _rts(spec, states, y, u, parallel)
         k, conv = jnp.zeros((), jnp.int32), jnp.ones((), bool)
     else:
-        M, P, cross, ll, k, conv = _iterated(estimator, spec, states, y, u, parallel, tol,
-                                             max_iter, initial)
+        M, P, cross, ll, k, conv = _iterated(spec, states, y, u, parallel, tol, max_iter,
+                                             initial)
     loglik = filt.loglik if ll is None else ll[1:]
     xs, Px, cross, th, Pth = _report(spec, M, P, cross, estimator.nx)
     good = (jnp.all(jnp.isfinite(xs)) & jnp.all(is_pd(Px)) & jnp.all(jnp.isfinite(cross))
@@ -200,9 +201,14 @@ def smooth_one_run(estimator: Estimator, y, u, x0, P0, th0=None, Pth0=None, key=
 # the public single-run function
 
 
-def _check_method(estimator: Estimator, method):
-    """The Gaussian method name for ``estimator``; ValueError naming ``estimator`` or
-    ``method``."""
+def check_options(estimator: Estimator, method=None, tol=1e-6, max_iter=20):
+    """The Gaussian smoothing options checked before tracing: (method, tol, max_iter) with
+    ``method`` None turned into ``"rts"``. ValueError naming ``estimator`` (no smoother),
+    ``method`` (unknown, or 'ieks' for a sigma-point filter / 'ipls' for a Jacobian one),
+    ``tol`` (not > 0) or ``max_iter`` (not an integer >= 1)."""
+    if not isinstance(estimator, Estimator):
+        raise ValueError(
+            f"estimator: expected a vehjax.filters.Estimator, got {type(estimator).__name__}")
     spec = estimator.smoother
     if spec is None:
         raise ValueError(
@@ -216,7 +222,8 @@ def _check_method(estimator: Estimator, method):
     if method == "ipls" and spec.taylor:
         raise ValueError(f"method: 'ipls' iterates sigma-point linearisations; "
                          f"{estimator.name!r} linearises by Jacobians, use method='ieks'")
-    return method
+    return (method, _validate.number("tol", tol, 0.0),
+            _validate.integer("max_iter", max_iter, 1))
 
 
 def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=None,
@@ -273,9 +280,7 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
     if particle_options:
         raise ValueError(f"particle_options: {sorted(particle_options)} apply to particle "
                          f"filters only")
-    method = _check_method(estimator, method)
-    tol = _validate.number("tol", tol, 0.0)
-    max_iter = _validate.integer("max_iter", max_iter, 1)
+    method, tol, max_iter = check_options(estimator, method, tol, max_iter)
     T = np.shape(ys)[0]
     if initial is not None:
         n = estimator.nx + len(estimator.param_names)
