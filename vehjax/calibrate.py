@@ -429,15 +429,7 @@ def pmmh(builder, model, measurements, inputs=None, *, x0, P0, Q, R, priors, key
         raise ValueError("init: the likelihood estimate at the starting values is zero (the "
                          "filter diverged or the prior excludes them); give other init values "
                          "or more particles")
-    zs = np.asarray(zs)[:, warmup:]
-    x = np.asarray(jax.vmap(jax.vmap(lambda z: to_physical(prs, z)))(jnp.asarray(zs)))
-    flat = x.reshape(-1, len(names))
-    L = np.asarray(L)
-    return PMMHResult(
-        names=names, samples=x, loglik=np.asarray(lls)[:, warmup:],
-        acceptance=np.asarray(acc)[:, warmup:].mean(axis=1),
-        mean=flat.mean(axis=0), std=flat.std(axis=0, ddof=1),
-        rhat=split_rhat(x), ess=effective_sample_size(x), proposal_cov=L @ L.T)
+    return _result(names, prs, zs, lls, acc, L, warmup)
 
 
 # -- particle Gibbs with ancestor sampling ---------------------------------------------------
@@ -598,15 +590,22 @@ def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, ke
         return out
 
     zs, ljs, acc = jax.jit(jax.vmap(chain))(keys, z0)
+    return _result(names, prs, zs, ljs, acc, L, warmup)
+
+
+def _result(names, prs, zs, lls, acc, L, warmup) -> PMMHResult:
+    """The chains' draws after ``warmup`` in physical units, with their summaries: zs (chains,
+    draws, d) unconstrained, lls the log-likelihood (or joint) per draw, acc the acceptances,
+    L the proposal's Cholesky factor."""
     zs = np.asarray(zs)[:, warmup:]
     x = np.asarray(jax.vmap(jax.vmap(lambda z: to_physical(prs, z)))(jnp.asarray(zs)))
     flat = x.reshape(-1, len(names))
-    Ln = np.asarray(L)
+    L = np.asarray(L)
     return PMMHResult(
-        names=names, samples=x, loglik=np.asarray(ljs)[:, warmup:],
+        names=names, samples=x, loglik=np.asarray(lls)[:, warmup:],
         acceptance=np.asarray(acc)[:, warmup:].mean(axis=1),
         mean=flat.mean(axis=0), std=flat.std(axis=0, ddof=1),
-        rhat=split_rhat(x), ess=effective_sample_size(x), proposal_cov=Ln @ Ln.T)
+        rhat=split_rhat(x), ess=effective_sample_size(x), proposal_cov=L @ L.T)
 
 
 # -- diagnostics ----------------------------------------------------------------------------

@@ -108,7 +108,7 @@ from typing import Mapping
 import numpy as np
 
 from .. import _validate
-from .drive import Drive
+from .drive import Drive, check_time
 
 __all__ = ["Comma2k19Drive", "load_comma2k19"]
 
@@ -426,19 +426,7 @@ def _load_array(path: Path) -> np.ndarray:
 
 def _load_times(folder: Path, rel: str) -> np.ndarray:
     path = folder / rel
-    t = _load_array(path)
-    if t.ndim != 1 or len(t) < 2:
-        raise ValueError(f"{path}: expected a 1-D array of at least 2 time stamps, got shape "
-                         f"{t.shape}")
-    if not np.all(np.isfinite(t)):
-        i = int(np.flatnonzero(~np.isfinite(t))[0])
-        raise ValueError(f"{path}: non-finite time stamps, the first {t[i]!r} at sample {i}")
-    bad = np.flatnonzero(np.diff(t) <= 0.0)
-    if bad.size:
-        i = int(bad[0])
-        raise ValueError(f"{path}: time stamps not strictly increasing ({bad.size} steps, first "
-                         f"at index {i}: {t[i]!r} -> {t[i + 1]!r})")
-    return t
+    return check_time(_load_array(path), str(path))
 
 
 def _load_values(folder: Path, rel: str, n: int, ncol: int) -> np.ndarray:

@@ -66,20 +66,24 @@ def to_si(name: str, values, unit: str):
     return np.asarray(values, dtype=float) * factor, si
 
 
-def _check_time(t) -> np.ndarray:
+def check_time(t, what: str = "t") -> np.ndarray:
+    """``t`` as a 1-D float array of at least 2 finite, strictly increasing time stamps;
+    ValueError naming ``what`` (an argument or a file) and the first bad sample otherwise."""
     try:
         t = np.array(t, dtype=float)
     except (TypeError, ValueError):
-        raise ValueError("t: expected a 1-D array of time stamps in seconds") from None
+        raise ValueError(f"{what}: expected a 1-D array of time stamps in seconds") from None
     if t.ndim != 1 or len(t) < 2:
-        raise ValueError(f"t: expected a 1-D array of at least 2 time stamps, got shape {t.shape}")
+        raise ValueError(f"{what}: expected a 1-D array of at least 2 time stamps, got shape "
+                         f"{t.shape}")
     if not np.all(np.isfinite(t)):
-        raise ValueError(f"t: {int(np.sum(~np.isfinite(t)))} non-finite time stamps")
+        i = int(np.flatnonzero(~np.isfinite(t))[0])
+        raise ValueError(f"{what}: non-finite time stamps, the first {t[i]!r} at sample {i}")
     bad = np.flatnonzero(np.diff(t) <= 0.0)
     if bad.size:
         i = int(bad[0])
-        raise ValueError(f"t: time stamps must be strictly increasing; {bad.size} steps are not, "
-                         f"the first at index {i}: {t[i]!r} -> {t[i + 1]!r} s")
+        raise ValueError(f"{what}: time stamps must be strictly increasing; {bad.size} steps are "
+                         f"not, the first at index {i}: {t[i]!r} -> {t[i + 1]!r} s")
     return t
 
 
@@ -138,7 +142,7 @@ class Drive:
     dt: float | None = None
 
     def __post_init__(self):
-        t = _check_time(self.t)
+        t = check_time(self.t)
         groups = {}
         for arg in ("signals", "reference"):
             group = getattr(self, arg)
@@ -176,7 +180,7 @@ class Drive:
         if not isinstance(values, Mapping) or not isinstance(units, Mapping):
             raise ValueError("values, units: expected mappings name -> array and name -> unit")
         reference = _names("reference", reference, values)
-        t, _ = to_si("t", _check_time(t), time_unit)
+        t, _ = to_si("t", check_time(t), time_unit)
         sig, ref, si_units = {}, {}, {}
         for name, v in values.items():
             if name not in units:
