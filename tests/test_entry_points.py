@@ -391,3 +391,24 @@ def test_run_refuses_repeated_devices():
     d = jax.devices()[0]
     with pytest.raises(ValueError, match="^devices: expected each device at most once"):
         vj.run(EKF, YS, US, x0=X0, P0=P0, devices=[d, d])
+
+
+@pytest.mark.parametrize("call, arg", [
+    (lambda: F.ukf(MODEL, Q, R, alpha="x"), "alpha"),
+    (lambda: F.ukf(MODEL, Q, R, kappa=1j), "kappa"),
+    (lambda: F.ekf(MODEL, [[1j]], R), "Q"),
+    (lambda: F.ekf(MODEL, Q, R, input_noise={"u": 1j}), "input_noise"),
+    (lambda: F.dual_ekf(MODEL, Q, R, Q_theta=["x"], estimate="a"), "Q_theta"),
+    (lambda: vj.filter(F.bootstrap_pf(MODEL, Q, R, n_particles=4), YS[0], US, x0=X0, P0=P0,
+                       key=0), "key"),
+    (lambda: vj.filter(EKF, YS[0], US, x0="x", P0=P0), "x0"),
+    (lambda: vj.simulate(MODEL, vj.scenarios.from_inputs(MODEL, US, X0), meas_std=1j),
+     "meas_std"),
+    (lambda: vj.simulate(MODEL, vj.scenarios.from_inputs(MODEL, US, X0), bias0="x"), "bias0"),
+    (lambda: vj.simulate(MODEL, "not a scenario"), "scenario"),
+    (lambda: vj.run(EKF, YS, US, x0=X0, P0=P0, chunk_size="2"), "chunk_size"),
+])
+def test_wrong_argument_types_are_value_errors_naming_the_argument(call, arg):
+    """Not a TypeError or an error from inside JAX: a ValueError naming the argument."""
+    with pytest.raises(ValueError, match=rf"^{arg}:"):
+        call()

@@ -266,6 +266,8 @@ def _checked(estimator, ys, us, x0, P0, theta0, P_theta0, key):
         raise ValueError(
             f"key: estimator {estimator.name!r} draws random numbers; pass key=jax.random.key(...)"
         )
+    if key is not None:
+        _validate.key(key, 1)  # a PRNG key (an int such as 0 is not), as run checks it
     if estimator.param_names:
         check_theta0(estimator, th0)
     return ys, us, x0, P0, th0, Pth0

@@ -76,7 +76,7 @@ def _vector(name: str, value, n: int, what: str, allow_none=True):
     """A non-negative finite vector of length n from a scalar or a sequence."""
     if value is None:
         return np.zeros(n)
-    arr = np.asarray(value, dtype=float)
+    arr = np.asarray(_validate.array(name, value, allow_nan=True), dtype=float)  # real
     if arr.ndim == 0:
         arr = np.full(n, float(arr))
     if arr.shape != (n,):
@@ -90,7 +90,8 @@ def _scale(name: str, value, t: np.ndarray):
     """A non-negative (T,) std multiplier from None, a callable of t [s], or an array."""
     if value is None:
         return np.ones_like(t)
-    arr = np.asarray(value(t) if callable(value) else value, dtype=float)
+    arr = np.asarray(_validate.array(name, value(t) if callable(value) else value,
+                                     allow_nan=True), dtype=float)  # real; finite below
     if arr.ndim == 0:
         arr = np.full_like(t, float(arr))
     if arr.shape != t.shape:
@@ -176,7 +177,8 @@ def simulate(
     p_std = _vector("param_std", param_std, n_par, "a relative std per parameter")
     s_std = _vector("x0_std", x0_std, nx, "one std per state")
     b_std = _vector("bias_walk_std", bias_walk_std, ny, "one std per output")
-    b0 = np.asarray(0.0 if bias0 is None else bias0, dtype=float)
+    b0 = np.asarray(_validate.array("bias0", 0.0 if bias0 is None else bias0, allow_nan=True),
+                    dtype=float)
     b0 = np.full(ny, float(b0)) if b0.ndim == 0 else b0
     if b0.shape != (ny,) or not np.all(np.isfinite(b0)):
         raise ValueError(f"bias0: expected a finite scalar or shape ({ny},), got {b0}")

@@ -58,7 +58,10 @@ def _std_entries(input_noise: Mapping, input_names) -> tuple[np.ndarray, list]:
         if not _validate.is_tracer(s):
             if isinstance(s, (bool, np.bool_)) or np.ndim(s) != 0:
                 raise ValueError(f"input_noise: expected a number (std) for {k!r}, got {s!r}")
-            v = float(s)
+            try:
+                v = float(s)
+            except (TypeError, ValueError):  # complex, text
+                v = float("nan")
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"input_noise: the std of {k!r} must be finite and > 0 (in the "
                                  f"input's units), got {s!r}")

@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _validate
 from ._linalg import cholesky, solve_lower
 from .kalman import Measurement, UpdateResult, gaussian_loglik, masked_update, observed
 
@@ -98,8 +99,9 @@ def unscented_rule(n: int, alpha: float = 1.0, beta: float = 2.0, kappa: float =
     """
     n = _check_dim(n)
     for name, v in (("alpha", alpha), ("beta", beta), ("kappa", kappa)):
-        if not np.isfinite(np.asarray(v, dtype=float)).all() or np.ndim(v) != 0:
+        if np.ndim(v) != 0:
             raise ValueError(f"{name}: expected a finite number, got {v!r}")
+        _validate.number(name, v)  # finite, real (text, complex: ValueError naming it)
     alpha, beta, kappa = float(alpha), float(beta), float(kappa)
     if alpha <= 0.0:
         raise ValueError(f"alpha: expected alpha > 0, got {alpha}")
