@@ -236,7 +236,8 @@ def test_particle_filter_with_zero_q_uses_only_input_noise():
     out = one(jax.random.key(2))
     C = A @ P0 @ A.T + B @ SIGMA_U @ B.T
     sd = np.sqrt(np.diag(C))
-    assert np.all(np.abs(np.asarray(out.mean) - (A @ X0 + B @ np.asarray(u0))) < 4 * sd / np.sqrt(n))
+    mean = A @ X0 + B @ np.asarray(u0)
+    assert np.all(np.abs(np.asarray(out.mean) - mean) < 4 * sd / np.sqrt(n))
     # sample covariance: standard error of entry (i, j) about sd_i sd_j sqrt(2 / n) at most
     assert np.all(np.abs(np.asarray(out.cov) - C) < 4 * np.outer(sd, sd) * np.sqrt(2 / n))
 

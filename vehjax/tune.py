@@ -957,7 +957,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
         noise=_NOISE, fit_x0: bool = False, optimizer=None, learning_rate=None,
         steps: int | None = None, tol: float = 1e-7, patience: int | None = None,
         gtol: float = _GTOL, key=None, builder_kwargs=None, progress: bool = True,
-        standard_errors: bool = True, hessian: str = "differences") -> TuneResult:
+        standard_errors: bool = True, hessian: str | None = None) -> TuneResult:
     """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum likelihood,
     with standard errors.
 
@@ -1003,11 +1003,13 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
         progress: show a progress bar (tqdm.auto when installed, else a line on stderr).
         standard_errors: compute the observed information (the Hessian of the log-likelihood),
             standard errors, correlations and the undetermined directions (default).
-        hessian: how the Hessian is formed from JAX's exact gradient: "differences" (default)
-            by central differences of the gradient, steps 1e-4 of each coordinate's natural
-            size, with the one compiled gradient program (2 n evaluations, relative error
-            ~1e-8); "jax": ``jax.hessian`` (forward over reverse), exact, one more program to
-            compile (on a vehicle model that compile can take longer than the fit).
+        hessian: how the Hessian is formed from JAX's exact gradient: "differences" (the
+            default for deterministic filters) by central differences of the gradient, steps
+            1e-4 of each coordinate's natural size, with the one compiled gradient program
+            (2 n evaluations, relative error ~1e-8); "jax": ``jax.hessian`` (forward over
+            reverse), exact, one more program to compile (on a vehicle model that compile can
+            take longer than the fit); the default for particle filters, whose resampling
+            makes differences unreliable.
 
     Returns:
         :class:`TuneResult`. A warning names the quantities the data do not determine
@@ -1023,7 +1025,8 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
         learning_rate = _validate.number("learning_rate", learning_rate, 0.0)
     tol = _validate.number("tol", tol, 0.0, low_open=False)
     gtol = _validate.number("gtol", gtol, 0.0)
-    _validate.choice("hessian", hessian, ("differences", "jax"))
+    if hessian is not None:
+        _validate.choice("hessian", hessian, ("differences", "jax"))
     if steps is not None:
         _validate.integer("steps", steps, 1)
     if patience is not None:
@@ -1055,6 +1058,8 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     coord_names, scales = _coordinates(info, model, obj.z0)
     unc, grad_max = None, float("nan")
     if standard_errors:
+        if hessian is None:
+            hessian = "jax" if info["stochastic"] else "differences"
         if hessian == "jax":
             hfn = jax.jit(jax.hessian(lambda f, data: obj.loss(loss.unravel(f), data)[0]))
             hess = lambda f: np.asarray(hfn(jnp.asarray(f), obj.data))  # noqa: E731
