@@ -13,13 +13,24 @@ BENCHMARKS = ("gaussian", "particle", "marginalized", "sevendof", "scale", "all"
               "device", "smooth")
 
 
+class UsageError(ValueError):
+    """A refused command-line option: a ValueError (what a reproduction's ``main`` raises for
+    its bad options), reported by :func:`main` as one line under the parser's name."""
+
+    def __init__(self, prog: str, message: str):
+        super().__init__(message)
+        self.prog = prog
+
+
 class ArgumentParser(argparse.ArgumentParser):
-    """argparse's parser whose user errors are one line on stderr and exit code 2 (no usage
-    block): ``vehjax: error: --runs: expected an integer >= 1, got '0'``. Subparsers and the
-    reproductions' parsers use it too."""
+    """argparse's parser whose user errors raise :class:`UsageError` instead of printing the
+    usage block and exiting, so that :func:`main` reports them as one line with exit code 2
+    (``vehjax simulate: error: argument --runs: expected an integer >= 1, got '0'``) and a
+    reproduction's ``main`` called from Python raises ValueError for every bad option alike.
+    Subparsers and the reproductions' parsers use it too."""
 
     def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message}\n")
+        raise UsageError(self.prog, message)
 
 
 def _number(kind, low=None, high=None, low_open=False):
@@ -272,7 +283,8 @@ def main(argv=None) -> int:
         raise
     except (ValueError, OSError) as err:
         text = " ".join(str(err).split())  # one line
-        print(f"vehjax: error: {text}", file=sys.stderr)
+        prog = getattr(err, "prog", "vehjax")  # a UsageError (also of ``python -m``'s copy)
+        print(f"{prog}: error: {text}", file=sys.stderr)
         return 2
 
 
