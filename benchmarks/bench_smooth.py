@@ -13,8 +13,9 @@ Rows:
           the EKF's linearisation of the 3-DOF model (:func:`vehjax.smoothers.gaussian.
           linearize_filtered`, built once, outside the timing), sequential
           (:mod:`vehjax.smoothers.linear`) against parallel in time
-          (:mod:`vehjax.smoothers.parallel`), the passes every ``parallel=True`` smoother and
-          every IEKS / IPLS iteration runs
+          (:mod:`vehjax.smoothers.parallel`: recursive doubling, and ``associative_scan`` up
+          to ``--assoc-max``), the passes every parallel smoother and every IEKS / IPLS
+          iteration runs
 
 dynamax conditions on y_t then predicts with the input of step t + 1, exactly vehjax's
 convention; its prior is vehjax's first prediction (as in ``bench all``). cuthbert's Gaussian
@@ -120,8 +121,9 @@ def check_and_time(contenders, repeat: int, tol: float):
     return diff, True
 
 
-def parallel_row(T: int, ball):
-    """Contenders (sequential, parallel) of the passes on one run of T steps."""
+def parallel_row(T: int, ball, assoc_max: int):
+    """Contenders (sequential, parallel by recursive doubling, parallel by
+    ``associative_scan`` when T <= assoc_max) of the passes on one run of T steps."""
     p = ball._problem(1, T)
     est = vj.filters.ekf(ball.user_model(), Q=p["Q"], R=p["R"])
     y, u = p["ys"][0], p["us"]
@@ -130,10 +132,13 @@ def parallel_row(T: int, ball):
     mod = jax.jit(lambda s: sgauss.linearize_filtered(est.smoother, s, u, y.shape[1]))(states)
     ys = jnp.concatenate([jnp.full((1, y.shape[1]), jnp.nan), y])
     out = []
-    for name, lib in (("sequential", linear), ("parallel", parallel)):
-        def passes(mod, ys, lib=lib):
-            ms, Ps, ll = lib.kalman_filter(mod, ys)
-            return lib.rts_smoother(mod, ms, Ps)[0]
+    kinds = [("sequential", linear, {}), ("doubling", parallel, {"scan": "doubling"})]
+    if T <= assoc_max:
+        kinds.append(("associative", parallel, {"scan": "associative"}))
+    for name, lib, kw in kinds:
+        def passes(mod, ys, lib=lib, kw=kw):
+            ms, Ps, ll = lib.kalman_filter(mod, ys, **kw)
+            return lib.rts_smoother(mod, ms, Ps, **kw)[0]
         c, fn = _compile(jax.jit(passes), mod, ys)
         out.append(Contender(name, c, fn))
     return out
@@ -153,6 +158,9 @@ def parser() -> argparse.ArgumentParser:
                    help="comma list of rows out of %s (default %%(default)s)" % ", ".join(ROWS))
     p.add_argument("--tol", type=float, default=1e-6,
                    help="max abs difference of the smoothed means (default %(default)s)")
+    p.add_argument("--assoc-max", type=int, default=1000,
+                   help="largest T for which the associative_scan form is compiled and timed "
+                        "(its compile takes minutes on XLA:CPU beyond; default %(default)s)")
     p.add_argument("--quick", action="store_true",
                    help="tiny sizes: 2 runs x 50 steps, par T = 100, 1000; one round")
     return p
@@ -190,16 +198,16 @@ def main(argv=None) -> int:
                       f"{cs[0].best / c.best:>10.3f}  {c.note}")
             print(f"{row:<6}check: max |vehjax - peer| of the smoothed means {diff:.1e}")
     if "par" in rows:
-        print("par: one run, Kalman filter + RTS passes on the EKF's linearisation")
-        print(f"{'T':>8}{'seq compile':>13}{'par compile':>13}{'seq run [s]':>13}"
-              f"{'par run [s]':>13}{'par/seq':>9}{'max diff':>10}")
+        print("par: one run, Kalman filter + RTS passes on the EKF's linearisation; "
+              "ratio = time / sequential time")
         for T in sizes:
-            cs = parallel_row(T, ball)
+            cs = parallel_row(T, ball, args.assoc_max)
             diff, ok = check_and_time(cs, args.repeat, 1e-6)
             failed |= not ok
-            s, q = cs
-            print(f"{T:>8}{s.compile_s:>13.2f}{q.compile_s:>13.2f}{s.best:>13.4f}{q.best:>13.4f}"
-                  f"{q.best / s.best:>9.2f}{diff:>10.1e}" + ("" if ok else "  check FAILED"))
+            for c in cs:
+                print(f"T={T:<8}{c.name:<13}compile {c.compile_s:8.2f} s  run {c.best:9.4f} s  "
+                      f"ratio {c.best / cs[0].best:6.2f}" + ("" if ok else "  check FAILED"))
+            print(f"T={T:<8}check: max |parallel - sequential| of the smoothed means {diff:.1e}")
     print("vehjax/x: vehjax's time / this library's (0.5 = vehjax twice as fast); par/seq < 1: "
           "the parallel passes are faster")
     return 1 if failed else 0

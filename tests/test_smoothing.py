@@ -275,6 +275,7 @@ def test_bad_input_names_the_argument(data):
         (dict(P0=np.eye(2)), "P0"),
         (dict(inputs=us[:-1]), "inputs"),
         (dict(n_trajectories=10), "particle_options"),
+        (dict(parallel="yes"), "parallel"),
     ]
     for kw, arg in cases:
         call = dict(estimator=est, measurements=ys, inputs=us, x0=X0, P0=P0)

@@ -65,14 +65,16 @@ def _numpy_kf_rts(F, c, Q, H, d, R, y):
 
 
 def test_parallel_and_sequential_kalman_equal_numpy_with_missing_components():
-    """The associative-scan filter and smoother and the sequential ones all equal the numpy
-    textbook recursions to 1e-9, with single components and a whole step missing."""
+    """The associative-scan and recursive-doubling filters and smoothers and the sequential
+    ones all equal the numpy textbook recursions to 1e-9, with single components and a whole
+    step missing."""
     arrays, y = _affine()
     ref = _numpy_kf_rts(*arrays, y)
     model = linear.Affine(*map(jnp.asarray, arrays))
-    for mod in (linear, parallel):
-        ms, Ps, ll = jax.jit(mod.kalman_filter)(model, y)
-        m_s, P_s, cross = jax.jit(mod.rts_smoother)(model, ms, Ps)
+    for mod, kw in ((linear, {}), (parallel, {"scan": "associative"}),
+                    (parallel, {"scan": "doubling"})):
+        ms, Ps, ll = jax.jit(lambda m, y: mod.kalman_filter(m, y, **kw))(model, y)
+        m_s, P_s, cross = jax.jit(lambda m, a, b: mod.rts_smoother(m, a, b, **kw))(model, ms, Ps)
         for got, want in zip((ms, Ps, ll, m_s, P_s, cross), ref):
             np.testing.assert_allclose(got, want, atol=1e-9)
 
@@ -159,15 +161,16 @@ def test_parallel_ieks_converges_to_scipy_map(pend):
 
 
 def test_ipls_fixed_point_from_two_starts(pend):
-    """The IPLS (cubature points) reaches the same fixed point from the filter's own smoother
-    and from a flat start at the prior mean; sequential and parallel agree."""
+    """The IPLS (cubature points) reaches the same fixed point from the filter's own moments
+    (sequential passes) and from a flat start at the prior mean (parallel passes by recursive
+    doubling)."""
     model, ys, us = pend
     est = vj.filters.ckf(model, QP, RP)
     run = jax.jit(lambda y, init, par: vj.smooth(est, y, us, x0=M0, P0=PP0, method="ipls",
                                                  tol=1e-10, max_iter=60, initial=init,
                                                  parallel=par), static_argnums=2)
     a = run(ys, None, False)
-    b = run(ys, np.tile(M0, (TN, 1)), True)
+    b = run(ys, np.tile(M0, (TN, 1)), "doubling")
     for r in (a, b):
         assert bool(r.converged) and not bool(r.diverged)
     np.testing.assert_allclose(a.states, b.states, atol=1e-7)

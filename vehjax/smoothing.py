@@ -156,11 +156,11 @@ def _rts(spec, states, y, u, parallel):
     ny = y.shape[1]
     ys = jnp.concatenate([jnp.full((1, ny), jnp.nan, y.dtype), y])
     mod = _gauss.linearize_filtered(spec, states, u, ny)
-    return _iter.linear_pass(mod, ys, True)
+    return _iter.linear_pass(mod, ys, parallel)
 
 
 def smooth_one_run(estimator: Estimator, y, u, x0, P0, th0=None, Pth0=None, key=None, *,
-                   method: str = "rts", parallel: bool = False, tol: float = 1e-6,
+                   method: str = "rts", parallel=False, tol: float = 1e-6,
                    max_iter: int = 20, initial=None) -> SmoothResult:
     """One run smoothed, traced, without validation (what ``vehjax.run(..., smooth=True)``
     vmaps): y (T, ny) with NaN missing, u (T, nu), x0 (nx,), P0 (nx, nx), th0/Pth0 as for
@@ -227,7 +227,7 @@ def check_options(estimator: Estimator, method=None, tol=1e-6, max_iter=20):
 
 
 def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=None,
-           P_theta0=None, key=None, method=None, parallel: bool = False, tol: float = 1e-6,
+           P_theta0=None, key=None, method=None, parallel=False, tol: float = 1e-6,
            max_iter: int = 20, initial=None, **particle_options) -> SmoothResult:
     """Smooth one run of T steps (module docstring for the methods).
 
@@ -244,7 +244,11 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
         method: None (the filter's own RTS), ``"rts"``, ``"ieks"`` (Jacobian filters) or
             ``"ipls"`` (sigma-point filters); for particle filters the particle smoother's
             method (:func:`vehjax.smoothers.particle.smooth`).
-        parallel: run the Kalman filter and RTS smoother passes parallel in time.
+        parallel: run the Kalman filter and RTS smoother passes parallel in time: True or
+            "associative" (``jax.lax.associative_scan``, O(T) work; its 2 log2 T copies of
+            the combination compile slowly on XLA:CPU, about a minute at T = 10^3 on a busy
+            2-core machine) or "doubling" (recursive doubling, O(T log T) work, one copy:
+            compiles in seconds at any T); False: sequential.
         tol: iterated smoothers: stop when no smoothed mean moves by more than ``tol`` of its
             smoothed standard deviation in a pass (> 0).
         max_iter: iterated smoothers: at most this many passes (>= 1); ``converged`` False in
@@ -281,6 +285,9 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
         raise ValueError(f"particle_options: {sorted(particle_options)} apply to particle "
                          f"filters only")
     method, tol, max_iter = check_options(estimator, method, tol, max_iter)
+    if parallel not in (False, True, "associative", "doubling"):
+        raise ValueError(f"parallel: expected False, True, 'associative' or 'doubling', got "
+                         f"{parallel!r}")
     T = np.shape(ys)[0]
     if initial is not None:
         n = estimator.nx + len(estimator.param_names)
@@ -290,5 +297,5 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
             raise ValueError(f"initial: expected shape ({T}, {n}), got {np.shape(initial)}")
     ys, us = jnp.asarray(ys), jnp.asarray(us)
     return smooth_one_run(estimator, ys, us, jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key,
-                          method=method, parallel=bool(parallel), tol=tol, max_iter=max_iter,
+                          method=method, parallel=parallel, tol=tol, max_iter=max_iter,
                           initial=initial)

@@ -38,16 +38,22 @@ from . import linear, parallel as _parallel
 __all__ = ["linear_pass", "change", "fixed_point"]
 
 
-def linear_pass(model: linear.Affine, ys, parallel: bool):
-    """Kalman filter then RTS smoother on an affine model, sequential or parallel in time.
+def linear_pass(model: linear.Affine, ys, parallel):
+    """Kalman filter then RTS smoother on an affine model, sequential (``parallel`` False) or
+    parallel in time (True or "associative": ``jax.lax.associative_scan``; "doubling":
+    :func:`vehjax.smoothers.parallel.doubling_scan`).
 
     Returns:
         (smoothed means (T+1, n), covariances (T+1, n, n), cross-covariances (T, n, n),
         log-likelihood per step (T+1,)).
     """
-    mod = _parallel if parallel else linear
-    ms, Ps, ll = mod.kalman_filter(model, ys)
-    m_s, P_s, cross = mod.rts_smoother(model, ms, Ps)
+    if not parallel:
+        ms, Ps, ll = linear.kalman_filter(model, ys)
+        m_s, P_s, cross = linear.rts_smoother(model, ms, Ps)
+    else:
+        scan = "associative" if parallel is True else parallel
+        ms, Ps, ll = _parallel.kalman_filter(model, ys, scan)
+        m_s, P_s, cross = _parallel.rts_smoother(model, ms, Ps, scan)
     return m_s, P_s, cross, ll
 
 

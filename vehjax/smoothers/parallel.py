@@ -27,14 +27,17 @@ holds the smoothed mean and covariance.
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..filters._linalg import sym
 from ..filters.kalman import masked_update, observed
 from .linear import Affine, affine_predict, chol_solve
 
-__all__ = ["mask_measurement", "filtering_element", "filtering_combine", "kalman_filter",
+__all__ = ["doubling_scan", "mask_measurement", "filtering_element", "filtering_combine", "kalman_filter",
            "smoothing_element", "smoothing_combine", "rts_smoother"]
 
 
@@ -76,19 +79,57 @@ def filtering_combine(ei, ej):
             Ai.T @ Y[:, 0] + etai, sym(Ai.T @ Y[:, 1:] + Ji))
 
 
-def kalman_filter(model: Affine, ys):
+def doubling_scan(fn, elems, identity, reverse: bool = False):
+    """Inclusive scan by recursive doubling (Hillis & Steele 1986): ceil(log2 T) passes of one
+    vmapped ``fn`` in a ``fori_loop``, pass k combining each element with the one 2^k before
+    it (``identity`` before the start). Same results as ``jax.lax.associative_scan(fn, elems,
+    reverse=reverse)`` (same argument order of ``fn``), O(T log T) work instead of O(T), but
+    one copy of ``fn`` in the program: it compiles in a time independent of T, where the
+    associative scan's 2 log2 T copies take minutes on XLA:CPU for T = 10^4."""
+    flip = partial(jax.tree_util.tree_map, lambda a: jnp.flip(a, 0))
+    x = flip(elems) if reverse else elems
+    T = jax.tree_util.tree_leaves(x)[0].shape[0]
+    levels = max(int(np.ceil(np.log2(T))), 0) if T > 1 else 0
+    idx = jnp.arange(T)
+    vfn = jax.vmap(fn)
+
+    def body(k, x):
+        d = jnp.left_shift(1, k)
+
+        def shifted(a, e):
+            keep = (idx >= d).reshape((T,) + (1,) * (a.ndim - 1))
+            return jnp.where(keep, jnp.roll(a, d, axis=0), e[None])
+
+        return vfn(jax.tree_util.tree_map(shifted, x, identity), x)
+
+    x = jax.lax.fori_loop(0, levels, body, x)
+    return flip(x) if reverse else x
+
+
+def _scan(fn, elems, identity, reverse, method):
+    if method == "associative":
+        return jax.lax.associative_scan(jax.vmap(fn), elems, reverse=reverse)
+    return doubling_scan(fn, elems, identity, reverse)
+
+
+def kalman_filter(model: Affine, ys, scan: str = "associative"):
     """Parallel-in-time Kalman filter, the same results as
     :func:`vehjax.smoothers.linear.kalman_filter` (to rounding).
 
     Args:
         model: :class:`Affine` over t = 0..T.
         ys: (T+1, ny) measurements, NaN where missing.
+        scan: "associative" (``jax.lax.associative_scan``, O(T) work) or "doubling"
+            (:func:`doubling_scan`, O(T log T) work, compile time independent of T).
 
     Returns:
         (means (T+1, n), covariances (T+1, n, n), loglik (T+1,) of the observed components).
     """
     elems = jax.vmap(filtering_element)(*model, ys)
-    _, ms, Ps, _, _ = jax.lax.associative_scan(jax.vmap(filtering_combine), elems)
+    n, dt = model.F.shape[-1], model.F.dtype
+    eye, z = jnp.eye(n, dtype=dt), jnp.zeros((n, n), dt)
+    identity = (eye, jnp.zeros((n,), dt), z, jnp.zeros((n,), dt), z)
+    _, ms, Ps, _, _ = _scan(filtering_combine, elems, identity, False, scan)
     # the log-likelihood: each step's prediction from the previous filtered moments (any
     # moments before t = 0, where F_0 = 0)
     n = ms.shape[-1]
@@ -119,16 +160,18 @@ def smoothing_combine(ej, ei):
     return Ei @ Ej, Ei @ gj + gi, sym(Ei @ Lj @ Ei.T + Li)
 
 
-def rts_smoother(model: Affine, ms, Ps):
+def rts_smoother(model: Affine, ms, Ps, scan: str = "associative"):
     """Parallel-in-time RTS smoother from filtered moments (T+1, n), (T+1, n, n): smoothed
     means, covariances and lag-one cross-covariances Cov(x_t, x_{t+1} | y) (T, n, n), the
-    same as :func:`vehjax.smoothers.linear.rts_smoother` to rounding."""
+    same as :func:`vehjax.smoothers.linear.rts_smoother` to rounding; ``scan`` as for
+    :func:`kalman_filter`."""
     n = ms.shape[-1]
     E, g, L = jax.vmap(smoothing_element)(ms[:-1], Ps[:-1], model.F[1:], model.c[1:],
                                           model.Q[1:])
     E = jnp.concatenate([E, jnp.zeros((1, n, n), E.dtype)])
     g = jnp.concatenate([g, ms[-1:]])
     L = jnp.concatenate([L, Ps[-1:]])
-    _, m_s, P_s = jax.lax.associative_scan(jax.vmap(smoothing_combine), (E, g, L), reverse=True)
+    identity = (jnp.eye(n, dtype=E.dtype), jnp.zeros((n,), E.dtype), jnp.zeros((n, n), E.dtype))
+    _, m_s, P_s = _scan(smoothing_combine, (E, g, L), identity, True, scan)
     cross = E[:-1] @ P_s[1:]
     return m_s, P_s, cross
