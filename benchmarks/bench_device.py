@@ -55,7 +55,8 @@ def _bench_all():
 def parser() -> argparse.ArgumentParser:
     """The benchmark's options (``vehjax bench device --help``)."""
     p = argparse.ArgumentParser(prog="vehjax bench device", description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true", help="tiny sizes (seconds, any device)")
+    p.add_argument("--quick", action="store_true",
+                   help="tiny sizes (seconds, any device; default off: the issue's sizes)")
     p.add_argument("--repeat", type=int, default=3,
                    help="timed repeats; the best is reported (default %(default)s)")
     p.add_argument("--parts", default="peers,mpf,scale,float32",

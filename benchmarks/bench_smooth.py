@@ -162,7 +162,7 @@ def parser() -> argparse.ArgumentParser:
                    help="largest T for which the associative_scan form is compiled and timed "
                         "(its compile takes minutes on XLA:CPU beyond; default %(default)s)")
     p.add_argument("--quick", action="store_true",
-                   help="tiny sizes: 2 runs x 50 steps, par T = 100, 1000; one round")
+                   help="tiny sizes: 2 runs x 50 steps, par T = 100, 1000; one round (default off)")
     return p
 
 

@@ -276,16 +276,6 @@ def _study_traced(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh, 
 # Validation (before anything is traced)
 
 
-def _check_shape(arg: str, a: np.ndarray, shared: tuple, R: int, what: str) -> np.ndarray:
-    """``a`` must have shape ``shared`` or ``(R,) + shared``."""
-    if a.shape == shared or a.shape == (R,) + shared:
-        return a
-    raise ValueError(
-        f"{arg}: expected shape {shared} (shared by all runs) or {(R,) + shared} (one per run) "
-        f"for {what}, got {a.shape}"
-    )
-
-
 def _resolve_devices(devices):
     if devices is None or devices is True:
         return list(jax.devices())
@@ -453,7 +443,7 @@ def _smooth_method(estimator, smooth) -> str | None:
         raise ValueError(f"smooth: expected True, False or one of {smoothing.METHODS}, got "
                          f"{smooth!r}")
     try:
-        return smoothing._check_method(estimator, None if smooth is True else smooth)
+        return smoothing.check_options(estimator, None if smooth is True else smooth)[0]
     except ValueError as err:
         raise ValueError(f"smooth: {err}") from None
 
