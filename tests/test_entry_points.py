@@ -286,9 +286,16 @@ def test_filter_theta0_replaces_the_model_parameters_of_a_state_only_filter(buil
         vj.filter(est, YS[0], US, x0=X0, P0=P0, theta0=[np.nan])
     with pytest.raises(ValueError, match=r"^P_theta0: .*estimates no parameters"):
         vj.filter(est, YS[0], US, x0=X0, P0=P0, theta0=[0.5], P_theta0=[[1.0]])
-    # run studies a filter at the model it was built on; its message says how
+    # run takes it alike, shared or one per run, and checks its length before tracing
+    out = vj.run(est, YS, US, x0=X0, P0=P0, theta0=[0.5])
+    np.testing.assert_allclose(out.states[0], a.states, rtol=1e-12, atol=1e-12)
+    per_run = vj.run(est, YS, US, x0=X0, P0=P0, theta0=np.full((len(YS), 1), 0.5))
+    np.testing.assert_allclose(per_run.states, out.states, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match=r"^theta0: expected the model's 1 parameters"):
+        vj.run(est, YS, US, x0=X0, P0=P0, theta0=[0.5, 1.0])
+    # an estimator that does not say its model's parameter count takes none in run
     with pytest.raises(ValueError, match=r"^theta0: .*with_theta"):
-        vj.run(est, YS, US, x0=X0, P0=P0, theta0=[0.5])
+        vj.run(est._replace(n_theta=None), YS, US, x0=X0, P0=P0, theta0=[0.5])
 
 
 def test_particle_filter_theta0_replaces_the_model_parameters():

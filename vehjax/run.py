@@ -374,9 +374,13 @@ def _plan(
     th0, Pth0 = _validate.initial_params(
         tuple(estimator.param_names), theta0, P_theta0, runs=R,
         has_prior=estimator.param_prior is not None, label=f"estimator {estimator.name!r}",
-        model_theta=False)
+        model_theta=estimator.n_theta is not None)
     if p and th0 is not None:
         filtering.check_theta0(estimator, th0)
+    if not p and th0 is not None and th0.shape[-1] != estimator.n_theta:
+        raise ValueError(f"theta0: expected the model's {estimator.n_theta} parameters, shape "
+                         f"({estimator.n_theta},) or ({R}, {estimator.n_theta}), got "
+                         f"{th0.shape}")
 
     if estimator.needs_key and key is None:
         raise ValueError(
@@ -649,7 +653,8 @@ def run(
         P0: its covariance, (nx, nx) or (R, nx, nx), symmetric positive definite, or (nx,)
             variances (as Q and R in the builders).
         theta0: initial parameter estimate, (p,) or (R, p), for filters that estimate
-            ``estimator.param_names``; must be None for state-only filters.
+            ``estimator.param_names``; for a state-only filter built on a model (its
+            ``n_theta``), (np,) or (R, np) replaces the model's parameters.
         P_theta0: its covariance, (p, p) or (R, p, p).
         key: PRNG key, required when ``estimator.needs_key``; run r gets
             ``jax.random.split(key, R)[r]``.

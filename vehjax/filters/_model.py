@@ -51,8 +51,9 @@ def check_model(model):
 
 
 def model_dims(model) -> dict:
-    """The ``ny``/``nu`` fields of an Estimator built on ``model``."""
-    return dict(ny=len(model.output_names), nu=len(model.input_names))
+    """The ``ny``/``nu``/``n_theta`` fields of an Estimator built on ``model``."""
+    return dict(ny=len(model.output_names), nu=len(model.input_names),
+                n_theta=len(model.param_names))
 
 
 def chol_const(A):

@@ -153,6 +153,9 @@ class Estimator(NamedTuple):
             "small_dense" (many small dense operations: the Gaussian, adaptive, dual/joint,
             Liu-West and marginalized filters) or "particles" (long vectors over particles: the
             bootstrap PF). It states no platform rule itself.
+        n_theta: length of the model's parameter vector, which a state-only filter's
+            ``theta0`` replaces (``vehjax.filter`` and ``vehjax.run`` check it before tracing);
+            None: a state-only filter takes no theta0 in ``run``.
     """
 
     init: Callable[..., Any]
@@ -168,6 +171,7 @@ class Estimator(NamedTuple):
     bounds: tuple | None = None
     particle_transition: ParticleTransition | None = None
     workload: str = "default"
+    n_theta: int | None = None
     smoother: GaussianSmoother | None = None
 
 
