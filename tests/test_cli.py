@@ -131,6 +131,9 @@ def _user_error(capsys, argv):
         (["reproduce", "berntorp2018", "--duration", "inf"], ["--duration"]),
         (["reproduce", "berntorp2018", "--out", "{file}"], ["--out", "not a folder"]),
         (["bench", "no_such_bench"], ["no_such_bench"]),
+        (["bench", "all", "--bogus"], ["bench all", "--bogus"]),
+        (["bench", "device", "--repeat", "x"], ["bench device", "--repeat"]),
+        (["bench", "smooth", "--runs", "two"], ["bench smooth", "--runs"]),
     ],
 )
 def test_user_errors_are_one_line_and_exit_code_2(tmp_path, capsys, argv, words):

@@ -158,7 +158,15 @@ def load_benchmark(which: str):
 
 
 def _cmd_bench(args) -> int:
-    return int(load_benchmark(args.which).main(args.rest) or 0)
+    bench = load_benchmark(args.which)
+    parser = bench.parser()
+
+    def error(message):  # a refused option: one line and exit code 2 (main), not argparse's
+        raise UsageError(parser.prog, message)
+
+    parser.error = error
+    parser.parse_args(args.rest)  # the benchmark's own options checked before any work
+    return int(bench.main(args.rest) or 0)
 
 
 def _cmd_reproduce(args) -> int:
