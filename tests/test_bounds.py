@@ -148,6 +148,7 @@ def _kinematic_data(runs, T, seed):
 X0_KIN = jnp.array([0.0, 0.0, 0.0, 5.0])
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_dual_ukf_keeps_lf_lr_positive_under_a_wide_prior():
     """The issue: kinematic bicycle, wide prior P_theta0 = diag(3, 3) m^2 from guesses drawn in
     [0.5, 2.5] m (truth 1.5 m), the loose noise settings of Dutta et al. 2019 (Q_theta = 1.25^2

@@ -161,6 +161,7 @@ def test_user_error_as_a_program_is_one_line_exit_2(tmp_path):
         assert "Traceback" not in out.stderr
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_bench_gaussian_smoke(capsys):
     """Tiny sizes: the three libraries must agree before any timing is printed."""
     assert cli.main(["bench", "gaussian", "--runs", "2", "--steps", "30", "--filterpy-runs", "1",
@@ -170,6 +171,7 @@ def test_bench_gaussian_smoke(capsys):
     assert "vehjax/x: vehjax's run time divided by this library's" in out  # the ratio column
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_bench_liu_west_bias_smoke(capsys):
     """Tiny sizes, the scalar skewed-posterior piece: both kernel timings are compared with the
     exact posterior mean; an unknown piece is refused naming --parts."""
@@ -183,6 +185,7 @@ def test_bench_liu_west_bias_smoke(capsys):
         cli.main(["bench", "liu_west_bias", "--parts", "bogus"])
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_bench_all_smoke(capsys):
     """Tiny sizes, the EKF row (vehjax, dynamax, cuthbert): the estimates are checked equal
     before any timing, and the table has a line per library and the row's ratio. One row only:

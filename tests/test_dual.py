@@ -248,6 +248,7 @@ def kinematic_study():
     return model, scn, sim, qs, rs
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 @pytest.mark.parametrize("builder", [dual_ekf, dual_ukf, joint_ekf, joint_ukf])
 def test_filters_recover_lf_lr_on_kinematic_bicycle(kinematic_study, builder):
     """4 runs of a 20 s sine steer, start (1.0, 2.0) m, truth (1.5, 1.5) m: the mean final

@@ -338,6 +338,7 @@ def test_nan_components_are_skipped(study):
     assert np.isfinite(out.loglik).all()
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_known_noise_limit_agrees_with_the_bootstrap_pf():
     """Noise statistics made known (nu0 = 1e7, lambda = 1, gamma0 = 1e-9, the true means and
     stds as prior; planar filter): the marginalized PF is then the fully adapted PF of the

@@ -111,6 +111,7 @@ def test_drive_study(tmp_path):
     assert "Virtual yaw rate's scale" in report
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_bench_marginalized_smoke(capsys):
     from vehjax.cli import load_benchmark
 

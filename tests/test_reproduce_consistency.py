@@ -51,6 +51,7 @@ def _study(tmp_path, models, filters, particles):
     return rows, (tmp_path / "report.md").read_text()
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_matched_filters_are_consistent_and_the_paper_ackf_is_not(tmp_path, monkeypatch):
     """With the noise matched, the EKF and the bootstrap PF (3000 particles: on this 1 s data
     the PF's own Monte-Carlo error shows at 1000, 0.890 of the steps in the band and NEES 1.04
@@ -76,6 +77,7 @@ def test_matched_filters_are_consistent_and_the_paper_ackf_is_not(tmp_path, monk
     assert "not ACKF (paper) on Dynamic3DOF." in report
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_mpf_with_known_statistics_is_consistent(tmp_path):
     """The MPF with each particle a Gaussian over all states (MPF-G) and its noise statistics as
     good as known, on data from its own noise model (paper 004 eq. 3-10): the exact filter of

@@ -36,6 +36,7 @@ def _check_tuning(args, tuning):
     return tuning
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_reduced_study_writes_tables_and_figures(tmp_path, capsys, monkeypatch):
     # the tuned setting: Q, R fitted on training runs, the rest as matched (matched_settings is
     # checked on its own below); the real tuned_settings runs, watched

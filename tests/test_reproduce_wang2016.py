@@ -58,6 +58,7 @@ def test_ukf_is_not_the_ckf():
     assert np.isclose(d.wm[0], 0.0) and np.isclose(np.abs(d.points).max(), np.abs(c.points).max())
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_runs_and_writes_tables_and_figures(study):
     rc, text, out, rows, cons = study
     assert rc == 0
@@ -95,6 +96,7 @@ def test_runs_and_writes_tables_and_figures(study):
     assert "CKF" in text and "ACKF" in text and "compile" in text
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_mae_never_exceeds_rmse(study):
     rows = study[3]
     for case in CASES:
@@ -104,6 +106,7 @@ def test_mae_never_exceeds_rmse(study):
                         <= _value(rows, case, "RMSE", q, f.upper())[0])
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_filters_beat_the_raw_sensors_in_the_control(study):
     """On the measured yaw rate and lateral acceleration, every filter's error is well below
     the sensor's own error (the same truth, the same runs)."""
@@ -114,6 +117,7 @@ def test_filters_beat_the_raw_sensors_in_the_control(study):
             assert _value(rows, "c", "RMSE", q, f.upper())[0] < 0.6 * raw, (q, f)
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_adaptation_pays_only_where_the_noise_guess_is_wrong(study):
     """Case b: every filter starts from R0 = 30 x the peak R. The fixed CKF keeps that R and
     over-smooths the measured channels; the ACKF (R adapted) learns R within its 0.5 s memory,
@@ -133,6 +137,7 @@ def test_adaptation_pays_only_where_the_noise_guess_is_wrong(study):
         assert ackf > 0.95 * ckf, (q, ackf, ckf)
 
 
+@pytest.mark.slow  # a study: `pytest -m slow` (README)
 def test_unmeasured_states_estimated_to_a_fraction_of_their_size(study):
     """v and beta are not measured; their RMSE is a small fraction of their RMS value over the
     drive (an estimator that returned zero would score 1)."""

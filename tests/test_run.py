@@ -450,6 +450,7 @@ _SHARDED = textwrap.dedent(
 )
 
 
+@pytest.mark.slow  # two fresh processes compiling the study: `pytest -m slow` (README)
 def test_sharded_over_two_devices_equals_one_device():
     code = _SHARDED.format(tests=os.path.dirname(__file__))
     env = dict(os.environ)
