@@ -388,7 +388,7 @@ def liu_west_ukf(
     Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
     rule = sigma.unscented_rule(nx, alpha, beta, kappa)
     state_filter = ukf(model, Qn, Rn, alpha=alpha, beta=beta, kappa=kappa)
-    idx_a = np.asarray(idx)
+    idx_a = np.asarray(idx, np.int32)  # int32: valid with x64 off too (float32 studies)
     log_n = math.log(n)
     predictive = likelihood == "predictive"
     s_box = (p + 1) // 2  # counter streams: kernel normals below, box uniforms, resampling
