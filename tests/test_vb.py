@@ -304,3 +304,14 @@ def test_missing_components_leave_their_statistics():
     np.testing.assert_allclose(s.beta[0], 0.9 * prev.beta[0], rtol=1e-12)
     assert float(s.beta[1]) > 0.9 * float(prev.beta[1])
     assert int(out.n_obs) == 1
+
+
+def test_per_name_bias_stds():
+    est = vb.vbakf_r(LINEAR, Q, [0.1, 0.1], biases=("y1", "y2"),
+                     bias_std0={"y1": 2.0, "y2": 0.5}, bias_walk={"y1": 0.0, "y2": 0.01})
+    _, P = est.param_prior
+    np.testing.assert_allclose(np.diag(P)[:2], [4.0, 0.25])
+    with pytest.raises(ValueError, match="bias_std0"):
+        vb.vbakf_r(LINEAR, Q, [0.1, 0.1], biases=("y1", "y2"), bias_std0={"y1": 2.0})
+    with pytest.raises(ValueError, match="bias_walk"):
+        vb.vbakf_r(LINEAR, Q, [0.1, 0.1], biases=("y1",), bias_walk=-1.0)

@@ -268,18 +268,18 @@ def _setup(model, Q, sensors, known_std, biases, input_offsets, bias_walk, offse
                              allow_empty=True)
     offs = _validate.names("input_offsets", () if input_offsets is None else input_offsets,
                            ins, allow_empty=True)
-    bw = _validate.number("bias_walk", bias_walk, 0.0, low_open=False)
-    ow = _validate.number("offset_walk", offset_walk, 0.0, low_open=False)
-    b0 = _validate.number("bias_std0", bias_std0, 0.0)
-    o0 = _validate.number("offset_std0", offset_std0, 0.0)
+    bw = _per_name("bias_walk", bias_walk, biases, closed=True)
+    ow = _per_name("offset_walk", offset_walk, offs, closed=True)
+    b0 = _per_name("bias_std0", bias_std0, biases)
+    o0 = _per_name("offset_std0", offset_std0, offs)
     Qn = _validate.cov("Q", Q, nx, allow_psd=True)
     Lu = _inoise.input_factor(input_noise, ins)
     nb, no = len(biases), len(offs)
     n = nx + nb + no
     Qa = np.zeros((n, n))
     Qa[:nx, :nx] = Qn
-    Qa[nx:nx + nb, nx:nx + nb] = np.eye(nb) * bw ** 2
-    Qa[nx + nb:, nx + nb:] = np.eye(no) * ow ** 2
+    Qa[nx:nx + nb, nx:nx + nb] = np.diag(bw ** 2)
+    Qa[nx + nb:, nx + nb:] = np.diag(ow ** 2)
     Lu = None if Lu is None else np.asarray(Lu)
     b_rows = np.array([outs.index(b) for b in biases], int)
     o_rows = np.array([ins.index(o) for o in offs], int)
@@ -304,8 +304,21 @@ def _setup(model, Q, sensors, known_std, biases, input_offsets, bias_walk, offse
         used[outs.index(k)] = True
     names = (tuple(f"{o}_offset" for o in offs) + tuple(f"{b}_bias" for b in biases)
              + tuple(f"{s}_std" for s in sensors))
-    var0 = np.r_[np.full(nb, b0 ** 2), np.full(no, o0 ** 2)]
+    var0 = np.r_[b0 ** 2, o0 ** 2]
     return _Setup(nx, n, ny, sens, known_var, used, Qa, var0, names, f_uw, h_z, Lu)
+
+
+def _per_name(arg, value, names, closed=False):
+    """One std per name, (len(names),): a number for all, or a dict {name: std} naming each;
+    > 0 (>= 0 when ``closed``)."""
+    if isinstance(value, dict):
+        if set(value) != set(names):
+            raise ValueError(f"{arg}: expected one std for each of {tuple(names)}, got keys "
+                             f"{tuple(value)}")
+        vals = [value[n] for n in names]
+    else:
+        vals = [value] * len(names)
+    return np.array([_validate.number(arg, v, 0.0, low_open=not closed) for v in vals], float)
 
 
 def _sensor_R0(R0, m, sensors_names):
@@ -443,8 +456,10 @@ def vbakf_r(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterati
         known_std: {output: std} of outputs with known noise; outputs in neither are unused.
         biases: sensors with an unknown additive bias, estimated as a Kalman state each.
         input_offsets: inputs with an unknown additive offset (the model sees u + offset).
-        bias_walk, offset_walk: random-walk stds per step of the biases and offsets (>= 0).
-        bias_std0, offset_std0: prior stds of the biases and offsets (mean 0), > 0.
+        bias_walk, offset_walk: random-walk stds per step of the biases and offsets (>= 0), in
+            the output's / input's units: one number for all or a dict naming each.
+        bias_std0, offset_std0: prior stds of the biases and offsets (mean 0), > 0; a number
+            or a dict naming each.
         input_noise: noise through the inputs (:mod:`vehjax.filters.input_noise`) or None.
 
     Returns:

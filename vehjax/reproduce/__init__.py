@@ -16,6 +16,7 @@ REGISTRY = {
     "dutta2019": "dutta2019",
     "berntorp2018": "berntorp2018",
     "consistency": "consistency",
+    "noise-learning": "noise_learning",
 }
 
 

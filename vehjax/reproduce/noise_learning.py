@@ -1,0 +1,557 @@
+"""Online noise learning compared: Sage-Husa ACKF, the variational adaptive Kalman filters, the
+marginalized PF of paper 004 and Remark 1's augmented-state EKF, on paper 004's simulation
+study and on the shipped RAV4 drive (issue #33, item 3).
+
+    vehjax reproduce noise-learning [--runs 100] [--duration 180] [--particles 100]
+                                    [--drive-executions 10] [--drive-particles 500]
+                                    [--no-drive] [--seed 0] [--out out/noise_learning]
+
+Simulation: exactly :mod:`vehjax.reproduce.berntorp2018`'s (its ``simulate_truth``,
+``bank_profile``, ``looped_inputs``): SingleTrackBank, steering offset 0.28 deg plus white
+steering noise 0.02 deg, the piecewise-linear bank, ay / yaw-gyro / roll-gyro with random-walk
+biases from 0 and white noise of stds 0.2 m/s^2, 0.3 deg/s, 0.3 deg/s; the bank measurement
+(0.5 deg) and the virtual yaw rate (0.5 deg/s) unbiased with known stds. Drive: the shipped
+comma2k19 segment with berntorp2018's virtual-yaw-rate scale correction (no truth for offset,
+biases or stds; the pose gives the yaw rate, vy and the gyro's offset from it).
+
+The methods (one row each; nothing tuned per method beyond what is written here):
+
+* **Sage-Husa ACKF** (:func:`vehjax.filters.ackf`): R adapted alone (forgetting b, the prior
+  counted as 200 steps), every output in R; Q: the bank jerk (2 deg/s^3 through
+  ``bank_noise_gain``) and the steering noise as input noise at the MPF's initial guess
+  (0.04 deg). It has no offset or bias states: its R absorbs them. Its "std" is sqrt(diag R^)
+  of ay, r, roll rate; it reports no uncertainty of it (no coverage).
+* **VB-R (CKF)**, **VB-R (EKF)**: :func:`vehjax.filters.vbakf_r` (Särkkä & Nummenmaa 2009,
+  nonlinear form), **VB-PR (CKF)**: :func:`vehjax.filters.vbakf_pr` (Huang et al. 2017,
+  tau = 3): the same Q as the ACKF, the three sensors' variances learnt from twice the true
+  stds (dof0 10 for VB-R, u0 = m + 11 for VB-PR), phi and r_virt with their known stds, the
+  steering offset and the three biases as Kalman states (prior std 0.5 deg, 0.5 m/s^2,
+  0.5 deg/s; the biases' random-walk stds given as the truth's, the offset constant),
+  forgetting rho = b, ``--iterations`` fixed-point iterations.
+* **MPF (paper)**: berntorp2018's ``build_sim_filter`` (N = ``--particles``, lambda = 0.995,
+  initial stds twice the truth) and ``build_drive_filter`` (bank variant, lambda = 0.999).
+* **augmented EKF** (Remark 1, berntorp2018's ``augmented_model``): (vy, r, offset, ay bias,
+  gyro bias) on (ay, r, r_virt), fixed Q and R (the MPF's initial guesses); no bank states and
+  no roll gyro, as the remark's common approach.
+
+What is measured (simulation; steady state = the last third):
+
+* offset: mean of the error over runs and steady-state times, and its RMS [deg];
+* biases: RMS error of the estimate against each run's random walk [sensor units];
+* stds: the mean relative error of the estimate (estimate / truth - 1) per sensor;
+* coverage: per learnt parameter, the fraction of runs whose final 95 % interval (estimate
+  +- 1.96 reported std) holds the truth; the table gives offset / biases (worst) / stds (worst);
+* NEES of (vy, r) (2 degrees of freedom, the states every method has) and NIS: the share of
+  steps whose run-average lies in the 95 % chi-square band (:func:`vehjax.metrics.consistency`)
+  and the mean per degree of freedom (1 consistent, > 1 over-confident);
+* time per run-step: the compiled ``vehjax.run`` call (compile apart) divided by runs x steps;
+  CPU shared with other jobs, so an upper bound.
+
+Verdicts are computed from the numbers (:func:`verdict`): "learns" the offset when its mean
+error is within 0.05 deg and its RMS within 0.1 deg; the biases when each RMS error is below a
+quarter of the sensor's noise std; the stds when each mean relative error is within 10 %;
+"honest" when the NEES share in the band is >= 0.9 and every learnt parameter's coverage is
+>= 0.9 (the targets of issue #33).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import berntorp2018 as b18
+
+PAPER = ("Online noise learning compared (issue #33): Sage-Husa ACKF, variational adaptive "
+         "Kalman filters (Särkkä & Nummenmaa 2009; Huang et al. 2017), the marginalized PF of "
+         "Berntorp & Di Cairano 2018 (paper 004) and its Remark 1 augmented EKF")
+
+DEG = b18.DEG
+SENSORS = b18.SENSORS
+METHODS = ("Sage-Husa ACKF", "VB-R (CKF)", "VB-R (EKF)", "VB-PR (CKF)", "MPF (paper)",
+           "augmented EKF")
+BIAS_STD0 = {"ay": 0.5, "r": 0.5 * DEG, "roll_rate": 0.5 * DEG}
+OFFSET_STD0 = 0.5 * DEG
+P0_SIM = np.diag([0.1, 0.5 * DEG, 0.5 * DEG, 0.2 * DEG, 0.2 * DEG]) ** 2
+
+
+def parser():
+    """The study's options (``vehjax reproduce noise-learning --help``)."""
+    from .. import cli as _cli
+
+    p = _cli.ArgumentParser(
+        prog="vehjax reproduce noise-learning",
+        description=f"{PAPER}. Writes report.md (one table per data set, one figure).")
+    p.add_argument("--runs", type=_cli.count, default=100,
+                   help="simulation Monte-Carlo runs (default %(default)s)")
+    p.add_argument("--duration", type=_cli.positive, default=180.0,
+                   help="simulated seconds (default %(default)s)")
+    p.add_argument("--particles", type=_cli.count, default=100,
+                   help="MPF particles in simulation (default %(default)s)")
+    p.add_argument("--drive-executions", type=_cli.count, default=10,
+                   help="MPF executions on the drive (default %(default)s)")
+    p.add_argument("--drive-particles", type=_cli.count, default=500,
+                   help="MPF particles on the drive (default %(default)s)")
+    p.add_argument("--forgetting", type=_cli.positive, default=0.995,
+                   help="forgetting of the ACKF and the VB filters, in (0, 1] "
+                        "(default %(default)s)")
+    p.add_argument("--iterations", type=_cli.count, default=5,
+                   help="VB fixed-point iterations (default %(default)s)")
+    p.add_argument("--methods", default=",".join(METHODS),
+                   help="comma-separated methods to run (default: all: %(default)s)")
+    p.add_argument("--no-drive", action="store_true", help="skip the drive (default: run it)")
+    p.add_argument("--seed", type=_cli.integer, default=0, help="random seed (default %(default)s)")
+    p.add_argument("--out", type=_cli.out_folder, default="out/noise_learning",
+                   help="output folder (default %(default)s)")
+    p.add_argument("--no-plots", action="store_true", help="skip the figure (default: draw it)")
+    return p
+
+
+# ---------------------------------------------------------------------------------------------
+# the filters
+
+
+def _q_bank(model):
+    """Process noise of the model's states: the bank jerk through ``bank_noise_gain`` (PSD)."""
+    g = np.asarray(model.bank_noise_gain(), float)
+    return b18.BANK_JERK_STD ** 2 * np.outer(g, g)
+
+
+def ackf_with_R(est, idx, names, R0):
+    """The Sage-Husa ACKF reporting sqrt(diag R^)[idx] as its parameters ``names`` (with a
+    negligible reported variance: the ACKF gives no uncertainty of R^)."""
+    from vehjax.filters.base import Estimator
+
+    p = len(idx)
+    tiny = 1e-30
+
+    def init(x0, P0, theta0=None, P_theta0=None, key=None):
+        return est.init(x0, P0, None, None, key)
+
+    def step(state, y, u):
+        state, out = est.step(state, y, u)
+        sd = jnp.sqrt(jnp.diagonal(state.R)[np.asarray(idx)])
+        return state, out._replace(params=sd, params_cov=jnp.eye(p, dtype=sd.dtype) * tiny)
+
+    prior = (np.sqrt(np.diag(R0)[np.asarray(idx)]), np.eye(p) * tiny)
+    return Estimator(init=init, step=step, nx=est.nx, param_names=tuple(names), name=est.name,
+                     param_prior=prior, ny=est.ny, nu=est.nu, workload=est.workload)
+
+
+def build(method, model, args, drive=False):
+    """(estimator, output columns it reads, P0) of one method; the drive uses the drive's MPF
+    and the drive stds of berntorp2018 as initial guesses."""
+    from vehjax import filters
+
+    std0 = ({"ay": b18.DRIVE_STD0["ay"], "r": b18.DRIVE_STD0["r"],
+             "roll_rate": b18.DRIVE_STD0["r"]} if drive
+            else {s: 2 * b18.SENSOR_STD[s] for s in SENSORS})
+    steer0 = b18.DRIVE_STD0["delta"] if drive else 2 * b18.STEER_STD
+    R0 = np.array([std0[s] ** 2 for s in SENSORS])
+    Q = _q_bank(model)
+    known = {"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD}
+    all5 = [0, 1, 2, 3, 4]
+    P0 = P0_SIM
+    if method == "Sage-Husa ACKF":
+        Rall = np.diag(np.r_[R0, b18.PHI_STD ** 2, b18.RVIRT_STD ** 2])
+        est = filters.ackf(model, Q, Rall, forgetting=args.forgetting, adapt=("R",),
+                           prior_steps=200, input_noise={"delta": steer0})
+        return ackf_with_R(est, [0, 1, 2], [f"{s}_std" for s in SENSORS], Rall), all5, P0
+    if method.startswith("VB-"):
+        kw = dict(form="ckf" if "CKF" in method else "ekf", forgetting=args.forgetting,
+                  iterations=args.iterations, sensors=SENSORS, known_std=known,
+                  biases=SENSORS, input_offsets=("delta",),
+                  bias_walk={s: b18.BIAS_WALK[s] for s in SENSORS},
+                  bias_std0=BIAS_STD0, offset_std0=OFFSET_STD0, input_noise={"delta": steer0})
+        if method.startswith("VB-R"):
+            return filters.vbakf_r(model, Q, R0, dof0=10.0, **kw), all5, P0
+        return filters.vbakf_pr(model, Q, R0, tau=3.0, **kw), all5, P0
+    if method == "MPF (paper)":
+        if drive:
+            est = b18.build_drive_filter(model, args.drive_particles, variant="bank")
+        else:
+            est = b18.build_sim_filter(model, args.particles)
+        return est, all5, P0
+    if method == "augmented EKF":
+        am = b18.augmented_model(model)
+        # by state name: (vy, r, offset, ay bias, gyro bias) and, where berntorp2018's model
+        # has it, the rolling-radius mismatch eps held at 0 (r_virt taken as unbiased)
+        q = {"vy": 0.01, "r": 0.01 * DEG, "delta_offset": 1e-5 * DEG, "ay_bias": 1e-4,
+             "r_bias": 1e-5 * DEG, "eps": 0.0}
+        p0 = {"vy": 0.1, "r": 0.5 * DEG, "delta_offset": OFFSET_STD0, "ay_bias": BIAS_STD0["ay"],
+              "r_bias": BIAS_STD0["r"], "eps": 1e-9}
+        Qa = np.array([q[n] for n in am.state_names]) ** 2
+        P0a = np.diag(np.array([p0[n] for n in am.state_names]) ** 2)
+        Ra = np.array([std0["ay"], std0["r"], b18.RVIRT_STD]) ** 2
+        return filters.ekf(am, Qa, Ra), [0, 1, 4], P0a
+    raise ValueError(f"method: unknown {method!r}; expected one of {METHODS}")
+
+
+def run_method(method, model, Y, U, args, key, drive=False):
+    """Run one method on measurements Y (R, T, 5): its estimates as a dict of arrays (offset,
+    biases, stds with their reported stds, (vy, r) and their covariance, NIS) and timings."""
+    from vehjax.run import compile_run
+
+    est, cols, P0 = build(method, model, args, drive)
+    x0 = np.zeros(P0.shape[0])
+    t0 = time.perf_counter()
+    prepared = compile_run(est, Y[..., cols], U, x0=x0, P0=P0, key=key,
+                           return_covariances=True, progress=False)
+    t1 = time.perf_counter()
+    out = prepared(progress=False)
+    run_s = time.perf_counter() - t1
+    R, T = Y.shape[:2]
+    S, C = np.asarray(out.states), np.asarray(out.covariances)
+    res = dict(method=method, vr=S[..., :2], vr_cov=C[..., :2, :2], nis=np.asarray(out.nis),
+               n_obs=np.asarray(out.n_obs), diverged=int(np.sum(out.diverged)),
+               ms_per_step=run_s / (R * T) * 1e3, compile_s=t1 - t0, est=None, sd=None)
+    est_, sd_ = {}, {}
+    if method == "augmented EKF":
+        for i, nm in ((2, "delta_offset"), (3, "ay_bias"), (4, "r_bias")):
+            est_[nm], sd_[nm] = S[..., i], np.sqrt(C[..., i, i])
+    else:
+        Pm = np.asarray(out.params)
+        Pc = np.asarray(out.params_cov)
+        names = list(est.param_names)
+        for nm in ["delta_offset"] + [f"{s}_bias" for s in SENSORS] + [f"{s}_std" for s in SENSORS]:
+            if nm in names:
+                j = names.index(nm)
+                est_[nm] = Pm[..., j]
+                sd_[nm] = (None if method == "Sage-Husa ACKF"
+                           else np.sqrt(np.maximum(Pc[..., j, j], 0.0)))
+    res["est"], res["sd"] = est_, sd_
+    return res
+
+
+# ---------------------------------------------------------------------------------------------
+# metrics and verdicts
+
+
+def _rms(a, axis=None):
+    return float(np.sqrt(np.nanmean(np.square(a), axis=axis)))
+
+
+def sim_metrics(res, X, B, ss):
+    """The simulation's numbers of one method (module docstring); None where it has none."""
+    from vehjax import metrics
+
+    est, sd = res["est"], res["sd"]
+    m = dict(method=res["method"], diverged=res["diverged"], ms=res["ms_per_step"],
+             compile_s=res["compile_s"])
+    truth = {"delta_offset": np.full(X.shape[:2], b18.OFFSET)}
+    for j, s in enumerate(SENSORS):
+        truth[f"{s}_bias"] = B[..., j]
+        truth[f"{s}_std"] = np.full(X.shape[:2], b18.SENSOR_STD[s])
+    if "delta_offset" in est:
+        e = (est["delta_offset"][:, ss] - b18.OFFSET) / DEG
+        m["offset_mean"], m["offset_rms"] = float(np.nanmean(e)), _rms(e)
+    for s in SENSORS:
+        k = f"{s}_bias"
+        if k in est:
+            m[k] = _rms(est[k][:, ss] - B[:, ss, SENSORS.index(s)]) / b18.SENSOR_UNIT[s][1]
+        k = f"{s}_std"
+        if k in est:
+            m[k] = float(np.nanmean(est[k][:, ss] / b18.SENSOR_STD[s] - 1.0))
+    cov = {}
+    for k, v in est.items():
+        if sd.get(k) is not None:
+            cov[k] = float(np.mean(np.abs(v[:, -1] - truth[k][:, -1]) <= 1.96 * sd[k][:, -1]))
+    m["coverage"] = cov
+    nees = metrics.nees(res["vr"], res["vr_cov"], X[..., :2])
+    c = metrics.consistency(nees, 2)
+    m["nees_in"], m["nees_dof"] = c.inside, float(np.nanmean(nees)) / 2.0
+    ci = metrics.consistency(res["nis"], res["n_obs"])
+    m["nis_in"] = ci.inside
+    m["nis_dof"] = float(np.nansum(res["nis"]) / max(np.sum(res["n_obs"]), 1))
+    return m
+
+
+def verdict(m):
+    """One line from a method's numbers (rules in the module docstring)."""
+    parts = []
+    if "offset_mean" in m:
+        ok = abs(m["offset_mean"]) <= 0.05 and m["offset_rms"] <= 0.1
+        parts.append(("learns" if ok else "misses") + " the offset")
+    else:
+        parts.append("no offset")
+    bk = [s for s in SENSORS if f"{s}_bias" in m]
+    if bk:
+        bad = [s for s in bk
+               if m[f"{s}_bias"] > 0.25 * b18.SENSOR_STD[s] / b18.SENSOR_UNIT[s][1]]
+        parts.append("biases " + ("tracked" if not bad else "off on " + ", ".join(bad))
+                     + ("" if len(bk) == 3 else f" ({len(bk)} of 3 sensors)"))
+    else:
+        parts.append("no biases")
+    sk = [s for s in SENSORS if f"{s}_std" in m]
+    if sk:
+        bad = [s for s in sk if abs(m[f"{s}_std"]) > 0.10]
+        parts.append("stds " + ("within 10 %" if not bad else "off on " + ", ".join(bad)))
+    else:
+        parts.append("stds fixed")
+    cov = m.get("coverage", {})
+    honest = m["nees_in"] >= 0.9 and (not cov or min(cov.values()) >= 0.9)
+    if honest:
+        parts.append("honest (NEES, coverage)")
+    else:
+        why = []
+        if m["nees_in"] < 0.9:
+            why.append(f"NEES in band {m['nees_in']:.2f}, "
+                       + ("over" if m["nees_dof"] > 1 else "under") + "-confident")
+        if cov and min(cov.values()) < 0.9:
+            worst = min(cov, key=cov.get)
+            why.append(f"{worst} interval holds in {cov[worst]:.2f} of runs")
+        parts.append("not honest: " + "; ".join(why))
+    if m.get("diverged"):
+        parts.append(f"{m['diverged']} runs diverged")
+    return "; ".join(parts)
+
+
+def _f(v, fmt="{:.3g}"):
+    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else fmt.format(v)
+
+
+def _cov_cell(cov):
+    if not cov:
+        return "-"
+    off = cov.get("delta_offset")
+    b = [v for k, v in cov.items() if k.endswith("_bias")]
+    s = [v for k, v in cov.items() if k.endswith("_std")]
+    return " / ".join(_f(x, "{:.2f}") for x in (off, min(b) if b else None, min(s) if s else None))
+
+
+def sim_table(ms):
+    head = ("method", "offset err mean / RMS [deg]", "bias RMS ay [m/s^2] / r / roll [deg/s]",
+            "std rel. err ay / r / roll", "coverage offset / biases / stds",
+            "NEES (vy, r) in band / per dof", "NIS in band / per dof", "ms per run-step",
+            "verdict")
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for m in ms:
+        off = (f"{m['offset_mean']:+.3f} / {m['offset_rms']:.3f}" if "offset_mean" in m else "-")
+        bias = " / ".join(_f(m.get(f"{s}_bias"), "{:.3g}") for s in SENSORS)
+        std = " / ".join(_f(m.get(f"{s}_std"), "{:+.3f}") for s in SENSORS)
+        lines.append("| " + " | ".join([
+            m["method"], off, bias, std, _cov_cell(m["coverage"]),
+            f"{m['nees_in']:.2f} / {m['nees_dof']:.2f}", f"{m['nis_in']:.2f} / {m['nis_dof']:.2f}",
+            f"{m['ms']:.4f}", verdict(m)]) + " |")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------
+# simulation
+
+
+def run_simulation(args, methods=METHODS, log=print):
+    import vehjax as vj
+
+    drive = vj.data.load_comma2k19()
+    model = vj.models.SingleTrackBank(dt=drive.dt)
+    T = int(round(args.duration / model.dt))
+    U = b18.looped_inputs(drive.inputs(model), T)
+    t = np.arange(1, T + 1) * model.dt
+    acc, _ = b18.bank_profile(t, model.dt)
+    X, Y, B = (np.asarray(a) for a in b18.simulate_truth(model, U, acc, args.runs,
+                                                          jax.random.key(args.seed)))
+    ss = slice(int(T * 2 / 3), T)
+    results, ms = [], []
+    for i, meth in enumerate(methods):
+        res = run_method(meth, model, Y, U, args, jax.random.key(args.seed + 1 + i))
+        m = sim_metrics(res, X, B, ss)
+        log(f"sim {meth}: compile {res['compile_s']:.1f} s, {m['ms']:.4f} ms per run-step, "
+            f"diverged {res['diverged']}")
+        results.append(res)
+        ms.append(m)
+    return dict(t=t, X=X, B=B, ss=ss, results=results, metrics=ms, T=T)
+
+
+# ---------------------------------------------------------------------------------------------
+# drive
+
+
+def run_drive(args, methods=METHODS, log=print):
+    import vehjax as vj
+
+    drive = vj.data.load_comma2k19()
+    model = vj.models.SingleTrackBank(dt=drive.dt)
+    U, Y = drive.inputs(model), drive.measurements(model, track=b18.TRACK)
+    T = len(U) if args.duration is None else min(len(U), int(round(args.duration / model.dt)))
+    U, Y = U[:T], Y[:T].copy()
+    eps, _ = b18.virtual_yaw_scale(Y[:, 1], Y[:, 4], U[:, 0], b18.TRACK)
+    Y[:, 4] -= eps * U[:, 0] / b18.TRACK
+    ref_r = np.asarray(drive.reference["yaw_rate"])[:T]
+    ref_vy = np.asarray(drive.reference["vy"])[:T]
+    gyro_ref = float(drive.gyro_offset_vs_reference)
+    k_tr = min(int(round(25.0 / model.dt)), T // 2)
+    after = slice(k_tr, T)
+    rows = []
+    results = []
+    for i, meth in enumerate(methods):
+        R = args.drive_executions if meth == "MPF (paper)" else 1
+        res = run_method(meth, model, np.tile(Y[None], (R, 1, 1)), U, args,
+                         jax.random.key(args.seed + 100 + i), drive=True)
+        est = res["est"]
+        m = dict(method=meth, ms=res["ms_per_step"], R=R, diverged=res["diverged"])
+        if "delta_offset" in est:
+            o = est["delta_offset"][:, after] / DEG
+            m["offset"], m["offset_spread"] = float(np.mean(o)), float(np.std(o))
+        if "r_bias" in est:
+            m["r_bias_err"] = float(np.mean(est["r_bias"][:, after]) - gyro_ref) / DEG
+        if "ay_bias" in est:
+            m["ay_bias"] = float(np.mean(est["ay_bias"][:, after]))
+        for s in ("ay", "r"):
+            if f"{s}_std" in est:
+                m[f"{s}_std"] = float(np.mean(est[f"{s}_std"][:, after])) / b18.SENSOR_UNIT[s][1]
+        from vehjax import metrics
+
+        ci = metrics.consistency(res["nis"][:, after], res["n_obs"][:, after])
+        m["nis_in"] = ci.inside
+        m["nis_dof"] = float(np.nansum(res["nis"][:, after])
+                             / max(np.sum(res["n_obs"][:, after]), 1))
+        m["r_rms"] = _rms((res["vr"][:, after, 1] - ref_r[None, after]) / DEG)
+        m["vy_rms"] = _rms(res["vr"][:, after, 0] - ref_vy[None, after])
+        log(f"drive {meth}: {m['ms']:.4f} ms per run-step, diverged {res['diverged']}")
+        rows.append(m)
+        results.append(res)
+    return dict(rows=rows, results=results, t=drive.t[:T] - drive.t[0], T=T, k_tr=k_tr,
+                gyro_ref=gyro_ref, raw_r_rms=_rms((Y[after, 1] - ref_r[after]) / DEG),
+                vy_ref_rms=_rms(ref_vy[after]))
+
+
+def drive_verdict(m, d):
+    parts = []
+    if "r_bias_err" in m:
+        parts.append("gyro bias " + ("agrees with" if abs(m["r_bias_err"]) <= 0.05 else "off")
+                     + f" the pose's ({m['r_bias_err']:+.3f} deg/s)")
+    else:
+        parts.append("no gyro bias")
+    parts.append(f"yaw rate {m['r_rms'] / d['raw_r_rms']:.2f}x the raw gyro's error")
+    parts.append("innovations " + ("consistent" if m["nis_in"] >= 0.9 else
+                                   ("too large" if m["nis_dof"] > 1 else "too small"))
+                 + f" (NIS in band {m['nis_in']:.2f})")
+    if m.get("diverged"):
+        parts.append(f"{m['diverged']} diverged")
+    return "; ".join(parts)
+
+
+def drive_table(d):
+    head = ("method", "executions", "offset after 25 s [deg] (spread)",
+            "gyro bias - pose offset [deg/s]", "ay bias [m/s^2]", "std ay [m/s^2] / r [deg/s]",
+            "NIS in band / per dof", "yaw rate RMS vs pose [deg/s]", "vy RMS vs pose [m/s]",
+            "ms per run-step", "verdict")
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for m in d["rows"]:
+        off = (f"{m['offset']:+.3f} ({m['offset_spread']:.3f})" if "offset" in m else "-")
+        lines.append("| " + " | ".join([
+            m["method"], str(m["R"]), off, _f(m.get("r_bias_err"), "{:+.3f}"),
+            _f(m.get("ay_bias"), "{:+.3f}"),
+            " / ".join(_f(m.get(f"{s}_std"), "{:.3f}") for s in ("ay", "r")),
+            f"{m['nis_in']:.2f} / {m['nis_dof']:.2f}", f"{m['r_rms']:.3f}", f"{m['vy_rms']:.3f}",
+            f"{m['ms']:.4f}", drive_verdict(m, d)]) + " |")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------
+# figure, report
+
+
+def figure(path, sim, drive):
+    import matplotlib.pyplot as plt
+
+    from vehjax import plots
+
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7))
+    t = sim["t"]
+    for res in sim["results"]:
+        est = res["est"]
+        lab = res["method"]
+        if "delta_offset" in est:
+            axes[0, 0].plot(t, np.nanmean(est["delta_offset"], 0) / DEG, lw=1, label=lab)
+        if "ay_std" in est:
+            axes[0, 1].plot(t, np.nanmean(est["ay_std"], 0) / b18.SENSOR_STD["ay"], lw=1,
+                            label=lab)
+        if "r_bias" in est:
+            e = (est["r_bias"] - sim["B"][..., 1]) / DEG
+            axes[1, 0].plot(t, np.sqrt(np.nanmean(e ** 2, 0)), lw=1, label=lab)
+    axes[0, 0].axhline(b18.OFFSET / DEG, color="k", ls="--", label="truth")
+    axes[0, 0].set_ylabel("steering offset, mean over runs [deg]")
+    axes[0, 1].axhline(1.0, color="k", ls="--")
+    axes[0, 1].set_ylabel("ay std estimate / truth, mean over runs")
+    axes[1, 0].set_ylabel("yaw-gyro bias RMS error [deg/s]")
+    for ax in axes[0, 0], axes[0, 1], axes[1, 0]:
+        ax.set_xlabel("t [s] (simulation)")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7)
+    ax = axes[1, 1]
+    if drive is not None:
+        td = drive["t"]
+        for res in drive["results"]:
+            if "delta_offset" in res["est"]:
+                ax.plot(td, np.mean(res["est"]["delta_offset"], 0) / DEG, lw=1,
+                        label=res["method"])
+        ax.set_xlabel("t [s] (RAV4 drive)")
+        ax.set_ylabel("steering offset [deg]")
+        ax.grid(alpha=0.3)
+    else:
+        ax.axis("off")
+    fig.suptitle("Online noise learning: offset, ay std, gyro bias (simulation), offset (drive)")
+    fig.tight_layout()
+    return plots.save(fig, path)
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    if not (0.0 < args.forgetting <= 1.0):
+        raise ValueError(f"--forgetting: expected a number in (0, 1], got {args.forgetting}")
+    if args.particles < 2 or args.drive_particles < 2:
+        raise ValueError("--particles / --drive-particles: expected at least 2")
+    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+    bad = [m for m in methods if m not in METHODS]
+    if bad or not methods:
+        raise ValueError(f"--methods: unknown {bad}; expected names from {METHODS}")
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    print(PAPER)
+    sim = run_simulation(args, methods)
+    md_sim = sim_table(sim["metrics"])
+    print(md_sim)
+    drive = None
+    md_drive = ""
+    if not args.no_drive:
+        drive = run_drive(args, methods)
+        md_drive = drive_table(drive)
+        print(md_drive)
+    report = [
+        "# vehjax reproduce noise-learning\n", f"{PAPER}.\n",
+        f"Command: `vehjax reproduce noise-learning --runs {args.runs} --duration "
+        f"{args.duration:g} --particles {args.particles} --drive-executions "
+        f"{args.drive_executions} --drive-particles {args.drive_particles} --forgetting "
+        f"{args.forgetting:g} --iterations {args.iterations} --seed {args.seed}"
+        + ("" if methods == METHODS else f" --methods '{','.join(methods)}'")
+        + (" --no-drive" if args.no_drive else "") + "`. Every choice is in the docstring of "
+        "`vehjax/reproduce/noise_learning.py`.\n",
+        f"## Simulation (paper 004 sec. 4): {args.runs} runs, {args.duration:g} s, steady "
+        f"state t > {sim['t'][sim['ss'].start]:.0f} s\n",
+        "Coverage: fraction of runs whose final 95 % interval holds the truth (offset, the "
+        "worst bias, the worst std); '-' where the method gives no uncertainty or does not "
+        "learn the quantity. NEES over (vy, r); NIS over the outputs each method reads. "
+        "Times: CPU shared with other jobs.\n",
+        md_sim, ""]
+    if drive is not None:
+        report += [
+            f"## RAV4 drive (comma2k19 segment, {drive['T'] * 0.01:.0f} s)\n",
+            "No ground truth for offset, biases or stds; the gyro's offset from the pose "
+            f"reference is {drive['gyro_ref'] / DEG:+.3f} deg/s; raw gyro RMS vs the pose yaw "
+            f"rate {drive['raw_r_rms']:.3f} deg/s; the pose vy's own RMS "
+            f"{drive['vy_ref_rms']:.3f} m/s. Numbers after the 25 s transient.\n",
+            md_drive, ""]
+    if not args.no_plots:
+        p = figure(out_dir / "noise_learning.png", sim, drive)
+        report += ["## Figure\n", f"![offset, ay std, gyro bias, drive offset]({p.name})\n"]
+    report.append(f"Total time {time.perf_counter() - t_start:.0f} s.\n")
+    (out_dir / "report.md").write_text("\n".join(report) + "\n")
+    print(f"wrote {out_dir / 'report.md'}")
+    return 0
