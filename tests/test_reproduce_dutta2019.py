@@ -264,3 +264,33 @@ def test_settings_side_by_side():
     for heading in ("Table I", "Table II", "Table III"):
         assert f"### {heading}: " in text
     assert table in text and states in text
+
+
+def test_smoothed_rows_beside_the_joint_filters_and_below_their_rmse():
+    """Table II's smoothed rows (issue 29, item 4): the joint filters' own RTS on the same runs
+    (``_stage(..., smooth=True)``), a row each beside the filter's, with a state RMSE below the
+    filter's in every state (smoothing uses the future too); the dual filter gets none."""
+    kin = vj.models.KinematicBicycle(dt=0.05)
+    scn = dutta2019.kinematic_scenario(kin, duration=6.0)
+    box = [(0.5, 2.5), (0.5, 2.5)]
+    cfg = dutta2019.matched_settings(dutta2019.KINEMATIC_SETTINGS, kin, np.asarray(kin.theta), box)
+    builders = dutta2019._builders(kin, cfg, ("lf", "lr"), box, particles=8)
+    ests = {n: builders[n]() for n in ("Joint EKF", "Joint UKF")}
+    assert builders["Dual EKF"]().smoother is None  # no smoothed row for the dual filters
+    st = dutta2019._stage(kin, scn, ("lf", "lr"), cfg, box, 3, jax.random.key(3), ests,
+                          smooth=True)
+    assert sorted(st.smoothed) == ["Joint EKF", "Joint UKF"]
+    table = dutta2019.table_states(st, {})
+    for name in ("Joint EKF", "Joint UKF"):
+        assert f"| {name} RTS-smoothed (vehjax, offline) |" in table
+        filt, sm = st.results[name], st.smoothed[name]
+        assert not np.any(filt.diverged) and not np.any(sm.diverged)
+        assert sm.states.shape == filt.states.shape
+        r_f = np.sqrt(np.mean((filt.states - np.asarray(st.sim.states)) ** 2, axis=(0, 1)))
+        r_s = np.sqrt(np.mean((sm.states - np.asarray(st.sim.states)) ** 2, axis=(0, 1)))
+        assert np.all(r_s < r_f), (name, r_s, r_f)
+        # the smoothed estimate at the last step is the filter's (nothing after it)
+        np.testing.assert_allclose(sm.states[:, -1], filt.states[:, -1], rtol=1e-9, atol=1e-9)
+    assert "Smoothed over filtered state RMSE: Joint EKF" in dutta2019.smoothed_summary(st)
+    p = dutta2019.parser()
+    assert p.parse_args([]).smooth and not p.parse_args(["--no-smooth"]).smooth

@@ -65,6 +65,7 @@ How the paper is read (it leaves these open; each choice is ours and printed wit
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -112,6 +113,13 @@ _TUNE_STEPS = 150  # adam iterations at most
 _TUNE_PATIENCE = 20  # iterations without improvement before the fit stops
 _TRAINING_STREAM = 1  # jax.random.fold_in data of the training runs' random stream
 _FREQUENCIES = (0.1, 0.25, 0.5, 1.0)  # Hz, input-frequency study
+#: label of a filter's smoothed row: its own RTS smoother (extended RTS for the joint EKF,
+#: unscented RTS for the joint UKF, parameters smoothed as constant states) on the same runs
+SMOOTHED = "RTS-smoothed"
+SMOOTHED_NOTE = ("Rows \"RTS-smoothed (vehjax, offline)\": the same filter's own RTS smoother "
+                 "(`vehjax.run(..., smooth=True)`) on the same runs, each estimate from all of "
+                 "the run's data, past and future: an offline estimate, not comparable with the "
+                 "paper's filters, which use the data up to each step only.")
 
 
 class Stage(NamedTuple):
@@ -127,6 +135,7 @@ class Stage(NamedTuple):
     state_units: tuple  # units of the states
     box: np.ndarray  # (p, 2) the box theta0 is drawn from, the prior of the BOX_PRIOR filters
     tuning: object = None  # Tuning of the "tuned" setting; None for the others
+    smoothed: dict | None = None  # filter name -> RunResult smoothed (RTS) on the same runs
 
 
 #: filters whose parameter prior is the uniform box itself (theta0 unused): their initial
@@ -381,8 +390,11 @@ def _builders(model, s, estimate, box, particles: int):
 
 
 def _stage(model, scn, estimate, settings, box, runs, key, estimators, inputs=None,
-           progress=None, tuning=None) -> Stage:
-    """Simulate ``runs`` runs of ``scn`` and run each of ``estimators`` (name -> Estimator)."""
+           progress=None, tuning=None, smooth: bool = False) -> Stage:
+    """Simulate ``runs`` runs of ``scn`` and run each of ``estimators`` (name -> Estimator);
+    with ``smooth`` each one with a Gaussian smoother (``Estimator.smoother``: the joint
+    EKF/UKF) also smoothed on the same runs (``vehjax.run(..., smooth=True)``, its own RTS),
+    in ``Stage.smoothed``."""
     from .. import run
 
     _, k_guess, k_run = jax.random.split(key, 3)
@@ -391,7 +403,7 @@ def _stage(model, scn, estimate, settings, box, runs, key, estimators, inputs=No
     low, high = np.asarray(box).T
     theta0 = np.asarray(jax.random.uniform(k_guess, (runs, len(estimate)), minval=low, maxval=high))
     x0 = np.asarray(scn.x0)
-    results, seconds = {}, {}
+    results, seconds, smoothed = {}, {}, {}
     for name, est in estimators.items():
         if progress:
             progress(f"  {name}: {runs} runs x {len(scn.t)} steps ...")
@@ -405,9 +417,24 @@ def _stage(model, scn, estimate, settings, box, runs, key, estimators, inputs=No
         if progress:
             n_div = int(np.sum(results[name].diverged))
             progress(f" {seconds[name]:.1f} s" + (f", {n_div} diverged" if n_div else "") + "\n")
+        if smooth and est.smoother is not None:
+            label = f"{name} {SMOOTHED}"
+            if progress:
+                progress(f"  {label}: {runs} runs x {len(scn.t)} steps ...")
+            t0 = time.perf_counter()
+            smoothed[name] = run(
+                est, sim.measurements, sim.inputs if inputs is None else inputs[name],
+                x0=x0, P0=np.diag(settings["P0"]), theta0=theta0,
+                P_theta0=np.diag(settings["P_theta0"]), key=k_run, smooth=True,
+            )
+            seconds[label] = time.perf_counter() - t0
+            if progress:
+                n_div = int(np.sum(smoothed[name].diverged))
+                progress(f" {seconds[label]:.1f} s" + (f", {n_div} diverged" if n_div else "")
+                         + "\n")
     p_units = tuple(model.param_units[i] for i in model.param_index(estimate))
     return Stage(sim, results, truth, tuple(estimate), seconds, theta0, p_units,
-                 tuple(model.state_units), np.asarray(box, dtype=float), tuning)
+                 tuple(model.state_units), np.asarray(box, dtype=float), tuning, smoothed)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -675,14 +702,19 @@ def table_states(stage: Stage, paper: dict):
     raw = _raw_rmse(stage)
     if raw is not None:
         lines.append("| raw measurements | " + " | ".join(f"{v:.4f}" for v in raw) + " |")
-    for name, res in stage.results.items():
+    def row(label, res):
         ok = _ok(res)
         per_run = metrics.rmse(res.states, stage.sim.states, axis="run", mask=ok)
         ci = metrics.confidence_interval(per_run, mask=ok)
         total = metrics.rmse(res.states, stage.sim.states, mask=ok) if ok.any() else [np.nan] * 3
-        lines.append(f"| {name} (vehjax) | "
-                     + " | ".join(f"{v:.4f} [{lo:.4f}, {hi:.4f}]"
-                                  for v, lo, hi in zip(total, ci.low, ci.high)) + " |")
+        lines.append(f"| {label} | " + " | ".join(f"{v:.4f} [{lo:.4f}, {hi:.4f}]"
+                                                  for v, lo, hi in zip(total, ci.low, ci.high))
+                     + " |")
+
+    for name, res in stage.results.items():
+        row(f"{name} (vehjax)", res)
+        if name in (stage.smoothed or {}):
+            row(f"{name} {SMOOTHED} (vehjax, offline)", stage.smoothed[name])
         if name in paper:
             lines.append(f"| {name} (paper) | " + " | ".join(f"{v:.4f}" for v in paper[name]) + " |")
     return "\n".join(lines)
@@ -694,6 +726,25 @@ def state_rmse(stage: Stage) -> dict:
 
     return {name: np.asarray(metrics.rmse(res.states, stage.sim.states, mask=_ok(res)))
             for name, res in stage.results.items() if _ok(res).any()}
+
+
+def smoothed_summary(stage: Stage) -> str:
+    """One sentence from the numbers: for each smoothed filter, its smoothed state RMSE over its
+    filtered one (both over the runs where both converged)."""
+    from .. import metrics
+
+    parts = []
+    for name, sm in (stage.smoothed or {}).items():
+        res = stage.results[name]
+        ok = _ok(res) & _ok(sm)
+        if not ok.any():
+            parts.append(f"{name}: every run diverged")
+            continue
+        ratio = (np.asarray(metrics.rmse(sm.states, stage.sim.states, mask=ok))
+                 / np.asarray(metrics.rmse(res.states, stage.sim.states, mask=ok)))
+        parts.append(f"{name} " + ", ".join(f"{n} {r:.2f}"
+                                             for n, r in zip(stage.sim.state_names, ratio)))
+    return "Smoothed over filtered state RMSE: " + "; ".join(parts) + "."
 
 
 def same_rmse_groups(rmse: dict, rtol: float = SAME_RMSE_RTOL) -> list:
@@ -1060,6 +1111,10 @@ def parser():
                    help="the dynamic stage's excitation: paper (two-tone steering, 20 m/s, the "
                         "nominal parameters) or chirp (a second excitation with other true "
                         "m, cx, cy; module docstring) (default %(default)s)")
+    p.add_argument("--smooth", action=argparse.BooleanOptionalAction, default=True,
+                   help="Table II: also the RTS-smoothed states of the filters with a smoother "
+                        "(Joint EKF, Joint UKF), on the same runs, as offline rows (default on; "
+                        "--no-smooth skips them)")
     p.add_argument("--no-frequency-study", action="store_true",
                    help="skip the Fig. 6 study (default: run it)")
     p.add_argument("--seed", type=_cli.integer, default=0, help="random seed (default %(default)s)")
@@ -1215,7 +1270,7 @@ def _dynamic(args, filters, setting, key, out, report, kinematic: Stage):
     ests = {name: builders[name]() for name in filters}
     _say(f"[{setting}] dynamic model, {T} steps (each run uses its own lf, lr from above):\n")
     st = _stage(model, scn_m, ("m", "cx", "cy"), cfg, box, args.runs, key, ests, inputs=inputs,
-                progress=_say, tuning=tuning)
+                progress=_say, tuning=tuning, smooth=getattr(args, "smooth", True))
     scale = (1.0, 1e4, 1e4)
     _report_tuning(report, tuning, DYNAMIC_SETTINGS, dyn, "dynamic model", st.param_units,
                    scale=scale, digits=(1, 3, 3),
@@ -1226,6 +1281,8 @@ def _dynamic(args, filters, setting, key, out, report, kinematic: Stage):
                "\"raw measurements\": the sensors' own RMSE (every state is measured). Target: "
                "Dual UKF at or below the paper's Particle+UKF row.\n",
                table_states(st, PAPER_TABLE2), "", states_summary(st, 0.03 * truth), ""]
+    if st.smoothed:
+        report += [SMOOTHED_NOTE + " " + smoothed_summary(st), ""]
     fig = plot_states(st, out / f"fig7_9_dynamic_states_{setting}.png",
                       f"Dynamic model states ({setting} settings)")
     _figure(report, fig, f"Fig. 7-9: vx, vy, r of run 0 and each filter's error, mean and 5-95 % "
