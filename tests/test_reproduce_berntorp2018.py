@@ -91,7 +91,8 @@ def test_simulation_study(tmp_path):
 
 def test_drive_study(tmp_path):
     rc, text = _run(["--drive", "--runs", "2", "--duration", "15", "--particles", "50",
-                     "--out", str(tmp_path)])
+                     "--pmmh-iters", "8", "--pmmh-particles", "16", "--pmmh-duration", "5",
+                     "--pmmh-likelihood", "bootstrap", "--out", str(tmp_path)])
     assert rc == 0
     report, links = _links_exist(tmp_path)
     assert len(links) == 3 and "EKF" in report  # Fig. 8, 9, 10 (bank)
@@ -109,6 +110,24 @@ def test_drive_study(tmp_path):
         rms, mx = (float(v) for v in _row(text, label))
         assert 0 < rms < 0.5 and mx < 1.0, label
     assert "Virtual yaw rate's scale" in report
+    # the scale learnt online: negative, about the offline value's size (15 s of data only)
+    for label in ("online, causal recursive least squares", "augmented EKF online, eps a state"):
+        e = float(_row(text, label)[0])
+        assert -10 < e < -1, (label, e)                               # [1e-4]; offline -4.0
+    # smoothed offset, biases, eps and bank over the drive (#29), with their 2-std bands
+    for label in ("smoothed steering offset", "smoothed ay bias", "smoothed yaw-gyro bias",
+                  "smoothed eps", "smoothed bank angle", "smoothed roll-gyro bias"):
+        mean, span, two_sd, _ = _row(text, label)
+        lo, hi = (float(v) for v in re.findall(r"[-+][0-9.]+", span))
+        assert lo <= float(mean) <= hi and float(two_sd) > 0, label
+    r = _row(text, "smoothed yaw rate (extended RTS)")
+    assert 0 < float(r[0]) < 1.0
+    # the PMMH offline reference: one row per quantity with R-hat and ESS
+    assert "particle marginal Metropolis-Hastings" in report and "PMMH likelihood: bootstrap" in report
+    for name in ("delta_offset [deg]", "eps [1e-4]", "bias:ay", "bias:r", "R:ay", "R:r [",
+                 "R:r_virt", "input:delta"):
+        mean, sd, interval, rhat, ess = _row(text, name)
+        assert np.isfinite(float(mean)) and float(sd) >= 0 and float(rhat) > 0 and float(ess) > 0
 
 
 @pytest.mark.slow  # a study: `pytest -m slow` (README)

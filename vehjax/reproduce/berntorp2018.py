@@ -60,7 +60,11 @@ Drive (sec. 5, ``--drive``):
   (1, -vx / l_T) over the drive, the gyro's constant bias the other unknown; the yaw rate
   itself cancels) is removed from r_virt before the filters. ``none``: the paper's reading.
   On the shipped segment the offline eps = -3.97e-4 and the gyro bias +0.039 deg/s (pose:
-  +0.033); :func:`pose_virtual_scale` gives the pose's eps.
+  +0.033); :func:`pose_virtual_scale` gives the pose's eps. The wheel speeds of this log
+  have bursts (|r_virt - gyro| up to 20 deg/s, 122 samples beyond 5 deg/s; the core of
+  r_virt's noise is about 1 deg/s): ``--rvirt-gate`` (default 5 deg/s) makes those samples
+  missing for every filter (:func:`gate_virtual_yaw`); without it the bootstrap PF of the
+  PMMH loses all its weights at t = 5.9 s (a 55-sigma r_virt sample at the paper's 0.5 deg/s).
 * Offline reference (sec. 5, ref. [28]): :func:`run_pmmh`, particle marginal
   Metropolis-Hastings (:func:`vehjax.calibrate.pmmh`) on the planar model of
   :func:`pmmh_model` over the first ``--pmmh-duration`` s: steering offset, eps, ay and gyro
@@ -157,7 +161,7 @@ def parser():
                         "(default %(default)s)")
     p.add_argument("--pmmh-chains", type=_cli.count, default=4,
                    help="--drive: PMMH chains, vmapped (default %(default)s)")
-    p.add_argument("--pmmh-duration", type=_cli.positive, default=60.0,
+    p.add_argument("--pmmh-duration", type=_cli.positive, default=20.0,
                    help="--drive: seconds of the drive PMMH fits, from its start "
                         "(default %(default)s)")
     p.add_argument("--pmmh-likelihood", choices=("bootstrap", "kalman", "both"), default="both",
@@ -894,11 +898,12 @@ def smoothed_rows(res):
     rows = []
     names = list(res["ekf_names"])
     mid = res["T"] // 2
-    items = [("steering offset, road wheel [deg]", "delta_offset", DEG),
-             ("ay bias [m/s^2]", "ay_bias", 1.0), ("yaw-gyro bias [deg/s]", "r_bias", DEG),
-             ("eps [1e-4]", "eps", 1e-4)]
+    items = [("smoothed steering offset [deg]", "delta_offset", DEG),
+             ("smoothed ay bias [m/s^2]", "ay_bias", 1.0),
+             ("smoothed yaw-gyro bias [deg/s]", "r_bias", DEG), ("smoothed eps [1e-4]", "eps", 1e-4)]
     if "phi" in names:
-        items += [("bank angle [deg]", "phi", DEG), ("roll-gyro bias [deg/s]", "roll_rate_bias", DEG)]
+        items += [("smoothed bank angle [deg]", "phi", DEG),
+                  ("smoothed roll-gyro bias [deg/s]", "roll_rate_bias", DEG)]
     for label, name, sc in items:
         k = names.index(name)
         v = res["Es"][:, k] / sc
@@ -1157,8 +1162,15 @@ def _drive_verdict(res, yaw_rows):
         "(a constant correction cannot remove the gyro's white noise, which is most of the "
         f"raw error); the filters' yaw-rate estimates: MPF {yaw_rows[3][1]:.3f} "
         f"({yaw_rows[3][1] / yaw_rows[0][1]:.2f}x the raw gyro), EKF {yaw_rows[4][1]:.3f} "
-        f"({yaw_rows[4][1] / yaw_rows[0][1]:.2f}x). The pose reference is 20 Hz pose "
-        "differentiated, itself noisy at the 0.1 deg/s level.",
+        f"({yaw_rows[4][1] / yaw_rows[0][1]:.2f}x)"
+        + (f", the extended-RTS smoothed yaw rate {yaw_rows[6][1]:.3f} "
+           f"({yaw_rows[6][1] / yaw_rows[0][1]:.2f}x)" if len(yaw_rows) > 6 else "")
+        + ". Target of #30 item 5, at most 0.8x the raw gyro ("
+        f"{0.8 * yaw_rows[0][1]:.3f} deg/s): "
+        + ", ".join(f"{r[0]} {'meets it' if r[1] <= 0.8 * yaw_rows[0][1] else 'does NOT'}"
+                    for r in yaw_rows[1:])
+        + ". The pose reference is 20 Hz pose differentiated, itself noisy at the 0.1 deg/s "
+        "level.",
         "* The steering offset has no ground truth here (the paper's came from an offline PMCMC "
         "fit on a 3 min track drive). 60 s of highway with road-wheel steering std ~0.05 deg "
         "excites the yaw dynamics very little: the offset is identified only through the "
@@ -1188,6 +1200,9 @@ def main(argv=None) -> int:
         raise ValueError(f"--particles: expected at least 2, got {args.particles}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 1.0):
         raise ValueError(f"--duration: expected more than 1 s, got {args.duration}")
+    if args.drive and 0 < args.pmmh_iters < 8:
+        raise ValueError(f"--pmmh-iters: expected 0 (skip) or at least 8 (4 warm-up, 4 kept), "
+                         f"got {args.pmmh_iters}")
     out_dir = Path(args.out)
     if args.drive and args.out == parser().get_default("out"):
         out_dir = Path(args.out + "_drive")
