@@ -10,7 +10,7 @@ import textwrap
 from pathlib import Path
 
 BENCHMARKS = ("gaussian", "particle", "marginalized", "sevendof", "scale", "all", "liu_west_bias",
-              "device", "smooth")
+              "device", "smooth", "fit")
 
 
 class UsageError(ValueError):
