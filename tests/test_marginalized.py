@@ -12,16 +12,16 @@ import pytest
 import scipy.stats
 
 import vehjax as vj
-from vehjax.filters.marginalized import (
-    _entry_kinds,
-    _impute,
-    _kf_step,
-    _linearise,
-    _niw_predict,
-    _niw_update,
-    _student_t_logpdf,
-    marginalized_pf,
+from vehjax.filters._entrywise import entries, stack
+from vehjax.filters._mpf_kalman import bank_kalman_step
+from vehjax.filters._mpf_linearise import Lin, entry_kinds, lin_entries, linearise
+from vehjax.filters._niw import (
+    impute_missing,
+    niw_predict,
+    niw_update,
+    t_weight_and_proposal,
 )
+from vehjax.filters.marginalized import marginalized_pf
 from vehjax.filters.particle import bootstrap_pf
 from vehjax.models.bank import SingleTrackBank
 
@@ -98,8 +98,8 @@ def test_niw_recursion_with_lambda_one_equals_batch_posterior():
 
     gamma, nu, mu, lw, le = gamma0, nu0, jnp.asarray(mu0), jnp.asarray(lam_w0), jnp.asarray(lam_e0)
     for v in data:
-        gamma, nu, lw, le = _niw_predict(gamma, nu, lw, le, 1.0)
-        gamma, nu, mu, lw, le = _niw_update(gamma, nu, mu, lw, le, jnp.asarray(v) - mu)
+        gamma, nu, lw, le = niw_predict(gamma, nu, lw, le, 1.0)
+        gamma, nu, mu, lw, le = niw_update(gamma, nu, mu, lw, le, jnp.asarray(v) - mu)
 
     kappa0 = 1.0 / gamma0
     kn = kappa0 + n
@@ -123,16 +123,21 @@ def test_missing_sensor_data_keep_the_point_estimates():
     lam_e = jnp.asarray(A @ A.T + np.eye(3))
     gamma, nu, d = 0.3, 11.0, 4
     sig = lam_e / (nu - d - 1)
-    eta_e, V = _impute(jnp.zeros(3), sig, jnp.zeros(3, bool))
+
+    def impute(eta, sig, obs):  # arrays in and out of the entry-by-entry function
+        full, V = impute_missing(entries(eta), entries(sig), [obs[i] for i in range(3)])
+        return stack(full, eta[0]), stack(V, eta[0])
+
+    eta_e, V = impute(jnp.zeros(3), sig, jnp.zeros(3, bool))
     mu = jnp.asarray([0.1, 0.2, 0.3, 0.4])
-    g2, nu2, mu2, _, le2 = _niw_update(gamma, nu, mu, 1.0, lam_e,
+    g2, nu2, mu2, _, le2 = niw_update(gamma, nu, mu, 1.0, lam_e,
                                        jnp.concatenate([jnp.zeros(1), eta_e]), V)
     np.testing.assert_allclose(np.asarray(mu2), np.asarray(mu), rtol=1e-14)
     np.testing.assert_allclose(np.asarray(le2 / (nu2 - d - 1)), np.asarray(sig), rtol=1e-12)
     # one of three missing: the conditional mean and the Schur complement
     obs = jnp.asarray([True, False, True])
     eta = jnp.asarray([0.3, 99.0, -0.2])
-    eta_full, V = _impute(eta, sig, obs)
+    eta_full, V = impute(eta, sig, obs)
     s = np.asarray(sig)
     o, m = [0, 2], [1]
     cond = s[np.ix_(m, o)] @ np.linalg.solve(s[np.ix_(o, o)], np.array([0.3, -0.2]))
@@ -142,25 +147,63 @@ def test_missing_sensor_data_keep_the_point_estimates():
     assert float(jnp.abs(V).sum() - jnp.abs(V[1, 1])) < 1e-14
 
 
+def _t_weight(y, obs, loc, scale, cross, sw, df):
+    """t_weight_and_proposal on arrays (one point): (log weight, shift, scale, dof)."""
+    n = len(y)
+    ll, shift, sc, dof, _ = t_weight_and_proposal(
+        entries(jnp.asarray(y)), [jnp.asarray(obs[i]) for i in range(n)],
+        entries(jnp.asarray(loc)), entries(jnp.asarray(scale)), entries(jnp.asarray(cross)),
+        jnp.asarray(sw), jnp.asarray(df, jnp.float64))
+    return float(ll), float(shift), float(sc), float(dof)
+
+
 @pytest.mark.parametrize("dim, df", [(1, 3.5), (3, 7.0), (5, 250.0)])
 def test_student_t_logpdf_equals_scipy(dim, df):
+    """The weight of eq. 27 is the Student-t log density (scipy's ``multivariate_t``), over the
+    observed components only: the marginal of a t is a t with the same dof and the sub-block of
+    the scale."""
     rng = np.random.default_rng(dim)
     A = rng.normal(size=(dim, dim))
     scale = A @ A.T + 0.5 * np.eye(dim)
     loc = rng.normal(size=dim)
+    cross, sw = np.zeros(dim), 1.0
     for _ in range(3):
         x = loc + rng.normal(size=dim) * 2
         ref = scipy.stats.multivariate_t.logpdf(x, loc=loc, shape=scale, df=df)
-        got = _student_t_logpdf(jnp.asarray(x), jnp.asarray(loc), jnp.asarray(scale), df)
-        np.testing.assert_allclose(float(got), ref, rtol=1e-10)
+        got = _t_weight(x, np.ones(dim, bool), loc, scale, cross, sw, df)[0]
+        np.testing.assert_allclose(got, ref, rtol=1e-10)
     if dim > 1:  # observed subset: the marginal t (same df, sub-block of the scale)
         obs = np.arange(dim) % 2 == 0
         x = loc + rng.normal(size=dim)
         ref = scipy.stats.multivariate_t.logpdf(x[obs], loc=loc[obs], shape=scale[np.ix_(obs, obs)],
                                                 df=df)
-        got = _student_t_logpdf(jnp.asarray(np.where(obs, x, np.nan)), jnp.asarray(loc),
-                                jnp.asarray(scale), df, observed=jnp.asarray(obs))
-        np.testing.assert_allclose(float(got), ref, rtol=1e-10)
+        got = _t_weight(np.where(obs, x, 0.0), obs, loc, scale, cross, sw, df)[0]
+        np.testing.assert_allclose(got, ref, rtol=1e-10)
+
+
+@pytest.mark.parametrize("dim, df", [(1, 3.5), (3, 7.0)])
+def test_offset_proposal_is_the_conditional_of_the_joint_t(dim, df):
+    """Eq. 30 as read in the module docstring: for (w, y) ~ St(0, [[sw, c^T], [c, S]], df) the
+    proposal is St(c^T S^-1 y, (df + q) / (df + n) (sw - c^T S^-1 c), df + n) on the observed
+    components, checked against the conditional density from scipy: log p(w, y) - log p(y) at
+    three values of w (numpy algebra, scipy's multivariate_t of dimension 1 + n and n)."""
+    rng = np.random.default_rng(10 + dim)
+    B = rng.normal(size=(dim + 1, dim + 1))
+    J = B @ B.T + 0.5 * np.eye(dim + 1)  # joint scale of (w, y)
+    sw, cross, S = J[0, 0], J[1:, 0], J[1:, 1:]
+    y = rng.normal(size=dim)
+    obs = np.ones(dim, bool)
+    if dim > 1:
+        obs[1] = False
+    o = np.flatnonzero(obs)
+    _, shift, sc, dof = _t_weight(np.where(obs, y, 0.0), obs, np.zeros(dim), S, cross, sw, df)
+    assert dof == df + len(o)
+    Jo = J[np.ix_(np.r_[0, 1 + o], np.r_[0, 1 + o])]
+    for w in (-1.0, 0.2, 1.5):
+        ref = (scipy.stats.multivariate_t.logpdf(np.r_[w, y[o]], shape=Jo, df=df)
+               - scipy.stats.multivariate_t.logpdf(y[o], shape=S[np.ix_(o, o)], df=df))
+        got = scipy.stats.t.logpdf(w, dof, loc=shift, scale=np.sqrt(sc))
+        np.testing.assert_allclose(got, ref, rtol=1e-10)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -201,9 +244,12 @@ def test_bank_kalman_step_equals_batch_gaussian_conditioning():
 
     @jax.jit
     def kf(m, P, x_prev, x_now, u, y, obs):
-        lin = _linearise(f, h, x_prev, m, u, MODEL.theta, nl, li, 1)
-        return _kf_step(lin, m, P, x_now - lin.xb, y, obs, mu_w, jnp.asarray(b_y), sig_w2,
-                        jnp.asarray(R_y), jnp.asarray(Qz))
+        lin = linearise(f, h, x_prev, m, u, MODEL.theta, nl, li, 1)
+        s3, P3, _, _ = bank_kalman_step(
+            lin_entries(lin), entries(P), entries(x_now - lin.xb), entries(y),
+            [obs[i] for i in range(len(y))], mu_w, entries(jnp.asarray(b_y)), sig_w2,
+            entries(jnp.asarray(R_y)), entries(jnp.asarray(Qz)))
+        return lin.zb + lin.gz * mu_w + stack(s3, m[0]), stack(P3, m[0])
 
     m, P = jnp.asarray(m0), jnp.asarray(P0)
     rec = []
@@ -537,7 +583,7 @@ def _nonlinear_bank_model():
 
 @pytest.mark.parametrize("which", ["SingleTrackBank", "user model with arctan"])
 def test_linearisation_entries_called_constant_or_per_step_are(which):
-    """The filter computes the linearisation entries that ``_entry_kinds`` calls per step once
+    """The filter computes the linearisation entries that ``entry_kinds`` calls per step once
     per step, and uses the constants as numbers: at 30 random particles (states, bank means)
     and two inputs, every "step" entry is the same at all particles of one input and every
     constant is that number. SingleTrackBank (affine at a given speed) has no Jacobian entry per
@@ -549,13 +595,13 @@ def test_linearisation_entries_called_constant_or_per_step_are(which):
     f = lambda X, u, th: model.transition(X, u, th)  # noqa: E731
     h = lambda X, u, th: model.observe(X, u, th)  # noqa: E731
     rows = np.arange(len(model.output_names))
-    kinds = _entry_kinds(f, h, theta, nl, li, 1, 2, rows)
+    kinds = entry_kinds(f, h, theta, nl, li, 1, 2, rows)
     rng = np.random.default_rng(8)
     X = rng.normal(0, 0.3, (30, len(nl)))
     Mb = rng.normal(0, 0.05, (30, len(li)))
     counts = {"const": 0, "step": 0, "particle": 0}
     for u in (np.array([20.0, 0.01]), np.array([12.0, -0.03])):
-        lins = jax.vmap(lambda x, m: _linearise(f, h, x, m, jnp.asarray(u), theta, nl, li, 1))(
+        lins = jax.vmap(lambda x, m: linearise(f, h, x, m, jnp.asarray(u), theta, nl, li, 1))(
             jnp.asarray(X), jnp.asarray(Mb))
         for field, kind in zip(lins._fields, kinds):
             v = np.asarray(getattr(lins, field)).reshape(30, -1)
@@ -611,14 +657,14 @@ def test_per_step_entries_change_nothing_on_a_nonlinear_user_model(monkeypatch):
                 return_covariances=True)
     out = vj.run(marginalized_pf(model, 200, **kw), Y, U, **args)
 
-    kinds = mpf._entry_kinds
+    kinds = mpf.entry_kinds
 
     def no_step(*a):
         def strip(k):
             return [strip(e) for e in k] if isinstance(k, list) else (None if k == "step" else k)
-        return mpf._Lin(*(strip(k) for k in kinds(*a)))
+        return Lin(*(strip(k) for k in kinds(*a)))
 
-    monkeypatch.setattr(mpf, "_entry_kinds", no_step)
+    monkeypatch.setattr(mpf, "entry_kinds", no_step)
     ref = vj.run(marginalized_pf(model, 200, **kw), Y, U, **args)
     assert not out.diverged.any()
     np.testing.assert_allclose(out.states, ref.states, rtol=1e-8, atol=1e-10)

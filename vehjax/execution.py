@@ -41,7 +41,7 @@ CPU (measured on a 2-core x86-64 machine, float64, ``vehjax bench all``/``bench 
   with :mod:`vehjax._elementary`'s arithmetic forms, which vectorise: about twice as fast a
   filter on a model written with trigonometry.
 * **Runs-last step** (``runs_last``): a filter's batched step with the runs axis last
-  (:mod:`vehjax.filters.runs_last`) vectorises across runs: 1.3-2x faster than vmapping. Its
+  (:mod:`vehjax.filters._runs_last`) vectorises across runs: 1.3-2x faster than vmapping. Its
   prepared inputs reach it through the scan's carry where the filter asks (``prefetch_inputs``;
   EKF about 11 % faster, 3-DOF user model, 100 x 1000).
 

@@ -12,7 +12,7 @@ step ``t`` predicts with ``inputs[..., t, :]``, then updates with ``measurements
 
 Each run is :func:`vehjax.filter`'s traced logic (``vehjax.filtering.one_run``), vmapped over
 the runs of a chunk. Estimators with a runs-last ``batch`` form (EKF, UKF and CKF on models with at
-most 8 states and outputs, :mod:`vehjax.filters.runs_last`) are not vmapped where the execution
+most 8 states and outputs, :mod:`vehjax.filters._runs_last`) are not vmapped where the execution
 strategy says so: one scan runs the batched step with the runs axis last, and what the model
 computes from the inputs alone is computed once for the whole input sequence before the time
 loop (:mod:`vehjax._hoist`); results agree to rounding.
@@ -97,7 +97,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from . import _validate, execution, filtering
 from .filtering import FilterResult
-from .filters import runs_last as _runs_last
+from .filters import _runs_last
 from .filters.base import Estimator
 from .result import RunResult
 
@@ -125,7 +125,7 @@ def _scan_prefetched(body, carry0, xs, pre):
     the carry: it is read at the end of step t - 1 (of the first step, before the loop).
 
     XLA on CPU fuses a slice of a scanned-over array into every kernel that reads it; a carried
-    value is a plain buffer. Which is faster depends on the step (``runs_last.Batch.prefetch``).
+    value is a plain buffer. Which is faster depends on the step (``_runs_last.Batch.prefetch``).
     """
     T = jax.tree.leaves(xs)[0].shape[0]
     if T == 0 or not jax.tree.leaves(pre):
@@ -148,7 +148,7 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per
                      P0, th0, Pth0, keys) -> FilterResult:
     """What ``vmap(filtering.one_run)`` computes, for an estimator with a runs-last ``batch``
     form: one scan over time of the batched step, every array with the runs axis last (see
-    :mod:`vehjax.filters.runs_last`); the same per-run bookkeeping (``filtering.finish``)."""
+    :mod:`vehjax.filters._runs_last`); the same per-run bookkeeping (``filtering.finish``)."""
     p = len(estimator.param_names)
     per_run_u = us.ndim == 3
     start = jax.vmap(

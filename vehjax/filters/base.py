@@ -16,7 +16,7 @@ Three optional parts of the contract are declared fields too, so that ``run`` re
 * ``Estimator.batch``: ``batch(per_run_inputs: bool, dtype, default_theta: bool) ->
   Batch(prepare, step)``, the same step for a whole batch of runs at once with the runs axis
   last in every leaf of the state, of y and of the StepOutput (see
-  :mod:`vehjax.filters.runs_last`). ``prepare`` maps the whole input sequence, (T, nu) shared or
+  :mod:`vehjax.filters._runs_last`). ``prepare`` maps the whole input sequence, (T, nu) shared or
   (T, nu, R) when ``per_run_inputs``, to what the batch ``step`` takes in place of u at each
   time; ``dtype`` is the filter's float dtype and ``default_theta`` says that every run was
   started with ``theta0=None``. ``vehjax.run`` uses it instead of ``vmap``-ing ``step``. It is a

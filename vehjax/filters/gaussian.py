@@ -19,7 +19,7 @@ draw fresh points from (x-, P-) for the update, so that Q enters S and C.
 The algebra is the one Gaussian core: :func:`vehjax.filters.sigma.predict` /
 :func:`~vehjax.filters.sigma.update` and their square-root forms, and the Jacobian forms of
 :mod:`vehjax.filters.kalman`. This file holds what is particular to these filters: their state,
-their prior, and which of them get the runs-last form of :mod:`vehjax.filters.runs_last`.
+their prior, and which of them get the runs-last form of :mod:`vehjax.filters._runs_last`.
 
 Missing measurements: components of ``y_t`` that are NaN (or +-inf) are not observed; the update
 uses only the observed ones (exactly, by masking) and ``loglik``/``nis``/``n_obs`` count only
@@ -39,7 +39,7 @@ import numpy as np
 
 from .. import _validate
 from . import input_noise as _inoise
-from . import runs_last as _runs_last
+from . import _runs_last
 from . import sigma
 from ._model import (
     cast_yu,
@@ -114,7 +114,7 @@ def ekf(model, Q, R, input_noise=None) -> Estimator:
     covariance update in Joseph form (stays positive definite for very wide priors).
 
     :func:`vehjax.run` runs models with at most 8 states and outputs and constant ``Q``, ``R``
-    through the same step written for all runs at once (:func:`vehjax.filters.runs_last.ekf_step`,
+    through the same step written for all runs at once (:func:`vehjax.filters._runs_last.ekf_step`,
     results equal to rounding).
 
     Args:
@@ -159,8 +159,8 @@ def ekf(model, Q, R, input_noise=None) -> Estimator:
 
 
 def _runs_last_form(model, Qn, Rn, build):
-    """``Estimator.batch`` from a builder of :mod:`vehjax.filters.runs_last` (``sigma_step``,
-    ``ekf_step``), for models with at most ``runs_last.MAX_DIM`` states and outputs and constant
+    """``Estimator.batch`` from a builder of :mod:`vehjax.filters._runs_last` (``sigma_step``,
+    ``ekf_step``), for models with at most ``_runs_last.MAX_DIM`` states and outputs and constant
     (numpy) noise covariances; None otherwise (``run`` then vmaps the per-run step)."""
     small = max(Qn.shape[0], Rn.shape[0]) <= _runs_last.MAX_DIM
     if not (small and isinstance(Qn, np.ndarray) and isinstance(Rn, np.ndarray)):

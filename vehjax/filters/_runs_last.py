@@ -39,27 +39,11 @@ import numpy as np
 from .. import _hoist
 from .._hoist import Split, split
 from .base import StepOutput
-from ._linalg import LOG_2PI, UNROLL_MAX, chol_entries, cholesky, forward_entries
+from ._entrywise import backward_entries, chol_sym, dot, sym_entries, wsum
+from ._linalg import LOG_2PI, UNROLL_MAX, cholesky, forward_entries
 from .sigma import SigmaRule
 
 MAX_DIM = UNROLL_MAX  # nx and ny up to this use the runs-last step
-
-
-def _chol(A):
-    """Lower Cholesky factor (nested lists) of a symmetric matrix given as nested lists of (R,)
-    arrays; NaN entries where it is not positive definite (the divergence check catches them)."""
-    return chol_entries(lambda i, j: A[i][i] if i == j else 0.5 * (A[i][j] + A[j][i]), len(A))
-
-
-def _wsum(weights, terms):
-    """sum_i w_i t_i over the non-zero (numpy constant) weights."""
-    acc = None
-    for w, t in zip(weights, terms):
-        if w == 0.0:
-            continue
-        term = t if w == 1.0 else float(w) * t
-        acc = term if acc is None else acc + term
-    return acc
 
 
 def _points(x, L, rule: SigmaRule):
@@ -68,7 +52,7 @@ def _points(x, L, rule: SigmaRule):
     for xi in rule.points:
         point = []
         for i in range(len(x)):
-            off = _wsum(xi[: i + 1], L[i][: i + 1])  # L is lower triangular
+            off = wsum(xi[: i + 1], L[i][: i + 1])  # L is lower triangular
             point.append(x[i] if off is None else x[i] + off)
         pts.append(point)
     return pts
@@ -77,12 +61,12 @@ def _points(x, L, rule: SigmaRule):
 def _moments(Y, rule: SigmaRule, noise):
     """Weighted mean (list) and covariance (nested lists) of points Y, plus the deviations."""
     d = len(Y[0])
-    mean = [_wsum(rule.wm, [y[i] for y in Y]) for i in range(d)]
+    mean = [wsum(rule.wm, [y[i] for y in Y]) for i in range(d)]
     dev = [[y[i] - mean[i] for i in range(d)] for y in Y]
     cov = [[None] * d for _ in range(d)]
     for i in range(d):
         for j in range(i + 1):
-            c = _wsum(rule.wc, [e[i] * e[j] for e in dev])
+            c = wsum(rule.wc, [e[i] * e[j] for e in dev])
             cov[i][j] = cov[j][i] = c + noise[i][j]
     return mean, cov, dev
 
@@ -234,13 +218,13 @@ def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int
         x = [X0[i] for i in range(nx)]
         P = [[P0[i, j] for j in range(nx)] for i in range(nx)]
 
-        F = _evaluate(fm, _points(x, _chol(P), rule), th, res_f, per_run_inputs)
+        F = _evaluate(fm, _points(x, chol_sym(P), rule), th, res_f, per_run_inputs)
         xp, Pp, _ = _moments(F, rule, Q)
-        pts = _points(xp, _chol(Pp), rule)
+        pts = _points(xp, chol_sym(Pp), rule)
         Z = _evaluate(hm, pts, th, res_h, per_run_inputs)
         yh, S, dz = _moments(Z, rule, Rm)
         dx = [[p[i] - xp[i] for i in range(nx)] for p in pts]
-        C = [[_wsum(rule.wc, [a[i] * b[j] for a, b in zip(dx, dz)]) for j in range(ny)]
+        C = [[wsum(rule.wc, [a[i] * b[j] for a, b in zip(dx, dz)]) for j in range(ny)]
              for i in range(nx)]
 
         x_new, P_new, loglik, nis, n_obs = _update(xp, Pp, y, yh, S, C)
@@ -250,51 +234,6 @@ def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int
 
 
 # -- the Kalman update, shared by the UKF/CKF and EKF steps -------------------------------------
-
-
-def _mul(a, b):
-    """a * b for entries that are arrays or Python floats (structural constants): products
-    with a constant zero or one are folded at trace time."""
-    if isinstance(a, float):
-        a, b = b, a
-    if isinstance(b, float):
-        if isinstance(a, float):
-            return a * b
-        return 0.0 if b == 0.0 else (a if b == 1.0 else b * a)
-    return a * b
-
-
-def _dot(a, b):
-    """sum_k a[k] b[k] over two lists of entries (arrays or Python floats), constant zero
-    terms skipped; 0.0 when every term is one."""
-    acc = 0.0
-    for x, y in zip(a, b):
-        t = _mul(x, y)
-        if isinstance(t, float) and t == 0.0:
-            continue
-        acc = t if (isinstance(acc, float) and acc == 0.0) else acc + t
-    return acc
-
-
-def _sym_entries(entry, n):
-    """Symmetric nested lists from ``entry(i, j)`` asked for j <= i only."""
-    out = [[None] * n for _ in range(n)]
-    for i in range(n):
-        for j in range(i + 1):
-            out[i][j] = out[j][i] = entry(i, j)
-    return out
-
-
-def _backward_entries(L, b):
-    """``L^-T b`` by back substitution (``L`` nested lists, lower, ``L[i][k]`` for k <= i)."""
-    n = len(b)
-    out = [None] * n
-    for i in reversed(range(n)):
-        t = b[i]
-        for k in range(i + 1, n):
-            t = t - L[k][i] * out[k]
-        out[i] = t / L[i][i]
-    return out
 
 
 def _update(xp, Pp, y, yh, S, C, joseph=None):
@@ -311,20 +250,20 @@ def _update(xp, Pp, y, yh, S, C, joseph=None):
     e = [jnp.where(obs[j], y[j] - yh[j], 0.0) for j in range(ny)]
     Sm = [[S[i][j] * (mf[i] * mf[j]) + ((1.0 - mf[i]) if i == j else 0.0) for j in range(ny)]
           for i in range(ny)]
-    Ls = _chol(Sm)
+    Ls = chol_sym(Sm)
     w = forward_entries(Ls, e)
     W = [forward_entries(Ls, [C[i][j] * mf[j] for j in range(ny)]) for i in range(nx)]
     xn = [xp[i] + sum(W[i][k] * w[k] for k in range(ny)) for i in range(nx)]
     if joseph is None:
-        Pn = _sym_entries(lambda i, j: Pp[i][j] - sum(W[i][k] * W[j][k] for k in range(ny)), nx)
+        Pn = sym_entries(lambda i, j: Pp[i][j] - sum(W[i][k] * W[j][k] for k in range(ny)), nx)
     else:
         H, N = joseph
-        K = [_backward_entries(Ls, W[i]) for i in range(nx)]  # K = C M S_m^-1, row by row
-        A = [[(1.0 if i == j else 0.0) - _dot(K[i], [H[a][j] for a in range(ny)])
+        K = [backward_entries(Ls, W[i]) for i in range(nx)]  # K = C M S_m^-1, row by row
+        A = [[(1.0 if i == j else 0.0) - dot(K[i], [H[a][j] for a in range(ny)])
               for j in range(nx)] for i in range(nx)]
-        AP = [[_dot(A[i], [Pp[j][k] for j in range(nx)]) for k in range(nx)] for i in range(nx)]
-        KN = [[_dot(K[i], [N[a][b] for a in range(ny)]) for b in range(ny)] for i in range(nx)]
-        Pn = _sym_entries(lambda i, l: _dot(AP[i], A[l]) + _dot(KN[i], K[l]), nx)
+        AP = [[dot(A[i], [Pp[j][k] for j in range(nx)]) for k in range(nx)] for i in range(nx)]
+        KN = [[dot(K[i], [N[a][b] for a in range(ny)]) for b in range(ny)] for i in range(nx)]
+        Pn = sym_entries(lambda i, l: dot(AP[i], A[l]) + dot(KN[i], K[l]), nx)
     nis = sum(v * v for v in w)
     n_obs = sum(o.astype(jnp.int32) for o in obs)
     logdet = 2.0 * sum(jnp.log(Ls[k][k]) for k in range(ny))
@@ -410,11 +349,11 @@ def ekf_step(f, h, Qn: np.ndarray, Rn: np.ndarray, *, nu: int, n_params: int,
         P = [[P0[i, j] for j in range(nx)] for i in range(nx)]
 
         xp, F = _linearise(fm, [X0[i] for i in range(nx)], th, res_f, per_run_inputs, F_const)
-        FP = [[_dot(F[i], [P[j][k] for j in range(nx)]) for k in range(nx)] for i in range(nx)]
-        Pp = _sym_entries(lambda i, l: _dot(FP[i], F[l]) + Q[i][l], nx)
+        FP = [[dot(F[i], [P[j][k] for j in range(nx)]) for k in range(nx)] for i in range(nx)]
+        Pp = sym_entries(lambda i, l: dot(FP[i], F[l]) + Q[i][l], nx)
         yh, H = _linearise(hm, xp, th, res_h, per_run_inputs, H_const)
-        C = [[_dot(Pp[i], H[j]) for j in range(ny)] for i in range(nx)]
-        S = _sym_entries(lambda a, b: _dot(H[a], [C[i][b] for i in range(nx)]) + Rm[a][b], ny)
+        C = [[dot(Pp[i], H[j]) for j in range(ny)] for i in range(nx)]
+        S = sym_entries(lambda a, b: dot(H[a], [C[i][b] for i in range(nx)]) + Rm[a][b], ny)
         x_new, P_new, loglik, nis, n_obs = _update(xp, Pp, y, yh, S, C, joseph=(H, Rm))
         return state._replace(x=x_new, P=P_new), _output(x_new, P_new, loglik, nis, n_obs)
 
@@ -440,6 +379,6 @@ def is_pd(C):
         Cr = jnp.moveaxis(C, -1, 0)
         return jnp.all(jnp.isfinite(Cr), axis=(1, 2)) & jnp.all(jnp.isfinite(cholesky(Cr)),
                                                                 axis=(1, 2))
-    L = _chol([[C[i, j] for j in range(n)] for i in range(n)])
+    L = chol_sym([[C[i, j] for j in range(n)] for i in range(n)])
     # a NaN pivot makes every later column NaN (chol_entries), the last pivot included
     return all_finite(C) & jnp.isfinite(L[n - 1][n - 1])
