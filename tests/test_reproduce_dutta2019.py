@@ -266,6 +266,7 @@ def test_settings_side_by_side():
     assert table in text and states in text
 
 
+@pytest.mark.slow  # compiles filters and smoothers: `pytest -m slow` (README)
 def test_smoothed_rows_beside_the_joint_filters_and_below_their_rmse():
     """Table II's smoothed rows (issue 29, item 4): the joint filters' own RTS on the same runs
     (``_stage(..., smooth=True)``), a row each beside the filter's, with a state RMSE below the

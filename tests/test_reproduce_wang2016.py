@@ -165,3 +165,33 @@ def test_bad_options_raise_value_error(tmp_path):
         wang2016.main(["--duration", "0", "--out", str(tmp_path)])
     with pytest.raises(ValueError, match="--r-factor"):
         wang2016.main(["--r-factor", "0", "--out", str(tmp_path)])
+
+
+@pytest.mark.slow  # compiles filters and smoothers: `pytest -m slow` (README)
+def test_smoothed_columns_beside_the_filters_and_below_their_rmse():
+    """Table 1's smoothed columns (issue 29, item 4): the EKF's own RTS smoother on the same runs
+    (``vehjax.run(..., smooth=True)``) has a state RMSE below the filter's on every state it
+    corrects, a column "EKF-RTS" in the table and a sentence with the ratios; the ACKF has no
+    smoother."""
+    study = wang2016.setup(3, seed=1, duration=2.0, cases=("c",))
+    log = []
+    filt = wang2016.run_case("ekf", study, "c", log=log.append)
+    sm = wang2016.run_case_smoothed("ekf", study, "c", log=log.append)
+    assert sm["name"] == "ekf-rts" and "EKF-RTS" in log[-1]
+    assert filt["mask"].all() and sm["mask"].all()
+    truth = np.asarray(study["cases"]["c"]["sim"].states)
+    r_f = np.sqrt(np.mean((filt["states"] - truth) ** 2, axis=(0, 1)))
+    r_s = np.sqrt(np.mean((sm["states"] - truth) ** 2, axis=(0, 1)))
+    assert np.sum(r_s < r_f) >= 6, (r_s, r_f)  # 7 states; smoothing uses the future too
+    assert np.sqrt(np.mean(r_s**2)) < np.sqrt(np.mean(r_f**2))
+    # the last step has no future: smoothed = filtered there
+    np.testing.assert_allclose(sm["states"][:, -1], filt["states"][:, -1], rtol=1e-8, atol=1e-10)
+    cs = study["cases"]["c"]
+    md = wang2016.format_table(wang2016.error_table([filt, sm], cs), ["ekf", "ekf-rts"])
+    assert "| metric | quantity | EKF | EKF-RTS | meas. |" in md
+    text = wang2016.smoothed_summary([filt], [sm], cs)
+    assert text.startswith("Smoothed over filtered RMSE: EKF-RTS u ")
+    with pytest.raises(ValueError, match="name"):
+        wang2016.run_case_smoothed("ackf", study, "c")
+    p = wang2016.parser()
+    assert p.parse_args([]).smooth and not p.parse_args(["--no-smooth"]).smooth
