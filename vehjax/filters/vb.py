@@ -22,7 +22,7 @@ y_k = h(x_k) + r, r ~ N(0, diag(sigma_1^2 .. sigma_m^2)), each sigma_j^2 ~ IG(al
 N(x; m, P) prod_j IG(sigma_j^2; alpha_j, beta_j).
 
 * Prediction: m-, P- by the Kalman (EKF/UKF/CKF) prediction with Q; the variances by the
-  heuristic dynamics with the forgetting factor rho in (0, 1] (eq. 14 of the paper)::
+  heuristic dynamics with the forgetting factor rho in (0, 1]::
 
       alpha_j- = rho (alpha_j - 1) + 1,    beta_j- = rho beta_j
 
@@ -110,7 +110,7 @@ from jax.scipy.special import polygamma
 from .. import _validate
 from . import input_noise as _inoise
 from . import sigma
-from ._linalg import cholesky, solve_lower, sym
+from ._linalg import sym
 from ._model import cast_yu, check_model, in_dtype, model_dims, model_theta, per_point, prior
 from .base import Estimator, StepOutput
 from .kalman import linearized_measure, linearized_predict, masked_update
@@ -127,7 +127,7 @@ FORMS = ("ekf", "ukf", "ckf")
 
 
 def ig_predict(alpha, beta, rho):
-    """Särkkä & Nummenmaa's prediction of the IG statistics (eq. 14):
+    """Särkkä & Nummenmaa's heuristic prediction of the IG statistics:
     ``(rho (alpha - 1) + 1, rho beta)``. alpha, beta (m,); rho in (0, 1]."""
     return rho * (alpha - 1.0) + 1.0, rho * beta
 

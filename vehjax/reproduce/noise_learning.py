@@ -462,19 +462,21 @@ def figure(path, sim, drive):
 
     from vehjax import plots
 
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7))
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5))
     t = sim["t"]
+    color = {m: f"C{i}" for i, m in enumerate(METHODS)}  # one colour per method everywhere
     for res in sim["results"]:
         est = res["est"]
         lab = res["method"]
+        kw = dict(lw=1, label=lab, color=color[lab])
+        axes[0, 0].plot([], [], **kw)  # every method in the legend
         if "delta_offset" in est:
-            axes[0, 0].plot(t, np.nanmean(est["delta_offset"], 0) / DEG, lw=1, label=lab)
+            axes[0, 0].plot(t, np.nanmean(est["delta_offset"], 0) / DEG, **{**kw, "label": None})
         if "ay_std" in est:
-            axes[0, 1].plot(t, np.nanmean(est["ay_std"], 0) / b18.SENSOR_STD["ay"], lw=1,
-                            label=lab)
+            axes[0, 1].plot(t, np.nanmean(est["ay_std"], 0) / b18.SENSOR_STD["ay"], **kw)
         if "r_bias" in est:
             e = (est["r_bias"] - sim["B"][..., 1]) / DEG
-            axes[1, 0].plot(t, np.sqrt(np.nanmean(e ** 2, 0)), lw=1, label=lab)
+            axes[1, 0].plot(t, np.sqrt(np.nanmean(e ** 2, 0)), **kw)
     axes[0, 0].axhline(b18.OFFSET / DEG, color="k", ls="--", label="truth")
     axes[0, 0].set_ylabel("steering offset, mean over runs [deg]")
     axes[0, 1].axhline(1.0, color="k", ls="--")
@@ -490,14 +492,18 @@ def figure(path, sim, drive):
         for res in drive["results"]:
             if "delta_offset" in res["est"]:
                 ax.plot(td, np.mean(res["est"]["delta_offset"], 0) / DEG, lw=1,
-                        label=res["method"])
+                        label=res["method"], color=color[res["method"]])
         ax.set_xlabel("t [s] (RAV4 drive)")
-        ax.set_ylabel("steering offset [deg]")
+        ax.set_ylim(-1.0, 1.0)  # a method that swings wider leaves the frame (table: spread)
+        ax.set_ylabel("steering offset, mean over executions [deg]\n(axis clipped at +-1)")
         ax.grid(alpha=0.3)
     else:
         ax.axis("off")
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    axes[0, 0].get_legend().remove()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8)
     fig.suptitle("Online noise learning: offset, ay std, gyro bias (simulation), offset (drive)")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
     return plots.save(fig, path)
 
 
