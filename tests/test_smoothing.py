@@ -287,3 +287,73 @@ def test_bad_input_names_the_argument(data):
             vj.smooth(**call)
     with pytest.raises(ValueError, match="method"):
         vj.smooth(vj.filters.ukf(model, Q, R), ys, us, x0=X0, P0=P0, method="ieks")
+
+
+def test_joint_ukf_smooths_parameters_as_constant_states():
+    """The joint UKF's smoothing (issue 29, item 1's "parameters smoothed as constant states")
+    through ``vehjax.smooth``: on a model whose parameter (an acceleration bias) enters linearly
+    the augmented model z = (p, v, b) is linear-Gaussian, where the unscented RTS is exact; it
+    equals a numpy Kalman filter + RTS on z written here (the decaying random walk
+    Q_b gamma^(t-1), NaN components skipped) in means, covariances, the lag-one state
+    cross-covariances and the log-likelihood, and ``vehjax.run(smooth=True)`` gives the same."""
+    Tj, dt, gamma = 30, 0.1, 0.97
+    model = vj.models.Model(
+        transition=lambda x, u, th: jnp.array([x[0] + dt * x[1],
+                                               0.95 * x[1] + dt * (u[0] + th[0])]),
+        observe=lambda x, u, th: x,
+        dt=dt, state_names=("p", "v"), param_names=("b",), input_names=("u",),
+        output_names=("yp", "yv"), theta=np.array([0.0]))
+    rng = np.random.default_rng(7)
+    us = rng.normal(size=(Tj, 1))
+    x, ys = np.zeros(2), []
+    for t in range(Tj):
+        x = np.array([x[0] + dt * x[1], 0.95 * x[1] + dt * (us[t, 0] + 0.8)])
+        x = x + rng.normal(0, [0.02, 0.05])
+        ys.append(x + rng.normal(0, [0.1, 0.2]))
+    ys = np.array(ys)
+    ys[3, 1] = ys[11] = ys[20, 0] = np.nan
+    qx, qb, rr = np.array([4e-4, 2.5e-3]), 1e-3, np.array([0.01, 0.04])
+    x0, P0, th0, Pth0 = np.array([0.1, 0.0]), np.array([0.2, 0.3]), np.array([0.0]), np.array([1.0])
+    est = vj.filters.joint_ukf(model, qx, rr, [qb], estimate="b", bounds={}, theta_scale=1.0,
+                               theta_decay=gamma)
+    sm = vj.smooth(est, ys, us, x0=x0, P0=P0, theta0=th0, P_theta0=Pth0)
+
+    F = np.array([[1.0, dt, 0.0], [0.0, 0.95, dt], [0.0, 0.0, 1.0]])
+    Hz = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    m, P = np.r_[x0, th0], np.diag(np.r_[P0, Pth0])
+    mf, Pf, mp_, Pp_, ll = [], [], [], [], []
+    for t in range(Tj):
+        Qz = np.diag(np.r_[qx, qb * gamma**t])
+        mp, Pp = F @ m + np.array([0.0, dt * us[t, 0], 0.0]), F @ P @ F.T + Qz
+        obs = np.isfinite(ys[t])
+        Ho, Ro = Hz[obs], np.diag(rr[obs])
+        S = Ho @ Pp @ Ho.T + Ro
+        e = ys[t][obs] - Ho @ mp
+        K = np.linalg.solve(S, Ho @ Pp).T
+        m, P = mp + K @ e, Pp - K @ S @ K.T
+        ll.append(-0.5 * (e @ np.linalg.solve(S, e) + np.linalg.slogdet(S)[1]
+                          + obs.sum() * np.log(2 * np.pi)))
+        mf.append(m), Pf.append(P), mp_.append(mp), Pp_.append(Pp)
+    ms, Ps, cross = [mf[-1]], [Pf[-1]], []
+    for t in range(Tj - 2, -1, -1):
+        G = np.linalg.solve(Pp_[t + 1], F @ Pf[t]).T
+        cross.insert(0, G @ Ps[0])
+        ms.insert(0, mf[t] + G @ (ms[0] - mp_[t + 1]))
+        Ps.insert(0, Pf[t] + G @ (Ps[0] - Pp_[t + 1]) @ G.T)
+    ms, Ps, cross = np.array(ms), np.array(Ps), np.array(cross)
+
+    assert not bool(sm.diverged)
+    np.testing.assert_allclose(sm.states, ms[:, :2], atol=1e-10)
+    np.testing.assert_allclose(sm.params[:, 0], ms[:, 2], atol=1e-10)
+    np.testing.assert_allclose(sm.covariances, Ps[:, :2, :2], atol=1e-10)
+    np.testing.assert_allclose(sm.params_cov[:, 0, 0], Ps[:, 2, 2], atol=1e-10)
+    np.testing.assert_allclose(sm.cross_covariances, cross[:, :2, :2], atol=1e-10)
+    np.testing.assert_allclose(sm.loglik, ll, atol=1e-9)
+    # the bias is constant over the drive and learned from all of it: at t = 1 the smoothed
+    # variance is a fraction of the filtered one
+    assert sm.params_cov[0, 0, 0] < 0.2 * sm.filtered.params_cov[0, 0, 0]
+    out = vj.run(est, ys[None], us, x0=x0, P0=P0, theta0=th0, P_theta0=Pth0, smooth=True,
+                 return_covariances=True, progress=False)
+    np.testing.assert_allclose(out.states[0], sm.states, atol=1e-12)
+    np.testing.assert_allclose(out.params[0], sm.params, atol=1e-12)
+    np.testing.assert_allclose(out.params_cov[0], sm.params_cov, atol=1e-12)
