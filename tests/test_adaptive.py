@@ -235,3 +235,19 @@ def test_bad_input_raises():
     est = ackf(LINEAR, Q_TRUE, R_TRUE)
     with pytest.raises(ValueError, match="^P0:"):
         est.init(X0, np.diag([1.0, -1.0, 1.0, 1.0]))
+
+
+def test_many_runs_form_equals_the_step_run_by_run():
+    """What run computes for many runs (the runs-last batch step, or vmap of the step when the
+    filter has none) equals the step run by run."""
+    from _contract import assert_batch_equals_step
+
+    runs, steps = 3, 8
+    ys = np.stack([_linear_data(steps, seed=s)[0] for s in range(runs)])
+    ys[1, 3, 1] = np.nan
+    ys[2, 5] = np.nan
+    us = _linear_data(steps)[1]
+    x0 = X0 + 0.1 * np.arange(runs)[:, None]
+    est = ackf(LINEAR, Q_TRUE * 2, R_TRUE * 0.5)
+    form = assert_batch_equals_step(est, ys, us, x0, P0)
+    assert form == ("batch" if est.batch is not None else "vmap")

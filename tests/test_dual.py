@@ -314,3 +314,18 @@ def test_bad_prior_raises(builder):
     with pytest.raises(ValueError, match="theta0"):
         vj.run(est, np.zeros((1, 3, 4)), np.zeros((3, 2)), x0=x0, P0=P0, theta0=[1.5],
                P_theta0=np.eye(2))
+
+
+@pytest.mark.parametrize("builder", [dual_ekf, dual_ukf, joint_ekf, joint_ukf])
+def test_many_runs_form_equals_the_step_run_by_run(builder):
+    """What run computes for many runs (the runs-last batch step, or vmap of the step when the
+    filter has none) equals the step run by run, each run with its own theta0."""
+    from _contract import assert_batch_equals_step
+
+    ys2, us = _bias_data()
+    ys = np.concatenate([ys2, ys2[:1] + 0.05])[:, :8]  # 3 runs, missing values in run 1
+    theta0 = B0 + np.array([[0.0, 0.0], [0.1, -0.05], [-0.1, 0.05]])
+    est = builder(BIAS, **BIAS_KW)
+    form = assert_batch_equals_step(est, ys, us[:8], np.tile(X0, (3, 1)), P0, theta0=theta0,
+                                    P_theta0=PB0)
+    assert form == ("batch" if est.batch is not None else "vmap")

@@ -474,3 +474,41 @@ def test_bad_prior_and_tuning_raise():
         validate_prior(est, np.zeros((2, 3)), P0_LIN)
     validate_prior(est, np.zeros((2, 4)), np.stack([P0_LIN, P0_LIN]))
     validate_prior(4, X0_LIN, np.diag(P0_LIN))
+
+
+# ---- the many-runs form (runs-last batch, else vmap) equals the step run by run ------------------
+
+
+@pytest.mark.parametrize("name, per_run", [("ekf", False), ("ukf", True), ("ckf", False)])
+def test_many_runs_form_equals_the_step_run_by_run(name, per_run):
+    from _contract import assert_batch_equals_step
+
+    build = {"ekf": ekf, "ukf": ukf, "ckf": ckf}[name]
+    runs, steps = 3, 8
+    ys = np.stack([_linear_data(seed=s)[0][:steps] for s in range(runs)])
+    ys[1, 2, 0] = np.nan  # one component missing
+    ys[2, 4] = np.nan  # all missing
+    us = _linear_data()[1][:steps]
+    if per_run:
+        us = us[None] * np.linspace(0.9, 1.1, runs)[:, None, None]
+    x0 = X0_LIN + 0.1 * np.arange(runs)[:, None]
+    est = build(LINEAR, Q_LIN, R_LIN)
+    assert est.batch is not None  # a small model with constant noise has a runs-last step
+    assert assert_batch_equals_step(est, ys, us, x0, P0_LIN) == "batch"
+    # without it, run vmaps the step: that equals the step run by run as well
+    assert assert_batch_equals_step(est._replace(batch=None), ys, us, x0, P0_LIN) == "vmap"
+
+
+def test_many_runs_form_with_each_runs_theta0():
+    """On a nonlinear model, each run with its own theta0 (the batch form then reads theta from
+    the state) and its own inputs."""
+    from _contract import assert_batch_equals_step
+
+    runs, steps = 3, 6
+    ys = np.stack([_nonlin_data(seed=s)[0][:steps] for s in range(runs)])
+    us = _nonlin_data()[1][:steps][None] * np.linspace(0.9, 1.1, runs)[:, None, None]
+    theta0 = np.asarray(NONLIN.theta) * np.linspace(0.9, 1.1, runs)[:, None]
+    x0 = np.tile(X0_NL, (runs, 1))
+    est = ukf(NONLIN, Q_NL, R_NL)  # the EKF's per-run theta: tests/test_runs_last.py
+    form = assert_batch_equals_step(est, ys, us, x0, P0_NL, theta0=theta0)
+    assert form == ("batch" if est.batch is not None else "vmap")

@@ -1,5 +1,7 @@
 """Liu-West PF + UKF (Dutta et al. 2019, Alg. 3) against an exact grid posterior (numpy, below)."""
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -341,3 +343,188 @@ def test_default_domain_is_positive_for_a_positive_box_else_the_box():
     low, high = (np.asarray(b, float) for b in est.bounds[:2])
     np.testing.assert_array_equal(low, [0.0, -1.0])
     np.testing.assert_array_equal(high, [np.inf, 1.0])
+
+
+# ----------------------------------------------------------------------------------------------
+# the step's mathematics, function by function, against numpy / scipy / finite differences
+
+
+def test_full_theta_and_residual_weight():
+    from vehjax.filters.liu_west import full_theta, residual_weight
+
+    base = np.array([1.0, 2.0, 3.0, 4.0])
+    vals = np.array([[10.0, 30.0], [11.0, 31.0], [12.0, 32.0]])  # (M, p)
+    got = np.asarray(full_theta(jnp.asarray(base), np.array([0, 2], np.int32), jnp.asarray(vals)))
+    ref = np.tile(base, (3, 1))
+    ref[:, [0, 2]] = vals
+    np.testing.assert_array_equal(got, ref)
+    rng = np.random.default_rng(0)
+    w = rng.dirichlet(np.ones(7))
+    for gamma in (0.3, 0.9):
+        lw = np.asarray(residual_weight(jnp.asarray(np.log(w)), gamma))
+        np.testing.assert_allclose(np.exp(lw), gamma * w + (1 - gamma) / 7, rtol=1e-13)
+    np.testing.assert_array_equal(residual_weight(jnp.asarray(np.log(w)), 1.0), np.log(w))
+
+
+def test_predictions_and_weights_of_the_particles():
+    """predict_particles: h(f(x + D (th_i - th_bar), u, th_i)) per particle (numpy loop);
+    weigh: log W_i + log N(y; y_i, S) renormalised (scipy), a particle predicting NaN at 0."""
+    stats = pytest.importorskip("scipy.stats")
+    from vehjax.filters.liu_west import predict_particles, weigh
+
+    model = _two_output_model()
+    f, h = model.transition, model.observe
+    x, u = np.array([0.4, -0.3]), np.array([0.7])
+    th = np.array([[0.9, 1.1, 1.3], [0.2, 0.4, 0.6]])  # (p, M)
+    D, th_bar = np.array([[0.5, 0.1], [-0.2, 0.3]]), np.array([1.0, 0.5])
+    base, idx = jnp.asarray(model.theta), np.array([0, 1], np.int32)
+    pred = jax.jit(partial(predict_particles, f, h, idx=idx))
+    got = np.asarray(pred(jnp.asarray(x), jnp.asarray(u), base, theta_i=jnp.asarray(th),
+                          D=jnp.asarray(D), theta_mean=jnp.asarray(th_bar)))
+
+    def ref_one(xi, ti):
+        fx = np.array([A * xi[0] + ti[0] * u[0], 0.8 * xi[1] + ti[1] * u[0]])
+        return fx
+
+    ref = np.stack([ref_one(x + D @ (th[:, i] - th_bar), th[:, i]) for i in range(3)])
+    np.testing.assert_allclose(got, ref, rtol=1e-14)
+    plain = np.asarray(pred(jnp.asarray(x), jnp.asarray(u), base, theta_i=jnp.asarray(th)))
+    np.testing.assert_allclose(plain, np.stack([ref_one(x, th[:, i]) for i in range(3)]),
+                               rtol=1e-14)
+
+    S = np.array([[0.3, 0.05], [0.05, 0.2]])
+    y = np.array([0.5, 0.1])
+    y_i = np.vstack([ref, [np.nan, 0.0]])  # a fourth particle whose prediction is not finite
+    lw0 = np.log(np.array([0.1, 0.2, 0.3, 0.4]))
+    obs = jnp.ones(2, bool)
+    rw = jax.jit(weigh)(jnp.asarray(lw0), jnp.asarray(y_i), jnp.asarray(y), obs,
+                        smc.masked_chol(jnp.asarray(S), obs))
+    ll = stats.multivariate_normal(np.zeros(2), S).logpdf(y - ref)
+    un = np.exp(lw0[:3] + ll)
+    np.testing.assert_allclose(np.asarray(rw.w), np.append(un / un.sum(), 0.0), rtol=1e-12)
+    assert float(rw.loglik) == pytest.approx(np.log(un.sum()), rel=1e-12)
+
+
+def test_likelihood_factor_is_the_ukf_innovation_covariance_or_r():
+    from vehjax.filters import sigma
+    from vehjax.filters.liu_west import likelihood_factor
+
+    model = _two_output_model()
+    f, h = model.transition, model.observe
+    x, P, u = np.array([0.4, -0.3]), np.array([[0.5, 0.1], [0.1, 0.3]]), np.array([0.7])
+    Qm, Rm, th = np.diag([0.05, 0.05]), np.diag([0.1, 0.2]), jnp.asarray([1.0, 0.5])
+    obs = jnp.ones(2, bool)
+    rule = sigma.unscented_rule(2, 1.0, 2.0, 0.0)
+    L = np.asarray(likelihood_factor(rule, f, h, jnp.asarray(x), jnp.asarray(P),
+                                     jnp.asarray(u), th, jnp.asarray(Qm), jnp.asarray(Rm), obs,
+                                     True))
+    # the model is linear: the unscented S is exactly F P F^T + Q + R (observe = identity)
+    F = np.diag([A, 0.8])
+    np.testing.assert_allclose(L @ L.T, F @ P @ F.T + Qm + Rm, rtol=1e-12)
+    L = np.asarray(likelihood_factor(rule, f, h, jnp.asarray(x), jnp.asarray(P),
+                                     jnp.asarray(u), th, jnp.asarray(Qm), jnp.asarray(Rm),
+                                     jnp.asarray([True, False]), False))
+    np.testing.assert_allclose(L, np.diag([np.sqrt(0.1), 1.0]), rtol=1e-14)
+
+
+def test_ukf_recurrent_derivative_is_the_jacobian_of_the_ukf_step():
+    """ukf_with_derivative: D' = d x'(th) / d th at theta_bar, x'(th) the UKF's updated mean
+    from x + D (th - theta_bar) with parameters th: against central finite differences."""
+    from vehjax.filters.liu_west import ukf_with_derivative
+
+    model = _two_output_model()
+    step = ukf(model, Q=[0.05, 0.05], R=[0.1, 0.2]).step
+    x, P = jnp.asarray([0.4, -0.3]), jnp.asarray([[0.5, 0.1], [0.1, 0.3]])
+    D, th_bar = jnp.asarray([[0.5, 0.1], [-0.2, 0.3]]), jnp.asarray([1.0, 0.5])
+    y, u = jnp.asarray([0.5, 0.1]), jnp.asarray([0.7])
+    base, idx = jnp.asarray(model.theta), np.array([0, 1], np.int32)
+    with_d = jax.jit(lambda rec: ukf_with_derivative(step, x, P, D, base, idx, th_bar, y, u,
+                                                     rec)[:2], static_argnums=0)
+    D_next, st = with_d(True)
+    x_next_j = jax.jit(lambda th: step(GaussianState(x + D @ (th - th_bar), P, th), y, u)[0].x)
+
+    def x_next(th):
+        return np.asarray(x_next_j(th))
+
+    eps = 1e-6
+    fd = np.stack([(x_next(th_bar + eps * e) - x_next(th_bar - eps * e)) / (2 * eps)
+                   for e in np.eye(2)], axis=1)
+    np.testing.assert_allclose(np.asarray(D_next), fd, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(st.x), x_next(th_bar), rtol=1e-14)
+    D_same, st2 = with_d(False)
+    np.testing.assert_array_equal(np.asarray(D_same), np.asarray(D))
+    np.testing.assert_allclose(np.asarray(st2.x), x_next(th_bar), rtol=1e-14)
+
+
+def test_liu_west_move_only_where_it_should():
+    from vehjax.filters.liu_west import _kernel, liu_west_move
+
+    M = 8
+    parts = jnp.asarray(np.linspace(-1.0, 1.0, 2 * M).reshape(2, M))
+    w = jnp.full(M, 1.0 / M)
+    lw = jnp.log(w)
+    z = smc.normals(smc.raw_key(jax.random.key(0)), 2, M, jnp.float64)
+    u = smc.uniforms(smc.raw_key(jax.random.key(1)), "systematic", M, jnp.float64)
+    jit = jnp.eye(2) * 1e-9
+
+    @partial(jax.jit, static_argnums=1)
+    def move(keep, every):
+        moved = liu_west_move(smc.resample, parts, w, lw, u, "systematic", 0.5, z, jit, 0.9,
+                              keep, every)
+        mean, V = smc.moments(w, parts)
+        return moved, _kernel(z, parts, mean, V + jit, 0.9)
+
+    no, yes = jnp.asarray(False), jnp.asarray(True)
+    # equal weights: ESS = M, no resampling; moved only with every=True
+    (p1, l1), _ = move(no, False)
+    np.testing.assert_array_equal(np.asarray(p1), np.asarray(parts))
+    (p2, _), kernel = move(no, True)
+    np.testing.assert_allclose(np.asarray(p2), np.asarray(kernel), rtol=1e-14)
+    (p3, l3), _ = move(yes, True)  # keep: nothing moves
+    np.testing.assert_array_equal(np.asarray(p3), np.asarray(parts))
+    np.testing.assert_array_equal(np.asarray(l3), np.asarray(lw))
+
+
+# ----------------------------------------------------------------------------------------------
+# the resampling function as an argument; refusals; the many-runs form equals the step
+
+
+def test_resample_argument_is_called_and_validated():
+    """The step resamples through the function it was built with, with its scheme and
+    threshold (traced only: same forward values as smc.resample are test_resampling's)."""
+    calls = []
+
+    def counting(*args):
+        calls.append(args[4:])
+        return smc.resample_stop_gradient(*args)
+
+    est = _two_output_est(resample=counting, resampling="stratified", ess_threshold=0.7)
+    state = est.init(jnp.zeros(2), jnp.eye(2), key=jax.random.key(0))
+    jax.make_jaxpr(est.step)(state, jnp.array([0.1, 0.2]), jnp.array([0.3]))
+    assert calls == [("stratified", 0.7)]
+    with pytest.raises(ValueError, match="^resample: expected None or a resampling function"):
+        _two_output_est(resample="systematic")
+
+
+@pytest.mark.parametrize("arg", ["theta_low", "theta_high"])
+def test_complex_box_is_refused_as_complex(arg):
+    args = dict(Q=[QV], R=[RV], n_particles=10, estimate=("b",), theta_low=[LOW],
+                theta_high=[HIGH])
+    args[arg] = [1.0 + 0.5j]
+    with pytest.raises(ValueError, match=rf"^{arg}: .*complex") as err:
+        liu_west_ukf(_gain_model(), **args)
+    assert "numbers" not in str(err.value)
+
+
+def test_many_runs_form_equals_the_step_run_by_run():
+    from _contract import assert_batch_equals_step
+
+    runs, T = 3, 5
+    ys = np.stack([_two_output_data(T)[0] + 0.1 * r for r in range(runs)])
+    ys[1, 2, 0] = np.nan
+    us = _two_output_data(T)[1]
+    # a light configuration (no recurrent derivative, S = R): two compiles of a small step
+    est = _two_output_est(ess_threshold=0.9, recurrent=False, likelihood="measurement")
+    form = assert_batch_equals_step(est, ys, us, np.zeros((runs, 2)), np.eye(2),
+                                    keys=jax.random.split(jax.random.key(0), runs))
+    assert form == ("batch" if est.batch is not None else "vmap")

@@ -364,3 +364,163 @@ def test_works_with_vehjax_run():
     m_kf, _, _ = _kalman(ys, us, R_DIAG)
     assert res.states.shape == (2, T, 2) and not np.any(res.diverged)
     assert np.max(np.abs(res.states - m_kf)) < 0.3
+
+
+# ----------------------------------------------------------------------------------------------
+# the step's mathematics, function by function, against numpy / scipy
+
+
+def test_propagate_is_the_model_plus_scaled_normals_per_particle():
+    from vehjax.filters.particle import propagate
+
+    rng = np.random.default_rng(0)
+    x, z = rng.normal(size=(2, 7)), rng.normal(size=(2, 7))
+    u, L = np.array([0.3, -0.1]), np.linalg.cholesky(Q)
+    got = np.asarray(propagate(_model().transition, jnp.asarray(x), jnp.asarray(u), None,
+                               jnp.asarray(L), jnp.asarray(z)))
+    ref = np.stack([A @ x[:, i] + u + L @ z[:, i] for i in range(7)], axis=1)
+    np.testing.assert_allclose(got, ref, rtol=1e-13, atol=1e-15)
+    # input noise: particle i runs with its own input u + Lu z_u[:, i]
+    Lu, z_u = np.diag([0.2, 0.5]), rng.normal(size=(2, 7))
+    got = np.asarray(propagate(_model().transition, jnp.asarray(x), jnp.asarray(u), None,
+                               jnp.asarray(L), jnp.asarray(z), jnp.asarray(Lu), jnp.asarray(z_u)))
+    ref = np.stack([A @ x[:, i] + u + Lu @ z_u[:, i] + L @ z[:, i] for i in range(7)], axis=1)
+    np.testing.assert_allclose(got, ref, rtol=1e-13, atol=1e-15)
+
+
+def test_residuals_flag_particles_that_are_not_finite():
+    from vehjax.filters.particle import residuals
+
+    x = np.array([[0.1, np.nan, 2.0, 1e308], [0.2, 0.0, -1.0, 1e308]])
+    y = np.array([1.0, np.nan])
+    square = lambda x, u, th: x * x  # noqa: E731 - overflows for the last particle
+    obs, e, bad, x_out = (np.asarray(a) for a in residuals(square, jnp.asarray(x),
+                                                           jnp.asarray(y), None, None))
+    assert obs.tolist() == [True, False] and bad.tolist() == [False, True, False, True]
+    np.testing.assert_allclose(e[0], [1.0 - 0.01, 0.0, 1.0 - 4.0, 0.0])
+    assert np.all(e[1] == 0.0)  # the missing component
+    np.testing.assert_array_equal(x_out[:, [1, 3]], 0.0)
+    np.testing.assert_array_equal(x_out[:, [0, 2]], x[:, [0, 2]])
+
+
+@pytest.mark.parametrize("diagonal", [False, True], ids=["full", "diagonal"])
+def test_measurement_logliks_are_gaussian_log_densities_of_the_observed_part(diagonal):
+    stats = pytest.importorskip("scipy.stats")
+    from vehjax.filters.particle import measurement_logliks
+
+    rng = np.random.default_rng(1)
+    Rm = R_DIAG if diagonal else R_FULL
+    e = rng.normal(size=(2, 5))
+    for obs in ([True, True], [True, False]):
+        o = np.array(obs)
+        got = measurement_logliks(jnp.asarray(np.where(o[:, None], e, 0.0)), jnp.asarray(o),
+                                  jnp.asarray(Rm), jnp.asarray(np.diagonal(Rm)) if diagonal
+                                  else None)
+        ref = stats.multivariate_normal(np.zeros(o.sum()), Rm[np.ix_(o, o)]).logpdf(e[o].T)
+        np.testing.assert_allclose(np.asarray(got), ref, rtol=1e-12)
+
+
+def test_predicted_nis_from_weighted_moments_of_the_residuals():
+    from vehjax.filters.particle import predicted_nis
+
+    rng = np.random.default_rng(2)
+    e, w = rng.normal(size=(2, 9)), rng.uniform(size=9)
+    bad = np.zeros(9, bool)
+    bad[4] = True
+    got = float(predicted_nis(jnp.asarray(e), jnp.asarray(w), jnp.asarray(bad),
+                              jnp.asarray(R_FULL), jnp.ones(2, bool)))
+    wk = np.where(bad, 0.0, w) / w[~bad].sum()
+    r = e @ wk
+    S = ((e - r[:, None]) * wk) @ (e - r[:, None]).T + R_FULL
+    assert got == pytest.approx(r @ np.linalg.solve(S, r), rel=1e-12)
+    # a missing component: the NIS of the observed one alone
+    e1 = np.where([[True], [False]], e, 0.0)
+    got1 = float(predicted_nis(jnp.asarray(e1), jnp.asarray(w), jnp.asarray(bad),
+                               jnp.asarray(R_FULL), jnp.asarray([True, False])))
+    var = wk @ (e[0] - e[0] @ wk) ** 2 + R_FULL[0, 0]
+    assert got1 == pytest.approx((e[0] @ wk) ** 2 / var, rel=1e-12)
+
+
+def test_reinit_factor_and_moved_estimate():
+    from vehjax.filters.particle import moved_estimate, reinit_factor
+
+    LQ = np.linalg.cholesky(Q)
+    np.testing.assert_allclose(np.asarray(reinit_factor(jnp.asarray(P0), jnp.asarray(Q),
+                                                        jnp.asarray(LQ))),
+                               np.linalg.cholesky(P0 + Q), rtol=1e-13)
+    broken = np.full((2, 2), np.nan)
+    np.testing.assert_array_equal(reinit_factor(jnp.asarray(broken), jnp.asarray(Q),
+                                                jnp.asarray(LQ)), LQ)
+    f = _model().transition
+    m, u = np.array([0.5, -1.0]), np.array([0.1, 0.2])
+    np.testing.assert_allclose(moved_estimate(f, jnp.asarray(m), jnp.asarray(u), None),
+                               A @ m + u, rtol=1e-14)
+    nan_model = lambda x, u, th: x * jnp.nan  # noqa: E731
+    np.testing.assert_array_equal(moved_estimate(nan_model, jnp.asarray(m), None, None), m)
+
+
+def test_resample_or_restart_keeps_the_genealogy():
+    from vehjax.filters import smc
+    from vehjax.filters.particle import resample_or_restart
+
+    n = 6
+    x = jnp.asarray(np.arange(2.0 * n).reshape(2, n))
+    lw = np.log([0.01, 0.01, 0.9, 0.06, 0.01, 0.01])
+    rw = smc.reweight(jnp.full(n, -np.log(n)), jnp.asarray(lw))
+    u = jnp.asarray([0.3])
+    no, yes = jnp.asarray(False), jnp.asarray(True)
+    xn, _, wn, anc = resample_or_restart(smc.resample, x, rw, u, "systematic", 0.5, no, no)
+    anc = np.asarray(anc)
+    # systematic indices: the first i whose cumulative weight exceeds (j + u) / n
+    ref = np.searchsorted(np.cumsum(np.exp(lw)), (np.arange(n) + 0.3) / n, side="right")
+    np.testing.assert_array_equal(anc, ref)
+    np.testing.assert_array_equal(np.asarray(xn), np.asarray(x)[:, anc])
+    np.testing.assert_allclose(np.asarray(wn), 1.0 / n)
+    for pending, diverged in ((yes, no), (no, yes)):
+        _, _, wn, anc = resample_or_restart(smc.resample, x, rw, u, "systematic", 0.5, pending,
+                                            diverged)
+        np.testing.assert_array_equal(anc, np.arange(n))  # drawn afresh: no genealogy
+    np.testing.assert_allclose(np.asarray(wn), 1.0 / n)  # after a divergence: equal weights
+
+
+# ----------------------------------------------------------------------------------------------
+# the resampling function as an argument; the many-runs form equals the step
+
+
+def test_resample_argument_is_called_and_validated():
+    from vehjax.filters import smc
+
+    T = 12
+    _, ys, us = _simulate(T, R_DIAG, seed=4)
+    calls = []
+
+    def counting(*args):
+        calls.append(args[4:])
+        return smc.resample(*args)
+
+    k = jax.random.key(2)
+    plain = vj.filter(bootstrap_pf(_model(), Q, R_DIAG, 50), ys, us, X0, P0, key=k)
+    mine = vj.filter(bootstrap_pf(_model(), Q, R_DIAG, 50, "stratified", 0.9,
+                                  resample=counting), ys, us, X0, P0, key=k)
+    assert calls and all(c == ("stratified", 0.9) for c in calls)  # traced with its arguments
+    sg = vj.filter(bootstrap_pf(_model(), Q, R_DIAG, 50, resample=smc.resample_stop_gradient),
+                   ys, us, X0, P0, key=k)
+    np.testing.assert_array_equal(sg.states, plain.states)  # same forward pass
+    np.testing.assert_array_equal(sg.loglik, plain.loglik)
+    assert not np.array_equal(mine.states, plain.states)  # another scheme and threshold
+    for bad in (42, "systematic"):
+        with pytest.raises(ValueError, match="^resample: expected None or a resampling func"):
+            bootstrap_pf(_model(), Q, R_DIAG, 50, resample=bad)
+
+
+def test_many_runs_form_equals_the_step_run_by_run():
+    from _contract import assert_batch_equals_step
+
+    T, runs = 8, 3
+    ys = np.stack([_simulate(T, R_FULL, seed=s, missing=[(2, 0)])[1] for s in range(runs)])
+    _, _, us = _simulate(T, R_FULL, seed=0)
+    x0 = X0 + np.arange(runs)[:, None] * 0.1
+    est = bootstrap_pf(_model(), Q, R_FULL, 64, ess_threshold=0.8)
+    form = assert_batch_equals_step(est, ys, us, x0, P0, keys=jax.random.split(jax.random.key(0),
+                                                                               runs))
+    assert form == ("batch" if est.batch is not None else "vmap")

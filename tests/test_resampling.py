@@ -169,3 +169,61 @@ def test_bad_input_raises_value_error_naming_it():
         rs.stratified(jax.random.key(0), jnp.zeros((2, 2)))
     with pytest.raises(ValueError, match="log_weights"):
         rs.residual(jax.random.key(0), jnp.zeros(0))
+
+
+# ----------------------------------------------------------------------------------------------
+# the particle core's resampling functions: plain and stop-gradient, the same forward pass
+
+
+@pytest.mark.parametrize("scheme", rs.SCHEMES)
+def test_stop_gradient_resampling_values_equal_plain_and_gradient_counts_offspring(scheme):
+    """Same values as smc.resample (particles, weights, decision); the gradient of the sum of
+    the resampled log weights with respect to the log weights is each particle's number of
+    offspring (d/d lw_j of sum_i lw_a(i) - stop_gradient(lw_a(i)) = #{i: a(i) = j})."""
+    from vehjax.filters import smc
+
+    with np.errstate(divide="ignore"):
+        log_w = jnp.asarray(np.log(W))  # one zero weight: its -inf contributes 0
+    w = jnp.exp(log_w)
+    parts = (jnp.asarray(np.arange(3.0 * N).reshape(3, N)), jnp.arange(N))
+    u = smc.uniforms(smc.raw_key(jax.random.key(1)), scheme, N, jnp.float64)
+    plain = smc.resample(parts, w, log_w, u, scheme, 1.0)
+    sg = smc.resample_stop_gradient(parts, w, log_w, u, scheme, 1.0)
+    for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(sg)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert bool(plain[3])  # it did resample
+    anc = np.asarray(plain[0][1])
+    offspring = np.bincount(anc, minlength=N)
+
+    def total(lw):
+        return jnp.sum(smc.resample_stop_gradient(parts, jnp.exp(lw), lw, u, scheme, 1.0)[1])
+
+    grad = np.asarray(jax.grad(total)(log_w))
+    np.testing.assert_array_equal(grad, offspring)
+    # the plain resampler's weights are constants: no gradient at all
+    plain_grad = jax.grad(lambda lw: jnp.sum(smc.resample(parts, jnp.exp(lw), lw, u, scheme,
+                                                          1.0)[1]))(log_w)
+    np.testing.assert_array_equal(np.asarray(plain_grad), 0.0)
+
+
+def test_resampling_below_the_threshold_leaves_everything_and_threshold_zero_never():
+    from vehjax.filters import smc
+
+    log_w = jnp.full(N, -np.log(N))  # ESS = N
+    x = jnp.asarray(np.arange(N, dtype=float))
+    u = smc.uniforms(smc.raw_key(jax.random.key(1)), "systematic", N, jnp.float64)
+    for fn in (smc.resample, smc.resample_stop_gradient):
+        for thr in (0.0, 0.99):
+            xs, lw, w, did = fn(x, jnp.exp(log_w), log_w, u, "systematic", thr)
+            assert not bool(did)
+            np.testing.assert_array_equal(np.asarray(xs), np.asarray(x))
+            np.testing.assert_array_equal(np.asarray(lw), np.asarray(log_w))
+
+
+def test_check_resample():
+    from vehjax.filters import smc
+
+    assert smc.check_resample(None) is smc.resample
+    assert smc.check_resample(smc.resample_stop_gradient) is smc.resample_stop_gradient
+    with pytest.raises(ValueError, match="^resample: expected None or a resampling function"):
+        smc.check_resample(0.5)

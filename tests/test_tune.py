@@ -183,7 +183,8 @@ def test_particle_filter_stop_gradient_score_matches_kalman_score():
     k = jax.random.key(3)
     pf = vj.filters.bootstrap_pf(model, [q], [r], n_particles=64)
     a1 = vj.filter(pf, ys[0], None, key=k, **common)
-    a2 = vj.filter(vt.stop_gradient(pf), ys[0], None, key=k, **common)
+    a2 = vj.filter(vt.stop_gradient_pf(model, [q], [r], n_particles=64), ys[0], None, key=k,
+                   **common)
     np.testing.assert_array_equal(a1.loglik, a2.loglik)
     np.testing.assert_array_equal(a1.states, a2.states)
 
@@ -200,6 +201,23 @@ def test_particle_filter_stop_gradient_score_matches_kalman_score():
     mean, se = scores.mean(0), scores.std(0, ddof=1) / np.sqrt(S)
     assert np.all(se < 0.1 * np.abs(score_kf)), (se, score_kf)  # a test with teeth
     assert np.all(np.abs(mean - score_kf) < 4 * se), (mean, score_kf, se)
+
+
+def test_stop_gradient_is_a_builder_choice_not_a_patch():
+    """stop_gradient(estimator) refuses (it pointed at a global swap), naming estimator and the
+    builder keyword; tune refuses a particle filter's builder without a resample keyword."""
+    model = vj.models.Model(transition=lambda x, u, th: 0.9 * x, observe=lambda x, u, th: x,
+                            dt=1.0, state_names=("x",))
+    pf = vj.filters.bootstrap_pf(model, [0.5], [0.3], n_particles=8)
+    with pytest.raises(ValueError, match="^estimator: .*resample=vehjax.filters.smc"):
+        vt.stop_gradient(pf)
+
+    def own_pf(model, Q, R):  # a particle filter's builder that takes no resample=
+        return vj.filters.bootstrap_pf(model, Q, R, n_particles=8)
+
+    with pytest.raises(ValueError, match="^builder: .*resample"):
+        vt.objective(own_pf, model, [0.5], [0.3], np.zeros((1, 5, 1)), None, x0=np.zeros(1),
+                     P0=np.eye(1), key=jax.random.key(0))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -70,7 +70,7 @@ class FilterResult(NamedTuple):
         at_bound: bool scalar, a parameter estimate sat on a bound of its domain for more than
             ``AT_BOUND_FRACTION`` of the steps (module docstring); False without domains.
         state: the filter's state after the last step (its ``init``/``step`` pytree), to go on
-            filtering from; not held on divergence. None from :func:`finish` alone.
+            filtering from; not held on divergence. None from :func:`_finish` alone.
     """
 
     states: jnp.ndarray
@@ -103,7 +103,7 @@ def check_step_output(out, nx: int, p: int):
             )
 
 
-def start(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
+def _start(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
     """(filter state, outputs held before the first step) of one run; checks the shapes of the
     step's output. y (T, ny), u (T, nu) are only read for shapes."""
     nx, p = estimator.nx, len(estimator.param_names)
@@ -144,7 +144,7 @@ def output_ok(out: StepOutput, p: int, pd=is_pd, all_finite=_all_finite):
     return good
 
 
-def scan_body(step, ok, return_cov: bool):
+def _scan_body(step, ok, return_cov: bool):
     """Scan body: one filter step, returning the per-step outputs and whether they are good.
     ``ok(out)`` is :func:`output_ok` for the layout at hand."""
 
@@ -203,8 +203,8 @@ def check_theta0(estimator: Estimator, theta0) -> None:
     check_inside("theta0", theta0, *estimator.bounds, tuple(estimator.param_names))
 
 
-def finish(per_step, held0, bounds=None) -> FilterResult:
-    """Outputs of one run from the stacked per-step outputs of :func:`scan_body` (leading axis
+def _finish(per_step, held0, bounds=None) -> FilterResult:
+    """Outputs of one run from the stacked per-step outputs of :func:`_scan_body` (leading axis
     T): everything from the first bad step on is held (module docstring); ``bounds``
     (``Estimator.bounds``) for ``at_bound``."""
     mean, cov, params, pcov, loglik, nis, n_obs, ok, reinit = per_step
@@ -240,10 +240,10 @@ def finish(per_step, held0, bounds=None) -> FilterResult:
 def one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key):
     """One run, traced, without validation: y (T, ny), u (T, nu); x0 (nx,), P0 (nx, nx)."""
     p = len(estimator.param_names)
-    state0, held0 = start(estimator, y, u, x0, P0, th0, Pth0, key)
-    body = scan_body(estimator.step, partial(output_ok, p=p), return_cov)
+    state0, held0 = _start(estimator, y, u, x0, P0, th0, Pth0, key)
+    body = _scan_body(estimator.step, partial(output_ok, p=p), return_cov)
     state, per_step = jax.lax.scan(body, state0, (y, u))
-    return finish(per_step, held0, estimator.bounds)._replace(state=state)
+    return _finish(per_step, held0, estimator.bounds)._replace(state=state)
 
 
 # ----------------------------------------------------------------------------------------------

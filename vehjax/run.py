@@ -148,11 +148,11 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per
                      P0, th0, Pth0, keys) -> FilterResult:
     """What ``vmap(filtering.one_run)`` computes, for an estimator with a runs-last ``batch``
     form: one scan over time of the batched step, every array with the runs axis last (see
-    :mod:`vehjax.filters._runs_last`); the same per-run bookkeeping (``filtering.finish``)."""
+    :mod:`vehjax.filters._runs_last`); the same per-run bookkeeping (``filtering._finish``)."""
     p = len(estimator.param_names)
     per_run_u = us.ndim == 3
     start = jax.vmap(
-        partial(filtering.start, estimator), in_axes=tuple(0 if r else None for r in per_run)
+        partial(filtering._start, estimator), in_axes=tuple(0 if r else None for r in per_run)
     )
     state0, held0 = start(ys, us, x0, P0, th0, Pth0, keys)
     batch = estimator.batch(per_run_u, held0[0].dtype, th0 is None)
@@ -160,7 +160,7 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per
 
     ok = partial(filtering.output_ok, p=p, pd=_runs_last.is_pd,
                  all_finite=_runs_last.all_finite)
-    body = filtering.scan_body(batch.step, ok, return_cov)
+    body = filtering._scan_body(batch.step, ok, return_cov)
 
     y_t = jnp.moveaxis(ys, 0, -1)  # (T, ny, C)
     u_t = jnp.moveaxis(us, 0, -1) if per_run_u else us  # (T, nu, C) or (T, nu)
@@ -168,7 +168,7 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per
     scan = _scan_prefetched if batch.prefetch and prefetch else _scan
     _, per_step = scan(body, state0, y_t, batch.prepare(u_t))
     per_step = jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), per_step)  # (C, T, ...)
-    return jax.vmap(partial(filtering.finish, bounds=estimator.bounds))(per_step, held0)
+    return jax.vmap(partial(filtering._finish, bounds=estimator.bounds))(per_step, held0)
 
 
 def _vmapped_study(estimator, return_cov, per_run, block, *args):

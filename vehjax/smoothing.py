@@ -51,7 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _validate
-from .filtering import FilterResult, _checked, finish, output_ok, scan_body, start
+from .filtering import FilterResult, _checked, _finish, _scan_body, _start, output_ok
 from .filters._linalg import is_pd, sym
 from .filters.base import Estimator
 from .smoothers import gaussian as _gauss
@@ -100,8 +100,8 @@ class SmoothResult(NamedTuple):
 def forward(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
     """The filter over one run, keeping its states: (states at t = 0..T stacked, FilterResult)."""
     p = len(estimator.param_names)
-    state0, held0 = start(estimator, y, u, x0, P0, th0, Pth0, key)
-    inner = scan_body(estimator.step, lambda out: output_ok(out, p), True)
+    state0, held0 = _start(estimator, y, u, x0, P0, th0, Pth0, key)
+    inner = _scan_body(estimator.step, lambda out: output_ok(out, p), True)
 
     def body(state, yu):
         new, per_step = inner(state, yu)
@@ -109,7 +109,7 @@ def forward(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
 
     _, (states, per_step) = jax.lax.scan(body, state0, (y, u))
     states = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), state0, states)
-    return states, finish(per_step, held0, estimator.bounds)
+    return states, _finish(per_step, held0, estimator.bounds)
 
 
 def _report(spec, M, P, cross, nx):

@@ -63,7 +63,8 @@ or too little curvature are named (``TuneResult.undetermined`` and a warning): a
 noise entry the data cannot determine does not come back silently at its start value.
 
 Particle filter. A particle filter (``builder=vehjax.filters.bootstrap_pf``) is differentiated
-with stop-gradient resampling, :func:`stop_gradient` (Scibior & Wood 2021, "Differentiable
+with stop-gradient resampling, built with ``resample=vehjax.filters.smc.resample_stop_gradient``
+(:func:`stop_gradient_pf`; Scibior & Wood 2021, "Differentiable
 particle filtering without modifying the forward pass"): its forward pass is the bootstrap PF's,
 value for value (same keys, same particles, same log-likelihood), and after a resampling each
 particle's log weight is ``-log N + log W_a - stop_gradient(log W_a)`` for its ancestor a, so
@@ -77,9 +78,8 @@ piecewise-constant resampling makes the PF's objective unsuitable for a line sea
 
 from __future__ import annotations
 
-import math
+import inspect
 import sys
-import threading
 import time
 import warnings
 from typing import Any, Callable, Mapping, NamedTuple
@@ -95,14 +95,13 @@ from . import _validate
 from .filtering import filter as _filter
 from .filters import _bounds
 from .filters import input_noise as _inoise
-from .filters import resampling as _rs
 from .filters import smc
 from .filters.base import Estimator
 from .filters.particle import bootstrap_pf
 from .models.base import BaseModel
 
-__all__ = ["fit", "fit_noise", "objective", "Objective", "TuneResult", "stop_gradient",
-           "stop_gradient_pf", "forward_scores", "score_outer_product", "scoring_direction",
+__all__ = ["fit", "fit_noise", "objective", "Objective", "TuneResult", "stop_gradient_pf",
+           "forward_scores", "score_outer_product", "scoring_direction",
            "uncertainty", "Uncertainty", "fitted_quantities"]
 
 _NOISE = ("Q", "R")
@@ -328,81 +327,67 @@ def _prod(a: str, b: str) -> str:
 # ----------------------------------------------------------------------------------------------
 # the stop-gradient particle filter
 #
-# The bootstrap PF resamples through vehjax.filters.smc.resample, which gives every resampled
-# particle the constant log weight -log N. Stop-gradient resampling gives it
-# -log N + log W_a - stop_gradient(log W_a) instead: the same value, but its gradient carries the
-# ancestor's log weight. Until smc.resample does this itself (the change is the two lines marked
-# in _sg_resample), stop_gradient() swaps it in while the filter's step is traced: the forward
-# pass is the filter's own, by construction, and nothing of the filter is copied here.
-
-_PATCH_LOCK = threading.RLock()
-_SG_CALLS = [0]
-
-
-def _sg_resample(particles, w, log_w, u, scheme: str, threshold: float):
-    """``smc.resample`` with stop-gradient weights: same values, the ancestors' log weights in
-    the gradient."""
-    _SG_CALLS[0] += 1
-    n = w.shape[-1]
-    if threshold <= 0.0:
-        return particles, log_w, w, jnp.zeros((), bool)
-    idx = _rs.indices_from_uniforms(scheme, jax.lax.stop_gradient(w), u, n)
-    do = smc.ess(w) < threshold * n
-    particles = jax.tree.map(lambda a: jnp.where(do, jnp.take(a, idx, axis=-1), a), particles)
-    lw_a = jnp.take(log_w, idx)
-    # 0 in value (also for an ancestor whose log weight is not finite)
-    corr = jnp.where(jnp.isfinite(lw_a), lw_a - jax.lax.stop_gradient(lw_a), 0.0)
-    log_w = jnp.where(do, corr - math.log(n), log_w)  # was: -math.log(n)
-    w = jnp.where(do, (1.0 / n) * jnp.exp(corr), w)  # was: 1.0 / n
-    return particles, log_w, w, do
+# The particle filters resample through the function they are built with (``resample=``).
+# vehjax.filters.smc.resample gives every resampled particle the constant log weight -log N;
+# vehjax.filters.smc.resample_stop_gradient gives it -log N + log W_a - stop_gradient(log W_a):
+# the same value, but its gradient carries the ancestor's log weight. tune builds a particle
+# filter with the latter: the forward pass is the filter's own, value for value.
 
 
 def stop_gradient(estimator: Estimator) -> Estimator:
-    """A particle filter with stop-gradient resampling (Scibior & Wood 2021).
+    """Refused: stop-gradient resampling is chosen when a particle filter is built.
 
-    ``estimator`` is a particle filter of :mod:`vehjax.filters` that resamples through
-    :func:`vehjax.filters.smc.resample` (``bootstrap_pf``). The result has the same ``init``
-    and the same forward pass, value for value (random numbers, particles, resampling
-    decisions and indices, outputs); only gradients differ: after a resampling, particle i's
-    normalised log weight is ``-log N + log W_a - stop_gradient(log W_a)`` (value ``-log N``) for
-    its ancestor a, where the filter puts the constant ``-log N``. The gradient of
-    ``sum_t loglik_t`` is then the Fisher-identity estimate of the score,
-    ``sum_i W_T^i grad log p(x^i_0:T, y_1:T)`` along the particles' ancestral paths (the
-    particles reparameterised, ``f(x) + chol(Q) z``), a consistent estimate of
-    ``grad log p(y_1:T)`` (bias O(1/N)).
+    Build the filter with ``resample=vehjax.filters.smc.resample_stop_gradient``
+    (``bootstrap_pf``, ``liu_west_ukf``, ``marginalized_pf``) or use :func:`stop_gradient_pf`;
+    :func:`fit` and :func:`objective` do so for a particle filter's builder themselves.
 
     Raises:
-        ValueError: naming ``estimator`` when it is not a particle filter.
-        RuntimeError: when the step, traced, did not resample through ``smc.resample``.
+        ValueError: naming ``estimator``, always (a built filter's resampling cannot be
+            changed).
     """
-    if not isinstance(estimator, Estimator) or not estimator.needs_key:
-        raise ValueError(f"estimator: expected a particle filter (an Estimator with needs_key), "
-                         f"got {getattr(estimator, 'name', type(estimator).__name__)!r}")
-    base_step = estimator.step
+    name = getattr(estimator, "name", type(estimator).__name__)
+    raise ValueError(
+        f"estimator: stop_gradient cannot change the resampling of a built filter ({name!r}); "
+        f"build it with resample=vehjax.filters.smc.resample_stop_gradient, e.g. "
+        f"vehjax.filters.bootstrap_pf(model, Q, R, resample=...), or use "
+        f"vehjax.tune.stop_gradient_pf(model, Q, R, ...)")
 
-    def step(state, y, u):
-        with _PATCH_LOCK:
-            original, calls = smc.resample, _SG_CALLS[0]
-            smc.resample = _sg_resample
-            try:
-                out = base_step(state, y, u)
-            finally:
-                smc.resample = original
-        if _SG_CALLS[0] == calls:
-            raise RuntimeError(
-                f"vehjax.tune.stop_gradient: {estimator.name}'s step did not call "
-                f"vehjax.filters.smc.resample; stop-gradient resampling cannot be applied")
-        return out
 
-    return estimator._replace(step=step, name=f"{estimator.name} (stop-gradient)", batch=None)
+def _stop_gradient_kwargs(builder, name: str, builder_kwargs) -> dict:
+    """The keyword that makes ``builder`` (a particle filter's, called ``name``) resample with
+    stop-gradient weights: ``{"resample": smc.resample_stop_gradient}``, or {} when
+    ``builder_kwargs`` already names a ``resample``. ValueError naming ``builder`` when it takes
+    no ``resample`` keyword."""
+    if "resample" in builder_kwargs:  # the caller's own choice
+        return {}
+    try:
+        params = inspect.signature(builder).parameters.values()
+    except (TypeError, ValueError):  # no signature to read: let the call say
+        params = ()
+    if params and not any(q.name == "resample" or q.kind is q.VAR_KEYWORD for q in params):
+        raise ValueError(
+            f"builder: {name} draws random numbers (a particle filter) but takes no resample= "
+            f"keyword; tune differentiates a particle filter with stop-gradient resampling, "
+            f"passed as resample=vehjax.filters.smc.resample_stop_gradient")
+    return {"resample": smc.resample_stop_gradient}
 
 
 def stop_gradient_pf(model, Q, R, n_particles: int = 1000, resampling: str = "systematic",
                      ess_threshold: float = 0.5) -> Estimator:
-    """``stop_gradient(vehjax.filters.bootstrap_pf(model, Q, R, ...))``: the bootstrap PF with
-    stop-gradient resampling, a builder with bootstrap_pf's arguments (see
-    :func:`stop_gradient`)."""
-    return stop_gradient(bootstrap_pf(model, Q, R, n_particles, resampling, ess_threshold))
+    """``vehjax.filters.bootstrap_pf(model, Q, R, ..., resample=smc.resample_stop_gradient)``:
+    the bootstrap PF with stop-gradient resampling (Scibior & Wood 2021), a builder with
+    bootstrap_pf's arguments.
+
+    The result has the bootstrap PF's ``init`` and forward pass, value for value (random
+    numbers, particles, resampling decisions and indices, outputs); only gradients differ:
+    after a resampling, particle i's normalised log weight is ``-log N + log W_a -
+    stop_gradient(log W_a)`` (value ``-log N``) for its ancestor a
+    (:func:`vehjax.filters.smc.stop_gradient_weights`). The gradient of ``sum_t loglik_t`` is
+    then the Fisher-identity estimate of the score, ``sum_i W_T^i grad log p(x^i_0:T, y_1:T)``
+    along the particles' ancestral paths (the particles reparameterised, ``f(x) + chol(Q) z``),
+    a consistent estimate of ``grad log p(y_1:T)`` (bias O(1/N))."""
+    return bootstrap_pf(model, Q, R, n_particles, resampling, ess_threshold,
+                        resample=smc.resample_stop_gradient)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -488,8 +473,9 @@ def _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bound
         raise ValueError(f"builder: {est0.name} estimates parameters {est0.param_names}; tune "
                          f"a state-only filter (ekf, ukf, ckf, bootstrap_pf) and fit model "
                          f"parameters with params=")
-    keys = None
-    if est0.needs_key:
+    keys, sg = None, {}
+    if est0.needs_key:  # a particle filter: differentiated with stop-gradient resampling
+        sg = _stop_gradient_kwargs(builder, est0.name, builder_kwargs)
         if key is None:
             raise ValueError(f"key: {est0.name} draws random numbers; pass key=jax.random.key(...)")
         try:
@@ -528,9 +514,7 @@ def _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bound
         R = v["R"] if "R" in z else Ra
         mdl = eqx.tree_at(lambda m: m.theta, model, v["theta"]) if "theta" in z else model
         kw = builder_kwargs if "input" not in z else {**builder_kwargs, "input_noise": v["input"]}
-        est = builder(mdl, Q, R, **kw)
-        if est.needs_key:  # a particle filter: differentiated with stop-gradient resampling
-            est = stop_gradient(est)
+        est = builder(mdl, Q, R, **kw, **sg)
         x0v = v["x0"] if "x0" in z else x0_
 
         def one(y, u, xi, Pi, k):
@@ -1123,7 +1107,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
         builder: a filter builder ``builder(model, Q, R, **builder_kwargs) -> Estimator``:
             ``vehjax.filters.ekf``, ``ukf``, ``ckf`` (``builder_kwargs={"sqrt": True}`` for the
             square-root forms), ``bootstrap_pf`` (differentiated with stop-gradient
-            resampling, :func:`stop_gradient`), or one's own state-only builder.
+            resampling, :func:`stop_gradient_pf`), or one's own state-only builder.
         model: a vehjax model; ``model.theta`` holds the starting parameter values.
         Q0, R0: starting covariances, (n, n) or (n,) variances; diagonal ones are fitted as
             diagonal, full ones as full (module docstring). Positive definite when fitted; a Q0

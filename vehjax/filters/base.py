@@ -14,8 +14,8 @@ Three optional parts of the contract are declared fields too, so that ``run`` re
 * ``StepOutput.reinit``: the filter had to re-initialise this step (a particle filter whose
   weights all underflowed). ``run`` reports such a run as diverged but does not freeze it.
 * ``Estimator.batch``: ``batch(per_run_inputs: bool, dtype, default_theta: bool) ->
-  Batch(prepare, step)``, the same step for a whole batch of runs at once with the runs axis
-  last in every leaf of the state, of y and of the StepOutput (see
+  Batch(prepare, step, prefetch)``, the same step for a whole batch of runs at once with the
+  runs axis last in every leaf of the state, of y and of the StepOutput (see
   :mod:`vehjax.filters._runs_last`). ``prepare`` maps the whole input sequence, (T, nu) shared or
   (T, nu, R) when ``per_run_inputs``, to what the batch ``step`` takes in place of u at each
   time; ``dtype`` is the filter's float dtype and ``default_theta`` says that every run was
@@ -26,7 +26,7 @@ Three optional parts of the contract are declared fields too, so that ``run`` re
   the domain of each estimated parameter in physical units (-inf / +inf for an open end), which
   the filter keeps its estimate in (:mod:`vehjax.filters._bounds`); None for state-only filters
   and filters without domains.
-  :func:`vehjax.filtering.finish` reads it to flag a run whose estimate sits on a bound
+  :func:`vehjax.filtering._finish` reads it to flag a run whose estimate sits on a bound
   (``at_bound``), and ``run`` to check ``theta0``.
 """
 
@@ -125,29 +125,49 @@ class GaussianSmoother(NamedTuple):
 class Estimator(NamedTuple):
     """``Estimator(init, step)``: see the module docstring for the signatures.
 
+    Each field is part of the contract between a filter's builder and what runs it; what it
+    must hold and who reads it:
+
     Attributes:
-        init: builds the filter state from the prior.
-        step: predicts with ``u`` then updates with ``y``; returns the new state and a StepOutput.
-        nx: state dimension the filter estimates.
-        param_names: names of the parameters it estimates (empty for state-only filters).
-        name: short label used in tables and plots.
-        needs_key: whether ``init`` needs a PRNG key (particle filters).
-        param_prior: ``(theta0, P_theta0)`` in physical units, what ``run`` and ``filter`` use
-            when the caller gives none; None when a parameter-estimating filter requires them.
-        batch: optional runs-last form of ``step`` (module docstring); None to ``vmap`` it.
-        ny: measurement width the filter expects (the model's outputs); None: not checked.
-        nu: input width the filter expects (the model's inputs); None: not checked.
+        init: ``init(x0, P0, theta0=None, P_theta0=None, key=None) -> state``: the filter state
+            (a pytree of arrays) from the prior, x0 (nx,), P0 (nx, nx); its dtype sets the
+            filter's. Must raise ValueError naming the argument for a wrong shape, and for a
+            missing ``key`` when ``needs_key``. Read by :func:`vehjax.filter`, :func:`vehjax.run`
+            (vmapped over runs), :func:`vehjax.smooth`.
+        step: ``step(state, y, u) -> (state, StepOutput)``: predicts with u (nu,), then updates
+            with y (ny,), NaN components missing. Pure and traceable (``jit``, ``vmap``,
+            ``grad``); the StepOutput has the shapes its class documents (checked by
+            ``vehjax.filtering`` when traced). Read by everything that runs a filter.
+        nx: state dimension; the width of ``StepOutput.mean`` and of ``x0``.
+        param_names: names of the p parameters the filter estimates (``StepOutput.params``
+            (p,)); empty for state-only filters. ``run``, ``filter`` and the results read it.
+        name: short label for tables, plots, messages and the multi-process consistency digest
+            of ``run``; not a key to any behaviour.
+        needs_key: ``init`` requires a PRNG key (the particle filters); ``run`` and ``filter``
+            refuse a call without one, and :mod:`vehjax.tune` differentiates such a filter with
+            stop-gradient resampling (``resample=`` of its builder).
+        param_prior: ``(theta0 (p,), P_theta0 (p, p))`` in physical units that ``run`` and
+            ``filter`` use when the caller gives none, and report for a run that diverges at
+            its first step; None: a parameter-estimating filter requires them.
+        batch: optional runs-last form of ``step`` (module docstring), used by ``run`` where the
+            execution strategy says so instead of ``vmap``-ing ``step``. Contract: for every
+            state, y and input, the batch step on runs-last arrays gives what ``step`` gives run
+            by run, to rounding (``tests/_contract.py`` checks it for every filter family that
+            has one). None: ``run`` vmaps ``step``.
+        ny: measurement width ``step`` expects (the model's outputs); ``run`` and ``filter``
+            check the data against it before tracing. None: not checked.
+        nu: input width ``step`` expects (the model's inputs); checked likewise. None: not
+            checked.
         bounds: ``(low, high)`` domains of the estimated parameters, two tuples of p floats in
-            physical units with -inf / +inf for open ends; None: no domains.
+            physical units with -inf / +inf for open ends, which the filter keeps its estimate
+            in; ``run`` checks ``theta0`` against them and flags runs whose estimate sits on one
+            (``at_bound``). None: no domains.
         particle_transition: :class:`ParticleTransition`, set by a particle filter whose
             particles move by the model's transition plus Gaussian noise (``bootstrap_pf``),
             for backward simulation over its particles (:mod:`vehjax.smoothers.particle`);
             its state then has ``particles`` (nx, N), ``log_weights`` (N,), ``ancestors``
             (N,) and ``theta``. None for every other filter (and for a bootstrap PF with
             input noise, whose transition density is not that Gaussian).
-        smoother: :class:`GaussianSmoother`, the Gaussian filter's own prediction and
-            measurement moments for :func:`vehjax.smooth` (set by the EKF, UKF, CKF, their
-            square-root forms and the joint filters); None: no Gaussian smoother.
         workload: what the step's computation is, for the execution seam
             (:mod:`vehjax.execution`), which picks platform-specific options from it: "default",
             "small_dense" (many small dense operations: the Gaussian, adaptive, dual/joint,
@@ -156,6 +176,9 @@ class Estimator(NamedTuple):
         n_theta: length of the model's parameter vector, which a state-only filter's
             ``theta0`` replaces (``vehjax.filter`` and ``vehjax.run`` check it before tracing);
             None: a state-only filter takes no theta0 in ``run``.
+        smoother: :class:`GaussianSmoother`, the Gaussian filter's own prediction and
+            measurement moments for :func:`vehjax.smooth` (set by the EKF, UKF, CKF, their
+            square-root forms and the joint filters); None: no Gaussian smoother.
     """
 
     init: Callable[..., Any]

@@ -26,7 +26,7 @@ When the kernel moves the particles (``move``). Liu and West (2001) move them at
 so does Dutta et al.'s Algorithm 3; vehjax moves them only at the steps that resample (default
 ``move="resampled"``), where the kernel has duplicates to spread; ``move="every"`` is the
 original. Why: ``vehjax bench liu_west_bias`` (benchmarks/bench_liu_west_bias.py, its
-defaults plus ``--reference dutta2019``; about 35 minutes on 2 cores) measures both against an
+defaults plus ``--reference dutta2019``) measures both against an
 exact reference nobody tuned: the posterior mean of the parameters under the same
 per-parameter UKF likelihood and the uniform prior, per run on a grid (11^3 points over +-5
 posterior standard deviations, refined twice, one UKF per point over the whole run). Dynamic3DOF
@@ -156,7 +156,8 @@ kernel, no gamma) and the UKF only predicts.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from functools import partial
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -171,7 +172,9 @@ from .base import Estimator, check_estimate
 from ._model import check_model, in_dtype, model_dims, prior
 from .gaussian import GaussianState, ukf
 
-__all__ = ["LiuWestState", "liu_west_ukf"]
+__all__ = ["LiuWestState", "liu_west_ukf", "full_theta", "box_jitter", "predict_particles",
+           "likelihood_factor", "weigh", "liu_west_move", "residual_weight",
+           "ukf_with_derivative"]
 
 _LIKELIHOODS = ("predictive", "measurement")
 _MOVES = ("resampled", "every")
@@ -218,20 +221,19 @@ class LiuWestState(NamedTuple):
 
 
 def _check_box(theta_low, theta_high, names) -> tuple[np.ndarray, np.ndarray]:
+    """The prior box (low, high), each (p,) float64, for the parameters ``names``: ValueError
+    naming ``theta_low`` / ``theta_high`` for values that are not real (complex, strings), not
+    finite, of the wrong shape, or not low < high."""
     p = len(names)
     out = []
     for arg, v in (("theta_low", theta_low), ("theta_high", theta_high)):
-        try:
-            a = np.array(v, dtype=float).reshape(-1) if np.ndim(v) <= 1 else np.asarray(v)
-        except (TypeError, ValueError):
-            raise ValueError(f"{arg}: expected {p} numbers for {names}, got {v!r}") from None
+        a = np.asarray(_validate.array(arg, v), dtype=float)  # real and finite, else refused
+        a = a.reshape(-1) if a.ndim <= 1 else a
         if a.shape != (p,):
             raise ValueError(
                 f"{arg}: expected shape ({p},), one bound per estimated parameter {names}, "
                 f"got shape {np.shape(v)}"
             )
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"{arg}: expected finite values, got {a}")
         out.append(a)
     low, high = out
     if np.any(low >= high):
@@ -261,6 +263,291 @@ def _draw_box(u, low, high):
     return low[:, None] + (high - low)[:, None] * u
 
 
+def _domain(low_n, high_n, bounds, names, nominal) -> tuple[np.ndarray, np.ndarray]:
+    """The parameters' domains (low, high), each (p,) with +-inf for open ends: with ``bounds``
+    None, (0, inf) where the prior box is positive (low_n > 0, the log coordinate), else the box
+    [low_n, high_n] itself; else :func:`vehjax.filters._bounds.parse` of ``bounds`` (nominal
+    values ``nominal`` (p,)), which must contain the box (ValueError naming ``bounds``)."""
+    if bounds is None:
+        pos = low_n > 0
+        return np.where(pos, 0.0, low_n), np.where(pos, np.inf, high_n)
+    dom_lo, dom_hi = _parse_bounds(bounds, names, nominal)
+    outside = (low_n < dom_lo) | (high_n > dom_hi)
+    if np.any(outside):
+        bad = [n for n, o in zip(names, outside) if o]
+        raise ValueError(
+            f"bounds: each domain must contain the prior box [theta_low, theta_high]; not so "
+            f"for {bad} (domain low {dom_lo}, high {dom_hi}; box {low_n}, {high_n})"
+        )
+    return dom_lo, dom_hi
+
+
+def full_theta(base, idx, values):
+    """Model parameter vector(s): ``base`` (np,) with the entries ``idx`` (p,) int set to
+    ``values`` (..., p); returns (..., np)."""
+    shape = values.shape[:-1] + base.shape
+    return jnp.broadcast_to(base, shape).at[..., idx].set(values)
+
+
+def box_jitter(dtype, width):
+    """diag(1e3 eps width^2) (p, p) in ``dtype`` (eps its machine epsilon): what keeps a
+    collapsed cloud's covariance positive definite, for a box of widths ``width`` (p,)."""
+    eps = float(np.finfo(np.dtype(dtype)).eps)
+    return jnp.asarray(np.diag(1e3 * eps * width**2), dtype)
+
+
+def predict_particles(f, h, x, u, base, idx, theta_i, D=None, theta_mean=None):
+    """One-step predicted measurement of every parameter particle, y_i = h(f(x_i, u, th_i),
+    u, th_i), from the state x (nx,): x_i = x, or with the recurrent derivative D (nx, p),
+    x_i = x + D (th_i - theta_mean) (the state the UKF would have filtered with th_i, to first
+    order). theta_i (p, M) physical parameters; base (np,) and idx (p,) as for
+    :func:`full_theta`. Returns (M, ny)."""
+    if D is not None:
+
+        def one(th):
+            full = full_theta(base, idx, th)
+            return h(f(x + D @ (th - theta_mean), u, full), u, full)
+
+        return jax.vmap(one)(theta_i.T)
+    return jax.vmap(lambda th: h(f(x, u, th), u, th))(full_theta(base, idx, theta_i.T))
+
+
+def likelihood_factor(rule, f, h, x, P, u, theta, Q, R, obs, predictive: bool):
+    """Cholesky factor of the particles' likelihood covariance S restricted to the observed
+    components ``obs`` (ny,) (:func:`vehjax.filters.smc.masked_chol`): with ``predictive`` the
+    unscented one-step innovation covariance Cov[h(f(x))] + R from N(x (nx,), P (nx, nx)) at
+    the full parameter vector ``theta`` (np,) with process noise Q (the sigma-point ``rule``),
+    else R (ny, ny); R's factor when S's is not finite."""
+    if predictive:
+        x_pred, P_pred = sigma.predict(rule, x, P, lambda v: f(v, u, theta), Q)
+        S = sigma.measure(rule, x_pred, P_pred, lambda v: h(v, u, theta), R).S
+    else:
+        S = R
+    L = smc.masked_chol(S, obs)
+    return jnp.where(jnp.all(jnp.isfinite(L)), L, smc.masked_chol(R, obs))  # broken S: R
+
+
+def weigh(log_w, y_i, y, obs, L) -> smc.Reweighted:
+    """The particles' weights updated with log N(y; y_i, S) over the observed components:
+    log_w (M,) normalised, y_i (M, ny) predictions, y (ny,), obs (ny,) bool, L the factor of S
+    (:func:`likelihood_factor`). A particle whose residual is not finite gets weight zero."""
+    e = jnp.where(obs, y[None, :] - y_i, 0.0)
+    bad = ~jnp.all(jnp.isfinite(e), axis=1)
+    e = jnp.where(bad[:, None], 0.0, e)
+    ll = smc.gaussian_logliks(e.T, obs, L=L)
+    return smc.reweight(log_w, jnp.where(bad, -jnp.inf, ll))
+
+
+def liu_west_move(resample, particles, w, log_w, u_res, scheme, threshold, z, jitter, a,
+                  keep, every: bool):
+    """Resample when the weights degenerate, then shrink towards the mean and jitter
+    (:func:`_kernel`) at the steps that resample, or at every step with ``every``.
+
+    Args:
+        resample: resampling function (:func:`vehjax.filters.smc.resample`'s signature).
+        particles: (p, M) in the unconstrained coordinates; w, log_w: (M,) their weights.
+        u_res: resampling uniforms; scheme, threshold: as for ``resample``.
+        z: (p, M) standard normals; jitter: (p, p) added to the cloud's covariance V;
+        a: shrinkage in (0, 1); keep: bool, leave everything as it is (a step without
+        information or one that diverged).
+
+    Returns:
+        (particles (p, M), log_w (M,)) after the move, or as given where not moved.
+    """
+    mean, V = smc.moments(w, particles)
+    parts, lw_k, _, resampled = resample(particles, w, log_w, u_res, scheme, threshold)
+    moved = _kernel(z, parts, mean, V + jitter, a)
+    do_move = ~keep & jnp.all(jnp.isfinite(moved))
+    if not every:
+        do_move = do_move & resampled
+    return jnp.where(do_move, moved, particles), jnp.where(do_move, lw_k, log_w)
+
+
+def residual_weight(log_w, gamma: float):
+    """W_i <- gamma W_i + (1 - gamma) / M in log space, log_w (M,) normalised; gamma in (0, 1]
+    (1 returns ``log_w`` itself)."""
+    if gamma >= 1.0:
+        return log_w
+    log_n = math.log(log_w.shape[-1])
+    return jnp.logaddexp(math.log(gamma) + log_w, math.log1p(-gamma) - log_n)
+
+
+def ukf_with_derivative(ukf_step, x, P, D, base, idx, theta_bar, y, u, recurrent: bool):
+    """The UKF's step at the parameter estimate theta_bar (p,) from N(x, P), and with
+    ``recurrent`` its recurrent derivative D' = d x' / d theta_bar (nx, p) (``jax.jacfwd`` of
+    the step from x(th) = x + D (th - theta_bar) at th; zeros where not finite); D itself
+    without. ``ukf_step`` is :func:`vehjax.filters.gaussian.ukf`'s step. Returns (D', UKF
+    state, StepOutput)."""
+
+    def step_at(th):
+        st, o = ukf_step(GaussianState(x + D @ (th - theta_bar), P, full_theta(base, idx, th)),
+                         y, u)
+        return st.x, (st, o)
+
+    if recurrent:
+        D_next, (st, out) = jax.jacfwd(step_at, has_aux=True)(theta_bar)
+        return jnp.where(jnp.all(jnp.isfinite(D_next)), D_next, 0.0), st, out
+    st, out = step_at(theta_bar)[1]
+    return D, st, out
+
+
+# -- init and step, composed ------------------------------------------------------------------
+
+
+class _Config(NamedTuple):
+    """What a Liu-West PF + UKF is built with, fixed before tracing (see
+    :func:`liu_west_ukf`): the model's functions f, h (in the state's dtype) and nominal
+    parameters ``theta`` (np,), the estimated parameters ``names`` at ``idx`` (p,) int32,
+    particles n = M, the prior box (low, high) and the domains (dom_lo, dom_hi) (numpy (p,)),
+    the transform ``tf`` to the unconstrained coordinates, the box's width there ``width_s``,
+    the kernel's a, gamma, resampling (scheme, threshold, resample), the likelihood
+    (``predictive``), ``every`` (move="every"), ``recurrent``, the UKF's sigma-point ``rule``
+    and step ``ukf_step``, Q and R (numpy), and the counter stream ``s_box`` of the box draws
+    (the resampling uniforms use the next one)."""
+
+    f: Callable
+    h: Callable
+    theta: np.ndarray
+    names: tuple
+    idx: np.ndarray
+    nx: int
+    n: int
+    low: np.ndarray
+    high: np.ndarray
+    dom_lo: np.ndarray
+    dom_hi: np.ndarray
+    tf: Transform
+    width_s: np.ndarray
+    a: float
+    gamma: float
+    scheme: str
+    threshold: float
+    resample: Callable
+    predictive: bool
+    every: bool
+    recurrent: bool
+    rule: Any
+    ukf_step: Callable
+    Q: np.ndarray
+    R: np.ndarray
+    s_box: int
+
+
+def _draw(cfg: _Config, u, low, high):
+    """M draws from the uniform prior box, in s: (p, M), from uniforms u (p, M)."""
+    return cfg.tf.to_unconstrained(_draw_box(u, low, high), axis=0)
+
+
+def _check_init(cfg: _Config, theta0, P_theta0, key) -> None:
+    """ValueError naming theta0 / P_theta0 / key: wrong shapes, theta0 outside the domains,
+    no key."""
+    p, names = len(cfg.names), cfg.names
+    if theta0 is not None and np.shape(theta0) != (p,):
+        raise ValueError(
+            f"theta0: expected shape ({p},) for parameters {names} or None (the prior is "
+            f"the box), got shape {np.shape(theta0)}"
+        )
+    if theta0 is not None:
+        check_inside("theta0", theta0, cfg.dom_lo, cfg.dom_hi, names)
+    if P_theta0 is not None and np.shape(P_theta0) != (p, p):
+        raise ValueError(
+            f"P_theta0: expected shape ({p}, {p}) for parameters {names} or None, "
+            f"got shape {np.shape(P_theta0)}"
+        )
+    if key is None:
+        raise ValueError("key: liu_west_ukf draws random numbers; pass key=jax.random.key(...)")
+
+
+def _init(cfg: _Config, x0, P0, theta0=None, P_theta0=None, key=None) -> LiuWestState:
+    """The UKF's prior and M draws from the box with equal weights (see :func:`liu_west_ukf`)."""
+    x0, P0 = prior(cfg.nx, x0, P0)
+    dtype = x0.dtype
+    _check_init(cfg, theta0, P_theta0, key)
+    p, n = len(cfg.names), cfg.n
+    low, high = jnp.asarray(cfg.low, dtype), jnp.asarray(cfg.high, dtype)
+    k_run, k_draw = smc.split(smc.raw_key(key))
+    return LiuWestState(
+        x=x0,
+        P=P0,
+        particles=_draw(cfg, _random.uniforms(k_draw, p * n, dtype).reshape(p, n), low, high),
+        log_weights=jnp.full((n,), -math.log(n), dtype),
+        key=k_run,
+        theta_mean=0.5 * (low + high),
+        theta_cov=jnp.diag((high - low) ** 2 / 12.0),
+        ess=jnp.asarray(float(n), dtype),
+        flag_diverged=jnp.asarray(False),
+        n_reinit=jnp.asarray(0, jnp.int32),
+        D=jnp.zeros((cfg.nx, p), dtype),
+    )
+
+
+def _step(cfg: _Config, state: LiuWestState, y, u):
+    """One step (module docstring): weigh the particles by their one-step predictions, the
+    Liu-West move, the parameter estimate, the residual weight, the UKF at the estimate."""
+    p, n = len(cfg.names), cfg.n
+    dtype = state.x.dtype
+    y, u = jnp.asarray(y).astype(dtype), jnp.asarray(u).astype(dtype)
+    base = jnp.asarray(cfg.theta).astype(dtype)
+    low, high = jnp.asarray(cfg.low, dtype), jnp.asarray(cfg.high, dtype)
+    Rd = jnp.asarray(cfg.R, dtype)
+    k_next, k_step = smc.split(state.key)
+    # the step's random numbers, each from its own counter stream of the particle core:
+    # kernel normals (p, M), uniforms for a fresh box draw (p, M) and for resampling
+    z = smc.normals(k_step, p, n, dtype)
+    u_box = _random.uniforms(k_step, p * n, dtype, stream=cfg.s_box).reshape(p, n)
+    u_res = smc.uniforms(k_step, cfg.scheme, n, dtype, stream=cfg.s_box + 1)
+    obs = jnp.isfinite(y)
+    has_obs = jnp.any(obs)
+    theta_prev = full_theta(base, cfg.idx, state.theta_mean)
+
+    # weigh: one-step prediction of every particle from the UKF's filtered mean
+    theta_i = cfg.tf.to_physical(state.particles, axis=0)  # (p, M) inside the domains
+    rec = (state.D, state.theta_mean) if cfg.recurrent else (None, None)
+    y_i = predict_particles(cfg.f, cfg.h, state.x, u, base, cfg.idx, theta_i, *rec)
+    L = likelihood_factor(cfg.rule, cfg.f, cfg.h, state.x, state.P, u, theta_prev,
+                          jnp.asarray(cfg.Q, dtype), Rd, obs, cfg.predictive)
+    rw = weigh(state.log_weights, y_i, y, obs, L)
+    diverged = has_obs & rw.underflow
+    keep = diverged | ~has_obs
+    lw = jnp.where(keep, state.log_weights, rw.log_w)
+    w = jnp.exp(lw)
+
+    # Liu-West: resample when the weights degenerate, then (at the steps that resample, or
+    # at every step with move="every") shrink towards the mean and jitter
+    ess = smc.ess(w)
+    parts, lw_k = liu_west_move(cfg.resample, state.particles, w, lw, u_res, cfg.scheme,
+                                cfg.threshold, z, box_jitter(dtype, cfg.width_s), cfg.a, keep,
+                                cfg.every)
+
+    # parameter estimate: weighted moments of the moved cloud, in physical units
+    theta_bar, cov_bar = smc.moments(jnp.exp(lw_k), cfg.tf.to_physical(parts, axis=0))
+    cov_bar = cov_bar + box_jitter(dtype, cfg.high - cfg.low)
+
+    # residual weight (a fraction gamma of each weight goes on, the rest evenly); divergence:
+    # the next step starts from fresh draws from the prior box
+    lw_next = jnp.where(keep, lw_k, residual_weight(lw_k, cfg.gamma))
+    parts_next, lw_next, _ = smc.reinitialise(diverged, _draw(cfg, u_box, low, high), parts,
+                                              lw_next, jnp.exp(lw_next))
+
+    # state: UKF at the parameter estimate
+    D_next, ukf_state, out = ukf_with_derivative(cfg.ukf_step, state.x, state.P, state.D, base,
+                                                 cfg.idx, theta_bar, y, u, cfg.recurrent)
+    new_state = LiuWestState(
+        x=ukf_state.x,
+        P=ukf_state.P,
+        particles=parts_next,
+        log_weights=lw_next,
+        key=k_next,
+        theta_mean=theta_bar,
+        theta_cov=cov_bar,
+        ess=jnp.where(diverged, 0.0, jnp.where(has_obs, ess, state.ess)),
+        flag_diverged=state.flag_diverged | diverged,
+        n_reinit=state.n_reinit + diverged.astype(jnp.int32),
+        D=D_next,
+    )
+    return new_state, out._replace(params=theta_bar, params_cov=cov_bar, reinit=diverged)
+
+
 # -- the filter -------------------------------------------------------------------------------
 
 
@@ -283,6 +570,7 @@ def liu_west_ukf(
     bounds=None,
     recurrent: bool = True,
     move: str = "resampled",
+    resample=None,
 ) -> Estimator:
     """Liu-West particle filter for the parameters ``estimate`` plus a UKF for the state.
 
@@ -325,6 +613,10 @@ def liu_west_ukf(
             order to its own parameters, mu + D (theta_i - theta_bar), D = d mu / d theta_bar
             carried through the UKF's recursion (``jax.jacfwd`` of its step); False: from mu
             (module docstring).
+        resample: the resampling function, None (default) for
+            :func:`vehjax.filters.smc.resample`; a callable with its signature
+            ``(particles, w, log_w, u, scheme, threshold) -> (particles, log_w, w, resampled)``,
+            e.g. :func:`vehjax.filters.smc.resample_stop_gradient`.
 
     Returns:
         ``Estimator`` with ``needs_key=True`` and ``param_names = estimate``:
@@ -350,30 +642,17 @@ def liu_west_ukf(
             theta_high of the wrong length or not low < high, ``bounds`` naming other
             parameters, not pairs with low < high, or not containing the prior box, a outside
             (0, 1), gamma outside (0, 1], an unknown resampling scheme, likelihood or move,
-            ess_threshold outside [0, 1].
+            ess_threshold outside [0, 1], a ``resample`` that is not callable.
     """
     nx, ny = check_model(model)
     names, idx = check_estimate(model, estimate)
-    p = len(names)
     if theta_low is None or theta_high is None:
         raise ValueError(
             "theta_low, theta_high: required, the bounds of the uniform prior of " f"{names}"
         )
     low_n, high_n = _check_box(theta_low, theta_high, names)
-    if bounds is None:
-        # (0, inf) for a positive box (log coordinate), else the box itself (module docstring)
-        pos = low_n > 0
-        dom_lo = np.where(pos, 0.0, low_n)
-        dom_hi = np.where(pos, np.inf, high_n)
-    else:
-        dom_lo, dom_hi = _parse_bounds(bounds, names, np.asarray(model.theta, float)[list(idx)])
-        outside = (low_n < dom_lo) | (high_n > dom_hi)
-        if np.any(outside):
-            bad = [n for n, o in zip(names, outside) if o]
-            raise ValueError(
-                f"bounds: each domain must contain the prior box [theta_low, theta_high]; not so "
-                f"for {bad} (domain low {dom_lo}, high {dom_hi}; box {low_n}, {high_n})"
-            )
+    dom_lo, dom_hi = _domain(low_n, high_n, bounds, names,
+                             np.asarray(model.theta, float)[list(idx)])
     tf = Transform(dom_lo, dom_hi)
     # the prior box's width in s (delta method at its centre), for the kernel's jitter
     centre = 0.5 * (low_n + high_n)
@@ -385,170 +664,21 @@ def liu_west_ukf(
     thr = smc.check_ess_threshold(ess_threshold)
     likelihood = _validate.choice("likelihood", likelihood, _LIKELIHOODS)
     move = _validate.choice("move", move, _MOVES)
+    resample = smc.check_resample(resample)
     Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
-    rule = sigma.unscented_rule(nx, alpha, beta, kappa)
-    state_filter = ukf(model, Qn, Rn, alpha=alpha, beta=beta, kappa=kappa)
-    idx_a = np.asarray(idx, np.int32)  # int32: valid with x64 off too (float32 studies)
-    log_n = math.log(n)
-    predictive = likelihood == "predictive"
-    s_box = (p + 1) // 2  # counter streams: kernel normals below, box uniforms, resampling
-    f, hobs = in_dtype(model.transition), in_dtype(model.observe)
-
-    def full_theta(base, values):
-        """Model parameter vector(s) with the estimated entries set: values (..., p)."""
-        shape = values.shape[:-1] + base.shape
-        return jnp.broadcast_to(base, shape).at[..., idx_a].set(values)
-
-    def predict_one(x, u, th):
-        return hobs(f(x, u, th), u, th)
-
-    predict_all = jax.vmap(predict_one, in_axes=(None, None, 0))
-
-    def jitter(dtype, width):
-        eps = float(np.finfo(np.dtype(dtype)).eps)
-        return jnp.asarray(np.diag(1e3 * eps * width**2), dtype)
-
-    def draw(u, low, high):
-        """M draws from the uniform prior box, in s: (p, M), from uniforms u (p, M)."""
-        return tf.to_unconstrained(_draw_box(u, low, high), axis=0)
-
-    def init(x0, P0, theta0=None, P_theta0=None, key=None):
-        x0, P0 = prior(nx, x0, P0)
-        dtype = x0.dtype
-        if theta0 is not None and np.shape(theta0) != (p,):
-            raise ValueError(
-                f"theta0: expected shape ({p},) for parameters {names} or None (the prior is "
-                f"the box), got shape {np.shape(theta0)}"
-            )
-        if theta0 is not None:
-            check_inside("theta0", theta0, dom_lo, dom_hi, names)
-        if P_theta0 is not None and np.shape(P_theta0) != (p, p):
-            raise ValueError(
-                f"P_theta0: expected shape ({p}, {p}) for parameters {names} or None, "
-                f"got shape {np.shape(P_theta0)}"
-            )
-        if key is None:
-            raise ValueError("key: liu_west_ukf draws random numbers; pass key=jax.random.key(...)")
-        low, high = jnp.asarray(low_n, dtype), jnp.asarray(high_n, dtype)
-        k_run, k_draw = smc.split(smc.raw_key(key))
-        return LiuWestState(
-            x=x0,
-            P=P0,
-            particles=draw(_random.uniforms(k_draw, p * n, dtype).reshape(p, n), low, high),
-            log_weights=jnp.full((n,), -log_n, dtype),
-            key=k_run,
-            theta_mean=0.5 * (low + high),
-            theta_cov=jnp.diag((high - low) ** 2 / 12.0),
-            ess=jnp.asarray(float(n), dtype),
-            flag_diverged=jnp.asarray(False),
-            n_reinit=jnp.asarray(0, jnp.int32),
-            D=jnp.zeros((nx, p), dtype),
-        )
-
-    def step(state: LiuWestState, y, u):
-        dtype = state.x.dtype
-        y, u = jnp.asarray(y).astype(dtype), jnp.asarray(u).astype(dtype)
-        base = jnp.asarray(model.theta).astype(dtype)
-        low, high = jnp.asarray(low_n, dtype), jnp.asarray(high_n, dtype)
-        Rd = jnp.asarray(Rn, dtype)
-        k_next, k_step = smc.split(state.key)
-        # the step's random numbers, each from its own counter stream of the particle core:
-        # kernel normals (p, M), uniforms for a fresh box draw (p, M) and for resampling
-        z = smc.normals(k_step, p, n, dtype)
-        u_box = _random.uniforms(k_step, p * n, dtype, stream=s_box).reshape(p, n)
-        u_res = smc.uniforms(k_step, scheme, n, dtype, stream=s_box + 1)
-        obs = jnp.isfinite(y)
-        has_obs = jnp.any(obs)
-        theta_prev = full_theta(base, state.theta_mean)
-
-        # weigh: one-step prediction of every particle from the UKF's filtered mean
-        theta_i = tf.to_physical(state.particles, axis=0)  # (p, M) inside the domains
-        if recurrent:
-            # each particle from the state the UKF would have filtered with its parameters,
-            # to first order: x + D (theta_i - theta_mean)
-            y_i = jax.vmap(lambda th: predict_one(state.x + state.D @ (th - state.theta_mean), u,
-                                                  full_theta(base, th)))(theta_i.T)
-        else:
-            y_i = predict_all(state.x, u, full_theta(base, theta_i.T))  # (M, ny)
-        e = jnp.where(obs, y[None, :] - y_i, 0.0)
-        bad = ~jnp.all(jnp.isfinite(e), axis=1)
-        e = jnp.where(bad[:, None], 0.0, e)
-        if predictive:
-            x_pred, P_pred = sigma.predict(rule, state.x, state.P,
-                                           lambda v: f(v, u, theta_prev), jnp.asarray(Qn, dtype))
-            S = sigma.measure(rule, x_pred, P_pred, lambda v: hobs(v, u, theta_prev), Rd).S
-        else:
-            S = Rd
-        L = smc.masked_chol(S, obs)
-        L = jnp.where(jnp.all(jnp.isfinite(L)), L, smc.masked_chol(Rd, obs))  # broken S: R
-        ll = smc.gaussian_logliks(e.T, obs, L=L)
-        rw = smc.reweight(state.log_weights, jnp.where(bad, -jnp.inf, ll))
-        diverged = has_obs & rw.underflow
-        keep = diverged | ~has_obs
-        lw = jnp.where(keep, state.log_weights, rw.log_w)
-        w = jnp.exp(lw)
-
-        # Liu-West: resample when the weights degenerate, then (at the steps that resample, or
-        # at every step with move="every") shrink towards the mean and jitter
-        mean, V = smc.moments(w, state.particles)
-        ess = smc.ess(w)
-        parts, lw_k, _, resampled = smc.resample(state.particles, w, lw, u_res, scheme, thr)
-        moved = _kernel(z, parts, mean, V + jitter(dtype, width_s), a)
-        do_move = ~keep & jnp.all(jnp.isfinite(moved))
-        if move == "resampled":
-            do_move = do_move & resampled
-        parts = jnp.where(do_move, moved, state.particles)
-        lw_k = jnp.where(do_move, lw_k, lw)
-
-        # parameter estimate: weighted moments of the moved cloud, in physical units
-        theta_bar, cov_bar = smc.moments(jnp.exp(lw_k), tf.to_physical(parts, axis=0))
-        cov_bar = cov_bar + jitter(dtype, high_n - low_n)
-
-        # residual weight: a fraction gamma of each weight goes on, the rest evenly
-        if gamma < 1.0:
-            lw_next = jnp.logaddexp(math.log(gamma) + lw_k, math.log1p(-gamma) - log_n)
-        else:
-            lw_next = lw_k
-        lw_next = jnp.where(keep, lw_k, lw_next)
-
-        # divergence: the next step starts from fresh draws from the prior box
-        fresh = draw(u_box, low, high)
-        parts_next, lw_next, _ = smc.reinitialise(diverged, fresh, parts, lw_next,
-                                                  jnp.exp(lw_next))
-
-        # state: UKF at the parameter estimate
-        def ukf_step(th):
-            # the UKF's step from x(th) = x + D (th - theta_bar) at th; the step itself at
-            # th = theta_bar, its Jacobian in th the recurrent derivative
-            st, o = state_filter.step(
-                GaussianState(state.x + state.D @ (th - theta_bar), state.P,
-                              full_theta(base, th)), y, u
-            )
-            return st.x, (st, o)
-
-        if recurrent:
-            D_next, (ukf_state, out) = jax.jacfwd(ukf_step, has_aux=True)(theta_bar)
-            D_next = jnp.where(jnp.all(jnp.isfinite(D_next)), D_next, 0.0)
-        else:
-            D_next, (ukf_state, out) = state.D, ukf_step(theta_bar)[1]
-        new_state = LiuWestState(
-            x=ukf_state.x,
-            P=ukf_state.P,
-            particles=parts_next,
-            log_weights=lw_next,
-            key=k_next,
-            theta_mean=theta_bar,
-            theta_cov=cov_bar,
-            ess=jnp.where(diverged, 0.0, jnp.where(has_obs, ess, state.ess)),
-            flag_diverged=state.flag_diverged | diverged,
-            n_reinit=state.n_reinit + diverged.astype(jnp.int32),
-            D=D_next,
-        )
-        return new_state, out._replace(params=theta_bar, params_cov=cov_bar, reinit=diverged)
-
+    cfg = _Config(
+        f=in_dtype(model.transition), h=in_dtype(model.observe), theta=model.theta, names=names,
+        idx=np.asarray(idx, np.int32),  # int32: valid with x64 off too (float32 studies)
+        nx=nx, n=n, low=low_n, high=high_n, dom_lo=dom_lo, dom_hi=dom_hi, tf=tf,
+        width_s=width_s, a=a, gamma=gamma, scheme=scheme, threshold=thr, resample=resample,
+        predictive=likelihood == "predictive", every=move == "every", recurrent=recurrent,
+        rule=sigma.unscented_rule(nx, alpha, beta, kappa),
+        ukf_step=ukf(model, Qn, Rn, alpha=alpha, beta=beta, kappa=kappa).step,
+        Q=Qn, R=Rn, s_box=(len(names) + 1) // 2,  # counter streams: normals, box, resampling
+    )
     box = (0.5 * (low_n + high_n), np.diag((high_n - low_n) ** 2 / 12.0))
     return Estimator(
-        init=init, step=step, nx=nx, param_names=names, name="liu_west_ukf", needs_key=True,
-        param_prior=box, bounds=tf.bounds, workload="small_dense",
-        **model_dims(model),
+        init=partial(_init, cfg), step=partial(_step, cfg), nx=nx, param_names=names,
+        name="liu_west_ukf", needs_key=True, param_prior=box, bounds=tf.bounds,
+        workload="small_dense", **model_dims(model),
     )

@@ -25,21 +25,23 @@ is finite, ``log(finfo.tiny)`` otherwise. Outputs are never NaN. A single partic
 propagated state or predicted measurement is not finite gets weight zero.
 
 Random numbers. A step splits its key once and hashes counters with Threefry-2x32 for all its
-draws (process noise and resampling uniforms), see :mod:`vehjax._random`: in float64 mode on CPU
-that is several times cheaper than ``jax.random.normal``. The process-noise standard normals are
+draws (process noise and resampling uniforms), see :mod:`vehjax._random` for why that is cheaper
+than ``jax.random.normal`` in float64 mode on CPU. The process-noise standard normals are
 Box-Muller transforms of float32 uniforms on a 2^-24 grid, scaled by chol(Q) in the working
 precision: their resolution (~1e-7) and truncation (|z| <= 5.77) are far below the Monte-Carlo
 error of any feasible particle count. Resampling uniforms use 32 random bits (24 in float32).
 
 Layout. Particles are kept as (nx, N), one row per state component, and the model is vmapped
-over the columns: each component is then one contiguous vector over the particles, which halves
-the cost of a vehicle model on CPU against (N, nx).
+over the columns: each component is then one contiguous vector over the particles, which XLA on
+CPU runs as one vectorised loop (``vehjax bench particle`` measures the model's cost in both
+layouts, rows "model (N, nx)" and "model (nx, N)").
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from functools import partial
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -53,7 +55,8 @@ from ._linalg import cholesky, is_pd, solve_lower
 from .base import Estimator, ParticleTransition, StepOutput
 from ._model import chol_const, check_model, in_dtype, model_dims, model_theta, prior
 
-__all__ = ["PFState", "bootstrap_pf"]
+__all__ = ["PFState", "bootstrap_pf", "propagate", "residuals", "measurement_logliks",
+           "predicted_nis", "reinit_factor", "resample_or_restart", "moved_estimate"]
 
 
 class PFState(NamedTuple):
@@ -62,7 +65,7 @@ class PFState(NamedTuple):
     Attributes:
         particles: (nx, N) particles after the last step (resampled when that step resampled),
             one row per state component: the model then runs each component over all
-            particles as one contiguous vector operation, about twice as fast on CPU as (N, nx).
+            particles as one contiguous vector operation (module docstring, "Layout").
         log_weights: (N,) their normalised log weights (``logsumexp == 0``).
         weights: (N,) the same weights, ``exp(log_weights)``.
         key: (2,) uint32 raw Threefry-2x32 key for the next step's draws.
@@ -112,8 +115,8 @@ def _add_noise(fx, L, z):
     """``fx + L @ z`` for fx (n, N), L (n, n) and normals z (n, N).
 
     The noise is a dot, so the normals are hashed once rather than once per use in a fused
-    loop; for small n it is added row by row before the rows are stacked, which measured a few
-    per cent faster on CPU than adding two stacked (n, N) arrays.
+    loop; for small n it is added row by row before the rows are stacked (each row one
+    contiguous vector) rather than as two stacked (n, N) arrays.
     """
     noise = L @ z
     n = fx.shape[0]
@@ -133,6 +136,253 @@ def _chol_or_none(Q):
         return None
 
 
+# -- the mathematics of one step, one function each -------------------------------------------
+
+
+def reinit_factor(cov, Q, LQ):
+    """Noise factor of a re-initialisation: chol(P + Q) for the last estimate's covariance
+    ``cov`` = P (n, n) and the process noise Q (n, n), or ``LQ`` = chol(Q) (n, n) when that
+    factor is not finite. Returns (n, n) lower triangular."""
+    L_re = cholesky(cov + Q)
+    return jnp.where(jnp.all(jnp.isfinite(L_re)), L_re, LQ)
+
+
+def propagate(transition, x, u, theta, L, z, Lu=None, z_u=None):
+    """Particles moved by the model plus Gaussian noise, x_i' = f(x_i, u_i, theta) + L z_i.
+
+    Args:
+        transition: ``f(x, u, theta) -> x'`` of one point (nx,).
+        x: (nx, N) particles, one column each.
+        u: (nu,) the step's input, shared by every particle when ``Lu`` is None.
+        theta: (np,) model parameters.
+        L: (nx, nx) noise factor (chol(Q), in state units per step).
+        z: (nx, N) standard normals.
+        Lu: (nu, k) input-noise factor or None: particle i then runs with its own input
+            u_i = u + Lu z_u[:, i] (:func:`vehjax.filters.input_noise.perturbed_inputs`).
+        z_u: (k, N) standard normals for the inputs (with ``Lu``).
+
+    Returns:
+        (nx, N) propagated particles.
+    """
+    if Lu is None:
+        fx = jax.vmap(transition, in_axes=(1, None, None), out_axes=1)(x, u, theta)
+    else:
+        fx = jax.vmap(transition, in_axes=(1, 1, None), out_axes=1)(
+            x, _inoise.perturbed_inputs(u, Lu, z_u), theta)
+    return _add_noise(fx, L, z)
+
+
+def residuals(observe, x, y, u, theta):
+    """Measurement residuals of every particle, with the particles that cannot be weighed.
+
+    Args:
+        observe: ``h(x, u, theta) -> y`` of one point.
+        x: (nx, N) particles; y: (ny,) measurement, NaN or +-inf for a missing component;
+        u: (nu,) input; theta: (np,) model parameters.
+
+    Returns:
+        (obs, e, bad, x): ``obs`` (ny,) bool, the observed components; ``e`` (ny, N) the
+        residuals y - h(x_i) on them and 0 elsewhere; ``bad`` (N,) bool, particles whose state
+        or residual is not finite; ``x`` (nx, N) with those particles' columns set to 0 (their
+        residuals too), so that nothing not finite reaches the moments.
+    """
+    obs = jnp.isfinite(y)  # NaN and +-inf are missing, as in every vehjax filter
+    h_all = jax.vmap(observe, in_axes=(1, None, None), out_axes=1)
+    e = jnp.where(obs[:, None], y[:, None] - h_all(x, u, theta), 0.0)  # (ny, N)
+    bad = ~(jnp.all(jnp.isfinite(x), axis=0) & jnp.all(jnp.isfinite(e), axis=0))
+    return obs, jnp.where(bad, 0.0, e), bad, jnp.where(bad, 0.0, x)
+
+
+def measurement_logliks(e, obs, R, r_diag=None):
+    """log N(e_i; 0, R) of every particle over the observed components: e (ny, N), obs (ny,)
+    bool, R (ny, ny) in output units squared; ``r_diag`` (ny,) its diagonal when R is diagonal
+    (the cheaper form of :func:`vehjax.filters.smc.gaussian_logliks`). Returns (N,)."""
+    if r_diag is not None:
+        return smc.gaussian_logliks(e, obs, var=r_diag)
+    return smc.gaussian_logliks(e, obs, L=smc.masked_chol(R, obs))
+
+
+def predicted_nis(e, prior_w, bad, R, obs):
+    """Normalised innovation squared from the predicted measurement moments of the particles.
+
+    With the prior weights W_i (renormalised over the particles that are not ``bad``) and the
+    residuals e_i = y - h(x_i): r = sum_i W_i e_i (= y - y_hat), S = sum_i W_i (e_i - r)(e_i -
+    r)^T + R, and NIS = r^T S^-1 r over the observed components (via Cholesky).
+
+    Args:
+        e: (ny, N) residuals, 0 on missing components; prior_w: (N,) prior weights;
+        bad: (N,) bool, particles left out; R: (ny, ny); obs: (ny,) bool.
+
+    Returns:
+        scalar NIS.
+    """
+    wp = jnp.where(bad, 0.0, prior_w)
+    wp = wp / jnp.maximum(jnp.sum(wp), jnp.finfo(e.dtype).tiny)
+    r_hat, S_h = smc.moments(wp, e)
+    w_nis = solve_lower(smc.masked_chol(S_h + R, obs), r_hat)
+    return w_nis @ w_nis
+
+
+def resample_or_restart(resample, x, rw, u_res, scheme, threshold, pending, diverged):
+    """The particles and weights the next step starts from, with their genealogy.
+
+    ``resample`` (signature of :func:`vehjax.filters.smc.resample`) resamples ``x`` (nx, N)
+    with the updated weights ``rw`` (:class:`vehjax.filters.smc.Reweighted`) and uniforms
+    ``u_res``; where ``diverged`` the weights are made equal instead (the next step re-draws
+    the particles). Returns (x_next (nx, N), log_w (N,), w (N,), ancestors (N,) int32): the
+    column each particle descends from, ``arange(N)`` without resampling and after a
+    re-initialisation (``pending``, this step's draw, or ``diverged``)."""
+    n = rw.w.shape[-1]
+    identity = jnp.arange(n, dtype=jnp.int32)
+    (x_next, anc), lw_next, w_next, _ = resample(
+        (x, identity), rw.w, rw.log_w, u_res, scheme, threshold)
+    x_next, lw_next, w_next = smc.reinitialise(diverged, x_next, x_next, lw_next, w_next)
+    return x_next, lw_next, w_next, jnp.where(pending | diverged, identity, anc)
+
+
+def moved_estimate(transition, mean, u, theta):
+    """The estimate of a step whose weights carry no information: the last estimate ``mean``
+    (nx,) moved by the model, f(mean, u, theta), or ``mean`` itself when that is not finite."""
+    m_re = transition(mean, u, theta)
+    return jnp.where(jnp.all(jnp.isfinite(m_re)), m_re, mean)
+
+
+# -- init and step, composed ------------------------------------------------------------------
+
+
+class _Config(NamedTuple):
+    """What a bootstrap PF is built with, fixed before tracing (see :func:`bootstrap_pf`).
+
+    Attributes:
+        model: the vehjax model; f, h: its transition and observation, in the state's dtype.
+        nx: state dimension; n: particles N; k_u: input-noise dimension (0 without).
+        Q, LQ: (nx, nx) numpy process-noise covariance and its factor (chol(Q); for a
+            semi-definite Q, :func:`vehjax.filters._model.chol_const`'s).
+        R: (ny, ny) numpy measurement-noise covariance; r_diag: its diagonal (ny,) when R is
+            diagonal, else None.
+        Lu: (nu, k_u) input-noise factor or None.
+        scheme, threshold: resampling scheme and ESS threshold; resample: the resampling
+            function (:func:`vehjax.filters.smc.resample` or one with its signature).
+        uniform_stream: the counter stream of the resampling uniforms.
+    """
+
+    model: Any
+    f: Callable
+    h: Callable
+    nx: int
+    n: int
+    k_u: int
+    Q: np.ndarray
+    LQ: Any
+    R: np.ndarray
+    r_diag: np.ndarray | None
+    Lu: Any
+    scheme: str
+    threshold: float
+    resample: Callable
+    uniform_stream: int
+
+
+def _init(cfg: _Config, x0, P0, theta0=None, P_theta0=None, key=None) -> PFState:
+    """N particles drawn from N(x0, P0) with equal weights (see :func:`bootstrap_pf`)."""
+    del P_theta0  # state-only filter
+    if key is None:
+        raise ValueError("key: bootstrap_pf draws its particles at random; pass a PRNG key")
+    nx, n = cfg.nx, cfg.n
+    x0, P0 = prior(nx, x0, P0)
+    dtype = x0.dtype
+    theta = model_theta(cfg.model, theta0, dtype)
+    k_init, k_run = jax.random.split(key)
+    z = jax.random.normal(k_init, (nx, n), dtype)
+    particles = x0[:, None] + jnp.linalg.cholesky(P0) @ z
+    return PFState(
+        particles=particles,
+        log_weights=jnp.full((n,), -math.log(n), dtype),
+        weights=jnp.full((n,), 1.0 / n, dtype),
+        key=smc.raw_key(k_run),
+        theta=theta,
+        mean=x0,
+        cov=P0,
+        ess=jnp.asarray(float(n), dtype),
+        pending_reinit=jnp.asarray(False),
+        flag_diverged=jnp.asarray(False),
+        n_reinit=jnp.asarray(0, jnp.int32),
+        ancestors=jnp.arange(n, dtype=jnp.int32),
+    )
+
+
+def _step(cfg: _Config, state: PFState, y, u):
+    """One bootstrap PF step (module docstring): propagate, weigh, moments, NIS, resample."""
+    nx, n = cfg.nx, cfg.n
+    log_n = math.log(n)
+    dtype = state.particles.dtype
+    y, u = jnp.asarray(y).astype(dtype), jnp.asarray(u).astype(dtype)
+    Qd, LQ, Rd = _const(cfg.Q, dtype), _const(cfg.LQ, dtype), _const(cfg.R, dtype)
+    theta = state.theta
+    key_next, key_step = smc.split(state.key)
+    z = smc.normals(key_step, nx + cfg.k_u, n, dtype)  # (nx + k, N): state, then input noise
+
+    # propagate (a re-initialisation pending from the last step draws the particles around
+    # its estimate instead: all from the mean, noise covariance P + Q)
+    pending = state.pending_reinit
+    L_re = reinit_factor(state.cov, Qd, LQ)
+    start = jnp.where(pending, state.mean[:, None], state.particles)
+    x = propagate(cfg.f, start, u, theta, jnp.where(pending, L_re, LQ), z[:nx], cfg.Lu, z[nx:])
+    prior_lw = jnp.where(pending, -log_n, state.log_weights)
+    prior_w = jnp.where(pending, 1.0 / n, state.weights)
+
+    # weigh: Gaussian log-likelihood of the observed components; particles that are not
+    # finite get weight zero
+    obs, e, bad, x = residuals(cfg.h, x, y, u, theta)
+    n_obs = jnp.sum(obs, dtype=jnp.int32)
+    r_diag = None if cfg.r_diag is None else _const(cfg.r_diag, dtype)
+    ll = measurement_logliks(e, obs, Rd, r_diag)
+    rw = smc.reweight(prior_lw, jnp.where(bad, -jnp.inf, ll))
+    diverged = rw.underflow
+
+    # weighted moments of the updated particles; a cloud collapsed onto one particle (R far
+    # below the data's noise) has a singular covariance: re-initialised like an underflow
+    mean, cov = smc.moments(rw.w, x)
+    collapsed = ~rw.underflow & ~is_pd(cov)
+    nis = predicted_nis(e, prior_w, bad, Rd, obs)
+
+    # resample for the next step; after an underflow, equal weights (re-drawn next step)
+    u_res = smc.uniforms(key_step, cfg.scheme, n, dtype, stream=cfg.uniform_stream)
+    x_next, lw_next, w_next, anc = resample_or_restart(
+        cfg.resample, x, rw, u_res, cfg.scheme, cfg.threshold, pending, diverged)
+
+    # divergence: the estimate moves on with the model, its covariance grows by Q, and the
+    # next step re-draws the particles around it
+    mean_out = jnp.where(diverged, moved_estimate(cfg.f, state.mean, u, theta), mean)
+    cov_out = jnp.where(diverged | collapsed, state.cov + Qd, cov)
+    diverged = diverged | collapsed
+    new_state = PFState(
+        particles=x_next,
+        log_weights=lw_next,
+        weights=w_next,
+        key=key_next,
+        theta=theta,
+        mean=mean_out,
+        cov=cov_out,
+        ess=jnp.where(diverged, 0.0, smc.ess(rw.w)),
+        pending_reinit=diverged,
+        flag_diverged=state.flag_diverged | diverged,
+        n_reinit=state.n_reinit + diverged.astype(jnp.int32),
+        ancestors=anc,
+    )
+    out = StepOutput(
+        mean=mean_out,
+        cov=cov_out,
+        loglik=smc.step_loglik(rw),
+        nis=nis,
+        n_obs=n_obs,
+        params=jnp.zeros((0,), dtype),
+        params_cov=jnp.zeros((0, 0), dtype),
+        reinit=diverged,
+    )
+    return new_state, out
+
+
 # -- the filter -------------------------------------------------------------------------------
 
 
@@ -144,6 +394,7 @@ def bootstrap_pf(
     resampling: str = "systematic",
     ess_threshold: float = 0.5,
     input_noise=None,
+    resample=None,
 ) -> Estimator:
     """Bootstrap particle filter: propagate through the model plus Gaussian noise, weigh by the
     Gaussian measurement likelihood, resample when the effective sample size drops.
@@ -165,6 +416,11 @@ def bootstrap_pf(
             ``u_t + Lu z_i`` (z_i standard normal, drawn with the process noise), so the
             transition sees the input noise exactly; the measurement uses u_t. Q may then be
             zero.
+        resample: the resampling function, None (default) for
+            :func:`vehjax.filters.smc.resample`; a callable with its signature
+            ``(particles, w, log_w, u, scheme, threshold) -> (particles, log_w, w, resampled)``,
+            e.g. :func:`vehjax.filters.smc.resample_stop_gradient` (the same forward pass, the
+            resampling's score in the gradient: what :mod:`vehjax.tune` differentiates).
 
     Returns:
         ``Estimator`` with ``needs_key=True``:
@@ -187,143 +443,26 @@ def bootstrap_pf(
     Raises:
         ValueError: naming the argument, for a wrong model, a Q or R of the wrong shape or not
             positive definite, n_particles < 2, an unknown resampling scheme, an ess_threshold
-            outside [0, 1].
+            outside [0, 1], a ``resample`` that is not callable.
     """
     nx, ny = check_model(model)
     n = smc.check_n_particles(n_particles, low=2)
     scheme = _rs.check_scheme(resampling)
     thr = smc.check_ess_threshold(ess_threshold)
+    resample = smc.check_resample(resample)
     Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
-    LQn = chol_const(Qn)
     Lu = _inoise.input_factor(input_noise, model.input_names)
     k_u = 0 if Lu is None else Lu.shape[1]
-    r_diag = np.diagonal(Rn).copy() if _is_diagonal(Rn) else None
-    uniform_stream = (nx + k_u + 1) // 2  # after the noise rows' counters
-    log_n = math.log(n)
     f = in_dtype(model.transition)
-    h = in_dtype(model.observe)
-    f_all = jax.vmap(f, in_axes=(1, None, None), out_axes=1)
-    f_each = jax.vmap(f, in_axes=(1, 1, None), out_axes=1)  # one input per particle
-    h_all = jax.vmap(h, in_axes=(1, None, None), out_axes=1)
-
-    def init(x0, P0, theta0=None, P_theta0=None, key=None):
-        del P_theta0  # state-only filter
-        if key is None:
-            raise ValueError("key: bootstrap_pf draws its particles at random; pass a PRNG key")
-        x0, P0 = prior(nx, x0, P0)
-        dtype = x0.dtype
-        theta = model_theta(model, theta0, dtype)
-        k_init, k_run = jax.random.split(key)
-        z = jax.random.normal(k_init, (nx, n), dtype)
-        particles = x0[:, None] + jnp.linalg.cholesky(P0) @ z
-        return PFState(
-            particles=particles,
-            log_weights=jnp.full((n,), -log_n, dtype),
-            weights=jnp.full((n,), 1.0 / n, dtype),
-            key=smc.raw_key(k_run),
-            theta=theta,
-            mean=x0,
-            cov=P0,
-            ess=jnp.asarray(float(n), dtype),
-            pending_reinit=jnp.asarray(False),
-            flag_diverged=jnp.asarray(False),
-            n_reinit=jnp.asarray(0, jnp.int32),
-            ancestors=jnp.arange(n, dtype=jnp.int32),
-        )
-
-    def step(state: PFState, y, u):
-        dtype = state.particles.dtype
-        y, u = jnp.asarray(y).astype(dtype), jnp.asarray(u).astype(dtype)
-        Qd = _const(Qn, dtype)
-        LQ = _const(LQn, dtype)
-        theta = state.theta
-        key_next, key_step = smc.split(state.key)
-        z = smc.normals(key_step, nx + k_u, n, dtype)  # (nx + k, N): state, then input noise
-        z, z_u = z[:nx], z[nx:]
-
-        # propagate (a re-initialisation pending from the last step draws the particles
-        # around its estimate instead: all from the mean, noise covariance P + Q)
-        pending = state.pending_reinit
-        L_re = cholesky(state.cov + Qd)
-        L_re = jnp.where(jnp.all(jnp.isfinite(L_re)), L_re, LQ)
-        start = jnp.where(pending, state.mean[:, None], state.particles)
-        fx = (f_all(start, u, theta) if Lu is None
-              else f_each(start, _inoise.perturbed_inputs(u, Lu, z_u), theta))
-        x = _add_noise(fx, jnp.where(pending, L_re, LQ), z)
-        prior_lw = jnp.where(pending, -log_n, state.log_weights)
-        prior_w = jnp.where(pending, 1.0 / n, state.weights)
-
-        # predict the measurement; particles that are not finite get weight zero
-        obs = jnp.isfinite(y)  # NaN and +-inf are missing, as in every vehjax filter
-        n_obs = jnp.sum(obs, dtype=jnp.int32)
-        e = jnp.where(obs[:, None], y[:, None] - h_all(x, u, theta), 0.0)  # (ny, N)
-        bad = ~(jnp.all(jnp.isfinite(x), axis=0) & jnp.all(jnp.isfinite(e), axis=0))
-        x = jnp.where(bad, 0.0, x)
-        e = jnp.where(bad, 0.0, e)
-
-        # weigh: Gaussian log-likelihood of the observed components
-        if r_diag is not None:
-            ll = smc.gaussian_logliks(e, obs, var=_const(r_diag, dtype))
-        else:
-            ll = smc.gaussian_logliks(e, obs, L=smc.masked_chol(_const(Rn, dtype), obs))
-        rw = smc.reweight(prior_lw, jnp.where(bad, -jnp.inf, ll))
-        diverged = rw.underflow
-
-        # weighted moments of the updated particles; a cloud collapsed onto one particle (R far
-        # below the data's noise) has a singular covariance: re-initialised like an underflow
-        mean, cov = smc.moments(rw.w, x)
-        collapsed = ~rw.underflow & ~is_pd(cov)
-
-        # NIS from the predicted measurement moments (prior weights, finite particles only)
-        wp = jnp.where(bad, 0.0, prior_w)
-        wp = wp / jnp.maximum(jnp.sum(wp), jnp.finfo(dtype).tiny)
-        r_hat, S_h = smc.moments(wp, e)  # r_hat = y - y_hat on the observed components
-        w_nis = solve_lower(smc.masked_chol(S_h + _const(Rn, dtype), obs), r_hat)
-        nis = w_nis @ w_nis
-
-        # resample for the next step; after an underflow, equal weights (re-drawn next step)
-        u_res = smc.uniforms(key_step, scheme, n, dtype, stream=uniform_stream)
-        identity = jnp.arange(n, dtype=jnp.int32)
-        (x_next, anc), lw_next, w_next, _ = smc.resample(
-            (x, identity), rw.w, rw.log_w, u_res, scheme, thr)
-        x_next, lw_next, w_next = smc.reinitialise(diverged, x_next, x_next, lw_next, w_next)
-        anc = jnp.where(pending | diverged, identity, anc)
-
-        # divergence: the estimate moves on with the model, its covariance grows by Q, and the
-        # next step re-draws the particles around it
-        m_re = f(state.mean, u, theta)
-        m_re = jnp.where(jnp.all(jnp.isfinite(m_re)), m_re, state.mean)
-        mean_out = jnp.where(diverged, m_re, mean)
-        cov_out = jnp.where(diverged | collapsed, state.cov + Qd, cov)
-        diverged = diverged | collapsed
-        new_state = PFState(
-            particles=x_next,
-            log_weights=lw_next,
-            weights=w_next,
-            key=key_next,
-            theta=theta,
-            mean=mean_out,
-            cov=cov_out,
-            ess=jnp.where(diverged, 0.0, smc.ess(rw.w)),
-            pending_reinit=diverged,
-            flag_diverged=state.flag_diverged | diverged,
-            n_reinit=state.n_reinit + diverged.astype(jnp.int32),
-            ancestors=anc,
-        )
-        out = StepOutput(
-            mean=mean_out,
-            cov=cov_out,
-            loglik=smc.step_loglik(rw),
-            nis=nis,
-            n_obs=n_obs,
-            params=jnp.zeros((0,), dtype),
-            params_cov=jnp.zeros((0, 0), dtype),
-            reinit=diverged,
-        )
-        return new_state, out
-
+    cfg = _Config(
+        model=model, f=f, h=in_dtype(model.observe), nx=nx, n=n, k_u=k_u, Q=Qn,
+        LQ=chol_const(Qn), R=Rn, r_diag=np.diagonal(Rn).copy() if _is_diagonal(Rn) else None,
+        Lu=Lu, scheme=scheme, threshold=thr, resample=resample,
+        uniform_stream=(nx + k_u + 1) // 2,  # after the noise rows' counters
+    )
     return Estimator(
-        init=init, step=step, nx=nx, param_names=(), name="bootstrap_pf", needs_key=True,
+        init=partial(_init, cfg), step=partial(_step, cfg), nx=nx, param_names=(),
+        name="bootstrap_pf", needs_key=True,
         # with input noise the transition density is not N(f(x, u), Q): no backward simulation
         particle_transition=None if Lu is not None else ParticleTransition(f, _chol_or_none(Qn)),
         workload="particles",

@@ -5,7 +5,8 @@ noise-adaptive marginalized PF).
 Layout: the particle axis is the LAST axis of every leaf of a particle pytree: states (n, N),
 per-particle vectors (d, N), per-particle matrices (d, d, N), weights (N,). Each component is
 then one contiguous vector over the particles, which XLA on CPU runs as one vectorised loop
-(about twice as fast for a vehicle model as (N, n)).
+instead of a loop over particles of short rows (``vehjax bench particle``'s "model (N, nx)" and
+"model (nx, N)" rows measure the two layouts).
 
 One step of a particle filter with this core::
 
@@ -22,8 +23,8 @@ its own way (:func:`reinitialise` gives it uniform weights and fresh particles) 
 
 Random numbers: keys are raw (2,) uint32 Threefry keys carried in the filter state.
 :func:`normals` and :func:`uniforms` hash counters in straight-line code
-(:mod:`vehjax._random`), several times cheaper than ``jax.random`` in float64 on CPU (the
-Liu-West filter's 2 x 3 x 500 draws per step: 0.155 -> 0.12 ms per run-step).
+(:mod:`vehjax._random`, which says why that is cheaper than ``jax.random`` in float64 on CPU:
+no rolled hash loop, no 64-bit uniforms and inverse error function).
 """
 
 from __future__ import annotations
@@ -40,7 +41,8 @@ from . import resampling as _rs
 from ._linalg import LOG_2PI, cholesky, solve_lower
 
 __all__ = [
-    "Reweighted", "reweight", "ess", "resample", "reinitialise", "moments", "normals",
+    "Reweighted", "reweight", "ess", "resample", "resample_stop_gradient", "check_resample",
+    "equal_weights", "stop_gradient_weights", "reinitialise", "moments", "normals",
     "uniforms", "split", "raw_key", "log_tiny", "check_n_particles",
     "check_ess_threshold", "masked_chol", "gaussian_logliks", "step_loglik",
 ]
@@ -129,10 +131,56 @@ def ess(w):
 
 
 def _gather(a, idx):
-    """``a[..., idx]``; small 2-D leaves row by row (measured faster on CPU than one gather)."""
+    """``a[..., idx]``; small 2-D leaves row by row (one gather per contiguous row, which XLA
+    on CPU vectorises, rather than one gather of short columns)."""
     if a.ndim == 2 and 0 < a.shape[0] and a.shape[0] * a.shape[0] <= _UNROLL:
         return jnp.stack([a[i][idx] for i in range(a.shape[0])])
     return jnp.take(a, idx, axis=-1)
+
+
+def _resample(particles, w, log_w, u, scheme: str, threshold: float, resampled_weights):
+    """The part every resampling function shares: when ESS < threshold * N, gather every leaf
+    of ``particles`` along its last axis by the scheme's ancestor indices and give the
+    resampled particles the weights ``resampled_weights(log_w_ancestors (N,), n) -> (log_w,
+    w)``; otherwise everything as it was. Arguments and result as :func:`resample`.
+
+    The indices are computed from ``stop_gradient(w)``: they are integers, piecewise constant
+    in the weights, so this changes no value and no gradient; it keeps the index computation
+    out of differentiation."""
+    n = w.shape[-1]
+    if threshold <= 0.0:
+        return particles, log_w, w, jnp.zeros((), bool)
+    idx = _rs.indices_from_uniforms(scheme, jax.lax.stop_gradient(w), u, n)
+    do = ess(w) < threshold * n
+    particles = jax.tree.map(lambda a: jnp.where(do, _gather(a, idx), a), particles)
+    lw_new, w_new = resampled_weights(jnp.take(log_w, idx), n)
+    return particles, jnp.where(do, lw_new, log_w), jnp.where(do, w_new, w), do
+
+
+def equal_weights(log_w_ancestors, n: int):
+    """Weights of N resampled particles: log W = -log N and W = 1/N for each, whatever its
+    ancestor's log weight ``log_w_ancestors`` (N,). Returns Python floats (constants)."""
+    del log_w_ancestors
+    return -math.log(n), 1.0 / n
+
+
+def stop_gradient_weights(log_w_ancestors, n: int):
+    """Weights of N resampled particles for stop-gradient resampling (Scibior & Wood 2021,
+    "Differentiable particle filtering without modifying the forward pass"): particle i with
+    ancestor a gets log W_i = -log N + log W_a - stop_gradient(log W_a), equal in value to
+    :func:`equal_weights` (-log N, 1/N), with the ancestor's log weight in the gradient.
+    An ancestor whose log weight is not finite contributes 0 (value and gradient).
+
+    Args:
+        log_w_ancestors: (N,) normalised log weights of each resampled particle's ancestor.
+        n: number of particles N.
+
+    Returns:
+        (log_w (N,), w (N,)).
+    """
+    lw_a = log_w_ancestors
+    corr = jnp.where(jnp.isfinite(lw_a), lw_a - jax.lax.stop_gradient(lw_a), 0.0)  # 0 in value
+    return corr - math.log(n), (1.0 / n) * jnp.exp(corr)
 
 
 def resample(particles, w, log_w, u, scheme: str, threshold: float):
@@ -150,15 +198,32 @@ def resample(particles, w, log_w, u, scheme: str, threshold: float):
     Returns:
         (particles, log_w, w, resampled): resampled ones get equal weights 1/N.
     """
-    n = w.shape[-1]
-    if threshold <= 0.0:
-        return particles, log_w, w, jnp.zeros((), bool)
-    idx = _rs.indices_from_uniforms(scheme, w, u, n)
-    do = ess(w) < threshold * n
-    particles = jax.tree.map(lambda a: jnp.where(do, _gather(a, idx), a), particles)
-    log_w = jnp.where(do, -math.log(n), log_w)
-    w = jnp.where(do, 1.0 / n, w)
-    return particles, log_w, w, do
+    return _resample(particles, w, log_w, u, scheme, threshold, equal_weights)
+
+
+def resample_stop_gradient(particles, w, log_w, u, scheme: str, threshold: float):
+    """:func:`resample` with stop-gradient weights (:func:`stop_gradient_weights`): the same
+    values (particles, indices, decisions, weights), and after a resampling each particle's
+    log weight carries its ancestor's log weight in the gradient, so that the gradient of a
+    particle filter's log-likelihood estimate is the Fisher-identity estimate of the score
+    (consistent, bias O(1/N)). Same signature and result as :func:`resample`; pass it to a
+    particle filter's builder as ``resample=`` (``bootstrap_pf``, ``liu_west_ukf``)."""
+    return _resample(particles, w, log_w, u, scheme, threshold, stop_gradient_weights)
+
+
+def check_resample(resample_fn):
+    """The resampling function a particle filter's builder was given: None is :func:`resample`;
+    a callable with :func:`resample`'s signature ``(particles, w, log_w, u, scheme, threshold)
+    -> (particles, log_w, w, resampled)`` is itself; anything else raises ValueError naming
+    ``resample``."""
+    if resample_fn is None:
+        return resample
+    if not callable(resample_fn):
+        raise ValueError(
+            f"resample: expected None or a resampling function with the signature of "
+            f"vehjax.filters.smc.resample(particles, w, log_w, u, scheme, threshold) (e.g. "
+            f"vehjax.filters.smc.resample_stop_gradient), got {resample_fn!r}")
+    return resample_fn
 
 
 def reinitialise(underflow, fresh, particles, log_w, w):
