@@ -305,17 +305,22 @@ def coverage(problem: str, runs: int, steps: int):
     """Print the coverage of the 95 % intervals of each fitted quantity; returns the fraction
     per quantity (m,)."""
     names, values, se, truth, gmax, secs = batched_fits(problem, runs, steps)
-    hit = np.abs(values - truth) <= 1.96 * se
-    p = hit.mean(axis=0)
-    z = (values - truth) / se
+    ok = np.isfinite(se) & (gmax[:, None] <= 1e3 * GTOL)  # determined, converged
+    hit = (np.abs(values - truth) <= 1.96 * se) & ok
+    n_ok = ok.sum(axis=0)
+    p = hit.sum(axis=0) / np.maximum(n_ok, 1)
+    z = np.where(ok, (values - truth) / np.where(ok, se, 1.0), np.nan)
     print(f"{problem}: {runs} runs x {steps} steps, EKF, fitted side by side in {secs:.1f} s; "
           f"max |gradient| over runs {gmax.max():.1e}")
-    print(f"  {'quantity':<13}{'coverage':>9}{'+- (binom.)':>12}{'mean z':>8}{'std z':>7}"
-          f"{'mean SE':>11}{'std of values':>15}")
+    print(f"  {'quantity':<13}{'coverage':>9}{'+- (binom.)':>12}{'runs':>6}{'mean z':>8}"
+          f"{'std z':>7}{'mean SE':>11}{'std of values':>15}")
     for j, k in enumerate(names):
-        print(f"  {k:<13}{p[j]:>9.3f}{np.sqrt(p[j] * (1 - p[j]) / runs):>12.3f}"
-              f"{z[:, j].mean():>8.2f}{z[:, j].std():>7.2f}{se[:, j].mean():>11.3g}"
+        print(f"  {k:<13}{p[j]:>9.3f}{np.sqrt(p[j] * (1 - p[j]) / max(n_ok[j], 1)):>12.3f}"
+              f"{n_ok[j]:>6d}{np.nanmean(z[:, j]):>8.2f}{np.nanstd(z[:, j]):>7.2f}"
+              f"{np.nanmean(np.where(ok[:, j], se[:, j], np.nan)):>11.3g}"
               f"{values[:, j].std():>15.3g}")
+    print("  coverage over the runs whose fit converged with a finite standard error ('runs'); "
+          "z = (value - truth) / SE, mean 0 and std 1 when the SEs are right")
     return p
 
 
