@@ -23,12 +23,13 @@ MODEL = vj.models.Model(lambda x, u, th: jnp.asarray(F) @ x + jnp.asarray(B) @ u
                         input_names=("a",), output_names=("p", "v"))
 
 
-def rts(ys, us):
-    """Kalman filter (predict with u_t, update with the observed part of y_t) then the
-    Rauch-Tung-Striebel recursion: smoothed means, covariances and Cov(x_t, x_t+1 | y)."""
+def rts(ys, us, x0=None):
+    """Kalman filter (predict with u_t, update with the observed part of y_t) from x0 (default
+    X0) then the Rauch-Tung-Striebel recursion: smoothed means, covariances and
+    Cov(x_t, x_t+1 | y)."""
     T = len(ys)
     mf, Pf, mp, Pp = [], [], [], []
-    m, P = X0.copy(), P0.copy()
+    m, P = (X0 if x0 is None else np.asarray(x0)).copy(), P0.copy()
     for t in range(T):
         m, P = F @ m + B @ us[t], F @ P @ F.T + Q
         mp.append(m), Pp.append(P)
@@ -106,3 +107,29 @@ def test_bad_smooth_is_refused_naming_it():
     pf = vj.filters.bootstrap_pf(MODEL, Q, R, 16)
     with pytest.raises(ValueError, match="smooth"):
         vj.run(pf, ys, us, x0=X0, P0=P0, smooth=True, key=jax.random.key(0))
+
+
+def test_runs_last_smoothing_equals_the_vmapped_one_with_per_run_inputs():
+    """The runs-last forward and backward pass of ``run(smooth=True)`` (CPU strategy, filters
+    with a runs-last form) against the vmapped ``smooth_one_run`` (runs_last off) and the numpy
+    RTS, with inputs, x0 and P0 per run and NaN components."""
+    ys, us = _data(runs=3, steps=12, seed=4)
+    rng = np.random.default_rng(5)
+    us_r = us[None] + 0.1 * rng.normal(size=(3,) + us.shape)
+    x0s = X0 + 0.05 * rng.normal(size=(3, 2))
+    est = vj.filters.ckf(MODEL, Q, R)
+    assert est.batch is not None
+    cpu = execution.for_platform("cpu")
+    kw = dict(x0=x0s, P0=np.broadcast_to(P0, (3, 2, 2)), smooth=True, return_covariances=True)
+    fast = vj.run(est, ys, us_r, strategy=cpu, **kw)
+    slow = vj.run(est, ys, us_r, strategy=cpu._replace(runs_last=False), **kw)
+    for name in ("states", "covariances", "cross_covariances", "loglik"):
+        np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=1e-12,
+                                   atol=1e-14)
+    np.testing.assert_array_equal(fast.diverged, slow.diverged)
+    assert not fast.diverged.any()
+    for r in range(3):
+        ms, Ps, cross = rts(ys[r], us_r[r], x0s[r])
+        np.testing.assert_allclose(fast.states[r], ms, rtol=1e-9, atol=1e-11)
+        np.testing.assert_allclose(fast.covariances[r], Ps, rtol=1e-9, atol=1e-11)
+        np.testing.assert_allclose(fast.cross_covariances[r], cross, rtol=1e-9, atol=1e-11)

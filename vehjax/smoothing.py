@@ -35,6 +35,8 @@ parameters that a Gaussian smoother needs (a ValueError naming ``estimator``).
 Particle filters (``Estimator.particle_transition``, the bootstrap PF) go to
 :func:`vehjax.smoothers.particle.smooth` (backward simulation), with ``method`` and the
 ``particle_options``.
+The marginalized PF (``Estimator.rao_blackwell``) goes to
+:func:`vehjax.smoothers.marginalized.smooth` (ancestor paths with a per-path RTS) likewise.
 
 NaN measurement components are missing (skipped), as in the filters. Divergence: a run whose
 filter diverged (:mod:`vehjax.filtering`) or whose smoothed moments are not finite and positive
@@ -57,7 +59,7 @@ from .filters.base import Estimator
 from .smoothers import gaussian as _gauss
 from .smoothers import iterated as _iter
 
-__all__ = ["SmoothResult", "smooth", "smooth_one_run", "check_options", "METHODS"]
+__all__ = ["SmoothResult", "smooth", "smooth_one_run", "smooth_runs_last", "check_options", "METHODS"]
 
 #: Gaussian smoothing methods (module docstring).
 METHODS = ("rts", "ieks", "ipls")
@@ -175,8 +177,20 @@ def smooth_one_run(estimator: Estimator, y, u, x0, P0, th0=None, Pth0=None, key=
     else:
         M, P, cross, ll, k, conv = _iterated(spec, states, y, u, parallel, tol, max_iter,
                                              initial)
+    return _result(spec, estimator.nx, filt, M, P, cross, ll, k, conv)
+
+
+def _result(spec, nx: int, filt: FilterResult, M, P, cross, ll=None, k=None, conv=None
+            ) -> SmoothResult:
+    """One run's :class:`SmoothResult` from the smoothed moments at t = 0..T (M (T+1, n),
+    P (T+1, n, n), cross (T, n, n)), the forward filter's result ``filt``, the linearised
+    model's log-likelihood ``ll`` (T+1,) or None (the filter's), ``k``/``conv`` of an iterated
+    smoother (None: 0 passes, converged): the report in physical units and the divergence rule
+    of the module docstring."""
+    if k is None:
+        k, conv = jnp.zeros((), jnp.int32), jnp.ones((), bool)
     loglik = filt.loglik if ll is None else ll[1:]
-    xs, Px, cross, th, Pth = _report(spec, M, P, cross, estimator.nx)
+    xs, Px, cross, th, Pth = _report(spec, M, P, cross, nx)
     good = (jnp.all(jnp.isfinite(xs)) & jnp.all(is_pd(Px)) & jnp.all(jnp.isfinite(cross))
             & jnp.all(jnp.isfinite(loglik)) & jnp.all(jnp.isfinite(th)))
     if th.shape[-1]:
@@ -195,6 +209,43 @@ def smooth_one_run(estimator: Estimator, y, u, x0, P0, th0=None, Pth0=None, key=
         converged=conv,
         filtered=filt,
     )
+
+
+def smooth_runs_last(estimator: Estimator, filt: FilterResult, state0, us,
+                     per_run_inputs: bool) -> SmoothResult:
+    """The filter's own RTS over a batch of runs whose forward pass ran with the runs-last step
+    (``Estimator.batch``; what ``vehjax.run(..., smooth=True)`` does where the platform's
+    strategy uses that step): the backward pass runs-last too
+    (:func:`vehjax.smoothers.gaussian.backward_runs_last`). The same numbers as
+    ``jax.vmap(smooth_one_run)`` to rounding.
+
+    Args:
+        estimator: a Gaussian filter with a plain-covariance smoother and a runs-last form.
+        filt: the forward filter's :class:`~vehjax.filtering.FilterResult` with a leading runs
+            axis R and the covariances (states (R, T, nx), covariances (R, T, nx, nx)).
+        state0: the filter's init states of the runs (``estimator.init``), leading axis R.
+        us: inputs, (T, nu) shared or (R, T, nu) when ``per_run_inputs``.
+        per_run_inputs: which of the two ``us`` is.
+
+    Returns:
+        :class:`SmoothResult` with a leading runs axis R.
+    """
+    spec = estimator.smoother
+    m0, S0, aux = jax.vmap(spec.split)(state0)
+    m = jnp.concatenate([m0[:, None], filt.states.astype(m0.dtype)], axis=1)
+    P = jnp.concatenate([S0[:, None], filt.covariances.astype(S0.dtype)], axis=1)
+
+    def last(a):
+        return jnp.moveaxis(a, 0, -1)
+
+    def first(a):
+        return jnp.moveaxis(a, -1, 0)
+
+    M, Ps, cross = _gauss.backward_runs_last(
+        spec, last(m), last(P), jax.tree_util.tree_map(last, aux),
+        last(us) if per_run_inputs else us, per_run_inputs)
+    return jax.vmap(lambda f, a, b, c: _result(spec, estimator.nx, f, a, b, c))(
+        filt, first(M), first(Ps), first(cross))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -281,6 +332,12 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
         if theta0 is not None:
             opts["theta0"] = theta0
         return _particle.smooth(estimator, measurements, inputs, x0=x0, P0=P0, key=key, **opts)
+    if estimator.smoother is None and estimator.rao_blackwell is not None:
+        from .smoothers import marginalized as _marginalized
+
+        opts = dict(particle_options, method=method)
+        return _marginalized.smooth(estimator, measurements, inputs, x0=x0, P0=P0, key=key,
+                                    theta0=theta0, **opts)
     if particle_options:
         raise ValueError(f"particle_options: {sorted(particle_options)} apply to particle "
                          f"filters only")

@@ -22,9 +22,10 @@ import jax.numpy as jnp
 
 from ..filters._linalg import cholesky, sym
 from ..filters.base import GaussianSmoother
-from .linear import Affine, rts_step, slr, sqrt_rts_step
+from .linear import Affine, rts_apply, rts_gain, slr, sqrt_rts_apply, sqrt_rts_gain
 
-__all__ = ["backward", "plain_moments", "linearize", "linearize_filtered"]
+__all__ = ["backward", "backward_moments", "backward_runs_last", "rts_apply_runs_last", "gains",
+           "plain_moments", "linearize", "linearize_filtered"]
 
 
 def backward(spec: GaussianSmoother, states, us):
@@ -42,30 +43,122 @@ def backward(spec: GaussianSmoother, states, us):
     """
     m, S, aux = jax.vmap(spec.split)(states)
     aux_prev = jax.tree_util.tree_map(lambda a: a[:-1], aux)
+    return backward_moments(spec, m, S, aux_prev, us)
 
+
+def gains(spec: GaussianSmoother, m, S, aux, us):
+    """Every step's prediction and RTS gain at once (``vmap`` over time): they depend on the
+    filtered moments only, not on the backward recursion.
+
+    Args:
+        spec: the filter's GaussianSmoother.
+        m, S: filtered means (T, n) and covariances (T, n, n) (lower factors when
+            ``spec.sqrt``) at t = 0..T-1.
+        aux: the spec's aux at t = 0..T-1 (leading T).
+        us: (T, nu) inputs of the predictions from t to t + 1.
+
+    Returns:
+        (G (T, n, n), m- (T, n), P- (T, n, n)) or, when ``spec.sqrt``, (G, m-, L22 (T, n, n))
+        (:func:`vehjax.smoothers.linear.sqrt_rts_step`).
+    """
+    if spec.sqrt:
+        m_pred, L11, L21, L22 = jax.vmap(spec.predict)(m, S, us, aux)
+        return jax.vmap(sqrt_rts_gain)(L11, L21), m_pred, L22
+    m_pred, P_pred, C = jax.vmap(spec.predict)(m, S, us, aux)
+    return jax.vmap(rts_gain)(P_pred, C), m_pred, P_pred
+
+
+def backward_moments(spec: GaussianSmoother, m, S, aux_prev, us):
+    """:func:`backward` from the filtered moments: m (T+1, n), S (T+1, n, n) (covariances,
+    or lower factors when ``spec.sqrt``) at t = 0..T, ``aux_prev`` the spec's aux at
+    t = 0..T-1 (leading T), us (T, nu). The predictions and gains first (:func:`gains`), then
+    the recursion, a scan of a few small matrix products per step. Returns as :func:`backward`.
+    """
+    G, m_pred, B = gains(spec, m[:-1], S[:-1], aux_prev, us)
     if spec.sqrt:
 
         def body(carry, inp):
             ms_next, Ls_next = carry
-            mt, Lt, u, a = inp
-            m_pred, L11, L21, L22 = spec.predict(mt, Lt, u, a)
-            m_s, L_s, cross = sqrt_rts_step(mt, m_pred, L11, L21, L22, ms_next, Ls_next)
+            g, mt, mp, L22 = inp
+            m_s, L_s, cross = sqrt_rts_apply(g, mt, mp, L22, ms_next, Ls_next)
             return (m_s, L_s), (m_s, L_s, cross)
+
+        xs = (G, m[:-1], m_pred, B)
     else:
 
         def body(carry, inp):
             ms_next, Ps_next = carry
-            mt, Pt, u, a = inp
-            m_pred, P_pred, C = spec.predict(mt, Pt, u, a)
-            m_s, P_s, cross = rts_step(mt, Pt, m_pred, P_pred, C, ms_next, Ps_next)
+            g, mt, Pt, mp, Pp = inp
+            m_s, P_s, cross = rts_apply(g, mt, Pt, mp, Pp, ms_next, Ps_next)
             return (m_s, P_s), (m_s, P_s, cross)
 
-    _, (m_s, S_s, cross) = jax.lax.scan(body, (m[-1], S[-1]), (m[:-1], S[:-1], us, aux_prev),
-                                        reverse=True)
+        xs = (G, m[:-1], S[:-1], m_pred, B)
+
+    _, (m_s, S_s, cross) = jax.lax.scan(body, (m[-1], S[-1]), xs, reverse=True)
     m_s = jnp.concatenate([m_s, m[-1:]])
     S_s = jnp.concatenate([S_s, S[-1:]])
     P_s = sym(S_s @ jnp.swapaxes(S_s, -1, -2)) if spec.sqrt else S_s
     return m_s, P_s, cross
+
+
+def _mm(A, B):
+    """A B for runs-last matrices A (n, k, R), B (k, m, R) -> (n, m, R), as one fused
+    multiply-and-sum over the runs (no batched dot on 3 x 3 matrices)."""
+    return jnp.sum(A[:, :, None] * B[None], axis=1)
+
+
+def _mT(A):
+    """The transpose of runs-last matrices (n, m, R) -> (m, n, R)."""
+    return jnp.swapaxes(A, 0, 1)
+
+
+def rts_apply_runs_last(G, m, P, m_pred, P_pred, ms_next, Ps_next):
+    """:func:`vehjax.smoothers.linear.rts_apply` for a batch of runs, the runs axis last:
+    G, P, P_pred, Ps_next (n, n, R); m, m_pred, ms_next (n, R). The same operations in the
+    same order: (m^s_t (n, R), P^s_t (n, n, R), Cov(x_t, x_{t+1} | y) (n, n, R))."""
+    cross = _mm(G, Ps_next)
+    m_s = m + jnp.sum(G * (ms_next - m_pred)[None], axis=1)
+    X = P + _mm(_mm(G, Ps_next - P_pred), _mT(G))
+    return m_s, 0.5 * (X + _mT(X)), cross
+
+
+def backward_runs_last(spec: GaussianSmoother, m, P, aux, us, per_run_inputs: bool):
+    """The RTS backward pass (:func:`backward`, plain covariances) over a batch of R runs with
+    the runs axis last, the layout of the runs-last filter steps
+    (:mod:`vehjax.filters._runs_last`): every step's prediction and gain at once, the model
+    evaluated with the runs as the vectorised axis, then a scan over time of
+    :func:`rts_apply_runs_last`.
+
+    Args:
+        spec: the filter's GaussianSmoother (not ``sqrt``).
+        m: filtered means at t = 0..T, (T+1, n, R).
+        P: their covariances, (T+1, n, n, R).
+        aux: the spec's aux of every run, leaves with a trailing runs axis R, the same at every
+            step (the filters with a runs-last form carry their theta unchanged).
+        us: inputs, (T, nu) shared by the runs or (T, nu, R) when ``per_run_inputs``.
+        per_run_inputs: which of the two ``us`` is.
+
+    Returns:
+        (means (T+1, n, R), covariances (T+1, n, n, R), cross-covariances (T, n, n, R)).
+    """
+    if spec.sqrt:
+        raise ValueError("spec: the runs-last backward pass takes covariances, not factors")
+
+    def one(mt, Pt, u, a):
+        m_pred, P_pred, C = spec.predict(mt, Pt, u, a)
+        return rts_gain(P_pred, C), m_pred, P_pred
+
+    over_runs = jax.vmap(one, in_axes=(-1, -1, -1 if per_run_inputs else None, -1),
+                         out_axes=-1)
+    G, m_pred, P_pred = jax.vmap(over_runs, in_axes=(0, 0, 0, None))(m[:-1], P[:-1], us, aux)
+
+    def body(carry, inp):
+        m_s, P_s, cross = rts_apply_runs_last(*inp, *carry)
+        return (m_s, P_s), (m_s, P_s, cross)
+
+    _, (m_s, P_s, cross) = jax.lax.scan(body, (m[-1], P[-1]),
+                                        (G, m[:-1], P[:-1], m_pred, P_pred), reverse=True)
+    return jnp.concatenate([m_s, m[-1:]]), jnp.concatenate([P_s, P[-1:]]), cross
 
 
 def plain_moments(spec: GaussianSmoother):
