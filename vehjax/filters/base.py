@@ -179,6 +179,10 @@ class Estimator(NamedTuple):
         smoother: :class:`GaussianSmoother`, the Gaussian filter's own prediction and
             measurement moments for :func:`vehjax.smooth` (set by the EKF, UKF, CKF, their
             square-root forms and the joint filters); None: no Gaussian smoother.
+        rao_blackwell: :class:`vehjax.filters.marginalized.RBTransition`, set by the
+            marginalized PF: each particle's Gaussian prediction given its offset draw, for
+            :mod:`vehjax.smoothers.marginalized` (:func:`vehjax.smooth` dispatches on it); its
+            state then has ``offset`` and ``ancestors``. None for every other filter.
     """
 
     init: Callable[..., Any]
@@ -196,6 +200,7 @@ class Estimator(NamedTuple):
     workload: str = "default"
     n_theta: int | None = None
     smoother: GaussianSmoother | None = None
+    rao_blackwell: Any = None
 
 
 def check_estimate(model, estimate) -> tuple[tuple[str, ...], tuple[int, ...]]:

@@ -170,14 +170,14 @@ from .. import _validate
 from . import resampling as _rs
 from . import smc
 from ._entrywise import add, barrier, dot, entries, matmul, mul, stack, sub
-from ._mpf_kalman import bank_kalman_step, joint_kalman_step
+from ._mpf_kalman import bank_kalman_step, joint_kalman_step, joint_prediction
 from ._mpf_linearise import entry_kinds, lin_entries, linearise, merge_entries
 from ._niw import (draw_offset, impute_missing, niw_predict, niw_update, noise_estimates,
                    t_predictive, t_weight_and_proposal)
 from .base import Estimator, StepOutput
 from .sigma import cholesky, solve_lower
 
-__all__ = ["MPFState", "marginalized_pf"]
+__all__ = ["MPFState", "RBTransition", "marginalized_pf"]
 
 
 class MPFState(NamedTuple):
@@ -199,6 +199,10 @@ class MPFState(NamedTuple):
         ess: effective sample size after the last update, before resampling.
         flag_diverged: bool, the weights have underflowed at some step.
         n_reinit: int32, at how many steps they did.
+        offset: (N,) the offset w_t each particle drew at the last step (eq. 30); zeros after
+            ``init``.
+        ancestors: (N,) int32, each particle's index before the last step's resampling (its
+            parent in the previous state; the identity when it did not resample).
     """
 
     x: jnp.ndarray
@@ -215,6 +219,31 @@ class MPFState(NamedTuple):
     ess: jnp.ndarray
     flag_diverged: jnp.ndarray
     n_reinit: jnp.ndarray
+    offset: jnp.ndarray
+    ancestors: jnp.ndarray
+
+
+class RBTransition(NamedTuple):
+    """What the marginalized PF declares for smoothing over its particles
+    (``Estimator.rao_blackwell``, :mod:`vehjax.smoothers.marginalized`).
+
+    Attributes:
+        predict: ``predict(x, z, P, w, u, theta) -> (m_pred, P_pred, C)``: one particle's
+            Gaussian prediction over (sampled, linear) states from its means x (n_xs,), z
+            (n_z,), covariance P (n_k, n_k) and offset draw w with input u
+            (:func:`vehjax.filters._mpf_kalman.joint_prediction`); meaningful when ``gauss``.
+        theta: the model parameters the filter runs with.
+        order: (nx,) index array, (sampled, linear) order -> model order.
+        nz: number of linear states.
+        gauss: the particles carry a Gaussian over all states (``kalman_states="all"`` with
+            linear states).
+    """
+
+    predict: Callable
+    theta: Any
+    order: np.ndarray
+    nz: int
+    gauss: bool
 
 
 def _masked(M, obs):
@@ -542,6 +571,8 @@ def _init(s: _Setup, x0, P0, theta0=None, P_theta0=None, key=None) -> MPFState:
         ess=jnp.asarray(float(n), dtype),
         flag_diverged=jnp.asarray(False),
         n_reinit=jnp.asarray(0, jnp.int32),
+        offset=jnp.zeros((n,), dtype),
+        ancestors=jnp.arange(n, dtype=jnp.int32),
     )
 
 
@@ -596,7 +627,7 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
     normalised: the Student-t weight (eq. 26-27), the draw of w_t (eq. 30, eq. 6), the Kalman
     step and the statistics update (eq. 18-19). The statistics come in predicted (eq. 20).
     y, obs: (n_yu,) the used rows. Returns (log-likelihoods (N,), x, z, P, mu, lam_w, lam_e,
-    predictive means (n_yu, N), predictive covariances (n_yu, n_yu, N))."""
+    predictive means (n_yu, N), predictive covariances (n_yu, n_yu, N), offset draws (N,))."""
     start = (u[0] != u[0]).astype(jnp.int32)  # 0 unless NaN, the same for every run
     dtype = x.dtype
     nxs, nz, ns, spos, kvu = s.nxs, s.nz, s.ns, s.spos, s.kvu
@@ -648,7 +679,7 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
     keep = lambda new, old: jnp.where(bad, old, new)  # noqa: E731
     cov_y = stack(S, like) * (df / (df - 2.0))
     return (ll, keep(x_new, x), keep(z_new, m), keep(P_new, P), keep(mu_new, mu),
-            keep(lw_new, lam_w), keep(le_new, lam_e), stack(mu_y, like), cov_y)
+            keep(lw_new, lam_w), keep(le_new, lam_e), stack(mu_y, like), cov_y, w)
 
 
 def _mixture_moments(s: _Setup, w_now, x, z, P):
@@ -676,6 +707,13 @@ def _mixture_nis(wp, mu_y, cov_y, y0, obs):
     return jnp.sum(a * a)
 
 
+def _rb_predict(s: _Setup, mdl: _Model, x, z, P, w, u, theta):
+    """:attr:`RBTransition.predict`: the linearisation at the particle's means and
+    :func:`joint_prediction` with its draw w."""
+    lin = linearise(mdl.f, mdl.h, x, z, u, theta, s.nl, s.li, s.i_in)
+    return joint_prediction(lin, w, P, jnp.asarray(s.Qz, x.dtype))
+
+
 def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     """The filter's ``step`` (module docstring, steps 1-6)."""
     n = s.n
@@ -689,7 +727,7 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     gam_p, nu_p, lw_p, le_p = niw_predict(state.gamma, state.nu, state.lam_w, state.lam_e, s.lam)
     key_next, key_step = smc.split(state.key)
     zn = barrier(smc.normals(key_step, 2, n, dtype), (u[0] != u[0]).astype(jnp.int32))
-    ll, x, z, P, mu, lam_w, lam_e, mu_y, cov_y = _particle_update(
+    ll, x, z, P, mu, lam_w, lam_e, mu_y, cov_y, w_draw = _particle_update(
         s, mdl, state.x, state.z, state.P, state.mu, lw_p, le_p, zn[0], zn[1],
         y0, obs, u, theta, gam_p, nu_p)
     gamma = gam_p / (1.0 + gam_p)
@@ -706,17 +744,20 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     # resample for the next step
     resample = smc.resample if s.resample is None else s.resample
     u_res = smc.uniforms(key_step, s.scheme, n, dtype, stream=1)
-    parts = (x, mu, lam_w, lam_e) + ((z, P) if s.nz else ())  # no empty leaves
+    # the draws and the particles' own indices ride along: the genealogy for smoothing
+    parts = (x, mu, lam_w, lam_e, w_draw, jnp.arange(n, dtype=jnp.int32)) + (
+        (z, P) if s.nz else ())  # no empty leaves
     parts, lw_next, w_next, _ = resample(parts, w_now, lw_now, u_res, s.scheme, s.thr)
-    x, mu, lam_w, lam_e = parts[:4]
+    x, mu, lam_w, lam_e, w_draw, anc = parts[:6]
     if s.nz:
-        z, P = parts[4:]
+        z, P = parts[6:]
     new_state = MPFState(
         x=x, z=z, P=P, mu=mu, lam_w=lam_w, lam_e=lam_e, gamma=gamma, nu=nu,
         log_weights=lw_next, weights=w_next, key=key_next,
         ess=jnp.where(under, 0.0, smc.ess(w_now)),
         flag_diverged=state.flag_diverged | under,
         n_reinit=state.n_reinit + under.astype(jnp.int32),
+        offset=w_draw, ancestors=anc,
     )
     out = StepOutput(mean=mean, cov=cov, loglik=smc.step_loglik(rw), nis=nis, n_obs=n_obs,
                      params=params, params_cov=params_cov, reinit=under)
@@ -816,8 +857,11 @@ def marginalized_pf(
                    linear_noise_std, std0, mean0, forgetting, gamma0, nu0, ess_threshold,
                    resampling, kalman_states, resample)
     mdl = _model_fns(model, s)
+    rb = RBTransition(predict=functools.partial(_rb_predict, s, mdl), theta=mdl.theta,
+                      order=s.inv, nz=s.nz, gauss=s.gauss)
     return Estimator(
         init=functools.partial(_init, s), step=functools.partial(_step, s, mdl), nx=s.nx,
         param_names=s.param_names, name="marginalized_pf", needs_key=True,
         param_prior=(s.theta_prior, s.P_prior), ny=s.ny, nu=s.n_inputs, workload="small_dense",
+        rao_blackwell=rb,
     )

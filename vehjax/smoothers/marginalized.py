@@ -1,0 +1,340 @@
+"""Smoothing one run with the marginalized PF (:func:`vehjax.filters.marginalized_pf`):
+ancestor-path backward simulation with a Rao-Blackwellised (per-path RTS) state.
+
+The forward pass is the filter itself, its own ``init`` and ``step`` in a ``lax.scan``, keeping
+after every step each particle's Gaussian over the states (means ``x``, ``z``, covariance
+``P``), its NiW statistics, the offset w_t it drew (eq. 30) and the resampling genealogy
+(:class:`vehjax.filters.marginalized.MPFState`). Then:
+
+1. **Paths.** M indices are drawn from the final weights and each one's genealogy is followed
+   back (``MPFState.ancestors``): M ancestral paths, each a particle's whole history, in
+   particular its offset draws w_{1:T}. Equally weighted they approximate
+   p(w_{1:T} | y_{1:T}), the path-space (Kitagawa 1996) smoother of the filter.
+2. **States, given a path.** With ``kalman_states="all"`` a particle's states are Gaussian
+   given its offset draws (and the noise statistics its Kalman filter uses), so given the path
+   the states over the drive are smoothed by the Rauch-Tung-Striebel recursion on the path's
+   own filtered moments: for t = T-1, ..., 1 with s = (x, z),
+   ``G = C_t P_t|t-1^+``, ``m_t-1|T = m_t-1 + G (m_t|T - m_t|t-1)``,
+   ``P_t-1|T = P_t-1 + G (P_t|T - P_t|t-1) G^T`` and ``Cov(s_t-1, s_t | .) = G P_t|T``, where
+   ``m_t|t-1, P_t|t-1`` and ``C_t = Cov(s_t-1, s_t)`` are the particle's prediction with its
+   w_t (:func:`vehjax.filters._mpf_kalman.joint_prediction`). ``P_t|t-1`` may be singular (a
+   particle's sampled states start as a point, and the linear states' noise has rank one on
+   SingleTrackBank): ``^+`` is the pseudo-inverse on the range of ``P_t|t-1``, which holds
+   the rows of C_t, so the recursion is the exact conditional (:func:`psd_right_solve`).
+   Without linear states (the planar filter) a particle's states are a function of its draws
+   and the path itself is the smoothed trajectory.
+3. **Moments.** The smoothed mean and covariance at each time are those of the equally
+   weighted mixture of the M per-path Gaussians (:func:`mixture_moments`), the lag-one
+   covariance likewise.
+4. **Noise statistics.** At each time t the NiW statistics of the M paths' particles at t give
+   eq. 23's estimates and their mixture covariance (:func:`vehjax.filters._niw.
+   noise_estimates`, equal weights).
+
+What is exact and what is approximate
+-------------------------------------
+* Exact given a path: for a model affine in the states and the noisy input (SingleTrackBank
+  at a given speed) with the noise statistics known (the filter built with ``forgetting=1``
+  and a prior so tight that they do not move), the states given w_{1:T} and y_{1:T} are
+  Gaussian and step 2 gives their mean and covariance exactly, to rounding: the
+  Rao-Blackwellised part has no Monte-Carlo error.
+* Consistent, with Monte-Carlo error: the paths. Ancestor tracing draws them from the filter's
+  genealogy, which converges to p(w_{1:T} | y_{1:T}) as N grows, but resampling makes the
+  genealogies coalesce: at early times the M paths pass through few distinct particles
+  (``n_unique``), and the early smoothed moments rest on those, whatever M. It is not the
+  Rao-Blackwellised FFBSi of Lindsten & Schön (2013), which would re-draw each path's past
+  from all particles by weights that need a backward information filter of the linear states;
+  that is not done. With these two, the smoothed states converge to the exact RTS smoother of
+  the linear-Gaussian system as N grows (tests/test_smoothing_mpf.py checks it within
+  Monte-Carlo error at two particle counts).
+* Approximate: with unknown noise statistics each particle's Kalman filter runs with its own
+  point estimates (R_hat, b_hat) at each step, so the per-path RTS is conditional on those
+  (plug-in), as the filter is; for models not affine in the states the prediction is the
+  linearisation at the path's filtered means (an extended RTS per path).
+* Noise statistics: the estimates at t are those the path's particle held at t, i.e. they
+  condition on y_{1:t} along a path chosen with all the data; with ``forgetting=1`` the
+  statistics are static and the row at T-1 is their smoothed estimate (the NiW posterior given
+  the path and all data, mixed over the paths); with forgetting lambda < 1 the earlier rows
+  are not the smoothed posterior of time-varying statistics (no backward pass over the NiW is
+  done).
+* ``kalman_states="linear"`` with linear states (the paper's Algorithm 1) is refused: its
+  particles' sampled states are built from the Kalman mean of the linear states (the module
+  docstring of the filter), so a path does not carry a Gaussian that an RTS could smooth.
+
+Time convention of :func:`vehjax.filter`: x0/P0 describe the state before the first step and
+time t is the state after step t (0 .. T-1). NaN measurement components are missing (the
+filter skips them; the backward pass involves no measurement). Divergence: a step that
+re-initialised (every weight underflowed) or gave a non-finite output flags the run
+``diverged``; its moments are still finite.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import _validate
+from ..filtering import output_ok
+from ..filters._niw import noise_estimates
+from ..filters.base import Estimator
+
+__all__ = [
+    "MPFSmootherResult", "smooth", "trace_ancestors", "psd_right_solve", "rts_step",
+    "mixture_moments",
+]
+
+
+class MPFSmootherResult(NamedTuple):
+    """The marginalized PF's smoothing of one run of T steps (a leading runs axis under
+    ``vmap``); model state order, p noise statistics as the filter's ``param_names``.
+
+    Attributes:
+        states: (T, nx) smoothed means.
+        covariances: (T, nx, nx) smoothed covariances (mixture of the per-path Gaussians).
+        cross_covariances: (T - 1, nx, nx), entry t the lag-one Cov(x_t, x_t+1 | y).
+        path_states: (M, T, nx) each path's smoothed mean (Rao-Blackwellised trajectories).
+        params: (T, p) eq. 23's noise statistics over the M paths at each time (module
+            docstring: with ``forgetting=1`` the last row is the smoothed estimate).
+        params_cov: (T, p, p) their mixture covariance.
+        loglik: (T,) the filter's log p(y_t | y_0:t-1), as :func:`vehjax.filter` gives with
+            the same key.
+        n_unique: (T,) int32, how many distinct particles the M paths pass through.
+        diverged: bool scalar, the filter re-initialised or gave a bad output at some step.
+    """
+
+    states: jnp.ndarray
+    covariances: jnp.ndarray
+    cross_covariances: jnp.ndarray
+    path_states: jnp.ndarray
+    params: jnp.ndarray
+    params_cov: jnp.ndarray
+    loglik: jnp.ndarray
+    n_unique: jnp.ndarray
+    diverged: jnp.ndarray
+
+
+# ----------------------------------------------------------------------------------------------
+# The mathematics
+
+
+def trace_ancestors(ancestors, idx_last):
+    """The particle indices of paths followed back through a genealogy.
+
+    Args:
+        ancestors: (T, N) int, ``ancestors[t, i]`` the index at t - 1 of particle i's parent
+            (row 0 unused).
+        idx_last: (M,) int, the paths' particles at T - 1.
+
+    Returns:
+        (T, M) int32: the paths' particle at every time.
+    """
+    def body(idx_next, anc_next):
+        idx = anc_next[idx_next].astype(jnp.int32)
+        return idx, idx
+
+    idx_last = jnp.asarray(idx_last, jnp.int32)
+    _, idx = jax.lax.scan(body, idx_last, ancestors[1:], reverse=True)
+    return jnp.concatenate([idx, idx_last[None]], axis=0)
+
+
+def psd_right_solve(C, S, rtol: float | None = None):
+    """C S^+ for a symmetric positive semi-definite S (n, n) and C (k, n): S = V diag(l) V^T by
+    ``eigh`` and S^+ = V diag(1 / l) V^T over the eigenvalues l > rtol max(l) (the rest,
+    rounding noise about the null space, dropped). Where the rows of C lie in the range of S
+    (C = P Phi^T and S = Phi P Phi^T + Q in a Kalman prediction), this is the exact solution of
+    G S = C on that range; for a positive definite S it is C S^-1.
+
+    ``rtol``: default 1e3 n eps of the dtype."""
+    n = S.shape[-1]
+    if rtol is None:
+        rtol = 1e3 * n * float(jnp.finfo(S.dtype).eps)
+    lam, V = jnp.linalg.eigh(0.5 * (S + S.T))
+    keep = lam > rtol * jnp.max(lam)
+    inv = jnp.where(keep, 1.0 / jnp.where(keep, lam, 1.0), 0.0)
+    return ((C @ V) * inv) @ V.T
+
+
+def rts_step(m, P, m_pred, P_pred, C, m_next, P_next):
+    """One backward step of the Rauch-Tung-Striebel smoother.
+
+    Args:
+        m, P: (n,), (n, n) filtered moments at t - 1.
+        m_pred, P_pred: (n,), (n, n) the prediction of t from them.
+        C: (n, n) Cov(s_t-1, s_t) of that prediction (P Phi^T for a linear model).
+        m_next, P_next: smoothed moments at t.
+
+    Returns:
+        (m_s, P_s, cross): smoothed moments at t - 1 and Cov(s_t-1, s_t | all data) = G P_next,
+        G = C P_pred^+ (:func:`psd_right_solve`).
+    """
+    G = psd_right_solve(C, P_pred)
+    m_s = m + G @ (m_next - m_pred)
+    P_s = P + G @ (P_next - P_pred) @ G.T
+    return m_s, 0.5 * (P_s + P_s.T), G @ P_next
+
+
+def mixture_moments(means, covs):
+    """Mean and covariance of the equally weighted mixture of M Gaussians, means (M, n) and
+    covs (M, n, n): mean(m_i) and mean(P_i) + mean((m_i - m)(m_i - m)^T)."""
+    mean = jnp.mean(means, axis=0)
+    d = means - mean
+    cov = jnp.mean(covs, axis=0) + jnp.einsum("mi,mj->ij", d, d) / means.shape[0]
+    return mean, 0.5 * (cov + cov.T)
+
+
+def _mixture_cross(m0, m1, cross):
+    """Lag-one covariance of the mixture: mean(cross_i) + mean((m0_i - m0)(m1_i - m1)^T)."""
+    d0, d1 = m0 - jnp.mean(m0, axis=0), m1 - jnp.mean(m1, axis=0)
+    return jnp.mean(cross, axis=0) + jnp.einsum("mi,mj->ij", d0, d1) / m0.shape[0]
+
+
+# ----------------------------------------------------------------------------------------------
+# The passes
+
+
+class _Forward(NamedTuple):
+    x: jnp.ndarray  # (T, nxs, N)
+    z: jnp.ndarray  # (T, nz, N)
+    P: jnp.ndarray  # (T, nk, nk, N)
+    mu: jnp.ndarray  # (T, d, N)
+    lam_w: jnp.ndarray  # (T, N)
+    lam_e: jnp.ndarray  # (T, ns, ns, N)
+    gamma: jnp.ndarray  # (T,)
+    nu: jnp.ndarray  # (T,)
+    offset: jnp.ndarray  # (T, N)
+    ancestors: jnp.ndarray  # (T, N)
+    log_weights: jnp.ndarray  # (T, N)
+    loglik: jnp.ndarray  # (T,)
+    bad: jnp.ndarray  # (T,)
+
+
+def _forward(estimator: Estimator, ys, us, x0, P0, theta0, key):
+    """The filter over the run, keeping what the backward pass needs after every step."""
+    state0 = estimator.init(x0, P0, theta0, None, key)
+    p = len(estimator.param_names)
+
+    def body(state, yu):
+        state, out = estimator.step(state, *yu)
+        bad = jnp.asarray(out.reinit, bool) | ~output_ok(out, p)
+        keep = (state.x, state.z, state.P, state.mu, state.lam_w, state.lam_e, state.gamma,
+                state.nu, state.offset, state.ancestors, state.log_weights)
+        return state, keep + (out.loglik, bad)
+
+    _, per = jax.lax.scan(body, state0, (ys, us))
+    return _Forward(*per)
+
+
+def _path_rts(rb, us, theta, xs, zs, Ps, ws):
+    """RTS along one path: its filtered moments s_t = (x_t, z_t), P_t (T, ...) and draws w_t;
+    returns smoothed means (T, n), covariances (T, n, n) and lag-one covariances (T - 1, n, n)
+    in (sampled, linear) order."""
+    s = jnp.concatenate([xs, zs], axis=1)
+
+    def body(carry, k):
+        m_next, P_next = carry
+        x_prev, z_prev, P_prev, w, u = k
+        m_pred, P_pred, C = rb.predict(x_prev, z_prev, P_prev, w, u, theta)
+        m_s, P_s, cross = rts_step(jnp.concatenate([x_prev, z_prev]), P_prev, m_pred, P_pred,
+                                   C, m_next, P_next)
+        return (m_s, P_s), (m_s, P_s, cross)
+
+    ks = (xs[:-1], zs[:-1], Ps[:-1], ws[1:], us[1:])
+    _, (m, P, cross) = jax.lax.scan(body, (s[-1], Ps[-1]), ks, reverse=True)
+    return (jnp.concatenate([m, s[-1:]]), jnp.concatenate([P, Ps[-1:]]), cross)
+
+
+def _check(estimator, method, n_trajectories):
+    """Validation particular to this smoother (before anything is traced)."""
+    rb = estimator.rao_blackwell if isinstance(estimator, Estimator) else None
+    if rb is None:
+        name = getattr(estimator, "name", type(estimator).__name__)
+        raise ValueError(f"estimator: the marginalized-PF smoother needs a marginalized_pf "
+                         f"estimator, got {name!r}")
+    if rb.nz and not rb.gauss:
+        raise ValueError(
+            "estimator: marginalized_pf with kalman_states='linear' and linear states has no "
+            "Gaussian per particle to smooth (module docstring); build it with "
+            "kalman_states='all'")
+    if method is not None:
+        _validate.choice("method", method, ("ancestor",))
+    return _validate.integer("n_trajectories", n_trajectories, 1, 2**24)
+
+
+def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, key, method=None,
+           n_trajectories: int = 100, theta0=None) -> MPFSmootherResult:
+    """Smooth one run with the marginalized PF (module docstring).
+
+    Pure and traceable (``jax.jit`` with the options static, ``jax.vmap`` over runs or keys).
+    The filter runs with ``key`` itself (``loglik`` equals :func:`vehjax.filter`'s with the
+    same key), the paths are drawn with ``jax.random.fold_in(key, 1)``.
+
+    Args:
+        estimator: a :func:`~vehjax.filters.marginalized_pf` estimator (``kalman_states="all"``
+            or no linear states).
+        measurements: (T, ny); NaN components are missing.
+        inputs: (T, nu).
+        x0, P0: state before the first step, (nx,), and its covariance (nx, nx) or (nx,).
+        key: PRNG key.
+        method: None or "ancestor" (the only one).
+        n_trajectories: M >= 1 paths.
+        theta0: the filter's initial noise guesses (p,) (``marginalized_pf``'s ``init``).
+
+    Returns:
+        :class:`MPFSmootherResult`.
+
+    Raises:
+        ValueError: naming the argument: an estimator that is not such a marginalized PF,
+            ``n_trajectories`` < 1, an unknown method, a missing key, shapes that do not fit.
+    """
+    m = _check(estimator, method, n_trajectories)
+    rb = estimator.rao_blackwell
+    if key is None:
+        raise ValueError("key: the marginalized PF draws random numbers; pass "
+                         "key=jax.random.key(...)")
+    ys = jnp.asarray(measurements)
+    if ys.ndim != 2 or np.shape(inputs)[:1] != ys.shape[:1]:
+        raise ValueError(f"measurements: expected (T, ny) with inputs (T, nu), got "
+                         f"{ys.shape} and {np.shape(inputs)}")
+    P0 = jnp.asarray(P0)
+    P0 = jnp.diag(P0) if P0.ndim == 1 else P0
+    fwd = _forward(estimator, ys, jnp.asarray(inputs), jnp.asarray(x0), P0, theta0, key)
+    dtype = fwd.x.dtype
+    us = jnp.asarray(inputs).astype(dtype)
+    T = ys.shape[0]
+    n = fwd.x.shape[-1]
+    idx_last = jax.random.categorical(jax.random.fold_in(key, 1),
+                                      jnp.broadcast_to(fwd.log_weights[-1], (m, n)), axis=1)
+    idx = trace_ancestors(fwd.ancestors, idx_last)  # (T, M)
+
+    def take(a):  # (T, ..., N) -> (M, T, ...)
+        got = jnp.take_along_axis(a, idx.reshape((T,) + (1,) * (a.ndim - 2) + (m,)), axis=-1)
+        return jnp.moveaxis(got, -1, 0)
+
+    xs, zs, Ps, ws = take(fwd.x), take(fwd.z), take(fwd.P), take(fwd.offset)
+    theta = jnp.asarray(rb.theta).astype(dtype)
+    if rb.gauss and T > 1:
+        ms, Pss, cross = jax.vmap(lambda a, b, c, d: _path_rts(rb, us, theta, a, b, c, d))(
+            xs, zs, Ps, ws)
+    else:  # the path is the trajectory (planar filter), or one step: the filtered moments
+        ms = jnp.concatenate([xs, zs], axis=2)
+        nk = ms.shape[-1]
+        Pss = jnp.zeros(ms.shape + (nk,), dtype) if not rb.gauss else Ps
+        cross = jnp.zeros((m, max(T - 1, 0), nk, nk), dtype)
+    inv = np.asarray(rb.order)
+    ms, Pss, cross = ms[..., inv], Pss[..., inv, :][..., inv], cross[..., inv, :][..., inv]
+    mean, cov = jax.vmap(mixture_moments, in_axes=(1, 1))(ms, Pss)
+    cr = jax.vmap(_mixture_cross, in_axes=(1, 1, 1))(ms[:, :-1], ms[:, 1:], cross)
+    w_eq = jnp.full((m,), 1.0 / m, dtype)
+    params, params_cov = jax.vmap(
+        lambda mu, lw, le, nu, g: noise_estimates(w_eq, mu, lw, le, nu, g))(
+        take(fwd.mu).transpose(1, 2, 0), take(fwd.lam_w).T, take(fwd.lam_e).transpose(1, 2, 3, 0),
+        fwd.nu, fwd.gamma)
+    from .particle import count_unique
+
+    return MPFSmootherResult(
+        states=mean, covariances=cov, cross_covariances=cr, path_states=ms, params=params,
+        params_cov=params_cov, loglik=fwd.loglik, n_unique=jax.vmap(count_unique)(idx),
+        diverged=jnp.any(fwd.bad),
+    )
