@@ -532,6 +532,7 @@ def _kw(**over):
     ("ess_threshold", dict(ess_threshold=2.0)),
     ("resampling", dict(resampling="bogus")),
     ("kalman_states", dict(kalman_states="bank")),
+    ("resample", dict(resample="systematic")),
 ])
 def test_bad_input_raises_naming_the_argument(arg, over):
     with pytest.raises(ValueError, match=arg):
@@ -671,3 +672,33 @@ def test_per_step_entries_change_nothing_on_a_nonlinear_user_model(monkeypatch):
     np.testing.assert_allclose(out.params, ref.params, rtol=1e-8, atol=1e-10)
     z = (out.params[:, -1, 0] - off) / np.sqrt(out.params_cov[:, -1, 0, 0])
     assert np.all(np.abs(z) < 3.0), z
+
+
+def test_resample_argument_is_what_the_filter_resamples_with():
+    """``resample=``: a function that never resamples gives exactly the filter with
+    ess_threshold=0 (which never resamples), and differs from the default (which does); the
+    default is smc.resample (same numbers when passed explicitly). Tiny planar user model."""
+    from vehjax.filters import smc
+
+    def trans(x, u, th):
+        return jnp.stack([0.9 * x[0] + 0.1 * u[0]])
+
+    model = vj.models.Model(transition=trans, observe=lambda x, u, th: jnp.stack([x[0]]),
+                            dt=0.1, state_names=("v",), input_names=("u",), output_names=("y",))
+    rng = np.random.default_rng(0)
+    ys, us = rng.normal(size=(12, 1)), rng.normal(size=(12, 1))
+    kw = dict(noisy_input="u", sensors=("y",), linear_states=(), std0={"u": 0.5, "y": 0.3})
+
+    def never(particles, w, log_w, u, scheme, threshold):
+        return particles, log_w, w, jnp.zeros((), bool)
+
+    def run(**extra):
+        est = marginalized_pf(model, 16, **kw, **extra)
+        return vj.filter(est, ys, us, x0=np.zeros(1), P0=np.eye(1), key=jax.random.key(0))
+
+    a, b = run(resample=never, ess_threshold=1.0), run(ess_threshold=0.0)
+    np.testing.assert_array_equal(a.states, b.states)
+    np.testing.assert_array_equal(a.params, b.params)
+    c, d = run(ess_threshold=1.0), run(ess_threshold=1.0, resample=smc.resample)
+    np.testing.assert_array_equal(c.states, d.states)
+    assert not np.array_equal(a.states, c.states)

@@ -358,7 +358,7 @@ class _Setup(NamedTuple):
     P_prior: np.ndarray
     n_inputs: int
     ny: int
-    resample: Callable | None
+    resample: Callable  # smc.resample or the caller's
 
 
 def _linear_noise(model, linear_noise_std, li, linear_states) -> np.ndarray:
@@ -425,9 +425,7 @@ def _configure(model, n_particles, noisy_input, sensors, known_std, linear_state
     n = smc.check_n_particles(n_particles, low=2)
     scheme = _rs.check_scheme(resampling)
     thr = smc.check_ess_threshold(ess_threshold)
-    if resample is not None and not callable(resample):
-        raise ValueError(f"resample: expected None or a function with the signature of "
-                         f"vehjax.filters.smc.resample, got {resample!r}")
+    resample = smc.check_resample(resample)
     state_names = tuple(model.state_names)
     input_names = tuple(model.input_names)
     output_names = tuple(model.output_names)
@@ -742,12 +740,11 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     nis = _mixture_nis(state.weights, mu_y, cov_y, y0, obs)
 
     # resample for the next step
-    resample = smc.resample if s.resample is None else s.resample
     u_res = smc.uniforms(key_step, s.scheme, n, dtype, stream=1)
     # the draws and the particles' own indices ride along: the genealogy for smoothing
     parts = (x, mu, lam_w, lam_e, w_draw, jnp.arange(n, dtype=jnp.int32)) + (
         (z, P) if s.nz else ())  # no empty leaves
-    parts, lw_next, w_next, _ = resample(parts, w_now, lw_now, u_res, s.scheme, s.thr)
+    parts, lw_next, w_next, _ = s.resample(parts, w_now, lw_now, u_res, s.scheme, s.thr)
     x, mu, lam_w, lam_e, w_draw, anc = parts[:6]
     if s.nz:
         z, P = parts[6:]
@@ -830,8 +827,9 @@ def marginalized_pf(
             the time per step. No difference without linear states.
         resample: the resampling function, ``resample(particles, w, log_w, u, scheme,
             threshold) -> (particles, log_w, w, resampled)`` with the signature and meaning of
-            :func:`vehjax.filters.smc.resample` (which None means, looked up when the step is
-            traced), e.g. a form that stops gradients through the resampling.
+            :func:`vehjax.filters.smc.resample` (which None means), e.g.
+            :func:`vehjax.filters.smc.resample_stop_gradient` (what :mod:`vehjax.tune` builds
+            the filter with to differentiate its log-likelihood).
 
     Returns:
         ``Estimator`` (``needs_key=True``), ``nx`` = all model states, ``param_names`` =
