@@ -118,7 +118,7 @@ def test_drive_study(tmp_path):
     for label in ("smoothed steering offset", "smoothed ay bias", "smoothed yaw-gyro bias",
                   "smoothed eps", "smoothed bank angle", "smoothed roll-gyro bias"):
         mean, span, two_sd, _ = _row(text, label)
-        lo, hi = (float(v) for v in re.findall(r"[-+][0-9.]+", span))
+        lo, hi = (float(v) for v in re.findall(r"[-+][0-9]+\.[0-9]+", span))
         assert lo <= float(mean) <= hi and float(two_sd) > 0, label
     r = _row(text, "smoothed yaw rate (extended RTS)")
     assert 0 < float(r[0]) < 1.0
