@@ -74,6 +74,7 @@ def test_bank_path_and_looped_inputs():
     assert L.shape == (25, 2) and np.all(np.abs(np.diff(L[:, 0])) <= 1.0)  # continuous joints
 
 
+@pytest.mark.slow  # a reduced study: `pytest -m slow` (README)
 def test_simulation_study(tmp_path):
     rc, text = _run(["--runs", "3", "--duration", "20", "--particles", "50", "--seed", "1",
                      "--out", str(tmp_path)])
@@ -89,6 +90,7 @@ def test_simulation_study(tmp_path):
     assert float(_row(text, "r RMS error")[0]) < 0.3  # deg/s, the gyro's own noise
 
 
+@pytest.mark.slow  # a reduced study: `pytest -m slow` (README)
 def test_drive_study(tmp_path):
     rc, text = _run(["--drive", "--runs", "2", "--duration", "15", "--particles", "50",
                      "--pmmh-iters", "8", "--pmmh-particles", "16", "--pmmh-duration", "5",

@@ -349,6 +349,7 @@ def _max_err(a, b):
     return np.max(np.abs(np.asarray(a) - np.asarray(b)), axis=0)
 
 
+@pytest.mark.slow  # an integrator accuracy study: fine-RK4 replays of a 10 s manoeuvre
 def test_ros2_one_step_per_sample_tracks_fine_rk4_over_a_double_lane_change(dlc_replays):
     (x_ref, d_ref), (x1, d1), _ = dlc_replays
     assert float(np.max(np.abs(d_ref[:, 3]))) > 5.0  # a real manoeuvre: |ay| above 0.5 g
@@ -363,6 +364,7 @@ def test_ros2_one_step_per_sample_tracks_fine_rk4_over_a_double_lane_change(dlc_
     assert ed[5] < 1e-4  # beta [rad]
 
 
+@pytest.mark.slow  # an integrator accuracy study: fine-RK4 replays of a 10 s manoeuvre
 def test_ros2_error_falls_with_the_step(dlc_replays):
     """Halving the step at least nearly halves the worst error of u, v, r and ay."""
     (x_ref, d_ref), (x1, d1), (x2, d2) = dlc_replays
@@ -425,6 +427,7 @@ def _dlc_errors(x, d, ref):
     return np.array([ex[0], ex[1], ex[2], np.max(ex[3:]), ed[3]])
 
 
+@pytest.mark.slow  # an integrator accuracy study: fine-RK4 replays of a 10 s manoeuvre
 def test_etdrk4_tracks_fine_rk4_over_a_double_lane_change(etd_replays):
     """The documented errors of the default ETDRK4 (u, v, r, wheels, ay), and three orders of
     magnitude or more below ROS2's (one step per 10 ms), computed here."""
@@ -436,6 +439,7 @@ def test_etdrk4_tracks_fine_rk4_over_a_double_lane_change(etd_replays):
     np.testing.assert_array_less(e3, e_ros / 500.0)  # measured: 900 (r) to 33000 (u) times
 
 
+@pytest.mark.slow  # an integrator accuracy study: fine-RK4 replays of a 10 s manoeuvre
 def test_etdrk4_error_falls_with_the_step(etd_replays):
     """Halving every sub-step (3 -> 6 per 10 ms) cuts the worst errors by more than 8, the
     factor of the method's stiff order 3 (measured: 12-13)."""
