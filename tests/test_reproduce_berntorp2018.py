@@ -94,7 +94,8 @@ def test_simulation_study(tmp_path):
 def test_drive_study(tmp_path):
     rc, text = _run(["--drive", "--runs", "2", "--duration", "15", "--particles", "50",
                      "--pmmh-iters", "8", "--pmmh-particles", "16", "--pmmh-duration", "5",
-                     "--pmmh-likelihood", "bootstrap", "--out", str(tmp_path)])
+                     "--pmmh-likelihood", "bootstrap", "--rvirt-scale", "online",
+                     "--out", str(tmp_path)])  # online: its rows are checked below
     assert rc == 0
     report, links = _links_exist(tmp_path)
     assert len(links) == 3 and "EKF" in report  # Fig. 8, 9, 10 (bank)
