@@ -792,6 +792,15 @@ def _finite(*arrays) -> bool:
     return all(bool(np.all(np.isfinite(np.asarray(a)))) for a in arrays)
 
 
+def _check_start(f, *derivatives):
+    """FloatingPointError unless the loss ``f`` and its ``derivatives`` at the starting values
+    are finite."""
+    if not (np.isfinite(f) and _finite(*derivatives)):
+        raise FloatingPointError(
+            "vehjax.tune: the log-likelihood or its gradient is not finite at the starting "
+            "values; check Q0, R0, x0, P0 and the measurements")
+
+
 class _Loss(NamedTuple):
     """The loss on a flat vector of coordinates (``ravel_pytree`` of z): ``vg(f) -> (loss,
     aux, grad)`` compiled once per fit and used by every part of it (the optimiser, its line
@@ -941,10 +950,7 @@ def _lbfgs(loss: _Loss, steps: int, gtol: float, bar, memory: int = 10):
     iterations, converged)."""
     x = loss.x0
     f, aux, g = loss.vg(x)
-    if not (np.isfinite(f) and _finite(g)):
-        raise FloatingPointError(
-            "vehjax.tune: the log-likelihood or its gradient is not finite at the starting "
-            "values; check Q0, R0, x0, P0 and the measurements")
+    _check_start(f, g)
     S, Y, history, converged, i = [], [], [], False, 0
     for i in range(1, steps + 1):
         history.append(f)
@@ -991,10 +997,7 @@ def _scoring(loss: _Loss, steps: int, gtol: float, bar, scales, c1: float = 1e-4
     quadratically from there. Returns (x, aux, history, iterations, converged)."""
     x = loss.x0
     f, aux, g, B = loss.vgo(x)
-    if not (np.isfinite(f) and _finite(g, B)):
-        raise FloatingPointError(
-            "vehjax.tune: the log-likelihood or its gradient is not finite at the starting "
-            "values; check Q0, R0, x0, P0 and the measurements")
+    _check_start(f, g, B)
     history, converged, i, damping = [], False, 0, 0.0
     for i in range(1, steps + 1):
         history.append(f)

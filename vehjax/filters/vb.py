@@ -403,6 +403,19 @@ def _masked_y(setup, y):
     return jnp.where(jnp.asarray(setup.used), y, jnp.nan)
 
 
+def _predicted(setup, fm, z, P, y, u, theta):
+    """The step's common first part: y and u cast to z's dtype (y with its unused outputs
+    masked), the measurement function h(z) at (u, theta) and the prediction (zp, Pp) of the
+    Gaussian form ``fm``. Returns (y, u, h, zp, Pp)."""
+    y, u = cast_yu(y, u, z.dtype)
+    y = _masked_y(setup, y)
+    f = lambda v: setup.f_uw(v, u, theta)  # noqa: E731
+    h = lambda v: setup.h_z(v, u, theta)  # noqa: E731
+    zp, Pp = fm.predict(z, P, f, jnp.asarray(setup.Qa, z.dtype), u,
+                        lambda v, w: setup.f_uw(v, w, theta))
+    return y, u, h, zp, Pp
+
+
 def _check_common(form, forgetting, iterations):
     form = _validate.choice("form", form, FORMS)
     rho = _validate.number("forgetting", forgetting, 0.0, 1.0, high_open=False)
@@ -488,12 +501,7 @@ def vbakf_r(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterati
     def step(state, y, u):
         z, P, alpha, beta, theta = state
         dt = z.dtype
-        y, u = cast_yu(y, u, dt)
-        y = _masked_y(st, y)
-        f = lambda v: st.f_uw(v, u, theta)  # noqa: E731
-        h = lambda v: st.h_z(v, u, theta)  # noqa: E731
-        zp, Pp = fm.predict(z, P, f, jnp.asarray(st.Qa, dt), u,
-                            lambda v, w: st.f_uw(v, w, theta))
+        y, u, h, zp, Pp = _predicted(st, fm, z, P, y, u, theta)
         ap, bp = ig_predict(alpha, beta, rho)
         obs = jnp.isfinite(y[sens]).astype(dt)
         a_new = ap + 0.5 * obs
@@ -602,12 +610,7 @@ def vbakf_pr(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterat
     def step(state, y, u):
         z, P, uu, U, _, theta = state
         dt = z.dtype
-        y, u = cast_yu(y, u, dt)
-        y = _masked_y(st, y)
-        f = lambda v: st.f_uw(v, u, theta)  # noqa: E731
-        h = lambda v: st.h_z(v, u, theta)  # noqa: E731
-        zp, Pn = fm.predict(z, P, f, jnp.asarray(st.Qa, dt), u,
-                            lambda v, w: st.f_uw(v, w, theta))
+        y, u, h, zp, Pn = _predicted(st, fm, z, P, y, u, theta)
         t_pr, T_pr = iw_pred_cov_prior(Pn, tau)
         u_pr, U_pr = iw_predict(uu, U, rho, m)
         all_seen = jnp.all(jnp.isfinite(y[sens]))

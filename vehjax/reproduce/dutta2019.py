@@ -404,34 +404,24 @@ def _stage(model, scn, estimate, settings, box, runs, key, estimators, inputs=No
     theta0 = np.asarray(jax.random.uniform(k_guess, (runs, len(estimate)), minval=low, maxval=high))
     x0 = np.asarray(scn.x0)
     results, seconds, smoothed = {}, {}, {}
-    for name, est in estimators.items():
+    def timed(label, est, us, **kw):
+        """One study of ``est``, its seconds in ``seconds[label]``, progress around it."""
         if progress:
-            progress(f"  {name}: {runs} runs x {len(scn.t)} steps ...")
+            progress(f"  {label}: {runs} runs x {len(scn.t)} steps ...")
         t0 = time.perf_counter()
-        results[name] = run(
-            est, sim.measurements, sim.inputs if inputs is None else inputs[name],
-            x0=x0, P0=np.diag(settings["P0"]), theta0=theta0,
-            P_theta0=np.diag(settings["P_theta0"]), key=k_run, return_covariances=True,
-        )
-        seconds[name] = time.perf_counter() - t0
+        out = run(est, sim.measurements, us, x0=x0, P0=np.diag(settings["P0"]), theta0=theta0,
+                  P_theta0=np.diag(settings["P_theta0"]), key=k_run, **kw)
+        seconds[label] = time.perf_counter() - t0
         if progress:
-            n_div = int(np.sum(results[name].diverged))
-            progress(f" {seconds[name]:.1f} s" + (f", {n_div} diverged" if n_div else "") + "\n")
+            n_div = int(np.sum(out.diverged))
+            progress(f" {seconds[label]:.1f} s" + (f", {n_div} diverged" if n_div else "") + "\n")
+        return out
+
+    for name, est in estimators.items():
+        us = sim.inputs if inputs is None else inputs[name]
+        results[name] = timed(name, est, us, return_covariances=True)
         if smooth and est.smoother is not None:
-            label = f"{name} {SMOOTHED}"
-            if progress:
-                progress(f"  {label}: {runs} runs x {len(scn.t)} steps ...")
-            t0 = time.perf_counter()
-            smoothed[name] = run(
-                est, sim.measurements, sim.inputs if inputs is None else inputs[name],
-                x0=x0, P0=np.diag(settings["P0"]), theta0=theta0,
-                P_theta0=np.diag(settings["P_theta0"]), key=k_run, smooth=True,
-            )
-            seconds[label] = time.perf_counter() - t0
-            if progress:
-                n_div = int(np.sum(smoothed[name].diverged))
-                progress(f" {seconds[label]:.1f} s" + (f", {n_div} diverged" if n_div else "")
-                         + "\n")
+            smoothed[name] = timed(f"{name} {SMOOTHED}", est, us, smooth=True)
     p_units = tuple(model.param_units[i] for i in model.param_index(estimate))
     return Stage(sim, results, truth, tuple(estimate), seconds, theta0, p_units,
                  tuple(model.state_units), np.asarray(box, dtype=float), tuning, smoothed)
