@@ -206,7 +206,7 @@ def _smoothed_study(estimator, method, return_cov, per_run, block, strategy, *ar
     as the study's outputs; ``cross`` (C, T-1, nx, nx) the lag-one cross-covariances. The
     filter's own RTS of a filter with a runs-last form, where the strategy uses that form,
     runs forward and backward with the runs axis last instead
-    (:func:`vehjax.smoothing.smooth_runs_last`): the same numbers to rounding, several times
+    (:func:`vehjax.smoothing._smooth_runs_last`): the same numbers to rounding, several times
     faster on the CPU (``vehjax bench smooth``)."""
     from . import smoothing
 
@@ -225,7 +225,7 @@ def _smoothed_study(estimator, method, return_cov, per_run, block, strategy, *ar
                          in_axes=tuple(0 if r else None for r in per_run))
         state0, _ = start(*args)
         us = args[1]
-        return as_result(smoothing.smooth_runs_last(estimator, filt, state0, us, us.ndim == 3))
+        return as_result(smoothing._smooth_runs_last(estimator, filt, state0, us, us.ndim == 3))
 
     def one(*a):
         return as_result(smoothing.smooth_one_run(estimator, *a, method=method))

@@ -59,7 +59,7 @@ from .filters.base import Estimator
 from .smoothers import gaussian as _gauss
 from .smoothers import iterated as _iter
 
-__all__ = ["SmoothResult", "smooth", "smooth_one_run", "smooth_runs_last", "check_options", "METHODS"]
+__all__ = ["SmoothResult", "smooth", "smooth_one_run", "check_options", "METHODS"]
 
 #: Gaussian smoothing methods (module docstring).
 METHODS = ("rts", "ieks", "ipls")
@@ -211,7 +211,7 @@ def _result(spec, nx: int, filt: FilterResult, M, P, cross, ll=None, k=None, con
     )
 
 
-def smooth_runs_last(estimator: Estimator, filt: FilterResult, state0, us,
+def _smooth_runs_last(estimator: Estimator, filt: FilterResult, state0, us,
                      per_run_inputs: bool) -> SmoothResult:
     """The filter's own RTS over a batch of runs whose forward pass ran with the runs-last step
     (``Estimator.batch``; what ``vehjax.run(..., smooth=True)`` does where the platform's
