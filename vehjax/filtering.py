@@ -133,7 +133,7 @@ def _all_finite(a):
     return jnp.all(jnp.isfinite(a))
 
 
-def output_ok(out: StepOutput, p: int, pd=is_pd, all_finite=_all_finite):
+def _output_ok(out: StepOutput, p: int, pd=is_pd, all_finite=_all_finite):
     """Whether a step's output is good (module docstring): a scalar for one run, or (C,) for a
     runs-last batch (``pd`` and ``all_finite`` of :mod:`vehjax.filters.runs_last`, on arrays
     with the runs axis last)."""
@@ -144,9 +144,15 @@ def output_ok(out: StepOutput, p: int, pd=is_pd, all_finite=_all_finite):
     return good
 
 
+#: the old public name of :func:`_output_ok`, kept only while ``vehjax/smoothers/particle.py``
+#: and ``vehjax/smoothers/marginalized.py`` import it (not in ``__all__``; to be removed when
+#: they import ``_output_ok``)
+output_ok = _output_ok
+
+
 def _scan_body(step, ok, return_cov: bool):
     """Scan body: one filter step, returning the per-step outputs and whether they are good.
-    ``ok(out)`` is :func:`output_ok` for the layout at hand."""
+    ``ok(out)`` is :func:`_output_ok` for the layout at hand."""
 
     def body(state, yu):
         state, out = step(state, *yu)
@@ -237,11 +243,11 @@ def _finish(per_step, held0, bounds=None) -> FilterResult:
     )
 
 
-def one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key):
+def _one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key):
     """One run, traced, without validation: y (T, ny), u (T, nu); x0 (nx,), P0 (nx, nx)."""
     p = len(estimator.param_names)
     state0, held0 = _start(estimator, y, u, x0, P0, th0, Pth0, key)
-    body = _scan_body(estimator.step, partial(output_ok, p=p), return_cov)
+    body = _scan_body(estimator.step, partial(_output_ok, p=p), return_cov)
     state, per_step = jax.lax.scan(body, state0, (y, u))
     return _finish(per_step, held0, estimator.bounds)._replace(state=state)
 
@@ -309,5 +315,5 @@ def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_th
     """
     ys, us, x0, P0, th0, Pth0 = _checked(estimator, measurements, inputs, x0, P0, theta0,
                                          P_theta0, key)
-    return one_run(estimator, bool(return_covariances), jnp.asarray(ys), jnp.asarray(us),
-                   jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key)
+    return _one_run(estimator, bool(return_covariances), jnp.asarray(ys), jnp.asarray(us),
+                    jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key)

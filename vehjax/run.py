@@ -10,7 +10,7 @@ Time convention (the papers' order): ``x0``/``P0`` describe the state before the
 step ``t`` predicts with ``inputs[..., t, :]``, then updates with ``measurements[:, t, :]``, so
 ``out.states[:, t]`` is the filtered estimate after the ``t``-th measurement.
 
-Each run is :func:`vehjax.filter`'s traced logic (``vehjax.filtering.one_run``), vmapped over
+Each run is :func:`vehjax.filter`'s traced logic (``vehjax.filtering._one_run``), vmapped over
 the runs of a chunk. Estimators with a runs-last ``batch`` form (EKF, UKF and CKF on models with at
 most 8 states and outputs, :mod:`vehjax.filters._runs_last`) are not vmapped where the execution
 strategy says so: one scan runs the batched step with the runs axis last, and what the model
@@ -146,7 +146,7 @@ def _scan_prefetched(body, carry0, xs, pre):
 
 def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per_run, ys, us, x0,
                      P0, th0, Pth0, keys) -> FilterResult:
-    """What ``vmap(filtering.one_run)`` computes, for an estimator with a runs-last ``batch``
+    """What ``vmap(filtering._one_run)`` computes, for an estimator with a runs-last ``batch``
     form: one scan over time of the batched step, every array with the runs axis last (see
     :mod:`vehjax.filters._runs_last`); the same per-run bookkeeping (``filtering._finish``)."""
     p = len(estimator.param_names)
@@ -158,7 +158,7 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per
     batch = estimator.batch(per_run_u, held0[0].dtype, th0 is None)
     state0 = jax.tree.map(lambda a: jnp.moveaxis(a, 0, -1), state0)
 
-    ok = partial(filtering.output_ok, p=p, pd=_runs_last.is_pd,
+    ok = partial(filtering._output_ok, p=p, pd=_runs_last.is_pd,
                  all_finite=_runs_last.all_finite)
     body = filtering._scan_body(batch.step, ok, return_cov)
 
@@ -172,9 +172,9 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per
 
 
 def _vmapped_study(estimator, return_cov, per_run, block, *args):
-    """:func:`filtering.one_run` over the runs (leading axis of the per-run arguments), in
+    """`filtering._one_run` over the runs (leading axis of the per-run arguments), in
     blocks of ``block`` runs vmapped side by side (all at once when ``block`` is None)."""
-    one = partial(filtering.one_run, estimator, return_cov)
+    one = partial(filtering._one_run, estimator, return_cov)
     side_by_side = jax.vmap(one, in_axes=tuple(0 if r else None for r in per_run))
     return _blocked(side_by_side, per_run, block, args)
 

@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _validate
-from .filtering import FilterResult, _checked, _finish, _scan_body, _start, output_ok
+from .filtering import FilterResult, _checked, _finish, _output_ok, _scan_body, _start
 from .filters._linalg import is_pd, sym
 from .filters.base import Estimator
 from .smoothers import gaussian as _gauss
@@ -103,7 +103,7 @@ def forward(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
     """The filter over one run, keeping its states: (states at t = 0..T stacked, FilterResult)."""
     p = len(estimator.param_names)
     state0, held0 = _start(estimator, y, u, x0, P0, th0, Pth0, key)
-    inner = _scan_body(estimator.step, lambda out: output_ok(out, p), True)
+    inner = _scan_body(estimator.step, lambda out: _output_ok(out, p), True)
 
     def body(state, yu):
         new, per_step = inner(state, yu)
