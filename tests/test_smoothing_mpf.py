@@ -201,8 +201,10 @@ def test_bad_input_names_the_argument():
         ms.smooth(_known_noise_mpf(10), ys, us, n_trajectories=0, **kw)
     with pytest.raises(ValueError, match="method"):
         ms.smooth(_known_noise_mpf(10), ys, us, method="ffbsi", **kw)
-    with pytest.raises(ValueError, match="estimator.*kalman_states"):
-        ms.smooth(_known_noise_mpf(10, kalman_states="linear"), ys, us, **kw)
+    lin = _known_noise_mpf(10, kalman_states="linear")  # smoothed since issue 29's item 2
+    undeclared = lin._replace(rao_blackwell=lin.rao_blackwell._replace(setup=None))
+    with pytest.raises(ValueError, match="estimator.*kalman_states='linear'"):
+        ms.smooth(undeclared, ys, us, **kw)
     with pytest.raises(ValueError, match="estimator"):
         ms.smooth(vj.filters.ukf(_model(), np.eye(2) * 0.01, np.eye(2) * 0.01), ys, us, **kw)
     with pytest.raises(ValueError, match="key"):
@@ -239,3 +241,144 @@ def test_single_track_bank_smoke():
     assert not bool(sm.diverged)
     assert np.all(np.isfinite(sm.states)) and np.all(np.isfinite(sm.params))
     assert np.all(np.linalg.eigvalsh(np.asarray(sm.covariances)) > 0)
+
+
+# ----------------------------------------------------------------------------------------------
+# kalman_states="linear" (the paper's Algorithm 1): each particle samples v, a Kalman filter of
+# the linear state a. A second model with the linear state feeding the sampled one (AB), the
+# offset driving it (GZ) and the measurements (DY):
+# v' = 0.95 v + AB a + 0.1 (u + w), a' = 0.05 v + 0.9 a + GZ (u + w) + zeta,
+# y = (v + CA a + e1, a + DY (u + w) + e2)
+AB, GZ, CA, DY = 0.1, 0.05, 0.3, 0.2
+
+
+def _model_lin(ab=AB):
+    def f(x, u, th):
+        return jnp.stack([0.95 * x[0] + ab * x[1] + 0.1 * u[0],
+                          0.05 * x[0] + 0.9 * x[1] + GZ * u[0]])
+
+    def h(x, u, th):
+        return jnp.stack([x[0] + CA * x[1], x[1] + DY * u[0]])
+
+    return vj.models.Model(transition=f, observe=h, dt=0.1, state_names=("v", "a"),
+                           input_names=("u",), output_names=("y1", "y2"), param_names=())
+
+
+LAM_LIN = 0.9
+
+
+def _linear_mpf(n, ab=AB):
+    """The paper's filter on _model_lin, noise statistics unknown and forgotten (lambda 0.9), so
+    that the plug-in estimates move along a path."""
+    return marginalized_pf(
+        _model_lin(ab), n, noisy_input="u", sensors=("y1",), known_std={"y2": SD2},
+        linear_states=("a",), linear_noise_std=SIG_Z, std0={"u": 0.5, "y1": 0.2},
+        forgetting=LAM_LIN, kalman_states="linear")
+
+
+def _batch_path_reference(xs, m0, P0z, mu, lam_w, lam_e, nus, ys, us, ab=AB):
+    """Exact Gaussian conditioning, in one batch, of the linear state a along a fixed path v_t
+    (t = 0 .. T-1) of _model_lin, with the plug-in noise of each step t read from the path's
+    statistics at t - 1 as the paper's filter uses them (eq. 20 forgetting, eq. 23 means):
+    w_t ~ N(mu_w, sigma_w^2), e1 ~ N(b, R). Variables V = (a_0, w_1..w_T-1, zeta_1..zeta_T-1),
+    prior a_0 ~ N(m0, P0z) (the path's filtered moments at 0); a_t = c_t + L_t V; observed:
+    v_t - 0.95 v_t-1 - 0.1 u_t = AB a_t-1 + 0.1 w_t exactly, y1_t - v_t - b = CA a_t + e1 (when
+    not NaN), y2_t - DY u_t = a_t + DY w_t + e2. Returns the filtered and the smoothed means
+    (T,), variances (T,) and the smoothed Cov(a_t-1, a_t) (T - 1,)."""
+    T = len(xs)
+    n = 2 * T - 1
+    mean = np.zeros(n)
+    cov = np.zeros((n, n))
+    mean[0], cov[0, 0] = m0, P0z
+    c, L = np.zeros(T), np.zeros((T, n))
+    L[0, 0] = 1.0
+    rows, vals, noise, when = [], [], [], []
+    d = 2
+    for t in range(1, T):
+        iw, iz = t, T - 1 + t
+        nu_p = LAM_LIN * nus[t - 1]
+        mean[iw] = mu[t - 1, 0]
+        cov[iw, iw] = LAM_LIN * lam_w[t - 1] / (nu_p - d - 1)
+        cov[iz, iz] = SIG_Z**2
+        R1 = LAM_LIN * lam_e[t - 1, 0, 0] / (nu_p - d - 1)
+        b1 = mu[t - 1, 1]
+        c[t] = 0.05 * xs[t - 1] + 0.9 * c[t - 1] + GZ * us[t]
+        L[t] = 0.9 * L[t - 1]
+        L[t, iw] += GZ
+        L[t, iz] += 1.0
+        e_w = np.zeros(n)
+        e_w[iw] = 1.0
+        rows.append(ab * L[t - 1] + 0.1 * e_w)
+        vals.append(xs[t] - 0.95 * xs[t - 1] - 0.1 * us[t] - ab * c[t - 1])
+        noise.append(0.0), when.append(t)
+        if np.isfinite(ys[t, 0]):
+            rows.append(CA * L[t]), vals.append(ys[t, 0] - xs[t] - CA * c[t] - b1)
+            noise.append(R1), when.append(t)
+        rows.append(L[t] + DY * e_w), vals.append(ys[t, 1] - DY * us[t] - c[t])
+        noise.append(SD2**2), when.append(t)
+    H, r, Rn, when = np.array(rows), np.array(vals), np.diag(noise), np.array(when)
+
+    def condition(k):  # on the observations up to time k
+        o = when <= k
+        Ho = H[o]
+        S = Ho @ cov @ Ho.T + Rn[np.ix_(o, o)]
+        K = np.linalg.solve(S, Ho @ cov).T
+        return mean + K @ (r[o] - Ho @ mean), cov - K @ S @ K.T
+
+    filt_m, filt_v = np.empty(T), np.empty(T)
+    for k in range(T):
+        mk, Ck = condition(k)
+        filt_m[k], filt_v[k] = c[k] + L[k] @ mk, L[k] @ Ck @ L[k]
+    mT, CT = condition(T)
+    sm_m = c + L @ mT
+    sm_v = np.einsum("ti,ij,tj->t", L, CT, L)
+    sm_c = np.einsum("ti,ij,tj->t", L[:-1], CT, L[1:])
+    return filt_m, filt_v, sm_m, sm_v, sm_c
+
+
+def test_linear_path_rts_is_the_exact_conditional_given_the_path():
+    """kalman_states="linear", one fixed path (made up here: sampled states, NiW statistics
+    moving along it, two NaN sensor readings): the filtered moments of the linear state from
+    ms.linear_step_joint run forward, and the path's RTS (ms.linear_path_rts) from them, equal
+    batch Gaussian conditioning of the conditionally linear model along the path (numpy, above)
+    to 1e-9: filtered and smoothed means and variances and the lag-one covariances."""
+    est = _linear_mpf(4)
+    rb = est.rao_blackwell
+    rng = np.random.default_rng(7)
+    ys, us = _data(seed=11)
+    xs = np.cumsum(0.3 * rng.normal(size=T))[:, None]
+    mu = np.stack([0.3 + 0.1 * rng.normal(size=T), 0.2 + 0.05 * rng.normal(size=T)], 1)
+    nus = 8.0 + np.arange(T) * 0.5
+    lam_w = (0.5 + rng.uniform(size=T)) * 0.3 * nus
+    lam_e = ((0.5 + rng.uniform(size=T)) * 0.02 * nus)[:, None, None]
+    m0, P0z = -0.1, 0.07
+    theta = jnp.asarray(rb.theta, float)
+
+    @jax.jit
+    def run(xs, mu, lam_w, lam_e, nus, ys, us):
+        def fwd(carry, k):
+            z, P = carry
+            x_prev, mu_p, lw_p, le_p, nu_p, x_new, y, u = k
+            mean, cov = ms.linear_step_joint(rb, theta, x_prev, z, P, mu_p, lw_p, le_p, nu_p,
+                                             x_new, y, u)
+            return (mean[1:], cov[1:, 1:]), (mean[1:], cov[1:, 1:])
+
+        z0, Pz0 = jnp.array([m0]), jnp.array([[P0z]])
+        _, (zf, Pf) = jax.lax.scan(fwd, (z0, Pz0), (xs[:-1], mu[:-1], lam_w[:-1], lam_e[:-1],
+                                                    nus[:-1], xs[1:], ys[1:], us[1:]))
+        zf, Pf = jnp.concatenate([z0[None], zf]), jnp.concatenate([Pz0[None], Pf])
+        return (zf, Pf) + ms.linear_path_rts(rb, theta, ys, us, nus, xs, zf, Pf, mu, lam_w,
+                                             lam_e)
+
+    zf, Pf, zs, Ps, cross = map(np.asarray, run(xs, mu, lam_w, lam_e, nus, ys, us))
+    fm, fv, sm_m, sm_v, sm_c = _batch_path_reference(xs[:, 0], m0, P0z, mu, lam_w, lam_e, nus,
+                                                    ys, us[:, 0])
+    assert np.isnan(ys[NAN_STEPS[0], 0])
+    np.testing.assert_allclose(zf[:, 0], fm, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(Pf[:, 0, 0], fv, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(zs[:, 0], sm_m, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(Ps[:, 0, 0], sm_v, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(cross[:, 0, 0], sm_c, rtol=0, atol=1e-9)
+    # the smoothing did something: the smoothed differ from the filtered beyond 1e-9
+    assert np.max(np.abs(zs[:-1, 0] - zf[:-1, 0])) > 1e-3
+    assert np.all(sm_v[:-1] < fv[:-1])

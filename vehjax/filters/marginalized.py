@@ -237,6 +237,9 @@ class RBTransition(NamedTuple):
         nz: number of linear states.
         gauss: the particles carry a Gaussian over all states (``kalman_states="all"`` with
             linear states).
+        setup, model: the filter's constants (``_Setup``) and model functions (``_Model``),
+            from which the smoother recomputes a step's Kalman filter of the linear states
+            with ``kalman_states="linear"``.
     """
 
     predict: Callable
@@ -244,6 +247,8 @@ class RBTransition(NamedTuple):
     order: np.ndarray
     nz: int
     gauss: bool
+    setup: Any = None
+    model: Any = None
 
 
 def _masked(M, obs):
@@ -856,7 +861,7 @@ def marginalized_pf(
                    resampling, kalman_states, resample)
     mdl = _model_fns(model, s)
     rb = RBTransition(predict=functools.partial(_rb_predict, s, mdl), theta=mdl.theta,
-                      order=s.inv, nz=s.nz, gauss=s.gauss)
+                      order=s.inv, nz=s.nz, gauss=s.gauss, setup=s, model=mdl)
     return Estimator(
         init=functools.partial(_init, s), step=functools.partial(_step, s, mdl), nx=s.nx,
         param_names=s.param_names, name="marginalized_pf", needs_key=True,

@@ -77,12 +77,13 @@ import numpy as np
 
 from .. import _validate
 from ..filtering import output_ok
+from ..filters._mpf_linearise import linearise
 from ..filters._niw import noise_estimates
 from ..filters.base import Estimator
 
 __all__ = [
     "MPFSmootherResult", "smooth", "trace_ancestors", "psd_right_solve", "rts_step",
-    "mixture_moments",
+    "mixture_moments", "linear_step_joint", "linear_path_rts",
 ]
 
 
@@ -190,6 +191,79 @@ def _mixture_cross(m0, m1, cross):
     return jnp.mean(cross, axis=0) + jnp.einsum("mi,mj->ij", d0, d1) / m0.shape[0]
 
 
+def linear_step_joint(rb, theta, x_prev, z_prev, P_prev, mu, lam_w, lam_e, nu, x_new, y, u):
+    """Step t of one particle's Kalman filter of the linear states (``kalman_states="linear"``,
+    sec. 3.4 as :func:`vehjax.filters._mpf_kalman.bank_kalman_step` does it) recomputed with
+    z_t-1 kept: the joint Gaussian of (z_t-1, z_t) given the particle's path x_0:t and y_0:t.
+
+    With s1 = z_t-1 - m, s2 = w_t - mu_w, zeta_t the linear states' process noise (prior
+    N(0, blockdiag(P, sigma_w^2, Qz))), the linearisation at (x_t-1, m, u_t) and the point
+    estimates of eq. 23 after eq. 20's forgetting (the filter's, from the particle's statistics
+    at t - 1): the vehicle model along g, r1 = g^+ (x_t - xb) - mu_w = a^T s1 + s2 exactly
+    (a = A_bar^T g^+^T), and the observed components of y_t, o2 = y - yb - Cx (x_t - xb)
+    - (Cz gz + d) mu_w - b = Cz (A s1 + gz s2 + zeta) + d s2 + e, e ~ N(0, R_y), condition the
+    Gaussian of (s1, s2, zeta); then z_t-1 = m + s1 and z_t = zb + gz mu_w + A s1 + gz s2 +
+    zeta. The z_t block is the filter's posterior at t (to rounding).
+
+    Args:
+        rb: the filter's :class:`~vehjax.filters.marginalized.RBTransition`.
+        theta: model parameters.  x_prev (n_xs,), z_prev (n_z,), P_prev (n_z, n_z): the
+            particle at t - 1.  mu (d,), lam_w (), lam_e (n_s, n_s), nu (): its NiW statistics
+            at t - 1.  x_new (n_xs,): its sampled states at t.  y (ny,), u (nu,): at t.
+
+    Returns:
+        (mean (2 n_z,), cov (2 n_z, 2 n_z)) of (z_t-1, z_t).
+    """
+    s, mdl = rb.setup, rb.model
+    dtype = x_prev.dtype
+    nz, rows = s.nz, np.asarray(s.u_idx)
+    srow = np.asarray(s.srow, int)
+    lin = linearise(mdl.f, mdl.h, x_prev, z_prev, u, theta, s.nl, s.li, s.i_in)
+    yb, Cx, Cz, d = lin.yb[rows], lin.Cx[rows], lin.Cz[rows], lin.d[rows]
+    yu = y[rows]
+    obs = ~jnp.isnan(yu)
+    # the point estimates the filter's step uses (eq. 20, 23)
+    nu_p = s.lam * nu
+    inv_den = 1.0 / (nu_p - s.d - 1.0)
+    sig_w2 = s.lam * lam_w * inv_den
+    mu_w = mu[0]
+    b_y = jnp.zeros(len(rows), dtype).at[srow].set(mu[1:])
+    R_y = jnp.diag(jnp.asarray(s.kvu, dtype)).at[np.ix_(srow, srow)].set(
+        s.lam * lam_e * inv_den)
+    g = lin.g
+    gg = g @ g
+    gp = g / jnp.where(gg > 0, gg, 1.0)
+    a = lin.Ab.T @ gp
+    dx = x_new - lin.xb
+    r1 = gp @ dx - mu_w
+    o2 = jnp.where(obs, yu - yb - Cx @ dx - (Cz @ lin.gz + d) * mu_w - b_y, 0.0)
+    Qz = jnp.asarray(s.Qz, dtype)
+    n = 2 * nz + 1
+    Sv = jnp.zeros((n, n), dtype).at[:nz, :nz].set(P_prev).at[nz, nz].set(sig_w2)
+    Sv = Sv.at[nz + 1:, nz + 1:].set(Qz)
+    H = jnp.concatenate([
+        jnp.concatenate([a, jnp.ones(1, dtype), jnp.zeros(nz, dtype)])[None],
+        jnp.concatenate([Cz @ lin.A, (Cz @ lin.gz + d)[:, None], Cz], axis=1)], axis=0)
+    ob = jnp.concatenate([jnp.ones(1, bool), obs])
+    H = jnp.where(ob[:, None], H, 0.0)
+    R = jnp.zeros((len(ob), len(ob)), dtype).at[1:, 1:].set(R_y)
+    R = jnp.where(ob[:, None] & ob[None, :], R, jnp.eye(len(ob), dtype=dtype))
+    r = jnp.concatenate([r1[None], o2])
+    HS = H @ Sv
+    S = HS @ H.T + R
+    L = jnp.linalg.cholesky(0.5 * (S + S.T))
+    B = jax.scipy.linalg.solve_triangular(L, HS, lower=True)  # L^-1 H Sv
+    alpha = jax.scipy.linalg.solve_triangular(L, r, lower=True)
+    mv = B.T @ alpha
+    Cv = Sv - B.T @ B
+    J = jnp.zeros((2 * nz, n), dtype).at[:nz, :nz].set(jnp.eye(nz, dtype=dtype))
+    J = J.at[nz:, :nz].set(lin.A).at[nz:, nz].set(lin.gz).at[nz:, nz + 1:].set(
+        jnp.eye(nz, dtype=dtype))
+    mean = jnp.concatenate([z_prev, lin.zb + lin.gz * mu_w]) + J @ mv
+    cov = J @ Cv @ J.T
+    return mean, 0.5 * (cov + cov.T)
+
+
 # ----------------------------------------------------------------------------------------------
 # The passes
 
@@ -245,6 +319,30 @@ def _path_rts(rb, us, theta, xs, zs, Ps, ws):
     return (jnp.concatenate([m, s[-1:]]), jnp.concatenate([P, Ps[-1:]]), cross)
 
 
+def linear_path_rts(rb, theta, ys, us, nus, xs, zs, Ps, mu, lam_w, lam_e):
+    """RTS of the linear states along one path with ``kalman_states="linear"``: the path's
+    sampled states xs (T, n_xs), its filtered moments zs (T, n_z), Ps (T, n_z, n_z) and NiW
+    statistics mu (T, d), lam_w (T,), lam_e (T, n_s, n_s) after each step; nus (T,) the shared
+    dof; ys (T, ny), us (T, nu) the data. Each step's joint of (z_t-1, z_t) given the
+    data up to t (:func:`linear_step_joint`, vectorised over t), then the backward recursion
+    with it. Returns smoothed means (T, n_z), covariances (T, n_z, n_z), lag-one covariances
+    (T - 1, n_z, n_z)."""
+    nz = zs.shape[-1]
+    joint = jax.vmap(lambda *a: linear_step_joint(rb, theta, *a))
+    mean, cov = joint(xs[:-1], zs[:-1], Ps[:-1], mu[:-1], lam_w[:-1], lam_e[:-1], nus[:-1],
+                      xs[1:], ys[1:], us[1:])
+
+    def body(carry, k):
+        m_next, P_next = carry
+        mj, Cj = k
+        m_s, P_s, cross = rts_step(mj[:nz], Cj[:nz, :nz], mj[nz:], Cj[nz:, nz:], Cj[:nz, nz:],
+                                   m_next, P_next)
+        return (m_s, P_s), (m_s, P_s, cross)
+
+    _, (m, P, cross) = jax.lax.scan(body, (zs[-1], Ps[-1]), (mean, cov), reverse=True)
+    return jnp.concatenate([m, zs[-1:]]), jnp.concatenate([P, Ps[-1:]]), cross
+
+
 def _check(estimator, method, n_trajectories):
     """Validation particular to this smoother (before anything is traced)."""
     rb = estimator.rao_blackwell if isinstance(estimator, Estimator) else None
@@ -252,11 +350,10 @@ def _check(estimator, method, n_trajectories):
         name = getattr(estimator, "name", type(estimator).__name__)
         raise ValueError(f"estimator: the marginalized-PF smoother needs a marginalized_pf "
                          f"estimator, got {name!r}")
-    if rb.nz and not rb.gauss:
+    if rb.nz and not rb.gauss and (rb.setup is None or rb.model is None):
         raise ValueError(
-            "estimator: marginalized_pf with kalman_states='linear' and linear states has no "
-            "Gaussian per particle to smooth (module docstring); build it with "
-            "kalman_states='all'")
+            "estimator: this marginalized_pf with kalman_states='linear' does not declare its "
+            "setup and model (RBTransition.setup, .model), which the smoother needs")
     if method is not None:
         _validate.choice("method", method, ("ancestor",))
     return _validate.integer("n_trajectories", n_trajectories, 1, 2**24)
@@ -314,13 +411,23 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, key, meth
 
     xs, zs, Ps, ws = take(fwd.x), take(fwd.z), take(fwd.P), take(fwd.offset)
     theta = jnp.asarray(rb.theta).astype(dtype)
+    nxs, nz = xs.shape[-1], rb.nz
+    nk = nxs + nz
     if rb.gauss and T > 1:
         ms, Pss, cross = jax.vmap(lambda a, b, c, d: _path_rts(rb, us, theta, a, b, c, d))(
             xs, zs, Ps, ws)
+    elif nz and T > 1:  # kalman_states="linear": the path's x, an RTS of its linear states
+        ys_d = ys.astype(dtype)
+        zsm, Pz, cz = jax.vmap(
+            lambda *a: linear_path_rts(rb, theta, ys_d, us, fwd.nu, *a))(
+            xs, zs, Ps, take(fwd.mu), take(fwd.lam_w), take(fwd.lam_e))
+        ms = jnp.concatenate([xs, zsm], axis=2)
+        Pss = jnp.zeros(ms.shape + (nk,), dtype).at[..., nxs:, nxs:].set(Pz)
+        cross = jnp.zeros((m, T - 1, nk, nk), dtype).at[..., nxs:, nxs:].set(cz)
     else:  # the path is the trajectory (planar filter), or one step: the filtered moments
         ms = jnp.concatenate([xs, zs], axis=2)
-        nk = ms.shape[-1]
-        Pss = jnp.zeros(ms.shape + (nk,), dtype) if not rb.gauss else Ps
+        Pss = Ps if rb.gauss else jnp.zeros(ms.shape + (nk,), dtype).at[
+            ..., nxs:, nxs:].set(Ps)
         cross = jnp.zeros((m, max(T - 1, 0), nk, nk), dtype)
     inv = np.asarray(rb.order)
     ms, Pss, cross = ms[..., inv], Pss[..., inv, :][..., inv], cross[..., inv, :][..., inv]
