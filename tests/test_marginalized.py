@@ -501,6 +501,33 @@ def test_float32_runs_and_learns():
     assert np.all(np.abs(err_deg) < 0.05), err_deg
 
 
+@pytest.mark.slow  # compiles the MPF's step twice, well over 5 s on 2 cores: `pytest -m slow`
+def test_many_runs_form_equals_the_step_run_by_run():
+    """The Estimator contract (tests/_contract.py): what ``vehjax.run`` computes for many runs
+    at once equals the step run by run. The MPF has no runs-last ``batch``, so that is
+    ``vmap(step)``; each run with its own prior, key and data, one reading missing. A tiny user
+    model with one Kalman state: the bank filter's step compiles several times slower."""
+    from _contract import assert_batch_equals_step
+
+    def trans(x, u, th):
+        return jnp.stack([0.9 * x[0] + 0.1 * u[0], 0.95 * x[1] + 0.05 * x[0]])
+
+    model = vj.models.Model(transition=trans, observe=lambda x, u, th: jnp.stack([x[0], x[1]]),
+                            dt=0.1, state_names=("v", "w"), input_names=("u",),
+                            output_names=("y", "z"))
+    T, runs = 5, 3
+    rng = np.random.default_rng(1)
+    ys, us = rng.normal(size=(runs, T, 2)), rng.normal(size=(T, 1))
+    ys[1, 2, 0] = np.nan
+    est = marginalized_pf(model, 8, noisy_input="u", sensors=("y",), linear_states=("w",),
+                          known_std={"z": 0.2}, linear_noise_std=0.05,
+                          std0={"u": 0.5, "y": 0.3})
+    x0 = 0.1 * np.arange(runs)[:, None] * np.ones((runs, 2))
+    form = assert_batch_equals_step(est, ys, us, x0, np.eye(2),
+                                    keys=jax.random.split(jax.random.key(0), runs))
+    assert form == ("batch" if est.batch is not None else "vmap")
+
+
 # ----------------------------------------------------------------------------------------------
 # bad input
 
