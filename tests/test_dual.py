@@ -198,7 +198,9 @@ def _augmented_kinematic():
     )
 
 
-@pytest.mark.parametrize("builder", [dual_ekf, dual_ukf, joint_ekf, joint_ukf])
+# dual EKF and joint UKF cover both forms and both filters; the other two: `pytest -m slow`
+@pytest.mark.parametrize("builder", [dual_ekf, pytest.param(dual_ukf, marks=pytest.mark.slow),
+                                     pytest.param(joint_ekf, marks=pytest.mark.slow), joint_ukf])
 def test_all_missing_step_predicts_state_and_keeps_parameters(builder):
     """A NaN measurement: the state is predicted, the parameter mean unchanged, its covariance
     grown by Q_theta. The reference is vehjax's EKF/UKF (tested against numpy and filterpy):
@@ -316,7 +318,8 @@ def test_bad_prior_raises(builder):
                P_theta0=np.eye(2))
 
 
-@pytest.mark.parametrize("builder", [dual_ekf, dual_ukf, joint_ekf, joint_ukf])
+@pytest.mark.parametrize("builder", [dual_ekf, pytest.param(dual_ukf, marks=pytest.mark.slow),
+                                     pytest.param(joint_ekf, marks=pytest.mark.slow), joint_ukf])
 def test_many_runs_form_equals_the_step_run_by_run(builder):
     """What run computes for many runs (the runs-last batch step, or vmap of the step when the
     filter has none) equals the step run by run, each run with its own theta0."""

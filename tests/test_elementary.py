@@ -42,15 +42,16 @@ def test_arctan2_matches_numpy_in_every_quadrant():
 
 def test_derivative_is_that_of_arctan():
     x = jnp.array([0.0, 0.3, -1.0, 2.5, 1e4])
-    np.testing.assert_allclose(jax.vmap(jax.grad(arctan))(x), 1 / (1 + x**2), rtol=1e-15)
+    # every derivative below under jit: one compile each, not one per primitive op by op
+    np.testing.assert_allclose(jax.jit(jax.vmap(jax.grad(arctan)))(x), 1 / (1 + x**2), rtol=1e-15)
     # arctan2: d/dy atan2(y, x) = x / (x^2 + y^2), d/dx = -y / (x^2 + y^2), as jnp.arctan2's,
     # in every quadrant, forward and reverse mode
     rng = np.random.default_rng(5)
     y, x = rng.normal(size=(2, 64)) * np.array([[1.0], [3.0]])
     for argnums in (0, 1):
-        ref = jax.vmap(jax.grad(jnp.arctan2, argnums))(y, x)
+        ref = jax.jit(jax.vmap(jax.grad(jnp.arctan2, argnums)))(y, x)
         for grad in (jax.grad, lambda f, a: (lambda *v: jax.jacfwd(f, a)(*v))):
-            got = jax.vmap(grad(arctan2, argnums))(y, x)
+            got = jax.jit(jax.vmap(grad(arctan2, argnums)))(y, x)
             np.testing.assert_allclose(got, ref, rtol=1e-14)
     g = jax.grad(arctan2)(0.7, -1.3)
     assert g == pytest.approx(-1.3 / (0.7**2 + 1.3**2), rel=1e-14)

@@ -93,9 +93,11 @@ def test_dependence_is_conservative_for_reductions_and_products():
     assert M.all() and c.all()
 
 
-@pytest.mark.parametrize("model", [vj.models.SingleTrackBank(dt=0.01),
-                                   vj.models.Dynamic3DOF(dt=0.01),
-                                   vj.models.KinematicBicycle(dt=0.01)],
+@pytest.mark.parametrize("model", [
+    vj.models.SingleTrackBank(dt=0.01),
+    # the other two models: about 20 s of compiling each on 2 cores (`pytest -m slow`)
+    pytest.param(vj.models.Dynamic3DOF(dt=0.01), marks=pytest.mark.slow),
+    pytest.param(vj.models.KinematicBicycle(dt=0.01), marks=pytest.mark.slow)],
                          ids=lambda m: type(m).__name__)
 def test_entries_found_constant_are_the_same_at_random_points(model):
     """Sound on the built-in models: every Jacobian entry of transition and observe that

@@ -88,6 +88,7 @@ def _keys(n, seed=0):
     return jax.random.split(jax.random.key(seed), n)
 
 
+@pytest.mark.slow  # a convergence study over particle counts: `pytest -m slow` (README)
 def test_close_to_kalman_and_error_shrinks_with_particles():
     """Full (correlated) R here; the diagonal-R code path is checked in the scheme test."""
     R = R_FULL
@@ -136,7 +137,10 @@ def test_loglik_estimate_is_unbiased():
 
 @pytest.mark.parametrize(
     "scheme, threshold",
-    [("systematic", 0.5), ("stratified", 1.0), ("multinomial", 0.5), ("residual", 0.5)],
+    # each scheme is checked against references in test_resampling.py; two of them through the
+    # whole filter here by default, the other two with `pytest -m slow`
+    [("systematic", 0.5), pytest.param("stratified", 1.0, marks=pytest.mark.slow),
+     pytest.param("multinomial", 0.5, marks=pytest.mark.slow), ("residual", 0.5)],
 )
 def test_every_scheme_tracks_the_kalman_filter(scheme, threshold):
     T = 20
@@ -295,6 +299,7 @@ def test_float32_prior_runs_in_float32():
     assert np.sqrt(np.mean(z**2)) < 0.15
 
 
+@pytest.mark.slow  # a small study (tracking error over runs): `pytest -m slow` (README)
 def test_dynamic3dof_follows_the_truth():
     model = vj.models.Dynamic3DOF(dt=0.01)
     scn = vj.scenarios.sine_steer(model, speed=20.0, duration=0.4)

@@ -95,6 +95,7 @@ def _z_rms(est, ref):
     return float(np.sqrt(np.mean(((est.mean(axis=0) - ref) / se) ** 2)))
 
 
+@pytest.mark.slow  # a convergence study at two particle counts: `pytest -m slow` (README)
 def test_ffbsi_means_converge_to_the_rts_smoother():
     """FFBSi's smoothed means (with two missing measurements) against the numpy RTS: the
     replicates' mean is within Monte-Carlo error of the RTS (z-scores from the replicates'

@@ -39,7 +39,9 @@ def study():
     return model, Q, R, ys, np.asarray(sim.inputs), x0, P0
 
 
-@pytest.mark.parametrize("build", [ukf, ckf, ekf], ids=["ukf", "ckf", "ekf"])
+# the cubature filter shares the unscented one's sigma-point path: `pytest -m slow`
+@pytest.mark.parametrize("build", [ukf, pytest.param(ckf, marks=pytest.mark.slow), ekf],
+                         ids=["ukf", "ckf", "ekf"])
 def test_runs_last_equals_vmapped_step(study, build):
     model, Q, R, ys, us, x0, P0 = study
     est = build(model, Q, R)
@@ -119,7 +121,9 @@ def test_only_small_models_and_constant_noise_get_a_runs_last_step():
     assert seen["runs_last"] is None
 
 
-@pytest.mark.parametrize("build", [ukf, ekf], ids=["ukf", "ekf"])
+# the EKF is the case with varying Jacobian entries; the UKF's: `pytest -m slow`
+@pytest.mark.parametrize("build", [pytest.param(ukf, marks=pytest.mark.slow), ekf],
+                         ids=["ukf", "ekf"])
 def test_runs_last_input_dependent_outputs(study, build):
     """The 'matlab' outputs (vx, ay, r) make observe depend on the input as well (and the
     EKF's measurement Jacobian has entries that vary besides its constant ones)."""
@@ -132,7 +136,8 @@ def test_runs_last_input_dependent_outputs(study, build):
         _assert_same(vj.run(est, ys, inputs, **kw), vj.run(_vmapped(est), ys, inputs, **kw), 1e-9)
 
 
-@pytest.mark.parametrize("build, per_run_inputs", [(ukf, False), (ukf, True), (ekf, True)],
+@pytest.mark.parametrize("build, per_run_inputs", [
+    pytest.param(ukf, False, marks=pytest.mark.slow), (ukf, True), (ekf, True)],
                          ids=["ukf-shared", "ukf-per-run", "ekf-per-run"])
 def test_runs_last_step_reads_theta_from_state_unless_constant(study, per_run_inputs, build):
     """With ``default_theta=False`` the batch step uses each run's theta from the state; with

@@ -50,8 +50,8 @@ def test_noise_statistics(setup):
     np.testing.assert_allclose(resid.std(axis=0), r_std, rtol=5 / np.sqrt(2 * n))
     assert np.all(np.abs(resid.mean(axis=0)) < 5 * r_std / np.sqrt(n))
     prev = np.concatenate([np.broadcast_to(sim.x0[:, None], (40, 1, 3)), sim.states[:, :-1]], axis=1)
-    pred = jax.vmap(jax.vmap(lambda x, u, th: model.transition(x, u, th), (0, 0, None)), (0, None, 0))(
-        prev, sim.inputs, sim.theta)
+    pred = jax.jit(jax.vmap(jax.vmap(lambda x, u, th: model.transition(x, u, th), (0, 0, None)),
+                            (0, None, 0)))(prev, sim.inputs, sim.theta)  # one compile
     w = np.asarray(sim.states - pred).reshape(-1, 3)
     np.testing.assert_allclose(w.std(axis=0), q_std, rtol=5 / np.sqrt(2 * n))
 
