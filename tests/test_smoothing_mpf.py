@@ -338,12 +338,12 @@ def _batch_path_reference(xs, m0, P0z, mu, lam_w, lam_e, nus, ys, us, ab=AB):
 
 def test_linear_path_rts_is_the_exact_conditional_given_the_path():
     """kalman_states="linear", one fixed path (made up here: sampled states, NiW statistics
-    moving along it, two NaN sensor readings): the filtered moments of the linear state from
-    ms.linear_step_joint run forward, and the path's RTS (ms.linear_path_rts) from them, equal
-    batch Gaussian conditioning of the conditionally linear model along the path (numpy, above)
-    to 1e-9: filtered and smoothed means and variances and the lag-one covariances."""
-    est = _linear_mpf(4)
-    rb = est.rao_blackwell
+    moving along it, two NaN sensor readings) with the filtered moments of the linear state
+    from batch conditioning on the data up to each t: the path's RTS (ms.linear_path_rts, which
+    recomputes each step's Kalman update with ms.linear_step_joint) equals batch Gaussian
+    conditioning on all the data (numpy, above) to 1e-9: smoothed means and variances and the
+    lag-one covariances (a wrong filtered moment in the recomputed step would show here)."""
+    rb = _linear_mpf(4).rao_blackwell
     rng = np.random.default_rng(7)
     ys, us = _data(seed=11)
     xs = np.cumsum(0.3 * rng.normal(size=T))[:, None]
@@ -351,34 +351,156 @@ def test_linear_path_rts_is_the_exact_conditional_given_the_path():
     nus = 8.0 + np.arange(T) * 0.5
     lam_w = (0.5 + rng.uniform(size=T)) * 0.3 * nus
     lam_e = ((0.5 + rng.uniform(size=T)) * 0.02 * nus)[:, None, None]
-    m0, P0z = -0.1, 0.07
+    fm, fv, sm_m, sm_v, sm_c = _batch_path_reference(xs[:, 0], -0.1, 0.07, mu, lam_w, lam_e,
+                                                    nus, ys, us[:, 0])
     theta = jnp.asarray(rb.theta, float)
-
-    @jax.jit
-    def run(xs, mu, lam_w, lam_e, nus, ys, us):
-        def fwd(carry, k):
-            z, P = carry
-            x_prev, mu_p, lw_p, le_p, nu_p, x_new, y, u = k
-            mean, cov = ms.linear_step_joint(rb, theta, x_prev, z, P, mu_p, lw_p, le_p, nu_p,
-                                             x_new, y, u)
-            return (mean[1:], cov[1:, 1:]), (mean[1:], cov[1:, 1:])
-
-        z0, Pz0 = jnp.array([m0]), jnp.array([[P0z]])
-        _, (zf, Pf) = jax.lax.scan(fwd, (z0, Pz0), (xs[:-1], mu[:-1], lam_w[:-1], lam_e[:-1],
-                                                    nus[:-1], xs[1:], ys[1:], us[1:]))
-        zf, Pf = jnp.concatenate([z0[None], zf]), jnp.concatenate([Pz0[None], Pf])
-        return (zf, Pf) + ms.linear_path_rts(rb, theta, ys, us, nus, xs, zf, Pf, mu, lam_w,
-                                             lam_e)
-
-    zf, Pf, zs, Ps, cross = map(np.asarray, run(xs, mu, lam_w, lam_e, nus, ys, us))
-    fm, fv, sm_m, sm_v, sm_c = _batch_path_reference(xs[:, 0], m0, P0z, mu, lam_w, lam_e, nus,
-                                                    ys, us[:, 0])
+    zs, Ps, cross = map(np.asarray, jax.jit(functools.partial(ms.linear_path_rts, rb, theta))(
+        ys, us, nus, xs, fm[:, None], fv[:, None, None], mu, lam_w, lam_e))
     assert np.isnan(ys[NAN_STEPS[0], 0])
-    np.testing.assert_allclose(zf[:, 0], fm, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(Pf[:, 0, 0], fv, rtol=0, atol=1e-9)
     np.testing.assert_allclose(zs[:, 0], sm_m, rtol=0, atol=1e-9)
     np.testing.assert_allclose(Ps[:, 0, 0], sm_v, rtol=0, atol=1e-9)
     np.testing.assert_allclose(cross[:, 0, 0], sm_c, rtol=0, atol=1e-9)
     # the smoothing did something: the smoothed differ from the filtered beyond 1e-9
-    assert np.max(np.abs(zs[:-1, 0] - zf[:-1, 0])) > 1e-3
+    assert np.max(np.abs(sm_m[:-1] - fm[:-1])) > 1e-3
     assert np.all(sm_v[:-1] < fv[:-1])
+
+
+@pytest.mark.slow  # the filter twice (its own scan and inside vj.smooth): about a minute on 2 cores
+def test_linear_one_path_of_the_filter_is_the_exact_conditional():
+    """vj.smooth with M = 1 on the paper's filter (kalman_states="linear", statistics unknown and
+    forgotten, two sensor readings missing): the one path's sampled states are the filter's
+    particle's, followed back through the genealogy here (the filter run again with the same
+    key), with zero smoothed variance, and its linear state's smoothed means, variances and
+    lag-one covariances equal batch Gaussian conditioning along that path (numpy, from the
+    path's own statistics and filtered moments at t = 0) to 1e-9."""
+    ys, us = _data(seed=4)
+    est = _linear_mpf(30)
+    key = jax.random.key(3)
+
+    @jax.jit
+    def forward(key):
+        def body(st, yu):
+            st, _ = est.step(st, *yu)
+            return st, st
+
+        return jax.lax.scan(body, est.init(X0, P0, None, None, key), (ys, us))[1]
+
+    sts = forward(key)
+    sm = jax.jit(lambda k: vj.smooth(est, ys, us, x0=X0, P0=P0, key=k, n_trajectories=1))(key)
+    x = np.asarray(sts.x)[:, 0]  # (T, N)
+    anc = np.asarray(sts.ancestors)
+    path = np.asarray(sm.path_states)[0]
+    j = np.flatnonzero(x[-1] == path[-1, 0])
+    assert j.size >= 1
+    idx = np.empty(T, int)
+    idx[-1] = j[0]
+    for t in range(T - 1, 0, -1):
+        idx[t - 1] = anc[t, idx[t]]
+    tt = np.arange(T)
+    np.testing.assert_array_equal(path[:, 0], x[tt, idx])
+    mu = np.asarray(sts.mu)[tt, :, idx]
+    lam_w = np.asarray(sts.lam_w)[tt, idx]
+    lam_e = np.asarray(sts.lam_e)[tt, :, :, idx]
+    z0, P0z = np.asarray(sts.z)[0, 0, idx[0]], np.asarray(sts.P)[0, 0, 0, idx[0]]
+    assert np.ptp(mu[:, 0]) > 1e-3  # the plug-in offset mean moves along the path
+    _, _, sm_m, sm_v, sm_c = _batch_path_reference(
+        x[tt, idx], z0, P0z, mu, lam_w, lam_e, np.asarray(sts.nu), ys, us[:, 0])
+    np.testing.assert_allclose(path[:, 1], sm_m, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(sm.states), path, rtol=0, atol=1e-12)
+    cov = np.asarray(sm.covariances)
+    np.testing.assert_allclose(cov[:, 1, 1], sm_v, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(sm.cross_covariances)[:, 1, 1], sm_c, rtol=0,
+                               atol=1e-9)
+    assert np.all(cov[:, 0, :] == 0.0)
+
+
+def _data_exact(seed=3):
+    """One run of _model_lin without the linear state in v (AB = 0), noise as _data's: the
+    "linear" filter with its noise known is then the exact Rao-Blackwellised filter (module
+    docstring of the smoother)."""
+    rng = np.random.default_rng(seed)
+    us = np.sin(0.3 * np.arange(T))[:, None]
+    x = rng.multivariate_normal(X0, P0)
+    ys = np.empty((T, 2))
+    for t in range(T):
+        w = MU_W + SIG_W * rng.normal()
+        u = us[t, 0] + w
+        x = np.array([0.95 * x[0] + 0.1 * u, 0.05 * x[0] + 0.9 * x[1] + GZ * u
+                      + SIG_Z * rng.normal()])
+        ys[t] = [x[0] + CA * x[1] + B1 + SD1 * rng.normal(), x[1] + DY * u + SD2 * rng.normal()]
+    ys[list(NAN_STEPS), 0] = np.nan
+    return ys, us
+
+
+def kalman_rts_exact(ys, us):
+    """Textbook Kalman filter and RTS smoother of _model_lin with AB = 0 and its noise known,
+    on the state (v, a, w_t) (w_t enters the transition and y2 alike). Returns smoothed means
+    (T, 2) and covariances (T, 2, 2) of (v, a)."""
+    F = np.array([[0.95, 0.0, 0.0], [0.05, 0.9, 0.0], [0.0, 0.0, 0.0]])
+    g = np.array([0.1, GZ, 1.0])
+    Q = SIG_W**2 * np.outer(g, g) + np.diag([0.0, SIG_Z**2, 0.0])
+    H = np.array([[1.0, CA, 0.0], [0.0, 1.0, DY]])
+    R = np.diag([SD1**2, SD2**2])
+    x, P = np.r_[X0, 0.0], np.zeros((3, 3))
+    P[:2, :2] = P0
+    xp, Pp, xf, Pf = [], [], [], []
+    for t in range(len(ys)):
+        x, P = F @ x + g * (us[t, 0] + MU_W) - np.r_[0.0, 0.0, us[t, 0]], F @ P @ F.T + Q
+        xp.append(x), Pp.append(P)
+        o = np.isfinite(ys[t])
+        Ho = H[o]
+        S = Ho @ P @ Ho.T + R[np.ix_(o, o)]
+        K = np.linalg.solve(S, Ho @ P).T
+        off = np.array([B1, DY * us[t, 0]])[o]
+        x, P = x + K @ (ys[t][o] - off - Ho @ x), P - K @ S @ K.T
+        xf.append(x), Pf.append(P)
+    n = len(ys)
+    xs, Ps = [None] * n, [None] * n
+    xs[-1], Ps[-1] = xf[-1], Pf[-1]
+    for t in range(n - 2, -1, -1):
+        G = np.linalg.solve(Pp[t + 1], F @ Pf[t]).T
+        xs[t] = xf[t] + G @ (xs[t + 1] - xp[t + 1])
+        Ps[t] = Pf[t] + G @ (Ps[t + 1] - Pp[t + 1]) @ G.T
+    return np.array(xs)[:, :2], np.array(Ps)[:, :2, :2]
+
+
+@functools.lru_cache(maxsize=None)
+def _smoothed_linear(n, reps=8):
+    ys, us = _data_exact()
+    est = marginalized_pf(
+        _model_lin(ab=0.0), n, noisy_input="u", sensors=("y1",), known_std={"y2": SD2},
+        linear_states=("a",), linear_noise_std=SIG_Z, std0={"u": SIG_W, "y1": SD1},
+        mean0={"u": MU_W, "y1": B1}, forgetting=1.0, nu0=1e7, gamma0=1e-9,
+        kalman_states="linear")
+
+    def one(key):
+        return vj.smooth(est, ys, us, x0=X0, P0=P0, key=key, n_trajectories=n)
+
+    keys = jax.random.split(jax.random.key(5), reps)
+    return jax.jit(jax.vmap(one))(keys)
+
+
+@pytest.mark.slow  # two MPF + smoother compiles: `pytest -m slow`
+def test_linear_smoothed_states_converge_to_the_rts_smoother():
+    """kalman_states="linear" (the paper's filter), noise known, a model on which it is the
+    exact Rao-Blackwellised filter (the linear state does not enter the sampled one; the offset
+    drives both states and y2 directly): the smoothed means of both states (two sensor readings
+    missing) are within Monte-Carlo error of the numpy RTS of the whole linear-Gaussian system
+    (z of the 8 replicates' mean, RMS < 2) at N = M = 50 and 400, the error shrinks with N
+    (expected ratio sqrt(8) = 2.8; asserted > 1.8), and at N = 400 the covariances are within
+    Monte-Carlo error of the RTS's."""
+    ys, us = _data_exact()
+    m, P = kalman_rts_exact(ys, us)
+    sd = np.sqrt(np.diagonal(P, axis1=1, axis2=2))
+    rms, zr = {}, {}
+    for n in (50, 400):
+        sm = _smoothed_linear(n)
+        assert not np.any(sm.diverged)
+        rms[n] = float(np.sqrt(np.mean(((np.asarray(sm.states) - m) / sd) ** 2)))
+        zr[n] = _z_rms(sm.states, m)
+    print("linear: z-RMS", zr, "error / sd", rms,
+          "cov z", _z_rms(_smoothed_linear(400).covariances, P))
+    assert zr[50] < 2.0 and zr[400] < 2.0, zr
+    assert rms[50] / rms[400] > 1.8, rms
+    assert rms[400] < 0.2, rms
+    assert _z_rms(_smoothed_linear(400).covariances, P) < 2.0

@@ -1,5 +1,6 @@
 """Smoothing one run with the marginalized PF (:func:`vehjax.filters.marginalized_pf`):
-ancestor-path backward simulation with a Rao-Blackwellised (per-path RTS) state.
+ancestor-path backward simulation with a Rao-Blackwellised (per-path RTS) state, for both
+``kalman_states="all"`` and the paper's ``"linear"``.
 
 The forward pass is the filter itself, its own ``init`` and ``step`` in a ``lax.scan``, keeping
 after every step each particle's Gaussian over the states (means ``x``, ``z``, covariance
@@ -8,8 +9,9 @@ after every step each particle's Gaussian over the states (means ``x``, ``z``, c
 
 1. **Paths.** M indices are drawn from the final weights and each one's genealogy is followed
    back (``MPFState.ancestors``): M ancestral paths, each a particle's whole history, in
-   particular its offset draws w_{1:T}. Equally weighted they approximate
-   p(w_{1:T} | y_{1:T}), the path-space (Kitagawa 1996) smoother of the filter.
+   particular its offset draws w_{1:T} (with ``kalman_states="linear"`` its sampled states
+   x_{0:T}, built from them). Equally weighted they approximate p(w_{1:T} | y_{1:T}), the
+   path-space (Kitagawa 1996) smoother of the filter.
 2. **States, given a path.** With ``kalman_states="all"`` a particle's states are Gaussian
    given its offset draws (and the noise statistics its Kalman filter uses), so given the path
    the states over the drive are smoothed by the Rauch-Tung-Striebel recursion on the path's
@@ -23,6 +25,23 @@ after every step each particle's Gaussian over the states (means ``x``, ``z``, c
    the rows of C_t, so the recursion is the exact conditional (:func:`psd_right_solve`).
    Without linear states (the planar filter) a particle's states are a function of its draws
    and the path itself is the smoothed trajectory.
+
+   With ``kalman_states="linear"`` (the paper's Algorithm 1) a particle's sampled states x
+   are a point and its Kalman filter covers the linear states z only (sec. 3.4): given the
+   path x_0:T the model is linear-Gaussian in z, with the offset w_t as a noise that enters the
+   vehicle model's measurement of z_t-1 (g^+ (x_t - f) = a^T z_t-1 + w_t, exactly), the
+   transition of z and y_t alike. So the path's sampled states are the trajectory itself (zero
+   covariance) and its linear states are smoothed by the backward recursion on the joint
+   Gaussian of (z_t-1, z_t) given x_0:t, y_0:t: with m_a, P_aa, P_ab, m_b = m_t, P_bb = P_t
+   its moments, ``G = P_ab P_bb^+``, ``m_t-1|T = m_a + G (m_t|T - m_t)``,
+   ``P_t-1|T = P_aa + G (P_t|T - P_t) G^T``, ``Cov(z_t-1, z_t | .) = G P_t|T``. This is exact
+   because z_t-1 given z_t and the data up to t is independent of the later data (which enter
+   through z_t and independent noise); the joint is not the textbook RTS prediction, since y_t
+   and the vehicle-model measurement share w_t with z_t. The filter keeps only the marginal of
+   z_t, so each step's Kalman update is recomputed along the path with z_t-1 kept
+   (:func:`linear_step_joint`, from the path's filtered moments and NiW statistics at t - 1:
+   the same linearisation, point estimates and missing components as the filter; its z_t
+   block is the filter's to rounding) inside the backward scan (:func:`linear_path_rts`).
 3. **Moments.** The smoothed mean and covariance at each time are those of the equally
    weighted mixture of the M per-path Gaussians (:func:`mixture_moments`), the lag-one
    covariance likewise.
@@ -36,7 +55,21 @@ What is exact and what is approximate
   at a given speed) with the noise statistics known (the filter built with ``forgetting=1``
   and a prior so tight that they do not move), the states given w_{1:T} and y_{1:T} are
   Gaussian and step 2 gives their mean and covariance exactly, to rounding: the
-  Rao-Blackwellised part has no Monte-Carlo error.
+  Rao-Blackwellised part has no Monte-Carlo error. With ``kalman_states="linear"`` the same
+  holds for the linear states given the path's sampled states x_0:T, for a model affine in the
+  linear states and the noisy input, with the plug-in noise of each step (whatever the
+  statistics do: the conditional model is the one the path's Kalman filter ran;
+  tests/test_smoothing_mpf.py checks one path against batch Gaussian conditioning to 1e-9).
+* ``kalman_states="linear"``, approximate beyond the path: only the component of x_t - f along
+  g enters the bank filter (the filter's sec. 3.4; the rest of A_bar z_t-1 has no noise in the
+  model and is dropped, as the filter drops it), and a particle's x_t is built from the bank's
+  Kalman mean (eq. 6), so the paths are draws of the filter's approximation, not of
+  p(x_0:T | y) (the filter's module docstring: vy's variance about 8 % small on
+  SingleTrackBank). Where the linear states do not enter the sampled ones (A_bar = 0) the
+  filter with known noise is the exact Rao-Blackwellised filter and the smoothed means
+  converge to the exact RTS smoother (tests/test_smoothing_mpf.py, two particle counts).
+  For a model not affine in the sampled states the linearisation is the filter's, at the
+  path's point and Kalman mean (an extended step per path); nothing is iterated.
 * Consistent, with Monte-Carlo error: the paths. Ancestor tracing draws them from the filter's
   genealogy, which converges to p(w_{1:T} | y_{1:T}) as N grows, but resampling makes the
   genealogies coalesce: at early times the M paths pass through few distinct particles
@@ -56,9 +89,6 @@ What is exact and what is approximate
   the path and all data, mixed over the paths); with forgetting lambda < 1 the earlier rows
   are not the smoothed posterior of time-varying statistics (no backward pass over the NiW is
   done).
-* ``kalman_states="linear"`` with linear states (the paper's Algorithm 1) is refused: its
-  particles' sampled states are built from the Kalman mean of the linear states (the module
-  docstring of the filter), so a path does not carry a Gaussian that an RTS could smooth.
 
 Time convention of :func:`vehjax.filter`: x0/P0 describe the state before the first step and
 time t is the state after step t (0 .. T-1). NaN measurement components are missing (the
@@ -324,22 +354,21 @@ def linear_path_rts(rb, theta, ys, us, nus, xs, zs, Ps, mu, lam_w, lam_e):
     sampled states xs (T, n_xs), its filtered moments zs (T, n_z), Ps (T, n_z, n_z) and NiW
     statistics mu (T, d), lam_w (T,), lam_e (T, n_s, n_s) after each step; nus (T,) the shared
     dof; ys (T, ny), us (T, nu) the data. Each step's joint of (z_t-1, z_t) given the
-    data up to t (:func:`linear_step_joint`, vectorised over t), then the backward recursion
-    with it. Returns smoothed means (T, n_z), covariances (T, n_z, n_z), lag-one covariances
-    (T - 1, n_z, n_z)."""
+    data up to t (:func:`linear_step_joint`, recomputed inside the backward scan so that no
+    (T, ...) intermediates are kept), and the backward recursion with it. Returns smoothed
+    means (T, n_z), covariances (T, n_z, n_z), lag-one covariances (T - 1, n_z, n_z)."""
     nz = zs.shape[-1]
-    joint = jax.vmap(lambda *a: linear_step_joint(rb, theta, *a))
-    mean, cov = joint(xs[:-1], zs[:-1], Ps[:-1], mu[:-1], lam_w[:-1], lam_e[:-1], nus[:-1],
-                      xs[1:], ys[1:], us[1:])
 
     def body(carry, k):
         m_next, P_next = carry
-        mj, Cj = k
+        mj, Cj = linear_step_joint(rb, theta, *k)
         m_s, P_s, cross = rts_step(mj[:nz], Cj[:nz, :nz], mj[nz:], Cj[nz:, nz:], Cj[:nz, nz:],
                                    m_next, P_next)
         return (m_s, P_s), (m_s, P_s, cross)
 
-    _, (m, P, cross) = jax.lax.scan(body, (zs[-1], Ps[-1]), (mean, cov), reverse=True)
+    ks = (xs[:-1], zs[:-1], Ps[:-1], mu[:-1], lam_w[:-1], lam_e[:-1], nus[:-1], xs[1:], ys[1:],
+          us[1:])
+    _, (m, P, cross) = jax.lax.scan(body, (zs[-1], Ps[-1]), ks, reverse=True)
     return jnp.concatenate([m, zs[-1:]]), jnp.concatenate([P, Ps[-1:]]), cross
 
 
@@ -368,8 +397,8 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, key, meth
     same key), the paths are drawn with ``jax.random.fold_in(key, 1)``.
 
     Args:
-        estimator: a :func:`~vehjax.filters.marginalized_pf` estimator (``kalman_states="all"``
-            or no linear states).
+        estimator: a :func:`~vehjax.filters.marginalized_pf` estimator (either
+            ``kalman_states``, with or without linear states).
         measurements: (T, ny); NaN components are missing.
         inputs: (T, nu).
         x0, P0: state before the first step, (nx,), and its covariance (nx, nx) or (nx,).
