@@ -64,12 +64,13 @@ matched noise in ``vehjax reproduce dutta2019`` ("Consistency" tables, kinematic
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from . import _report
 
 PAPER = ("NEES / NIS consistency (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4) of every state "
          "filter on every built-in model, noise matched")
@@ -150,7 +151,7 @@ def parser():
 
 
 def _choices(option, text, allowed):
-    names = tuple(v.strip() for v in str(text).split(",") if v.strip())
+    names = _report.split_names(text)
     bad = [n for n in names if n not in allowed]
     if bad or not names:
         raise ValueError(f"{option}: unknown {bad or 'empty list'}; expected some of {allowed}")
@@ -289,10 +290,9 @@ def check(estimator, Y, U, X, x0, P0, key, compiler_options=None, theta=None,
     from .. import metrics
     from ..run import run
 
-    t0 = time.perf_counter()
-    out = run(estimator, Y, U, x0=x0, P0=P0, key=key if estimator.needs_key else None,
-              return_covariances=True, compiler_options=compiler_options)
-    seconds = time.perf_counter() - t0
+    out, seconds = _report.timed(run, estimator, Y, U, x0=x0, P0=P0,
+                                 key=key if estimator.needs_key else None,
+                                 return_covariances=True, compiler_options=compiler_options)
     nx = X.shape[-1]
     keep = ~out.diverged
     e = metrics.nees(out.states[..., :nx], out.covariances[..., :nx, :nx], X)
@@ -436,15 +436,12 @@ def study(models, filters, runs, duration, n_particles, seed, log=print):
 
 def table(rows):
     """The markdown table of the rows."""
-    head = ("| model | filter | runs x steps | particles | NEES in band | NEES / nx | NIS in band "
-            "| NIS / dof | diverged | verdict |\n|---|---|---|---|---|---|---|---|---|---|")
-    lines = [head]
-    for r in rows:
-        lines.append(f"| {r['model']} | {r['filter']} | {r['runs']} x {r['steps']} | "
-                     f"{r.get('particles') or '-'} | "
-                     f"{r['nees_in']:.3f} | {r['nees_per_dof']:.3g} | {r['nis_in']:.3f} | "
-                     f"{r['nis_per_dof']:.3g} | {r['diverged']} | {_verdict(r)} |")
-    return "\n".join(lines)
+    head = ("model", "filter", "runs x steps", "particles", "NEES in band", "NEES / nx",
+            "NIS in band", "NIS / dof", "diverged", "verdict")
+    return _report.md_table(head, (
+        (r["model"], r["filter"], f"{r['runs']} x {r['steps']}", r.get("particles") or "-",
+         f"{r['nees_in']:.3f}", f"{r['nees_per_dof']:.3g}", f"{r['nis_in']:.3f}",
+         f"{r['nis_per_dof']:.3g}", r["diverged"], _verdict(r)) for r in rows))
 
 
 def param_table(rows):
@@ -454,12 +451,9 @@ def param_table(rows):
     if not rows:
         return ""
     names = list(rows[0]["coverage"])
-    lines = ["| model | filter | " + " | ".join(names) + " |",
-             "|---|---|" + "---|" * len(names)]
-    for r in rows:
-        cells = [f"{r['coverage'][n]:.2f} / {r['spread'][n]:.2f}" for n in names]
-        lines.append(f"| {r['model']} | {r['filter']} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    return _report.md_table(["model", "filter"] + names, (
+        [r["model"], r["filter"]] + [f"{r['coverage'][n]:.2f} / {r['spread'][n]:.2f}"
+                                     for n in names] for r in rows))
 
 
 def main(argv=None) -> int:
@@ -489,7 +483,7 @@ def main(argv=None) -> int:
                   if bad else "."))
     why = [f"- {f}: {_WHY[f]}" for f in dict.fromkeys(r["filter"] for r in bad) if f in _WHY]
     report = "\n".join([
-        "# vehjax reproduce consistency", "", PAPER + ".", "",
+        _report.title("consistency", PAPER),
         f"{args.runs} runs per pair, seed {args.seed}. How the data "
         "and the filters are matched: the docstring of `vehjax/reproduce/consistency.py`. "
         "NEES / nx and NIS / dof: the run average per degree of freedom, averaged over the "
@@ -500,7 +494,7 @@ def main(argv=None) -> int:
             "reported std (1 = honest, > 1 over-confident; near 0 for what a row makes as good "
             "as known):", "", ptab, ""] if ptab else [])
         + (["Why the others miss it:", ""] + why + [""] if why else []))
-    (out_dir / "report.md").write_text(report)
+    _report.write_report(out_dir, report)
     with open(out_dir / "consistency.csv", "w") as fh:
         keys = ("model", "filter", "runs", "steps", "particles", "nees_in", "nees_per_dof",
                 "nis_in", "nis_per_dof", "diverged", "seconds")
