@@ -18,44 +18,46 @@ their work (an estimator's :attr:`~vehjax.filters.Estimator.workload`, its optio
 each platform. The one exception is traced code outside ``run`` (:func:`vehjax.filter` under a
 user's ``jax.jit``): it follows :func:`current`, the strategy of JAX's default backend.
 
-The rules and the measurements behind them
-------------------------------------------
+The rules and the reasons behind them
+------------------------------------
 
-CPU (measured on a 2-core x86-64 machine, float64, ``vehjax bench all``/``bench particle``):
+Each rule was chosen by measurement; the numbers are kept in the benchmarks' output and the
+README, not here. ``vehjax bench all`` and ``vehjax bench particle`` measure the CPU rules'
+effect, ``vehjax bench device`` (``--strategy`` to force one platform's rules) the device's, and
+``vehjax bench marginalized`` the marginalized PF's.
+
+CPU:
 
 * **Blocking** (``block_numbers``): a chunk's runs are vmapped in blocks of about 65,536 carried
   numbers (``lax.map`` over blocks), at least 4 runs a block, so that a step's arrays stay in the
   caches: a bootstrap PF with 1,000 particles on a 3-state model computes 13 runs side by side
-  and is 27-30 % faster per particle-step than 100-300 runs side by side.
+  and is faster per particle-step than with hundreds of runs side by side.
 * **Chunks** (``chunk_bytes``, ``chunk_work``): at most 512 MiB of outputs and working memory
   per chunk, and at most 2e9 carried numbers x steps, so that a long study is several chunks of
-  5-10 s and the progress bar moves.
+  a few seconds each and the progress bar moves.
 * **XLA options** (``elemental_emitter``): the filters whose steps are many small dense
   operations (``workload="small_dense"``: Gaussian, adaptive, dual/joint, Liu-West, marginalized)
-  compile with XLA:CPU's classic elemental emitter instead of its fusion emitters: compile times
-  halve (3-DOF user model, 100 x 1000: EKF 3.9 -> 1.8 s, UKF 4.5 -> 2.4 s, dual UKF 10.7 -> 6.3 s),
-  run times within noise, the marginalized PF about twice as fast. The bootstrap PF
-  (``workload="particles"``) runs 1.2-1.3x slower with it and does not get it.
+  compile with XLA:CPU's classic elemental emitter instead of its fusion emitters: it compiles
+  them in about half the time, runs them as fast, and runs the marginalized PF faster. The
+  bootstrap PF (``workload="particles"``) runs slower with it and does not get it.
 * **Substitutes** (``substitute_elementary``): XLA:CPU evaluates float64 sin/cos/tan/atan/atan2
   by one scalar library call per element; a model built with ``fast_math=True`` evaluates them
-  with :mod:`vehjax._elementary`'s arithmetic forms, which vectorise: about twice as fast a
-  filter on a model written with trigonometry.
+  with :mod:`vehjax._elementary`'s arithmetic forms, which vectorise: a markedly faster filter
+  on a model written with trigonometry.
 * **Runs-last step** (``runs_last``): a filter's batched step with the runs axis last
-  (:mod:`vehjax.filters._runs_last`) vectorises across runs: 1.3-2x faster than vmapping. Its
-  prepared inputs reach it through the scan's carry where the filter asks (``prefetch_inputs``;
-  EKF about 11 % faster, 3-DOF user model, 100 x 1000).
+  (:mod:`vehjax.filters._runs_last`) vectorises across runs, faster than vmapping. Its
+  prepared inputs reach it through the scan's carry where the filter asks (``prefetch_inputs``),
+  which helps the EKF further.
 
-GPU (one H100, float64, jax 0.11.2, measured once through the public API, issue #28):
+GPU (measured on one H100, float64, through the public API, issue #28):
 
-* **No blocking**: ``lax.map`` over blocks serialises the runs on a GPU (bootstrap PF, 100 runs
-  x 1000 steps x 1000 particles: 1,078 ms with CPU blocking, 137 ms without; the marginalized PF
-  at N = 500, 100 x 500: 10.6 s with, 0.54 s without).
+* **No blocking**: ``lax.map`` over blocks serialises the runs on a GPU, many times slower
+  than one vmapped block (the bootstrap and the marginalized PF alike).
 * **No CPU XLA options**: XLA's GPU compiler refuses ``xla_cpu_use_fusion_emitters``.
-* **Substitutes off**: the GPU has vector sin/cos; measured within 5 % either way, so the
-  model's functions are used as written.
-* **Runs-last step on**: 1.35-1.6x faster than the vmapped step there too (UKF 59-61 vs 80-87 ms,
-  EKF 67-73 vs 110 ms at 1000 x 1000). Inputs not prefetched through the carry (a CPU fusion
-  rule; not measured on a GPU).
+* **Substitutes off**: the GPU has vector sin/cos; the substitutes made no measurable
+  difference, so the model's functions are used as written.
+* **Runs-last step on**: faster than the vmapped step there too (UKF and EKF). Inputs not
+  prefetched through the carry (a CPU fusion rule; not measured on a GPU).
 * **Chunks from the device's memory**: a quarter of the device's memory limit
   (``memory_stats()["bytes_limit"]``) per chunk, no work limit (a chunk is milliseconds).
 

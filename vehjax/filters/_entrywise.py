@@ -6,8 +6,8 @@ axis (the runs, or the particles: (R,) or (N,)) or a Python float. A Python floa
 *structural constant*, known when the step is traced: products with a constant zero or one are
 folded away and a constant zero costs nothing. XLA then fuses a whole filter step into a few long
 vectorised loops over the batch axis, where vmapped matrix code keeps the batch first and runs
-every small matrix operation as a loop over it (measured 2-3x slower on CPU for 3 x 3 to 8 x 8
-matrices).
+every small matrix operation as a loop over it, which is slower on CPU for 3 x 3 to 8 x 8
+matrices (``vehjax bench all`` and ``vehjax bench marginalized`` time the filters built on this).
 
 Cholesky factors and forward substitutions of such nested lists are
 :func:`vehjax.filters._linalg.chol_entries` and :func:`~vehjax.filters._linalg.forward_entries`.

@@ -114,8 +114,8 @@ batch posterior (tests/test_marginalized.py checks it).
   the posterior mean, its covariance H P H^T added as above. No vehicle-model measurement is
   needed: w_t is known to the particle. Without linear states it is the planar filter
   unchanged. On the same data: NEES in band 0.943, per state 1.00 / 1.01 on vy / r, variances
-  within 0.3 % of the exact filter's, means within 0.05 of its std. It costs 1.2-1.3x the
-  time per step of "linear" (N = 500, one run and 100 runs).
+  within 0.3 % of the exact filter's, means within 0.05 of its std. It costs more per step
+  than "linear": each particle carries the covariance of every state, not only the bank's.
 * Eq. 23b as printed mixes the particles' covariance estimates with the spread of their means:
   R_hat = sum_i q_i (Lambda_e^i / (nu - d - 1) + (b^i - b_hat)(b^i - b_hat)^T), likewise
   sigma_w^2; the reported stds are the square roots of the diagonal. ``params_cov`` is the

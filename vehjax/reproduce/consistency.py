@@ -93,9 +93,9 @@ _MPFS = {"MPF": {}, "MPF (known noise)": _KNOWN_NOISE, "MPF-G": dict(kalman_stat
 TARGET = 0.90
 
 #: XLA options of the pairs that need them (``vehjax.run``'s ``compiler_options``): LLVM at
-#: level 3 takes over 10 minutes on the bootstrap PF's step on SevenDOF vmapped over runs. That
-#: pair is the study's longest by far: 78 min for 100 runs x 300 steps x 1000 particles on a
-#: 2-core CPU (one RK4 transition with 10 sub-steps costs about 0.13-0.18 ms per particle)
+#: level 3 compiles the bootstrap PF's step on SevenDOF vmapped over runs for many minutes. That
+#: pair is the study's longest by far to run too: every particle takes one RK4 transition with
+#: 10 sub-steps of the 7-DOF model per step (``vehjax bench sevendof`` measures its cost)
 COMPILER_OPTIONS = {("SevenDOF", "bootstrap PF"): {"xla_backend_optimization_level": 1}}
 
 #: the bootstrap PF's particles per model by default: enough that the particle cloud's own

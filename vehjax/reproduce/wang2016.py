@@ -21,9 +21,10 @@ What the paper specifies and how it is read here (section 4):
   :meth:`SevenDOF.derived`: on the true states with the true parameters, and on the estimates
   with the filter's parameters (ax, ay are the tyre-force sums over m, beta = arctan(v/u)).
 * Truth: RK4 with 1 ms sub-steps (the model's reference integrator). Filters: the same model
-  integrated by ROS2 with one 10 ms step (``integrator="ros2"``), 12-20 times cheaper, whose
-  own error over this drive is at most 0.008 m/s^2 in ay and 0.003 m/s in u (see
-  tests/test_sevendof.py), far below the measurement noise.
+  integrated by ROS2 with one 10 ms step (``integrator="ros2"``), far cheaper (``vehjax bench
+  sevendof`` measures each integrator's cost per step), whose own error over this drive is at
+  most 0.008 m/s^2 in ay and 0.003 m/s in u (see tests/test_sevendof.py), far below the
+  measurement noise.
 * The truth's ax carries white noise: eq. 31's process noise on the wheel speeds moves the
   slips, hence the tyre forces, from step to step. No filter can follow it, and it sets most
   of the ax error.
@@ -231,9 +232,7 @@ def parser():
                    help="Table 1: also the RTS-smoothed estimates of the EKF, UKF and CKF on the "
                         "same runs, as offline columns (default off: each is one more compile "
                         "of the 7-DOF model per case, the filters share one per filter across "
-                        "the cases, so it more than doubles the study's time; measured: the EKF "
-                        "filter's compile + run of 10 runs x 1000 steps took 580 s on the loaded "
-                        "2-core machine)")
+                        "the cases, so it more than doubles the study's time)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures (default: draw them)")
     return p
 
