@@ -7,8 +7,9 @@ XLA on CPU fuses such scalar chains into every elementwise kernel that uses them
 recomputes them for each point and each output component, which can be most of a small
 model's time (the 3-DOF model of ``vehjax bench all`` is such a model). :func:`split` traces
 the function once and partitions its equations: those that need the state go to ``late``, all
-others to ``early``, whose results (the residuals) ``late`` takes as arguments. The caller evaluates ``early`` once per input vector (for a filter, over
-the whole input sequence before the time loop) and ``late`` at every point.
+others to ``early``, whose results (the residuals) ``late`` takes as arguments. The caller
+evaluates ``early`` once per input vector (for a filter, over the whole input sequence before
+the time loop) and ``late`` at every point.
 
 The two functions compute exactly what the original does, operation for operation.
 """
