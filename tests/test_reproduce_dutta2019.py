@@ -295,3 +295,13 @@ def test_smoothed_rows_beside_the_joint_filters_and_below_their_rmse():
     assert "Smoothed over filtered state RMSE: Joint EKF" in dutta2019.smoothed_summary(st)
     p = dutta2019.parser()
     assert p.parse_args([]).smooth and not p.parse_args(["--no-smooth"]).smooth
+
+
+def test_presentation_names_are_lent_by_the_study_module():
+    """The tables, figures and CLI live in _dutta2019_report; dutta2019 lends their names."""
+    from vehjax.reproduce import _dutta2019_report
+
+    for name in dutta2019._PRESENTATION:
+        assert getattr(dutta2019, name) is getattr(_dutta2019_report, name), name
+    with pytest.raises(AttributeError, match="no_such_name"):
+        dutta2019.no_such_name  # noqa: B018
