@@ -125,6 +125,20 @@ def test_drive_study(tmp_path):
         assert lo <= float(mean) <= hi and float(two_sd) > 0, label
     r = _row(text, "smoothed yaw rate (extended RTS)")
     assert 0 < float(r[0]) < 1.0
+    # the MPF's own smoother beside it (#29 item 4): offset, biases, stds and bank over the drive
+    for label in ("MPF-smoothed steering offset", "MPF-smoothed ay bias",
+                  "MPF-smoothed yaw-gyro bias", "MPF-smoothed roll-gyro bias",
+                  "MPF-smoothed steering std", "MPF-smoothed ay std", "MPF-smoothed yaw-gyro std",
+                  "MPF-smoothed roll-gyro std", "MPF-smoothed bank angle"):
+        mean, span, two_sd, end = _row(text, label)
+        lo, hi = (float(v) for v in re.findall(r"[-+][0-9]+\.[0-9]+", span))
+        assert lo <= float(mean) <= hi and float(two_sd) > 0 and np.isfinite(float(end)), label
+        if "std" in label:
+            assert lo > 0, label
+    assert abs(float(_row(text, "MPF-smoothed steering offset")[0])) < 1.0  # deg, road wheel
+    roll_s = _row(text, "MPF-smoothed bank - pose roll")
+    assert float(roll_s[0].split()[1]) < 2.0  # deg, as the filter's bank
+    assert "MPF smoother (filter + ancestor paths" in text and "distinct particles" in report
     # the PMMH offline reference: one row per quantity with R-hat and ESS
     assert "particle marginal Metropolis-Hastings" in report and "PMMH likelihood: bootstrap" in report
     for name in ("delta_offset [deg]", "eps [1e-4]", "bias:ay", "bias:r", "R:ay", "R:r [",

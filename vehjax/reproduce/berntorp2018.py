@@ -83,7 +83,12 @@ Drive (sec. 5, ``--drive``):
   split R-hat and ESS reported. Not with the marginalized PF's likelihood: it learns the noise
   statistics itself (with forgetting), so its likelihood is not that of fixed values.
 * Smoothing (#29): ``vehjax.smooth`` (extended RTS) of the augmented EKF gives the offset,
-  biases, eps and (variant ``bank``) the bank over the drive given the whole drive.
+  biases, eps and (variant ``bank``) the bank over the drive given the whole drive. Beside
+  it the MPF's own smoother (:mod:`vehjax.smoothers.marginalized`; ``--mpf-smooth-paths`` M,
+  default 100, 0 skips it): one more execution of the drive's filter (its ``kalman_states``),
+  M ancestral paths, each path's Kalman states (the bank, eps) by an RTS given the path, the
+  noise statistics as the paths' estimates at each time; its offset, biases, stds and bank
+  over the drive and the smoothed bank against the pose roll.
 * The yaw gyro: its estimated bias is compared with ``drive.gyro_offset_vs_reference``; the
   bias-corrected yaw rate (gyro minus the estimated bias) and each filter's yaw-rate estimate
   with the pose reference yaw rate, after 15 s; the filters' lateral velocity vy with the
@@ -177,6 +182,9 @@ def parser():
     p.add_argument("--pmmh-likelihood", choices=("bootstrap", "kalman", "both"), default="both",
                    help="--drive: PMMH with the bootstrap PF's likelihood, the exact Kalman "
                         "likelihood (plain MH, a check), or both (default %(default)s)")
+    p.add_argument("--mpf-smooth-paths", type=_cli.at_least(int, 0), default=100,
+                   help="--drive: ancestral paths M of the MPF's smoother (vehjax.smooth, one "
+                        "more execution; at most N); 0 skips it (default %(default)s)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures (default: draw them)")
     return p
 
@@ -733,6 +741,22 @@ def run_drive(args, log=print):
     rts_s = time.perf_counter() - t0
     log(f"extended RTS smoother of the augmented EKF: {rts_s:.1f} s (compile included), "
         f"diverged {bool(sm.diverged)}")
+    # the MPF's own smoother (#29): one more execution of the same filter, M ancestral paths,
+    # each path's bank (and eps) by an RTS given the path (vehjax.smoothers.marginalized)
+    M = min(N, getattr(args, "mpf_smooth_paths", MPF_SMOOTH_PATHS))
+    mpf_smooth = None
+    if M:
+        t0 = time.perf_counter()
+        msm = jax.jit(lambda y, u, k: vj.smooth(est, y, u, x0=np.zeros(6), P0=P0, key=k,
+                                                n_trajectories=M))(
+            Y, U, jax.random.fold_in(jax.random.key(args.seed), 29))
+        mpf_smooth = dict(states=np.asarray(msm.states), cov=np.asarray(msm.covariances),
+                          params=np.asarray(msm.params), params_cov=np.asarray(msm.params_cov),
+                          n_unique=np.asarray(msm.n_unique), diverged=bool(msm.diverged), M=M)
+        mpf_smooth["seconds"] = time.perf_counter() - t0
+        log(f"MPF smoother (ancestor paths, per-path RTS): N = {N}, M = {M}, "
+            f"{mpf_smooth['seconds']:.1f} s (compile included), diverged "
+            f"{mpf_smooth['diverged']}")
     pm_res = {}
     liks = {"both": ("bootstrap", "kalman")}.get(getattr(args, "pmmh_likelihood", "both"),
                                                (getattr(args, "pmmh_likelihood", "both"),))
@@ -775,7 +799,8 @@ def run_drive(args, log=print):
                r_mpf=S[:, :, 1], vy_mpf=S[:, :, 0], eps_mpf=eps_mpf, mode=mode, n_gated=n_gated,
                ref_vy=np.asarray(drive.reference["vy"])[:T], Es=Es, Ps=Ps, rts_s=rts_s,
                ekf_names=am.state_names, pmmh=pm_res, vx=U[:, 0],
-               eps_pose=eps_pose)
+               eps_pose=eps_pose, mpf_smooth=mpf_smooth,
+               kalman_states=getattr(args, "kalman_states", "linear"))
     return res
 
 
@@ -936,6 +961,52 @@ def smoothed_rows(res):
     return rows
 
 
+#: ancestral paths of the drive's MPF smoother (at most N; ``--mpf-smooth-paths``)
+MPF_SMOOTH_PATHS = 100
+
+
+def mpf_smoothed_rows(res):
+    """The MPF smoother's estimates over the drive (one execution, M ancestral paths): (quantity,
+    smoothed mean over the drive, its range over time, 2 std at the middle of the drive, the
+    filter at the end, mean over the executions). Noise statistics: the paths' NiW estimates at
+    each time (:mod:`vehjax.smoothers.marginalized`: conditioned on the data up to t along
+    paths drawn with all of it); bank: each path's RTS mixed over the paths."""
+    sm = res["mpf_smooth"]
+    names = list(res["names"])
+    mid = res["T"] // 2
+    rows = []
+    items = [("MPF-smoothed steering offset [deg]", "delta_offset", DEG),
+             ("MPF-smoothed ay bias [m/s^2]", "ay_bias", 1.0),
+             ("MPF-smoothed yaw-gyro bias [deg/s]", "r_bias", DEG),
+             ("MPF-smoothed roll-gyro bias [deg/s]", "roll_rate_bias", DEG),
+             ("MPF-smoothed steering std [deg]", "delta_std", DEG),
+             ("MPF-smoothed ay std [m/s^2]", "ay_std", 1.0),
+             ("MPF-smoothed yaw-gyro std [deg/s]", "r_std", DEG),
+             ("MPF-smoothed roll-gyro std [deg/s]", "roll_rate_std", DEG)]
+    for label, name, sc in items:
+        if name not in names:
+            continue
+        k = names.index(name)
+        v = sm["params"][:, k] / sc
+        rows.append((label, f"{v.mean():+.4f}", f"{v.min():+.4f}..{v.max():+.4f}",
+                     f"{2 * math.sqrt(max(sm['params_cov'][mid, k, k], 0.0)) / sc:.4f}",
+                     f"{res['Pm'][:, -1, k].mean() / sc:+.4f}"))
+    states = [("MPF-smoothed bank angle [deg]", 2, DEG)] if res["variant"] == "bank" else []
+    if res["mode"] == "state":
+        states.append(("MPF-smoothed eps [1e-4]", 5, 1e-4))
+    S_end = np.asarray(res["out"].states)[:, -1]
+    for label, k, sc in states:
+        v = sm["states"][:, k] / sc
+        rows.append((label, f"{v.mean():+.4f}", f"{v.min():+.4f}..{v.max():+.4f}",
+                     f"{2 * math.sqrt(max(sm['cov'][mid, k, k], 0.0)) / sc:.4f}",
+                     f"{S_end[:, k].mean() / sc:+.4f}"))
+    if res["variant"] == "bank":
+        e = (sm["states"][res["k15"]:, 2] - res["ref_roll"][res["k15"]:]) / DEG
+        rows.append(("MPF-smoothed bank - pose roll after 15 s [deg]", f"RMS {_rms(e):.3f}",
+                     f"max {np.max(np.abs(e)):.3f}", "-", "-"))
+    return rows
+
+
 def pmmh_rows(pr):
     """One table row per PMMH quantity: name [unit], mean, std, 2.5 %, 97.5 %, R-hat, ESS."""
     flat = pr.samples.reshape(-1, len(pr.names))
@@ -1036,6 +1107,40 @@ def drive_figures(out_dir, res):
     return figs
 
 
+_SMOOTHED_GIVEN_PATH = {
+    "linear": "the sampled states (vy, r) are the path itself and the Kalman states (the bank "
+              "and eps, eps held with --rvirt-scale offline or none)",
+    "all": "all states (each particle's Gaussian over them)",
+}
+
+
+def _given_path(res):
+    text = _SMOOTHED_GIVEN_PATH[res["kalman_states"]]
+    return text.replace("the bank and eps", "eps") if res["variant"] == "planar" else text
+
+
+def _mpf_smooth_text(res, md):
+    """The report's paragraph and table on the MPF's smoother (none when it was skipped)."""
+    msm = res["mpf_smooth"]
+    if msm is None:
+        return ["The MPF's own smoother was skipped (`--mpf-smooth-paths 0`).\n"]
+    return [
+        f"The marginalized PF's own smoother (`vehjax.smooth` on the drive's filter, "
+        f"kalman_states = {res['kalman_states']!r}; `vehjax.smoothers.marginalized`): one "
+        f"more execution of the filter, M = {msm['M']} paths followed back through its "
+        f"resampling genealogy. Given a path, {_given_path(res)} "
+        "are smoothed by an RTS of the path's own Kalman filter: the exact conditional "
+        "Gaussian given the path of the model that filter runs (affine in those states, the "
+        "path's plug-in noise statistics at each step); the paths "
+        "coalesce going back in time (they pass through "
+        f"{int(msm['n_unique'][0])} distinct particles at t = 0, "
+        f"{int(msm['n_unique'][res['T'] // 2])} at the middle), so the early rows rest on few "
+        "particles. The noise statistics in each row are the paths' NiW estimates at that "
+        "time: with lambda = 0.999 each looks back about 10 s along a path drawn given the "
+        f"whole drive, not a backward pass over the statistics. Diverged: {msm['diverged']}.\n",
+        md, ""]
+
+
 def main_drive(args, out_dir):
     t_start = time.perf_counter()
     res = run_drive(args)
@@ -1049,6 +1154,11 @@ def main_drive(args, out_dir):
     md_smooth = _table(smoothed_rows(res), head=(
         "smoothed over the drive (extended RTS, augmented EKF)", "mean over the drive",
         "range over time", "2 std (middle of the drive)", "online EKF, end"))
+    msm = res["mpf_smooth"]
+    md_mpf_smooth = "" if msm is None else _table(mpf_smoothed_rows(res), head=(
+        f"smoothed over the drive (MPF, N = {res['N']}, M = {msm['M']} ancestral paths)",
+        "mean over the drive", "range over time", "2 std (middle of the drive)",
+        "MPF, end (mean over executions)"))
     md_pmmh = []
     for lik, (pr, sec, n) in res["pmmh"].items():
         what = (f"bootstrap PF, N = {args.pmmh_particles}" if lik == "bootstrap"
@@ -1067,7 +1177,9 @@ def main_drive(args, out_dir):
          f"{res['ekf_run'] / res['T'] * 1e3:.4f}", f"{res['ekf_run']:.3f}", f"{res['ekf_c']:.1f}"),
         ("extended RTS smoother (filter + backward pass)", "1 run", "-", "-",
          f"{res['rts_s']:.1f} (with run)"),
-    ] + [(f"PMMH, {lik} likelihood", f"{pr.samples.shape[0]} chains x {args.pmmh_iters} iter. x "
+    ] + ([] if msm is None else [("MPF smoother (filter + ancestor paths + per-path RTS)",
+          f"1 run, N = {res['N']}, M = {msm['M']}", "-", "-",
+          f"{msm['seconds']:.1f} (with run)")]) + [(f"PMMH, {lik} likelihood", f"{pr.samples.shape[0]} chains x {args.pmmh_iters} iter. x "
           f"{n} steps", "-", "-", f"{sec:.1f} (with run)")
          for lik, (pr, sec, n) in res["pmmh"].items()], head=("filter", "size", "ms per run-step", "run [s]", "compile [s]"))
     dur = res["T"] * 0.01
@@ -1082,6 +1194,8 @@ def main_drive(args, out_dir):
     print(md_scale)
     print()
     print(md_smooth)
+    print()
+    print(md_mpf_smooth)
     print()
     print("\n".join(md_pmmh))
     print(cost)
@@ -1110,6 +1224,7 @@ def main_drive(args, out_dir):
         "`vehjax.smooth` (extended RTS) of the augmented EKF, whose offset, biases and eps are "
         "random-walk states: the estimate of each at every time given the whole drive.\n",
         md_smooth, "",
+        *_mpf_smooth_text(res, md_mpf_smooth),
         "## Offline reference: particle marginal Metropolis-Hastings (sec. 5, ref. [28])\n",
         ("`vehjax.calibrate.pmmh` on the planar single-track model (`pmmh_model`: the steering "
          "offset and eps as parameters, ay and gyro biases, the three sensor stds and the "
