@@ -206,6 +206,10 @@ def time_fit(steps: int, seed: int = 0, baseline: bool = False):
           f" wall; {res.iterations} iterations, {res.evaluations} evaluations, "
           f"{run_s / max(res.evaluations, 1) / steps * 1e6:.1f} us per evaluation per step "
           f"(wall, after compile)")
+    if res.hessian_batches:
+        print(f"  Hessian: {res.hessian_batches} batched evaluation(s) of its 10 difference points"
+              f" (their program compiled in {res.hessian_compile_seconds:.1f} s wall, in a "
+              f"background thread during the iterations)")
     print(f"  converged {res.converged}, max |gradient| {res.gradient:.1e}, log-likelihood "
           f"{res.loglik0:.6g} -> {res.loglik:.6g}")
     for k, v in truth.items():

@@ -162,6 +162,11 @@ class TuneResult(NamedTuple):
         optimizer: the optimiser that ran ("scoring", "lbfgs", "adam" or "optax").
         derivatives: "forward" (:func:`forward_scores`) or "reverse" (``jax.value_and_grad``).
         compile_seconds: wall-clock seconds of compiling that program (part of ``seconds``).
+        hessian_batches: calls of the program that evaluates the gradient at the Hessian's 2 n
+            difference points at once (long forward-mode fits, :data:`_BATCH_HESSIAN_STEPS`;
+            0 when the points went through the one program, one by one).
+        hessian_compile_seconds: wall-clock seconds of compiling that second program, in a
+            background thread while the optimiser ran (0.0 when there was none).
     """
 
     Q: np.ndarray
@@ -190,6 +195,8 @@ class TuneResult(NamedTuple):
     optimizer: str = ""
     derivatives: str = ""
     compile_seconds: float = float("nan")
+    hessian_batches: int = 0
+    hessian_compile_seconds: float = 0.0
 
     def summary(self) -> str:
         """A text table of the fitted values with their units and the log-likelihood."""
@@ -807,13 +814,18 @@ class _Loss(NamedTuple):
     search, the curvature, the Newton polish), so that a fit compiles one program.
     ``vgo(f) -> (loss, aux, grad, opg)`` (forward mode only, else None) also gives the outer
     product of the per-step scores (:func:`score_outer_product`) from the same evaluation.
-    ``stats``: ``mode`` ("forward" or "reverse"), ``compile_seconds``, ``evaluations``."""
+    ``grads(F) -> (k, n)``: the gradients at the k = 2 n points F (k, n) of the Hessian's
+    central differences (:func:`hessian_from_gradients`) in one vmapped forward-mode program,
+    or None (:data:`_BATCH_HESSIAN_STEPS`). ``stats``: ``mode`` ("forward" or "reverse"),
+    ``compile_seconds``, ``evaluations`` (of vg/vgo; a repeated point is not evaluated again),
+    ``batch_compile_seconds`` and ``batch_evaluations`` (of grads)."""
 
     vg: Callable
     unravel: Callable
     x0: np.ndarray
     vgo: Callable | None = None
     stats: dict | None = None
+    grads: Callable | None = None
 
 
 def forward_scores(per_step, f, data):
@@ -855,11 +867,21 @@ def score_outer_product(scores, n_steps: int):
 #: mode beyond (its cost does not grow with the number of coordinates)
 _FORWARD_MAX = 12
 
+#: fits of at least this many run-steps (R T) with forward-mode derivatives and a Hessian by
+#: differences compute the Hessian's 2 n gradients in one program vmapped over the 2 n points,
+#: compiled in a background thread while the optimiser iterates: the filter's scan on XLA:CPU is
+#: bound by the cost of launching many tiny operations per step, so 2 n points side by side cost
+#: about 2.5 evaluations of one point rather than 2 n (SingleTrack EKF, 5 coordinates). Below
+#: this size the second compile would cost more than it saves.
+_BATCH_HESSIAN_STEPS = 5000
 
-def _flat_loss(obj, info=None) -> _Loss:
+
+def _flat_loss(obj, info=None, batch_hessian: bool = False) -> _Loss:
     """The compiled loss of a fit (:class:`_Loss`): forward mode for deterministic filters with
     at most ``_FORWARD_MAX`` coordinates, else ``jax.value_and_grad``; compiled ahead of time
-    once, with the XLA options :mod:`vehjax.execution` gives the estimator's workload."""
+    once, with the XLA options :mod:`vehjax.execution` gives the estimator's workload.
+    ``batch_hessian`` (forward mode only): also compile, in a background thread started here,
+    the program of ``_Loss.grads``."""
     from . import execution
 
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
@@ -888,18 +910,69 @@ def _flat_loss(obj, info=None) -> _Loss:
     compiled = jax.jit(program).lower(jnp.asarray(flat), obj.data).compile(
         compiler_options=options)
     stats = {"mode": "forward" if forward else "reverse",
-             "compile_seconds": time.perf_counter() - t0, "evaluations": 0}
+             "compile_seconds": time.perf_counter() - t0, "evaluations": 0,
+             "batch_compile_seconds": 0.0, "batch_evaluations": 0}
+    last = []  # (point, result) of the latest evaluation: the optimiser's last point is the
+    # Newton polish's first
 
     def vgo(f):
+        f = np.array(f, dtype=float)
+        if last and np.array_equal(last[0], f):
+            return last[1]
         stats["evaluations"] += 1
         v, aux, g, B = compiled(jnp.asarray(f, dtype=flat.dtype), obj.data)
-        return (float(v), aux, np.asarray(g, dtype=float),
-                None if B is None else np.asarray(B, dtype=float))
+        out = (float(v), aux, np.asarray(g, dtype=float),
+               None if B is None else np.asarray(B, dtype=float))
+        last[:] = [f, out]
+        return out
 
     def vg(f):
         return vgo(f)[:3]
 
-    return _Loss(vg, unravel, np.asarray(flat, dtype=float), vgo if forward else None, stats)
+    grads = _batched_gradients(per_step, unravel, obj, flat, options, stats) \
+        if forward and batch_hessian else None
+    return _Loss(vg, unravel, np.asarray(flat, dtype=float), vgo if forward else None, stats,
+                 grads)
+
+
+def _batched_gradients(per_step, unravel, obj, flat, options, stats):
+    """``_Loss.grads``: the gradient of the loss at 2 n points at once (forward mode, vmapped
+    over the points), compiled in a daemon thread started now; the first call waits for it.
+    A compile that fails is raised by that call."""
+    import threading
+
+    n = flat.shape[0]
+
+    def program(F, data):
+        def one(f):
+            _, dll, _ = forward_scores(lambda g, d: per_step(unravel(g), d), f, data)
+            return -jnp.sum(dll.reshape(n, -1), axis=1) / obj.n_steps
+
+        return jax.vmap(one)(F)
+
+    box = {}
+
+    def build():
+        t0 = time.perf_counter()
+        try:
+            box["compiled"] = jax.jit(program).lower(
+                jnp.zeros((2 * n, n), flat.dtype), obj.data).compile(compiler_options=options)
+        except BaseException as err:  # noqa: BLE001 (raised in the caller's thread)
+            box["error"] = err
+        stats["batch_compile_seconds"] = time.perf_counter() - t0
+
+    thread = threading.Thread(target=build, name="vehjax.tune hessian compile", daemon=True)
+    thread.start()
+
+    def grads(F):
+        thread.join()
+        if "error" in box:
+            raise box["error"]
+        stats["batch_evaluations"] += 1
+        return np.asarray(box["compiled"](jnp.asarray(F, dtype=flat.dtype), obj.data),
+                          dtype=float)
+
+    return grads
 
 
 def wolfe_search(vg, x, f0: float, g0, d, t: float = 1.0, c1: float = 1e-4, c2: float = 0.9,
@@ -1062,18 +1135,23 @@ def _first_order(loss: _Loss, opt, steps: int, tol: float, patience: int, bar):
     return best_x, best_aux, history, i, converged, skipped
 
 
-def hessian_from_gradients(vg, x, scales, rel: float = 1e-4):
+def hessian_from_gradients(vg, x, scales, rel: float = 1e-4, grads=None):
     """The Hessian (n, n) of the loss at x by central differences of its exact (JAX) gradient,
     column i from steps +-rel * scales[i] (the coordinate's natural size, see
     :func:`_coordinates`), symmetrised: 2 n gradient evaluations of the compiled loss, no
-    further compilation. Truncation error O(rel^2) relative."""
+    further compilation; or, with ``grads(F (2 n, n)) -> (2 n, n)`` (``_Loss.grads``), the same
+    2 n points in one call. Truncation error O(rel^2) relative."""
     n = len(x)
-    H = np.zeros((n, n))
-    for i in range(n):
-        h = rel * scales[i]
-        e = np.zeros(n)
-        e[i] = h
-        H[:, i] = (vg(x + e)[2] - vg(x - e)[2]) / (2 * h)
+    x = np.asarray(x, dtype=float)
+    h = rel * np.asarray(scales, dtype=float)
+    E = np.diag(h)
+    if grads is not None:
+        G = grads(np.concatenate([x + E, x - E]))
+        H = ((G[:n] - G[n:]) / (2 * h)[:, None]).T
+    else:
+        H = np.zeros((n, n))
+        for i in range(n):
+            H[:, i] = (vg(x + E[i])[2] - vg(x - E[i])[2]) / (2 * h[i])
     return 0.5 * (H + H.T)
 
 
@@ -1190,7 +1268,9 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     if optimizer == "scoring" and info["stochastic"]:
         raise ValueError("optimizer: 'scoring' needs a deterministic filter (EKF, UKF, CKF); "
                          "use 'adam' for a particle filter")
-    loss = _flat_loss(obj, info)
+    differences = not info["stochastic"] and hessian in (None, "differences")
+    loss = _flat_loss(obj, info, batch_hessian=differences and obj.n_steps >= _BATCH_HESSIAN_STEPS
+                      and (standard_errors or optimizer in (None, "scoring")))
     if optimizer is None:
         optimizer = ("adam" if info["stochastic"] else
                      "scoring" if loss.vgo is not None else "lbfgs")
@@ -1216,7 +1296,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
                                                                   patience, bar)
     unc, grad_max = None, float("nan")
     if optimizer == "scoring" and not standard_errors:  # the Newton polish finishes scoring
-        hess = lambda f: hessian_from_gradients(loss.vg, f, scales)  # noqa: E731
+        hess = lambda f: hessian_from_gradients(loss.vg, f, scales, grads=loss.grads)  # noqa
         x, aux, grad_max, _ = _newton(loss, x, scales, gtol, hess)
         converged = converged or grad_max <= gtol
     if standard_errors:
@@ -1226,7 +1306,8 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
             hfn = jax.jit(jax.hessian(lambda f, data: obj.loss(loss.unravel(f), data)[0]))
             hess = lambda f: np.asarray(hfn(jnp.asarray(f), obj.data))  # noqa: E731
         else:
-            hess = lambda f: hessian_from_gradients(loss.vg, f, scales)  # noqa: E731
+            hess = lambda f: hessian_from_gradients(loss.vg, f, scales,  # noqa: E731
+                                                    grads=loss.grads)
         if info["stochastic"]:  # no Newton step on a Monte-Carlo objective
             _, aux, g = loss.vg(x)
             grad_max, Hm = float(np.max(np.abs(g))), hess(x)
@@ -1245,7 +1326,9 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     return res._replace(evaluations=loss.stats["evaluations"], optimizer=str(optimizer)
                         if isinstance(optimizer, str) else "optax",
                         derivatives=loss.stats["mode"],
-                        compile_seconds=loss.stats["compile_seconds"])
+                        compile_seconds=loss.stats["compile_seconds"],
+                        hessian_batches=loss.stats["batch_evaluations"],
+                        hessian_compile_seconds=loss.stats["batch_compile_seconds"])
 
 
 def _result(obj, info, model, best_z, best_aux, history, iters, converged, skipped, unc,
