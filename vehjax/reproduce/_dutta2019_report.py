@@ -50,7 +50,7 @@ SMOOTHED_NOTE = ("Rows \"RTS-smoothed (vehjax, offline)\": the same filter's own
 
 
 # ----------------------------------------------------------------------------------------------
-# Tables
+# Tables and the summaries written from the numbers
 
 
 def table_consistency(stage: Stage) -> str:
@@ -673,7 +673,7 @@ def _figure(report: list, path: Path, caption: str) -> Path:
 
 
 # ----------------------------------------------------------------------------------------------
-# Entry point
+# The report and the command line
 
 
 def parser():
