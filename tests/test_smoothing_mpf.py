@@ -435,7 +435,8 @@ def _data_exact(seed=3):
 def kalman_rts_exact(ys, us):
     """Textbook Kalman filter and RTS smoother of _model_lin with AB = 0 and its noise known,
     on the state (v, a, w_t) (w_t enters the transition and y2 alike). Returns smoothed means
-    (T, 2) and covariances (T, 2, 2) of (v, a)."""
+    (T, 2), covariances (T, 2, 2) and lag-one covariances G_t P_t+1|T (T - 1, 2, 2) of
+    (v, a)."""
     F = np.array([[0.95, 0.0, 0.0], [0.05, 0.9, 0.0], [0.0, 0.0, 0.0]])
     g = np.array([0.1, GZ, 1.0])
     Q = SIG_W**2 * np.outer(g, g) + np.diag([0.0, SIG_Z**2, 0.0])
@@ -455,13 +456,14 @@ def kalman_rts_exact(ys, us):
         x, P = x + K @ (ys[t][o] - off - Ho @ x), P - K @ S @ K.T
         xf.append(x), Pf.append(P)
     n = len(ys)
-    xs, Ps = [None] * n, [None] * n
+    xs, Ps, C = [None] * n, [None] * n, [None] * (n - 1)
     xs[-1], Ps[-1] = xf[-1], Pf[-1]
     for t in range(n - 2, -1, -1):
         G = np.linalg.solve(Pp[t + 1], F @ Pf[t]).T
         xs[t] = xf[t] + G @ (xs[t + 1] - xp[t + 1])
         Ps[t] = Pf[t] + G @ (Ps[t + 1] - Pp[t + 1]) @ G.T
-    return np.array(xs)[:, :2], np.array(Ps)[:, :2, :2]
+        C[t] = G @ Ps[t + 1]
+    return np.array(xs)[:, :2], np.array(Ps)[:, :2, :2], np.array(C)[:, :2, :2]
 
 
 @functools.lru_cache(maxsize=None)
@@ -488,9 +490,9 @@ def test_linear_smoothed_states_converge_to_the_rts_smoother():
     missing) are within Monte-Carlo error of the numpy RTS of the whole linear-Gaussian system
     (z of the 8 replicates' mean, RMS < 2) at N = M = 50 and 400, the error shrinks with N
     (expected ratio sqrt(8) = 2.8; asserted > 1.8), and at N = 400 the covariances are within
-    Monte-Carlo error of the RTS's."""
+    Monte-Carlo error of the RTS's, the lag-one covariances too (the wrong lag rejected)."""
     ys, us = _data_exact()
-    m, P = kalman_rts_exact(ys, us)
+    m, P, C = kalman_rts_exact(ys, us)
     sd = np.sqrt(np.diagonal(P, axis1=1, axis2=2))
     rms, zr = {}, {}
     for n in (50, 400):
@@ -498,9 +500,13 @@ def test_linear_smoothed_states_converge_to_the_rts_smoother():
         assert not np.any(sm.diverged)
         rms[n] = float(np.sqrt(np.mean(((np.asarray(sm.states) - m) / sd) ** 2)))
         zr[n] = _z_rms(sm.states, m)
-    print("linear: z-RMS", zr, "error / sd", rms,
-          "cov z", _z_rms(_smoothed_linear(400).covariances, P))
+    sm = _smoothed_linear(400)
+    print("linear: z-RMS", zr, "error / sd", rms, "cov z", _z_rms(sm.covariances, P),
+          "lag-one z", _z_rms(sm.cross_covariances, C), "wrong lag z",
+          _z_rms(sm.cross_covariances, P[1:]))
     assert zr[50] < 2.0 and zr[400] < 2.0, zr
     assert rms[50] / rms[400] > 1.8, rms
     assert rms[400] < 0.2, rms
-    assert _z_rms(_smoothed_linear(400).covariances, P) < 2.0
+    assert _z_rms(sm.covariances, P) < 2.0
+    assert _z_rms(sm.cross_covariances, C) < 2.0
+    assert _z_rms(sm.cross_covariances, P[1:]) > 4.0
