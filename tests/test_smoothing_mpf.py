@@ -510,3 +510,64 @@ def test_linear_smoothed_states_converge_to_the_rts_smoother():
     assert _z_rms(sm.covariances, P) < 2.0
     assert _z_rms(sm.cross_covariances, C) < 2.0
     assert _z_rms(sm.cross_covariances, P[1:]) > 4.0
+
+
+@pytest.mark.slow  # the bank model's MPF compiles for about a minute on 2 cores
+def test_linear_step_joint_is_the_filters_kalman_step_on_single_track_bank():
+    """The paper's filter (kalman_states="linear") on SingleTrackBank, 40 steps of simulated
+    data with the bank angle phi a known-std output that is NaN at every step and a yaw-gyro
+    reading missing at two steps: for every particle and step, ms.linear_step_joint from its
+    parent's stored state (the genealogy) gives the filter's own Kalman mean and covariance of
+    the bank at t in its z_t block (the sampled states have two components, the bank enters
+    them off the steering direction, so this checks the projection on g, the used output rows,
+    the known variances and the plug-in statistics as the filter has them), and a joint
+    covariance that is positive semi-definite."""
+    model = vj.models.SingleTrackBank(dt=0.01)
+    Tb = 40
+    t = np.arange(Tb) * 0.01
+    U = np.stack([np.full(Tb, 20.0), 0.02 * np.sin(2 * np.pi * 0.5 * t)], 1)
+    th = jnp.asarray(model.theta)
+    rng = np.random.default_rng(1)
+
+    def body(x, u):
+        xn = model.transition(x, u + jnp.array([0.0, math.radians(0.3)]), th)
+        return xn, model.observe(xn, u, th)
+
+    _, Y = jax.lax.scan(body, jnp.array([0.0, 0.0, 0.02, 0.0, 0.0]), jnp.asarray(U))
+    Y = np.asarray(Y) + 0.01 * rng.normal(size=(Tb, 5))
+    names = list(model.output_names)
+    Y[:, names.index("phi")] = np.nan
+    Y[[9, 25], names.index("r")] = np.nan
+    n = 16
+    est = marginalized_pf(model, n, known_std={"phi": 0.01, "r_virt": 0.005},
+                          linear_noise_std=0.05, kalman_states="linear",
+                          std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02})
+    P0b = np.diag([0.1, 0.01, 1e-2, 1e-3, 1e-4]) ** 2
+    fwd = jax.jit(lambda k: ms._forward(est, jnp.asarray(Y), jnp.asarray(U), jnp.zeros(5),
+                                        jnp.asarray(P0b), None, k))(jax.random.key(4))
+    rb = est.rao_blackwell
+    theta = jnp.asarray(rb.theta, float)
+    anc = np.asarray(fwd.ancestors)
+    par = anc[1:]  # (T - 1, N): the parent of slot j at t, at t - 1
+
+    def prev(a):  # (T, ..., N) -> (T - 1, N, ...) at the parents
+        a = np.moveaxis(np.asarray(a), -1, 1)[:-1]
+        return a[np.arange(Tb - 1)[:, None], par]
+
+    def now(a):
+        return np.moveaxis(np.asarray(a), -1, 1)[1:]
+
+    joint = jax.jit(jax.vmap(jax.vmap(
+        lambda *a: ms.linear_step_joint(rb, theta, *a),
+        in_axes=(0, 0, 0, 0, 0, 0, None, 0, None, None)),
+        in_axes=(0, 0, 0, 0, 0, 0, 0, 0, 0, 0)))
+    mean, cov = map(np.asarray, joint(
+        prev(fwd.x), prev(fwd.z), prev(fwd.P), prev(fwd.mu), prev(fwd.lam_w), prev(fwd.lam_e),
+        np.asarray(fwd.nu)[:-1], now(fwd.x), Y[1:], U[1:]))
+    z_f, P_f = now(fwd.z), now(fwd.P)  # (T - 1, N, 3), (T - 1, N, 3, 3)
+    assert not bool(np.any(np.asarray(fwd.bad)))
+    np.testing.assert_allclose(mean[..., 3:], z_f, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(cov[..., 3:, 3:], P_f, rtol=1e-8, atol=1e-14)
+    # z_t-1 given the data up to t: the parent's filtered mean moves (the smoothing signal)
+    assert np.max(np.abs(mean[..., :3] - prev(fwd.z))) > 0
+    assert np.min(np.linalg.eigvalsh(cov)) > -1e-12 * np.max(np.abs(cov))
