@@ -178,17 +178,28 @@ def test_uncertainty_on_its_own():
     assert u3.undetermined == () and np.isclose(u3.std_errors[1], 2.0)
 
 
-def test_jax_hessian_equals_gradient_differences_and_particle_fit_reports_errors():
+def test_jax_hessian_equals_gradient_differences():
     """hessian="jax" (forward over reverse) and the default central differences of the JAX
-    gradient give the same standard errors (1e-5 relative); a particle-filter fit (adam by
-    default) reports finite standard errors of the size of the Kalman ones."""
+    gradient give the same standard errors (1e-5 relative). (The particle-filter half of this
+    check, which compiles a reverse-mode gradient and a Hessian through the particle filter,
+    is the slow test below.)"""
     ys, us = simulate(4, q=Q_TRUE, T=60)
     common = dict(x0=X0, P0=P0, params=("a",), progress=False)
     d = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, **common)
     j = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, hessian="jax", **common)
     for k in ("a", "Q[x,x]", "R[y,y]"):
         np.testing.assert_allclose(j.std_errors[k], d.std_errors[k], rtol=1e-5)
+
+
+@pytest.mark.slow  # three compiles, two of them through the particle filter: ~25 s CPU
+def test_particle_fit_reports_standard_errors_of_the_kalman_size():
+    """A particle-filter fit (adam by default, Hessian by JAX) reports finite standard errors
+    of the size of the Kalman ones (the EKF fit's, differences of the gradient)."""
     import jax
+
+    ys, us = simulate(4, q=Q_TRUE, T=60)
+    common = dict(x0=X0, P0=P0, params=("a",), progress=False)
+    d = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, **common)
     pf = vt.fit(vj.filters.bootstrap_pf, scalar_model(), [Q_TRUE], [R_TRUE], ys, us, steps=3,
                 key=jax.random.key(0), builder_kwargs={"n_particles": 256}, noise=("R",),
                 **common)
