@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _validate
+from . import _eager, _validate
 from .filters._bounds import check_inside
 from .filters._linalg import is_pd
 from .filters.base import Estimator, StepOutput
@@ -315,5 +315,6 @@ def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_th
     """
     ys, us, x0, P0, th0, Pth0 = _checked(estimator, measurements, inputs, x0, P0, theta0,
                                          P_theta0, key)
-    return _one_run(estimator, bool(return_covariances), jnp.asarray(ys), jnp.asarray(us),
-                    jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key)
+    # called eagerly: compiled as one program (vehjax._eager); under a trace: inline
+    return _eager.call(_one_run, (estimator, bool(return_covariances)), {}, jnp.asarray(ys),
+                       jnp.asarray(us), jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key)

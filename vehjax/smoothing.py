@@ -52,7 +52,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _validate
+from . import _eager, _validate
 from .filtering import FilterResult, _checked, _finish, _output_ok, _scan_body, _start
 from .filters._linalg import is_pd, sym
 from .filters.base import Estimator
@@ -353,6 +353,7 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
         if np.shape(initial) != (T, n):
             raise ValueError(f"initial: expected shape ({T}, {n}), got {np.shape(initial)}")
     ys, us = jnp.asarray(ys), jnp.asarray(us)
-    return smooth_one_run(estimator, ys, us, jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key,
-                          method=method, parallel=parallel, tol=tol, max_iter=max_iter,
-                          initial=initial)
+    # called eagerly: compiled as one program (vehjax._eager); under a trace: inline
+    return _eager.call(smooth_one_run, (estimator,),
+                       dict(method=method, parallel=parallel, tol=tol, max_iter=max_iter),
+                       ys, us, jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key, initial=initial)
