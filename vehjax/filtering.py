@@ -144,12 +144,6 @@ def _output_ok(out: StepOutput, p: int, pd=is_pd, all_finite=_all_finite):
     return good
 
 
-#: the old public name of :func:`_output_ok`, kept only while ``vehjax/smoothers/particle.py``
-#: and ``vehjax/smoothers/marginalized.py`` import it (not in ``__all__``; to be removed when
-#: they import ``_output_ok``)
-output_ok = _output_ok
-
-
 def _scan_body(step, ok, return_cov: bool):
     """Scan body: one filter step, returning the per-step outputs and whether they are good.
     ``ok(out)`` is :func:`_output_ok` for the layout at hand."""

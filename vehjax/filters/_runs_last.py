@@ -82,9 +82,9 @@ class Batch(NamedTuple):
         step: ``step(state, y, prepared_t) -> (state, StepOutput)``.
         prefetch: whether :func:`vehjax.run` hands ``prepared_t`` to the step through the scan's
             carry (read at the end of the previous step) rather than as a slice of the scanned
-            sequence, which XLA fuses into the kernels that read it. Measured per step (3-DOF
-            user model, 100 runs x 1000 steps, interleaved): the EKF about 11 % faster with it,
-            the UKF about 10 % faster without.
+            sequence, which XLA fuses into the kernels that read it. Which is faster depends
+            on the filter (the EKF's prepared Jacobian entries gain from the carry, the UKF's
+            sigma-point inputs lose); ``vehjax bench all`` measures both.
     """
 
     prepare: Callable

@@ -1,5 +1,9 @@
 """Paper reproductions, one module each, run by ``vehjax reproduce NAME [options]``.
 
+The modules with a leading underscore are not reproductions: ``_report`` holds what the reports
+share (markdown tables, report files, timing) and ``_dutta2019_report`` dutta2019's tables,
+figures and CLI, so that each paper's module shows its study first.
+
 Every module defines ``main(argv: list[str] | None) -> int`` (printed tables, a ``report.md``
 that links the figures it saves), ``parser()``, its argparse parser (every option's help
 states its default; ``vehjax reproduce --help`` lists them all), and ``PAPER``, one line naming
