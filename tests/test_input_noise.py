@@ -205,6 +205,7 @@ def test_run_with_input_noise_equals_the_per_run_filter():
         np.testing.assert_allclose(out.loglik[r], one.loglik.sum(), rtol=1e-12)
 
 
+@pytest.mark.slow  # a Monte-Carlo check (4 x 1000 particles, two filters): `pytest -m slow`
 def test_particle_filter_with_input_noise_matches_kalman_mean():
     """Bootstrap PF (4 independent runs of 1000 particles) against the exact filter with
     Q + B Sigma_u B^T: the errors of its means, in the exact filter's standard deviations, are
