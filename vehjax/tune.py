@@ -874,15 +874,11 @@ _FORWARD_MAX = 12
 #: differences compute the Hessian's 2 n gradients in one program vmapped over the 2 n points,
 #: compiled in a background thread while the optimiser iterates: the filter's scan on XLA:CPU is
 #: bound by the cost of launching many tiny operations per step, so 2 n points side by side cost
-#: about 2.5 evaluations of one point rather than 2 n (SingleTrack EKF, 5 coordinates). Below
-#: this size the second compile would cost more than it saves.
+#: about 1.8 evaluations of one point rather than 2 n (SingleTrack EKF with input noise, 5
+#: coordinates, 2-core CPU: 175 against 95 CPU-us per step; that program compiles in about 9 s
+#: against 7 s for the one-point program). Below this size the second compile costs about as
+#: much as it saves.
 _BATCH_HESSIAN_STEPS = 10000
-
-#: XLA options of a fit's programs (dropped where this XLA does not know them): LLVM's expensive
-#: passes off halves the compile time of the filter's scan with no measurable cost in its run
-#: time (SingleTrack EKF with input noise, forward mode, 2-core CPU: compile 11.6 -> 7.8 s,
-#: the 10-point Hessian program 19.7 -> 9.3 s; 95 and 175 us per step either way)
-_COMPILE_OPTIONS = {"xla_llvm_disable_expensive_passes": True}
 
 
 def _flat_loss(obj, info=None, batch_hessian: bool = False) -> _Loss:
@@ -915,8 +911,6 @@ def _flat_loss(obj, info=None, batch_hessian: bool = False) -> _Loss:
     options = None
     if info is not None:
         options = execution.compiler_options(execution.current(), info["workload"])
-    options = {**_COMPILE_OPTIONS, **(options or {})}
-    options = {k: v for k, v in options.items() if execution._xla_knows(k, v)} or None
     t0 = time.perf_counter()
     compiled = jax.jit(program).lower(jnp.asarray(flat), obj.data).compile(
         compiler_options=options)
