@@ -313,7 +313,6 @@ def test_hessian_from_gradients_batched_equals_one_by_one_and_the_analytic_hessi
     np.testing.assert_allclose(batched, one, rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.slow  # two compiles (the fit's and the batched Hessian's): ~7 s CPU
 def test_fit_with_the_batched_hessian_matches_the_inverse_information(monkeypatch):
     """A fit long enough for the batched Hessian (threshold lowered to take this short run):
     its standard errors within 2 % of the numpy inverse observed information at scipy's

@@ -53,9 +53,8 @@ scale, i.e. about 5 % relative change of a standard deviation per step at first)
 ends when the best loss has not improved by more than ``tol * max(1, |best|)`` for ``patience``
 iterations; the values at the best loss are returned. Every part of a fit (iterations, line
 search, curvature) evaluates one compiled program, the loss and its gradient; a long fit
-(``_BATCH_HESSIAN_STEPS`` run-steps or more, forward mode) also compiles, in a background thread
-while the optimiser iterates, the gradient at the Hessian's 2 n difference points side by side,
-which costs a few evaluations instead of 2 n.
+(``_BATCH_HESSIAN_STEPS`` run-steps or more, forward mode) also compiles the gradient at the
+Hessian's 2 n difference points side by side, which costs about 2 evaluations instead of 2 n.
 
 How sure. Every fit reports the standard error of each fitted quantity in its units and their
 correlations (``TuneResult.std_errors``, ``correlations``), from the observed information: the
@@ -168,8 +167,8 @@ class TuneResult(NamedTuple):
         hessian_batches: calls of the program that evaluates the gradient at the Hessian's 2 n
             difference points at once (long forward-mode fits, :data:`_BATCH_HESSIAN_STEPS`;
             0 when the points went through the one program, one by one).
-        hessian_compile_seconds: wall-clock seconds of compiling that second program, in a
-            background thread while the optimiser ran (0.0 when there was none).
+        hessian_compile_seconds: wall-clock seconds of compiling that second program (part of
+            ``seconds``; 0.0 when there was none).
     """
 
     Q: np.ndarray
@@ -871,8 +870,8 @@ def score_outer_product(scores, n_steps: int):
 _FORWARD_MAX = 12
 
 #: fits of at least this many run-steps (R T) with forward-mode derivatives and a Hessian by
-#: differences compute the Hessian's 2 n gradients in one program vmapped over the 2 n points,
-#: compiled in a background thread while the optimiser iterates: the filter's scan on XLA:CPU is
+#: differences compute the Hessian's 2 n gradients in one program vmapped over the 2 n points
+#: (a second compile, once per fit): the filter's scan on XLA:CPU is
 #: bound by the cost of launching many tiny operations per step, so 2 n points side by side cost
 #: about 1.8 evaluations of one point rather than 2 n (SingleTrack EKF with input noise, 5
 #: coordinates, 2-core CPU: 175 against 95 CPU-us per step; that program compiles in about 9 s
@@ -885,8 +884,8 @@ def _flat_loss(obj, info=None, batch_hessian: bool = False) -> _Loss:
     """The compiled loss of a fit (:class:`_Loss`): forward mode for deterministic filters with
     at most ``_FORWARD_MAX`` coordinates, else ``jax.value_and_grad``; compiled ahead of time
     once, with the XLA options :mod:`vehjax.execution` gives the estimator's workload.
-    ``batch_hessian`` (forward mode only): also compile, in a background thread started here,
-    the program of ``_Loss.grads``."""
+    ``batch_hessian`` (forward mode only): also give ``_Loss.grads`` (its program compiled at
+    its first call)."""
     from . import execution
 
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
@@ -942,10 +941,9 @@ def _flat_loss(obj, info=None, batch_hessian: bool = False) -> _Loss:
 
 def _batched_gradients(per_step, unravel, obj, flat, options, stats):
     """``_Loss.grads``: the gradient of the loss at 2 n points at once (forward mode, vmapped
-    over the points), compiled in a daemon thread started now; the first call waits for it.
-    A compile that fails is raised by that call."""
-    import threading
-
+    over the points), compiled at its first call (the first Hessian of the fit). Compiled in
+    the caller's thread: XLA:CPU already runs an evaluation on both cores of the 2-core
+    machine, and a compile in a background thread slowed the iterations as much as it hid."""
     n = flat.shape[0]
 
     def program(F, data):
@@ -957,22 +955,12 @@ def _batched_gradients(per_step, unravel, obj, flat, options, stats):
 
     box = {}
 
-    def build():
-        t0 = time.perf_counter()
-        try:
+    def grads(F):
+        if "compiled" not in box:
+            t0 = time.perf_counter()
             box["compiled"] = jax.jit(program).lower(
                 jnp.zeros((2 * n, n), flat.dtype), obj.data).compile(compiler_options=options)
-        except BaseException as err:  # noqa: BLE001 (raised in the caller's thread)
-            box["error"] = err
-        stats["batch_compile_seconds"] = time.perf_counter() - t0
-
-    thread = threading.Thread(target=build, name="vehjax.tune hessian compile", daemon=True)
-    thread.start()
-
-    def grads(F):
-        thread.join()
-        if "error" in box:
-            raise box["error"]
+            stats["batch_compile_seconds"] = time.perf_counter() - t0
         stats["batch_evaluations"] += 1
         return np.asarray(box["compiled"](jnp.asarray(F, dtype=flat.dtype), obj.data),
                           dtype=float)
