@@ -7,6 +7,7 @@ import io
 import math
 import re
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -253,3 +254,28 @@ def test_online_virtual_scale_is_recursive_least_squares():
         berntorp2018.online_virtual_scale(gyro, r_virt, vx, track, noise_std=0.0)
     g, n = berntorp2018.gate_virtual_yaw(gyro, np.where(np.arange(T) == 7, 1.0, r_virt), 0.1)
     assert n == 1 and np.isnan(g[7]) and np.isnan(g[5])
+
+
+def test_particle_gibbs_process_noise_stands_for_the_steering_noise():
+    """Particle Gibbs takes additive noise only: the steering-input std enters as per-state
+    process stds, sqrt(PMMH_Q + (B s)^2) with B = d f / d delta, here against central finite
+    differences of the reference model's transition; the priors swap input:delta for them."""
+    from vehjax.models import SingleTrackBank
+
+    pm = berntorp2018.pmmh_model(SingleTrackBank(dt=0.01))
+    U = np.array([[15.0, 0.01], [17.0, -0.01], [np.nan, 0.0]])  # vx [m/s], delta [rad]
+    u = np.nanmean(U, axis=0)
+    h = 1e-6
+    f = [np.asarray(pm.transition(jnp.zeros(2), jnp.asarray(u + [0.0, d]), jnp.asarray(pm.theta)))
+         for d in (h, -h)]
+    B = (f[0] - f[1]) / (2 * h)
+    assert abs(B[1]) > 1e-4  # steering moves the yaw rate within a step
+    s = 0.2 * berntorp2018.DEG
+    np.testing.assert_allclose(berntorp2018.pg_process_std(pm, U, 0.0),
+                               np.sqrt(berntorp2018.PMMH_Q), rtol=1e-12)
+    np.testing.assert_allclose(berntorp2018.pg_process_std(pm, U, s),
+                               np.sqrt(berntorp2018.PMMH_Q + (B * s) ** 2), rtol=1e-6)
+    pr = berntorp2018.pg_priors(pm, U)
+    assert "input:delta" not in pr and {"Q:vy", "Q:r"} <= set(pr)
+    assert set(pr) - {"Q:vy", "Q:r"} == set(berntorp2018.pmmh_priors()) - {"input:delta"}
+    assert all(name in berntorp2018.PMMH_UNITS for name in pr)

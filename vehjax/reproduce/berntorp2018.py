@@ -81,7 +81,14 @@ Drive (sec. 5, ``--drive``):
   biases, the three sensor stds and the steering-noise std, with the bootstrap PF's
   likelihood and (a check) the exact Kalman likelihood of this linear model; chains vmapped,
   split R-hat and ESS reported. Not with the marginalized PF's likelihood: it learns the noise
-  statistics itself (with forgetting), so its likelihood is not that of fixed values.
+  statistics itself (with forgetting), so its likelihood is not that of fixed values. Beside
+  them particle Gibbs with ancestor sampling (ref. [29], :func:`vehjax.calibrate.
+  particle_gibbs`; ``--pmmh-likelihood pg`` or ``all``, the default): a trajectory from the
+  conditional PF, then random-walk moves of the values given it. It takes additive noise
+  only, so the steering noise becomes per-state process stds of vy and r
+  (:func:`pg_process_std`, their correlation dropped) with priors of their own
+  (:func:`pg_priors`); its moves are :data:`PG_STEP` of each prior's scale, since given a
+  whole trajectory the values are known far better than the PMMH likelihood tells them.
 * Smoothing (#29): ``vehjax.smooth`` (extended RTS) of the augmented EKF gives the offset,
   biases, eps and (variant ``bank``) the bank over the drive given the whole drive. Beside
   it the MPF's own smoother (:mod:`vehjax.smoothers.marginalized`; ``--mpf-smooth-paths`` M,
@@ -179,9 +186,13 @@ def parser():
     p.add_argument("--pmmh-duration", type=_cli.positive, default=20.0,
                    help="--drive: seconds of the drive PMMH fits, from its start "
                         "(default %(default)s)")
-    p.add_argument("--pmmh-likelihood", choices=("bootstrap", "kalman", "both"), default="both",
-                   help="--drive: PMMH with the bootstrap PF's likelihood, the exact Kalman "
-                        "likelihood (plain MH, a check), or both (default %(default)s)")
+    p.add_argument("--pmmh-likelihood", choices=("bootstrap", "kalman", "both", "pg", "all"),
+                   default="all",
+                   help="--drive: the offline reference's samplers: PMMH with the bootstrap "
+                        "PF's likelihood, PMMH with the exact Kalman likelihood (plain MH, a "
+                        "check), both, particle Gibbs with ancestor sampling (pg; "
+                        "--pmmh-particles particles in its conditional PF), or all three "
+                        "(default %(default)s)")
     p.add_argument("--mpf-smooth-paths", type=_cli.at_least(int, 0), default=100,
                    help="--drive: ancestral paths M of the MPF's smoother (vehjax.smooth, one "
                         "more execution; at most N); 0 skips it (default %(default)s)")
@@ -623,9 +634,41 @@ def pmmh_priors():
 #: Units and scale of the PMMH quantities in the report.
 PMMH_UNITS = {"delta_offset": ("deg", DEG), "eps": ("1e-4", 1e-4), "bias:ay": ("m/s^2", 1.0),
               "bias:r": ("deg/s", DEG), "R:ay": ("m/s^2", 1.0), "R:r": ("deg/s", DEG),
-              "R:r_virt": ("deg/s", DEG), "input:delta": ("deg", DEG)}
+              "R:r_virt": ("deg/s", DEG), "input:delta": ("deg", DEG),
+              "Q:vy": ("m/s", 1.0), "Q:r": ("deg/s", DEG)}
 PMMH_Q = np.array([0.01, 0.01 * DEG]) ** 2  # vy [m/s], r [rad/s] per step
 PMMH_P0 = np.array([0.1, 0.5 * DEG]) ** 2
+
+
+#: the offline samplers' names in logs and tables, by --pmmh-likelihood value
+SAMPLER = {"bootstrap": "PMMH (bootstrap PF likelihood)", "kalman": "PMMH (Kalman likelihood)",
+           "pg": "particle Gibbs (ancestor sampling)"}
+
+
+#: particle Gibbs's random-walk moves of the values given the trajectory: std as a fraction of
+#: each prior's scale (unconstrained units), and moves per sweep
+PG_STEP, PG_MOVES = 0.01, 5
+
+
+def pg_process_std(pm, U, steer_std):
+    """Per-state process stds (vy [m/s], r [rad/s]) that particle Gibbs uses in place of the
+    steering-input noise (it takes additive noise only): PMMH_Q plus the diagonal of
+    B steer_std^2 B^T, B = d f / d delta at the drive's mean inputs and zero state. The
+    correlation the input noise gives between vy and r is dropped (an approximation)."""
+    B = jax.jacfwd(lambda u: pm.transition(jnp.zeros(2), u, jnp.asarray(pm.theta)))(
+        jnp.asarray(np.nanmean(np.asarray(U, float), axis=0)))[:, 1]
+    return np.sqrt(PMMH_Q + (np.asarray(B) * steer_std) ** 2)
+
+
+def pg_priors(pm, U):
+    """Particle Gibbs's priors: :func:`pmmh_priors` with the steering-input std replaced by
+    log-normal (sigma 1) process stds of vy and r centred on :func:`pg_process_std` at the
+    input prior's centre (0.1 deg)."""
+    from vehjax.calibrate import LogNormal
+
+    pr = {k: v for k, v in pmmh_priors().items() if not k.startswith("input:")}
+    q = pg_process_std(pm, U, 0.1 * DEG)
+    return {**pr, "Q:vy": LogNormal(float(q[0]), 1.0), "Q:r": LogNormal(float(q[1]), 1.0)}
 
 
 def run_pmmh(model, Y, U, *, iters, particles, chains, key, likelihood="bootstrap", init=None):
@@ -633,17 +676,35 @@ def run_pmmh(model, Y, U, *, iters, particles, chains, key, likelihood="bootstra
     raw r_virt; U (T, 2)), half the iterations warm-up. ``likelihood``: "bootstrap"
     (:func:`vehjax.filters.bootstrap_pf` with ``particles``, the particle-MCMC reference) or
     "kalman" (the EKF, exact on this linear model: plain Metropolis-Hastings, a check of the
-    particle chain). ``init``: starting values by name (physical units), default the priors'
-    centres. Returns (:class:`vehjax.calibrate.PMMHResult`, seconds)."""
+    particle chain) or "pg": particle Gibbs with ancestor sampling
+    (:func:`vehjax.calibrate.particle_gibbs`, paper 004's ref. [29]; conditional PF with
+    ``particles``; the steering noise as additive process noise, :func:`pg_priors`).
+    ``init``: starting values by name (physical units), default the priors' centres. Returns
+    (:class:`vehjax.calibrate.PMMHResult`, seconds)."""
     from vehjax import calibrate
     from vehjax.filters import bootstrap_pf, gaussian
 
     pm = pmmh_model(model)
+    R0 = np.array([0.3, 0.3 * DEG, RVIRT_STD]) ** 2
+    if likelihood == "pg":
+        init = None if init is None else {k: v for k, v in init.items() if k != "input:delta"} | (
+            {} if "input:delta" not in init else dict(zip(
+                ("Q:vy", "Q:r"), map(float, pg_process_std(pm, U, init["input:delta"])))))
+        priors = pg_priors(pm, U)
+        # given a whole trajectory the values are known far better than a PMMH step's scale
+        # (0.1 of each prior's): moves of PG_STEP of the prior's scale, PG_MOVES per sweep
+        step = [PG_STEP * p.scale for p in priors.values()]
+        t0 = time.perf_counter()
+        res = calibrate.particle_gibbs(pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2), P0=PMMH_P0,
+                                       Q=np.diag(PMMH_Q), R=R0, priors=priors, key=key,
+                                       chains=chains, samples=iters - iters // 2,
+                                       warmup=iters // 2, n_particles=particles, init=init,
+                                       proposal_std=step, mh_steps=PG_MOVES)
+        return res, time.perf_counter() - t0
     if likelihood == "bootstrap":
         builder, kw = bootstrap_pf, {"n_particles": particles}
     else:
         builder, kw = gaussian.ekf, {}
-    R0 = np.array([0.3, 0.3 * DEG, RVIRT_STD]) ** 2
     t0 = time.perf_counter()
     res = calibrate.pmmh(builder, pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2), P0=PMMH_P0, Q=PMMH_Q,
                          R=R0, priors=pmmh_priors(), key=key, chains=chains,
@@ -758,7 +819,7 @@ def run_drive(args, log=print):
             f"{mpf_smooth['seconds']:.1f} s (compile included), diverged "
             f"{mpf_smooth['diverged']}")
     pm_res = {}
-    liks = {"both": ("bootstrap", "kalman")}.get(getattr(args, "pmmh_likelihood", "both"),
+    liks = {"both": ("bootstrap", "kalman"), "all": ("bootstrap", "kalman", "pg")}.get(getattr(args, "pmmh_likelihood", "both"),
                                                (getattr(args, "pmmh_likelihood", "both"),))
     for lik in liks:
         if not getattr(args, "pmmh_iters", 0):
@@ -775,7 +836,7 @@ def run_drive(args, log=print):
                            particles=args.pmmh_particles, chains=args.pmmh_chains,
                            key=jax.random.key(args.seed + 7), likelihood=lik, init=init)
         pm_res[lik] = (r_, sec, seg.stop)
-        log(f"PMMH ({lik}): {args.pmmh_chains} chains x {args.pmmh_iters} iterations over "
+        log(f"{SAMPLER[lik]}: {args.pmmh_chains} chains x {args.pmmh_iters} iterations over "
             f"{seg.stop} steps, {sec:.1f} s (compile included)")
     k_tr = min(int(round(25.0 / model.dt)), T // 2)  # transient: 25 s as Fig. 8, or half
     after = slice(k_tr, T)
@@ -901,6 +962,10 @@ def drive_tables(res):
              np.mean(np.abs(cs / DEG) < 0.5)),
             ("smoothed yaw rate (extended RTS)", _rms(es / DEG), np.max(np.abs(es / DEG)),
              np.mean(np.abs(es / DEG) < 0.5))]
+    if res.get("mpf_smooth") is not None:  # the paper's filter's own smoother (state 1: r)
+        ms = (np.asarray(res["mpf_smooth"]["states"])[k15, 1] - ref) / DEG
+        yaw_rows.append(("MPF-smoothed yaw rate (ancestor paths)", _rms(ms), np.max(np.abs(ms)),
+                         np.mean(np.abs(ms) < 0.5)))
     return rows_mpf, yaw_rows
 
 
@@ -923,7 +988,7 @@ def scale_rows(res):
              "the whole run's value")]
     for lik, (pr, _, n) in res.get("pmmh", {}).items():
         k = pr.names.index("eps")
-        rows.append((f"PMMH ({lik}), posterior mean, first {n * 0.01:.0f} s",
+        rows.append((f"{SAMPLER[lik]}, posterior mean, first {n * 0.01:.0f} s",
                      f"{pr.mean[k] / 1e-4:+.3f}", f"posterior std {pr.std[k] / 1e-4:.3f}"))
     if res["mode"] in ("offline", "none"):
         rows[3] = (rows[3][0], "held at 0", f"--rvirt-scale {res['mode']}")
@@ -1161,9 +1226,13 @@ def main_drive(args, out_dir):
         "MPF, end (mean over executions)"))
     md_pmmh = []
     for lik, (pr, sec, n) in res["pmmh"].items():
-        what = (f"bootstrap PF, N = {args.pmmh_particles}" if lik == "bootstrap"
-                else "EKF: exact Kalman likelihood on this linear model, plain MH")
-        md_pmmh += [f"PMMH likelihood: {what}; {pr.samples.shape[0]} chains x "
+        what = {"bootstrap": f"PMMH likelihood: bootstrap PF, N = {args.pmmh_particles}",
+                "kalman": "PMMH likelihood: EKF, exact Kalman likelihood on this linear "
+                          "model, plain MH",
+                "pg": f"particle Gibbs with ancestor sampling (ref. [29]), conditional PF with "
+                      f"N = {args.pmmh_particles}, steering noise as additive process noise "
+                      f"(Q:vy, Q:r; their correlation dropped)"}[lik]
+        md_pmmh += [f"{what}; {pr.samples.shape[0]} chains x "
                     f"{args.pmmh_iters} iterations (half warm-up), the first {n * 0.01:.0f} s, "
                     f"{sec:.1f} s (compile included), acceptance "
                     f"{np.mean(pr.acceptance):.2f}.\n",
@@ -1179,8 +1248,9 @@ def main_drive(args, out_dir):
          f"{res['rts_s']:.1f} (with run)"),
     ] + ([] if msm is None else [("MPF smoother (filter + ancestor paths + per-path RTS)",
           f"1 run, N = {res['N']}, M = {msm['M']}", "-", "-",
-          f"{msm['seconds']:.1f} (with run)")]) + [(f"PMMH, {lik} likelihood", f"{pr.samples.shape[0]} chains x {args.pmmh_iters} iter. x "
-          f"{n} steps", "-", "-", f"{sec:.1f} (with run)")
+          f"{msm['seconds']:.1f} (with run)")]) + [(
+          SAMPLER[lik], f"{pr.samples.shape[0]} chains x {args.pmmh_iters} iter. x {n} steps",
+          "-", "-", f"{sec:.1f} (with run)")
          for lik, (pr, sec, n) in res["pmmh"].items()], head=("filter", "size", "ms per run-step", "run [s]", "compile [s]"))
     dur = res["T"] * 0.01
     print()
@@ -1303,8 +1373,8 @@ def _drive_verdict(res, yaw_rows):
         f"raw error); the filters' yaw-rate estimates: MPF {yaw_rows[3][1]:.3f} "
         f"({yaw_rows[3][1] / yaw_rows[0][1]:.2f}x the raw gyro), EKF {yaw_rows[4][1]:.3f} "
         f"({yaw_rows[4][1] / yaw_rows[0][1]:.2f}x)"
-        + (f", the extended-RTS smoothed yaw rate {yaw_rows[6][1]:.3f} "
-           f"({yaw_rows[6][1] / yaw_rows[0][1]:.2f}x)" if len(yaw_rows) > 6 else "")
+        + "".join(f", the {r[0]} {r[1]:.3f} ({r[1] / yaw_rows[0][1]:.2f}x)"
+                  for r in yaw_rows[6:] if "smoothed yaw rate" in r[0])
         + ". Target of #30 item 5, at most 0.8x the raw gyro ("
         f"{0.8 * yaw_rows[0][1]:.3f} deg/s): "
         + ", ".join(f"{r[0]} {'meets it' if r[1] <= 0.8 * yaw_rows[0][1] else 'does NOT'}"
