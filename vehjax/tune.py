@@ -871,13 +871,14 @@ _FORWARD_MAX = 12
 
 #: fits of at least this many run-steps (R T) with forward-mode derivatives and a Hessian by
 #: differences compute the Hessian's 2 n gradients in one program vmapped over the 2 n points
-#: (a second compile, once per fit): the filter's scan on XLA:CPU is
-#: bound by the cost of launching many tiny operations per step, so 2 n points side by side cost
-#: about 1.8 evaluations of one point rather than 2 n (SingleTrack EKF with input noise, 5
-#: coordinates, 2-core CPU: 175 against 95 CPU-us per step; that program compiles in about 9 s
-#: against 7 s for the one-point program). Below this size the second compile costs about as
-#: much as it saves.
-_BATCH_HESSIAN_STEPS = 10000
+#: (a second compile, once per fit): the filter's scan on XLA:CPU is bound by the cost of
+#: launching many tiny operations per step, so 2 n points side by side cost about 1.8
+#: evaluations of one point rather than 2 n (SingleTrack EKF with input noise, 5 coordinates,
+#: 2-core CPU: 175 against 95 CPU-us per step). That program's compile (10-16 s wall on the
+#: shared 2-core machine) is what the ~8 evaluations saved cost at about 20,000 steps (the
+#: 20,000-step fit of benchmarks/bench_fit.py measured 63 s with it against 57 s without,
+#: back to back), so it pays from a few times that length.
+_BATCH_HESSIAN_STEPS = 50000
 
 
 def _flat_loss(obj, info=None, batch_hessian: bool = False) -> _Loss:
