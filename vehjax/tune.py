@@ -1170,6 +1170,27 @@ def _newton(loss: _Loss, x, scales, gtol: float, hessian):
     return x, aux, float(np.max(np.abs(g))), Hm
 
 
+def _check_fit_options(learning_rate, tol, gtol, hessian, steps, patience, optimizer):
+    """:func:`fit`'s optimiser options checked (ValueError naming the first bad one):
+    (learning_rate, tol, gtol) as numbers."""
+    if learning_rate is not None:
+        learning_rate = _validate.number("learning_rate", learning_rate, 0.0)
+    tol = _validate.number("tol", tol, 0.0, low_open=False)
+    gtol = _validate.number("gtol", gtol, 0.0)
+    if hessian is not None:
+        _validate.choice("hessian", hessian, ("differences", "jax"))
+    if steps is not None:
+        _validate.integer("steps", steps, 1)
+    if patience is not None:
+        _validate.integer("patience", patience, 1)
+    if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
+        if not isinstance(optimizer, str):
+            raise ValueError(f"optimizer: expected 'adam', 'lbfgs' or an "
+                             f"optax.GradientTransformation, got {optimizer!r}")
+        _validate.choice("optimizer", optimizer, _OPTIMIZERS)
+    return learning_rate, tol, gtol
+
+
 def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(), bounds=None,
         noise=_NOISE, fit_x0: bool = False, optimizer=None, learning_rate=None,
         steps: int | None = None, tol: float = 1e-7, patience: int | None = None,
@@ -1242,21 +1263,8 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
             steps < 1, an unknown optimizer, a missing key, nothing to fit.
     """
     t_start = time.perf_counter()
-    if learning_rate is not None:
-        learning_rate = _validate.number("learning_rate", learning_rate, 0.0)
-    tol = _validate.number("tol", tol, 0.0, low_open=False)
-    gtol = _validate.number("gtol", gtol, 0.0)
-    if hessian is not None:
-        _validate.choice("hessian", hessian, ("differences", "jax"))
-    if steps is not None:
-        _validate.integer("steps", steps, 1)
-    if patience is not None:
-        _validate.integer("patience", patience, 1)
-    if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
-        if not isinstance(optimizer, str):
-            raise ValueError(f"optimizer: expected 'adam', 'lbfgs' or an "
-                             f"optax.GradientTransformation, got {optimizer!r}")
-        _validate.choice("optimizer", optimizer, _OPTIMIZERS)
+    learning_rate, tol, gtol = _check_fit_options(learning_rate, tol, gtol, hessian, steps,
+                                                  patience, optimizer)
     obj, info = _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
                          noise, fit_x0, key, builder_kwargs)
     if optimizer == "scoring" and info["stochastic"]:
