@@ -94,6 +94,7 @@ def _kalman_loglik_grid(ys, a, q, r, m0=0.0, p0=1.0):
     return ll
 
 
+@pytest.mark.slow  # a sampler study (PMMH's stays in the default run): `pytest -m slow` (README)
 def test_particle_gibbs_recovers_a_two_parameter_grid_posterior():
     ys = _data()
     a_grid = np.linspace(-1.0, 2.2, 500)[:, None]

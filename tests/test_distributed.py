@@ -188,6 +188,7 @@ def _compare(got, want, name, exact):
             np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12, err_msg=f"{name}.{f}")
 
 
+@pytest.mark.slow  # two fresh processes compiling the study: `pytest -m slow` (README)
 @pytest.mark.skipif(_no_gloo(), reason="this jaxlib has no gloo CPU collectives, so CPU "
                     "processes cannot exchange data under jax.distributed")
 def test_two_processes_equal_one_process(data, tmp_path):

@@ -80,6 +80,7 @@ def test_recovers_the_gain_like_the_exact_posterior():
         assert 0.5 * s < est_s < 2 * s
 
 
+@pytest.mark.slow  # a 50-run study: `pytest -m slow` (README)
 def test_tracks_the_exact_posterior_mean_when_it_is_skewed():
     """x' = A x + u / g + w: the posterior of g is skewed (mean above mode). Over 50 runs the
     final estimate (default: kernel after resampling only) lies on the exact grid posterior
@@ -261,6 +262,7 @@ def test_weights_underflow_reinitialises_from_the_box_with_finite_outputs():
     np.testing.assert_allclose(state.log_weights, -np.log(64))
 
 
+@pytest.mark.slow  # a small study on a vehicle model: `pytest -m slow` (README)
 def test_works_with_vehjax_run_on_the_kinematic_bicycle():
     model = vj.models.KinematicBicycle(dt=0.1)
     scn = vj.scenarios.sine_steer(model, speed=10.0, amplitude=0.3, frequency=0.5, duration=10.0)

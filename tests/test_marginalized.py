@@ -339,6 +339,7 @@ def study():
     return est, Xs, Ys, out
 
 
+@pytest.mark.slow  # a reduced study (8 runs x 20 s, N = 100): `pytest -m slow` (README)
 def test_study_recovers_the_offset_the_biases_and_the_gyro_stds(study):
     """Averages over the last 6 s of each run. Observed at these seeds: offset errors within
     0.005 deg, gyro stds within 5 %, yaw-rate bias within 8e-4 rad/s, ay std about 10 % low
@@ -369,6 +370,7 @@ def test_study_recovers_the_offset_the_biases_and_the_gyro_stds(study):
     assert np.all(np.linalg.eigvalsh(out.params_cov[:, ::100]) > 0)
 
 
+@pytest.mark.slow  # on the reduced study's runs (NaN skipping in the default run: the exact-Kalman tests): `pytest -m slow` (README)
 def test_nan_components_are_skipped(study):
     """Missing components count nowhere: n_obs is the number of non-NaN components, steps with
     nothing observed have NIS 0, the noise estimates barely move through 0.2 s without data
@@ -463,6 +465,7 @@ def test_known_noise_with_gaussian_particle_states_is_the_exact_kalman_filter():
     np.testing.assert_allclose(var.mean(axis=(0, 1)) / (sd**2).mean(axis=0), 1.0, atol=0.05)
 
 
+@pytest.mark.slow  # a small study: `pytest -m slow` (README)
 def test_planar_filter_learns_the_offset_and_biases_on_a_flat_road():
     """Remark 2's planar filter (sensors ay and yaw rate, the virtual yaw rate known, no bank
     states: SingleTrackBank's bank states held at zero by a negligible P0) on flat-road data:
@@ -486,6 +489,7 @@ def test_planar_filter_learns_the_offset_and_biases_on_a_flat_road():
     assert np.abs(out.states[:, :, 2:]).max() < 1e-6  # no bank appears
 
 
+@pytest.mark.slow  # a small study in float32: `pytest -m slow` (README)
 def test_float32_runs_and_learns():
     """The bank filter in float32 end to end: finite, no divergence, the offset learnt."""
     T, R = 400, 2
@@ -652,6 +656,7 @@ def test_linearisation_entries_called_constant_or_per_step_are(which):
         assert per_particle_jac > 0
 
 
+@pytest.mark.slow  # two MPF compiles of a user model: `pytest -m slow` (README)
 def test_per_step_entries_change_nothing_on_a_nonlinear_user_model(monkeypatch):
     """The MPF on the arctan user model (constant, per-step and per-particle entries mixed)
     gives the same estimates as with every non-constant entry computed per particle (the

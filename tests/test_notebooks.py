@@ -2,8 +2,7 @@
 stored without outputs. A failing cell fails the test with the cell's error.
 
 Executing a notebook is a small study (a kernel, the imports, a dozen compiles: 15-55 s each on
-2 cores): the quick-start and the wang2016 walk-through run in the default suite, the other four
-are marked ``slow`` (``pytest -m slow``). Every notebook's code is checked in the default run
+2 cores): the quick-start runs in the default suite, the other five are marked ``slow`` (``pytest -m slow``). Every notebook's code is checked in the default run
 without executing it: it parses, and every ``vj.<name>...`` / ``b18.<name>`` it refers to exists,
 so a renamed or removed public name fails here and not first in a user's hands."""
 
@@ -36,7 +35,7 @@ def test_notebook_is_stored_without_outputs(name):
                 f"{name}: cell {i} has outputs"
 
 
-RUN_BY_DEFAULT = ("01_quickstart.ipynb", "03_wang2016.ipynb")
+RUN_BY_DEFAULT = ("01_quickstart.ipynb",)
 
 
 def _code(nb):

@@ -116,6 +116,7 @@ def test_ffbsi_means_converge_to_the_rts_smoother():
     assert rms[400] < 0.25, rms
 
 
+@pytest.mark.slow  # a Monte-Carlo study: `pytest -m slow` (README)
 def test_ffbsi_covariance_and_lag_one_covariance_match_the_rts():
     """The trajectories' covariances and lag-one covariances Cov(x_t, x_t+1 | y) against the
     RTS's P_t|T and G_t P_t+1|T, within Monte-Carlo error (z RMS < 2, as above); and a

@@ -40,7 +40,9 @@ def study():
 
 
 # the cubature filter shares the unscented one's sigma-point path: `pytest -m slow`
-@pytest.mark.parametrize("build", [ukf, pytest.param(ckf, marks=pytest.mark.slow), ekf],
+# (the EKF's runs-last form against its step also in test_gaussian.py's many-runs test)
+@pytest.mark.parametrize("build", [ukf, pytest.param(ckf, marks=pytest.mark.slow),
+                                   pytest.param(ekf, marks=pytest.mark.slow)],
                          ids=["ukf", "ckf", "ekf"])
 def test_runs_last_equals_vmapped_step(study, build):
     model, Q, R, ys, us, x0, P0 = study
@@ -137,7 +139,8 @@ def test_runs_last_input_dependent_outputs(study, build):
 
 
 @pytest.mark.parametrize("build, per_run_inputs", [
-    pytest.param(ukf, False, marks=pytest.mark.slow), (ukf, True), (ekf, True)],
+    pytest.param(ukf, False, marks=pytest.mark.slow),
+    pytest.param(ukf, True, marks=pytest.mark.slow), (ekf, True)],
                          ids=["ukf-shared", "ukf-per-run", "ekf-per-run"])
 def test_runs_last_step_reads_theta_from_state_unless_constant(study, per_run_inputs, build):
     """With ``default_theta=False`` the batch step uses each run's theta from the state; with

@@ -448,6 +448,7 @@ def test_etdrk4_error_falls_with_the_step(etd_replays):
     np.testing.assert_array_less(8.0 * e6, e3)
 
 
+@pytest.mark.slow  # one ETDRK4 Jacobian compile, about 30 s on 2 cores: `pytest -m slow` (README)
 def test_etdrk4_jacobian_is_finite_and_matches_central_differences():
     """jacfwd of the ETDRK4 transition (through the linear part formed at x, too) against
     central differences, at a state of the double lane change (0.6 g to the left) and at a

@@ -140,6 +140,7 @@ def _map_trajectory(ys, us, g=9.81):
     return sol.x.reshape(TN + 1, 2)[1:]
 
 
+@pytest.mark.slow  # the parallel IEKS compile (its sequential form, and the parallel RTS, run by default)
 def test_parallel_ieks_converges_to_scipy_map(pend):
     """The IEKS fixed point is the MAP trajectory (Gauss-Newton on the negative log posterior):
     the parallel-in-time passes reach scipy's minimiser and flag convergence, where the plain
@@ -160,6 +161,7 @@ def test_parallel_ieks_converges_to_scipy_map(pend):
     assert not bool(one.converged) and int(one.iterations) == 1
 
 
+@pytest.mark.slow  # two IPLS compiles: `pytest -m slow` (README)
 def test_ipls_fixed_point_from_two_starts(pend):
     """The IPLS (cubature points) reaches the same fixed point from the filter's own moments
     (sequential passes) and from a flat start at the prior mean (parallel passes by recursive

@@ -144,6 +144,7 @@ def test_gradient_matches_central_differences(builder, kwargs):
 # a nonlinear vehicle model: R started 10x too large is recovered
 
 
+@pytest.mark.slow  # a small tuning study: `pytest -m slow` (README)
 def test_vehicle_tuning_recovers_simulated_measurement_noise():
     model = vj.models.KinematicBicycle(dt=0.05)
     scn = vj.scenarios.sine_steer(model, speed=10.0, amplitude=0.1, frequency=0.3, duration=5.0)
@@ -162,6 +163,7 @@ def test_vehicle_tuning_recovers_simulated_measurement_noise():
 # particle filter: the stop-gradient score against the exact Kalman score
 
 
+@pytest.mark.slow  # a Monte-Carlo check of the PF's score: `pytest -m slow` (README)
 def test_particle_filter_stop_gradient_score_matches_kalman_score():
     a = 0.9
     model = vj.models.Model(transition=lambda x, u, th: a * x, observe=lambda x, u, th: x,
