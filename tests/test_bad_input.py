@@ -363,7 +363,7 @@ def test_run_raises_only_value_errors(runs, steps, ny, nu, u_shared, value, wher
     assert np.isfinite(out.states[good]).all()
 
 
-@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(runs=st.one_of(st.integers(-1, 3), st.just(2.0), st.just(True)),
        meas=st.one_of(st.sampled_from([0.0, 0.1, -1.0, np.nan, np.inf]),
                       st.lists(st.floats(-1, 1), min_size=0, max_size=4)),

@@ -134,6 +134,7 @@ def test_ffbsi_covariance_and_lag_one_covariance_match_the_rts():
     np.testing.assert_allclose(ff.cross_covariances[0, 3], d[:, 3].T @ d[:, 4] / 399, rtol=1e-10)
 
 
+@pytest.mark.slow  # two particle-smoother compiles compared in distribution: `pytest -m slow` (README)
 def test_rejection_sampling_agrees_with_ffbsi():
     """Same filter runs (same keys), backward draws by rejection with 4 tries and the exact
     fallback: means and covariances agree with FFBSi's within Monte-Carlo error (z of the

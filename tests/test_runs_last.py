@@ -123,8 +123,10 @@ def test_only_small_models_and_constant_noise_get_a_runs_last_step():
     assert seen["runs_last"] is None
 
 
-# the EKF is the case with varying Jacobian entries; the UKF's: `pytest -m slow`
-@pytest.mark.parametrize("build", [pytest.param(ukf, marks=pytest.mark.slow), ekf],
+# both with `pytest -m slow`: a third output layout through the runs-last forms (their
+# equality with the step on the default outputs runs by default)
+@pytest.mark.parametrize("build", [pytest.param(ukf, marks=pytest.mark.slow),
+                                   pytest.param(ekf, marks=pytest.mark.slow)],
                          ids=["ukf", "ekf"])
 def test_runs_last_input_dependent_outputs(study, build):
     """The 'matlab' outputs (vx, ay, r) make observe depend on the input as well (and the

@@ -373,6 +373,7 @@ def test_ros2_error_falls_with_the_step(dlc_replays):
         assert e2[i] < e1[i] / 1.8, (i, e1[i], e2[i])
 
 
+@pytest.mark.slow  # the ROS2 integrator's wheel Jacobian compile: `pytest -m slow` (README)
 def test_ros2_wheel_jacobian_rows_match_autodiff():
     """The wheel rows that ROS2 uses equal jacfwd of omega' with the loads frozen at their solved
     values; their diagonal (the stiff part) is within 10 % of the full Jacobian's, which also

@@ -51,6 +51,21 @@ def _data(seed=3):
     return ys, us
 
 
+def _rts_backward(F, xf, Pf, xp, Pp):
+    """The textbook Rauch-Tung-Striebel backward pass for x_t+1 = F x_t + ...: smoothed means,
+    covariances and lag-one covariances Cov(x_t, x_t+1) from the filtered (xf, Pf) and
+    predicted (xp, Pp) moments, lists over t."""
+    n = len(xf)
+    xs, Ps, C = [None] * n, [None] * n, [None] * (n - 1)
+    xs[-1], Ps[-1] = xf[-1], Pf[-1]
+    for t in range(n - 2, -1, -1):
+        G = np.linalg.solve(Pp[t + 1], F @ Pf[t]).T
+        xs[t] = xf[t] + G @ (xs[t + 1] - xp[t + 1])
+        Ps[t] = Pf[t] + G @ (Ps[t + 1] - Pp[t + 1]) @ G.T
+        C[t] = G @ Ps[t + 1]
+    return np.array(xs), np.array(Ps), np.array(C)
+
+
 def kalman_rts(ys, us):
     """Textbook Kalman filter (predict with u_t, update with y_t, NaN skipped) and RTS smoother
     of the system with its noise known. Returns smoothed means (T, 2), covariances (T, 2, 2)
@@ -68,15 +83,7 @@ def kalman_rts(ys, us):
         K = np.linalg.solve(S, P[o]).T
         x, P = x + K @ (ys[t][o] - b[o] - x[o]), P - K @ S @ K.T
         xf.append(x), Pf.append(P)
-    n = len(ys)
-    xs, Ps, C = [None] * n, [None] * n, [None] * (n - 1)
-    xs[-1], Ps[-1] = xf[-1], Pf[-1]
-    for t in range(n - 2, -1, -1):
-        G = np.linalg.solve(Pp[t + 1], A @ Pf[t]).T
-        xs[t] = xf[t] + G @ (xs[t + 1] - xp[t + 1])
-        Ps[t] = Pf[t] + G @ (Ps[t + 1] - Pp[t + 1]) @ G.T
-        C[t] = G @ Ps[t + 1]
-    return np.array(xs), np.array(Ps), np.array(C)
+    return _rts_backward(A, xf, Pf, xp, Pp)
 
 
 def _known_noise_mpf(n, **kw):
@@ -211,6 +218,21 @@ def test_bad_input_names_the_argument():
         ms.smooth(_known_noise_mpf(10), ys, us, x0=X0, P0=P0, key=None)
 
 
+def _bank_drive(model, Tb, x0, seed):
+    """Tb steps of SingleTrackBank at 20 m/s with a 0.5 Hz steering sine and a 0.3 deg steering
+    offset from x0, measurements with 0.01 white noise: (U (Tb, 2), Y (Tb, 5))."""
+    t = np.arange(Tb) * 0.01
+    U = np.stack([np.full(Tb, 20.0), 0.02 * np.sin(2 * np.pi * 0.5 * t)], 1)
+    th = jnp.asarray(model.theta)
+
+    def body(x, u):
+        xn = model.transition(x, u + jnp.array([0.0, math.radians(0.3)]), th)
+        return xn, model.observe(xn, u, th)
+
+    _, Y = jax.lax.scan(body, jnp.asarray(x0, float), jnp.asarray(U))
+    return U, np.asarray(Y) + 0.01 * np.random.default_rng(seed).normal(size=(Tb, 5))
+
+
 @pytest.mark.slow  # the bank model's MPF and smoother compile for about a minute on 2 cores
 def test_single_track_bank_smoke():
     """The paper's filter with Gaussian particle states on SingleTrackBank, 40 steps of
@@ -218,17 +240,7 @@ def test_single_track_bank_smoke():
     filter's log-likelihood, no divergence."""
     model = vj.models.SingleTrackBank(dt=0.01)
     Tb = 40
-    t = np.arange(Tb) * 0.01
-    U = np.stack([np.full(Tb, 20.0), 0.02 * np.sin(2 * np.pi * 0.5 * t)], 1)
-    th = jnp.asarray(model.theta)
-    rng = np.random.default_rng(0)
-
-    def body(x, u):
-        xn = model.transition(x, u + jnp.array([0.0, math.radians(0.3)]), th)
-        return xn, model.observe(xn, u, th)
-
-    _, Y = jax.lax.scan(body, jnp.zeros(5), jnp.asarray(U))
-    Y = np.asarray(Y) + 0.01 * rng.normal(size=(Tb, 5))
+    U, Y = _bank_drive(model, Tb, np.zeros(5), seed=0)
     est = marginalized_pf(model, 16, known_std={"phi": 0.01, "r_virt": 0.005},
                           linear_noise_std=0.05, kalman_states="all",
                           std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02})
@@ -455,15 +467,8 @@ def kalman_rts_exact(ys, us):
         off = np.array([B1, DY * us[t, 0]])[o]
         x, P = x + K @ (ys[t][o] - off - Ho @ x), P - K @ S @ K.T
         xf.append(x), Pf.append(P)
-    n = len(ys)
-    xs, Ps, C = [None] * n, [None] * n, [None] * (n - 1)
-    xs[-1], Ps[-1] = xf[-1], Pf[-1]
-    for t in range(n - 2, -1, -1):
-        G = np.linalg.solve(Pp[t + 1], F @ Pf[t]).T
-        xs[t] = xf[t] + G @ (xs[t + 1] - xp[t + 1])
-        Ps[t] = Pf[t] + G @ (Ps[t + 1] - Pp[t + 1]) @ G.T
-        C[t] = G @ Ps[t + 1]
-    return np.array(xs)[:, :2], np.array(Ps)[:, :2, :2], np.array(C)[:, :2, :2]
+    xs, Ps, C = _rts_backward(F, xf, Pf, xp, Pp)
+    return xs[:, :2], Ps[:, :2, :2], C[:, :2, :2]
 
 
 @functools.lru_cache(maxsize=None)
@@ -524,17 +529,7 @@ def test_linear_step_joint_is_the_filters_kalman_step_on_single_track_bank():
     covariance that is positive semi-definite."""
     model = vj.models.SingleTrackBank(dt=0.01)
     Tb = 40
-    t = np.arange(Tb) * 0.01
-    U = np.stack([np.full(Tb, 20.0), 0.02 * np.sin(2 * np.pi * 0.5 * t)], 1)
-    th = jnp.asarray(model.theta)
-    rng = np.random.default_rng(1)
-
-    def body(x, u):
-        xn = model.transition(x, u + jnp.array([0.0, math.radians(0.3)]), th)
-        return xn, model.observe(xn, u, th)
-
-    _, Y = jax.lax.scan(body, jnp.array([0.0, 0.0, 0.02, 0.0, 0.0]), jnp.asarray(U))
-    Y = np.asarray(Y) + 0.01 * rng.normal(size=(Tb, 5))
+    U, Y = _bank_drive(model, Tb, np.array([0.0, 0.0, 0.02, 0.0, 0.0]), seed=1)
     names = list(model.output_names)
     Y[:, names.index("phi")] = np.nan
     Y[[9, 25], names.index("r")] = np.nan
