@@ -230,6 +230,7 @@ def test_pinned_run_is_flagged_and_a_free_one_is_not():
     assert "bound" not in repr(free)
 
 
+@pytest.mark.slow  # a Liu-West compile (the box rule's maths is tested on its own): `pytest -m slow` (README)
 def test_liu_west_particles_stay_in_the_box():
     """Truth b = 1 outside the prior box [1.2, 3]: with the box as the domain no particle ever
     leaves it; with the default domain of a positive box, (0, inf), none becomes negative;

@@ -105,8 +105,9 @@ def test_each_platform_has_its_rules():
 
 @pytest.mark.parametrize("family", [
     # the particle filters (Liu-West about 17 s of compiling on 2 cores, the bootstrap PF 13 s)
-    # under the seam's same rules: `pytest -m slow`
-    pytest.param(f, marks=pytest.mark.slow) if f in ("liu_west", "bootstrap_pf") else f
+    # and the dual EKF (the joint UKF stands for the parameter filters): `pytest -m slow`
+    pytest.param(f, marks=pytest.mark.slow) if f in ("liu_west", "bootstrap_pf", "dual_ekf")
+    else f
     for f in sorted(FAMILIES)])
 def test_gpu_strategy_on_the_cpu_gives_the_cpu_results(family, monkeypatch):
     """No blocking, no CPU XLA options, no trigonometric substitutes, chunks from a device

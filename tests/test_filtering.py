@@ -168,6 +168,7 @@ def test_liu_west_needs_no_theta0():
     assert np.all((out.params > 1.0) & (out.params < 3.0))
 
 
+@pytest.mark.slow  # a dual EKF and a simulation compiled for a shape check: `pytest -m slow` (README)
 def test_dual_filter_without_theta0_reports_its_parameters():
     """theta0 omitted (a dual filter starts from the model's nominal values): params has the
     estimated parameters' width, not (T, 0), and starts at the nominal values."""

@@ -209,6 +209,7 @@ def _two_output_data(T=15):
     return ys, us
 
 
+@pytest.mark.slow  # two Liu-West compiles: `pytest -m slow` (README)
 def test_missing_component_is_the_same_as_not_measuring_it():
     ys, us = _two_output_data()
     ys_nan = ys.copy()

@@ -613,7 +613,8 @@ def _nonlinear_bank_model():
                            output_names=("ay", "r", "phim"))
 
 
-@pytest.mark.parametrize("which", ["SingleTrackBank", "user model with arctan"])
+@pytest.mark.parametrize("which", ["SingleTrackBank", pytest.param(
+    "user model with arctan", marks=pytest.mark.slow)])  # the second MPF compile: -m slow
 def test_linearisation_entries_called_constant_or_per_step_are(which):
     """The filter computes the linearisation entries that ``entry_kinds`` calls per step once
     per step, and uses the constants as numbers: at 30 random particles (states, bank means)

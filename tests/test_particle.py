@@ -165,6 +165,7 @@ def test_zero_ess_threshold_never_resamples():
     np.testing.assert_allclose(np.exp(np.asarray(state.log_weights)), w, rtol=1e-9, atol=1e-300)
 
 
+@pytest.mark.slow  # two PF compiles (NaN measurements for every filter: test_entry_points.py): `pytest -m slow`
 def test_missing_component_is_the_same_as_not_measuring_it():
     """y = (a, NaN) must give exactly what a model observing only the first state gives."""
     T = 12

@@ -83,7 +83,9 @@ def test_runs_last_diverging_run_is_frozen_others_untouched(build):
                                                               **kw).states, rtol=1e-12)
 
 
-@pytest.mark.parametrize("build", [ukf, ekf], ids=["ukf", "ekf"])
+# one filter each by default (the other: `pytest -m slow`)
+@pytest.mark.parametrize("build", [ukf, pytest.param(ekf, marks=pytest.mark.slow)],
+                         ids=["ukf", "ekf"])
 def test_runs_last_chunked_equals_one_chunk(study, build):
     model, Q, R, ys, us, x0, P0 = study
     est = build(model, Q, R)
@@ -93,7 +95,8 @@ def test_runs_last_chunked_equals_one_chunk(study, build):
     _assert_same(chunked, one, 1e-12)
 
 
-@pytest.mark.parametrize("build", [ukf, ekf], ids=["ukf", "ekf"])
+@pytest.mark.parametrize("build", [ukf, pytest.param(ekf, marks=pytest.mark.slow)],
+                         ids=["ukf", "ekf"])
 def test_runs_last_float32(study, build):
     model, Q, R, ys, us, x0, P0 = study
     est = build(model, Q, R)

@@ -286,6 +286,7 @@ def test_bad_arguments_raise_value_error():
         SevenDOF(theta=np.ones(8))
 
 
+@pytest.mark.slow  # two 7-DOF compiles (RK4 sub-steps and Euler): `pytest -m slow` (README)
 def test_jit_vmap_jacobian_and_integrators(model):
     pts = list(_random_points(6, 1))
     X = jnp.asarray(np.stack([p[0] for p in pts]))
