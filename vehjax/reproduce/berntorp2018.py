@@ -671,6 +671,18 @@ def pg_priors(pm, U):
     return {**pr, "Q:vy": LogNormal(float(q[0]), 1.0), "Q:r": LogNormal(float(q[1]), 1.0)}
 
 
+def _pg_init(pm, U, init):
+    """PMMH's starting values for particle Gibbs: the steering-input std, if given, replaced by
+    the process stds it stands for (:func:`pg_process_std`)."""
+    if init is None:
+        return None
+    init = dict(init)
+    steer = init.pop("input:delta", None)
+    if steer is not None:
+        init["Q:vy"], init["Q:r"] = map(float, pg_process_std(pm, U, steer))
+    return init
+
+
 def run_pmmh(model, Y, U, *, iters, particles, chains, key, likelihood="bootstrap", init=None):
     """PMMH over :func:`pmmh_priors` on one drive (Y (T, 5) SingleTrackBank's measurements,
     raw r_virt; U (T, 2)), half the iterations warm-up. ``likelihood``: "bootstrap"
@@ -687,9 +699,7 @@ def run_pmmh(model, Y, U, *, iters, particles, chains, key, likelihood="bootstra
     pm = pmmh_model(model)
     R0 = np.array([0.3, 0.3 * DEG, RVIRT_STD]) ** 2
     if likelihood == "pg":
-        init = None if init is None else {k: v for k, v in init.items() if k != "input:delta"} | (
-            {} if "input:delta" not in init else dict(zip(
-                ("Q:vy", "Q:r"), map(float, pg_process_std(pm, U, init["input:delta"])))))
+        init = _pg_init(pm, U, init)
         priors = pg_priors(pm, U)
         # given a whole trajectory the values are known far better than a PMMH step's scale
         # (0.1 of each prior's): moves of PG_STEP of the prior's scale, PG_MOVES per sweep
