@@ -229,19 +229,23 @@ def test_ancestor_tracing_is_degenerate_as_documented():
 def test_a_diverging_run_is_flagged_and_does_not_poison_the_batch():
     """Two runs smoothed under one vmap, the second with a measurement 10^4 off (every
     particle's likelihood underflows, the filter re-initialises): that run is flagged and finite,
-    the other is not flagged and equals its smoothing in another program (same key)."""
+    and the first run's smoothing is the same, bit for bit, as when its neighbour is a clean
+    copy of it (one compiled program, called twice)."""
     ys, us = _data()
     bad = ys.copy()
     bad[8] = 1e4
     est = vj.filters.bootstrap_pf(_model(), Q, R, n_particles=50)
-    key = jax.random.split(jax.random.key(11), 8)[0]  # _smoothed's first key
-    out = jax.jit(jax.vmap(lambda y: ps.smooth(est, y, us, x0=X0, P0=P0, key=key,
-                                               n_trajectories=50)))(np.stack([ys, bad]))
+    key = jax.random.key(11)
+    both = jax.jit(jax.vmap(lambda y: ps.smooth(est, y, us, x0=X0, P0=P0, key=key,
+                                                n_trajectories=50)))
+    out, ref = both(np.stack([ys, bad])), both(np.stack([ys, ys]))
     np.testing.assert_array_equal(out.diverged, [False, True])
+    np.testing.assert_array_equal(ref.diverged, [False, False])
     assert np.all(np.isfinite(out.trajectories)) and np.all(np.isfinite(out.loglik))
-    ref, _ = _smoothed(50)
-    np.testing.assert_allclose(out.states[0], ref.states[0], rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(out.loglik[0], ref.loglik[0], rtol=1e-12)
+    assert np.sum(out.loglik[1]) < np.sum(ref.loglik[1]) - 100.0  # the 10^4 measurement seen
+    np.testing.assert_array_equal(out.states[0], ref.states[0])
+    np.testing.assert_array_equal(out.trajectories[0], ref.trajectories[0])
+    np.testing.assert_array_equal(out.loglik[0], ref.loglik[0])
 
 
 def test_float32_priors_smooth_in_float32():
