@@ -33,10 +33,10 @@ def test_centreline_has_the_iso_offsets():
 
 
 def test_open_loop_profiles():
-    model = Dynamic3DOF()
-    scn = scenarios.sine_steer(model, amplitude=0.04, frequency=0.5, duration=4.0)
+    model = Dynamic3DOF()  # one length for all: the profiles share one compiled drive
+    scn = scenarios.sine_steer(model, amplitude=0.04, frequency=0.5, duration=5.0)
     np.testing.assert_allclose(scn.inputs[:, -1], 0.04 * np.sin(np.pi * scn.t), atol=1e-12)
-    step = scenarios.step_steer(model, amplitude=0.02, t_step=1.0, duration=3.0)
+    step = scenarios.step_steer(model, amplitude=0.02, t_step=1.0, duration=5.0)
     assert np.all(step.inputs[step.t < 1.0, -1] == 0.0)
     np.testing.assert_allclose(step.inputs[step.t > 1.2, -1], 0.02)
     ch = scenarios.chirp(model, amplitude=0.02, f0=0.2, f1=2.0, duration=5.0)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from typing import Callable, NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -106,32 +107,56 @@ def _check_finite(name, value):
 
 
 def _drive(model, name: str, speed: float, duration: float, steer: Callable | None, offset=3.5):
-    """Closed-loop drive at the nominal parameters; ``steer(t)`` or, if None, the ISO course."""
+    """Closed-loop drive at the nominal parameters; ``steer(t)`` (a function of time only,
+    evaluated on the whole time grid) or, if None, the ISO course."""
     _check_model(model)
     dt = model.dt
     n_steps = int(round(duration / dt))
     if n_steps < 1:
         raise ValueError(f"duration: expected at least one step of dt = {dt} s, got {duration} s")
     t = np.arange(n_steps) * dt
-    theta = model.theta
-    x0 = jnp.asarray(model.initial_state(speed), dtype=theta.dtype)
-    wheelbase = _wheelbase(model)
-    lookahead = max(6.0, _PREVIEW * speed)  # m
+    dtype = model.theta.dtype
+    x0 = jnp.asarray(model.initial_state(speed), dtype=dtype)
+    zero = jnp.zeros((), dtype=dtype)
+    X_start = zero - _RUN_IN if steer is None else zero
+    if model.pose(x0) is not None and steer is None:
+        x0 = x0.at[0].set(-_RUN_IN)
+    ts = jnp.asarray(t, dtype=dtype)
+    delta = ts if steer is None else jnp.broadcast_to(jnp.asarray(steer(ts), dtype), ts.shape)
+    gains = jnp.asarray([speed, offset, max(6.0, _PREVIEW * speed), _wheelbase(model)], dtype)
+    inputs, path = _rollout(model, steer is None, (x0, X_start, zero, zero), delta, gains)
+    if not bool(jnp.all(jnp.isfinite(inputs))):
+        raise ValueError(
+            f"{name}: the nominal closed-loop drive went non-finite at speed {speed} m/s; "
+            "try a lower speed or a smaller amplitude"
+        )
+    return Scenario(name, t, inputs, x0, tuple(model.input_names), np.asarray(path))
 
-    def step(carry, tk):
+
+@eqx.filter_jit
+def _rollout(model, pursuit: bool, carry0, delta_open, gains):
+    """The drive's scan, compiled once per model, driver kind and length (every open-loop
+    profile of a model and length shares one program). ``pursuit``: the pure-pursuit driver on
+    the ISO course, else the road-wheel angles ``delta_open`` (T,) [rad]; ``gains``: the
+    speed target [m/s], the centre-lane offset [m], the look-ahead distance [m] and the
+    wheelbase [m]. Returns inputs (T, nu) and the pose (T, 3)."""
+    speed, offset, lookahead, wheelbase = gains
+    theta, dt = model.theta, model.dt
+
+    def step(carry, d_open):
         x, X, Y, psi = carry
         pose = model.pose(x)
         if pose is not None:
             X, Y, psi = pose
         v = model.speed(x)
         v = speed if v is None else v
-        if steer is None:
+        if pursuit:
             Xt = X + lookahead
             Yt = iso3888_centreline(Xt, offset)
             alpha = jnp.arctan2(Yt - Y, Xt - X) - psi
             delta = jnp.arctan(2.0 * wheelbase * jnp.sin(alpha) / lookahead)
         else:
-            delta = steer(tk)
+            delta = d_open
         delta = jnp.clip(delta, -_MAX_STEER, _MAX_STEER)
         accel = jnp.clip(_SPEED_GAIN * (speed - v), -_MAX_ACCEL, _MAX_ACCEL)
         u = model.drive_input(x, delta, accel, speed, theta)
@@ -142,19 +167,7 @@ def _drive(model, name: str, speed: float, duration: float, steer: Callable | No
         Y_next = Y + (vx * jnp.sin(psi) + vy * jnp.cos(psi)) * dt
         return (x_next, X_next, Y_next, psi_next), (u, jnp.stack([X, Y, psi]))
 
-    zero = jnp.zeros((), dtype=theta.dtype)
-    X_start = zero - _RUN_IN if steer is None else zero
-    if model.pose(x0) is not None and steer is None:
-        x0 = x0.at[0].set(-_RUN_IN)
-    _, (inputs, path) = jax.jit(lambda c, ts: jax.lax.scan(step, c, ts))(
-        (x0, X_start, zero, zero), jnp.asarray(t, dtype=theta.dtype)
-    )
-    if not bool(jnp.all(jnp.isfinite(inputs))):
-        raise ValueError(
-            f"{name}: the nominal closed-loop drive went non-finite at speed {speed} m/s; "
-            "try a lower speed or a smaller amplitude"
-        )
-    return Scenario(name, t, inputs, x0, tuple(model.input_names), np.asarray(path))
+    return jax.lax.scan(step, carry0, delta_open)[1]
 
 
 def double_lane_change(model, speed: float = 20.0, duration: float | None = None, offset: float = 3.5):
