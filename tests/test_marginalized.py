@@ -707,12 +707,8 @@ def test_per_step_entries_change_nothing_on_a_nonlinear_user_model(monkeypatch):
     assert np.all(np.abs(z) < 3.0), z
 
 
-def test_resample_argument_is_what_the_filter_resamples_with():
-    """``resample=``: a function that never resamples gives exactly the filter with
-    ess_threshold=0 (which never resamples), and differs from the default (which does); the
-    default is smc.resample (same numbers when passed explicitly). Tiny planar user model."""
-    from vehjax.filters import smc
-
+def _tiny_mpf_run(**extra):
+    """A tiny planar user model's MPF (16 particles, 12 steps), filtered with one key."""
     def trans(x, u, th):
         return jnp.stack([0.9 * x[0] + 0.1 * u[0]])
 
@@ -720,18 +716,28 @@ def test_resample_argument_is_what_the_filter_resamples_with():
                             dt=0.1, state_names=("v",), input_names=("u",), output_names=("y",))
     rng = np.random.default_rng(0)
     ys, us = rng.normal(size=(12, 1)), rng.normal(size=(12, 1))
-    kw = dict(noisy_input="u", sensors=("y",), linear_states=(), std0={"u": 0.5, "y": 0.3})
+    est = marginalized_pf(model, 16, noisy_input="u", sensors=("y",), linear_states=(),
+                          std0={"u": 0.5, "y": 0.3}, **extra)
+    return vj.filter(est, ys, us, x0=np.zeros(1), P0=np.eye(1), key=jax.random.key(0))
 
+
+def test_resample_argument_is_what_the_filter_resamples_with():
+    """``resample=``: a function that never resamples gives exactly the filter with
+    ess_threshold=0 (which never resamples), and differs from the default (which does)."""
     def never(particles, w, log_w, u, scheme, threshold):
         return particles, log_w, w, jnp.zeros((), bool)
 
-    def run(**extra):
-        est = marginalized_pf(model, 16, **kw, **extra)
-        return vj.filter(est, ys, us, x0=np.zeros(1), P0=np.eye(1), key=jax.random.key(0))
-
-    a, b = run(resample=never, ess_threshold=1.0), run(ess_threshold=0.0)
+    a, b = _tiny_mpf_run(resample=never, ess_threshold=1.0), _tiny_mpf_run(ess_threshold=0.0)
     np.testing.assert_array_equal(a.states, b.states)
     np.testing.assert_array_equal(a.params, b.params)
-    c, d = run(ess_threshold=1.0), run(ess_threshold=1.0, resample=smc.resample)
+    assert not np.array_equal(a.states, _tiny_mpf_run(ess_threshold=1.0).states)
+
+
+@pytest.mark.slow  # two more MPF compiles: `pytest -m slow`
+def test_default_resample_is_smc_resample():
+    """The default resampling is smc.resample: the same numbers when passed explicitly."""
+    from vehjax.filters import smc
+
+    c = _tiny_mpf_run(ess_threshold=1.0)
+    d = _tiny_mpf_run(ess_threshold=1.0, resample=smc.resample)
     np.testing.assert_array_equal(c.states, d.states)
-    assert not np.array_equal(a.states, c.states)

@@ -158,17 +158,22 @@ def test_the_noise_statistics_stay_at_the_known_values():
     np.testing.assert_allclose(p[..., 3], SD1, rtol=1e-4)
 
 
-def test_loglik_is_the_filters_and_paths_are_genealogies():
-    """The smoother's log-likelihood is vehjax.filter's with the same key; the number of
-    distinct particles on the paths never grows backwards in time (ancestor tracing)."""
+def test_paths_are_genealogies():
+    """The number of distinct particles on the paths never grows backwards in time (ancestor
+    tracing)."""
+    nu = np.asarray(_smoothed(50).n_unique)
+    assert np.all(np.diff(nu, axis=1) >= 0)
+
+
+@pytest.mark.slow  # a second MPF compile (vehjax.filter's own program): `pytest -m slow`
+def test_loglik_is_the_filters():
+    """The smoother's log-likelihood is vehjax.filter's with the same key."""
     ys, us = _data()
     est = _known_noise_mpf(50)
     key = jax.random.split(jax.random.key(5), 8)[0]
     fr = vj.filter(est, ys, us, x0=X0, P0=P0, key=key)
-    sm = _smoothed(50)
-    np.testing.assert_allclose(np.asarray(sm.loglik[0]), np.asarray(fr.loglik), rtol=1e-12)
-    nu = np.asarray(sm.n_unique)
-    assert np.all(np.diff(nu, axis=1) >= 0)
+    np.testing.assert_allclose(np.asarray(_smoothed(50).loglik[0]), np.asarray(fr.loglik),
+                               rtol=1e-12)
 
 
 def test_trace_ancestors_follows_the_genealogy():
