@@ -35,7 +35,7 @@ def niw_predict(gamma, nu, lam_w, lam_e, forgetting):
     return gamma / forgetting, forgetting * nu, forgetting * lam_w, forgetting * lam_e
 
 
-def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None):
+def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, e_known=False):
     """Eq. 18, the conjugate update with one datum v, given as ``eta = v - mu`` (d, ...):
     gamma / (1 + gamma), nu + 1, mu + gamma / (1 + gamma) eta, and Lambda + eta eta^T /
     (1 + gamma) on the (w, w) and (e, e) blocks (Murphy 2007, one datum with kappa = 1 / gamma).
@@ -45,6 +45,10 @@ def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None):
         eta: (d, ...) the datum minus mu.
         extra_e: (d - 1, d - 1, ...) added to Lambda_e, or None: the expected-statistic term for
             uncertain or missing sensor data (module docstring of the filter).
+        e_known: the sensor noise's mean is known (zero; ``noise_means="kalman"``, where the
+            biases are Kalman states): its NiW is an inverse-Wishart, gamma_e = 0 (kappa =
+            infinity), so its means stay and Lambda_e gains eta_e eta_e^T; the offset's part
+            as above with ``gamma``.
 
     Returns:
         (gamma, nu, mu, lam_w, lam_e) after the datum.
@@ -52,10 +56,15 @@ def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None):
     g_post = gamma / (1.0 + gamma)
     s = 1.0 / (1.0 + gamma)
     ee = eta[1:]
-    lam_e = lam_e + s * (ee[:, None] * ee[None, :])
+    if e_known:
+        lam_e = lam_e + ee[:, None] * ee[None, :]
+        mu_new = mu.at[0].add(g_post * eta[0])
+    else:
+        lam_e = lam_e + s * (ee[:, None] * ee[None, :])
+        mu_new = mu + g_post * eta
     if extra_e is not None:
         lam_e = lam_e + extra_e
-    return g_post, nu + 1.0, mu + g_post * eta, lam_w + s * eta[0] ** 2, lam_e
+    return g_post, nu + 1.0, mu_new, lam_w + s * eta[0] ** 2, lam_e
 
 
 def st_logpdf_whitened(alpha, L, df, n_obs):
@@ -134,7 +143,7 @@ def wilson_hilferty(z, dof):
     return base * base * base
 
 
-def noise_estimates(w, mu, lam_w, lam_e, nu, gamma):
+def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, e_known=False):
     """Eq. 23, the weighted estimates of the noise statistics, and their mixture covariance.
 
     The offset mean and the biases are the weighted NiW means; the variances mix the particles'
@@ -148,6 +157,8 @@ def noise_estimates(w, mu, lam_w, lam_e, nu, gamma):
     Args:
         w: (N,) normalised weights.  mu: (d, N).  lam_w: (N,).  lam_e: (d - 1, d - 1, N).
         nu, gamma: scalars, after the update.
+        e_known: the sensor noise's mean is known (gamma_e = 0, :func:`niw_update`): no
+            within-particle covariance of the biases.
 
     Returns:
         (params (p,), params_cov (p, p)), p = 2 d, in the order offset mean, offset std,
@@ -185,7 +196,7 @@ def noise_estimates(w, mu, lam_w, lam_e, nu, gamma):
     sd_i = jnp.concatenate([sd_w_i[None], sd_s_i])
     cov_sd = cov_diag / (4.0 * sd_i[:, None, :] * sd_i[None, :, :])
     cov_mu = gamma * jnp.zeros((d, d, lam_w.shape[0]), dtype).at[0, 0].set(sw2).at[
-        1:, 1:].set(se)
+        1:, 1:].set(0.0 if e_known else se)
     within_mu = jnp.einsum("ijn,n->ij", cov_mu, w)
     within_sd = jnp.einsum("ijn,n->ij", cov_sd, w)
     perm = np.concatenate([[0], np.arange(2, 2 + ns)])  # the mean entries in params order
@@ -204,7 +215,7 @@ def draw_offset(mu_w, shift, scale, dof, z1, z2):
 
 
 def t_predictive(lin, P, Qz, lam_w, lam_e, mu_w, b_y, gamma, nu, dim, known_var, sensor_pos,
-                 n_sampled, start=None):
+                 n_sampled, start=None, e_known=False):
     """The moment-matched Student-t predictive of y_t of one step (eq. 26-27), entries over
     the particles.
 
@@ -226,6 +237,8 @@ def t_predictive(lin, P, Qz, lam_w, lam_e, mu_w, b_y, gamma, nu, dim, known_var,
         known_var: variance of each used output's known noise (0.0 for sensors).
         sensor_pos: dict used output row -> sensor index.
         n_sampled: how many sampled states are Gaussian too (``kalman_states="all"``), else 0.
+        e_known: the sensor noise's mean is known (gamma_e = 0, :func:`niw_update`): its
+            scale is Lambda_e / df.
 
     Returns:
         (mu_y, S, D, sw, df): the predictive location (list) and scale (nested lists), D,
@@ -235,6 +248,7 @@ def t_predictive(lin, P, Qz, lam_w, lam_e, mu_w, b_y, gamma, nu, dim, known_var,
     D = [add(add(dot(lin.Cx[i], lin.g), lin.d[i]), dot(lin.Cz[i], lin.gz)) for i in range(nyu)]
     df = nu - dim + 1.0
     c = (1.0 + gamma) / df
+    ce = 1.0 / df if e_known else c
     sw = c * lam_w
     mm = (df - 2.0) / df
     M = [[add(dot(lin.Cx[i], [r[j] for r in lin.Ab]), dot(lin.Cz[i], [r[j] for r in lin.A]))
@@ -255,7 +269,7 @@ def t_predictive(lin, P, Qz, lam_w, lam_e, mu_w, b_y, gamma, nu, dim, known_var,
                 K = add(K, known_var[i])
             v = mul(sw, mul(D[i], D[j]))
             if i in sensor_pos and j in sensor_pos:
-                v = add(v, c * lam_e[sensor_pos[i]][sensor_pos[j]])
+                v = add(v, ce * lam_e[sensor_pos[i]][sensor_pos[j]])
             S[i][j] = S[j][i] = add(v, mul(mm, K)) if not is_zero(K) else v
     S, mu_y, D = barrier((S, mu_y, D), start)
     return mu_y, S, D, sw, df

@@ -167,6 +167,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _validate
+from . import _mpf_means
 from . import resampling as _rs
 from . import smc
 from ._entrywise import add, barrier, dot, entries, matmul, mul, stack, sub
@@ -364,6 +365,7 @@ class _Setup(NamedTuple):
     n_inputs: int
     ny: int
     resample: Callable  # smc.resample or the caller's
+    e_known: bool = False  # sensor means known (zero): noise_means="kalman" (_mpf_means)
 
 
 def _linear_noise(model, linear_noise_std, li, linear_states) -> np.ndarray:
@@ -647,7 +649,7 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
     b_y = [b[spos[i]] if i in spos else 0.0 for i in range(nyu)]
     # predictive of y (eq. 26): w and the sensor noise through the NiW, the rest moment-matched
     mu_y, S, D, sw, df = t_predictive(lin, Pe, Qe, lam_w, lee, mu_w, b_y, gam, nu_p, s.d, kvu,
-                                      spos, nxs if s.gauss else 0, start)
+                                      spos, nxs if s.gauss else 0, start, e_known=s.e_known)
     ll, shift, sc, dfy, eta = barrier(t_weight_and_proposal(
         ye, ob, mu_y, S, [mul(sw, v) for v in D], sw, df), start)
     # draw w_t from eq. 30 (Student-t via Wilson-Hilferty) and propagate (eq. 6)
@@ -671,7 +673,8 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
     like = x[0]
     eta_v = stack([dw] + eta_e, like)
     extra = stack([[add(V[i][j], V_miss[i][j]) for j in range(ns)] for i in range(ns)], like)
-    _, _, mu_new, lw_new, le_new = niw_update(gam, nu_p, mu, lam_w, lam_e, eta_v, extra)
+    _, _, mu_new, lw_new, le_new = niw_update(gam, nu_p, mu, lam_w, lam_e, eta_v, extra,
+                                             e_known=s.e_known)
     x_new = stack(x_new, like)
     z_new = stack(z_new, like) if nz else m
     P_new = stack(P3, like) if nz else P
@@ -741,7 +744,8 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     lw_now = jnp.where(under, -math.log(n), rw.log_w)
 
     mean, cov = _mixture_moments(s, w_now, x, z, P)
-    params, params_cov = noise_estimates(w_now, mu, lam_w, lam_e, nu, gamma)
+    params, params_cov = noise_estimates(w_now, mu, lam_w, lam_e, nu, gamma,
+                                        e_known=s.e_known)
     nis = _mixture_nis(state.weights, mu_y, cov_y, y0, obs)
 
     # resample for the next step
@@ -782,8 +786,9 @@ def marginalized_pf(
     nu0: float | None = None,
     ess_threshold: float = 0.5,
     resampling: str = "systematic",
-    kalman_states: str = "linear",
+    kalman_states: str | None = None,
     resample=None,
+    noise_means: str = "niw",
 ) -> Estimator:
     """Noise-adaptive marginalized particle filter (Berntorp & Di Cairano 2018): the state, an
     unknown-mean unknown-variance input error and the biases and covariance of some sensors,
@@ -829,12 +834,20 @@ def marginalized_pf(
             uncertainty reaches vy and r (with known noise statistics this is exact for models
             affine in the states: it matches the exact Kalman filter, where "linear" reports
             vy's variance about 8 % too small on SingleTrackBank; module docstring). 1.2-1.3x
-            the time per step. No difference without linear states.
+            the time per step. No difference without linear states. Default (None): "linear"
+            with ``noise_means="niw"``, "all" with ``noise_means="kalman"``.
         resample: the resampling function, ``resample(particles, w, log_w, u, scheme,
             threshold) -> (particles, log_w, w, resampled)`` with the signature and meaning of
             :func:`vehjax.filters.smc.resample` (which None means), e.g.
             :func:`vehjax.filters.smc.resample_stop_gradient` (what :mod:`vehjax.tune` builds
             the filter with to differentiate its log-likelihood).
+        noise_means: where the offset mean and the sensor biases are learnt. "niw" (the
+            paper's Algorithm 1): in the NiW statistics of each particle (eq. 18), the Kalman
+            filters taking them as exact. "kalman" (not the paper's): as constant states of
+            each particle's Kalman filter (exact Gaussian posterior, correlated with the
+            states; prior N(mean0, gamma0 std0^2)), the NiW then an inverse-Wishart of known
+            zero mean over the covariances alone (:mod:`vehjax.filters._mpf_means`). The model
+            must be affine in ``noisy_input`` (checked with the linear states).
 
     Returns:
         ``Estimator`` (``needs_key=True``), ``nx`` = all model states, ``param_names`` =
@@ -854,8 +867,17 @@ def marginalized_pf(
             names, a name in both ``sensors`` and ``known_std``, a model not affine in the linear
             states, non-positive stds (negative ``linear_noise_std``), lambda outside (0, 1] or
             too small for nu0, gamma0 <= 0, nu0 <= d + 1, n_particles < 2, a bad resampling
-            scheme, ess_threshold, kalman_states, or a ``resample`` that is not callable.
+            scheme, ess_threshold, kalman_states, noise_means, or a ``resample`` that is not
+            callable.
     """
+    if noise_means not in ("niw", "kalman"):
+        raise ValueError(f"noise_means: expected 'niw' or 'kalman', got {noise_means!r}")
+    if kalman_states is None:
+        kalman_states = "all" if noise_means == "kalman" else "linear"
+    if noise_means == "kalman":
+        return _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std,
+                                linear_states, linear_noise_std, std0, mean0, forgetting,
+                                gamma0, nu0, ess_threshold, resampling, kalman_states, resample)
     s = _configure(model, n_particles, noisy_input, sensors, known_std, linear_states,
                    linear_noise_std, std0, mean0, forgetting, gamma0, nu0, ess_threshold,
                    resampling, kalman_states, resample)
@@ -868,3 +890,57 @@ def marginalized_pf(
         param_prior=(s.theta_prior, s.P_prior), ny=s.ny, nu=s.n_inputs, workload="small_dense",
         rao_blackwell=rb,
     )
+
+
+def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear_states,
+                     linear_noise_std, std0, mean0, forgetting, gamma0, nu0, ess_threshold,
+                     resampling, kalman_states, resample) -> Estimator:
+    """:func:`marginalized_pf` with ``noise_means="kalman"``: the filter on the model with the
+    sensor biases as constant linear states (:func:`_mpf_means.with_noise_means`), the sensor
+    part of its NiW pinned at mean zero (``e_known``), and an estimator over the model's own
+    states and the paper's parameters around it."""
+    _validate.model(model)
+    sensors = _validate.names("sensors", sensors, tuple(model.output_names))
+    linear_states = _validate.names("linear_states", linear_states, tuple(model.state_names),
+                                    allow_empty=True)
+    extra = _mpf_means.mean_state_names(sensors)
+    clash = [n for n in extra if n in tuple(model.state_names)]
+    if clash:
+        raise ValueError(f"noise_means: the model already has states named {clash}")
+    aug = _mpf_means.with_noise_means(model, sensors)
+    linear_noise_std = _mpf_means.pad_linear_noise(
+        linear_noise_std, len(linear_states), len(extra), hasattr(model, "bank_noise_gain"))
+    s_user = _configure(aug, n_particles, noisy_input, sensors, known_std,
+                        tuple(linear_states) + extra, linear_noise_std, std0, mean0,
+                        forgetting, gamma0, nu0, ess_threshold, resampling, kalman_states,
+                        resample)
+    ns, nx = s_user.ns, len(model.state_names)
+    bi = np.arange(2, 2 + ns)
+    # the filter's own NiW: the sensor means zero and known
+    s = s_user._replace(e_known=True, theta_prior=np.where(np.isin(np.arange(2 + 2 * ns), bi),
+                                                           0.0, s_user.theta_prior))
+    mdl = _model_fns(aug, s)
+
+    def init(x0, P0, theta0=None, P_theta0=None, key=None):
+        del P_theta0
+        _validate.prior(nx, x0, P0)
+        p = len(s.param_names)
+        if theta0 is not None and np.shape(theta0) != (p,):
+            raise ValueError(f"theta0: expected shape ({p},) for {s.param_names}, got "
+                             f"{np.shape(theta0)}")
+        th = jnp.asarray(s_user.theta_prior if theta0 is None else theta0)
+        th = th.astype(jnp.result_type(th.dtype, jnp.asarray(x0).dtype, float))
+        xa, Pa = _mpf_means.augment_prior(x0, P0, th, s_user.g0, ns)
+        return _init(s, xa, Pa, th.at[bi].set(0.0), None, key)
+
+    def step(state, y, u):
+        state, out = _step(s, mdl, state, y, u)
+        params, params_cov = _mpf_means.map_estimates(out.mean, out.cov, out.params,
+                                                      out.params_cov, nx, ns)
+        return state, out._replace(mean=out.mean[:nx], cov=out.cov[:nx, :nx], params=params,
+                                   params_cov=params_cov)
+
+    return Estimator(
+        init=init, step=step, nx=nx, param_names=s.param_names, name="marginalized_pf",
+        needs_key=True, param_prior=(s_user.theta_prior, s_user.P_prior), ny=s.ny,
+        nu=s.n_inputs, workload="small_dense")

@@ -78,7 +78,8 @@ PAPER = ("NEES / NIS consistency (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4) o
 MODELS = ("KinematicBicycle", "Dynamic3DOF", "SevenDOF", "SingleTrackBank")
 FILTERS = ("EKF", "UKF", "CKF", "SR-UKF", "SR-CKF", "ACKF", "ACKF (paper)", "bootstrap PF", "MPF",
            "MPF (known noise)", "MPF-G", "MPF-G (known noise)", "MPF-G (biases known)",
-           "MPF-G (covariances known)", "MPF-G (covariances known; biases as Kalman states)")
+           "MPF-G (covariances known)", "MPF-G (covariances known; biases as Kalman states)",
+           "MPF-K")
 #: the MPF rows: ``marginalized_pf``'s keywords. What each makes as good as known (gamma0 for
 #: the offset and the biases, nu0 for the covariances; the rows without it learn all), and
 #: MPF-G: each particle a Gaussian over all states (``kalman_states="all"``)
@@ -89,7 +90,8 @@ _MPFS = {"MPF": {}, "MPF (known noise)": _KNOWN_NOISE, "MPF-G": dict(kalman_stat
          "MPF-G (known noise)": dict(_KNOWN_NOISE, kalman_states="all"),
          "MPF-G (biases known)": dict(_BIASES_KNOWN, kalman_states="all"),
          "MPF-G (covariances known)": dict(_COVS_KNOWN, kalman_states="all"),
-         _KALMAN_BIASES: dict(_KNOWN_NOISE, kalman_states="all")}
+         _KALMAN_BIASES: dict(_KNOWN_NOISE, kalman_states="all"),
+         "MPF-K": dict(kalman_states="all", noise_means="kalman")}
 TARGET = 0.90
 
 #: XLA options of the pairs that need them (``vehjax.run``'s ``compiler_options``): LLVM at
