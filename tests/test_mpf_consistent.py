@@ -96,6 +96,10 @@ def test_prior_and_estimates_are_mapped_as_documented():
     ("sensors", dict(sensors=("ay", "gps"))),
     ("noisy_input", dict(noisy_input="steer")),
     ("std0", dict(std0={"delta": 0.01})),
+    ("bias_walk", dict(bias_walk={"gps": 0.1})),
+    ("bias_walk", dict(bias_walk={"ay": -0.1})),
+    ("bias_walk", dict(bias_walk=[0.1])),
+    ("bias_walk", dict(noise_means="niw", bias_walk={"ay": 0.1})),
 ])
 def test_bad_options_raise_naming_them(arg, over):
     with pytest.raises(ValueError, match=arg):

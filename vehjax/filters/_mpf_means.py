@@ -36,8 +36,8 @@ import numpy as np
 from ..models.base import Model
 from ..models.biases import _BiasedBank, with_output_biases
 
-__all__ = ["with_noise_means", "mean_state_names", "pad_linear_noise", "augment_prior",
-           "map_estimates"]
+__all__ = ["with_noise_means", "mean_state_names", "pad_linear_noise", "bias_walk_stds",
+           "augment_prior", "map_estimates"]
 
 
 def mean_state_names(sensors):
@@ -72,6 +72,27 @@ def pad_linear_noise(linear_noise_std, n_linear, n_extra, bank_gain):
     if sig.ndim == 0 and not bank_gain:
         return np.r_[np.full(n_linear, float(sig)), np.zeros(n_extra)]
     return linear_noise_std
+
+
+def bias_walk_stds(bias_walk, sensors):
+    """Checked random-walk stds (ns,) of the bias states from ``bias_walk`` (None or a dict
+    sensor -> std per step >= 0, missing sensors 0). Raises ValueError naming ``bias_walk``."""
+    if bias_walk is None:
+        return np.zeros(len(sensors))
+    if not isinstance(bias_walk, dict) or any(k not in sensors for k in bias_walk):
+        raise ValueError(f"bias_walk: expected a dict sensor -> std with sensors from "
+                         f"{tuple(sensors)}, got {bias_walk!r}")
+    out = []
+    for k in sensors:
+        v = bias_walk.get(k, 0.0)
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            f = float("nan")
+        if isinstance(v, (bool, np.bool_)) or not np.isfinite(f) or f < 0.0:
+            raise ValueError(f"bias_walk[{k!r}]: expected a finite std >= 0, got {v!r}")
+        out.append(f)
+    return np.array(out)
 
 
 def augment_prior(x0, P0, theta, gamma0, ns):

@@ -789,6 +789,7 @@ def marginalized_pf(
     kalman_states: str | None = None,
     resample=None,
     noise_means: str = "niw",
+    bias_walk=None,
 ) -> Estimator:
     """Noise-adaptive marginalized particle filter (Berntorp & Di Cairano 2018): the state, an
     unknown-mean unknown-variance input error and the biases and covariance of some sensors,
@@ -848,6 +849,9 @@ def marginalized_pf(
             states; prior N(mean0, gamma0 std0^2)), the NiW then an inverse-Wishart of known
             zero mean over the covariances alone (:mod:`vehjax.filters._mpf_means`). The model
             must be affine in ``noisy_input`` (checked with the linear states).
+        bias_walk: with ``noise_means="kalman"`` only: dict sensor -> std per step of a
+            random walk of its bias (sensor units; missing sensors 0: constant biases), the
+            process noise of the bias states.
 
     Returns:
         ``Estimator`` (``needs_key=True``), ``nx`` = all model states, ``param_names`` =
@@ -877,7 +881,11 @@ def marginalized_pf(
     if noise_means == "kalman":
         return _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std,
                                 linear_states, linear_noise_std, std0, mean0, forgetting,
-                                gamma0, nu0, ess_threshold, resampling, kalman_states, resample)
+                                gamma0, nu0, ess_threshold, resampling, kalman_states, resample,
+                                bias_walk)
+    if bias_walk is not None:
+        raise ValueError("bias_walk: only with noise_means='kalman' (the paper's filter tracks "
+                         "drifting biases by forgetting)")
     s = _configure(model, n_particles, noisy_input, sensors, known_std, linear_states,
                    linear_noise_std, std0, mean0, forgetting, gamma0, nu0, ess_threshold,
                    resampling, kalman_states, resample)
@@ -894,7 +902,7 @@ def marginalized_pf(
 
 def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear_states,
                      linear_noise_std, std0, mean0, forgetting, gamma0, nu0, ess_threshold,
-                     resampling, kalman_states, resample) -> Estimator:
+                     resampling, kalman_states, resample, bias_walk=None) -> Estimator:
     """:func:`marginalized_pf` with ``noise_means="kalman"``: the filter on the model with the
     sensor biases as constant linear states (:func:`_mpf_means.with_noise_means`), the sensor
     part of its NiW pinned at mean zero (``e_known``), and an estimator over the model's own
@@ -916,8 +924,11 @@ def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear
                         resample)
     ns, nx = s_user.ns, len(model.state_names)
     bi = np.arange(2, 2 + ns)
+    walk = _mpf_means.bias_walk_stds(bias_walk, sensors)
+    Qz = np.array(s_user.Qz)
+    Qz[-ns:, -ns:] = np.diag(walk ** 2)
     # the filter's own NiW: the sensor means zero and known
-    s = s_user._replace(e_known=True, theta_prior=np.where(np.isin(np.arange(2 + 2 * ns), bi),
+    s = s_user._replace(e_known=True, Qz=Qz, theta_prior=np.where(np.isin(np.arange(2 + 2 * ns), bi),
                                                            0.0, s_user.theta_prior))
     mdl = _model_fns(aug, s)
 

@@ -51,6 +51,10 @@ What "matched" means here (nothing below is tuned per filter):
   (covariances known; biases as Kalman states)" is not the paper's algorithm: the model gets a
   constant state per sensor added to its output (:func:`vehjax.models.with_output_biases`)
   that the per-particle Kalman filter estimates with the rest (prior: the other rows'). For
+  "MPF-K" is the option ``noise_means="kalman"`` (issue #33 item 2, not the paper's
+  algorithm; :mod:`vehjax.filters._mpf_means`): learns everything like MPF-G, but the sensor
+  biases are constant states of each particle's Kalman filter (Gaussian over all states) and
+  the NiW learns the offset and the covariances (the sensor means known zero). For
   every MPF row the report also gives the parameter coverage: the fraction of runs whose final
   95 % interval (estimate +- 1.96 reported std) holds the true value, and the spread of the
   final estimates over runs divided by their mean reported std (1 = honest, > 1 over-confident).
