@@ -35,7 +35,7 @@ def niw_predict(gamma, nu, lam_w, lam_e, forgetting):
     return gamma / forgetting, forgetting * nu, forgetting * lam_w, forgetting * lam_e
 
 
-def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, e_known=False):
+def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, e_known=False, extra_w=None):
     """Eq. 18, the conjugate update with one datum v, given as ``eta = v - mu`` (d, ...):
     gamma / (1 + gamma), nu + 1, mu + gamma / (1 + gamma) eta, and Lambda + eta eta^T /
     (1 + gamma) on the (w, w) and (e, e) blocks (Murphy 2007, one datum with kappa = 1 / gamma).
@@ -49,6 +49,8 @@ def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, e_known=False):
             biases are Kalman states): its NiW is an inverse-Wishart, gamma_e = 0 (kappa =
             infinity), so its means stay and Lambda_e gains eta_e eta_e^T; the offset's part
             as above with ``gamma``.
+        extra_w: (...) added to Lambda_w, or None: the expected-statistic term of an offset
+            known only in distribution (its conditional variance).
 
     Returns:
         (gamma, nu, mu, lam_w, lam_e) after the datum.
@@ -64,7 +66,10 @@ def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, e_known=False):
         mu_new = mu + g_post * eta
     if extra_e is not None:
         lam_e = lam_e + extra_e
-    return g_post, nu + 1.0, mu_new, lam_w + s * eta[0] ** 2, lam_e
+    lam_w = lam_w + s * eta[0] ** 2
+    if extra_w is not None:
+        lam_w = lam_w + extra_w
+    return g_post, nu + 1.0, mu_new, lam_w, lam_e
 
 
 def st_logpdf_whitened(alpha, L, df, n_obs):

@@ -366,6 +366,7 @@ class _Setup(NamedTuple):
     ny: int
     resample: Callable  # smc.resample or the caller's
     e_known: bool = False  # sensor means known (zero): noise_means="kalman" (_mpf_means)
+    expect_w: bool = False  # statistics averaged over w_t | y_t (noise_means="kalman")
 
 
 def _linear_noise(model, linear_noise_std, li, linear_states) -> np.ndarray:
@@ -666,6 +667,17 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
             for j in range(nyu)] for i in range(nyu)]
     x_new, z_new, P3, eta_e, V = _kalman_stage(s, lin, Pe, Qe, w, dw, dx, x_new, ye, ob, eta,
                                                mu_w, b_y, sig_w2, R_y, D, start)
+    extra_w = None
+    if s.expect_w:  # statistics averaged over w_t | y_t (module docstring, noise_means)
+        w_hat = mu_w + shift
+        var_w = sc * dfy / (dfy - 2.0)
+        eta_h = _kalman_stage(s, lin, Pe, Qe, w_hat, None, None, x_new, ye, ob, eta, mu_w, b_y,
+                              sig_w2, R_y, D, start)[3]
+        eta_1 = _kalman_stage(s, lin, Pe, Qe, w_hat + 1.0, None, None, x_new, ye, ob, eta,
+                              mu_w, b_y, sig_w2, R_y, D, start)[3]
+        G = [sub(eta_1[i], eta_h[i]) for i in range(ns)]
+        V = [[add(V[i][j], mul(var_w, mul(G[i], G[j]))) for j in range(ns)] for i in range(ns)]
+        eta_e, dw, extra_w = eta_h, w_hat - mu_w, var_w
     eta_e, V = barrier((eta_e, V), start)
     ob_e = [ob[r] for r in s.srow]
     V = [[jnp.where(ob_e[i] & ob_e[j], V[i][j], 0.0) for j in range(ns)] for i in range(ns)]
@@ -674,7 +686,7 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
     eta_v = stack([dw] + eta_e, like)
     extra = stack([[add(V[i][j], V_miss[i][j]) for j in range(ns)] for i in range(ns)], like)
     _, _, mu_new, lw_new, le_new = niw_update(gam, nu_p, mu, lam_w, lam_e, eta_v, extra,
-                                             e_known=s.e_known)
+                                             e_known=s.e_known, extra_w=extra_w)
     x_new = stack(x_new, like)
     z_new = stack(z_new, like) if nz else m
     P_new = stack(P3, like) if nz else P
@@ -900,6 +912,9 @@ def marginalized_pf(
     )
 
 
+_EXPECT_W = True
+
+
 def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear_states,
                      linear_noise_std, std0, mean0, forgetting, gamma0, nu0, ess_threshold,
                      resampling, kalman_states, resample, bias_walk=None) -> Estimator:
@@ -928,7 +943,7 @@ def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear
     Qz = np.array(s_user.Qz)
     Qz[-ns:, -ns:] = np.diag(walk ** 2)
     # the filter's own NiW: the sensor means zero and known
-    s = s_user._replace(e_known=True, Qz=Qz, theta_prior=np.where(np.isin(np.arange(2 + 2 * ns), bi),
+    s = s_user._replace(e_known=True, expect_w=_EXPECT_W and s_user.gauss, Qz=Qz, theta_prior=np.where(np.isin(np.arange(2 + 2 * ns), bi),
                                                            0.0, s_user.theta_prior))
     mdl = _model_fns(aug, s)
 
