@@ -54,7 +54,18 @@ from ._model import (
     validate_prior,
 )
 from .base import Estimator, GaussianSmoother, state_output
-from .kalman import UpdateResult, linearized_measure, linearized_predict, masked_update
+from ._linalg import UNROLL_MAX
+from .kalman import (
+    UpdateResult,
+    cov_entries,
+    jacobian_entries,
+    linearized_measure,
+    linearized_predict,
+    masked_update,
+    masked_update_entries,
+    measure_entries,
+    predict_entries,
+)
 from .sigma import SigmaRule, cubature_rule, unscented_rule
 
 __all__ = ["GaussianState", "SqrtGaussianState", "ekf", "ukf", "ckf", "masked_update",
@@ -142,20 +153,50 @@ def ekf(model, Q, R, input_noise=None) -> Estimator:
         dt = x.dtype
         y, u = cast_yu(y, u, dt)
         f, h = point_fns(model, u, theta)
-        Qd = jnp.asarray(Qn, dt)
-        if Lu is not None:
-            Qd = Qd + _inoise.linearized_input_noise(lambda v, w: tr(v, w, theta), x, u, Lu)
-        x_pred, P_pred, _ = linearized_predict(x, P, f, Qd)
-        Rd = jnp.asarray(Rn, dt)
-        m = linearized_measure(x_pred, P_pred, h, Rd)
-        # Joseph form: with a very wide prior (P0 ~ 1e16) P- - K S K^T cancels to rounding noise
-        r = masked_update(x_pred, P_pred, y, m.y_hat, m.S, m.C, joseph=(m.H, Rd))
+        if max(nx, ny) <= UNROLL_MAX:  # entry by entry (vehjax.filters.kalman)
+            r = _ekf_entries(x, P, y, u, theta, f, h, tr, Qn, Rn, Lu)
+        else:
+            Qd = jnp.asarray(Qn, dt)
+            if Lu is not None:
+                Qd = Qd + _inoise.linearized_input_noise(lambda v, w: tr(v, w, theta), x, u, Lu)
+            x_pred, P_pred, _ = linearized_predict(x, P, f, Qd)
+            Rd = jnp.asarray(Rn, dt)
+            m = linearized_measure(x_pred, P_pred, h, Rd)
+            # Joseph form: with a very wide prior (P0 ~ 1e16) P- - K S K^T cancels to rounding
+            r = masked_update(x_pred, P_pred, y, m.y_hat, m.S, m.C, joseph=(m.H, Rd))
         return GaussianState(r.x, r.P, theta), state_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
 
     batch = None if Lu is not None else _runs_last_form(model, Qn, Rn, _runs_last.ekf_step)
     return Estimator(init=_prior_init(model, False), step=step, nx=nx, name="EKF", batch=batch,
                      workload="small_dense", smoother=_ekf_smoother(model, Qn, Rn, Lu, tr),
                      **model_dims(model))
+
+
+def _ekf_entries(x, P, y, u, theta, f, h, tr, Qn, Rn, Lu):
+    """One EKF step of a small model entry by entry (:mod:`vehjax.filters.kalman`'s
+    ``*_entries``): the Jacobians of the transition along the state and along the k
+    standardised input noises (``G Lu``) from one forward-mode pass over ``(x, e)``, ``e = 0``
+    (k), then ``P- = F P F^T + Q + (G Lu)(G Lu)^T``, the measurement Jacobian at the predicted
+    mean, the Joseph-form masked update. x (nx,), P (nx, nx), y (ny,), u (nu,) arrays of the
+    filter's dtype; f, h the model at (u, theta); tr the transition ``tr(x, u, theta)``; Qn, Rn
+    the noise covariances (numpy constants or traced); Lu (nu, k) or None.
+    Returns :class:`vehjax.filters.kalman.UpdateResult`."""
+    nx, dt = x.shape[0], x.dtype
+    if Lu is None:
+        xp, J = jacobian_entries(f, x)
+        B = None
+    else:
+        Lw = jnp.asarray(Lu, dt)
+        xp, J = jacobian_entries(lambda z: tr(z[:nx], u + Lw @ z[nx:], theta),
+                                 jnp.concatenate([x, jnp.zeros((Lw.shape[1],), dt)]))
+        B = [row[nx:] for row in J]
+    F = [row[:nx] for row in J]
+    Pe = [[P[i, j] for j in range(nx)] for i in range(nx)]
+    Pp = predict_entries(F, Pe, cov_entries(Qn), B)
+    yh, H = jacobian_entries(h, jnp.stack(xp))
+    Rm = cov_entries(Rn)
+    C, S = measure_entries(Pp, H, Rm)
+    return masked_update_entries(xp, Pp, y, yh, S, C, H, Rm)
 
 
 def _runs_last_form(model, Qn, Rn, build):

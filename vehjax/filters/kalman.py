@@ -16,8 +16,10 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from ._linalg import LOG_2PI, cholesky, logdet_from_chol, solve_lower, sym
+from ._entrywise import add, backward_entries, chol_masked, dot, sym_entries
+from ._linalg import LOG_2PI, cholesky, forward_entries, logdet_from_chol, solve_lower, sym
 
 
 class UpdateResult(NamedTuple):
@@ -113,3 +115,92 @@ def linearized_measure(x, P, h, R) -> Measurement:
     H = jax.jacfwd(h)(x)
     C = P @ H.T
     return Measurement(h(x), sym(H @ C + R), C, H)
+
+
+# ------------------------------------------------------------------------------------------------
+# The same EKF algebra entry by entry (small models)
+#
+# A vehicle model has a handful of states and outputs. Written with matrix products, one EKF
+# step is some thirty tiny dot products and triangular solves, each its own XLA operation; the
+# forward-mode derivatives of :mod:`vehjax.tune` (a batch of tangents through every one of them)
+# triple that. Written entry by entry (nested lists of scalars, :mod:`vehjax.filters._entrywise`),
+# the step is elementwise arithmetic only, which XLA fuses into a few loops and compiles
+# faster; structural zeros (a zero Q, an output that is a state) drop out at trace time. Same
+# algebra as :func:`linearized_predict`, :func:`linearized_measure` and :func:`masked_update`
+# (Joseph form), rounding-level differences.
+
+
+def jacobian_entries(g, z):
+    """Value and Jacobian of ``g: (n,) -> (m,)`` at ``z`` (n,) by forward mode, the n basis
+    tangents vmapped through one ``jax.jvp`` (the primal evaluated once).
+
+    Returns (value as a list of m scalars, Jacobian as nested lists (m, n) of scalars)."""
+    n = z.shape[0]
+    val, cols = jax.vmap(lambda t: jax.jvp(g, (z,), (t,)), out_axes=(None, 0))(
+        jnp.eye(n, dtype=z.dtype))
+    m = val.shape[0]
+    return [val[i] for i in range(m)], [[cols[j, i] for j in range(n)] for i in range(m)]
+
+
+def cov_entries(A):
+    """Entries of a covariance (n, n) as nested lists: Python floats for a numpy constant (its
+    zeros are structural and drop out of the algebra), scalars of the array when traced."""
+    if isinstance(A, np.ndarray):
+        return [[float(v) for v in row] for row in A]
+    return [[A[i, j] for j in range(A.shape[1])] for i in range(A.shape[0])]
+
+
+def predict_entries(F, P, Q, B=None):
+    """Predicted covariance ``F P F^T + Q + B B^T`` (nested lists (nx, nx), symmetric by
+    construction): F (nx, nx) the transition Jacobian, P (nx, nx), Q (nx, nx) entries (Python
+    floats allowed), B (nx, k) the Jacobian of the transition along the k standardised input
+    noises (``G Lu``, :mod:`vehjax.filters.input_noise`) or None."""
+    nx = len(F)
+    FP = [[dot(F[i], [P[j][k] for j in range(nx)]) for k in range(nx)] for i in range(nx)]
+
+    def entry(i, l):
+        v = add(dot(FP[i], F[l]), Q[i][l])
+        return v if B is None else add(v, dot(B[i], B[l]))
+
+    return sym_entries(entry, nx)
+
+
+def measure_entries(Pp, H, R):
+    """EKF measurement moments entry by entry: ``C = P- H^T`` (nx, ny) and ``S = H C + R``
+    (ny, ny, symmetric by construction), nested lists; H (ny, nx), R entries (floats allowed)."""
+    nx, ny = len(Pp), len(H)
+    C = [[dot(Pp[i], H[j]) for j in range(ny)] for i in range(nx)]
+    S = sym_entries(lambda a, b: add(dot(H[a], [C[i][b] for i in range(nx)]), R[a][b]), ny)
+    return C, S
+
+
+def masked_update_entries(xp, Pp, y, yh, S, C, H, N) -> UpdateResult:
+    """:func:`masked_update` in Joseph form, entry by entry: xp (nx,), yh (ny,) lists of
+    scalars, Pp (nx, nx), S (ny, ny), C (nx, ny), H (ny, nx), N (ny, ny) the noise part of S,
+    nested lists (Python-float entries allowed); y (ny,) an array, NaN where missing.
+
+    Returns :class:`UpdateResult` of arrays: x (nx,), P (nx, nx), loglik, nis, n_obs,
+    innovation (ny,)."""
+    nx, ny = len(xp), len(yh)
+    dt = y.dtype
+    obs = [jnp.isfinite(y[j]) for j in range(ny)]
+    mf = [o.astype(dt) for o in obs]
+    e = [jnp.where(obs[j], y[j] - yh[j], 0.0) for j in range(ny)]
+    Ls = chol_masked(S, obs)
+    w = forward_entries(Ls, e)
+    W = [forward_entries(Ls, [C[i][j] * mf[j] for j in range(ny)]) for i in range(nx)]
+    x = [xp[i] + dot(W[i], w) for i in range(nx)]
+    K = [backward_entries(Ls, W[i]) for i in range(nx)]  # row i of C M S_m^-1
+    A = [[(1.0 if i == j else 0.0) - dot(K[i], [H[a][j] for a in range(ny)])
+          for j in range(nx)] for i in range(nx)]
+    AP = [[dot(A[i], [Pp[j][k] for j in range(nx)]) for k in range(nx)] for i in range(nx)]
+    KN = [[dot(K[i], [N[a][b] for a in range(ny)]) for b in range(ny)] for i in range(nx)]
+    P = sym_entries(lambda i, l: dot(AP[i], A[l]) + dot(KN[i], K[l]), nx)
+    nis = sum(v * v for v in w)
+    n_obs = sum(o.astype(jnp.int32) for o in obs)
+    logdet = 2.0 * sum(jnp.log(Ls[k][k]) for k in range(ny))
+    loglik = -0.5 * (nis + logdet + n_obs.astype(dt) * LOG_2PI)
+    stack = lambda v: jnp.broadcast_to(jnp.asarray(v, dt), jnp.shape(y[0]))  # noqa: E731
+    return UpdateResult(jnp.stack([stack(v) for v in x]),
+                        jnp.stack([jnp.stack([stack(v) for v in row]) for row in P]),
+                        loglik, nis, n_obs, jnp.stack(e))
