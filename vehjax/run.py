@@ -145,10 +145,17 @@ def _scan_prefetched(body, carry0, xs, pre):
 
 
 def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per_run, ys, us, x0,
-                     P0, th0, Pth0, keys) -> FilterResult:
+                     P0, th0, Pth0, keys, predictions: bool = False):
     """What ``vmap(filtering._one_run)`` computes, for an estimator with a runs-last ``batch``
     form: one scan over time of the batched step, every array with the runs axis last (see
-    :mod:`vehjax.filters._runs_last`); the same per-run bookkeeping (``filtering._finish``)."""
+    :mod:`vehjax.filters._runs_last`); the same per-run bookkeeping (``filtering._finish``).
+
+    With ``predictions`` (static; what the runs-last smoother needs, ``return_cov`` then True)
+    the scan runs the step's ``smooth_step`` instead and the result is
+    ``(FilterResult, state0, means, covs, prediction)``: the init states (runs-last
+    GaussianState), the filtered means (T, nx, R) and covariances (T, nx, nx, R) and every
+    step's :class:`vehjax.filters._runs_last.Prediction` stacked (leading T), all runs last.
+    Without it only the FilterResult, and the scan is the filter's alone."""
     p = len(estimator.param_names)
     per_run_u = us.ndim == 3
     start = jax.vmap(
@@ -160,15 +167,34 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per
 
     ok = partial(filtering._output_ok, p=p, pd=_runs_last.is_pd,
                  all_finite=_runs_last.all_finite)
-    body = filtering._scan_body(batch.step, ok, return_cov)
+    if predictions:
+        if batch.smooth_step is None:
+            raise ValueError(f"estimator: {estimator.name!r}'s runs-last step has no smooth_step")
+
+        def body(state, yu):
+            kept = []  # the step's Prediction, passed around filtering's bookkeeping
+
+            def step(s, y, prepared):
+                s, (out, pred) = batch.smooth_step(s, y, prepared)
+                kept.append(pred)
+                return s, out
+
+            state, per_step = filtering._scan_body(step, ok, return_cov)(state, yu)
+            return state, (per_step, kept[0])
+    else:
+        body = filtering._scan_body(batch.step, ok, return_cov)
 
     y_t = jnp.moveaxis(ys, 0, -1)  # (T, ny, C)
     u_t = jnp.moveaxis(us, 0, -1) if per_run_u else us  # (T, nu, C) or (T, nu)
     # the prepared inputs go through the carry where the filter and the platform say so
     scan = _scan_prefetched if batch.prefetch and prefetch else _scan
     _, per_step = scan(body, state0, y_t, batch.prepare(u_t))
+    if predictions:
+        per_step, pred = per_step
+        means, covs = per_step[0], per_step[1]
     per_step = jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), per_step)  # (C, T, ...)
-    return jax.vmap(partial(filtering._finish, bounds=estimator.bounds))(per_step, held0)
+    filt = jax.vmap(partial(filtering._finish, bounds=estimator.bounds))(per_step, held0)
+    return (filt, state0, means, covs, pred) if predictions else filt
 
 
 def _vmapped_study(estimator, return_cov, per_run, block, *args):
@@ -220,12 +246,9 @@ def _smoothed_study(estimator, method, return_cov, per_run, block, strategy, *ar
 
     if (method == "rts" and strategy.runs_last and estimator.batch is not None
             and not estimator.smoother.sqrt):
-        filt = _runs_last_study(estimator, True, strategy.prefetch_inputs, per_run, *args)
-        start = jax.vmap(partial(filtering._start, estimator),
-                         in_axes=tuple(0 if r else None for r in per_run))
-        state0, _ = start(*args)
-        us = args[1]
-        return as_result(smoothing._smooth_runs_last(estimator, filt, state0, us, us.ndim == 3))
+        filt, state0, means, covs, pred = _runs_last_study(
+            estimator, True, strategy.prefetch_inputs, per_run, *args, predictions=True)
+        return as_result(smoothing._smooth_runs_last(estimator, filt, state0, means, covs, pred))
 
     def one(*a):
         return as_result(smoothing.smooth_one_run(estimator, *a, method=method))

@@ -211,39 +211,36 @@ def _result(spec, nx: int, filt: FilterResult, M, P, cross, ll=None, k=None, con
     )
 
 
-def _smooth_runs_last(estimator: Estimator, filt: FilterResult, state0, us,
-                     per_run_inputs: bool) -> SmoothResult:
+def _smooth_runs_last(estimator: Estimator, filt: FilterResult, state0, means, covs,
+                      pred) -> SmoothResult:
     """The filter's own RTS over a batch of runs whose forward pass ran with the runs-last step
-    (``Estimator.batch``; what ``vehjax.run(..., smooth=True)`` does where the platform's
-    strategy uses that step): the backward pass runs-last too
-    (:func:`vehjax.smoothers.gaussian.backward_runs_last`). The same numbers as
-    ``jax.vmap(smooth_one_run)`` to rounding.
+    and kept its predictions (``Estimator.batch``'s ``smooth_step``; what
+    ``vehjax.run(..., smooth=True)`` does where the platform's strategy uses that step): the
+    backward pass runs-last too, from the forward pass's predictions
+    (:func:`vehjax.smoothers.gaussian.backward_predicted`), and the layout turns runs-first
+    once, at the end. The same numbers as ``jax.vmap(smooth_one_run)`` to rounding.
 
     Args:
         estimator: a Gaussian filter with a plain-covariance smoother and a runs-last form.
-        filt: the forward filter's :class:`~vehjax.filtering.FilterResult` with a leading runs
-            axis R and the covariances (states (R, T, nx), covariances (R, T, nx, nx)).
-        state0: the filter's init states of the runs (``estimator.init``), leading axis R.
-        us: inputs, (T, nu) shared or (R, T, nu) when ``per_run_inputs``.
-        per_run_inputs: which of the two ``us`` is.
+        filt: the forward filter's :class:`~vehjax.filtering.FilterResult`, leading runs axis R.
+        state0: the filter's init states of the runs (``estimator.init``), runs axis last.
+        means, covs: the forward pass's filtered means (T, nx, R) and covariances
+            (T, nx, nx, R), before any divergence hold (such runs are reported held anyway).
+        pred: the forward pass's :class:`vehjax.filters._runs_last.Prediction` of every step,
+            leading T.
 
     Returns:
         :class:`SmoothResult` with a leading runs axis R.
     """
     spec = estimator.smoother
-    m0, S0, aux = jax.vmap(spec.split)(state0)
-    m = jnp.concatenate([m0[:, None], filt.states.astype(m0.dtype)], axis=1)
-    P = jnp.concatenate([S0[:, None], filt.covariances.astype(S0.dtype)], axis=1)
-
-    def last(a):
-        return jnp.moveaxis(a, 0, -1)
+    m0, P0, _ = jax.vmap(spec.split, in_axes=-1, out_axes=-1)(state0)
+    m = jnp.concatenate([m0[None], means.astype(m0.dtype)])
+    P = jnp.concatenate([P0[None], covs.astype(P0.dtype)])
+    M, Ps, cross = _gauss.backward_predicted(m, P, pred.mean, pred.cov, pred.cross)
 
     def first(a):
         return jnp.moveaxis(a, -1, 0)
 
-    M, Ps, cross = _gauss.backward_runs_last(
-        spec, last(m), last(P), jax.tree_util.tree_map(last, aux),
-        last(us) if per_run_inputs else us, per_run_inputs)
     return jax.vmap(lambda f, a, b, c: _result(spec, estimator.nx, f, a, b, c))(
         filt, first(M), first(Ps), first(cross))
 

@@ -31,6 +31,7 @@ nx, ny <= 8.
 from __future__ import annotations
 
 import math
+from functools import partial
 from typing import Callable, NamedTuple
 
 import jax
@@ -40,7 +41,7 @@ import numpy as np
 from .. import _hoist
 from .._hoist import Split, split
 from .base import StepOutput
-from ._entrywise import backward_entries, chol_sym, dot, sym_entries, wsum
+from ._entrywise import backward_entries, chol_sym, dot, stack, sym_entries, wsum
 from ._linalg import LOG_2PI, UNROLL_MAX, cholesky, forward_entries
 from .sigma import SigmaRule
 
@@ -85,11 +86,40 @@ class Batch(NamedTuple):
             sequence, which XLA fuses into the kernels that read it. Which is faster depends
             on the filter (the EKF's prepared Jacobian entries gain from the carry, the UKF's
             sigma-point inputs lose); ``vehjax bench all`` measures both.
+        smooth_step: ``smooth_step(state, y, prepared_t) -> (state, (StepOutput, Prediction))``:
+            ``step`` that also returns its prediction (:class:`Prediction`), what the runs-last
+            RTS backward pass needs (:func:`vehjax.smoothers.gaussian.backward_predicted`);
+            ``vehjax.run(smooth=True)`` scans it, the filter alone scans ``step``. None when
+            the filter has none.
     """
 
     prepare: Callable
     step: Callable
     prefetch: bool = True
+    smooth_step: Callable | None = None
+
+
+class Prediction(NamedTuple):
+    """One step's prediction over a batch of runs, runs last: from the state that the step
+    starts from, N(x_{t-1}, P_{t-1}), with the step's input, to time t.
+
+    Attributes:
+        mean: predicted mean x-_t, (nx, R).
+        cov: predicted covariance P-_t, (nx, nx, R).
+        cross: Cov(x_{t-1}, x_t | y_1:t-1), (nx, nx, R): P_{t-1} F^T for the EKF (F the
+            transition's Jacobian at x_{t-1}), the weighted cross-moment of the sigma points and
+            their images for the UKF/CKF (Särkkä 2008).
+    """
+
+    mean: jnp.ndarray
+    cov: jnp.ndarray
+    cross: jnp.ndarray
+
+
+def _prediction(xp, Pp, C) -> Prediction:
+    """:class:`Prediction` from entries: lists xp (nx,), nested lists Pp, C (nx, nx) of (R,)."""
+    like = xp[0]
+    return Prediction(stack(xp, like), stack(Pp, like), stack(C, like))
 
 
 def _point_model(fn, nx: int, nu: int, n_params: int, dtype, theta_const) -> Split:
@@ -208,7 +238,7 @@ def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int
 
     prepare, unpack = _prepare(fm, hm, nu, per_run_inputs, dtype)
 
-    def step(state, y, prepared):
+    def step(state, y, prepared, with_prediction):
         X0, P0, th = state
         dt = X0.dtype
         y = y.astype(dt)
@@ -219,8 +249,9 @@ def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int
         x = [X0[i] for i in range(nx)]
         P = [[P0[i, j] for j in range(nx)] for i in range(nx)]
 
-        F = _evaluate(fm, _points(x, chol_sym(P), rule), th, res_f, per_run_inputs)
-        xp, Pp, _ = _moments(F, rule, Q)
+        X = _points(x, chol_sym(P), rule)
+        F = _evaluate(fm, X, th, res_f, per_run_inputs)
+        xp, Pp, dF = _moments(F, rule, Q)
         pts = _points(xp, chol_sym(Pp), rule)
         Z = _evaluate(hm, pts, th, res_h, per_run_inputs)
         yh, S, dz = _moments(Z, rule, Rm)
@@ -229,9 +260,16 @@ def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int
              for i in range(nx)]
 
         x_new, P_new, loglik, nis, n_obs = _update(xp, Pp, y, yh, S, C)
-        return state._replace(x=x_new, P=P_new), _output(x_new, P_new, loglik, nis, n_obs)
+        out = _output(x_new, P_new, loglik, nis, n_obs)
+        if not with_prediction:
+            return state._replace(x=x_new, P=P_new), out
+        # Cov(x_{t-1}, x_t | y_1:t-1): the points' deviations from x_{t-1} against their images'
+        Cx = [[wsum(rule.wc, [(p[i] - x[i]) * d[j] for p, d in zip(X, dF)]) for j in range(nx)]
+              for i in range(nx)]
+        return state._replace(x=x_new, P=P_new), (out, _prediction(xp, Pp, Cx))
 
-    return Batch(prepare, step, prefetch=False)
+    return Batch(prepare, partial(step, with_prediction=False), prefetch=False,
+                 smooth_step=partial(step, with_prediction=True))
 
 
 # -- the Kalman update, shared by the UKF/CKF and EKF steps -------------------------------------
@@ -339,7 +377,7 @@ def ekf_step(f, h, Qn: np.ndarray, Rn: np.ndarray, *, nu: int, n_params: int,
     F_const = [[None] * nx for _ in range(nx)]
     H_const = _jacobian_constants(h, nx, nu, n_params, dtype, theta)
 
-    def step(state, y, prepared):
+    def step(state, y, prepared, with_prediction):
         X0, P0, th = state
         dt = X0.dtype
         y = y.astype(dt)
@@ -356,9 +394,15 @@ def ekf_step(f, h, Qn: np.ndarray, Rn: np.ndarray, *, nu: int, n_params: int,
         C = [[dot(Pp[i], H[j]) for j in range(ny)] for i in range(nx)]
         S = sym_entries(lambda a, b: dot(H[a], [C[i][b] for i in range(nx)]) + Rm[a][b], ny)
         x_new, P_new, loglik, nis, n_obs = _update(xp, Pp, y, yh, S, C, joseph=(H, Rm))
-        return state._replace(x=x_new, P=P_new), _output(x_new, P_new, loglik, nis, n_obs)
+        out = _output(x_new, P_new, loglik, nis, n_obs)
+        if not with_prediction:
+            return state._replace(x=x_new, P=P_new), out
+        # Cov(x_{t-1}, x_t | y_1:t-1) = P F^T = (F P)^T (P symmetric)
+        Cx = [[FP[j][i] for j in range(nx)] for i in range(nx)]
+        return state._replace(x=x_new, P=P_new), (out, _prediction(xp, Pp, Cx))
 
-    return Batch(prepare, step)
+    return Batch(prepare, partial(step, with_prediction=False),
+                 smooth_step=partial(step, with_prediction=True))
 
 
 def all_finite(a):

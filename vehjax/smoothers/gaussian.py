@@ -20,11 +20,13 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..filters._linalg import cholesky, sym
+from ..filters._entrywise import backward_entries, chol_sym, dot
+from ..filters._linalg import cholesky, forward_entries, sym
 from ..filters.base import GaussianSmoother
 from .linear import Affine, rts_apply, rts_gain, slr, sqrt_rts_apply, sqrt_rts_gain
 
-__all__ = ["backward", "backward_moments", "backward_runs_last", "rts_apply_runs_last", "gains",
+__all__ = ["backward", "backward_moments", "backward_predicted", "gains_runs_last",
+           "rts_apply_runs_last", "rts_apply_entries", "gains",
            "plain_moments", "linearize", "linearize_filtered"]
 
 
@@ -122,38 +124,62 @@ def rts_apply_runs_last(G, m, P, m_pred, P_pred, ms_next, Ps_next):
     return m_s, 0.5 * (X + _mT(X)), cross
 
 
-def backward_runs_last(spec: GaussianSmoother, m, P, aux, us, per_run_inputs: bool):
+def _entries(A):
+    """Nested lists (n, m) of the entries of runs-last matrices (n, m, ...)."""
+    return [[A[i, j] for j in range(A.shape[1])] for i in range(A.shape[0])]
+
+
+def gains_runs_last(P_pred, C):
+    """:func:`vehjax.smoothers.linear.rts_gain` G = C P-^-1 of many steps and runs at once,
+    entry by entry: P_pred, C (T, n, n, R) -> G (T, n, n, R). Row i of G solves
+    P- g_i = c_i (c_i row i of C) with the Cholesky factor of (the symmetric part of) P-; a
+    P- that is not positive definite gives NaN."""
+    Pe = [[P_pred[:, i, j] for j in range(P_pred.shape[2])] for i in range(P_pred.shape[1])]
+    L = chol_sym(Pe)
+    rows = [backward_entries(L, forward_entries(L, [C[:, i, k] for k in range(C.shape[2])]))
+            for i in range(C.shape[1])]
+    return jnp.stack([jnp.stack(r, axis=1) for r in rows], axis=1)
+
+
+def rts_apply_entries(G, m, P, m_pred, P_pred, ms_next, Ps_next):
+    """:func:`rts_apply_runs_last` written entry by entry (each entry an (R,) array, one fused
+    loop over the runs): the same arguments, results and order of operations."""
+    n = m.shape[0]
+    g, Pn, dP = _entries(G), _entries(Ps_next), _entries(Ps_next - P_pred)
+    dm = [ms_next[k] - m_pred[k] for k in range(n)]
+    cross = [[dot(g[i], [Pn[k][j] for k in range(n)]) for j in range(n)] for i in range(n)]
+    m_s = [m[i] + dot(g[i], dm) for i in range(n)]
+    GD = [[dot(g[i], [dP[k][j] for k in range(n)]) for j in range(n)] for i in range(n)]
+    X = [[P[i, j] + dot(GD[i], g[j]) for j in range(n)] for i in range(n)]
+    P_s = [[0.5 * (X[i][j] + X[j][i]) for j in range(n)] for i in range(n)]
+
+    def mat(E):
+        return jnp.stack([jnp.stack(r) for r in E])
+
+    return jnp.stack(m_s), mat(P_s), mat(cross)
+
+
+def backward_predicted(m, P, m_pred, P_pred, C):
     """The RTS backward pass (:func:`backward`, plain covariances) over a batch of R runs with
-    the runs axis last, the layout of the runs-last filter steps
-    (:mod:`vehjax.filters._runs_last`): every step's prediction and gain at once, the model
-    evaluated with the runs as the vectorised axis, then a scan over time of
-    :func:`rts_apply_runs_last`.
+    the runs axis last, from the forward pass's own predictions (the runs-last filter steps'
+    ``smooth_step``, :mod:`vehjax.filters._runs_last`): nothing of the model is evaluated
+    again. Every gain at once (:func:`gains_runs_last`), then a scan over time of the
+    recursion (:func:`rts_apply_entries`).
 
     Args:
-        spec: the filter's GaussianSmoother (not ``sqrt``).
-        m: filtered means at t = 0..T, (T+1, n, R).
+        m: filtered means at t = 0..T (index 0 the prior), (T+1, n, R).
         P: their covariances, (T+1, n, n, R).
-        aux: the spec's aux of every run, leaves with a trailing runs axis R, the same at every
-            step (the filters with a runs-last form carry their theta unchanged).
-        us: inputs, (T, nu) shared by the runs or (T, nu, R) when ``per_run_inputs``.
-        per_run_inputs: which of the two ``us`` is.
+        m_pred: the predictions from t to t + 1, t = 0..T-1: means (T, n, R),
+        P_pred: covariances (T, n, n, R),
+        C: and cross-covariances Cov(x_t, x_{t+1} | y_1:t) (T, n, n, R).
 
     Returns:
         (means (T+1, n, R), covariances (T+1, n, n, R), cross-covariances (T, n, n, R)).
     """
-    if spec.sqrt:
-        raise ValueError("spec: the runs-last backward pass takes covariances, not factors")
-
-    def one(mt, Pt, u, a):
-        m_pred, P_pred, C = spec.predict(mt, Pt, u, a)
-        return rts_gain(P_pred, C), m_pred, P_pred
-
-    over_runs = jax.vmap(one, in_axes=(-1, -1, -1 if per_run_inputs else None, -1),
-                         out_axes=-1)
-    G, m_pred, P_pred = jax.vmap(over_runs, in_axes=(0, 0, 0, None))(m[:-1], P[:-1], us, aux)
+    G = gains_runs_last(P_pred, C)
 
     def body(carry, inp):
-        m_s, P_s, cross = rts_apply_runs_last(*inp, *carry)
+        m_s, P_s, cross = rts_apply_entries(*inp, *carry)
         return (m_s, P_s), (m_s, P_s, cross)
 
     _, (m_s, P_s, cross) = jax.lax.scan(body, (m[-1], P[-1]),
