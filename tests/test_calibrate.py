@@ -205,3 +205,77 @@ def test_priors_and_bad_input():
         particle_gibbs(_model(), ys, None, priors={"a": Normal(0, 1)}, n_particles=1, **kw)
     with pytest.raises(ValueError, match=r"priors: 'Q:z': no 'z'"):
         particle_gibbs(_model(), ys, None, priors={"Q:z": Normal(0, 1)}, **kw)
+
+
+def test_adaptation_mathematics_against_numpy_and_scipy():
+    """The warm-up's pieces: the shrunk window covariance (numpy), the scale update (scipy's
+    normal quantiles), the proposal factor, the target acceptance and the windows."""
+    from vehjax import calibrate as C
+
+    rng = np.random.default_rng(4)
+    z = rng.standard_normal((200, 3)) @ np.array([[1.0, 0, 0], [0.9, 0.3, 0], [0.2, -0.5, 2.0]])
+    prev = np.diag([0.5, 2.0, 1.0])
+    got = np.asarray(C.adapted_covariance(z.sum(0), z.T @ z, z.shape[0], prev, 30.0))
+    want = (200 * np.cov(z.T, ddof=1) + 30 * prev) / 230
+    np.testing.assert_allclose(got, want, rtol=1e-10)
+    for a, target in ((0.11, 0.234), (0.5, 0.234), (0.3, 0.441)):
+        step = float(C.scale_update(0.2, a, target)) - 0.2
+        assert step == pytest.approx(math.log(stats.norm.ppf(target / 2) / stats.norm.ppf(a / 2)),
+                                     rel=1e-10)
+    assert float(C.scale_update(0.0, 0.0, 0.234)) == pytest.approx(          # a clipped to 0.005
+        math.log(stats.norm.ppf(0.117) / stats.norm.ppf(0.0025)), rel=1e-10)
+    assert float(C.scale_update(0.0, 0.9, 0.001)) == pytest.approx(math.log(4.0))  # factor clipped
+    assert float(C.scale_update(0.0, 1.0, 0.234)) > 0                   # too small: grow
+    L = np.asarray(C.proposal_factor(want, 0.3, np.eye(3)))
+    np.testing.assert_allclose(L @ L.T, math.exp(0.6) * 2.38**2 / 3 * want, rtol=1e-8)
+    bad = np.asarray(C.proposal_factor(-np.eye(3), 0.0, 7 * np.eye(3)))
+    np.testing.assert_array_equal(bad, 7 * np.eye(3))                    # not PD: keep the old
+    # 2 Phi(-sqrt(2.38^2 + 2 s^2) / 2), relative to its s = 0 value, times the d-table's value
+    assert C.target_acceptance(50) == pytest.approx(0.234, rel=1e-12)
+    assert 2 * stats.norm.cdf(-1.19) == pytest.approx(0.234, abs=1e-4)  # the large-d optimum
+    assert C.target_acceptance(1) == pytest.approx(0.441)
+    assert C.target_acceptance(8, 1.2) == pytest.approx(
+        0.255 * stats.norm.cdf(-math.sqrt(2.38**2 + 2 * 1.44) / 2) / stats.norm.cdf(-1.19))
+    ends = C.adaptation_windows(2000, 5)
+    np.testing.assert_array_equal(ends, np.round(1600 * np.cumsum(2.0 ** np.arange(5)) / 31))
+    assert list(C.adaptation_windows(100, 5)) == [8, 18, 39, 80]          # a 3-long window merged
+    assert C.adaptation_windows(100, 0).size == 0
+
+
+@pytest.mark.slow  # a sampler study on a correlated target (one compile, 4 x 6000 iterations)
+def test_adaptive_random_walk_mixes_on_a_correlated_gaussian():
+    """The adapted random walk on a 5-d Gaussian whose first three coordinates correlate at
+    0.995 / -0.99 with scales 1e-3 to 10 (as the drive's offset, eps and gyro bias): split
+    R-hat < 1.05, ESS >= 200 for each, the mean and std within Monte-Carlo error, and the
+    proposal's correlation that of the target."""
+    from vehjax import calibrate as C
+
+    sd = np.array([1e-3, 10.0, 0.5, 2.0, 0.05])
+    corr = np.eye(5)
+    corr[0, 1] = corr[1, 0] = 0.995
+    corr[0, 2] = corr[2, 0] = -0.99
+    corr[1, 2] = corr[2, 1] = -0.985
+    cov = corr * np.outer(sd, sd)
+    mean = np.array([2e-3, -5.0, 1.0, 0.0, 0.3])
+    Lc = np.linalg.cholesky(cov)
+
+    def loglik(v, key):
+        e = jax.scipy.linalg.solve_triangular(Lc, v - mean, lower=True)
+        return -0.5 * jax.numpy.sum(e**2)
+
+    priors = tuple(Normal(0.0, 1e4 * s) for s in sd)                      # flat over the target
+    warmup, samples, chains = 3000, 3000, 4
+    run = C._sampler(loglik, priors, warmup + samples, C.adaptation_windows(warmup, 5),
+                     C.target_acceptance(5), 25.0)
+    L0 = np.diag(sd * 3.0)                                                 # 3x too wide, no corr.
+    z0 = np.tile(mean + 2 * sd, (chains, 1))
+    zs, lls, acc, L, _ = run(jax.random.split(jax.random.key(0), chains), z0, L0)
+    res = C._result(tuple("abcde"), priors, zs, lls, acc, L, warmup)
+    assert np.all(res.rhat < 1.05), res.rhat
+    assert np.all(res.ess >= 200), res.ess
+    np.testing.assert_array_less(np.abs(res.mean - mean), 4 * sd / np.sqrt(res.ess))
+    np.testing.assert_array_less(np.abs(res.std - sd), 4 * sd / np.sqrt(2 * res.ess))
+    pc = res.proposal_cov
+    pcorr = pc / np.sqrt(np.outer(np.diag(pc), np.diag(pc)))
+    np.testing.assert_allclose(pcorr[:3, :3], corr[:3, :3], atol=0.02)
+    assert 0.15 < res.acceptance.mean() < 0.4

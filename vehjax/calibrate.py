@@ -23,10 +23,17 @@ random walk, and the target there is the posterior times the Jacobian of the map
 log p(y | x(z)) + log p(x(z)) + log |dx/dz|.
 
 Proposal: the random-walk covariance starts as ``(0.1 * prior scale)^2`` per coordinate
-(unconstrained units) unless ``proposal_std`` is given; with ``adapt`` the first half of the
-warm-up runs with it, and the rest of the run uses (2.38^2 / d) times the covariance of those
-draws pooled over chains (Roberts & Rosenthal 2001's scaling), fixed from then on so the chain
-after warm-up is a plain Metropolis-Hastings chain.
+(unconstrained units) unless ``proposal_std`` is given. With ``adapt`` the warm-up is cut into
+windows of doubling length (:func:`adaptation_windows`; the first 80 % of it); after each the
+proposal becomes s^2 (2.38^2 / d) C (Roberts & Rosenthal 2001's scaling) with C the covariance of
+that window's draws pooled over chains, shrunk toward the previous estimate
+(:func:`adapted_covariance`), and s a scale tuned toward a target acceptance rate
+(:func:`scale_update`; :func:`target_acceptance`: 0.44 for d = 1 to 0.234 for an exact
+likelihood, lower for a noisy estimate). Later windows are longer, so the estimate settles as the chains
+reach the posterior; strongly correlated quantities get a proposal along their correlation. The
+proposal is fixed after the last window, so the draws kept after warm-up come from a plain
+Metropolis-Hastings chain. :func:`log_likelihood_spread` measures the particle filter's
+log-likelihood noise, which should be about 1-1.5 at the posterior (Doucet et al. 2015).
 
 Random streams: one ``key`` is split into one key per chain; iteration i of chain c draws its
 proposal, its accept uniform and its particle filter's key from ``fold_in(key_c, i + 1)``
@@ -59,6 +66,8 @@ import numpy as np
 from . import _validate
 
 __all__ = ["Normal", "LogNormal", "Uniform", "PMMHResult", "pmmh", "log_likelihood_fn",
+           "log_likelihood_spread", "target_acceptance", "adaptation_windows",
+           "adapted_covariance", "scale_update", "proposal_factor",
            "particle_gibbs", "conditional_pf_as", "log_joint", "split_rhat",
            "effective_sample_size"]
 
@@ -269,24 +278,126 @@ def _mh_iteration(loglik, priors, L_prop, key_chain):
     return step
 
 
-def _adapted_factor(s1, s2, count, L0):
-    """The adapted random-walk factor from pooled sums of draws: cholesky of (2.38^2 / d) times
-    their covariance (plus a 1e-10 relative jitter), or ``L0`` when that is not positive
-    definite (chains that never moved)."""
-    d = L0.shape[0]
+#: Roberts, Gelman & Gilks (1997): the random walk's optimal scale on a d-dimensional Gaussian
+#: target is 2.38 / sqrt(d) times the target's covariance, where the acceptance is 0.234
+RW_SCALE, RW_ACCEPTANCE = 2.38, 0.234
+
+
+#: the optimal random walk's acceptance rate on a d-dimensional Gaussian target, d = 1..10
+#: (Gelman, Roberts & Gilks 1996, Bayesian Statistics 5, table 1); 0.234 beyond
+_RW_ACCEPTANCE_D = (0.441, 0.352, 0.316, 0.279, 0.275, 0.266, 0.261, 0.255, 0.25, 0.247)
+
+
+def target_acceptance(d: int, loglik_std=0.0):
+    """The acceptance rate to tune a random walk toward in d dimensions when the log-likelihood
+    is estimated with Gaussian noise of std ``loglik_std`` [nats]: the exact-likelihood optimum
+    a_d (Gelman, Roberts & Gilks 1996: 0.44 for d = 1 down to 0.234 for large d) times the
+    factor the noise takes off it at the large-d optimal scale l = 2.38 (Sherlock, Thiery,
+    Roberts & Rosenthal 2015, Ann. Statist. 43(1): acceptance 2 Phi(-sqrt(l^2 + 2 sigma^2) / 2),
+    0.234 at sigma = 0, 0.144 at 1.2, 0.11 at 1.5). Dimensionless, in (0, 1)."""
+    d = _validate.integer("d", d, 1)
+    s = float(loglik_std)
+    a_d = _RW_ACCEPTANCE_D[d - 1] if d <= len(_RW_ACCEPTANCE_D) else RW_ACCEPTANCE
+    noisy = math.erfc(0.5 * math.sqrt(RW_SCALE**2 + 2.0 * s * s) / math.sqrt(2.0))
+    return a_d * noisy / math.erfc(0.5 * RW_SCALE / math.sqrt(2.0))
+
+
+def adaptation_windows(warmup: int, windows: int) -> np.ndarray:
+    """The iterations (1-based counts) after which the warm-up re-estimates the proposal:
+    ``windows`` windows whose lengths double (1, 2, 4, ...) and fill the first 80 % of the
+    warm-up; the last 20 % runs with the final proposal. (k,) ints, strictly increasing, k <=
+    windows (windows shorter than 4 iterations merged into the next); empty for 0 windows."""
+    if windows <= 0 or warmup < 2:
+        return np.zeros(0, int)
+    span = max(1, int(0.8 * warmup))
+    w = 2.0 ** np.arange(windows)
+    ends = np.unique(np.round(span * np.cumsum(w) / w.sum()).astype(int))
+    keep = np.diff(np.concatenate([[0], ends])) >= 4
+    keep[-1] = True
+    ends = ends[keep]
+    return ends[ends >= 1]
+
+
+def adapted_covariance(s1, s2, count, cov_prev, prior_count):
+    """The target's covariance estimated from one window's draws pooled over chains, shrunk
+    toward the previous estimate: (count C + prior_count cov_prev) / (count + prior_count), C the
+    draws' covariance (ddof 1) from their sums s1 = sum z (d,), s2 = sum z z^T (d, d) over
+    ``count`` draws (unconstrained units). The shrinkage keeps a short window whose chains
+    barely moved from collapsing the proposal. (d, d), symmetric."""
     mean = s1 / count
     cov = (s2 - count * jnp.outer(mean, mean)) / (count - 1)
-    cov = 0.5 * (cov + cov.T)
+    cov = (count * cov + prior_count * cov_prev) / (count + prior_count)
+    return 0.5 * (cov + cov.T)
+
+
+def scale_update(log_scale, acceptance, target):
+    """The random walk's log scale after a window with acceptance rate ``acceptance``, toward
+    ``target``: for a random walk of scale l (in units of the target's std) on a Gaussian target
+    the acceptance is 2 Phi(-l / 2) (Roberts, Gelman & Gilks 1997), so the scale that gives
+    ``target`` is the current one times Phi^-1(target / 2) / Phi^-1(acceptance / 2). The
+    acceptance is clipped to [0.005, 0.95] and the factor to [1/4, 4] (one window's estimate).
+    Scalars in, scalar out (log of a dimensionless factor)."""
+    a = jnp.clip(acceptance, 0.005, 0.95)
+    ratio = jax.scipy.stats.norm.ppf(0.5 * target) / jax.scipy.stats.norm.ppf(0.5 * a)
+    return log_scale + jnp.log(jnp.clip(ratio, 0.25, 4.0))
+
+
+def proposal_factor(cov, log_scale, L_prev):
+    """The random walk's Cholesky factor exp(log_scale) chol((2.38^2 / d) cov) (plus a 1e-10
+    relative jitter), or ``L_prev`` when that is not positive definite. (d, d) lower."""
+    d = cov.shape[0]
     cov = cov + 1e-10 * jnp.maximum(1.0, jnp.max(jnp.diag(cov))) * jnp.eye(d)
-    L = jnp.linalg.cholesky((2.38**2 / d) * cov)
-    return jnp.where(jnp.all(jnp.isfinite(L)), L, L0)
+    L = jnp.exp(log_scale) * jnp.linalg.cholesky((RW_SCALE**2 / d) * cov)
+    return jnp.where(jnp.all(jnp.isfinite(L)), L, L_prev)
 
 
-def _sampler(loglik, priors, n_iter: int, adapt_at: int):
+class _Adapt(NamedTuple):
+    """The warm-up's adaptation state: the target's covariance estimate and the proposal's log
+    scale, the proposal factor they give, and the current window's sums."""
+    cov: jnp.ndarray        # (d, d) unconstrained
+    log_scale: jnp.ndarray  # ()
+    L: jnp.ndarray          # (d, d) proposal factor in use
+    s1: jnp.ndarray         # (d,) window sums
+    s2: jnp.ndarray         # (d, d)
+    n: jnp.ndarray          # () draws in the window (over chains)
+    acc: jnp.ndarray        # () accepted moves in the window
+
+
+def _adapt_init(L0):
+    """Adaptation state whose proposal is L0: cov = L0 L0^T d / 2.38^2, scale 1."""
+    d = L0.shape[0]
+    z = jnp.zeros((), L0.dtype)
+    return _Adapt(L0 @ L0.T * d / RW_SCALE**2, z, L0, jnp.zeros(d, L0.dtype),
+                  jnp.zeros((d, d), L0.dtype), z, z)
+
+
+def _adapt_step(ad: _Adapt, i, z, accepted, ends, target, prior_count):
+    """After iteration i (0-based) with draws z (C, d) and acceptances (C,) (or rates): add
+    them to the window; at a window's end (i + 1 in ``ends``) re-estimate the covariance
+    (:func:`adapted_covariance`) and the scale (:func:`scale_update`), set the proposal
+    (:func:`proposal_factor`) and start a new window."""
+    s1, s2 = ad.s1 + z.sum(axis=0), ad.s2 + z.T @ z
+    n, acc = ad.n + z.shape[0], ad.acc + jnp.sum(accepted)
+    if len(ends) == 0:
+        return ad._replace(s1=s1, s2=s2, n=n, acc=acc)
+    end = jnp.any(i + 1 == jnp.asarray(ends))
+    cov = adapted_covariance(s1, s2, n, ad.cov, prior_count)
+    ls = scale_update(ad.log_scale, acc / n, target)
+    L = proposal_factor(cov, ls, ad.L)
+    ok = jnp.all(jnp.isfinite(cov))
+    zero = jnp.zeros_like(n)
+    return _Adapt(jnp.where(end & ok, cov, ad.cov), jnp.where(end, ls, ad.log_scale),
+                  jnp.where(end, L, ad.L), jnp.where(end, 0.0 * s1, s1),
+                  jnp.where(end, 0.0 * s2, s2), jnp.where(end, zero, n),
+                  jnp.where(end, zero, acc))
+
+
+def _sampler(loglik, priors, n_iter: int, ends, target: float, prior_count: float):
     """``(keys (C,), z0 (C, d), L0 (d, d)) -> (draws (C, n, d), logliks (C, n), accepted (C, n),
-    L)``: the starting values' likelihoods, then ``n_iter`` iterations of every chain (one
-    ``lax.scan`` over iterations, the chains vmapped inside it), the proposal replaced after
-    ``adapt_at`` iterations by :func:`_adapted_factor` of the draws so far (0: never)."""
+    L, starting log targets (C,))``: the starting values' likelihoods, then ``n_iter``
+    iterations of every chain (one ``lax.scan`` over iterations, the chains vmapped inside it),
+    the proposal re-estimated from the pooled draws after each iteration count in ``ends``
+    (:func:`_adapt_step`; empty: never)."""
 
     def first(key, z):
         ll = loglik(to_physical(priors, z), jax.random.fold_in(key, 0))
@@ -294,25 +405,36 @@ def _sampler(loglik, priors, n_iter: int, adapt_at: int):
 
     def run(keys, z0, L0):
         chains = jax.vmap(first)(keys, z0)
-        d = z0.shape[1]
 
         def body(carry, i):
-            chains, L, s1, s2 = carry
-            chains, out = jax.vmap(lambda k, c: _mh_iteration(loglik, priors, L, k)(c, i))(
+            chains, ad = carry
+            chains, out = jax.vmap(lambda k, c: _mh_iteration(loglik, priors, ad.L, k)(c, i))(
                 keys, chains)
-            z = out[0]
-            s1, s2 = s1 + z.sum(axis=0), s2 + z.T @ z
-            if adapt_at:
-                L = jnp.where(i + 1 == adapt_at,
-                              _adapted_factor(s1, s2, adapt_at * z.shape[0], L0), L)
-            return (chains, L, s1, s2), out
+            ad = _adapt_step(ad, i, out[0], out[2], ends, target, prior_count)
+            return (chains, ad), out
 
-        init = (chains, L0, jnp.zeros(d), jnp.zeros((d, d)))
-        (_, L, _, _), (zs, lls, acc) = jax.lax.scan(body, init, jnp.arange(n_iter))
-        return (jnp.swapaxes(zs, 0, 1), jnp.swapaxes(lls, 0, 1), jnp.swapaxes(acc, 0, 1), L,
+        (_, ad), (zs, lls, acc) = jax.lax.scan(body, (chains, _adapt_init(L0)),
+                                               jnp.arange(n_iter))
+        return (jnp.swapaxes(zs, 0, 1), jnp.swapaxes(lls, 0, 1), jnp.swapaxes(acc, 0, 1), ad.L,
                 chains.log_target)
 
     return jax.jit(run)
+
+
+def log_likelihood_spread(builder, model, measurements, inputs=None, *, x0, P0, Q, R, values,
+                          key, n_evals: int = 32, builder_kwargs=None):
+    """The std [nats] of a particle filter's log-likelihood estimate at fixed ``values`` (dict
+    name -> physical value, as the priors of :func:`pmmh`), over ``n_evals`` keys (vmapped),
+    and its mean: (std, mean). Doucet, Pitt, Deligiannidis & Kohn (2015, Biometrika 102(2)):
+    PMMH is most efficient for its cost with this std about 1.0-1.5 at the posterior mean; a
+    larger one makes the chain stick."""
+    names = tuple(values)
+    loglik = log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0, Q=Q, R=R,
+                               names=names, builder_kwargs=builder_kwargs)
+    v = jnp.asarray([float(values[n]) for n in names])
+    n_evals = _validate.integer("n_evals", n_evals, 2)
+    lls = np.asarray(jax.jit(jax.vmap(lambda k: loglik(v, k)))(jax.random.split(key, n_evals)))
+    return float(np.std(lls, ddof=1)), float(np.mean(lls))
 
 
 class PMMHResult(NamedTuple):
@@ -385,7 +507,8 @@ def _starting_values(priors, init, names) -> np.ndarray:
 
 def pmmh(builder, model, measurements, inputs=None, *, x0, P0, Q, R, priors, key,
          chains: int = 4, samples: int = 1000, warmup: int = 500, proposal_std=None,
-         adapt: bool = True, init=None, builder_kwargs=None) -> PMMHResult:
+         adapt: bool = True, adapt_windows: int = 5, acceptance_target=None,
+         init=None, builder_kwargs=None) -> PMMHResult:
     """Particle marginal Metropolis-Hastings over named quantities of a model and its noise.
 
     Args:
@@ -404,7 +527,13 @@ def pmmh(builder, model, measurements, inputs=None, *, x0, P0, Q, R, priors, key
             iterations discarded per chain (>= 2 when ``adapt``).
         proposal_std: random-walk std per quantity in unconstrained units (scalar or (d,));
             default 0.1 x the prior's scale.
-        adapt: replace the proposal after half the warm-up (module docstring).
+        adapt: re-estimate the proposal during the warm-up (module docstring).
+        adapt_windows: how many times (windows of doubling length over the first 80 % of the
+            warm-up, :func:`adaptation_windows`).
+        acceptance_target: the acceptance rate the scale is tuned toward; default
+            ``target_acceptance(d)`` (exact likelihood; 0.44 for d = 1 to 0.234); for a
+            particle filter's estimate ``target_acceptance(d, std)`` with the estimate's std
+            (:func:`log_likelihood_spread`).
         init: dict name -> starting value (physical); default the prior's centre (median).
 
     Returns:
@@ -418,12 +547,20 @@ def pmmh(builder, model, measurements, inputs=None, *, x0, P0, Q, R, priors, key
     chains = _validate.integer("chains", chains, 2)
     samples = _validate.integer("samples", samples, 4)
     warmup = _validate.integer("warmup", warmup, 2 if adapt else 0)
+    adapt_windows = _validate.integer("adapt_windows", adapt_windows, 1)
+    if acceptance_target is None:
+        acceptance_target = target_acceptance(len(prs))
+    acceptance_target = _validate.number("acceptance_target", acceptance_target, 0.0)
+    if not acceptance_target < 1.0:
+        raise ValueError(f"acceptance_target: expected a number in (0, 1), got "
+                         f"{acceptance_target!r}")
     loglik = log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0, Q=Q, R=R,
                                names=names, builder_kwargs=builder_kwargs)
     L0 = _proposal_factor(prs, proposal_std)
     z0 = np.tile(_starting_values(prs, init, names), (chains, 1))
     keys = _validate.key(key, chains)
-    run = _sampler(loglik, prs, warmup + samples, warmup // 2 if adapt else 0)
+    ends = adaptation_windows(warmup, adapt_windows) if adapt else np.zeros(0, int)
+    run = _sampler(loglik, prs, warmup + samples, ends, acceptance_target, 5.0 * len(prs))
     zs, lls, acc, L, lt0 = run(keys, jnp.asarray(z0), jnp.asarray(L0))
     if not np.all(np.isfinite(np.asarray(lt0))):
         raise ValueError("init: the likelihood estimate at the starting values is zero (the "
@@ -516,6 +653,7 @@ def log_joint(model, traj, theta, LQ, r_var, bias, ys, us, x0, LP0):
 def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, key,
                    n_particles: int = 20, chains: int = 4, samples: int = 1000,
                    warmup: int = 200, mh_steps: int = 3, proposal_std=None,
+                   adapt: bool = True, adapt_windows: int = 5, acceptance_target=None,
                    init=None) -> PMMHResult:
     """Particle Gibbs with ancestor sampling (Lindsten, Jordan & Schon 2014) over named
     quantities (model parameters, ``"R:<output>"``, ``"Q:<state>"``, ``"bias:<output>"`` as in
@@ -530,7 +668,9 @@ def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, ke
 
     Args:
         model, measurements (T, ny), inputs (T, nu) or None, x0, P0, Q, R, priors, key,
-            chains, samples, warmup, proposal_std, init: as in :func:`pmmh` (no adaptation).
+            chains, samples, warmup, proposal_std, adapt, adapt_windows, acceptance_target,
+            init: as in :func:`pmmh`; the adaptation tunes the moves of the values given the
+            trajectory (pooled over chains, the acceptance averaged over the sweep's moves).
         n_particles: particles of the conditional PF, >= 2.
         mh_steps: Metropolis-Hastings moves of the values per sweep, >= 1.
 
@@ -544,7 +684,11 @@ def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, ke
         raise ValueError("priors: particle_gibbs does not calibrate input noise ('input:')")
     chains = _validate.integer("chains", chains, 2)
     samples = _validate.integer("samples", samples, 4)
-    warmup = _validate.integer("warmup", warmup, 0)
+    warmup = _validate.integer("warmup", warmup, 2 if adapt else 0)
+    adapt_windows = _validate.integer("adapt_windows", adapt_windows, 1)
+    if acceptance_target is None:
+        acceptance_target = target_acceptance(len(prs))
+    acceptance_target = _validate.number("acceptance_target", acceptance_target, 0.0)
     n = _validate.integer("n_particles", n_particles, 2)
     mh_steps = _validate.integer("mh_steps", mh_steps, 1)
     ys, us = _validate.data(measurements, inputs, model.ny, model.nu, "one")
@@ -568,28 +712,37 @@ def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, ke
     def target(z, traj):
         return log_joint(model, traj, *parts(z), ys, us, x0a, LP0) + log_prior_unconstrained(prs, z)
 
-    def chain(key_c, z):
-        def sweep(carry, i):
-            z, traj = carry
-            k_pf, k_mh = jax.random.split(jax.random.fold_in(key_c, i))
-            traj = conditional_pf_as(model, k_pf, traj, *parts(z), ys, us, x0a, LP0, n)
+    ends = adaptation_windows(warmup, adapt_windows) if adapt else np.zeros(0, int)
 
-            def mh(zc, k):
-                kp, ku = jax.random.split(k)
-                zn = zc + L @ jax.random.normal(kp, zc.shape)
-                d = target(zn, traj) - target(zc, traj)
-                ok = jnp.log(jax.random.uniform(ku)) < jnp.where(jnp.isfinite(d), d, -jnp.inf)
-                return jnp.where(ok, zn, zc), ok
+    def sweep(key_c, z, traj, i, L):
+        """One sweep of one chain: (z, traj) -> (z, traj, log joint, acceptance rate)."""
+        k_pf, k_mh = jax.random.split(jax.random.fold_in(key_c, i))
+        traj = conditional_pf_as(model, k_pf, traj, *parts(z), ys, us, x0a, LP0, n)
 
-            z, acc = jax.lax.scan(mh, z, jax.random.split(k_mh, mh_steps))
-            return (z, traj), (z, log_joint(model, traj, *parts(z), ys, us, x0a, LP0),
-                               jnp.mean(acc))
+        def mh(zc, k):
+            kp, ku = jax.random.split(k)
+            zn = zc + L @ jax.random.normal(kp, zc.shape)
+            d = target(zn, traj) - target(zc, traj)
+            ok = jnp.log(jax.random.uniform(ku)) < jnp.where(jnp.isfinite(d), d, -jnp.inf)
+            return jnp.where(ok, zn, zc), ok
 
-        traj0 = jnp.tile(x0a, (T + 1, 1))
-        _, out = jax.lax.scan(sweep, (z, traj0), jnp.arange(warmup + samples))
-        return out
+        z, acc = jax.lax.scan(mh, z, jax.random.split(k_mh, mh_steps))
+        return z, traj, log_joint(model, traj, *parts(z), ys, us, x0a, LP0), jnp.mean(acc)
 
-    zs, ljs, acc = jax.jit(jax.vmap(chain))(keys, z0)
+    def run(keys, z0, L0):
+        def body(carry, i):
+            z, traj, ad = carry
+            z, traj, lj, acc = jax.vmap(lambda k, zc, tc: sweep(k, zc, tc, i, ad.L))(
+                keys, z, traj)
+            ad = _adapt_step(ad, i, z, acc, ends, acceptance_target, 5.0 * len(prs))
+            return (z, traj, ad), (z, lj, acc)
+
+        traj0 = jnp.tile(x0a, (z0.shape[0], T + 1, 1))
+        (_, _, ad), (zs, ljs, acc) = jax.lax.scan(body, (z0, traj0, _adapt_init(L0)),
+                                                  jnp.arange(warmup + samples))
+        return (jnp.swapaxes(zs, 0, 1), jnp.swapaxes(ljs, 0, 1), jnp.swapaxes(acc, 0, 1), ad.L)
+
+    zs, ljs, acc, L = jax.jit(run)(keys, z0, L)
     return _result(names, prs, zs, ljs, acc, L, warmup)
 
 
