@@ -197,7 +197,7 @@ def test_with_the_noise_known_it_is_the_exact_kalman_filter_of_the_biased_model(
     T, R, N = 150, 2, 50
     offset, bias, sig_phi = math.radians(0.28), np.array([0.1, 0.005, -0.003]), 0.05
     X, Y, U = _simulate(R, T, offset, bias, sig_phi, seed=3)
-    x0, P0 = np.zeros(5), np.full(5, 1e-12)
+    x0, P0 = np.zeros(5), np.array([1e-4, 1e-6, 1e-6, 1e-6, 1e-6])
     std0 = dict(STD0, delta=1e-7)
     est = marginalized_pf(MODEL, N, sensors=SENSORS, known_std=KNOWN, linear_noise_std=sig_phi,
                           std0=std0, mean0={"delta": offset}, forgetting=1.0, nu0=1e7,

@@ -75,6 +75,7 @@ def test_tiny_study_writes_every_methods_row(tmp_path):
     row = {line.split(" | ")[0][2:]: line.split(" | ") for line in sim.splitlines()
            if line.startswith("| ")}
     assert row["Sage-Husa ACKF"][1] == "-"
-    for meth in ("VB-R (CKF)", "VB-PR (CKF)", "MPF (paper)", "augmented EKF"):
+    for meth in ("VB-R (CKF)", "VB-PR (CKF)", "MPF (paper)", "MPF (consistent)",
+                 "augmented EKF"):
         mean, rms = (float(v) for v in row[meth][1].split(" / "))
         assert abs(mean) < 1.0 and 0 <= rms < 1.0

@@ -35,6 +35,10 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   0.99, both in the band on 0.95 of the steps, every learnt parameter's coverage >= 0.90.
 * **MPF (paper)**: berntorp2018's ``build_sim_filter`` (N = ``--particles``, lambda = 0.995,
   initial stds twice the truth) and ``build_drive_filter`` (bank variant, lambda = 0.999).
+* **MPF (consistent)**: the same filter with ``noise_means="kalman"`` (issue #33 item 2,
+  not the paper's: :mod:`vehjax.filters.marginalized`): the biases as Kalman states with the
+  truth's random-walk stds (as the VB rows), the statistics averaged over the offset's
+  conditional, Gaussian particle states.
 * **augmented EKF** (Remark 1, berntorp2018's ``augmented_model``): (vy, r, offset, ay bias,
   gyro bias) on (ay, r, r_virt), fixed Q and R (the MPF's initial guesses); no bank states and
   no roll gyro, as the remark's common approach.
@@ -78,7 +82,7 @@ PAPER = ("Online noise learning compared (issue #33): Sage-Husa ACKF, variationa
 DEG = b18.DEG
 SENSORS = b18.SENSORS
 METHODS = ("Sage-Husa ACKF", "VB-R (CKF)", "VB-R (EKF)", "VB-PR (CKF)", "MPF (paper)",
-           "augmented EKF")
+           "MPF (consistent)", "augmented EKF")
 BIAS_STD0 = {"ay": 0.5, "r": 0.5 * DEG, "roll_rate": 0.5 * DEG}
 OFFSET_STD0 = 0.5 * DEG
 P0_SIM = np.diag([0.1, 0.5 * DEG, 0.5 * DEG, 0.2 * DEG, 0.2 * DEG]) ** 2
@@ -151,6 +155,30 @@ def ackf_with_R(est, idx, names, R0):
                      param_prior=prior, ny=est.ny, nu=est.nu, workload=est.workload)
 
 
+def _mpf_consistent(model, args, drive):
+    """The MPF (paper)'s filter with ``noise_means="kalman"`` (issue #33 item 2): the biases as
+    Kalman states with the truth's random-walk stds (as the VB rows), the statistics averaged
+    over the offset's conditional, Gaussian particle states."""
+    from vehjax.filters.marginalized import marginalized_pf
+
+    walk = {s: b18.BIAS_WALK[s] for s in SENSORS}
+    if drive:
+        scale = ("eps",) if "eps" in model.state_names else ()
+        return marginalized_pf(
+            model, args.drive_particles, noisy_input="delta", sensors=SENSORS,
+            known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
+            linear_states=("phi", "phi_dot", "phi_ddot") + scale,
+            linear_noise_std=b18.BANK_JERK_STD,
+            std0={**b18.DRIVE_STD0, "roll_rate": b18.DRIVE_STD0["r"]}, forgetting=0.999,
+            noise_means="kalman", bias_walk=walk)
+    return marginalized_pf(
+        model, args.particles, noisy_input="delta", sensors=SENSORS,
+        known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
+        linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=b18.BANK_JERK_STD,
+        std0={"delta": 2 * b18.STEER_STD, **{s: 2 * b18.SENSOR_STD[s] for s in SENSORS}},
+        forgetting=0.995, noise_means="kalman", bias_walk=walk)
+
+
 def build(method, model, args, drive=False):
     """(estimator, output columns it reads, P0) of one method; the drive uses the drive's MPF
     and the drive stds of berntorp2018 as initial guesses."""
@@ -185,6 +213,8 @@ def build(method, model, args, drive=False):
         else:
             est = b18.build_sim_filter(model, args.particles)
         return est, all5, P0
+    if method == "MPF (consistent)":
+        return _mpf_consistent(model, args, drive), all5, P0
     if method == "augmented EKF":
         am = b18.augmented_model(model)
         # by state name: (vy, r, offset, ay bias, gyro bias) and, where berntorp2018's model
@@ -398,7 +428,7 @@ def run_drive(args, methods=METHODS, log=print):
     rows = []
     results = []
     for i, meth in enumerate(methods):
-        R = args.drive_executions if meth == "MPF (paper)" else 1
+        R = args.drive_executions if meth.startswith("MPF") else 1
         res = run_method(meth, model, np.tile(Y[None], (R, 1, 1)), U, args,
                          jax.random.key(args.seed + 100 + i), drive=True)
         est = res["est"]
