@@ -54,12 +54,13 @@ ends when the best loss has not improved by more than ``tol * max(1, |best|)`` f
 iterations; the values at the best loss are returned. Every part of a fit (iterations, line
 search, curvature) evaluates one compiled program, the loss and its gradient; a long fit
 (``_BATCH_HESSIAN_STEPS`` run-steps or more, forward mode) also compiles the gradient at the
-Hessian's 2 n difference points side by side, which costs about 2 evaluations instead of 2 n.
+Hessian's 2 n central-difference points side by side, which costs about 2 evaluations; a
+shorter one forms the Hessian by forward differences, n evaluations (:func:`_difference_hessian`).
 
 How sure. Every fit reports the standard error of each fitted quantity in its units and their
 correlations (``TuneResult.std_errors``, ``correlations``), from the observed information: the
-Hessian of minus the log-likelihood in the unconstrained coordinates (central differences of
-JAX's exact gradient, or ``hessian="jax"``), inverted over the directions the data determine and
+Hessian of minus the log-likelihood in the unconstrained coordinates (differences of JAX's
+exact gradient, or ``hessian="jax"``), inverted over the directions the data determine and
 carried to the physical quantities by the delta method (:func:`uncertainty`). Directions with no
 or too little curvature are named (``TuneResult.undetermined`` and a warning): a parameter or
 noise entry the data cannot determine does not come back silently at its start value.
@@ -880,6 +881,12 @@ _FORWARD_MAX = 12
 #: back to back), so it pays from a few times that length.
 _BATCH_HESSIAN_STEPS = 50000
 
+#: forward differences of the gradient for the Hessian (:func:`_difference_hessian`): steps of
+#: this fraction of each coordinate's scale. Truncation error ~ rel, rounding of the gradient
+#: ~ 1e-14 / rel (relative): on the 20,000-step single-track fit of benchmarks/bench_fit.py
+#: the Hessian is within 7e-7 (standard errors 8e-7) of central differences at 1e-4
+_FORWARD_REL = 1e-6
+
 
 def _flat_loss(obj, info=None, batch_hessian: bool = False) -> _Loss:
     """The compiled loss of a fit (:class:`_Loss`): forward mode for deterministic filters with
@@ -1129,17 +1136,25 @@ def _first_order(loss: _Loss, opt, steps: int, tol: float, patience: int, bar):
     return best_x, best_aux, history, i, converged, skipped
 
 
-def hessian_from_gradients(vg, x, scales, rel: float = 1e-4, grads=None):
-    """The Hessian (n, n) of the loss at x by central differences of its exact (JAX) gradient,
-    column i from steps +-rel * scales[i] (the coordinate's natural size, see
-    :func:`_coordinates`), symmetrised: 2 n gradient evaluations of the compiled loss, no
-    further compilation; or, with ``grads(F (2 n, n)) -> (2 n, n)`` (``_Loss.grads``), the same
-    2 n points in one call. Truncation error O(rel^2) relative."""
+def hessian_from_gradients(vg, x, scales, rel: float = 1e-4, grads=None, g0=None):
+    """The Hessian (n, n) of the loss at x by differences of its exact (JAX) gradient, column i
+    from steps of rel * scales[i] (the coordinate's natural size, see :func:`_coordinates`),
+    symmetrised.
+
+    Central differences (default): steps +-h, 2 n gradient evaluations of the compiled loss,
+    no further compilation, truncation error O(rel^2) relative; or, with ``grads(F (2 n, n))
+    -> (2 n, n)`` (``_Loss.grads``), the same 2 n points in one call. Forward differences when
+    ``g0`` (n,), the gradient at x, is given: ``(g(x + h e_i) - g0) / h``, n evaluations,
+    truncation error O(rel) relative, rounding O(1e-14 / rel) (:func:`fit` takes rel =
+    :data:`_FORWARD_REL`)."""
     n = len(x)
     x = np.asarray(x, dtype=float)
     h = rel * np.asarray(scales, dtype=float)
     E = np.diag(h)
-    if grads is not None:
+    if g0 is not None:
+        g0 = np.asarray(g0, dtype=float)
+        H = np.stack([(vg(x + E[i])[2] - g0) / h[i] for i in range(n)], axis=1)
+    elif grads is not None:
         G = grads(np.concatenate([x + E, x - E]))
         H = ((G[:n] - G[n:]) / (2 * h)[:, None]).T
     else:
@@ -1168,6 +1183,17 @@ def _newton(loss: _Loss, x, scales, gtol: float, hessian):
         if np.max(np.abs(step / scales)) > 1e-3:  # moved far: the curvature there
             Hm = hessian(x)
     return x, aux, float(np.max(np.abs(g))), Hm
+
+
+def _difference_hessian(loss: _Loss, x, scales):
+    """The Hessian of the mean loss at x for :func:`fit` (:func:`hessian_from_gradients`): the
+    2 n central-difference points in one call of ``loss.grads`` where the fit has that batched
+    program, else forward differences from the gradient at x (n evaluations of the compiled
+    loss; the one at x is the latest evaluation, not repeated) with steps :data:`_FORWARD_REL`
+    of each coordinate's scale."""
+    if loss.grads is not None:
+        return hessian_from_gradients(loss.vg, x, scales, grads=loss.grads)
+    return hessian_from_gradients(loss.vg, x, scales, rel=_FORWARD_REL, g0=loss.vg(x)[2])
 
 
 def _check_fit_options(learning_rate, tol, gtol, hessian, steps, patience, optimizer):
@@ -1246,9 +1272,11 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
         standard_errors: compute the observed information (the Hessian of the log-likelihood),
             standard errors, correlations and the undetermined directions (default).
         hessian: how the Hessian is formed from JAX's exact gradient: "differences" (the
-            default for deterministic filters) by central differences of the gradient, steps
-            1e-4 of each coordinate's natural size, with the one compiled gradient program
-            (2 n evaluations, relative error ~1e-8); "jax": ``jax.hessian`` (forward over
+            default for deterministic filters) by forward differences of the gradient, steps
+            1e-6 of each coordinate's natural size, with the one compiled gradient program
+            (n evaluations beside the one at the point, relative error ~1e-6; central
+            differences, 2 n points in one call, where a long fit compiles the batched
+            program); "jax": ``jax.hessian`` (forward over
             reverse), exact, one more program to compile (on a vehicle model that compile can
             take longer than the fit); the default for particle filters, whose resampling
             makes differences unreliable.
@@ -1298,7 +1326,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
                                                                   patience, bar)
     unc, grad_max = None, float("nan")
     if optimizer == "scoring" and not standard_errors:  # the Newton polish finishes scoring
-        hess = lambda f: hessian_from_gradients(loss.vg, f, scales, grads=loss.grads)  # noqa
+        hess = lambda f: _difference_hessian(loss, f, scales)  # noqa: E731
         x, aux, grad_max, _ = _newton(loss, x, scales, gtol, hess)
         converged = converged or grad_max <= gtol
     if standard_errors:
@@ -1309,8 +1337,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
                 jnp.asarray(loss.x0), obj.data).compile(compiler_options=loss.stats["options"])
             hess = lambda f: np.asarray(hfn(jnp.asarray(f), obj.data))  # noqa: E731
         else:
-            hess = lambda f: hessian_from_gradients(loss.vg, f, scales,  # noqa: E731
-                                                    grads=loss.grads)
+            hess = lambda f: _difference_hessian(loss, f, scales)  # noqa: E731
         if info["stochastic"]:  # no Newton step on a Monte-Carlo objective
             _, aux, g = loss.vg(x)
             grad_max, Hm = float(np.max(np.abs(g))), hess(x)
