@@ -193,6 +193,49 @@ def test_ekf_input_noise_uses_the_jacobian_at_the_filtered_mean():
     np.testing.assert_allclose(out.cov, F @ P0 @ F.T + Q + G @ SIGMA_U @ G.T, rtol=1e-7)
 
 
+def test_entry_by_entry_ekf_algebra_equals_numpy():
+    """The EKF's entry-by-entry kernels (vehjax.filters.kalman.*_entries, the step of models
+    with at most 8 states and outputs) against numpy: the Jacobian of a nonlinear map and the
+    predicted covariance F P F^T + Q + B B^T, and the Joseph-form update with the second of
+    three measurement components missing (the Kalman update on the observed subset, and its
+    log-likelihood, written out here)."""
+    from vehjax.filters import kalman
+
+    rng = np.random.default_rng(5)
+    z = np.array([0.3, -0.7, 1.1])
+    g = lambda v: jnp.stack([jnp.sin(v[0]) * v[1], v[2] ** 2 + v[0], jnp.exp(0.1 * v[1])])  # noqa
+    val, J = kalman.jacobian_entries(g, jnp.asarray(z))
+    Jn = np.array([[np.cos(z[0]) * z[1], np.sin(z[0]), 0.0], [1.0, 0.0, 2 * z[2]],
+                   [0.0, 0.1 * np.exp(0.1 * z[1]), 0.0]])
+    np.testing.assert_allclose(np.array(J, dtype=float), Jn, rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(np.array(val, dtype=float), np.asarray(g(z)), rtol=1e-15)
+    F, Bm = rng.normal(size=(3, 3)), rng.normal(size=(3, 2))
+    M = rng.normal(size=(3, 3))
+    Pm, Qm = M @ M.T + np.eye(3), np.diag([0.1, 0.0, 0.2])
+    ent = lambda A: [[jnp.asarray(v) for v in row] for row in A]  # noqa: E731
+    Pp = kalman.predict_entries(ent(F), ent(Pm), kalman.cov_entries(Qm), ent(Bm))
+    np.testing.assert_allclose(np.array(Pp, dtype=float), F @ Pm @ F.T + Qm + Bm @ Bm.T,
+                               rtol=1e-13)
+    Hm, Rm = rng.normal(size=(3, 3)), np.diag([0.3, 0.5, 0.2])
+    Pp = np.array(Pp, dtype=float)
+    C, S = kalman.measure_entries(ent(Pp), ent(Hm), kalman.cov_entries(Rm))
+    np.testing.assert_allclose(np.array(S, dtype=float), Hm @ Pp @ Hm.T + Rm, rtol=1e-13)
+    xp, yh, y = rng.normal(size=3), rng.normal(size=3), np.array([0.4, np.nan, -0.2])
+    r = kalman.masked_update_entries(list(jnp.asarray(xp)), ent(Pp), jnp.asarray(y),
+                                     list(jnp.asarray(yh)), S, C, ent(Hm), kalman.cov_entries(Rm))
+    o = [0, 2]  # the observed components: the textbook update on them
+    Ho, So = Hm[o], (Hm @ Pp @ Hm.T + Rm)[np.ix_(o, o)]
+    K = np.linalg.solve(So, Ho @ Pp).T
+    e = y[o] - yh[o]
+    A_ = np.eye(3) - K @ Ho
+    np.testing.assert_allclose(r.x, xp + K @ e, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(r.P, A_ @ Pp @ A_.T + K @ Rm[np.ix_(o, o)] @ K.T, rtol=1e-12,
+                               atol=1e-14)
+    ll = -0.5 * (e @ np.linalg.solve(So, e) + np.log(np.linalg.det(2 * np.pi * So)))
+    np.testing.assert_allclose(r.loglik, ll, rtol=1e-12)
+    assert int(r.n_obs) == 2 and float(r.innovation[1]) == 0.0
+
+
 def test_run_with_input_noise_equals_the_per_run_filter():
     """vehjax.run (which vmaps the per-run step, batch=None) gives vehjax.filter's results."""
     ys1, us1 = data(seed=2)

@@ -311,6 +311,18 @@ def test_hessian_from_gradients_batched_equals_one_by_one_and_the_analytic_hessi
     assert calls == [(6, 3)]
     np.testing.assert_allclose(batched, want, rtol=1e-7)
     np.testing.assert_allclose(batched, one, rtol=1e-12, atol=1e-12)
+    # forward differences from the gradient at x (what fit uses without the batched program):
+    # n evaluations, none at x itself, error O(rel)
+    points = []
+
+    def vg(f):
+        points.append(np.array(f))
+        return 0.0, None, grad(f)
+
+    fwd = vt.hessian_from_gradients(vg, x, scales, rel=vt._FORWARD_REL, g0=grad(x))
+    assert len(points) == 3 and not any(np.array_equal(p, x) for p in points)
+    np.testing.assert_allclose(fwd, want, rtol=1e-5)
+    assert np.max(np.abs(fwd - want)) > 1e-12  # really one-sided: not the central result
 
 
 def test_fit_with_the_batched_hessian_matches_the_inverse_information(monkeypatch):
