@@ -188,8 +188,8 @@ def _augmented_kalman(Y, U, offset, x0, P0, b0, Pb0, sig_phi):
 
 @pytest.mark.slow  # one MPF compile (about a minute on 2 cores): `pytest -m slow` (README)
 def test_with_the_noise_known_it_is_the_exact_kalman_filter_of_the_biased_model():
-    """The steering offset and all covariances made known (steering std 1e-7 rad, nu0 = 1e7:
-    the Student-t is Gaussian and the draws of w_t are the offset to 1e-7), the biases learnt
+    """The steering offset and all covariances made known (steering std 1e-10 rad, nu0 = 1e7:
+    the Student-t is Gaussian and the draws of w_t are the offset to 1e-10), the biases learnt
     from the prior N(mean0, gamma0 std0^2) with gamma0 = 1: the model is linear-Gaussian with
     the biases constant states, and every particle's Kalman filter is the exact Kalman filter of
     that model (written out in numpy). States, biases and their covariances must be that
@@ -197,8 +197,10 @@ def test_with_the_noise_known_it_is_the_exact_kalman_filter_of_the_biased_model(
     T, R, N = 150, 2, 50
     offset, bias, sig_phi = math.radians(0.28), np.array([0.1, 0.005, -0.003]), 0.05
     X, Y, U = _simulate(R, T, offset, bias, sig_phi, seed=3)
-    x0, P0 = np.zeros(5), np.array([1e-4, 1e-6, 1e-6, 1e-6, 1e-6])
-    std0 = dict(STD0, delta=1e-7)
+    # vy, r known at the start: the particles' own spread (a sample of P0) would be Monte-Carlo
+    # error; the bank's prior uncertainty is Gaussian in every particle
+    x0, P0 = np.zeros(5), np.array([1e-30, 1e-30, 1e-6, 1e-6, 1e-6])
+    std0 = dict(STD0, delta=1e-10)
     est = marginalized_pf(MODEL, N, sensors=SENSORS, known_std=KNOWN, linear_noise_std=sig_phi,
                           std0=std0, mean0={"delta": offset}, forgetting=1.0, nu0=1e7,
                           gamma0=1.0, noise_means="kalman")

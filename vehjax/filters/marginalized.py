@@ -886,7 +886,11 @@ def marginalized_pf(
             each particle's Kalman filter (exact Gaussian posterior, correlated with the
             states; prior N(mean0, gamma0 std0^2)), the NiW then an inverse-Wishart of known
             zero mean over the covariances alone (:mod:`vehjax.filters._mpf_means`). The model
-            must be affine in ``noisy_input`` (checked with the linear states).
+            must be affine in ``noisy_input`` (checked with the linear states). With
+            "kalman" the statistics are averaged over each step's offset given y_t (Gaussian
+            particle states only; module docstring); the estimator declares no
+            Rao-Blackwell structure (``vehjax.smooth`` does not smooth it). Its cost per step
+            against the paper's: ``vehjax reproduce noise-learning`` measures both.
         bias_walk: with ``noise_means="kalman"`` only: dict sensor -> std per step of a
             random walk of its bias (sensor units; missing sensors 0: constant biases), the
             process noise of the bias states.
