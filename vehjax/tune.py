@@ -170,6 +170,9 @@ class TuneResult(NamedTuple):
             0 when the points went through the one program, one by one).
         hessian_compile_seconds: wall-clock seconds of compiling that second program (part of
             ``seconds``; 0.0 when there was none).
+        compile_cpu_seconds: CPU seconds (``time.process_time``, every thread of the process)
+            of compiling the loss-and-gradient program: on a machine shared with other work
+            the compile's wall-clock time says more about the load than about the compile.
     """
 
     Q: np.ndarray
@@ -200,6 +203,7 @@ class TuneResult(NamedTuple):
     compile_seconds: float = float("nan")
     hessian_batches: int = 0
     hessian_compile_seconds: float = 0.0
+    compile_cpu_seconds: float = float("nan")
 
     def summary(self) -> str:
         """A text table of the fitted values with their units and the log-likelihood."""
@@ -918,11 +922,12 @@ def _flat_loss(obj, info=None, batch_hessian: bool = False) -> _Loss:
     options = None
     if info is not None:
         options = execution.compiler_options(execution.current(), info["workload"])
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     compiled = jax.jit(program).lower(jnp.asarray(flat), obj.data).compile(
         compiler_options=options)
     stats = {"mode": "forward" if forward else "reverse",
-             "compile_seconds": time.perf_counter() - t0, "evaluations": 0,
+             "compile_seconds": time.perf_counter() - t0,
+             "compile_cpu_seconds": time.process_time() - c0, "evaluations": 0,
              "batch_compile_seconds": 0.0, "batch_evaluations": 0, "options": options}
     last = []  # (point, result) of the latest evaluation: the optimiser's last point is the
     # Newton polish's first
@@ -1358,7 +1363,8 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
                         derivatives=loss.stats["mode"],
                         compile_seconds=loss.stats["compile_seconds"],
                         hessian_batches=loss.stats["batch_evaluations"],
-                        hessian_compile_seconds=loss.stats["batch_compile_seconds"])
+                        hessian_compile_seconds=loss.stats["batch_compile_seconds"],
+                        compile_cpu_seconds=loss.stats["compile_cpu_seconds"])
 
 
 def _result(obj, info, model, best_z, best_aux, history, iters, converged, skipped, unc,
