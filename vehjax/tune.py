@@ -882,7 +882,10 @@ _FORWARD_MAX = 12
 #: 2-core CPU: 175 against 95 CPU-us per step). That program's compile (10-16 s wall on the
 #: shared 2-core machine) is what the ~8 evaluations saved cost at about 20,000 steps (the
 #: 20,000-step fit of benchmarks/bench_fit.py measured 63 s with it against 57 s without,
-#: back to back), so it pays from a few times that length.
+#: back to back), so it pays from a few times that length. That was against the 2 n central
+#: differences one by one; against the n forward differences now taken without it
+#: (:func:`_difference_hessian`) it saves about n - 2 evaluations, so the length where it pays
+#: is longer (not re-measured).
 _BATCH_HESSIAN_STEPS = 50000
 
 #: forward differences of the gradient for the Hessian (:func:`_difference_hessian`): steps of
