@@ -279,3 +279,22 @@ def test_particle_gibbs_process_noise_stands_for_the_steering_noise():
     assert "input:delta" not in pr and {"Q:vy", "Q:r"} <= set(pr)
     assert set(pr) - {"Q:vy", "Q:r"} == set(berntorp2018.pmmh_priors()) - {"input:delta"}
     assert all(name in berntorp2018.PMMH_UNITS for name in pr)
+
+
+def test_pmmh_check_states_what_it_checks():
+    """The offline reference's per-sampler sentence: met only when every quantity has split
+    R-hat < 1.1 and ESS >= 100, naming those that fail; the bootstrap PF's log-likelihood std
+    against Doucet et al.'s 1-1.5 band; the per-sampler defaults reach the CLI."""
+    from types import SimpleNamespace
+
+    good = SimpleNamespace(names=("a", "b"), rhat=np.array([1.01, 1.09]), ess=np.array([150, 100]))
+    assert "met (max R-hat 1.090, min ESS 100)" in berntorp2018.pmmh_check(good, {})
+    bad = SimpleNamespace(names=("a", "b"), rhat=np.array([1.01, 1.2]), ess=np.array([99, 300]))
+    text = berntorp2018.pmmh_check(bad, {})
+    assert "NOT met for a (R-hat 1.01, ESS 99), b (R-hat 1.20, ESS 300)" in text
+    noisy = berntorp2018.pmmh_check(good, {"loglik_std": 7.5, "particles": 64})
+    assert "std 7.50 nats" in noisy and "far above it" in noisy
+    assert "far above" not in berntorp2018.pmmh_check(good, {"loglik_std": 1.2, "particles": 9})
+    args = berntorp2018.parser().parse_args(["--drive"])
+    assert args.pmmh_iters is None and args.pmmh_particles is None   # per-sampler defaults
+    assert set(berntorp2018.PMMH_ITERS) == {"kalman", "bootstrap", "pg"}

@@ -89,6 +89,13 @@ Drive (sec. 5, ``--drive``):
   (:func:`pg_process_std`, their correlation dropped) with priors of their own
   (:func:`pg_priors`); its moves are :data:`PG_STEP` of each prior's scale, since given a
   whole trajectory the values are known far better than the PMMH likelihood tells them.
+  Every sampler adapts its random walk over the warm-up (:func:`vehjax.calibrate.pmmh`:
+  windows of doubling length, the pooled draws' covariance and a scale tuned toward the
+  optimal acceptance) and runs :data:`PMMH_ITERS` iterations by default, the exact-likelihood
+  chain first; the bootstrap PF's log-likelihood std is measured at that chain's posterior mean
+  (:func:`vehjax.calibrate.log_likelihood_spread`) and sets its acceptance target. The report
+  states for each sampler whether split R-hat < :data:`RHAT_MAX` and ESS >= :data:`ESS_MIN` for
+  every quantity (:func:`pmmh_check`).
 * Smoothing (#29): ``vehjax.smooth`` (extended RTS) of the augmented EKF gives the offset,
   biases, eps and (variant ``bank``) the bank over the drive given the whole drive. Beside
   it the MPF's own smoother (:mod:`vehjax.smoothers.marginalized`; ``--mpf-smooth-paths`` M,
@@ -175,12 +182,14 @@ def parser():
     p.add_argument("--rvirt-gate", type=_cli.at_least(float, 0.0), default=5.0,
                    help="--drive: r_virt samples more than this many deg/s from the gyro are "
                         "missing (wheel-speed bursts); 0: none (default %(default)s)")
-    p.add_argument("--pmmh-iters", type=_cli.at_least(int, 0), default=200,
-                   help="--drive: PMMH iterations per chain, half warm-up; 0 skips the offline "
-                        "reference (default %(default)s)")
-    p.add_argument("--pmmh-particles", type=_cli.count, default=64,
-                   help="--drive: bootstrap-PF particles of the PMMH likelihood "
-                        "(default %(default)s)")
+    p.add_argument("--pmmh-iters", type=_cli.at_least(int, 0), default=None,
+                   help="--drive: iterations per chain of every offline sampler, half warm-up; "
+                        "0 skips the offline reference (default per sampler: "
+                        + ", ".join(f"{k} {v}" for k, v in PMMH_ITERS.items()) + ")")
+    p.add_argument("--pmmh-particles", type=_cli.count, default=None,
+                   help="--drive: particles of the bootstrap PF (PMMH likelihood) and of "
+                        "particle Gibbs's conditional PF (default per sampler: "
+                        + ", ".join(f"{k} {v}" for k, v in PMMH_PARTICLES.items()) + ")")
     p.add_argument("--pmmh-chains", type=_cli.count, default=4,
                    help="--drive: PMMH chains, vmapped (default %(default)s)")
     p.add_argument("--pmmh-duration", type=_cli.positive, default=20.0,
@@ -683,7 +692,19 @@ def _pg_init(pm, U, init):
     return init
 
 
-def run_pmmh(model, Y, U, *, iters, particles, chains, key, likelihood="bootstrap", init=None):
+#: the offline samplers' default iterations per chain (half warm-up) and particles, chosen so
+#: that the exact-likelihood chain and particle Gibbs mix on the first 20 s of the drive
+#: (split R-hat < 1.1, ESS >= 100) within the --drive's runtime; the bootstrap PF's likelihood
+#: is too noisy there for that at any affordable N (its std is measured and reported)
+PMMH_ITERS = {"kalman": 4000, "bootstrap": 200, "pg": 2000}
+PMMH_PARTICLES = {"bootstrap": 64, "pg": 64}
+#: the lowest acceptance rate the bootstrap chain's scale is tuned toward (Sherlock, Thiery,
+#: Roberts & Rosenthal 2015's overall optimum)
+PMMH_MIN_TARGET = 0.07
+
+
+def run_pmmh(model, Y, U, *, iters=None, particles=None, chains=4, key, likelihood="bootstrap",
+             init=None, spread_at=None, spread_evals=32):
     """PMMH over :func:`pmmh_priors` on one drive (Y (T, 5) SingleTrackBank's measurements,
     raw r_virt; U (T, 2)), half the iterations warm-up. ``likelihood``: "bootstrap"
     (:func:`vehjax.filters.bootstrap_pf` with ``particles``, the particle-MCMC reference) or
@@ -691,13 +712,22 @@ def run_pmmh(model, Y, U, *, iters, particles, chains, key, likelihood="bootstra
     particle chain) or "pg": particle Gibbs with ancestor sampling
     (:func:`vehjax.calibrate.particle_gibbs`, paper 004's ref. [29]; conditional PF with
     ``particles``; the steering noise as additive process noise, :func:`pg_priors`).
-    ``init``: starting values by name (physical units), default the priors' centres. Returns
-    (:class:`vehjax.calibrate.PMMHResult`, seconds)."""
+    ``init``: starting values by name (physical units), default the priors' centres.
+    ``iters``, ``particles``: default :data:`PMMH_ITERS`, :data:`PMMH_PARTICLES`. The bootstrap
+    chain first measures its log-likelihood estimate's std over ``spread_evals`` keys at
+    ``spread_at`` (values by name; None: not measured; :func:`vehjax.calibrate.
+    log_likelihood_spread`) and tunes its scale toward the acceptance rate for that noise
+    (:func:`vehjax.calibrate.target_acceptance`). Returns (:class:`vehjax.calibrate.
+    PMMHResult`, seconds, info: dict with iters, particles and, for the bootstrap PF,
+    loglik_std, the estimate's std [nats])."""
     from vehjax import calibrate
     from vehjax.filters import bootstrap_pf, gaussian
 
     pm = pmmh_model(model)
     R0 = np.array([0.3, 0.3 * DEG, RVIRT_STD]) ** 2
+    iters = PMMH_ITERS[likelihood] if iters is None else iters
+    particles = PMMH_PARTICLES.get(likelihood, 0) if particles is None else particles
+    info = {"iters": iters, "particles": particles if likelihood != "kalman" else None}
     if likelihood == "pg":
         init = _pg_init(pm, U, init)
         priors = pg_priors(pm, U)
@@ -710,17 +740,32 @@ def run_pmmh(model, Y, U, *, iters, particles, chains, key, likelihood="bootstra
                                        chains=chains, samples=iters - iters // 2,
                                        warmup=iters // 2, n_particles=particles, init=init,
                                        proposal_std=step, mh_steps=PG_MOVES)
-        return res, time.perf_counter() - t0
+        return res, time.perf_counter() - t0, info
     if likelihood == "bootstrap":
         builder, kw = bootstrap_pf, {"n_particles": particles}
     else:
         builder, kw = gaussian.ekf, {}
     t0 = time.perf_counter()
+    priors = pmmh_priors()
+    target = None
+    if likelihood == "bootstrap":
+        at = spread_at
+        if at is not None:
+            info["loglik_std"], _ = calibrate.log_likelihood_spread(
+                builder, pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2), P0=PMMH_P0, Q=PMMH_Q, R=R0,
+                values={k: at[k] for k in priors}, key=jax.random.fold_in(key, 2015),
+                n_evals=spread_evals, builder_kwargs=kw)
+            # at most Sherlock et al.'s 7 % (their optimum, at a std of 1.8): a noisier
+            # estimate would ask for an acceptance near 0 and a scale without bound
+            target = max(calibrate.target_acceptance(len(priors), info["loglik_std"]),
+                         PMMH_MIN_TARGET)
     res = calibrate.pmmh(builder, pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2), P0=PMMH_P0, Q=PMMH_Q,
-                         R=R0, priors=pmmh_priors(), key=key, chains=chains,
+                         R=R0, priors=priors, key=key, chains=chains,
                          samples=iters - iters // 2, warmup=iters // 2, builder_kwargs=kw,
-                         init=init)
-    return res, time.perf_counter() - t0
+                         init=init, acceptance_target=target)
+    info["acceptance_target"] = target if target is not None else \
+        calibrate.target_acceptance(len(priors))
+    return res, time.perf_counter() - t0, info
 
 
 def ekf_noise(bank):
@@ -829,10 +874,12 @@ def run_drive(args, log=print):
             f"{mpf_smooth['seconds']:.1f} s (compile included), diverged "
             f"{mpf_smooth['diverged']}")
     pm_res = {}
-    liks = {"both": ("bootstrap", "kalman"), "all": ("bootstrap", "kalman", "pg")}.get(getattr(args, "pmmh_likelihood", "both"),
-                                               (getattr(args, "pmmh_likelihood", "both"),))
+    # the exact-likelihood chain first: its posterior mean is where the bootstrap PF's
+    # log-likelihood noise is measured
+    liks = {"both": ("kalman", "bootstrap"), "all": ("kalman", "bootstrap", "pg")}.get(
+        getattr(args, "pmmh_likelihood", "both"), (getattr(args, "pmmh_likelihood", "both"),))
     for lik in liks:
-        if not getattr(args, "pmmh_iters", 0):
+        if getattr(args, "pmmh_iters", None) == 0:
             break
         seg = slice(0, min(T, int(round(args.pmmh_duration / model.dt))))
         # chains start at the online estimates (EKF smoothed offset and biases, the causal eps
@@ -842,12 +889,20 @@ def run_drive(args, log=print):
                 "R:ay": float(Pm[:, -1, names.index("ay_std")].mean()),
                 "R:r": float(Pm[:, -1, names.index("r_std")].mean()), "R:r_virt": rvirt_sd,
                 "input:delta": float(Pm[:, -1, names.index("delta_std")].mean())}
-        r_, sec = run_pmmh(model, Y_raw[seg], U[seg], iters=args.pmmh_iters,
-                           particles=args.pmmh_particles, chains=args.pmmh_chains,
-                           key=jax.random.key(args.seed + 7), likelihood=lik, init=init)
-        pm_res[lik] = (r_, sec, seg.stop)
-        log(f"{SAMPLER[lik]}: {args.pmmh_chains} chains x {args.pmmh_iters} iterations over "
-            f"{seg.stop} steps, {sec:.1f} s (compile included)")
+        at = None
+        if lik == "bootstrap" and "kalman" in pm_res:
+            at = dict(zip(pm_res["kalman"][0].names, map(float, pm_res["kalman"][0].mean)))
+        r_, sec, info = run_pmmh(model, Y_raw[seg], U[seg], iters=getattr(args, "pmmh_iters", None),
+                                 particles=getattr(args, "pmmh_particles", None),
+                                 chains=args.pmmh_chains, key=jax.random.key(args.seed + 7),
+                                 likelihood=lik, init=init, spread_at=at)
+        pm_res[lik] = (r_, sec, seg.stop, info)
+        log(f"{SAMPLER[lik]}: {args.pmmh_chains} chains x {info['iters']} iterations over "
+            f"{seg.stop} steps, {sec:.1f} s (compile included), max split R-hat "
+            f"{np.max(r_.rhat):.3f}, min ESS {np.min(r_.ess):.0f}"
+            + (f", log-likelihood std {info['loglik_std']:.2f} at "
+               + ("the Kalman chain's posterior mean" if at else "the starting values")
+               if "loglik_std" in info else ""))
     k_tr = min(int(round(25.0 / model.dt)), T // 2)  # transient: 25 s as Fig. 8, or half
     after = slice(k_tr, T)
     off = Pm[:, :, names.index("delta_offset")] / DEG
@@ -996,7 +1051,7 @@ def scale_rows(res):
             ("extended RTS of the augmented EKF", f"{res['Es'][0, 5] / 1e-4:+.3f}",
              f"+- {2 * math.sqrt(res['Ps'][0, 5, 5]) / 1e-4:.3f} (2 std); a constant state: "
              "the whole run's value")]
-    for lik, (pr, _, n) in res.get("pmmh", {}).items():
+    for lik, (pr, _, n, _) in res.get("pmmh", {}).items():
         k = pr.names.index("eps")
         rows.append((f"{SAMPLER[lik]}, posterior mean, first {n * 0.01:.0f} s",
                      f"{pr.mean[k] / 1e-4:+.3f}", f"posterior std {pr.std[k] / 1e-4:.3f}"))
@@ -1080,6 +1135,37 @@ def mpf_smoothed_rows(res):
         rows.append(("MPF-smoothed bank - pose roll after 15 s [deg]", f"RMS {_rms(e):.3f}",
                      f"max {np.max(np.abs(e)):.3f}", "-", "-"))
     return rows
+
+
+#: what the offline reference's report checks: split R-hat below this and ESS at least this for
+#: every quantity (the chains have mixed and the posterior summaries are to about 10 % of a std)
+RHAT_MAX, ESS_MIN = 1.1, 100
+#: Doucet, Pitt, Deligiannidis & Kohn (2015): the bootstrap PF's log-likelihood std [nats] for
+#: which PMMH is most efficient for its cost
+LOGLIK_STD_BAND = (1.0, 1.5)
+
+
+def pmmh_check(pr, info):
+    """The report's sentence on one sampler: whether every quantity has split R-hat <
+    :data:`RHAT_MAX` and ESS >= :data:`ESS_MIN` (naming those that do not), and for the
+    bootstrap PF its log-likelihood estimate's std against :data:`LOGLIK_STD_BAND`."""
+    bad = [f"{n} (R-hat {r:.2f}, ESS {e:.0f})" for n, r, e in zip(pr.names, pr.rhat, pr.ess)
+           if not (r < RHAT_MAX and e >= ESS_MIN)]
+    text = (f"Check: split R-hat < {RHAT_MAX} and ESS >= {ESS_MIN} for every quantity: "
+            + ("met (max R-hat {:.3f}, min ESS {:.0f}).".format(np.max(pr.rhat), np.min(pr.ess))
+               if not bad else "NOT met for " + ", ".join(bad)
+               + ": these chains have not mixed, their numbers are not yet a posterior."))
+    if "loglik_std" in info:
+        lo, hi = LOGLIK_STD_BAND
+        sd = info["loglik_std"]
+        text += (f" The bootstrap PF's log-likelihood estimate (N = {info['particles']}) has std "
+                 f"{sd:.2f} nats at the Kalman chain's posterior mean (Doucet et al. 2015: "
+                 f"{lo:g}-{hi:g} for an efficient PMMH)"
+                 + ("." if sd <= hi else
+                    f"; far above it, so the chain sticks: the std falls only slowly with N "
+                    f"here (a precise gyro against the bootstrap proposal), and this chain "
+                    f"is a check of the particle machinery, not the reference."))
+    return text
 
 
 def pmmh_rows(pr):
@@ -1235,17 +1321,18 @@ def main_drive(args, out_dir):
         "mean over the drive", "range over time", "2 std (middle of the drive)",
         "MPF, end (mean over executions)"))
     md_pmmh = []
-    for lik, (pr, sec, n) in res["pmmh"].items():
-        what = {"bootstrap": f"PMMH likelihood: bootstrap PF, N = {args.pmmh_particles}",
+    for lik, (pr, sec, n, info) in res["pmmh"].items():
+        what = {"bootstrap": f"PMMH likelihood: bootstrap PF, N = {info['particles']}",
                 "kalman": "PMMH likelihood: EKF, exact Kalman likelihood on this linear "
                           "model, plain MH",
                 "pg": f"particle Gibbs with ancestor sampling (ref. [29]), conditional PF with "
-                      f"N = {args.pmmh_particles}, steering noise as additive process noise "
+                      f"N = {info['particles']}, steering noise as additive process noise "
                       f"(Q:vy, Q:r; their correlation dropped)"}[lik]
         md_pmmh += [f"{what}; {pr.samples.shape[0]} chains x "
-                    f"{args.pmmh_iters} iterations (half warm-up), the first {n * 0.01:.0f} s, "
+                    f"{info['iters']} iterations (half warm-up), the first {n * 0.01:.0f} s, "
                     f"{sec:.1f} s (compile included), acceptance "
-                    f"{np.mean(pr.acceptance):.2f}.\n",
+                    f"{np.mean(pr.acceptance):.2f} (tuned toward "
+                    f"{info.get('acceptance_target', 0.255):.3f}). " + pmmh_check(pr, info) + "\n",
                     _table(pmmh_rows(pr), head=("quantity", "posterior mean", "std",
                                                  "95 % interval", "split R-hat", "ESS")), ""]
     cost = _table([
@@ -1259,9 +1346,9 @@ def main_drive(args, out_dir):
     ] + ([] if msm is None else [("MPF smoother (filter + ancestor paths + per-path RTS)",
           f"1 run, N = {res['N']}, M = {msm['M']}", "-", "-",
           f"{msm['seconds']:.1f} (with run)")]) + [(
-          SAMPLER[lik], f"{pr.samples.shape[0]} chains x {args.pmmh_iters} iter. x {n} steps",
+          SAMPLER[lik], f"{pr.samples.shape[0]} chains x {info['iters']} iter. x {n} steps",
           "-", "-", f"{sec:.1f} (with run)")
-         for lik, (pr, sec, n) in res["pmmh"].items()], head=("filter", "size", "ms per run-step", "run [s]", "compile [s]"))
+         for lik, (pr, sec, n, info) in res["pmmh"].items()], head=("filter", "size", "ms per run-step", "run [s]", "compile [s]"))
     dur = res["T"] * 0.01
     print()
     print(f"Drive: {dur:.1f} s, after the transient (t > {res['t'][res['k_tr']]:.0f} s)")
@@ -1311,8 +1398,12 @@ def main_drive(args, out_dir):
          "steering-noise std; priors in `pmmh_priors`), raw r_virt; chains vmapped, split "
          "R-hat and ESS over the kept draws. All chains start at the online estimates (the "
          "smoothed EKF's offset and biases, the causal eps, the MPF's stds, r_virt's residual "
-         "std). Short chains: an R-hat above 1.1 says the chains "
-         "have not mixed and the numbers are not yet a posterior.\n"
+         "std). Each chain's random walk is adapted over its warm-up (the covariance of "
+         "the pooled draws in windows of doubling length, a scale tuned toward the optimal "
+         "acceptance rate; `vehjax.calibrate.pmmh`) and fixed after it. Each sampler's line "
+         f"states whether split R-hat < {RHAT_MAX} and ESS >= {ESS_MIN} for every quantity; "
+         "where not, its numbers are not yet a posterior. The exact-likelihood chain is the "
+         "reference on this linear model.\n"
          if res["pmmh"] else "Skipped (`--pmmh-iters 0`).\n"), *md_pmmh,
         "## Bias-corrected yaw rate against the pose reference (Fig. 9, 12), after 15 s\n", md2,
         "",
@@ -1420,7 +1511,7 @@ def main(argv=None) -> int:
         raise ValueError(f"--particles: expected at least 2, got {args.particles}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 1.0):
         raise ValueError(f"--duration: expected more than 1 s, got {args.duration}")
-    if args.drive and 0 < args.pmmh_iters < 8:
+    if args.drive and args.pmmh_iters is not None and 0 < args.pmmh_iters < 8:
         raise ValueError(f"--pmmh-iters: expected 0 (skip) or at least 8 (4 warm-up, 4 kept), "
                          f"got {args.pmmh_iters}")
     out_dir = Path(args.out)
