@@ -192,9 +192,9 @@ def _ekf_entries(x, P, y, u, theta, f, h, tr, Qn, Rn, Lu):
         B = [row[nx:] for row in J]
     F = [row[:nx] for row in J]
     Pe = [[P[i, j] for j in range(nx)] for i in range(nx)]
-    Pp = predict_entries(F, Pe, cov_entries(Qn), B)
+    Pp = predict_entries(F, Pe, cov_entries(Qn, dt), B)
     yh, H = jacobian_entries(h, jnp.stack(xp))
-    Rm = cov_entries(Rn)
+    Rm = cov_entries(Rn, dt)
     C, S = measure_entries(Pp, H, Rm)
     return masked_update_entries(xp, Pp, y, yh, S, C, H, Rm)
 

@@ -142,11 +142,13 @@ def jacobian_entries(g, z):
     return [val[i] for i in range(m)], [[cols[j, i] for j in range(n)] for i in range(m)]
 
 
-def cov_entries(A):
+def cov_entries(A, dtype=None):
     """Entries of a covariance (n, n) as nested lists: Python floats for a numpy constant (its
-    zeros are structural and drop out of the algebra), scalars of the array when traced."""
+    zeros are structural and drop out of the algebra; weakly typed, they take the filter's
+    dtype), scalars of the array, cast to ``dtype`` when given, for a jax array."""
     if isinstance(A, np.ndarray):
         return [[float(v) for v in row] for row in A]
+    A = A if dtype is None else jnp.asarray(A).astype(dtype)
     return [[A[i, j] for j in range(A.shape[1])] for i in range(A.shape[0])]
 
 
