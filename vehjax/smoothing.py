@@ -54,6 +54,7 @@ import numpy as np
 
 from . import _eager, _validate
 from .filtering import FilterResult, _checked, _finish, _output_ok, _scan_body, _start
+from .filters._entrywise import chol_sym
 from .filters._linalg import is_pd, sym
 from .filters.base import Estimator
 from .smoothers import gaussian as _gauss
@@ -180,21 +181,23 @@ def smooth_one_run(estimator: Estimator, y, u, x0, P0, th0=None, Pth0=None, key=
     return _result(spec, estimator.nx, filt, M, P, cross, ll, k, conv)
 
 
-def _result(spec, nx: int, filt: FilterResult, M, P, cross, ll=None, k=None, conv=None
-            ) -> SmoothResult:
+def _result(spec, nx: int, filt: FilterResult, M, P, cross, ll=None, k=None, conv=None,
+            good=None) -> SmoothResult:
     """One run's :class:`SmoothResult` from the smoothed moments at t = 0..T (M (T+1, n),
     P (T+1, n, n), cross (T, n, n)), the forward filter's result ``filt``, the linearised
     model's log-likelihood ``ll`` (T+1,) or None (the filter's), ``k``/``conv`` of an iterated
     smoother (None: 0 passes, converged): the report in physical units and the divergence rule
-    of the module docstring."""
+    of the module docstring; ``good`` (bool scalar) that rule's test of the smoothed moments
+    when the caller has made it (:func:`_good_runs_last`), None to make it here."""
     if k is None:
         k, conv = jnp.zeros((), jnp.int32), jnp.ones((), bool)
     loglik = filt.loglik if ll is None else ll[1:]
     xs, Px, cross, th, Pth = _report(spec, M, P, cross, nx)
-    good = (jnp.all(jnp.isfinite(xs)) & jnp.all(is_pd(Px)) & jnp.all(jnp.isfinite(cross))
-            & jnp.all(jnp.isfinite(loglik)) & jnp.all(jnp.isfinite(th)))
-    if th.shape[-1]:
-        good = good & jnp.all(is_pd(Pth))
+    if good is None:
+        good = (jnp.all(jnp.isfinite(xs)) & jnp.all(is_pd(Px)) & jnp.all(jnp.isfinite(cross))
+                & jnp.all(jnp.isfinite(loglik)) & jnp.all(jnp.isfinite(th)))
+        if th.shape[-1]:
+            good = good & jnp.all(is_pd(Pth))
     bad = filt.diverged | ~good
     held_P = filt.covariances
     return SmoothResult(
@@ -237,12 +240,30 @@ def _smooth_runs_last(estimator: Estimator, filt: FilterResult, state0, means, c
     m = jnp.concatenate([m0[None], means.astype(m0.dtype)])
     P = jnp.concatenate([P0[None], covs.astype(P0.dtype)])
     M, Ps, cross = _gauss.backward_predicted(m, P, pred.mean, pred.cov, pred.cross)
+    good = None
+    if spec.report is None:  # the divergence test runs-last too (state-only filters)
+        good = _good_runs_last(M[1:], Ps[1:], cross[1:]) & jnp.all(
+            jnp.isfinite(filt.loglik), axis=1)
 
     def first(a):
         return jnp.moveaxis(a, -1, 0)
 
-    return jax.vmap(lambda f, a, b, c: _result(spec, estimator.nx, f, a, b, c))(
-        filt, first(M), first(Ps), first(cross))
+    return jax.vmap(lambda f, a, b, c, ok: _result(spec, estimator.nx, f, a, b, c, good=ok),
+                    in_axes=(0, 0, 0, 0, None if good is None else 0))(
+        filt, first(M), first(Ps), first(cross), good)
+
+
+def _good_runs_last(M, P, cross):
+    """The divergence rule's test of smoothed moments (:func:`_result`), for a batch of runs
+    with the runs axis last, entry by entry: whether every mean M (T, n, R) and
+    cross-covariance (T-1, n, n, R) is finite and every covariance P (T, n, n, R) finite and
+    positive definite (its Cholesky factor finite); (R,) bool."""
+    n = P.shape[1]
+    L = chol_sym([[P[:, i, j] for j in range(n)] for i in range(n)])
+    # a NaN pivot makes every later column NaN (chol_entries), the last pivot included
+    pd = jnp.all(jnp.isfinite(L[n - 1][n - 1]), axis=0) if n else True
+    return (jnp.all(jnp.isfinite(M), axis=(0, 1)) & jnp.all(jnp.isfinite(P), axis=(0, 1, 2))
+            & pd & jnp.all(jnp.isfinite(cross), axis=(0, 1, 2)))
 
 
 # ----------------------------------------------------------------------------------------------

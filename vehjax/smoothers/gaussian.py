@@ -25,8 +25,7 @@ from ..filters._linalg import cholesky, forward_entries, sym
 from ..filters.base import GaussianSmoother
 from .linear import Affine, rts_apply, rts_gain, slr, sqrt_rts_apply, sqrt_rts_gain
 
-__all__ = ["backward", "backward_moments", "backward_predicted", "gains_runs_last",
-           "rts_apply_runs_last", "rts_apply_entries", "gains",
+__all__ = ["backward", "backward_moments", "backward_predicted", "gains_runs_last", "gains",
            "plain_moments", "linearize", "linearize_filtered"]
 
 
@@ -103,27 +102,6 @@ def backward_moments(spec: GaussianSmoother, m, S, aux_prev, us):
     return m_s, P_s, cross
 
 
-def _mm(A, B):
-    """A B for runs-last matrices A (n, k, R), B (k, m, R) -> (n, m, R), as one fused
-    multiply-and-sum over the runs (no batched dot on 3 x 3 matrices)."""
-    return jnp.sum(A[:, :, None] * B[None], axis=1)
-
-
-def _mT(A):
-    """The transpose of runs-last matrices (n, m, R) -> (m, n, R)."""
-    return jnp.swapaxes(A, 0, 1)
-
-
-def rts_apply_runs_last(G, m, P, m_pred, P_pred, ms_next, Ps_next):
-    """:func:`vehjax.smoothers.linear.rts_apply` for a batch of runs, the runs axis last:
-    G, P, P_pred, Ps_next (n, n, R); m, m_pred, ms_next (n, R). The same operations in the
-    same order: (m^s_t (n, R), P^s_t (n, n, R), Cov(x_t, x_{t+1} | y) (n, n, R))."""
-    cross = _mm(G, Ps_next)
-    m_s = m + jnp.sum(G * (ms_next - m_pred)[None], axis=1)
-    X = P + _mm(_mm(G, Ps_next - P_pred), _mT(G))
-    return m_s, 0.5 * (X + _mT(X)), cross
-
-
 def _entries(A):
     """Nested lists (n, m) of the entries of runs-last matrices (n, m, ...)."""
     return [[A[i, j] for j in range(A.shape[1])] for i in range(A.shape[0])]
@@ -141,30 +119,63 @@ def gains_runs_last(P_pred, C):
     return jnp.stack([jnp.stack(r, axis=1) for r in rows], axis=1)
 
 
-def rts_apply_entries(G, m, P, m_pred, P_pred, ms_next, Ps_next):
-    """:func:`rts_apply_runs_last` written entry by entry (each entry an (R,) array, one fused
-    loop over the runs): the same arguments, results and order of operations."""
-    n = m.shape[0]
-    g, Pn, dP = _entries(G), _entries(Ps_next), _entries(Ps_next - P_pred)
-    dm = [ms_next[k] - m_pred[k] for k in range(n)]
-    cross = [[dot(g[i], [Pn[k][j] for k in range(n)]) for j in range(n)] for i in range(n)]
-    m_s = [m[i] + dot(g[i], dm) for i in range(n)]
-    GD = [[dot(g[i], [dP[k][j] for k in range(n)]) for j in range(n)] for i in range(n)]
-    X = [[P[i, j] + dot(GD[i], g[j]) for j in range(n)] for i in range(n)]
-    P_s = [[0.5 * (X[i][j] + X[j][i]) for j in range(n)] for i in range(n)]
+def _lower(n: int):
+    """(i, j), j <= i: the lower-triangle entries of an n x n matrix, row by row."""
+    return [(i, j) for i in range(n) for j in range(i + 1)]
 
-    def mat(E):
-        return jnp.stack([jnp.stack(r) for r in E])
 
-    return jnp.stack(m_s), mat(P_s), mat(cross)
+def _recursion_terms(G, m, P, m_pred, P_pred):
+    """The terms of the RTS recursion that do not depend on the smoothed moments, for all steps
+    and runs at once, entry by entry (entries (T, R)): b = m - G m- (list n) and the lower
+    triangle of A = P - G P- G^T (list, :func:`_lower` order), so that
+    m^s_t = b_t + G_t m^s_{t+1} and P^s_t = A_t + G_t P^s_{t+1} G_t^T."""
+    n = m.shape[1]
+    g = _entries(jnp.moveaxis(G, 0, 2))
+    b = [m[:, i] - dot(g[i], [m_pred[:, k] for k in range(n)]) for i in range(n)]
+    GP = [[dot(g[i], [P_pred[:, k, j] for k in range(n)]) for j in range(n)] for i in range(n)]
+    A = [P[:, i, j] - dot(GP[i], g[j]) for i, j in _lower(n)]
+    return g, b, A
+
+
+def _recursion_step(n: int, s, x):
+    """One backward step of the recursion on packed runs-last arrays: ``s`` (n + n(n+1)/2, R)
+    the smoothed mean and lower triangle of the covariance at t + 1, ``x`` (n^2 + n +
+    n(n+1)/2, R) G_t (row by row), b_t, A_t (:func:`_recursion_terms`); returns the same
+    packing of t. The covariance's upper triangle is its lower one (exactly symmetric)."""
+    pairs = _lower(n)
+    ms = [s[i] for i in range(n)]
+    Ps = [[None] * n for _ in range(n)]
+    for k, (i, j) in enumerate(pairs):
+        Ps[i][j] = Ps[j][i] = s[n + k]
+    g = [[x[i * n + j] for j in range(n)] for i in range(n)]
+    m_new = [x[n * n + i] + dot(g[i], ms) for i in range(n)]
+    GP = [[dot(g[i], [Ps[k][j] for k in range(n)]) for j in range(n)] for i in range(n)]
+    P_new = [x[n * n + n + k] + dot(GP[i], g[j]) for k, (i, j) in enumerate(pairs)]
+    return jnp.stack(m_new + P_new)
+
+
+def _unpack_sym(packed, n: int):
+    """(..., n + n(n+1)/2, R) packed moments (:func:`_recursion_step`) -> means (..., n, R)
+    and full covariances (..., n, n, R)."""
+    idx = {}
+    for k, (i, j) in enumerate(_lower(n)):
+        idx[i, j] = idx[j, i] = n + k
+    M = packed[..., :n, :]
+    rows = [jnp.stack([packed[..., idx[i, j], :] for j in range(n)], axis=-2) for i in range(n)]
+    return M, jnp.stack(rows, axis=-3)
 
 
 def backward_predicted(m, P, m_pred, P_pred, C):
     """The RTS backward pass (:func:`backward`, plain covariances) over a batch of R runs with
     the runs axis last, from the forward pass's own predictions (the runs-last filter steps'
     ``smooth_step``, :mod:`vehjax.filters._runs_last`): nothing of the model is evaluated
-    again. Every gain at once (:func:`gains_runs_last`), then a scan over time of the
-    recursion (:func:`rts_apply_entries`).
+    again. All that does not depend on the smoothed moments is computed for every step at
+    once, entry by entry: the gains (:func:`gains_runs_last`), b = m - G m-,
+    A = P - G P- G^T (:func:`_recursion_terms`); the scan over time then runs
+    m^s_t = b_t + G_t m^s_{t+1}, P^s_t = A_t + G_t P^s_{t+1} G_t^T on one packed array per
+    step (:func:`_recursion_step`), and the cross-covariances G_t P^s_{t+1} come after it, all
+    at once. The equations of :func:`vehjax.smoothers.linear.rts_apply`, regrouped (equal to
+    rounding).
 
     Args:
         m: filtered means at t = 0..T (index 0 the prior), (T+1, n, R).
@@ -176,15 +187,17 @@ def backward_predicted(m, P, m_pred, P_pred, C):
     Returns:
         (means (T+1, n, R), covariances (T+1, n, n, R), cross-covariances (T, n, n, R)).
     """
+    n = m.shape[1]
     G = gains_runs_last(P_pred, C)
-
-    def body(carry, inp):
-        m_s, P_s, cross = rts_apply_entries(*inp, *carry)
-        return (m_s, P_s), (m_s, P_s, cross)
-
-    _, (m_s, P_s, cross) = jax.lax.scan(body, (m[-1], P[-1]),
-                                        (G, m[:-1], P[:-1], m_pred, P_pred), reverse=True)
-    return jnp.concatenate([m_s, m[-1:]]), jnp.concatenate([P_s, P[-1:]]), cross
+    g, b, A = _recursion_terms(G, m[:-1], P[:-1], m_pred, P_pred)
+    xs = jnp.stack([g[i][j] for i in range(n) for j in range(n)] + b + A, axis=1)
+    last = jnp.stack([m[-1, i] for i in range(n)] + [P[-1, i, j] for i, j in _lower(n)])
+    _, out = jax.lax.scan(lambda s, x: (lambda new: (new, new))(_recursion_step(n, s, x)),
+                          last, xs, reverse=True)
+    M, Ps = _unpack_sym(jnp.concatenate([out, last[None]]), n)
+    Pn = _entries(jnp.moveaxis(Ps[1:], 0, 2))  # P^s_{t+1}, entries (T, R)
+    cross = [[dot(g[i], [Pn[k][j] for k in range(n)]) for j in range(n)] for i in range(n)]
+    return M, Ps, jnp.stack([jnp.stack(r, axis=1) for r in cross], axis=1)
 
 
 def plain_moments(spec: GaussianSmoother):
