@@ -149,7 +149,11 @@ batch posterior (tests/test_marginalized.py checks it).
   coverage 0.65, spread 2.07; not kept). Measured on the consistency study (100 runs x 3 s,
   N = 1000, learning offset, biases and stds): NEES in the band on 0.93 of the steps (without
   the averaging 0.82, the ay std's coverage 0.78), every parameter's coverage 0.91-0.97.
-  The biases may drift (``bias_walk``: process noise of the bias states).
+  The biases may drift (``bias_walk``: process noise of the bias states). Not yet good on
+  paper 004's simulation (drive inputs, random-walk biases, lambda = 0.995: ``vehjax
+  reproduce noise-learning``'s "MPF (consistent)" row, where its offset and bias estimates are
+  off and its NEES far too large; cause not isolated), and about 3x the paper's time per step
+  there (N = 500).
 
 Linearisation. The model enters through forward-mode derivatives (``jax.jacfwd``) at each
 particle: g = d f / d delta, A_bar = d f_x / d z, the bank transition, C = d h / d (x, z) and

@@ -38,7 +38,13 @@ The methods (one row each; nothing tuned per method beyond what is written here)
 * **MPF (consistent)**: the same filter with ``noise_means="kalman"`` (issue #33 item 2,
   not the paper's: :mod:`vehjax.filters.marginalized`): the biases as Kalman states with the
   truth's random-walk stds (as the VB rows), the statistics averaged over the offset's
-  conditional, Gaussian particle states.
+  conditional, Gaussian particle states. Consistent on ``vehjax reproduce consistency``'s
+  data (constant biases), but NOT on this simulation: measured with 10 runs x 30 s,
+  N = 500 (``--methods "MPF (paper),MPF (consistent)" --runs 10 --duration 30 --particles
+  500 --no-drive``), offset error -0.124 deg, ay / r bias RMS 0.18 m/s^2 / 0.64 deg/s, NEES of
+  (vy, r) 144 per dof, coverage 0 (the paper's MPF on the same data: offset RMS 0.005 deg, NEES
+  in band 0.13); 3.1x the paper's time per run-step (7.66 against 2.47 ms, the same process,
+  loaded machine). Cause not isolated (issue #33 item 2 open).
 * **augmented EKF** (Remark 1, berntorp2018's ``augmented_model``): (vy, r, offset, ay bias,
   gyro bias) on (ay, r, r_virt), fixed Q and R (the MPF's initial guesses); no bank states and
   no roll gyro, as the remark's common approach.
