@@ -133,3 +133,31 @@ def test_runs_last_smoothing_equals_the_vmapped_one_with_per_run_inputs():
         np.testing.assert_allclose(fast.states[r], ms, rtol=1e-9, atol=1e-11)
         np.testing.assert_allclose(fast.covariances[r], Ps, rtol=1e-9, atol=1e-11)
         np.testing.assert_allclose(fast.cross_covariances[r], cross, rtol=1e-9, atol=1e-11)
+
+
+def test_runs_last_divergence_test_equals_the_per_run_one():
+    """smoothing._good_runs_last (entry by entry, runs last) against the per-run rule written
+    with numpy: finite means and cross-covariances, finite positive definite covariances (one
+    run's covariance indefinite, one run's mean NaN, one run's cross-covariance inf)."""
+    from vehjax.smoothing import _good_runs_last
+
+    rng = np.random.default_rng(7)
+    T, n, R = 4, 3, 6
+    A = rng.normal(size=(T, R, n, n))
+    P = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(n)
+    P[2, 1] = np.diag([1.0, -0.5, 2.0])  # indefinite
+    M, cross = rng.normal(size=(T, R, n)), rng.normal(size=(T - 1, R, n, n))
+    M[0, 3, 1] = np.nan
+    cross[1, 4, 0, 2] = np.inf
+    def last(a):
+        return jnp.moveaxis(jnp.asarray(a), 1, -1)
+
+    got = jax.jit(_good_runs_last)(last(M), last(P), last(cross))
+
+    def pd(S):
+        return bool(np.all(np.linalg.eigvalsh(S) > 0))
+
+    want = [bool(np.isfinite(M[:, r]).all() and np.isfinite(cross[:, r]).all()
+                 and all(pd(P[t, r]) for t in range(T))) for r in range(R)]
+    assert want == [True, False, True, False, False, True]
+    assert np.asarray(got).tolist() == want

@@ -11,6 +11,11 @@ Cholesky factors throughout (:func:`vehjax.smoothers.linear.sqrt_rts_step`).
 
 Index 0 is the prior (the filter state before the first step), so the pass also smooths x_0.
 
+Where the forward pass ran the runs-last filter step (``vehjax.run(smooth=True)`` on the CPU,
+:mod:`vehjax.filters._runs_last`), that step has kept its predictions and cross-covariances, and
+:func:`backward_predicted` runs the recursion from them, the runs axis last, without evaluating
+the model again.
+
 Also here: the linearisation of a Gaussian filter's moments into an affine model
 (:func:`linearize`), what the parallel-in-time and iterated smoothers run on.
 """
