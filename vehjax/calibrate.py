@@ -378,18 +378,20 @@ def _adapt_step(ad: _Adapt, i, z, accepted, ends, target, prior_count):
     (:func:`proposal_factor`) and start a new window."""
     s1, s2 = ad.s1 + z.sum(axis=0), ad.s2 + z.T @ z
     n, acc = ad.n + z.shape[0], ad.acc + jnp.sum(accepted)
+    ad = ad._replace(s1=s1, s2=s2, n=n, acc=acc)
     if len(ends) == 0:
-        return ad._replace(s1=s1, s2=s2, n=n, acc=acc)
-    end = jnp.any(i + 1 == jnp.asarray(ends))
-    cov = adapted_covariance(s1, s2, n, ad.cov, prior_count)
-    ls = scale_update(ad.log_scale, acc / n, target)
-    L = proposal_factor(cov, ls, ad.L)
-    ok = jnp.all(jnp.isfinite(cov))
-    zero = jnp.zeros_like(n)
-    return _Adapt(jnp.where(end & ok, cov, ad.cov), jnp.where(end, ls, ad.log_scale),
-                  jnp.where(end, L, ad.L), jnp.where(end, 0.0 * s1, s1),
-                  jnp.where(end, 0.0 * s2, s2), jnp.where(end, zero, n),
-                  jnp.where(end, zero, acc))
+        return ad
+
+    def update(ad):
+        cov = adapted_covariance(ad.s1, ad.s2, ad.n, ad.cov, prior_count)
+        cov = jnp.where(jnp.all(jnp.isfinite(cov)), cov, ad.cov)
+        ls = scale_update(ad.log_scale, ad.acc / ad.n, target)
+        zero = jnp.zeros_like(ad.n)
+        return _Adapt(cov, ls, proposal_factor(cov, ls, ad.L), 0.0 * ad.s1, 0.0 * ad.s2, zero,
+                      zero)
+
+    # only at a window's end (a branch, not a select: the rest of the time costs nothing)
+    return jax.lax.cond(jnp.any(i + 1 == jnp.asarray(ends)), update, lambda ad: ad, ad)
 
 
 def _sampler(loglik, priors, n_iter: int, ends, target: float, prior_count: float):
