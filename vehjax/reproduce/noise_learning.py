@@ -44,7 +44,13 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   500 --no-drive``), offset error -0.124 deg, ay / r bias RMS 0.18 m/s^2 / 0.64 deg/s, NEES of
   (vy, r) 144 per dof, coverage 0 (the paper's MPF on the same data: offset RMS 0.005 deg, NEES
   in band 0.13); 3.1x the paper's time per run-step (7.66 against 2.47 ms, the same process,
-  loaded machine). Cause not isolated (issue #33 item 2 open).
+  loaded machine). Cause not isolated (issue #33 item 2 open). Not the Gaussian particle
+  states: the paper's filter with ``kalman_states="all"`` on 5 runs x 20 s learns the offset
+  (RMS 0.005 deg) and tracks the biases (NEES in band 0.52). Likely: here the prior of the
+  offset (0 +- 0.04 deg) is far from the truth (0.28 deg), and the ay reading sees the offset
+  directly (d mu_w) like its bias; the bias states, which do not forget, absorb the offset's
+  early error and keep it, while the offset, learnt by the statistics, has no covariance with
+  them (on the consistency study the priors are the truth).
 * **augmented EKF** (Remark 1, berntorp2018's ``augmented_model``): (vy, r, offset, ay bias,
   gyro bias) on (ay, r, r_virt), fixed Q and R (the MPF's initial guesses); no bank states and
   no roll gyro, as the remark's common approach.
