@@ -152,9 +152,11 @@ batch posterior (tests/test_marginalized.py checks it).
   The biases may drift (``bias_walk``: process noise of the bias states). Not yet good on
   paper 004's simulation (drive inputs, random-walk biases, lambda = 0.995: ``vehjax
   reproduce noise-learning``'s "MPF (consistent)" row, where its offset and bias estimates are
-  off and its NEES far too large; cause not isolated, likely the offset's early error taken
-  up by the bias states, with which the statistics' offset has no covariance), and about 3x
-  the paper's time per step there (N = 500).
+  off and its NEES far too large): the offset's early error (its prior 0 +- 0.04 deg, the
+  truth 0.28 deg) is taken up by the bias states (ay sees d mu_w like its bias), with which
+  the statistics' offset has no covariance; with the offset's prior mean at the truth the
+  same run learns (noise-learning's docstring has the numbers). About 2-3x the paper's time
+  per step there (N = 500).
 
 Linearisation. The model enters through forward-mode derivatives (``jax.jacfwd``) at each
 particle: g = d f / d delta, A_bar = d f_x / d z, the bank transition, C = d h / d (x, z) and
