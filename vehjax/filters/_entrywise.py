@@ -117,6 +117,21 @@ def sym_entries(entry, n: int):
     return out
 
 
+def joseph_entries(Ls, W, H, N, Pp):
+    """The Joseph-form updated covariance (I - K H) P- (I - K H)^T + K N K^T, entry by entry,
+    with K = W^T L^-1 row by row (``Ls`` the lower factor of the innovation covariance, ``W``
+    the rows L^-1 C^T of the masked cross-covariance, ``H`` (ny, nx) and ``N`` (ny, ny) the
+    linearisation and measurement noise, ``Pp`` (nx, nx) the predicted covariance; nested
+    lists). Returns the symmetric nested lists (nx, nx)."""
+    nx, ny = len(Pp), len(N)
+    K = [backward_entries(Ls, W[i]) for i in range(nx)]  # K = C M S_m^-1, row by row
+    A = [[(1.0 if i == j else 0.0) - dot(K[i], [H[a][j] for a in range(ny)])
+          for j in range(nx)] for i in range(nx)]
+    AP = [[dot(A[i], [Pp[j][k] for j in range(nx)]) for k in range(nx)] for i in range(nx)]
+    KN = [[dot(K[i], [N[a][b] for a in range(ny)]) for b in range(ny)] for i in range(nx)]
+    return sym_entries(lambda i, l: dot(AP[i], A[l]) + dot(KN[i], K[l]), nx)
+
+
 def backward_entries(L, b):
     """``L^-T b`` by back substitution; ``L`` nested lists, lower triangular (``L[i][k]`` read
     for k <= i only), ``b`` a list."""

@@ -41,7 +41,7 @@ import numpy as np
 from .. import _hoist
 from .._hoist import Split, split
 from .base import StepOutput
-from ._entrywise import backward_entries, chol_sym, dot, stack, sym_entries, wsum
+from ._entrywise import chol_sym, dot, joseph_entries, stack, sym_entries, wsum
 from ._linalg import LOG_2PI, UNROLL_MAX, cholesky, forward_entries
 from .sigma import SigmaRule
 
@@ -296,13 +296,7 @@ def _update(xp, Pp, y, yh, S, C, joseph=None):
     if joseph is None:
         Pn = sym_entries(lambda i, j: Pp[i][j] - sum(W[i][k] * W[j][k] for k in range(ny)), nx)
     else:
-        H, N = joseph
-        K = [backward_entries(Ls, W[i]) for i in range(nx)]  # K = C M S_m^-1, row by row
-        A = [[(1.0 if i == j else 0.0) - dot(K[i], [H[a][j] for a in range(ny)])
-              for j in range(nx)] for i in range(nx)]
-        AP = [[dot(A[i], [Pp[j][k] for j in range(nx)]) for k in range(nx)] for i in range(nx)]
-        KN = [[dot(K[i], [N[a][b] for a in range(ny)]) for b in range(ny)] for i in range(nx)]
-        Pn = sym_entries(lambda i, l: dot(AP[i], A[l]) + dot(KN[i], K[l]), nx)
+        Pn = joseph_entries(Ls, W, *joseph, Pp)
     nis = sum(v * v for v in w)
     n_obs = sum(o.astype(jnp.int32) for o in obs)
     logdet = 2.0 * sum(jnp.log(Ls[k][k]) for k in range(ny))

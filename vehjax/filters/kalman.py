@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._entrywise import add, backward_entries, chol_masked, dot, sym_entries
+from ._entrywise import add, chol_masked, dot, joseph_entries, sym_entries
 from ._linalg import LOG_2PI, cholesky, forward_entries, logdet_from_chol, solve_lower, sym
 
 
@@ -192,12 +192,7 @@ def masked_update_entries(xp, Pp, y, yh, S, C, H, N) -> UpdateResult:
     w = forward_entries(Ls, e)
     W = [forward_entries(Ls, [C[i][j] * mf[j] for j in range(ny)]) for i in range(nx)]
     x = [xp[i] + dot(W[i], w) for i in range(nx)]
-    K = [backward_entries(Ls, W[i]) for i in range(nx)]  # row i of C M S_m^-1
-    A = [[(1.0 if i == j else 0.0) - dot(K[i], [H[a][j] for a in range(ny)])
-          for j in range(nx)] for i in range(nx)]
-    AP = [[dot(A[i], [Pp[j][k] for j in range(nx)]) for k in range(nx)] for i in range(nx)]
-    KN = [[dot(K[i], [N[a][b] for a in range(ny)]) for b in range(ny)] for i in range(nx)]
-    P = sym_entries(lambda i, l: dot(AP[i], A[l]) + dot(KN[i], K[l]), nx)
+    P = joseph_entries(Ls, W, H, N, Pp)
     nis = sum(v * v for v in w)
     n_obs = sum(o.astype(jnp.int32) for o in obs)
     logdet = 2.0 * sum(jnp.log(Ls[k][k]) for k in range(ny))
