@@ -79,9 +79,12 @@ Drive (sec. 5, ``--drive``):
   Metropolis-Hastings (:func:`vehjax.calibrate.pmmh`) on the planar model of
   :func:`pmmh_model` over the first ``--pmmh-duration`` s: steering offset, eps, ay and gyro
   biases, the three sensor stds and the steering-noise std, with the bootstrap PF's
-  likelihood and (a check) the exact Kalman likelihood of this linear model; chains vmapped,
-  split R-hat and ESS reported. Not with the marginalized PF's likelihood: it learns the noise
-  statistics itself (with forgetting), so its likelihood is not that of fixed values. Beside
+  likelihood, the marginalized PF's (``mpf``: paper 004's filter with its noise statistics held
+  at the chain's values by a prior of negligible spread and no forgetting, every state in each
+  particle's Kalman filter and the steering noise in the transition only, so it estimates the
+  same model's likelihood without bias: :func:`vehjax.calibrate.fixed_noise_mpf`) and (the
+  reference) the exact Kalman likelihood of this linear model; chains vmapped, split R-hat
+  and ESS reported, and the MPF chain's posterior against the exact one's. Beside
   them particle Gibbs with ancestor sampling (ref. [29], :func:`vehjax.calibrate.
   particle_gibbs`; ``--pmmh-likelihood pg`` or ``all``, the default): a trajectory from the
   conditional PF, then random-walk moves of the values given it. It takes additive noise
@@ -92,8 +95,9 @@ Drive (sec. 5, ``--drive``):
   Every sampler adapts its random walk over the warm-up (:func:`vehjax.calibrate.pmmh`:
   windows of doubling length, the pooled draws' covariance and a scale tuned toward the
   optimal acceptance) and runs :data:`PMMH_ITERS` iterations by default, the exact-likelihood
-  chain first; the bootstrap PF's log-likelihood std is measured at that chain's posterior mean
-  (:func:`vehjax.calibrate.log_likelihood_spread`) and sets its acceptance target. The report
+  chain first; the bootstrap and marginalized PFs' log-likelihood stds are measured at that
+  chain's posterior mean (:func:`vehjax.calibrate.log_likelihood_spread`) and set their
+  acceptance targets. The report
   states for each sampler whether split R-hat < :data:`RHAT_MAX` and ESS >= :data:`ESS_MIN` for
   every quantity (:func:`pmmh_check`).
 * Smoothing (#29): ``vehjax.smooth`` (extended RTS) of the augmented EKF gives the offset,
@@ -195,12 +199,15 @@ def parser():
     p.add_argument("--pmmh-duration", type=_cli.positive, default=20.0,
                    help="--drive: seconds of the drive PMMH fits, from its start "
                         "(default %(default)s)")
-    p.add_argument("--pmmh-likelihood", choices=("bootstrap", "kalman", "both", "pg", "all"),
+    p.add_argument("--pmmh-likelihood", choices=("bootstrap", "kalman", "mpf", "both", "pg",
+                                                 "all"),
                    default="all",
                    help="--drive: the offline reference's samplers: PMMH with the bootstrap "
                         "PF's likelihood, PMMH with the exact Kalman likelihood (plain MH, a "
-                        "check), both, particle Gibbs with ancestor sampling (pg; "
-                        "--pmmh-particles particles in its conditional PF), or all three "
+                        "check), PMMH with the marginalized PF's likelihood (mpf: paper 004's "
+                        "filter with the noise statistics held at the chain's values), both "
+                        "(kalman and bootstrap), particle Gibbs with ancestor sampling (pg; "
+                        "--pmmh-particles particles in its conditional PF), or all four "
                         "(default %(default)s)")
     p.add_argument("--mpf-smooth-paths", type=_cli.at_least(int, 0), default=100,
                    help="--drive: ancestral paths M of the MPF's smoother (vehjax.smooth, one "
@@ -651,6 +658,7 @@ PMMH_P0 = np.array([0.1, 0.5 * DEG]) ** 2
 
 #: the offline samplers' names in logs and tables, by --pmmh-likelihood value
 SAMPLER = {"bootstrap": "PMMH (bootstrap PF likelihood)", "kalman": "PMMH (Kalman likelihood)",
+           "mpf": "PMMH (marginalized PF likelihood)",
            "pg": "particle Gibbs (ancestor sampling)"}
 
 
@@ -697,31 +705,40 @@ def _pg_init(pm, U, init):
 #: ESS >= 100 for every quantity); the bootstrap PF's likelihood is too noisy there for that at
 #: any affordable N (its std is measured and reported), and particle Gibbs's sweeps (a
 #: conditional PF over the whole segment each) keep their earlier cost; the report says
-#: whether each mixed
-PMMH_ITERS = {"kalman": 4000, "bootstrap": 200, "pg": 200}
-PMMH_PARTICLES = {"bootstrap": 64, "pg": 64}
+#: whether each mixed. The marginalized PF's (mpf) log-likelihood std at the exact chain's
+#: posterior mean on that segment (``calibrate.log_likelihood_spread``, 32 keys) is 7.2 / 5.3 /
+#: 2.0 nats at N = 16 / 64 / 256 (the bootstrap PF's 16.0 at 64): N = 256 is its default, the
+#: 1-1.5 band would take about 2-4 times the particles and time; its chain starts from the
+#: exact chain's adapted random walk
+PMMH_ITERS = {"kalman": 4000, "mpf": 400, "bootstrap": 200, "pg": 200}
+PMMH_PARTICLES = {"mpf": 256, "bootstrap": 64, "pg": 64}
 #: the lowest acceptance rate the bootstrap chain's scale is tuned toward (Sherlock, Thiery,
 #: Roberts & Rosenthal 2015's overall optimum)
 PMMH_MIN_TARGET = 0.07
 
 
 def run_pmmh(model, Y, U, *, iters=None, particles=None, chains=4, key, likelihood="bootstrap",
-             init=None, spread_at=None, spread_evals=32):
+             init=None, spread_at=None, spread_evals=32, proposal_cov=None):
     """PMMH over :func:`pmmh_priors` on one drive (Y (T, 5) SingleTrackBank's measurements,
     raw r_virt; U (T, 2)), half the iterations warm-up. ``likelihood``: "bootstrap"
     (:func:`vehjax.filters.bootstrap_pf` with ``particles``, the particle-MCMC reference) or
     "kalman" (the EKF, exact on this linear model: plain Metropolis-Hastings, a check of the
-    particle chain) or "pg": particle Gibbs with ancestor sampling
+    particle chain) or "mpf" (:func:`vehjax.calibrate.fixed_noise_mpf`: paper 004's
+    marginalized PF with ``particles``, its noise statistics held at the chain's values, on
+    the same model as the EKF's: an unbiased estimate of the same likelihood) or "pg":
+    particle Gibbs with ancestor sampling
     (:func:`vehjax.calibrate.particle_gibbs`, paper 004's ref. [29]; conditional PF with
     ``particles``; the steering noise as additive process noise, :func:`pg_priors`).
     ``init``: starting values by name (physical units), default the priors' centres.
-    ``iters``, ``particles``: default :data:`PMMH_ITERS`, :data:`PMMH_PARTICLES`. The bootstrap
-    chain first measures its log-likelihood estimate's std over ``spread_evals`` keys at
+    ``proposal_cov``: the PMMH random walk's starting covariance (unconstrained units, e.g.
+    the exact chain's ``proposal_cov``), default 0.1 of each prior's scale.
+    ``iters``, ``particles``: default :data:`PMMH_ITERS`, :data:`PMMH_PARTICLES`. A particle
+    chain (bootstrap, mpf) first measures its log-likelihood estimate's std over ``spread_evals`` keys at
     ``spread_at`` (values by name; None: not measured; :func:`vehjax.calibrate.
     log_likelihood_spread`) and tunes its scale toward the acceptance rate for that noise
     (:func:`vehjax.calibrate.target_acceptance`). Returns (:class:`vehjax.calibrate.
-    PMMHResult`, seconds, info: dict with iters, particles and, for the bootstrap PF,
-    loglik_std, the estimate's std [nats])."""
+    PMMHResult`, seconds, info: dict with iters, particles and, for the particle
+    likelihoods with ``spread_at``, loglik_std, the estimate's std [nats])."""
     from vehjax import calibrate
     from vehjax.filters import bootstrap_pf, gaussian
 
@@ -745,12 +762,14 @@ def run_pmmh(model, Y, U, *, iters=None, particles=None, chains=4, key, likeliho
         return res, time.perf_counter() - t0, info
     if likelihood == "bootstrap":
         builder, kw = bootstrap_pf, {"n_particles": particles}
+    elif likelihood == "mpf":
+        builder, kw = calibrate.fixed_noise_mpf, {"n_particles": particles}
     else:
         builder, kw = gaussian.ekf, {}
     t0 = time.perf_counter()
     priors = pmmh_priors()
     target = None
-    if likelihood == "bootstrap":
+    if likelihood in ("bootstrap", "mpf"):
         at = spread_at
         if at is not None:
             info["loglik_std"], _ = calibrate.log_likelihood_spread(
@@ -764,7 +783,7 @@ def run_pmmh(model, Y, U, *, iters=None, particles=None, chains=4, key, likeliho
     res = calibrate.pmmh(builder, pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2), P0=PMMH_P0, Q=PMMH_Q,
                          R=R0, priors=priors, key=key, chains=chains,
                          samples=iters - iters // 2, warmup=iters // 2, builder_kwargs=kw,
-                         init=init, acceptance_target=target)
+                         init=init, acceptance_target=target, proposal_cov=proposal_cov)
     info["acceptance_target"] = target if target is not None else \
         calibrate.target_acceptance(len(priors))
     return res, time.perf_counter() - t0, info
@@ -878,7 +897,7 @@ def run_drive(args, log=print):
     pm_res = {}
     # the exact-likelihood chain first: its posterior mean is where the bootstrap PF's
     # log-likelihood noise is measured
-    liks = {"both": ("kalman", "bootstrap"), "all": ("kalman", "bootstrap", "pg")}.get(
+    liks = {"both": ("kalman", "bootstrap"), "all": ("kalman", "mpf", "bootstrap", "pg")}.get(
         getattr(args, "pmmh_likelihood", "both"), (getattr(args, "pmmh_likelihood", "both"),))
     for lik in liks:
         if getattr(args, "pmmh_iters", None) == 0:
@@ -892,12 +911,15 @@ def run_drive(args, log=print):
                 "R:r": float(Pm[:, -1, names.index("r_std")].mean()), "R:r_virt": rvirt_sd,
                 "input:delta": float(Pm[:, -1, names.index("delta_std")].mean())}
         at = None
-        if lik == "bootstrap" and "kalman" in pm_res:
+        if lik in ("bootstrap", "mpf") and "kalman" in pm_res:
             at = dict(zip(pm_res["kalman"][0].names, map(float, pm_res["kalman"][0].mean)))
+        # the MPF chain's random walk starts from the exact chain's adapted one (a pilot run)
+        cov0 = pm_res["kalman"][0].proposal_cov if lik == "mpf" and "kalman" in pm_res \
+            else None
         r_, sec, info = run_pmmh(model, Y_raw[seg], U[seg], iters=getattr(args, "pmmh_iters", None),
                                  particles=getattr(args, "pmmh_particles", None),
                                  chains=args.pmmh_chains, key=jax.random.key(args.seed + 7),
-                                 likelihood=lik, init=init, spread_at=at)
+                                 likelihood=lik, init=init, spread_at=at, proposal_cov=cov0)
         pm_res[lik] = (r_, sec, seg.stop, info)
         log(f"{SAMPLER[lik]}: {args.pmmh_chains} chains x {info['iters']} iterations over "
             f"{seg.stop} steps, {sec:.1f} s (compile included), max split R-hat "
@@ -1147,10 +1169,11 @@ RHAT_MAX, ESS_MIN = 1.1, 100
 LOGLIK_STD_BAND = (1.0, 1.5)
 
 
-def pmmh_check(pr, info):
+def pmmh_check(pr, info, lik="bootstrap"):
     """The report's sentence on one sampler: whether every quantity has split R-hat <
-    :data:`RHAT_MAX` and ESS >= :data:`ESS_MIN` (naming those that do not), and for the
-    bootstrap PF its log-likelihood estimate's std against :data:`LOGLIK_STD_BAND`."""
+    :data:`RHAT_MAX` and ESS >= :data:`ESS_MIN` (naming those that do not), and for a
+    particle likelihood (``lik`` "bootstrap" or "mpf") its log-likelihood estimate's std
+    against :data:`LOGLIK_STD_BAND`."""
     bad = [f"{n} (R-hat {r:.2f}, ESS {e:.0f})" for n, r, e in zip(pr.names, pr.rhat, pr.ess)
            if not (r < RHAT_MAX and e >= ESS_MIN)]
     text = (f"Check: split R-hat < {RHAT_MAX} and ESS >= {ESS_MIN} for every quantity: "
@@ -1160,10 +1183,13 @@ def pmmh_check(pr, info):
     if "loglik_std" in info:
         lo, hi = LOGLIK_STD_BAND
         sd = info["loglik_std"]
-        text += (f" The bootstrap PF's log-likelihood estimate (N = {info['particles']}) has std "
+        who = {"mpf": "marginalized PF's"}.get(lik, "bootstrap PF's")
+        text += (f" The {who} log-likelihood estimate (N = {info['particles']}) has std "
                  f"{sd:.2f} nats at the Kalman chain's posterior mean (Doucet et al. 2015: "
                  f"{lo:g}-{hi:g} for an efficient PMMH)"
                  + ("." if sd <= hi else
+                    "; above it, so the chain sticks more than an efficient PMMH would."
+                    if lik == "mpf" else
                     f"; far above it, so the chain sticks: the std falls only slowly with N "
                     f"here (a precise gyro against the bootstrap proposal), and this chain "
                     f"is a check of the particle machinery, not the reference."))
@@ -1179,6 +1205,23 @@ def pmmh_rows(pr):
         lo, hi = np.percentile(flat[:, k], [2.5, 97.5]) / sc
         rows.append((f"{name} [{unit}]", f"{pr.mean[k] / sc:+.4g}", f"{pr.std[k] / sc:.3g}",
                      f"{lo:+.4g}..{hi:+.4g}", f"{pr.rhat[k]:.3f}", f"{pr.ess[k]:.0f}"))
+    return rows
+
+
+def posterior_agreement(pr, ref):
+    """Rows comparing one chain's posterior with the reference chain's (same names): name
+    [unit], the two means, mean difference / its Monte-Carlo std (sqrt(s_a^2 / ESS_a + s_b^2 /
+    ESS_b): |z| < 2-3 when both chains target the same posterior and have mixed), and the std
+    ratio."""
+    rows = []
+    for k, name in enumerate(pr.names):
+        j = ref.names.index(name)
+        unit, sc = PMMH_UNITS[name]
+        se = math.sqrt(pr.std[k] ** 2 / max(pr.ess[k], 1.0)
+                       + ref.std[j] ** 2 / max(ref.ess[j], 1.0))
+        rows.append((f"{name} [{unit}]", f"{pr.mean[k] / sc:+.4g}", f"{ref.mean[j] / sc:+.4g}",
+                     f"{(pr.mean[k] - ref.mean[j]) / se:+.2f}",
+                     f"{pr.std[k] / ref.std[j]:.3f}"))
     return rows
 
 
@@ -1327,6 +1370,11 @@ def main_drive(args, out_dir):
         what = {"bootstrap": f"PMMH likelihood: bootstrap PF, N = {info['particles']}",
                 "kalman": "PMMH likelihood: EKF, exact Kalman likelihood on this linear "
                           "model, plain MH",
+                "mpf": f"PMMH likelihood: marginalized PF (paper 004's filter, "
+                       f"kalman_states='all', every state in each particle's Kalman filter), "
+                       f"N = {info['particles']}, its noise statistics held at the chain's "
+                       f"values (vehjax.calibrate.fixed_noise_mpf: the EKF's model, so an "
+                       f"unbiased estimate of the same likelihood and the same posterior)",
                 "pg": f"particle Gibbs with ancestor sampling (ref. [29]), conditional PF with "
                       f"N = {info['particles']}, steering noise as additive process noise "
                       f"(Q:vy, Q:r; their correlation dropped)"}[lik]
@@ -1334,9 +1382,16 @@ def main_drive(args, out_dir):
                     f"{info['iters']} iterations (half warm-up), the first {n * 0.01:.0f} s, "
                     f"{sec:.1f} s (compile included), acceptance "
                     f"{np.mean(pr.acceptance):.2f} (tuned toward "
-                    f"{info.get('acceptance_target', 0.255):.3f}). " + pmmh_check(pr, info) + "\n",
+                    f"{info.get('acceptance_target', 0.255):.3f}). " + pmmh_check(pr, info, lik) + "\n",
                     _table(pmmh_rows(pr), head=("quantity", "posterior mean", "std",
                                                  "95 % interval", "split R-hat", "ESS")), ""]
+        if lik == "mpf" and "kalman" in res["pmmh"]:
+            md_pmmh += ["Against the exact-likelihood chain (the same model and posterior): "
+                        "z = difference of the means over its Monte-Carlo std (from both "
+                        "chains' ESS), |z| < 3 expected where both have mixed.\n",
+                        _table(posterior_agreement(pr, res["pmmh"]["kalman"][0]),
+                               head=("quantity", "mean (MPF likelihood)",
+                                     "mean (Kalman likelihood)", "z", "std ratio")), ""]
     cost = _table([
         ("marginalized PF", f"N = {res['N']}, {res['R']} executions in one call",
          f"{res['mpf_run'] / (res['T'] * res['R']) * 1e3:.4f}", f"{res['mpf_run']:.2f}",
