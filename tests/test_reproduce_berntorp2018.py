@@ -297,4 +297,26 @@ def test_pmmh_check_states_what_it_checks():
     assert "far above" not in berntorp2018.pmmh_check(good, {"loglik_std": 1.2, "particles": 9})
     args = berntorp2018.parser().parse_args(["--drive"])
     assert args.pmmh_iters is None and args.pmmh_particles is None   # per-sampler defaults
-    assert set(berntorp2018.PMMH_ITERS) == {"kalman", "bootstrap", "pg"}
+    assert set(berntorp2018.PMMH_ITERS) == {"kalman", "mpf", "bootstrap", "pg"}
+    assert set(berntorp2018.PMMH_PARTICLES) == {"mpf", "bootstrap", "pg"}
+    assert args.pmmh_likelihood == "all"
+    # the marginalized PF's likelihood: its own wording, no "far above" verdict on the bootstrap
+    mpf = berntorp2018.pmmh_check(good, {"loglik_std": 2.0, "particles": 256}, "mpf")
+    assert "marginalized PF's log-likelihood estimate (N = 256) has std 2.00" in mpf
+    assert "above it" in mpf and "far above" not in mpf
+
+
+def test_posterior_agreement_z_scores():
+    """The MPF chain against the exact one: z = difference of means / sqrt(s_a^2 / ESS_a +
+    s_b^2 / ESS_b) and the std ratio, in the report's units, written out here."""
+    from types import SimpleNamespace
+
+    a = SimpleNamespace(names=("eps", "R:ay"), mean=np.array([-4e-4, 0.31]),
+                        std=np.array([1e-4, 0.01]), ess=np.array([100.0, 400.0]))
+    b = SimpleNamespace(names=("R:ay", "eps"), mean=np.array([0.30, -4.5e-4]),
+                        std=np.array([0.02, 2e-4]), ess=np.array([100.0, 25.0]))
+    rows = berntorp2018.posterior_agreement(a, b)
+    z_eps = (-4e-4 + 4.5e-4) / np.sqrt(1e-8 / 100 + 4e-8 / 25)
+    z_ay = 0.01 / np.sqrt(1e-4 / 400 + 4e-4 / 100)
+    assert rows[0] == ("eps [1e-4]", "-4", "-4.5", f"{z_eps:+.2f}", "0.500")
+    assert rows[1] == ("R:ay [m/s^2]", "+0.31", "+0.3", f"{z_ay:+.2f}", "0.500")
