@@ -1,13 +1,15 @@
 """Smoothing one run with the marginalized PF (:func:`vehjax.filters.marginalized_pf`):
-ancestor-path backward simulation with a Rao-Blackwellised (per-path RTS) state, for both
-``kalman_states="all"`` and the paper's ``"linear"``.
+M trajectories of the particles' sampled part, by ancestor tracing (``method="ancestor"``, the
+default, both ``kalman_states``) or by Rao-Blackwellised backward simulation
+(``method="ffbsi"``, the paper's ``kalman_states="linear"``), each with its linear states
+smoothed by a per-trajectory RTS and its noise statistics.
 
 The forward pass is the filter itself, its own ``init`` and ``step`` in a ``lax.scan``, keeping
 after every step each particle's Gaussian over the states (means ``x``, ``z``, covariance
 ``P``), its NiW statistics, the offset w_t it drew (eq. 30) and the resampling genealogy
 (:class:`vehjax.filters.marginalized.MPFState`). Then:
 
-1. **Paths.** M indices are drawn from the final weights and each one's genealogy is followed
+1. **Paths** (``method="ancestor"``). M indices are drawn from the final weights and each one's genealogy is followed
    back (``MPFState.ancestors``): M ancestral paths, each a particle's whole history, in
    particular its offset draws w_{1:T} (with ``kalman_states="linear"`` its sampled states
    x_{0:T}, built from them). Equally weighted they approximate p(w_{1:T} | y_{1:T}), the
@@ -49,8 +51,73 @@ after every step each particle's Gaussian over the states (means ``x``, ``z``, c
    eq. 23's estimates and their mixture covariance (:func:`vehjax.filters._niw.
    noise_estimates`, equal weights).
 
+Backward simulation (``method="ffbsi"``, ``kalman_states="linear"``)
+--------------------------------------------------------------------
+The Rao-Blackwellised backward simulation of Fong, Godsill, Doucet & West (2002) in the form
+of Särkkä, Bunch & Godsill (2012, "A backward-simulation based Rao-Blackwellized particle
+smoother for conditionally linear Gaussian models"), over what the particles sample, their
+vehicle states x_t:
+
+a. **Trajectories.** The last index of each of the M trajectories is drawn from the final
+   weights; then for t = T-2, ..., 0 each trajectory m draws a particle j at t with
+   probability proportional to W_t^j p(x_t+1^m, y_t+1 | x_0:t^j, y_0:t)
+   (:func:`backward_logdens`, drawn as in the bootstrap PF's FFBSi,
+   :func:`vehjax.smoothers.particle.ffbsi_indices`): one Gaussian per particle of the next
+   sampled states and the next measurement, with its linear states z_t ~ N(z_j, P_j) (its own
+   filtered Kalman moments), the offset w_t+1 and the linear states' noise marginalised, the
+   noise statistics by the moment-matched Gaussian of its NiW's Student-t predictive (variance
+   (1 + gamma') Lambda' / (nu' - d - 1) after eq. 20's forgetting; the t itself is not used).
+   The measurement y_t+1 must be in it: it depends on the pair (x_t^j, x_t+1^m) through the
+   offset w_t+1 (d w in eq. 8, and through z_t+1) — with x_t+1 alone, the weights of
+   Särkkä, Bunch & Godsill's model class, the smoothed means on the test model of
+   tests/test_smoothing_mpf.py (y2 reads the offset directly) were off by 0.56 of the smoothed
+   std at N = M = 400, against 0.13 for ancestor tracing. The trajectory's x_t is particle
+   j's.
+b. **Linear states and statistics, given a trajectory.** Its Kalman filter of the linear states
+   and its NiW statistics are re-run forward along it (:func:`linear_path_forward`:
+   :func:`linear_path_step`, the filter's steps 4-5 for a particle at x_t-1 moved to x_t,
+   the offset datum w_t = g^+ (x_t - xb)), from the filtered moments and statistics of its
+   particle at t = 0; along an ancestral path this is the filter's own recursion (to rounding;
+   tests/test_smoothing_mpf.py). Its linear states are then smoothed by
+   :func:`linear_path_rts` as for an ancestral path, and the moments mixed as in step 3.
+c. **Noise statistics.** At each t, eq. 23's estimates over the M re-run statistics at t (equal
+   weights): with ``forgetting=1`` the last row is the NiW posterior given each trajectory and
+   all the data, mixed over the trajectories (the smoothed estimate of static statistics); the
+   row at t < T-1 conditions on y_0:t along a trajectory drawn with all the data. With
+   forgetting lambda < 1 the statistics at t weigh the data before t by lambda^(t - s): a row
+   is the forgetting filter's estimate along a smoothed trajectory, not a smoothed estimate of
+   time-varying statistics (no backward pass over the NiW).
+
+Near-degeneracy. The filter's vehicle states have noise only along g (the offset): a
+particle's x_t+1 lies on the line xb + g R of its parent, and another particle's density of it
+rests only on the bank's covariance A_bar P A_bar^T across g (on SingleTrackBank the bank
+moves vy, g has a vy and an r component). With a small bank covariance, or none (the planar
+filter, or A_bar = 0 with more than one sampled state), the backward weights across g fall on
+the trajectory's own parent and its copies: backward simulation then reproduces ancestor
+tracing. The covariance is regularised by ``BACKWARD_JITTER`` tr(S) / n_xs on its diagonal
+(relative 1e-9: keeps the Cholesky finite, changes no weight measurably) and ``backward_ess``
+(the backward weights' ESS, averaged over the trajectories) and ``n_distinct`` (particles by
+value: resampled copies count once) report per time how far the draws spread.
+``kalman_states="all"`` is not offered: there the particles sample only the offsets, whose
+backward density under the filter's model (independent draws given the statistics) does not
+involve the states, so the weights would carry nothing of the trajectory's future but the
+statistics (with known noise the filter weights alone); the backward information filter below
+would be needed.
+
 What is exact and what is approximate
 -------------------------------------
+* FFBSi, exact given a trajectory: its linear states' Kalman filter, smoothed moments and NiW
+  statistics are those the paper's filter would have along that sequence of x_t (the same
+  plug-in noise, linearisation and missing components): the Rao-Blackwellised part has no
+  Monte-Carlo error.
+* FFBSi, approximate: the backward weights use p(x_t+1, y_t+1 | x_0:t^j, y_0:t) where the
+  exact Rao-Blackwellised backward kernel needs p(x_t+1:T-1, y_t+1:T-1 | x_0:t^j, y_0:t):
+  what the data after t + 1 say about the linear states at t + 1 (whose distribution differs
+  between particles) is ignored, i.e. the backward information filter of Lindsten & Schön 2013 (Lindsten, Bunch,
+  Särkkä, Schön & Godsill 2016) is not used; and the noise statistics enter the weights as
+  plug-in, moment-matched predictives. So the trajectories are not draws of the filter's
+  p(x_0:T-1 | y_0:T-1) even as N grows; tests/test_smoothing_mpf.py measures how far on a model
+  where the filter with known noise is the exact Rao-Blackwellised filter.
 * Exact given a path: for a model affine in the states and the noisy input (SingleTrackBank
   at a given speed) with the noise statistics known (the filter built with ``forgetting=1``
   and a prior so tight that they do not move), the states given w_{1:T} and y_{1:T} are
@@ -108,13 +175,22 @@ import numpy as np
 from .. import _validate
 from ..filtering import _output_ok
 from ..filters._mpf_linearise import linearise
-from ..filters._niw import noise_estimates
+from ..filters._niw import impute_missing, niw_predict, niw_update, noise_estimates
 from ..filters.base import Estimator
+from .particle import count_unique, ffbsi_indices
 
 __all__ = [
-    "MPFSmootherResult", "smooth", "trace_ancestors", "psd_right_solve", "rts_step",
-    "mixture_moments", "linear_step_joint", "linear_path_rts",
+    "MPFSmootherResult", "smooth", "METHODS", "trace_ancestors", "psd_right_solve", "rts_step",
+    "mixture_moments", "linear_step_joint", "linear_path_rts", "linear_path_step",
+    "linear_path_forward", "backward_logdens", "backward_ess",
 ]
+
+#: The smoother's methods (module docstring).
+METHODS = ("ancestor", "ffbsi")
+
+#: Relative regularisation of the backward density's covariance (module docstring, FFBSi):
+#: ``S + BACKWARD_JITTER tr(S) / n I``.
+BACKWARD_JITTER = 1e-9
 
 
 class MPFSmootherResult(NamedTuple):
@@ -131,8 +207,13 @@ class MPFSmootherResult(NamedTuple):
         params_cov: (T, p, p) their mixture covariance.
         loglik: (T,) the filter's log p(y_t | y_0:t-1), as :func:`vehjax.filter` gives with
             the same key.
-        n_unique: (T,) int32, how many distinct particles the M paths pass through.
+        n_unique: (T,) int32, how many distinct particle slots the M paths pass through.
         diverged: bool scalar, the filter re-initialised or gave a bad output at some step.
+        n_distinct: (T,) int32, how many distinct particles by value: slots that hold copies
+            of one particle (the same resampled parent) count once.
+        backward_ess: (T,) the effective sample size of the backward weights at t, averaged
+            over the M trajectories (``"ffbsi"``; at T - 1 that of the final filter weights);
+            1 with ``"ancestor"`` (each path has one parent).
     """
 
     states: jnp.ndarray
@@ -144,6 +225,8 @@ class MPFSmootherResult(NamedTuple):
     loglik: jnp.ndarray
     n_unique: jnp.ndarray
     diverged: jnp.ndarray
+    n_distinct: jnp.ndarray
+    backward_ess: jnp.ndarray
 
 
 # ----------------------------------------------------------------------------------------------
@@ -294,6 +377,152 @@ def linear_step_joint(rb, theta, x_prev, z_prev, P_prev, mu, lam_w, lam_e, nu, x
     return mean, 0.5 * (cov + cov.T)
 
 
+def linear_path_step(rb, theta, x_prev, z_prev, P_prev, mu, lam_w, lam_e, gamma, nu, x_new, y,
+                     u):
+    """Step t of the paper's filter (``kalman_states="linear"``) along a given path of sampled
+    states: one particle's Kalman step of the linear states and its NiW update, as the filter
+    does them for a particle at x_t-1 that moved to x_t (:func:`vehjax.filters.marginalized`
+    steps 4-5), for a path stitched by backward simulation (whose x_t was drawn by another
+    particle). The Kalman step is the z_t block of :func:`linear_step_joint`. The statistics:
+    eq. 20's forgetting, then eq. 18 with the datum v = (w_t - mu_w, e_t): the offset
+    w_t = g^+ (x_t - xb) (the filter's draw when x_t is the particle's own), the sensor residual
+    e_t = y - yb - Cx (x_t - xb) - Cz (z_t - zb) - d w_t - b at the posterior mean z_t, with
+    Cz P_t Cz^T on the observed sensor pairs and the conditional covariance of missing sensors
+    (:func:`vehjax.filters._niw.impute_missing`) added to Lambda_e.
+
+    Args:
+        rb: the filter's :class:`~vehjax.filters.marginalized.RBTransition`.
+        theta: model parameters.  x_prev (n_xs,), z_prev (n_z,), P_prev (n_z, n_z): the path
+            at t - 1 (its sampled states, Kalman mean and covariance).  mu (d,), lam_w (),
+            lam_e (n_s, n_s): its NiW statistics at t - 1.  gamma (), nu (): the shared NiW
+            gamma and dof at t - 1.  x_new (n_xs,): the path's sampled states at t.  y (ny,),
+            u (nu,): at t.
+
+    Returns:
+        (z_t (n_z,), P_t (n_z, n_z), mu (d,), lam_w (), lam_e (n_s, n_s)) after step t.
+    """
+    s, mdl = rb.setup, rb.model
+    nz, rows = s.nz, np.asarray(s.u_idx)
+    srow = np.asarray(s.srow, int)
+    ns = len(srow)
+    if nz:
+        mj, Cj = linear_step_joint(rb, theta, x_prev, z_prev, P_prev, mu, lam_w, lam_e, nu,
+                                   x_new, y, u)
+        z_new, P_new = mj[nz:], Cj[nz:, nz:]
+    else:
+        z_new, P_new = z_prev, P_prev
+    lin = linearise(mdl.f, mdl.h, x_prev, z_prev, u, theta, s.nl, s.li, s.i_in)
+    gam_p, nu_p, lw_p, le_p = niw_predict(gamma, nu, lam_w, lam_e, s.lam)
+    g = lin.g
+    gg = g @ g
+    dx = x_new - lin.xb
+    w = (g / jnp.where(gg > 0, gg, 1.0)) @ dx
+    yu = y[rows][srow]
+    obs = ~jnp.isnan(yu)
+    Cz = lin.Cz[rows][srow]
+    pred = (lin.yb[rows][srow] + lin.Cx[rows][srow] @ dx + Cz @ (z_new - lin.zb)
+            + lin.d[rows][srow] * w)
+    eta = jnp.where(obs, yu - pred - mu[1:], 0.0)
+    V = jnp.where(obs[:, None] & obs[None, :], Cz @ P_new @ Cz.T, 0.0)
+    R_s = le_p / (nu_p - s.d - 1.0)
+    ob = [obs[i] for i in range(ns)]
+    eta_l, V_miss = impute_missing([eta[i] for i in range(ns)],
+                                   [[R_s[i, j] for j in range(ns)] for i in range(ns)], ob)
+    eta_v = jnp.stack([w - mu[0]] + list(eta_l))
+    extra = V + jnp.asarray([[V_miss[i][j] + jnp.zeros((), V.dtype) for j in range(ns)]
+                             for i in range(ns)]).reshape(ns, ns)
+    _, _, mu_new, lw_new, le_new = niw_update(gam_p, nu_p, mu, lw_p, le_p, eta_v, extra)
+    return z_new, P_new, mu_new, lw_new, le_new
+
+
+def backward_logdens(rb, theta, x, z, P, mu, lam_w, lam_e, gamma, nu, u_next, y_next, x_next,
+                     jitter: float = BACKWARD_JITTER):
+    """The backward density of the Rao-Blackwellised backward simulation with
+    ``kalman_states="linear"`` (module docstring): for every trajectory m and particle j at t,
+    log p(x_t+1^m, y_t+1 | x_0:t^j, y_0:t) up to a constant common to all pairs, the next
+    sampled states and the next measurement with particle j's linear states z_t, the offset
+    w = w_t+1 and the linear states' noise zeta marginalised under its own filtered moments and
+    statistics (linearised at (x_j, z_j, u_t+1) as the filter does: exact for models affine in
+    the states and the noisy input). With s1 = z_t - z_j ~ N(0, P_j), w ~ N(mu_w_j, var_w_j),
+    zeta ~ N(0, Qz) and e ~ N(0, R_j):
+    x_t+1 = xb + A_bar s1 + g w, z_t+1 = zb + A s1 + gz w + zeta and the used, observed rows
+    of y_t+1 = yb + Cx (x_t+1 - xb) + Cz (z_t+1 - zb) + d w + b_j + e: one Gaussian of
+    (x_t+1, y_t+1) per particle, its x block regularised by ``jitter`` tr / n_xs on the
+    diagonal (the filter's x_t+1 has noise along g only). The noise statistics enter as the
+    moment-matched Gaussian of the NiW's Student-t predictive after eq. 20's forgetting
+    (primes): var_w = (1 + gamma') Lambda_w' / (nu' - d - 1), R = (1 + gamma') Lambda_e' /
+    (nu' - d - 1) on the sensor rows, the known variances on the others, means mu_w and b.
+
+    Args:
+        rb: the filter's :class:`~vehjax.filters.marginalized.RBTransition`.
+        theta: model parameters.  x (n_xs, N), z (n_z, N), P (n_z, n_z, N), mu (d, N),
+            lam_w (N,), lam_e (n_s, n_s, N): the filter's particles at t.  gamma, nu: scalars
+            at t.  u_next (nu,), y_next (ny,): the input and measurement at t + 1 (NaN
+            missing).  x_next: (n_xs, M) the trajectories at t + 1.
+        jitter: relative regularisation of the x block.
+
+    Returns:
+        (M, N) log densities, each -|L_j^-1 r_mj|^2 / 2 - log det L_j (finite).
+    """
+    s, mdl = rb.setup, rb.model
+    nxs, nz = x.shape[0], s.nz
+    rows = np.asarray(s.u_idx)
+    srow = np.asarray(s.srow, int)
+    dtype = x.dtype
+    lin = jax.vmap(lambda xj, zj: linearise(mdl.f, mdl.h, xj, zj, u_next, theta, s.nl, s.li,
+                                            s.i_in), in_axes=(1, 1))(x, z)
+    gam_p, nu_p = gamma / s.lam, s.lam * nu
+    c = (1.0 + gam_p) * s.lam / (nu_p - s.d - 1.0)
+    var_w = c * lam_w  # (N,)
+    yu = y_next[rows]
+    obs = ~jnp.isnan(yu)
+    nyu = len(rows)
+    R = jnp.broadcast_to(jnp.diag(jnp.asarray(s.kvu, dtype)), (x.shape[1], nyu, nyu))
+    R = R.at[:, srow[:, None], srow[None, :]].set(c * jnp.moveaxis(lam_e, -1, 0))
+    b_y = jnp.zeros((x.shape[1], nyu), dtype).at[:, srow].set(mu[1:].T)
+    # V = (s1, w, zeta): x_t+1 - xb = Jx V, z_t+1 - zb = Jz V, y - yb - b - e = Jy V
+    N = x.shape[1]
+    Jx = jnp.concatenate([lin.Ab, lin.g[:, :, None], jnp.zeros((N, nxs, nz), dtype)], axis=2)
+    Jz = jnp.concatenate([lin.A, lin.gz[:, :, None],
+                          jnp.broadcast_to(jnp.eye(nz, dtype=dtype), (N, nz, nz))], axis=2)
+    Cx, Cz, d = lin.Cx[:, rows], lin.Cz[:, rows], lin.d[:, rows]
+    Jy = Cx @ Jx + Cz @ Jz
+    Jy = Jy.at[:, :, nz].add(d)
+    nv = 2 * nz + 1
+    Sv = jnp.zeros((N, nv, nv), dtype).at[:, :nz, :nz].set(jnp.moveaxis(P, -1, 0))
+    Sv = Sv.at[:, nz, nz].set(var_w).at[:, nz + 1:, nz + 1:].set(jnp.asarray(s.Qz, dtype))
+    J = jnp.concatenate([Jx, Jy], axis=1)  # (N, n_xs + n_yu, nv)
+    S = J @ Sv @ jnp.swapaxes(J, 1, 2)
+    S = S.at[:, nxs:, nxs:].add(R)
+    S = 0.5 * (S + jnp.swapaxes(S, 1, 2))
+    ob = jnp.concatenate([jnp.ones(nxs, bool), obs])
+    S = jnp.where(ob[:, None] & ob[None, :], S, jnp.eye(nxs + nyu, dtype=dtype))
+    tr = jnp.trace(S[:, :nxs, :nxs], axis1=1, axis2=2)
+    S = S.at[:, :nxs, :nxs].add(((jitter * tr / nxs + jnp.finfo(dtype).tiny)[:, None, None])
+                                * jnp.eye(nxs, dtype=dtype))
+    L = jnp.linalg.cholesky(S)  # (N, n, n)
+    mean_x = lin.xb + lin.g * mu[0][:, None]  # (N, n_xs)
+    mean_y = lin.yb[:, rows] + Jy[:, :, nz] * mu[0][:, None] + b_y  # (N, n_yu)
+    ry = jnp.where(obs[None], jnp.where(obs, yu, 0.0)[None] - mean_y, 0.0)  # (N, n_yu)
+    rx = x_next.T[:, None, :] - mean_x[None]  # (M, N, n_xs)
+    r = jnp.concatenate([rx, jnp.broadcast_to(ry[None], rx.shape[:2] + (nyu,))], axis=2)
+    Lb = jnp.broadcast_to(L, r.shape[:2] + L.shape[1:])
+    a = jax.scipy.linalg.solve_triangular(Lb, r[..., None], lower=True)[..., 0]
+    logdet = jnp.sum(jnp.log(jnp.diagonal(L, axis1=1, axis2=2)), axis=1)
+    return -0.5 * jnp.sum(a * a, axis=-1) - logdet[None, :]
+
+
+def backward_ess(log_w, logdens):
+    """Effective sample size 1 / sum_j p_mj^2 of each trajectory's normalised backward weights
+    p_mj ~ W_j exp(logdens_mj), log_w (N,), logdens (M, N), averaged over the M trajectories
+    (rows with no finite entry fall back to the filter weights, as the draw does)."""
+    logits = log_w[None, :] + logdens
+    top = jnp.max(logits, axis=1, keepdims=True)
+    logits = jnp.where(jnp.isfinite(top), logits, log_w[None, :])
+    p = jax.nn.softmax(logits, axis=1)
+    return jnp.mean(1.0 / jnp.sum(p * p, axis=1))
+
+
 # ----------------------------------------------------------------------------------------------
 # The passes
 
@@ -372,6 +601,53 @@ def linear_path_rts(rb, theta, ys, us, nus, xs, zs, Ps, mu, lam_w, lam_e):
     return jnp.concatenate([m, zs[-1:]]), jnp.concatenate([P, Ps[-1:]]), cross
 
 
+def linear_path_forward(rb, theta, ys, us, gammas, nus, xs, z0, P0, mu0, lam_w0, lam_e0):
+    """The paper's filter's Kalman filter of the linear states and its NiW statistics re-run
+    along one path of sampled states xs (T, n_xs) (:func:`linear_path_step` at t = 1 .. T-1),
+    from the moments and statistics at t = 0 of the path's particle there: z0 (n_z,),
+    P0 (n_z, n_z), mu0 (d,), lam_w0 (), lam_e0 (n_s, n_s). gammas, nus (T,) the shared NiW
+    gamma and dof after each step; ys (T, ny), us (T, nu) the data. Along an ancestral path of
+    the filter this reproduces the filter's own values.
+
+    Returns:
+        (zs (T, n_z), Ps (T, n_z, n_z), mu (T, d), lam_w (T,), lam_e (T, n_s, n_s)) after each
+        step.
+    """
+    def body(carry, k):
+        out = linear_path_step(rb, theta, k[0], *carry, *k[1:])
+        return out, out
+
+    init = (z0, P0, mu0, lam_w0, lam_e0)
+    ks = (xs[:-1], gammas[:-1], nus[:-1], xs[1:], ys[1:], us[1:])
+    _, per = jax.lax.scan(body, init, ks)
+    return tuple(jnp.concatenate([a[None], b]) for a, b in zip(init, per))
+
+
+def _ffbsi(rb, theta, fwd: _Forward, ys, us, m: int, key):
+    """Backward simulation over the filter's particles (module docstring, FFBSi): the
+    trajectories' particle indices (T, M) and the backward ESS (T,)."""
+    T, _, n = fwd.x.shape
+    k_last, k_back = jax.random.split(key)
+    lw_last = fwd.log_weights[-1]
+    idx_last = jax.random.categorical(k_last, jnp.broadcast_to(lw_last, (m, n)),
+                                      axis=1).astype(jnp.int32)
+    w_last = jax.nn.softmax(lw_last)
+
+    def body(idx_next, k):
+        x, z, P, mu, lam_w, lam_e, gamma, nu, log_w, x_next_all, u_next, y_next, key = k
+        logdens = backward_logdens(rb, theta, x, z, P, mu, lam_w, lam_e, gamma, nu, u_next,
+                                   y_next, x_next_all[:, idx_next])
+        idx = ffbsi_indices(key, log_w, logdens)
+        return idx, (idx, backward_ess(log_w, logdens))
+
+    keys = jax.random.split(k_back, max(T - 1, 1))[: T - 1]
+    ks = (fwd.x[:-1], fwd.z[:-1], fwd.P[:-1], fwd.mu[:-1], fwd.lam_w[:-1], fwd.lam_e[:-1],
+          fwd.gamma[:-1], fwd.nu[:-1], fwd.log_weights[:-1], fwd.x[1:], us[1:], ys[1:], keys)
+    _, (idx, ess) = jax.lax.scan(body, idx_last, ks, reverse=True)
+    return (jnp.concatenate([idx, idx_last[None]]),
+            jnp.concatenate([ess, (1.0 / jnp.sum(w_last * w_last))[None]]))
+
+
 def _check(estimator, method, n_trajectories):
     """Validation particular to this smoother (before anything is traced)."""
     rb = estimator.rao_blackwell if isinstance(estimator, Estimator) else None
@@ -383,9 +659,14 @@ def _check(estimator, method, n_trajectories):
         raise ValueError(
             "estimator: this marginalized_pf with kalman_states='linear' does not declare its "
             "setup and model (RBTransition.setup, .model), which the smoother needs")
-    if method is not None:
-        _validate.choice("method", method, ("ancestor",))
-    return _validate.integer("n_trajectories", n_trajectories, 1, 2**24)
+    method = "ancestor" if method is None else _validate.choice("method", method, METHODS)
+    if method == "ffbsi" and (rb.gauss or rb.setup is None or rb.model is None):
+        raise ValueError(
+            "method: 'ffbsi' needs the paper's filter (kalman_states='linear', whose particles "
+            "sample the vehicle states): with kalman_states='all' the particles sample only "
+            "the offsets, whose backward density does not involve the states (module "
+            "docstring); use method='ancestor'")
+    return method, _validate.integer("n_trajectories", n_trajectories, 1, 2**24)
 
 
 def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, key, method=None,
@@ -394,7 +675,11 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, key, meth
 
     Pure and traceable (``jax.jit`` with the options static, ``jax.vmap`` over runs or keys).
     The filter runs with ``key`` itself (``loglik`` equals :func:`vehjax.filter`'s with the
-    same key), the paths are drawn with ``jax.random.fold_in(key, 1)``.
+    same key), the ancestral paths are drawn with ``jax.random.fold_in(key, 1)``, the FFBSi
+    trajectories with ``jax.random.fold_in(key, 2)``. Memory O(T N) for the forward pass and
+    O(T M) per trajectory quantity; time: the filter, then with ``"ffbsi"`` one linearisation
+    per particle and step and an (M, N) density per step, and two Kalman steps per trajectory
+    and step (the forward re-run and the RTS).
 
     Args:
         estimator: a :func:`~vehjax.filters.marginalized_pf` estimator (either
@@ -403,8 +688,9 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, key, meth
         inputs: (T, nu).
         x0, P0: state before the first step, (nx,), and its covariance (nx, nx) or (nx,).
         key: PRNG key.
-        method: None or "ancestor" (the only one).
-        n_trajectories: M >= 1 paths.
+        method: None or "ancestor" (ancestral paths, both ``kalman_states``), or "ffbsi"
+            (Rao-Blackwellised backward simulation; ``kalman_states="linear"`` only).
+        n_trajectories: M >= 1 paths / trajectories.
         theta0: the filter's initial noise guesses (p,) (``marginalized_pf``'s ``init``).
 
     Returns:
@@ -412,9 +698,10 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, key, meth
 
     Raises:
         ValueError: naming the argument: an estimator that is not such a marginalized PF,
-            ``n_trajectories`` < 1, an unknown method, a missing key, shapes that do not fit.
+            ``n_trajectories`` < 1, an unknown method or "ffbsi" with ``kalman_states="all"``
+            (``method``), a missing key, shapes that do not fit.
     """
-    m = _check(estimator, method, n_trajectories)
+    method, m = _check(estimator, method, n_trajectories)
     rb = estimator.rao_blackwell
     if key is None:
         raise ValueError("key: the marginalized PF draws random numbers; pass "
@@ -430,26 +717,35 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, key, meth
     us = jnp.asarray(inputs).astype(dtype)
     T = ys.shape[0]
     n = fwd.x.shape[-1]
-    idx_last = jax.random.categorical(jax.random.fold_in(key, 1),
-                                      jnp.broadcast_to(fwd.log_weights[-1], (m, n)), axis=1)
-    idx = trace_ancestors(fwd.ancestors, idx_last)  # (T, M)
+    theta = jnp.asarray(rb.theta).astype(dtype)
+    ys_d = ys.astype(dtype)
+    if method == "ffbsi":
+        idx, b_ess = _ffbsi(rb, theta, fwd, ys_d, us, m, jax.random.fold_in(key, 2))
+    else:
+        idx_last = jax.random.categorical(jax.random.fold_in(key, 1),
+                                          jnp.broadcast_to(fwd.log_weights[-1], (m, n)), axis=1)
+        idx = trace_ancestors(fwd.ancestors, idx_last)  # (T, M)
+        b_ess = jnp.ones((T,), dtype)
 
     def take(a):  # (T, ..., N) -> (M, T, ...)
         got = jnp.take_along_axis(a, idx.reshape((T,) + (1,) * (a.ndim - 2) + (m,)), axis=-1)
         return jnp.moveaxis(got, -1, 0)
 
     xs, zs, Ps, ws = take(fwd.x), take(fwd.z), take(fwd.P), take(fwd.offset)
-    theta = jnp.asarray(rb.theta).astype(dtype)
+    stats = (take(fwd.mu), take(fwd.lam_w), take(fwd.lam_e))
+    if method == "ffbsi" and T > 1:  # the linear states and statistics re-run along each path
+        zs, Ps, *stats = jax.vmap(
+            lambda x, *a: linear_path_forward(rb, theta, ys_d, us, fwd.gamma, fwd.nu, x, *a))(
+            xs, zs[:, 0], Ps[:, 0], *(a[:, 0] for a in stats))
     nxs, nz = xs.shape[-1], rb.nz
     nk = nxs + nz
     if rb.gauss and T > 1:
         ms, Pss, cross = jax.vmap(lambda a, b, c, d: _path_rts(rb, us, theta, a, b, c, d))(
             xs, zs, Ps, ws)
     elif nz and T > 1:  # kalman_states="linear": the path's x, an RTS of its linear states
-        ys_d = ys.astype(dtype)
         zsm, Pz, cz = jax.vmap(
             lambda *a: linear_path_rts(rb, theta, ys_d, us, fwd.nu, *a))(
-            xs, zs, Ps, take(fwd.mu), take(fwd.lam_w), take(fwd.lam_e))
+            xs, zs, Ps, *stats)
         ms = jnp.concatenate([xs, zsm], axis=2)
         Pss = jnp.zeros(ms.shape + (nk,), dtype).at[..., nxs:, nxs:].set(Pz)
         cross = jnp.zeros((m, T - 1, nk, nk), dtype).at[..., nxs:, nxs:].set(cz)
@@ -465,12 +761,12 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, key, meth
     w_eq = jnp.full((m,), 1.0 / m, dtype)
     params, params_cov = jax.vmap(
         lambda mu, lw, le, nu, g: noise_estimates(w_eq, mu, lw, le, nu, g))(
-        take(fwd.mu).transpose(1, 2, 0), take(fwd.lam_w).T, take(fwd.lam_e).transpose(1, 2, 3, 0),
+        stats[0].transpose(1, 2, 0), stats[1].T, stats[2].transpose(1, 2, 3, 0),
         fwd.nu, fwd.gamma)
-    from .particle import count_unique
-
+    copies = jnp.take_along_axis(fwd.ancestors, idx, axis=1)  # the resampled parent of each slot
     return MPFSmootherResult(
         states=mean, covariances=cov, cross_covariances=cr, path_states=ms, params=params,
         params_cov=params_cov, loglik=fwd.loglik, n_unique=jax.vmap(count_unique)(idx),
-        diverged=jnp.any(fwd.bad),
+        diverged=jnp.any(fwd.bad), n_distinct=jax.vmap(count_unique)(copies),
+        backward_ess=b_ess,
     )
