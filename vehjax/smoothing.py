@@ -36,7 +36,9 @@ Particle filters (``Estimator.particle_transition``, the bootstrap PF) go to
 :func:`vehjax.smoothers.particle.smooth` (backward simulation), with ``method`` and the
 ``particle_options``.
 The marginalized PF (``Estimator.rao_blackwell``) goes to
-:func:`vehjax.smoothers.marginalized.smooth` (ancestor paths with a per-path RTS) likewise.
+:func:`vehjax.smoothers.marginalized.smooth` likewise: ``method`` None / ``"ancestor"``
+(ancestor paths with a per-path RTS) or ``"ffbsi"`` (Rao-Blackwellised backward simulation,
+``kalman_states="linear"``), ``n_trajectories`` M.
 
 NaN measurement components are missing (skipped), as in the filters. Divergence: a run whose
 filter diverged (:mod:`vehjax.filtering`) or whose smoothed moments are not finite and positive
@@ -312,7 +314,8 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
         theta0, P_theta0, key: as for :func:`vehjax.filter`.
         method: None (the filter's own RTS), ``"rts"``, ``"ieks"`` (Jacobian filters) or
             ``"ipls"`` (sigma-point filters); for particle filters the particle smoother's
-            method (:func:`vehjax.smoothers.particle.smooth`).
+            method (:func:`vehjax.smoothers.particle.smooth`), for the marginalized PF
+            ``"ancestor"`` or ``"ffbsi"`` (:func:`vehjax.smoothers.marginalized.smooth`).
         parallel: run the Kalman filter and RTS smoother passes parallel in time: True or
             "associative" (``jax.lax.associative_scan``, O(T) work; its 2 log2 T copies of
             the combination compile slowly on XLA:CPU, about a minute at T = 10^3 on a busy
