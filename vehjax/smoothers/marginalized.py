@@ -9,9 +9,10 @@ after every step each particle's Gaussian over the states (means ``x``, ``z``, c
 ``P``), its NiW statistics, the offset w_t it drew (eq. 30) and the resampling genealogy
 (:class:`vehjax.filters.marginalized.MPFState`). Then:
 
-1. **Paths** (``method="ancestor"``). M indices are drawn from the final weights and each one's genealogy is followed
-   back (``MPFState.ancestors``): M ancestral paths, each a particle's whole history, in
-   particular its offset draws w_{1:T} (with ``kalman_states="linear"`` its sampled states
+1. **Paths** (``method="ancestor"``). M indices are drawn from the final weights and each
+   one's genealogy is followed back (``MPFState.ancestors``): M ancestral paths, each a
+   particle's whole history, in particular its offset draws w_{1:T} (with
+   ``kalman_states="linear"`` its sampled states
    x_{0:T}, built from them). Equally weighted they approximate p(w_{1:T} | y_{1:T}), the
    path-space (Kitagawa 1996) smoother of the filter.
 2. **States, given a path.** With ``kalman_states="all"`` a particle's states are Gaussian
@@ -113,8 +114,9 @@ What is exact and what is approximate
 * FFBSi, approximate: the backward weights use p(x_t+1, y_t+1 | x_0:t^j, y_0:t) where the
   exact Rao-Blackwellised backward kernel needs p(x_t+1:T-1, y_t+1:T-1 | x_0:t^j, y_0:t):
   what the data after t + 1 say about the linear states at t + 1 (whose distribution differs
-  between particles) is ignored, i.e. the backward information filter of Lindsten & Schön 2013 (Lindsten, Bunch,
-  Särkkä, Schön & Godsill 2016) is not used; and the noise statistics enter the weights as
+  between particles) is ignored, i.e. the backward information filter of Lindsten & Schön
+  2013 (Lindsten, Bunch, Särkkä, Schön & Godsill 2016) is not used; and the noise statistics
+  enter the weights as
   plug-in, moment-matched predictives. So the trajectories are not draws of the filter's
   p(x_0:T-1 | y_0:T-1) even as N grows; tests/test_smoothing_mpf.py measures how far on a model
   where the filter with known noise is the exact Rao-Blackwellised filter.
@@ -140,26 +142,25 @@ What is exact and what is approximate
 * Consistent, with Monte-Carlo error: the paths. Ancestor tracing draws them from the filter's
   genealogy, which converges to p(w_{1:T} | y_{1:T}) as N grows, but resampling makes the
   genealogies coalesce: at early times the M paths pass through few distinct particles
-  (``n_unique``), and the early smoothed moments rest on those, whatever M. It is not the
-  Rao-Blackwellised FFBSi of Lindsten & Schön (2013), which would re-draw each path's past
-  from all particles by weights that need a backward information filter of the linear states;
-  that is not done. With these two, the smoothed states converge to the exact RTS smoother of
+  (``n_unique``), and the early smoothed moments rest on those, whatever M (``"ffbsi"``
+  re-draws each trajectory's past from all particles, with the approximate weights above).
+  With these two, the smoothed states converge to the exact RTS smoother of
   the linear-Gaussian system as N grows (tests/test_smoothing_mpf.py checks it within
   Monte-Carlo error at two particle counts).
 * Approximate: with unknown noise statistics each particle's Kalman filter runs with its own
   point estimates (R_hat, b_hat) at each step, so the per-path RTS is conditional on those
   (plug-in), as the filter is; for models not affine in the states the prediction is the
   linearisation at the path's filtered means (an extended RTS per path).
-* Noise statistics: the estimates at t are those the path's particle held at t, i.e. they
-  condition on y_{1:t} along a path chosen with all the data; with ``forgetting=1`` the
-  statistics are static and the row at T-1 is their smoothed estimate (the NiW posterior given
+* Noise statistics (``"ancestor"``): the estimates at t are those the path's particle held
+  at t, i.e. they condition on y_{1:t} along a path chosen with all the data; with
+  ``forgetting=1`` the statistics are static and the row at T-1 is their smoothed estimate (the NiW posterior given
   the path and all data, mixed over the paths); with forgetting lambda < 1 the earlier rows
   are not the smoothed posterior of time-varying statistics (no backward pass over the NiW is
   done).
 
 Time convention of :func:`vehjax.filter`: x0/P0 describe the state before the first step and
 time t is the state after step t (0 .. T-1). NaN measurement components are missing (the
-filter skips them; the backward pass involves no measurement). Divergence: a step that
+filter skips them, and so do the backward weights of ``"ffbsi"``). Divergence: a step that
 re-initialised (every weight underflowed) or gave a non-finite output flags the run
 ``diverged``; its moments are still finite.
 """
