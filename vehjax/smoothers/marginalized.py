@@ -153,10 +153,10 @@ What is exact and what is approximate
   linearisation at the path's filtered means (an extended RTS per path).
 * Noise statistics (``"ancestor"``): the estimates at t are those the path's particle held
   at t, i.e. they condition on y_{1:t} along a path chosen with all the data; with
-  ``forgetting=1`` the statistics are static and the row at T-1 is their smoothed estimate (the NiW posterior given
-  the path and all data, mixed over the paths); with forgetting lambda < 1 the earlier rows
-  are not the smoothed posterior of time-varying statistics (no backward pass over the NiW is
-  done).
+  ``forgetting=1`` the statistics are static and the row at T-1 is their smoothed estimate
+  (the NiW posterior given the path and all data, mixed over the paths); with forgetting
+  lambda < 1 the earlier rows are not the smoothed posterior of time-varying statistics (no
+  backward pass over the NiW is done).
 
 Time convention of :func:`vehjax.filter`: x0/P0 describe the state before the first step and
 time t is the state after step t (0 .. T-1). NaN measurement components are missing (the
