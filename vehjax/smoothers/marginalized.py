@@ -99,6 +99,9 @@ tracing. The covariance is regularised by ``BACKWARD_JITTER`` tr(S) / n_xs on it
 (relative 1e-9: keeps the Cholesky finite, changes no weight measurably) and ``backward_ess``
 (the backward weights' ESS, averaged over the trajectories) and ``n_distinct`` (particles by
 value: resampled copies count once) report per time how far the draws spread.
+The trajectories draw from the particles the filter keeps after each step, i.e. after its
+resampling: at a time where it resampled from few heavy particles (often the first steps) the
+set itself holds few distinct particles, which bounds ``n_distinct`` there whatever M.
 ``kalman_states="all"`` is not offered: there the particles sample only the offsets, whose
 backward density under the filter's model (independent draws given the statistics) does not
 involve the states, so the weights would carry nothing of the trajectory's future but the
