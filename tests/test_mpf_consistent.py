@@ -14,6 +14,7 @@ import pytest
 
 import vehjax as vj
 from vehjax.filters._mpf_means import augment_prior, map_estimates, with_noise_means
+from vehjax.models import with_input_offset
 from vehjax.filters.marginalized import marginalized_pf
 from vehjax.models.bank import SingleTrackBank
 
@@ -37,53 +38,61 @@ def _kw(**over):
 # the pieces
 
 
-def test_augmented_model_is_the_model_with_the_biases_added():
-    """with_noise_means: transition f(x, u) with b kept; observe h(x, u) + b on the sensor
-    rows; the bank gain zero on the added states."""
-    aug = with_noise_means(MODEL, SENSORS)
-    assert aug.state_names == tuple(MODEL.state_names) + ("ay_bias", "r_bias", "roll_rate_bias")
+def test_augmented_model_is_the_model_with_the_biases_and_the_offset_added():
+    """with_noise_means: transition f(x, u + offset) with b and the offset kept; observe
+    h(x, u + offset) + b on the sensor rows; the bank gain zero on the added states."""
+    aug = with_noise_means(MODEL, SENSORS, "delta")
+    assert aug.state_names == tuple(MODEL.state_names) + (
+        "ay_bias", "r_bias", "roll_rate_bias", "delta_offset")
     rng = np.random.default_rng(0)
     x = rng.normal(0, 0.1, 5)
     b = np.array([0.1, -0.02, 0.03])
+    off = 0.004
     u = np.array([20.0, 0.02])
-    xa = np.r_[x, b]
+    uo = u + np.array([0.0, off])  # delta is the second input
+    assert MODEL.input_names[1] == "delta"
+    xa = np.r_[x, b, off]
     th = MODEL.theta
-    np.testing.assert_allclose(aug.transition(xa, u, th), np.r_[MODEL.transition(x, u, th), b],
+    np.testing.assert_allclose(aug.transition(xa, u, th),
+                               np.r_[MODEL.transition(x, uo, th), b, off],
                                rtol=1e-14, atol=1e-15)
     rows = [MODEL.output_names.index(s) for s in SENSORS]
-    y = np.asarray(MODEL.observe(x, u, th)).copy()
+    y = np.asarray(MODEL.observe(x, uo, th)).copy()
     y[rows] += b
     np.testing.assert_allclose(aug.observe(xa, u, th), y, rtol=1e-14, atol=1e-15)
     np.testing.assert_array_equal(aug.bank_noise_gain(),
-                                  np.r_[np.asarray(MODEL.bank_noise_gain()), np.zeros(3)])
+                                  np.r_[np.asarray(MODEL.bank_noise_gain()), np.zeros(4)])
+    with pytest.raises(ValueError, match="inputs"):
+        with_input_offset(MODEL, ("delta", "delta"))
 
 
 def test_prior_and_estimates_are_mapped_as_documented():
-    """augment_prior appends the biases with variance gamma0 std^2; map_estimates reads the
-    biases (and their covariance) from the bias states, the offset and the stds from the
-    statistics, with zero cross-covariance."""
+    """augment_prior appends the biases then the offset with variance gamma0 std^2;
+    map_estimates reads the offset and the biases (and their covariance, cross terms
+    included) from those states, the stds from the statistics, with zero cross-covariance
+    between the two groups."""
     ns = 3
     theta = jnp.array([0.1, 0.2, 1.0, 2.0, 3.0, 0.4, 0.5, 0.6])
     xa, Pa = augment_prior(np.zeros(5), np.arange(1.0, 6.0), theta, 2.0, ns)
-    np.testing.assert_allclose(xa, [0, 0, 0, 0, 0, 1.0, 2.0, 3.0])
+    np.testing.assert_allclose(xa, [0, 0, 0, 0, 0, 1.0, 2.0, 3.0, 0.1])
     np.testing.assert_allclose(np.diag(Pa), np.r_[np.arange(1.0, 6.0),
-                                                  2.0 * np.array([0.4, 0.5, 0.6]) ** 2])
+                                                  2.0 * np.array([0.4, 0.5, 0.6, 0.2]) ** 2])
     assert np.count_nonzero(Pa - np.diag(np.diag(Pa))) == 0
     rng = np.random.default_rng(1)
-    A = rng.normal(size=(8, 8))
+    A = rng.normal(size=(9, 9))
     cov = A @ A.T
-    mean = rng.normal(size=8)
+    mean = rng.normal(size=9)
     B = rng.normal(size=(8, 8))
     pcov = B @ B.T
     params = rng.normal(size=8)
     p, pc = map_estimates(jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(params),
                           jnp.asarray(pcov), 5, ns)
-    bi, oi = [2, 3, 4], [0, 1, 5, 6, 7]
-    np.testing.assert_array_equal(np.asarray(p)[bi], mean[5:])
+    mi, si, oi = [0, 2, 3, 4], [8, 5, 6, 7], [1, 5, 6, 7]
+    np.testing.assert_array_equal(np.asarray(p)[mi], mean[si])
     np.testing.assert_array_equal(np.asarray(p)[oi], params[oi])
-    np.testing.assert_array_equal(np.asarray(pc)[np.ix_(bi, bi)], cov[5:, 5:])
+    np.testing.assert_array_equal(np.asarray(pc)[np.ix_(mi, mi)], cov[np.ix_(si, si)])
     np.testing.assert_array_equal(np.asarray(pc)[np.ix_(oi, oi)], pcov[np.ix_(oi, oi)])
-    np.testing.assert_array_equal(np.asarray(pc)[np.ix_(bi, oi)], 0.0)
+    np.testing.assert_array_equal(np.asarray(pc)[np.ix_(mi, oi)], 0.0)
 
 
 @pytest.mark.parametrize("arg, over", [
@@ -220,3 +229,101 @@ def test_with_the_noise_known_it_is_the_exact_kalman_filter_of_the_biased_model(
     np.testing.assert_allclose(out.params[:, -1, [5, 6, 7]],
                                np.tile([STD0[s] for s in SENSORS], (R, 1)), rtol=1e-4)
     np.testing.assert_allclose(out.params[:, -1, 0], offset, rtol=1e-6)
+
+
+def test_covariance_draws_have_the_inverse_wishart_marginals():
+    """draw_covariances: each variance Lambda_jj / chi^2_dof is distributed as the diagonal of
+    IW(Lambda, nu) in dimension d, dof = nu - d + 1, i.e. inverse-gamma(dof / 2, Lambda_jj / 2)
+    (scipy), within the Wilson-Hilferty cube's accuracy (KS distance); R keeps Lambda_e's
+    correlations and is positive semi-definite."""
+    import scipy.stats
+
+    from vehjax.filters._niw import draw_covariances
+
+    n, dof = 20000, 40.0
+    lam_w = jnp.full((n,), 3.0)
+    Le = np.array([[2.0, 0.5, 0.0], [0.5, 1.0, -0.2], [0.0, -0.2, 0.5]])
+    lam_e = [[jnp.full((n,), Le[i, j]) for j in range(3)] for i in range(3)]
+    z = jax.random.normal(jax.random.key(0), (4, n), jnp.float64)
+    sw2, R = draw_covariances(lam_w, lam_e, dof, z)
+    for lam, v in [(3.0, sw2)] + [(Le[j, j], R[j][j]) for j in range(3)]:
+        ks = scipy.stats.kstest(np.asarray(v), scipy.stats.invgamma(dof / 2, scale=lam / 2).cdf)
+        assert ks.statistic < 0.015, ks
+    Rm = np.stack([np.stack([np.asarray(R[i][j]) for j in range(3)]) for i in range(3)])
+    rho = Rm[0, 1] / np.sqrt(Rm[0, 0] * Rm[1, 1])
+    np.testing.assert_allclose(rho, Le[0, 1] / np.sqrt(Le[0, 0] * Le[1, 1]), rtol=1e-12)
+    assert np.min(np.linalg.eigvalsh(np.moveaxis(Rm, -1, 0))) > 0
+
+
+def test_input_noise_kalman_step_is_the_kalman_update_with_the_input_error_as_a_state():
+    """input_noise_kalman_step on the augmented SingleTrackBank (offset and biases as states):
+    the predicted joint of (s_t, w) and its conditioning on the observed components of y_t,
+    and the weight log N(o; 0, S), equal a numpy Kalman step on the model's Jacobians with w
+    appended as a state (scipy for the density), one component missing."""
+    import scipy.stats
+
+    from vehjax.filters._entrywise import entries
+    from vehjax.filters._mpf_kalman import input_noise_kalman_step
+    from vehjax.filters._mpf_linearise import lin_entries, linearise
+
+    aug = with_noise_means(MODEL, SENSORS, "delta")
+    nx = len(aug.state_names)
+    nl, li = np.array([0, 1]), np.arange(2, nx)
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(nx, nx)) * 1e-2
+    P = A @ A.T + 1e-6 * np.eye(nx)  # (sampled, linear) order, as the filter keeps it
+    x, m = np.array([0.1, 0.02]), rng.normal(0, 0.01, nx - 2)
+    u = np.array([20.0, 0.01])
+    y = rng.normal(0, 0.1, 5)
+    obs = np.array([True, True, False, True, True])
+    Rn = np.diag([0.04, 1e-4, 1e-4, 1e-4, 2e-4])
+    Qn = 1e-8 * np.eye(nx - 2)
+    sw2 = 3e-7
+    f = lambda X, u_, th: aug.transition(X, u_, th)  # noqa: E731
+    h = lambda X, u_, th: aug.observe(X, u_, th)  # noqa: E731
+    lin = linearise(f, h, jnp.asarray(x), jnp.asarray(m), jnp.asarray(u), aug.theta, nl, li, 1)
+    post, C, o, ll, S = input_noise_kalman_step(
+        lin_entries(lin), entries(jnp.asarray(P)), sw2, entries(jnp.asarray(y)), list(obs),
+        [0.0] * 5, entries(jnp.asarray(Rn)), entries(jnp.asarray(Qn)))
+    # numpy: the Jacobians by finite differences of the model itself, in (sampled, linear) order
+    order = np.r_[nl, li]
+    X0 = np.zeros(nx)
+    X0[nl], X0[li] = x, m
+
+    def fo(v):  # (deviations of the states in filter order, w) -> (f in filter order, h)
+        X = X0.copy()
+        X[order] += v[:nx]
+        uu = u + np.array([0.0, v[nx]])
+        return np.asarray(f(X, uu, aug.theta))[order], np.asarray(h(X, uu, aug.theta))
+
+    eps = 1e-6
+    J = np.stack([(fo(e)[0] - fo(-e)[0]) / (2 * eps) for e in eps * np.eye(nx + 1)], 1)
+    Phi, g = J[:, :nx], J[:, nx]
+    xb = fo(np.zeros(nx + 1))[0]
+
+    def ho(v):  # y at the predicted point xb plus deviations (filter order), input error v[nx]
+        return np.asarray(h(_shift(X0, order, xb, v[:nx]), u + np.r_[0.0, v[nx]], aug.theta))
+
+    Hh = np.stack([(ho(e) - ho(-e)) / (2 * eps) for e in eps * np.eye(nx + 1)], 1)
+    yb = ho(np.zeros(nx + 1))
+    Pa = np.zeros((nx + 1, nx + 1))
+    Pa[:nx, :nx] = Phi @ P @ Phi.T + sw2 * np.outer(g, g)
+    Pa[nx - len(li):nx, nx - len(li):nx] += Qn
+    Pa[:nx, nx] = Pa[nx, :nx] = sw2 * g
+    Pa[nx, nx] = sw2
+    Ho, ro, Ro = Hh[obs], (y - yb)[obs], Rn[np.ix_(obs, obs)]
+    Sn = Ho @ Pa @ Ho.T + Ro
+    K = np.linalg.solve(Sn, Ho @ Pa).T
+    np.testing.assert_allclose(np.array(post, float), K @ ro, rtol=1e-5, atol=1e-12)
+    Cn = Pa - K @ Sn @ K.T
+    np.testing.assert_allclose(np.array(C, float), Cn, rtol=1e-5, atol=1e-14)
+    np.testing.assert_allclose(np.array(S, float)[np.ix_(obs, obs)], Sn, rtol=1e-6)
+    ref = scipy.stats.multivariate_normal(np.zeros(obs.sum()), Sn).logpdf(ro)
+    np.testing.assert_allclose(float(ll), ref, rtol=1e-7)
+
+
+def _shift(X0, order, xb, dev):
+    """The state vector (model order) at the predicted point xb (filter order) plus dev."""
+    X = X0.copy()
+    X[order] = xb + dev
+    return X

@@ -11,12 +11,15 @@ substitutions throughout (no inverses). The derivations are in
 
 from __future__ import annotations
 
+import math
+
 import jax.numpy as jnp
 
 from ._entrywise import add, barrier, chol_masked, div, dot, is_zero, matmul, matvec, mul, sub
 from ._linalg import forward_entries
 
-__all__ = ["bank_kalman_step", "kalman_update", "joint_kalman_step", "joint_prediction"]
+__all__ = ["bank_kalman_step", "kalman_update", "joint_kalman_step", "joint_prediction",
+           "gaussian_loglik", "input_noise_kalman_step"]
 
 
 def bank_kalman_step(lin, P, dx, y, obs, mu_w, b_y, sig_w2, R_y, Qz, start=None):
@@ -68,9 +71,11 @@ def bank_kalman_step(lin, P, dx, y, obs, mu_w, b_y, sig_w2, R_y, Qz, start=None)
     return post[1:], [row[1:] for row in C[1:]], o2, post[0]
 
 
-def kalman_update(mean, cov, H, r, R_y, obs, start=None):
-    """Kalman update (entries): N(mean, cov) conditioned on the observed components of
-    r = H s + noise(R_y). Returns the posterior mean and covariance (symmetrised)."""
+def _update_parts(mean, cov, H, r, R_y, obs, start):
+    """The Kalman update's pieces (entries): the posterior mean and covariance (symmetrised),
+    the Cholesky factor L of the innovation covariance S on the observed components (identity
+    rows elsewhere), the whitened innovation alpha = L^-1 (r - H mean), B[k] = L^-1 (H cov)[:, k]
+    and S itself."""
     n, ny = len(mean), len(r)
     HS = matmul(H, cov)  # (ny, n)
     S2 = [[add(dot(HS[i], H[j]), R_y[i][j]) for j in range(ny)] for i in range(ny)]
@@ -82,8 +87,61 @@ def kalman_update(mean, cov, H, r, R_y, obs, start=None):
                              for i in range(ny)])
          for k in range(n)]  # B[k] = L^-1 (H cov)[:, k]
     post = [add(mean[k], dot(B[k], alpha)) for k in range(n)]
-    C = [[sub(cov[k][j], dot(B[k], B[j])) for j in range(n)] for k in range(n)]
-    return post, [[0.5 * add(C[i][j], C[j][i]) for j in range(n)] for i in range(n)]
+    C = [[None] * n for _ in range(n)]
+    for k in range(n):
+        for j in range(k + 1):
+            C[k][j] = sub(0.5 * add(cov[k][j], cov[j][k]), dot(B[k], B[j]))
+            C[j][k] = C[k][j]
+    return post, C, L, alpha, B, S2
+
+
+def kalman_update(mean, cov, H, r, R_y, obs, start=None):
+    """Kalman update (entries): N(mean, cov) conditioned on the observed components of
+    r = H s + noise(R_y). Returns the posterior mean and covariance (symmetric)."""
+    return _update_parts(mean, cov, H, r, R_y, obs, start)[:2]
+
+
+def gaussian_loglik(L, alpha, obs):
+    """log N(r; H mean, S) of the observed components from :func:`_update_parts`' L and alpha:
+    -|alpha|^2 / 2 - log det L - n_obs / 2 log(2 pi) (L's identity rows add nothing)."""
+    n_obs = sum(jnp.asarray(o, jnp.result_type(float)) for o in obs)
+    return (-0.5 * dot(alpha, alpha) - sum(jnp.log(L[i][i]) for i in range(len(L)))
+            - 0.5 * math.log(2.0 * math.pi) * n_obs)
+
+
+def input_noise_kalman_step(lin, P, sig_w2, y, obs, b_y, R_y, Qz, start=None):
+    """The Kalman step of Gaussian particle states with the noisy input's error w ~ N(0,
+    sig_w2) as process noise (not drawn; ``noise_means="kalman"``, where the offset is a
+    state): the deviations xi = (x_{t-1} - x_hat, z_{t-1} - m) ~ N(0, P) and w predicted
+    jointly, s_t = Phi xi + (g, gz) w (+ the linear states' noise Qz), then conditioned on the
+    observed components of o = y - yb - b_y = H s_t + d w + noise(R_y), H = (Cx, Cz).
+
+    Returns:
+        (posterior mean of (dx_t, dz_t, w) (n + 1 entries), its covariance (nested lists),
+        o with zeros on missing components, log N(o; 0, S) of the observed components (the
+        particle's weight), S (ny, ny) the predictive covariance of y).
+    """
+    nxs, nz = len(lin.xb), len(lin.zb)
+    n = nxs + nz
+    Phi = ([list(lin.Fx[i]) + list(lin.Ab[i]) for i in range(nxs)]
+           + [list(lin.Fzx[i]) + list(lin.A[i]) for i in range(nz)])
+    gf = list(lin.g) + list(lin.gz)
+    PhiP = matmul(Phi, P)
+    cov = [[None] * (n + 1) for _ in range(n + 1)]
+    for i in range(n):
+        for j in range(i + 1):
+            c = add(dot(PhiP[i], Phi[j]), mul(sig_w2, mul(gf[i], gf[j])))
+            if i >= nxs and j >= nxs:
+                c = add(c, Qz[i - nxs][j - nxs])
+            cov[i][j] = cov[j][i] = c
+        cov[i][n] = cov[n][i] = mul(sig_w2, gf[i])
+    cov[n][n] = sig_w2
+    ny = len(y)
+    H = [list(lin.Cx[i]) + list(lin.Cz[i]) + [lin.d[i]] for i in range(ny)]
+    o = [jnp.where(obs[i], sub(y[i] - lin.yb[i], b_y[i]), 0.0) for i in range(ny)]
+    cov, o = barrier((cov, o), start)
+    post, C, L, alpha, _, S = _update_parts([0.0] * (n + 1), cov, H, o, R_y, obs, start)
+    return post, C, o, gaussian_loglik(L, alpha, obs), S
 
 
 def joint_kalman_step(lin, P, w, y, obs, b_y, R_y, Qz, D, start=None):

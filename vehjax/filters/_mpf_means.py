@@ -3,29 +3,28 @@ noise_means="kalman")``): the model seen by that filter, and its priors and esti
 to and from the paper's parameters.
 
 Why. In the paper's filter (eq. 18) each particle's NiW statistics take the particle's
-residuals as exact observations of the sensor noise, and the particle's Kalman filter takes the
-NiW bias means as exact. A sensor whose bias the data separate from a state only slowly (the
-roll-rate bias from the bank rate: only the bank-angle sensor, through the integral, tells them
-apart) then gets a bias posterior far narrower than the data support (``vehjax reproduce
-consistency``: its spread over runs about twice its reported std). The offset mean mu_w and the
-biases b enter the model linearly (x_t = f(x, u + mu_w + w~) ~ affine in mu_w for a model affine
-in the noisy input; y = h(...) + b + e~), so each particle's Kalman filter can carry them as
-constant states with their exact Gaussian posterior and their correlation with the states, and
-only the covariances (sigma_w^2, R) remain for the conjugate statistics: an inverse-Wishart on
-v~ = (w~, e~) of known mean zero, i.e. the NiW with gamma = 0 (kappa = infinity: eq. 18 with
-gamma = 0 adds eta eta^T to Lambda and leaves the mean; the predictive of eq. 26 keeps its dof
-nu - d + 1 with the factor 1 + gamma = 1). The residual the statistics take is then at the
-Kalman posterior mean of all states, offset and biases included, with H P H^T added (the
-expected sufficient statistic, :mod:`vehjax.filters.marginalized`), so the uncertainty of the
-biases reaches the covariance statistics too.
+residuals as exact observations of the noise means, and the particle's Kalman filter takes the
+NiW means as exact. A mean that the data separate from a state or another mean only slowly
+(the roll-rate bias from the bank rate: only the bank-angle sensor, through the integral,
+tells them apart; the ay bias from the steering offset, which ay sees as d mu_w) then gets a
+posterior far narrower than the data support (``vehjax reproduce consistency``: the roll-rate
+bias's spread over runs about twice its reported std). The offset mu_w and the biases b enter
+the model linearly (x_t = f(x, u + mu_w + w~), affine in mu_w for a model affine in the noisy
+input; y = h(...) + b + e~), so each particle's Kalman filter carries them as constant states
+(:func:`vehjax.models.with_output_biases`, :func:`vehjax.models.with_input_offset`) with
+their exact Gaussian posterior and their correlations, and only the covariances (sigma_w^2,
+R) remain for the conjugate statistics: an inverse-Wishart on v~ = (w~, e~) of known mean
+zero (the NiW with gamma = 0). How the filter then learns the covariances (drawn per
+particle, Storvik's filter) is in :mod:`vehjax.filters.marginalized`.
 
 Prior. The paper's NiW gives the offset and the biases the prior N(mean0, gamma0 Sigma_0),
-Sigma_0 = diag(std0^2); the Kalman states get the same Gaussian (independent of the model's
-states).
+Sigma_0 = diag(std0^2); the Kalman states get that Gaussian, or the stds the caller gives
+(``mean_std0``), independent of the model's states and of each other.
 
 Estimates. Offset and biases: the weighted mean and covariance of the particles' Kalman
-posteriors (the mixture moments of those states); stds and their covariance: eq. 23 on the
-inverse-Wishart statistics. The cross-covariance between the two groups is not computed (zero).
+posteriors (the mixture moments of those states, their correlations included); stds and their
+covariance: eq. 23 on the inverse-Wishart statistics. The cross-covariance between the two
+groups is not computed (zero).
 """
 
 from __future__ import annotations
@@ -34,23 +33,26 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..models.base import Model
-from ..models.biases import _BiasedBank, with_output_biases
+from ..models.biases import with_input_offset, with_output_biases
 
 __all__ = ["with_noise_means", "mean_state_names", "pad_linear_noise", "bias_walk_stds",
            "augment_prior", "map_estimates"]
 
 
-def mean_state_names(sensors):
+def mean_state_names(sensors, noisy_input):
     """Names of the added states: ``<sensor>_bias`` per sensor (those of
-    :func:`vehjax.models.with_output_biases`)."""
-    return tuple(f"{s}_bias" for s in sensors)
+    :func:`vehjax.models.with_output_biases`), then ``<noisy_input>_offset`` (that of
+    :func:`vehjax.models.with_input_offset`)."""
+    return tuple(f"{s}_bias" for s in sensors) + (f"{noisy_input}_offset",)
 
 
-def with_noise_means(model, sensors) -> Model:
-    """``model`` with the bias of each sensor as a constant state after the model's own:
-    :func:`vehjax.models.with_output_biases` (observe adds it to the sensor's row; a model
-    with ``bank_noise_gain()`` keeps it, zeros on the biases)."""
-    return with_output_biases(model, sensors)
+def with_noise_means(model, sensors, noisy_input) -> Model:
+    """``model`` with the bias of each sensor and the offset of ``noisy_input`` as constant
+    states after the model's own: :func:`vehjax.models.with_output_biases` (observe adds each
+    bias to its sensor's row), then :func:`vehjax.models.with_input_offset` (the model driven
+    by the input plus the offset). A model with ``bank_noise_gain()`` keeps it, zeros on the
+    added states."""
+    return with_input_offset(with_output_biases(model, sensors), noisy_input)
 
 
 def pad_linear_noise(linear_noise_std, n_linear, n_extra, bank_gain):
@@ -95,30 +97,40 @@ def bias_walk_stds(bias_walk, sensors):
     return np.array(out)
 
 
-def augment_prior(x0, P0, theta, gamma0, ns):
-    """The prior of the model with the bias states: x0 (nx,), P0 (nx,) or (nx, nx) of the
+def augment_prior(x0, P0, theta, gamma0, ns, mean_sd=None):
+    """The prior of the model with the mean states: x0 (nx,), P0 (nx,) or (nx, nx) of the
     model's states, ``theta`` (2 + 2 ns,) the paper's parameters (offset, its std, biases,
-    stds). Returns (x0 (nx + ns,), P0 (nx + ns, nx + ns)): the biases appended with variance
-    gamma0 * std^2, independent of the model's states (the paper's NiW prior of the biases)."""
+    stds). Returns (x0 (nx + ns + 1,), P0 (nx + ns + 1, nx + ns + 1)): the biases then the
+    offset appended with variance gamma0 * std^2 (the paper's NiW prior of the means) or
+    ``mean_sd``^2 where given ((ns + 1,) in that order, NaN for "not given"), independent of
+    each other and of the model's states."""
     x0 = jnp.asarray(x0)
     P0 = jnp.asarray(P0)
     P0 = jnp.diag(P0) if P0.ndim == 1 else P0
     nx = x0.shape[0]
     dtype = jnp.result_type(x0.dtype, P0.dtype, theta.dtype)
-    Pa = jnp.zeros((nx + ns, nx + ns), dtype).at[:nx, :nx].set(P0).at[nx:, nx:].set(
-        jnp.diag(gamma0 * theta[2 + ns:] ** 2))
-    return jnp.concatenate([x0.astype(dtype), theta[2:2 + ns].astype(dtype)]), Pa
+    means = jnp.concatenate([theta[2:2 + ns], theta[:1]])
+    stds = jnp.concatenate([theta[2 + ns:], theta[1:2]])
+    var = gamma0 * stds ** 2
+    if mean_sd is not None:
+        var = jnp.where(np.isnan(mean_sd), var, np.nan_to_num(np.asarray(mean_sd)) ** 2)
+    Pa = jnp.zeros((nx + ns + 1, nx + ns + 1), dtype).at[:nx, :nx].set(P0).at[nx:, nx:].set(
+        jnp.diag(var))
+    return jnp.concatenate([x0.astype(dtype), means.astype(dtype)]), Pa
 
 
 def map_estimates(mean, cov, params, params_cov, nx, ns):
-    """The paper's parameters from the filter on the model with bias states: the biases from
-    the mixture mean ``mean`` (nx + ns,) and covariance ``cov`` of the states (model order, the
-    biases last), the offset and the stds from the statistics' ``params`` (2 + 2 ns,) and
-    ``params_cov``. Returns (params, params_cov) in the order offset, offset std, biases,
-    stds; zero covariance between the biases and the rest."""
-    bi = np.arange(2, 2 + ns)  # the biases in params order
-    oi = np.concatenate([[0, 1], np.arange(2 + ns, 2 + 2 * ns)])
-    p = params.at[bi].set(mean[nx:])
-    pc = jnp.zeros_like(params_cov).at[np.ix_(bi, bi)].set(cov[nx:, nx:]).at[
+    """The paper's parameters from the filter on the model with mean states: the biases and
+    the offset from the mixture mean ``mean`` (nx + ns + 1,) and covariance ``cov`` of the
+    states (model order, the biases then the offset last), the offset's std and the sensor stds
+    from the statistics' ``params`` (2 + 2 ns,) and ``params_cov``. Returns (params,
+    params_cov) in the order offset, offset std, biases, stds; the means' covariance (offset
+    and biases, with their correlation) from the states, zero covariance between the means and
+    the stds."""
+    mi = np.concatenate([[0], np.arange(2, 2 + ns)])  # offset, biases in params order
+    si = np.concatenate([[nx + ns], np.arange(nx, nx + ns)])  # the same among the states
+    oi = np.concatenate([[1], np.arange(2 + ns, 2 + 2 * ns)])  # the stds
+    p = params.at[mi].set(mean[si])
+    pc = jnp.zeros_like(params_cov).at[np.ix_(mi, mi)].set(cov[np.ix_(si, si)]).at[
         np.ix_(oi, oi)].set(params_cov[np.ix_(oi, oi)])
     return p, pc

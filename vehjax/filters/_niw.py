@@ -25,7 +25,7 @@ from ._linalg import forward_entries
 
 __all__ = [
     "niw_predict", "niw_update", "st_logpdf_whitened", "t_weight_and_proposal", "impute_missing",
-    "wilson_hilferty", "draw_offset", "noise_estimates", "t_predictive",
+    "wilson_hilferty", "draw_offset", "draw_covariances", "noise_estimates", "t_predictive",
 ]
 
 
@@ -35,7 +35,8 @@ def niw_predict(gamma, nu, lam_w, lam_e, forgetting):
     return gamma / forgetting, forgetting * nu, forgetting * lam_w, forgetting * lam_e
 
 
-def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, e_known=False, extra_w=None):
+def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, means_known=False,
+               extra_w=None):
     """Eq. 18, the conjugate update with one datum v, given as ``eta = v - mu`` (d, ...):
     gamma / (1 + gamma), nu + 1, mu + gamma / (1 + gamma) eta, and Lambda + eta eta^T /
     (1 + gamma) on the (w, w) and (e, e) blocks (Murphy 2007, one datum with kappa = 1 / gamma).
@@ -45,10 +46,9 @@ def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, e_known=False, ex
         eta: (d, ...) the datum minus mu.
         extra_e: (d - 1, d - 1, ...) added to Lambda_e, or None: the expected-statistic term for
             uncertain or missing sensor data (module docstring of the filter).
-        e_known: the sensor noise's mean is known (zero; ``noise_means="kalman"``, where the
-            biases are Kalman states): its NiW is an inverse-Wishart, gamma_e = 0 (kappa =
-            infinity), so its means stay and Lambda_e gains eta_e eta_e^T; the offset's part
-            as above with ``gamma``.
+        means_known: the noise's mean is known (zero; ``noise_means="kalman"``, where the
+            offset and the biases are Kalman states): the NiW is an inverse-Wishart, gamma = 0
+            (kappa = infinity), so the means stay and Lambda gains eta eta^T on both blocks.
         extra_w: (...) added to Lambda_w, or None: the expected-statistic term of an offset
             known only in distribution (its conditional variance).
 
@@ -56,14 +56,10 @@ def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, e_known=False, ex
         (gamma, nu, mu, lam_w, lam_e) after the datum.
     """
     g_post = gamma / (1.0 + gamma)
-    s = 1.0 / (1.0 + gamma)
+    s = 1.0 if means_known else 1.0 / (1.0 + gamma)
     ee = eta[1:]
-    if e_known:
-        lam_e = lam_e + ee[:, None] * ee[None, :]
-        mu_new = mu.at[0].add(g_post * eta[0])
-    else:
-        lam_e = lam_e + s * (ee[:, None] * ee[None, :])
-        mu_new = mu + g_post * eta
+    lam_e = lam_e + s * (ee[:, None] * ee[None, :])
+    mu_new = mu if means_known else mu + g_post * eta
     if extra_e is not None:
         lam_e = lam_e + extra_e
     lam_w = lam_w + s * eta[0] ** 2
@@ -148,7 +144,30 @@ def wilson_hilferty(z, dof):
     return base * base * base
 
 
-def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, e_known=False):
+def draw_covariances(lam_w, lam_e, dof, z):
+    """A draw of the noise covariances (sigma_w^2, R) of one particle from its inverse-Wishart
+    statistics (the known-mean NiW of ``noise_means="kalman"``), each variance from its exact
+    marginal: Sigma_jj = Lambda_jj / c_j with c_j ~ chi^2_dof, dof = nu - d + 1 (the diagonal
+    of IW(Lambda, nu) in dimension d; Press 1982), the chi-squares by :func:`wilson_hilferty`
+    of independent standard normals; R's off-diagonal Lambda_jk / sqrt(c_j c_k), which keeps
+    Lambda's correlations and R positive semi-definite (a congruence of Lambda_e). The
+    dependence between the variances is not the inverse-Wishart's (independent c_j).
+
+    Args:
+        lam_w: (N,) Lambda_w.  lam_e: (n_s, n_s) entries of Lambda_e.  dof: scalar.
+        z: (1 + n_s, N) standard normals.
+
+    Returns:
+        (sigma_w^2 (N,), R (n_s, n_s) entries).
+    """
+    ns = len(lam_e)
+    c = [dof * wilson_hilferty(z[i], dof) for i in range(1 + ns)]
+    sq = [jnp.sqrt(c[1 + j]) for j in range(ns)]
+    R = [[lam_e[i][j] / (sq[i] * sq[j]) for j in range(ns)] for i in range(ns)]
+    return lam_w / c[0], R
+
+
+def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, means_known=False):
     """Eq. 23, the weighted estimates of the noise statistics, and their mixture covariance.
 
     The offset mean and the biases are the weighted NiW means; the variances mix the particles'
@@ -162,8 +181,8 @@ def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, e_known=False):
     Args:
         w: (N,) normalised weights.  mu: (d, N).  lam_w: (N,).  lam_e: (d - 1, d - 1, N).
         nu, gamma: scalars, after the update.
-        e_known: the sensor noise's mean is known (gamma_e = 0, :func:`niw_update`): no
-            within-particle covariance of the biases.
+        means_known: the noise's mean is known (gamma = 0, :func:`niw_update`): no
+            within-particle covariance of the offset and the biases.
 
     Returns:
         (params (p,), params_cov (p, p)), p = 2 d, in the order offset mean, offset std,
@@ -200,8 +219,8 @@ def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, e_known=False):
                 + 2.0 * (nu - pd - 1.0) * Lfull ** 2) / denom  # Cov(Sigma_ii, Sigma_jj)
     sd_i = jnp.concatenate([sd_w_i[None], sd_s_i])
     cov_sd = cov_diag / (4.0 * sd_i[:, None, :] * sd_i[None, :, :])
-    cov_mu = gamma * jnp.zeros((d, d, lam_w.shape[0]), dtype).at[0, 0].set(sw2).at[
-        1:, 1:].set(0.0 if e_known else se)
+    cov_mu = (0.0 if means_known else gamma) * jnp.zeros((d, d, lam_w.shape[0]), dtype).at[
+        0, 0].set(sw2).at[1:, 1:].set(se)
     within_mu = jnp.einsum("ijn,n->ij", cov_mu, w)
     within_sd = jnp.einsum("ijn,n->ij", cov_sd, w)
     perm = np.concatenate([[0], np.arange(2, 2 + ns)])  # the mean entries in params order
@@ -220,7 +239,7 @@ def draw_offset(mu_w, shift, scale, dof, z1, z2):
 
 
 def t_predictive(lin, P, Qz, lam_w, lam_e, mu_w, b_y, gamma, nu, dim, known_var, sensor_pos,
-                 n_sampled, start=None, e_known=False):
+                 n_sampled, start=None):
     """The moment-matched Student-t predictive of y_t of one step (eq. 26-27), entries over
     the particles.
 
@@ -242,8 +261,6 @@ def t_predictive(lin, P, Qz, lam_w, lam_e, mu_w, b_y, gamma, nu, dim, known_var,
         known_var: variance of each used output's known noise (0.0 for sensors).
         sensor_pos: dict used output row -> sensor index.
         n_sampled: how many sampled states are Gaussian too (``kalman_states="all"``), else 0.
-        e_known: the sensor noise's mean is known (gamma_e = 0, :func:`niw_update`): its
-            scale is Lambda_e / df.
 
     Returns:
         (mu_y, S, D, sw, df): the predictive location (list) and scale (nested lists), D,
@@ -253,7 +270,6 @@ def t_predictive(lin, P, Qz, lam_w, lam_e, mu_w, b_y, gamma, nu, dim, known_var,
     D = [add(add(dot(lin.Cx[i], lin.g), lin.d[i]), dot(lin.Cz[i], lin.gz)) for i in range(nyu)]
     df = nu - dim + 1.0
     c = (1.0 + gamma) / df
-    ce = 1.0 / df if e_known else c
     sw = c * lam_w
     mm = (df - 2.0) / df
     M = [[add(dot(lin.Cx[i], [r[j] for r in lin.Ab]), dot(lin.Cz[i], [r[j] for r in lin.A]))
@@ -274,7 +290,7 @@ def t_predictive(lin, P, Qz, lam_w, lam_e, mu_w, b_y, gamma, nu, dim, known_var,
                 K = add(K, known_var[i])
             v = mul(sw, mul(D[i], D[j]))
             if i in sensor_pos and j in sensor_pos:
-                v = add(v, ce * lam_e[sensor_pos[i]][sensor_pos[j]])
+                v = add(v, c * lam_e[sensor_pos[i]][sensor_pos[j]])
             S[i][j] = S[j][i] = add(v, mul(mm, K)) if not is_zero(K) else v
     S, mu_y, D = barrier((S, mu_y, D), start)
     return mu_y, S, D, sw, df

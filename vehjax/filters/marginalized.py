@@ -127,36 +127,41 @@ batch posterior (tests/test_marginalized.py checks it).
 * ``noise_means="kalman"`` (not the paper's; issue #33 item 2). The paper's filter says it
   knows the noise statistics better than it does when it learns them (``vehjax reproduce
   consistency``, 100 runs: NEES in the band on 0.17 of the steps with ``kalman_states="all"``,
-  the roll-rate bias's spread over runs twice its reported std). Two causes, two changes:
-  (1) the particle's Kalman filter takes the NiW bias means as exact, and eq. 18 takes each
-  residual as an exact observation of the bias, though the roll gyro tells its bias from the
-  bank rate only through the bank-angle sensor: the biases become constant states of each
-  particle's Kalman filter (exact Gaussian posterior, correlated with the bank;
-  :mod:`vehjax.filters._mpf_kalman` unchanged, the model augmented by
-  :func:`vehjax.models.with_output_biases`), and the sensor part of the NiW is an
-  inverse-Wishart of known zero mean (gamma_e = 0: ``e_known`` in
-  :func:`vehjax.filters._niw.niw_update`). (2) The statistics of a particle are those of its
-  own drawn offsets w_{1:t}: in ay the steering error (d w) and the sensor noise are nearly
-  confounded at each step, and a particle's split of ay's noise between them confirms itself
-  along its path (resampling leaves few paths), so sigma_w and the ay std are too sure. With
-  Gaussian particle states (the default here) the statistics are averaged over w_t | y_t
-  instead of taken at the draw: the offset's datum is its conditional mean w_hat (eq. 30) with
-  its variance var(w | y) = scale dof / (dof - 2) added to Lambda_w, the sensor residuals are
-  those at w_hat with G G^T var(w | y) added to Lambda_e (G = d residual / d w, exact since the
-  residual is affine in w: two evaluations of the Kalman step), as well as H P H^T; the
-  particle still moves with its draw. The offset's mean stays in the NiW (as a Kalman state
-  too, given a particle's drawn path it is nearly determined: on the study, 20 runs, its
-  coverage 0.65, spread 2.07; not kept). Measured on the consistency study (100 runs x 3 s,
-  N = 1000, learning offset, biases and stds): NEES in the band on 0.93 of the steps (without
-  the averaging 0.82, the ay std's coverage 0.78), every parameter's coverage 0.91-0.97.
-  The biases may drift (``bias_walk``: process noise of the bias states). Not yet good on
-  paper 004's simulation (drive inputs, random-walk biases, lambda = 0.995: ``vehjax
-  reproduce noise-learning``'s "MPF (consistent)" row, where its offset and bias estimates are
-  off and its NEES far too large): the offset's early error (its prior 0 +- 0.04 deg, the
-  truth 0.28 deg) is taken up by the bias states (ay sees d mu_w like its bias), with which
-  the statistics' offset has no covariance; with the offset's prior mean at the truth the
-  same run learns (noise-learning's docstring has the numbers). About 2-3x the paper's time
-  per step there (N = 500).
+  the roll-rate bias's spread over runs twice its reported std; ``vehjax reproduce
+  noise-learning`` on paper 004's simulation: the NEES of (vy, r) about 4 per dof). Three
+  causes, three changes (:func:`_storvik_update`):
+  (1) the particle's Kalman filter takes the NiW means as exact, and eq. 18 takes each
+  residual as an exact observation of them, though the data tell some of them apart only
+  slowly (the roll-rate bias from the bank rate; the ay bias from the steering offset, which
+  ay sees as d mu_w): the steering offset and the sensor biases become constant states of each
+  particle's Kalman filter (exact Gaussian posterior, correlated with the states and with each
+  other; the model augmented by :func:`vehjax.models.with_output_biases` and
+  :func:`vehjax.models.with_input_offset`), so the statistics are an inverse-Wishart of known
+  zero mean over the covariances alone (``means_known`` in :func:`vehjax.filters._niw.
+  niw_update`);
+  (2) with the offset a state, the input error w_t = the zero-mean steering noise is Gaussian
+  given the covariances, so it is not drawn: each particle's Kalman step takes it as process
+  noise through (g, gz) and conditions the joint of (x_t, z_t, w_t) on y_t
+  (:func:`vehjax.filters._mpf_kalman.input_noise_kalman_step`), and the statistics take the
+  expected data: the posterior mean of w_t with its variance added to Lambda_w, the sensor
+  residuals at the posterior mean with H C H^T added to Lambda_e. Drawn offsets made each
+  particle's statistics those of its own path, which resampling shares among few particles;
+  (3) what is random per particle is then the covariances: each step every particle draws its
+  sigma_w^2 and R from its own inverse-Wishart statistics (the marginals exactly,
+  :func:`vehjax.filters._niw.draw_covariances`), runs its Kalman step with them and is weighted
+  by that step's Gaussian predictive of y_t: Storvik's (2002) filter for static parameters
+  with sufficient statistics, the statistics here the expected ones (the states are not
+  sampled), so the spread of the particles is the spread of the covariances given the data.
+  Exact, given the covariances, for models affine in the states and the noisy input (with
+  every covariance known it is the Kalman filter of the augmented model:
+  tests/test_mpf_consistent.py). Approximate: the expected statistics (a variational-Bayes
+  style update, not the exact posterior of the covariances) and the forgetting. The prior of
+  the offset and the biases is N(mean0, gamma0 std0^2) as the paper's NiW unless ``mean_std0``
+  gives their size: a prior tied to the noise std (0.04 deg for a 0.28 deg offset in paper
+  004's simulation) holds the offset state several stds from the truth for long and makes the
+  filter over-confident meanwhile. Measured on the consistency study and paper 004's
+  simulation: ``vehjax reproduce consistency --filters MPF-K`` and ``vehjax reproduce
+  noise-learning`` (their docstrings have the numbers).
 
 Linearisation. The model enters through forward-mode derivatives (``jax.jacfwd``) at each
 particle: g = d f / d delta, A_bar = d f_x / d z, the bank transition, C = d h / d (x, z) and
@@ -204,10 +209,11 @@ from . import _mpf_means
 from . import resampling as _rs
 from . import smc
 from ._entrywise import add, barrier, dot, entries, matmul, mul, stack, sub
-from ._mpf_kalman import bank_kalman_step, joint_kalman_step, joint_prediction
+from ._mpf_kalman import (bank_kalman_step, input_noise_kalman_step, joint_kalman_step,
+                          joint_prediction)
 from ._mpf_linearise import entry_kinds, lin_entries, linearise, merge_entries
-from ._niw import (draw_offset, impute_missing, niw_predict, niw_update, noise_estimates,
-                   t_predictive, t_weight_and_proposal)
+from ._niw import (draw_covariances, draw_offset, impute_missing, niw_predict, niw_update,
+                   noise_estimates, t_predictive, t_weight_and_proposal)
 from .base import Estimator, StepOutput
 from .sigma import cholesky, solve_lower
 
@@ -398,8 +404,8 @@ class _Setup(NamedTuple):
     n_inputs: int
     ny: int
     resample: Callable  # smc.resample or the caller's
-    e_known: bool = False  # sensor means known (zero): noise_means="kalman" (_mpf_means)
-    expect_w: bool = False  # statistics averaged over w_t | y_t (noise_means="kalman")
+    means_known: bool = False  # offset and sensor means known (zero): noise_means="kalman"
+    storvik: bool = False  # covariances drawn per particle, w as process noise (noise_means)
 
 
 def _linear_noise(model, linear_noise_std, li, linear_states) -> np.ndarray:
@@ -595,6 +601,11 @@ def _init(s: _Setup, x0, P0, theta0=None, P_theta0=None, key=None) -> MPFState:
     scale = s.nu0 - d - 1.0
     # with Gaussian particle states: zero covariance of the drawn states, the bank's after
     Pk = jnp.zeros((nk, nk), dtype).at[nk - nz:, nk - nz:].set(Pz)
+    if s.storvik:  # nothing drawn: every particle starts as the prior (sampled, linear order)
+        order = np.concatenate([nl, li]).astype(int)
+        xs = jnp.broadcast_to(x0[nl][:, None], (s.nxs, n))
+        zs = jnp.broadcast_to(x0[li][:, None], (nz, n))
+        Pk = P0[np.ix_(order, order)]
     return MPFState(
         x=xs,
         z=zs,
@@ -683,7 +694,7 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
     b_y = [b[spos[i]] if i in spos else 0.0 for i in range(nyu)]
     # predictive of y (eq. 26): w and the sensor noise through the NiW, the rest moment-matched
     mu_y, S, D, sw, df = t_predictive(lin, Pe, Qe, lam_w, lee, mu_w, b_y, gam, nu_p, s.d, kvu,
-                                      spos, nxs if s.gauss else 0, start, e_known=s.e_known)
+                                      spos, nxs if s.gauss else 0, start)
     ll, shift, sc, dfy, eta = barrier(t_weight_and_proposal(
         ye, ob, mu_y, S, [mul(sw, v) for v in D], sw, df), start)
     # draw w_t from eq. 30 (Student-t via Wilson-Hilferty) and propagate (eq. 6)
@@ -700,17 +711,6 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
             for j in range(nyu)] for i in range(nyu)]
     x_new, z_new, P3, eta_e, V = _kalman_stage(s, lin, Pe, Qe, w, dw, dx, x_new, ye, ob, eta,
                                                mu_w, b_y, sig_w2, R_y, D, start)
-    extra_w = None
-    if s.expect_w:  # statistics averaged over w_t | y_t (module docstring, noise_means)
-        w_hat = mu_w + shift
-        var_w = sc * dfy / (dfy - 2.0)
-        eta_h = _kalman_stage(s, lin, Pe, Qe, w_hat, None, None, x_new, ye, ob, eta, mu_w, b_y,
-                              sig_w2, R_y, D, start)[3]
-        eta_1 = _kalman_stage(s, lin, Pe, Qe, w_hat + 1.0, None, None, x_new, ye, ob, eta,
-                              mu_w, b_y, sig_w2, R_y, D, start)[3]
-        G = [sub(eta_1[i], eta_h[i]) for i in range(ns)]
-        V = [[add(V[i][j], mul(var_w, mul(G[i], G[j]))) for j in range(ns)] for i in range(ns)]
-        eta_e, dw, extra_w = eta_h, w_hat - mu_w, var_w
     eta_e, V = barrier((eta_e, V), start)
     ob_e = [ob[r] for r in s.srow]
     V = [[jnp.where(ob_e[i] & ob_e[j], V[i][j], 0.0) for j in range(ns)] for i in range(ns)]
@@ -718,8 +718,7 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
     like = x[0]
     eta_v = stack([dw] + eta_e, like)
     extra = stack([[add(V[i][j], V_miss[i][j]) for j in range(ns)] for i in range(ns)], like)
-    _, _, mu_new, lw_new, le_new = niw_update(gam, nu_p, mu, lam_w, lam_e, eta_v, extra,
-                                             e_known=s.e_known, extra_w=extra_w)
+    _, _, mu_new, lw_new, le_new = niw_update(gam, nu_p, mu, lam_w, lam_e, eta_v, extra)
     x_new = stack(x_new, like)
     z_new = stack(z_new, like) if nz else m
     P_new = stack(P3, like) if nz else P
@@ -731,6 +730,58 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
     cov_y = stack(S, like) * (df / (df - 2.0))
     return (ll, keep(x_new, x), keep(z_new, m), keep(P_new, P), keep(mu_new, mu),
             keep(lw_new, lam_w), keep(le_new, lam_e), stack(mu_y, like), cov_y, w)
+
+
+def _storvik_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, zc, y, obs, u, theta, nu_p):
+    """One step of every particle with ``noise_means="kalman"`` (module docstring): the noise
+    covariances drawn from the particle's inverse-Wishart statistics, the Kalman step with the
+    noisy input's error as process noise at the drawn sigma_w^2 and R, the Gaussian predictive
+    of y_t as the weight (Storvik 2002), the statistics updated with the expected data.
+    zc: (1 + n_s, N) standard normals. Returns what :func:`_particle_update` returns (the
+    posterior mean of w_t in place of a draw)."""
+    start = (u[0] != u[0]).astype(jnp.int32)
+    nxs, nz, ns, spos, kvu, srow = s.nxs, s.nz, s.ns, s.spos, s.kvu, s.srow
+    nk = s.nk
+    nyu = len(s.u_idx)
+    lin = _linearisation(s, mdl, x, m, u, theta, start)
+    ye = [y[i] for i in range(nyu)]
+    ob = [obs[i] for i in range(nyu)]
+    Pe, lee = entries(P), entries(lam_e)
+    Qe = [[float(s.Qz[i, j]) if s.Qz[i, j] == 0.0 else jnp.asarray(s.Qz[i, j], x.dtype)
+           for j in range(nz)] for i in range(nz)]
+    sig_w2, R_d = draw_covariances(lam_w, lee, nu_p - s.d + 1.0, zc)
+    R_y = [[R_d[spos[i]][spos[j]] if (i in spos and j in spos) else (kvu[i] if i == j else 0.0)
+            for j in range(nyu)] for i in range(nyu)]
+    sig_w2, R_y = barrier((sig_w2, R_y), start)
+    post, C, o, ll, S = barrier(input_noise_kalman_step(lin, Pe, sig_w2, ye, ob, [0.0] * nyu,
+                                                        R_y, Qe, start), start)
+    x_new = [add(lin.xb[k], post[k]) for k in range(nxs)]
+    z_new = [add(lin.zb[i], post[nxs + i]) for i in range(nz)]
+    P_new = [row[:nk] for row in C[:nk]]
+    # the statistics' data: w's and the sensor residuals' posterior means and covariances
+    Hs = [list(lin.Cx[r]) + list(lin.Cz[r]) + [lin.d[r]] for r in srow]
+    eta_e = [sub(o[r], dot(Hs[j], post)) for j, r in enumerate(srow)]
+    CH = matmul(Hs, C)
+    V = [[dot(CH[i], Hs[j]) for j in range(ns)] for i in range(ns)]
+    ob_e = [ob[r] for r in srow]
+    V = [[jnp.where(ob_e[i] & ob_e[j], V[i][j], 0.0) for j in range(ns)] for i in range(ns)]
+    inv_den = 1.0 / (nu_p - s.d - 1.0)
+    R_s = [[lee[i][j] * inv_den for j in range(ns)] for i in range(ns)]
+    eta_e, V_miss = barrier(impute_missing(eta_e, R_s, ob_e), start)
+    like = x[0]
+    eta_v = stack([post[nk]] + eta_e, like)
+    extra = stack([[add(V[i][j], V_miss[i][j]) for j in range(ns)] for i in range(ns)], like)
+    _, _, _, lw_new, le_new = niw_update(0.0, nu_p, jnp.zeros_like(eta_v), lam_w, lam_e, eta_v,
+                                         extra, means_known=True, extra_w=C[nk][nk])
+    x_new, z_new, P_new = stack(x_new, like), stack(z_new, like), stack(P_new, like)
+    bad = ~(jnp.isfinite(ll) & jnp.all(jnp.isfinite(x_new), 0) & jnp.all(jnp.isfinite(z_new), 0)
+            & jnp.all(jnp.isfinite(P_new), (0, 1)) & jnp.isfinite(lw_new)
+            & jnp.all(jnp.isfinite(le_new), (0, 1)))
+    ll = jnp.where(bad, -jnp.inf, ll)
+    keep = lambda new, old: jnp.where(bad, old, new)  # noqa: E731
+    mu_y = stack([lin.yb[i] for i in range(nyu)], like)
+    return (ll, keep(x_new, x), keep(z_new, m), keep(P_new, P), None, keep(lw_new, lam_w),
+            keep(le_new, lam_e), mu_y, stack(S, like), post[nk] + 0.0 * like)
 
 
 def _mixture_moments(s: _Setup, w_now, x, z, P):
@@ -777,10 +828,16 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     n_obs = jnp.sum(obs, dtype=jnp.int32)
     gam_p, nu_p, lw_p, le_p = niw_predict(state.gamma, state.nu, state.lam_w, state.lam_e, s.lam)
     key_next, key_step = smc.split(state.key)
-    zn = barrier(smc.normals(key_step, 2, n, dtype), (u[0] != u[0]).astype(jnp.int32))
-    ll, x, z, P, mu, lam_w, lam_e, mu_y, cov_y, w_draw = _particle_update(
-        s, mdl, state.x, state.z, state.P, state.mu, lw_p, le_p, zn[0], zn[1],
-        y0, obs, u, theta, gam_p, nu_p)
+    zn = barrier(smc.normals(key_step, 1 + s.ns if s.storvik else 2, n, dtype),
+                 (u[0] != u[0]).astype(jnp.int32))
+    if s.storvik:
+        ll, x, z, P, _, lam_w, lam_e, mu_y, cov_y, w_draw = _storvik_update(
+            s, mdl, state.x, state.z, state.P, lw_p, le_p, zn, y0, obs, u, theta, nu_p)
+        mu = state.mu
+    else:
+        ll, x, z, P, mu, lam_w, lam_e, mu_y, cov_y, w_draw = _particle_update(
+            s, mdl, state.x, state.z, state.P, state.mu, lw_p, le_p, zn[0], zn[1],
+            y0, obs, u, theta, gam_p, nu_p)
     gamma = gam_p / (1.0 + gam_p)
     nu = nu_p + 1.0
     rw = smc.reweight(state.log_weights, ll)
@@ -790,7 +847,7 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
 
     mean, cov = _mixture_moments(s, w_now, x, z, P)
     params, params_cov = noise_estimates(w_now, mu, lam_w, lam_e, nu, gamma,
-                                        e_known=s.e_known)
+                                        means_known=s.means_known)
     nis = _mixture_nis(state.weights, mu_y, cov_y, y0, obs)
 
     # resample for the next step
@@ -835,6 +892,7 @@ def marginalized_pf(
     resample=None,
     noise_means: str = "niw",
     bias_walk=None,
+    mean_std0=None,
 ) -> Estimator:
     """Noise-adaptive marginalized particle filter (Berntorp & Di Cairano 2018): the state, an
     unknown-mean unknown-variance input error and the biases and covariance of some sensors,
@@ -891,16 +949,22 @@ def marginalized_pf(
             paper's Algorithm 1): in the NiW statistics of each particle (eq. 18), the Kalman
             filters taking them as exact. "kalman" (not the paper's): as constant states of
             each particle's Kalman filter (exact Gaussian posterior, correlated with the
-            states; prior N(mean0, gamma0 std0^2)), the NiW then an inverse-Wishart of known
-            zero mean over the covariances alone (:mod:`vehjax.filters._mpf_means`). The model
-            must be affine in ``noisy_input`` (checked with the linear states). With
-            "kalman" the statistics are averaged over each step's offset given y_t (Gaussian
-            particle states only; module docstring); the estimator declares no
-            Rao-Blackwell structure (``vehjax.smooth`` does not smooth it). Its cost per step
-            against the paper's: ``vehjax reproduce noise-learning`` measures both.
+            states and each other; prior N(mean0, gamma0 std0^2) or ``mean_std0``), the input
+            error as process noise (not drawn), each particle drawing its covariances from its
+            inverse-Wishart statistics every step and weighted by its Gaussian predictive
+            (Storvik's filter; module docstring). Needs ``kalman_states="all"``; the model
+            must be affine in ``noisy_input`` (checked with the linear states). The
+            estimator declares no Rao-Blackwell structure (``vehjax.smooth`` does not smooth
+            it). Its cost per step against the paper's: ``vehjax reproduce noise-learning``
+            measures both.
         bias_walk: with ``noise_means="kalman"`` only: dict sensor -> std per step of a
             random walk of its bias (sensor units; missing sensors 0: constant biases), the
             process noise of the bias states.
+        mean_std0: with ``noise_means="kalman"`` only: dict of the prior stds of the offset
+            (key ``noisy_input``) and the biases (sensor names), the input's and outputs'
+            units; missing names sqrt(gamma0) std0 (the paper's NiW prior). A Kalman state's
+            prior need not be tied to the noise std: give the size the offset and biases may
+            have.
 
     Returns:
         ``Estimator`` (``needs_key=True``), ``nx`` = all model states, ``param_names`` =
@@ -928,10 +992,16 @@ def marginalized_pf(
     if kalman_states is None:
         kalman_states = "all" if noise_means == "kalman" else "linear"
     if noise_means == "kalman":
+        if kalman_states != "all":
+            raise ValueError(f"kalman_states: noise_means='kalman' needs 'all' (every state "
+                             f"Gaussian in each particle), got {kalman_states!r}")
         return _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std,
                                 linear_states, linear_noise_std, std0, mean0, forgetting,
                                 gamma0, nu0, ess_threshold, resampling, kalman_states, resample,
-                                bias_walk)
+                                bias_walk, mean_std0)
+    if mean_std0 is not None:
+        raise ValueError("mean_std0: only with noise_means='kalman' (the paper's NiW ties the "
+                         "means' prior to gamma0 std0^2)")
     if bias_walk is not None:
         raise ValueError("bias_walk: only with noise_means='kalman' (the paper's filter tracks "
                          "drifting biases by forgetting)")
@@ -951,7 +1021,8 @@ def marginalized_pf(
 
 def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear_states,
                      linear_noise_std, std0, mean0, forgetting, gamma0, nu0, ess_threshold,
-                     resampling, kalman_states, resample, bias_walk=None) -> Estimator:
+                     resampling, kalman_states, resample, bias_walk=None,
+                     mean_std0=None) -> Estimator:
     """:func:`marginalized_pf` with ``noise_means="kalman"``: the filter on the model with the
     sensor biases as constant linear states (:func:`_mpf_means.with_noise_means`), the sensor
     part of its NiW pinned at mean zero (``e_known``), and an estimator over the model's own
@@ -960,11 +1031,14 @@ def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear
     sensors = _validate.names("sensors", sensors, tuple(model.output_names))
     linear_states = _validate.names("linear_states", linear_states, tuple(model.state_names),
                                     allow_empty=True)
-    extra = _mpf_means.mean_state_names(sensors)
+    if not isinstance(noisy_input, str) or noisy_input not in tuple(model.input_names):
+        raise ValueError(f"noisy_input: expected one of the model's inputs "
+                         f"{tuple(model.input_names)}, got {noisy_input!r}")
+    extra = _mpf_means.mean_state_names(sensors, noisy_input)
     clash = [n for n in extra if n in tuple(model.state_names)]
     if clash:
         raise ValueError(f"noise_means: the model already has states named {clash}")
-    aug = _mpf_means.with_noise_means(model, sensors)
+    aug = _mpf_means.with_noise_means(model, sensors, noisy_input)
     linear_noise_std = _mpf_means.pad_linear_noise(
         linear_noise_std, len(linear_states), len(extra), hasattr(model, "bank_noise_gain"))
     s_user = _configure(aug, n_particles, noisy_input, sensors, known_std,
@@ -972,13 +1046,18 @@ def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear
                         forgetting, gamma0, nu0, ess_threshold, resampling, kalman_states,
                         resample)
     ns, nx = s_user.ns, len(model.state_names)
-    bi = np.arange(2, 2 + ns)
+    names = (noisy_input,) + tuple(sensors)
+    msd = _std_dict("mean_std0", {} if mean_std0 is None else mean_std0, (), names,
+                    "input and output units")
+    # prior stds of the added states (biases, then the offset); NaN: sqrt(gamma0) std0
+    mean_sd = np.array([msd.get(k, np.nan) for k in tuple(sensors) + (noisy_input,)])
+    mi = np.concatenate([[0], np.arange(2, 2 + ns)])  # offset and biases in params order
     walk = _mpf_means.bias_walk_stds(bias_walk, sensors)
     Qz = np.array(s_user.Qz)
-    Qz[-ns:, -ns:] = np.diag(walk ** 2)
-    # the filter's own NiW: the sensor means zero and known
-    prior = np.where(np.isin(np.arange(2 + 2 * ns), bi), 0.0, s_user.theta_prior)
-    s = s_user._replace(e_known=True, expect_w=s_user.gauss, Qz=Qz, theta_prior=prior)
+    Qz[-ns - 1:-1, -ns - 1:-1] = np.diag(walk ** 2)
+    # the filter's own NiW: the offset's and the sensors' means zero and known
+    prior = np.where(np.isin(np.arange(2 + 2 * ns), mi), 0.0, s_user.theta_prior)
+    s = s_user._replace(means_known=True, storvik=True, Qz=Qz, theta_prior=prior)
     mdl = _model_fns(aug, s)
 
     def init(x0, P0, theta0=None, P_theta0=None, key=None):
@@ -990,8 +1069,8 @@ def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear
                              f"{np.shape(theta0)}")
         th = jnp.asarray(s_user.theta_prior if theta0 is None else theta0)
         th = th.astype(jnp.result_type(th.dtype, jnp.asarray(x0).dtype, float))
-        xa, Pa = _mpf_means.augment_prior(x0, P0, th, s_user.g0, ns)
-        return _init(s, xa, Pa, th.at[bi].set(0.0), None, key)
+        xa, Pa = _mpf_means.augment_prior(x0, P0, th, s_user.g0, ns, mean_sd)
+        return _init(s, xa, Pa, th.at[mi].set(0.0), None, key)
 
     def step(state, y, u):
         state, out = _step(s, mdl, state, y, u)

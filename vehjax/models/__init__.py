@@ -2,14 +2,15 @@
 
 from .bank import SingleTrackBank, virtual_yaw_rate
 from .base import BaseModel, Model, VehicleModel, integrate
-from .biases import with_output_biases
+from .biases import with_input_offset, with_output_biases
 from .dynamic import Dynamic3DOF
 from .kinematic import KinematicBicycle
 from .sevendof import SevenDOF
 from .single_track import SingleTrack
 
 __all__ = ["BaseModel", "Model", "VehicleModel", "integrate", "KinematicBicycle", "Dynamic3DOF",
-           "SingleTrackBank", "SevenDOF", "SingleTrack", "virtual_yaw_rate", "with_output_biases"]
+           "SingleTrackBank", "SevenDOF", "SingleTrack", "virtual_yaw_rate", "with_output_biases",
+           "with_input_offset"]
 
 #: name -> class, for the CLI.
 REGISTRY = {

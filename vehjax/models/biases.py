@@ -1,4 +1,5 @@
-"""Sensor biases as states: a model with one constant state per biased output.
+"""Sensor biases and input offsets as states: a model with one constant state per biased
+output (:func:`with_output_biases`) or per offset input (:func:`with_input_offset`).
 
 ``with_output_biases(model, ("ay", "roll_rate"))`` returns a :class:`~vehjax.models.Model`
 whose state is the model's followed by ``ay_bias``, ``roll_rate_bias`` (in the outputs' units):
@@ -17,7 +18,7 @@ import numpy as np
 
 from .base import Model
 
-__all__ = ["with_output_biases"]
+__all__ = ["with_output_biases", "with_input_offset"]
 
 
 class _BiasedBank(Model):
@@ -58,10 +59,7 @@ def with_output_biases(model, outputs) -> Model:
         raise ValueError(f"outputs: expected distinct names among {tuple(known)}, got {outputs!r}")
     nx = len(model.state_names)
     rows = np.array([known.index(n) for n in names])
-    units = {}
-    for kind in ("state", "input", "param", "output"):
-        names_k = getattr(model, f"{kind}_names")
-        units.update(zip(names_k, getattr(model, f"{kind}_units", ("-",) * len(names_k))))
+    units = _units(model)
 
     def transition(x, u, theta):
         return jnp.concatenate([model.transition(x[:nx], u, theta), x[nx:]])
@@ -78,7 +76,69 @@ def with_output_biases(model, outputs) -> Model:
                if v != "-"},
         fast_math=False,  # the model's own functions are called as they are
     )
+    return _wrapped(model, len(names), kwargs)
+
+
+def _units(model) -> dict:
+    units = {}
+    for kind in ("state", "input", "param", "output"):
+        names_k = getattr(model, f"{kind}_names")
+        units.update(zip(names_k, getattr(model, f"{kind}_units", ("-",) * len(names_k))))
+    return units
+
+
+def _wrapped(model, n_added, kwargs) -> Model:
+    """The :class:`Model` of ``kwargs``; a model with ``bank_noise_gain()`` keeps it (zeros on
+    the ``n_added`` states appended)."""
     if hasattr(model, "bank_noise_gain"):
-        gain = np.r_[np.asarray(model.bank_noise_gain(), float), np.zeros(len(names))]
+        gain = np.r_[np.asarray(model.bank_noise_gain(), float), np.zeros(n_added)]
         return _BiasedBank(tuple(float(g) for g in gain), **kwargs)
     return Model(**kwargs)
+
+
+def with_input_offset(model, inputs) -> Model:
+    """``model`` with a constant additive offset state per input in ``inputs``: the model is
+    driven by the input reading plus the offset (a steering-angle sensor's offset, paper 004's
+    mu_w), u_true = u + offset.
+
+    Args:
+        model: any vehjax model (built-in or :class:`~vehjax.models.Model`).
+        inputs: names in ``model.input_names``, each at most once.
+
+    Returns:
+        A :class:`~vehjax.models.Model` with states ``model.state_names`` then
+        ``<input>_offset`` per input (unit: the input's), the same inputs, parameters, nominal
+        ``theta``, outputs and ``dt``; ``transition`` and ``observe`` evaluate the model at
+        u + offset and ``transition`` keeps the offsets. A model with ``bank_noise_gain()``
+        keeps it (zeros on the offsets).
+
+    Raises:
+        ValueError: ``inputs`` empty, repeated or not inputs of the model.
+    """
+    names = (inputs,) if isinstance(inputs, str) else tuple(inputs)
+    known = list(model.input_names)
+    if not names or len(set(names)) != len(names) or not all(n in known for n in names):
+        raise ValueError(f"inputs: expected distinct names among {tuple(known)}, got {inputs!r}")
+    nx = len(model.state_names)
+    cols = np.array([known.index(n) for n in names])
+    units = _units(model)
+
+    def shifted(x, u):
+        return jnp.asarray(u).at[cols].add(x[nx:])
+
+    def transition(x, u, theta):
+        return jnp.concatenate([model.transition(x[:nx], shifted(x, u), theta), x[nx:]])
+
+    def observe(x, u, theta):
+        return model.observe(x[:nx], shifted(x, u), theta)
+
+    kwargs = dict(
+        transition=transition, observe=observe, dt=model.dt,
+        state_names=tuple(model.state_names) + tuple(f"{n}_offset" for n in names),
+        param_names=tuple(model.param_names), input_names=tuple(known),
+        output_names=tuple(model.output_names), theta=model.theta,
+        units={k: v for k, v in {**units, **{f"{n}_offset": units[n] for n in names}}.items()
+               if v != "-"},
+        fast_math=False,
+    )
+    return _wrapped(model, len(names), kwargs)

@@ -52,9 +52,10 @@ What "matched" means here (nothing below is tuned per filter):
   constant state per sensor added to its output (:func:`vehjax.models.with_output_biases`)
   that the per-particle Kalman filter estimates with the rest (prior: the other rows'). For
   "MPF-K" is the option ``noise_means="kalman"`` (issue #33 item 2, not the paper's
-  algorithm; :mod:`vehjax.filters._mpf_means`): learns everything like MPF-G, but the sensor
-  biases are constant states of each particle's Kalman filter (Gaussian over all states) and
-  the NiW learns the offset and the covariances (the sensor means known zero). For
+  algorithm; :mod:`vehjax.filters._mpf_means`): learns everything like MPF-G, but the
+  steering offset and the sensor biases are constant states of each particle's Kalman filter
+  (Gaussian over all states) and the statistics learn the covariances alone (the means known
+  zero). For
   every MPF row the report also gives the parameter coverage: the fraction of runs whose final
   95 % interval (estimate +- 1.96 reported std) holds the true value, and the spread of the
   final estimates over runs divided by their mean reported std (1 = honest, > 1 over-confident).
@@ -92,12 +93,7 @@ _KNOWN_NOISE, _BIASES_KNOWN, _COVS_KNOWN = (dict(nu0=1e7, gamma0=1e-9), dict(gam
 _KALMAN_BIASES = "MPF-G (covariances known; biases as Kalman states)"
 _MPFS = {"MPF": {}, "MPF (known noise)": _KNOWN_NOISE, "MPF-G": dict(kalman_states="all"),
          "MPF-G (known noise)": dict(_KNOWN_NOISE, kalman_states="all"),
-         "MPF-K": "learning the covariances from 300 steps: at seed 0 (100 runs, N = 1000) NEES in "
-             "the band on 0.93 of the steps and every coverage >= 0.91, so a miss at another "
-             "seed or size is within that margin; the stds of a particle still come from its "
-             "own drawn path (averaged over each step's offset only), see the module docstring "
-             "of vehjax.filters.marginalized.",
-    "MPF-G (biases known)": dict(_BIASES_KNOWN, kalman_states="all"),
+         "MPF-G (biases known)": dict(_BIASES_KNOWN, kalman_states="all"),
          "MPF-G (covariances known)": dict(_COVS_KNOWN, kalman_states="all"),
          _KALMAN_BIASES: dict(_KNOWN_NOISE, kalman_states="all"),
          "MPF-K": dict(kalman_states="all", noise_means="kalman")}

@@ -185,13 +185,15 @@ def _mpf_consistent(model, args, drive):
             linear_states=("phi", "phi_dot", "phi_ddot") + scale,
             linear_noise_std=b18.BANK_JERK_STD,
             std0={**b18.DRIVE_STD0, "roll_rate": b18.DRIVE_STD0["r"]}, forgetting=0.999,
-            noise_means="kalman", bias_walk=walk)
+            noise_means="kalman", bias_walk=walk, mean_std0={"delta": OFFSET_STD0, **BIAS_STD0})
     return marginalized_pf(
         model, args.particles, noisy_input="delta", sensors=SENSORS,
         known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
         linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=b18.BANK_JERK_STD,
-        std0={"delta": 2 * b18.STEER_STD, **{s: 2 * b18.SENSOR_STD[s] for s in SENSORS}},
-        forgetting=0.995, noise_means="kalman", bias_walk=walk)
+        std0={"delta": args.steer_factor * b18.STEER_STD,
+              **{s: 2 * b18.SENSOR_STD[s] for s in SENSORS}},
+        forgetting=0.995, noise_means="kalman", bias_walk=walk,
+        mean_std0={"delta": OFFSET_STD0, **BIAS_STD0})
 
 
 def build(method, model, args, drive=False):
