@@ -273,7 +273,8 @@ def run_method(method, model, Y, U, args, key, drive=False):
         Pm = np.asarray(out.params)
         Pc = np.asarray(out.params_cov)
         names = list(est.param_names)
-        for nm in ["delta_offset"] + [f"{s}_bias" for s in SENSORS] + [f"{s}_std" for s in SENSORS]:
+        for nm in (["delta_offset", "delta_std"] + [f"{s}_bias" for s in SENSORS]
+                   + [f"{s}_std" for s in SENSORS]):
             if nm in names:
                 j = names.index(nm)
                 est_[nm] = Pm[..., j]
@@ -298,13 +299,16 @@ def sim_metrics(res, X, B, ss):
     est, sd = res["est"], res["sd"]
     m = dict(method=res["method"], diverged=res["diverged"], ms=res["ms_per_step"],
              compile_s=res["compile_s"])
-    truth = {"delta_offset": np.full(X.shape[:2], b18.OFFSET)}
+    truth = {"delta_offset": np.full(X.shape[:2], b18.OFFSET),
+             "delta_std": np.full(X.shape[:2], b18.STEER_STD)}
     for j, s in enumerate(SENSORS):
         truth[f"{s}_bias"] = B[..., j]
         truth[f"{s}_std"] = np.full(X.shape[:2], b18.SENSOR_STD[s])
     if "delta_offset" in est:
         e = (est["delta_offset"][:, ss] - b18.OFFSET) / DEG
         m["offset_mean"], m["offset_rms"] = float(np.nanmean(e)), _rms(e)
+    if "delta_std" in est:
+        m["delta_std"] = float(np.nanmean(est["delta_std"][:, ss] / b18.STEER_STD - 1.0))
     for s in SENSORS:
         k = f"{s}_bias"
         if k in est:
@@ -381,7 +385,8 @@ def _cov_cell(cov):
 
 def sim_table(ms):
     head = ("method", "offset err mean / RMS [deg]", "bias RMS ay [m/s^2] / r / roll [deg/s]",
-            "std rel. err ay / r / roll", "coverage offset / biases / stds",
+            "std rel. err ay / r / roll", "steering std rel. err",
+            "coverage offset / biases / stds",
             "NEES (vy, r) in band / per dof", "NIS in band / per dof", "ms per run-step",
             "verdict")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -390,7 +395,8 @@ def sim_table(ms):
         bias = " / ".join(_f(m.get(f"{s}_bias"), "{:.3g}") for s in SENSORS)
         std = " / ".join(_f(m.get(f"{s}_std"), "{:+.3f}") for s in SENSORS)
         lines.append("| " + " | ".join([
-            m["method"], off, bias, std, _cov_cell(m["coverage"]),
+            m["method"], off, bias, std, _f(m.get("delta_std"), "{:+.3f}"),
+            _cov_cell(m["coverage"]),
             f"{m['nees_in']:.2f} / {m['nees_dof']:.2f}", f"{m['nis_in']:.2f} / {m['nis_dof']:.2f}",
             f"{m['ms']:.4f}", verdict(m)]) + " |")
     return "\n".join(lines)
