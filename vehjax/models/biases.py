@@ -53,12 +53,9 @@ def with_output_biases(model, outputs) -> Model:
     Raises:
         ValueError: ``outputs`` empty, repeated or not outputs of the model.
     """
-    names = (outputs,) if isinstance(outputs, str) else tuple(outputs)
+    names, rows = _picked("outputs", outputs, model.output_names)
     known = list(model.output_names)
-    if not names or len(set(names)) != len(names) or not all(n in known for n in names):
-        raise ValueError(f"outputs: expected distinct names among {tuple(known)}, got {outputs!r}")
     nx = len(model.state_names)
-    rows = np.array([known.index(n) for n in names])
     units = _units(model)
 
     def transition(x, u, theta):
@@ -77,6 +74,16 @@ def with_output_biases(model, outputs) -> Model:
         fast_math=False,  # the model's own functions are called as they are
     )
     return _wrapped(model, len(names), kwargs)
+
+
+def _picked(arg, value, known):
+    """(names, their indices in ``known``) of ``value`` (a name or names); ValueError naming
+    ``arg`` when empty, repeated or unknown."""
+    names = (value,) if isinstance(value, str) else tuple(value)
+    known = list(known)
+    if not names or len(set(names)) != len(names) or not all(n in known for n in names):
+        raise ValueError(f"{arg}: expected distinct names among {tuple(known)}, got {value!r}")
+    return names, np.array([known.index(n) for n in names])
 
 
 def _units(model) -> dict:
@@ -115,12 +122,9 @@ def with_input_offset(model, inputs) -> Model:
     Raises:
         ValueError: ``inputs`` empty, repeated or not inputs of the model.
     """
-    names = (inputs,) if isinstance(inputs, str) else tuple(inputs)
+    names, cols = _picked("inputs", inputs, model.input_names)
     known = list(model.input_names)
-    if not names or len(set(names)) != len(names) or not all(n in known for n in names):
-        raise ValueError(f"inputs: expected distinct names among {tuple(known)}, got {inputs!r}")
     nx = len(model.state_names)
-    cols = np.array([known.index(n) for n in names])
     units = _units(model)
 
     def shifted(x, u):
