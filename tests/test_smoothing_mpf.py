@@ -703,3 +703,9 @@ def test_ffbsi_converges_to_the_rts_smoother_and_spreads_early():
         assert np.mean(ff.n_distinct[:, 0]) > np.mean(an.n_distinct[:, 0])
         assert np.all(np.asarray(ff.backward_ess)[:, :-1] > 1.0)
         np.testing.assert_array_equal(np.asarray(an.backward_ess), 1.0)
+        # the statistics re-run along the trajectories stay at the known values
+        pr = np.asarray(ff.params)
+        np.testing.assert_allclose(pr[..., 0], MU_W, rtol=1e-6)
+        np.testing.assert_allclose(pr[..., 1], SIG_W, rtol=1e-4)
+        np.testing.assert_allclose(pr[..., 2], B1, rtol=1e-6)
+        np.testing.assert_allclose(pr[..., 3], SD1, rtol=1e-4)

@@ -95,8 +95,12 @@ rests only on the bank's covariance A_bar P A_bar^T across g (on SingleTrackBank
 moves vy, g has a vy and an r component). With a small bank covariance, or none (the planar
 filter, or A_bar = 0 with more than one sampled state), the backward weights across g fall on
 the trajectory's own parent and its copies: backward simulation then reproduces ancestor
-tracing. The covariance is regularised by ``BACKWARD_JITTER`` tr(S) / n_xs on its diagonal
-(relative 1e-9: keeps the Cholesky finite, changes no weight measurably) and ``backward_ess``
+tracing (on a planar toy model most backward ESS are 1). With the bank in the particles'
+Kalman filters the recorded RAV4 drive is not in that case (benchmarks/bench_mpf_ffbsi.py;
+its output under benchmarks/results). The covariance's x block is regularised by
+``BACKWARD_JITTER`` tr / n_xs on its diagonal (relative 1e-9: it keeps the Cholesky finite
+where the block is singular; there it is what sets the weights across g, which then fall on
+the parent as said), and ``backward_ess``
 (the backward weights' ESS, averaged over the trajectories) and ``n_distinct`` (particles by
 value: resampled copies count once) report per time how far the draws spread.
 The trajectories draw from the particles the filter keeps after each step, i.e. after its
