@@ -28,8 +28,10 @@ ys = np.empty((T, 2))
 for k in range(T):
     w = t.MU_W + t.SIG_W * rng.normal()
     u = us[k, 0] + w
-    x = np.array([0.95 * x[0] + AB * x[1] + 0.1 * u, 0.05 * x[0] + 0.9 * x[1] + t.GZ * u + t.SIG_Z * rng.normal()])
-    ys[k] = [x[0] + t.CA * x[1] + t.B1 + t.SD1 * rng.normal(), x[1] + t.DY * u + t.SD2 * rng.normal()]
+    x = np.array([0.95 * x[0] + AB * x[1] + 0.1 * u,
+                  0.05 * x[0] + 0.9 * x[1] + t.GZ * u + t.SIG_Z * rng.normal()])
+    ys[k] = [x[0] + t.CA * x[1] + t.B1 + t.SD1 * rng.normal(),
+             x[1] + t.DY * u + t.SD2 * rng.normal()]
 ys[list(t.NAN_STEPS), 0] = np.nan
 F = np.array([[0.95, AB, 0.0], [0.05, 0.9, 0.0], [0.0, 0.0, 0.0]])
 g = np.array([0.1, t.GZ, 1.0])
@@ -51,12 +53,18 @@ m, Ps, C = t._rts_backward(F, xf, Pf, xp, Pp)
 m, Ps = m[:, :2], Ps[:, :2, :2]
 sd = np.sqrt(np.diagonal(Ps, axis1=1, axis2=2))
 n = int(sys.argv[1])
-est = marginalized_pf(t._model_lin(ab=AB), n, noisy_input="u", sensors=("y1",), known_std={"y2": t.SD2},
+est = marginalized_pf(
+    t._model_lin(ab=AB), n, noisy_input="u", sensors=("y1",), known_std={"y2": t.SD2},
     linear_states=("a",), linear_noise_std=t.SIG_Z, std0={"u": t.SIG_W, "y1": t.SD1},
-    mean0={"u": t.MU_W, "y1": t.B1}, forgetting=1.0, nu0=1e7, gamma0=1e-9, kalman_states="linear")
+    mean0={"u": t.MU_W, "y1": t.B1}, forgetting=1.0, nu0=1e7, gamma0=1e-9,
+    kalman_states="linear")
 for meth in ("ffbsi", "ancestor"):
-    sm = jax.jit(jax.vmap(lambda k: vj.smooth(est, ys, us, x0=t.X0, P0=t.P0, key=k, n_trajectories=n, method=meth)))(jax.random.split(jax.random.key(5), 8))
+    sm = jax.jit(jax.vmap(lambda k, meth=meth: vj.smooth(
+        est, ys, us, x0=t.X0, P0=t.P0, key=k, n_trajectories=n, method=meth)))(
+        jax.random.split(jax.random.key(5), 8))
     rms = float(np.sqrt(np.mean(((np.asarray(sm.states) - m) / sd) ** 2)))
-    vr = (np.asarray(sm.covariances).mean(0).diagonal(axis1=1, axis2=2) / Ps.diagonal(axis1=1, axis2=2)).mean(0)
-    print(meth, n, "z", round(t._z_rms(sm.states, m), 2), "err/sd", round(rms, 3), "var ratio mean over t", np.round(vr, 3),
-          "n_distinct0", np.asarray(sm.n_distinct)[:, 0], flush=True)
+    vr = (np.asarray(sm.covariances).mean(0).diagonal(axis1=1, axis2=2)
+          / Ps.diagonal(axis1=1, axis2=2)).mean(0)
+    print(meth, n, "z", round(t._z_rms(sm.states, m), 2), "err/sd", round(rms, 3),
+          "var ratio mean over t", np.round(vr, 3), "n_distinct0",
+          np.asarray(sm.n_distinct)[:, 0], flush=True)
