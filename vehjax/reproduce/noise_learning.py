@@ -36,24 +36,25 @@ The methods (one row each; nothing tuned per method beyond what is written here)
 * **MPF (paper)**: berntorp2018's ``build_sim_filter`` (N = ``--particles``, lambda = 0.995,
   initial stds twice the truth) and ``build_drive_filter`` (bank variant, lambda = 0.999).
 * **MPF (consistent)**: the same filter with ``noise_means="kalman"`` (issue #33 item 2,
-  not the paper's: :mod:`vehjax.filters.marginalized`): the biases as Kalman states with the
-  truth's random-walk stds (as the VB rows), the statistics averaged over the offset's
-  conditional, Gaussian particle states. Consistent on ``vehjax reproduce consistency``'s
-  data (constant biases), but NOT on this simulation: measured with 10 runs x 30 s,
-  N = 500 (``--methods "MPF (paper),MPF (consistent)" --runs 10 --duration 30 --particles
-  500 --no-drive``), offset error -0.124 deg, ay / r bias RMS 0.18 m/s^2 / 0.64 deg/s, NEES of
-  (vy, r) 144 per dof, coverage 0 (the paper's MPF on the same data: offset RMS 0.005 deg, NEES
-  in band 0.13); 3.1x the paper's time per run-step (7.66 against 2.47 ms, the same process,
-  loaded machine). Cause not isolated (issue #33 item 2 open). Not the Gaussian particle
-  states: the paper's filter with ``kalman_states="all"`` on 5 runs x 20 s learns the offset
-  (RMS 0.005 deg) and tracks the biases (NEES in band 0.52). Likely: here the prior of the
-  offset (0 +- 0.04 deg) is far from the truth (0.28 deg), and the ay reading sees the offset
-  directly (d mu_w) like its bias; the bias states, which do not forget, absorb the offset's
-  early error and keep it, while the offset, learnt by the statistics, has no covariance with
-  them (on the consistency study the priors are the truth). Checked: with the offset's prior
-  mean at the truth (mean0, 5 runs x 20 s, N = 500) the same filter learns the offset (RMS
-  0.002 deg), tracks the biases (RMS 0.015 m/s^2, 0.010 / 0.011 deg/s) and has the NEES in the
-  band on 0.85 of the steps (0.65 per dof, under-confident), bias coverage 0.80 (4 of 5 runs).
+  not the paper's: :mod:`vehjax.filters.marginalized`): the steering offset and the biases as
+  Kalman states of every particle (the biases with the truth's random-walk stds, as the VB
+  rows; their priors those of the VB rows, 0.5 deg, 0.5 m/s^2, 0.5 deg/s), the steering
+  noise as process noise, each particle drawing its covariances from its inverse-Wishart
+  statistics (Storvik's filter), the sensor stds' initial guesses twice the truth and the
+  steering std's ``--steer-factor`` times it (default 2, the paper's guess). Its time per
+  run-step against the paper's filter at the same N is in the table (``--particles``).
+  Measured ad hoc with 20 runs x 60 s, N = 500 (``run_simulation`` with ``--methods "MPF
+  (consistent)" --runs 20 --duration 60 --particles 500 --no-drive``): offset, bias and std
+  coverage 1.00 / 0.90 / 1.00 and NEES of (vy, r) in the band on 0.40 of the steps, 0.60 per
+  dof (under-confident), at the default steering guess; with ``--steer-factor 1`` 1.00 /
+  0.90 / 1.00 and 0.85 in the band, 0.84 per dof. The steering noise (0.02 deg, white) moves
+  vy and r far less than the sensors' noise does, so the data hardly inform its std: the
+  estimate stays near its initial guess ('steering std rel. err' in the table), and a guess
+  of twice the truth makes every method that uses it under-confident (the VB rows too). With
+  the offset's prior tied to the steering std as in the paper's NiW (0 +- 0.04 deg against
+  the truth's 0.28 deg) the offset state stays several stds off for long and the filter is
+  over-confident (NEES 2.75 per dof at ``--steer-factor 1``, offset coverage 0.80), hence
+  ``mean_std0``.
 * **augmented EKF** (Remark 1, berntorp2018's ``augmented_model``): (vy, r, offset, ay bias,
   gyro bias) on (ay, r, r_virt), fixed Q and R (the MPF's initial guesses); no bank states and
   no roll gyro, as the remark's common approach.
@@ -62,7 +63,8 @@ What is measured (simulation; steady state = the last third):
 
 * offset: mean of the error over runs and steady-state times, and its RMS [deg];
 * biases: RMS error of the estimate against each run's random walk [sensor units];
-* stds: the mean relative error of the estimate (estimate / truth - 1) per sensor;
+* stds: the mean relative error of the estimate (estimate / truth - 1) per sensor, and of
+  the steering std where a method learns it (the MPF rows);
 * coverage: per learnt parameter, the fraction of runs whose final 95 % interval (estimate
   +- 1.96 reported std) holds the truth; the table gives offset / biases (worst) / stds (worst);
 * NEES of (vy, r) (2 degrees of freedom, the states every method has) and NIS: the share of
