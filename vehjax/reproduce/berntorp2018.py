@@ -707,9 +707,11 @@ def _pg_init(pm, U, init):
 #: conditional PF over the whole segment each) keep their earlier cost; the report says
 #: whether each mixed. The marginalized PF's (mpf) log-likelihood std at the exact chain's
 #: posterior mean on that segment (``calibrate.log_likelihood_spread``, 32 keys) is 7.2 / 5.3 /
-#: 2.0 nats at N = 16 / 64 / 256 (the bootstrap PF's 16.0 at 64): N = 256 is its default, the
+#: 2.0 / 1.7 nats at N = 16 / 64 / 256 / 512 (the bootstrap PF's 16.0 at 64; the full --drive
+#: run at 56aac88 measured 2.9 at 256: 32 keys give a noisy std): N = 256 is its default, the
 #: 1-1.5 band would take about 2-4 times the particles and time; its chain starts from the
-#: exact chain's adapted random walk
+#: exact chain's adapted random walk. At 4 x 400 iterations it does not mix (R-hat to 2.7,
+#: acceptance 0.01), so the report marks it not yet a posterior
 PMMH_ITERS = {"kalman": 4000, "mpf": 400, "bootstrap": 200, "pg": 200}
 PMMH_PARTICLES = {"mpf": 256, "bootstrap": 64, "pg": 64}
 #: the lowest acceptance rate the bootstrap chain's scale is tuned toward (Sherlock, Thiery,
