@@ -139,7 +139,8 @@ def test_drive_study(tmp_path):
     assert abs(float(_row(text, "MPF-smoothed steering offset")[0])) < 1.0  # deg, road wheel
     roll_s = _row(text, "MPF-smoothed bank - pose roll")
     assert float(roll_s[0].split()[1]) < 2.0  # deg, as the filter's bank
-    assert "MPF smoother (filter + ancestor paths" in text and "distinct particles" in report
+    assert "MPF smoother (filter + backward simulation" in text
+    assert "distinct particles at t = 0" in report and "backward ESS" in report
     # the PMMH offline reference: one row per quantity with R-hat and ESS
     assert "particle marginal Metropolis-Hastings" in report and "PMMH likelihood: bootstrap" in report
     for name in ("delta_offset [deg]", "eps [1e-4]", "bias:ay", "bias:r", "R:ay", "R:r [",
@@ -299,7 +300,7 @@ def test_pmmh_check_states_what_it_checks():
     assert args.pmmh_iters is None and args.pmmh_particles is None   # per-sampler defaults
     assert set(berntorp2018.PMMH_ITERS) == {"kalman", "mpf", "bootstrap", "pg"}
     assert set(berntorp2018.PMMH_PARTICLES) == {"mpf", "bootstrap", "pg"}
-    assert args.pmmh_likelihood == "all"
+    assert args.pmmh_likelihood == "standard" and args.mpf_smoother == "ffbsi"
     # the marginalized PF's likelihood: its own wording, no "far above" verdict on the bootstrap
     mpf = berntorp2018.pmmh_check(good, {"loglik_std": 2.0, "particles": 256}, "mpf")
     assert "marginalized PF's log-likelihood estimate (N = 256) has std 2.00" in mpf

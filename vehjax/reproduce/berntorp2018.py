@@ -86,7 +86,9 @@ Drive (sec. 5, ``--drive``):
   reference) the exact Kalman likelihood of this linear model; chains vmapped, split R-hat
   and ESS reported, and the MPF chain's posterior against the exact one's. Beside
   them particle Gibbs with ancestor sampling (ref. [29], :func:`vehjax.calibrate.
-  particle_gibbs`; ``--pmmh-likelihood pg`` or ``all``, the default): a trajectory from the
+  particle_gibbs`; ``--pmmh-likelihood pg``, ``standard`` (the default: kalman, bootstrap
+  and pg) or ``all`` (with mpf; its chain does not mix at its default size, N = 256 x 400
+  iterations, and takes about half an hour on 2 cores)): a trajectory from the
   conditional PF, then random-walk moves of the values given it. It takes additive noise
   only, so the steering noise becomes per-state process stds of vy and r
   (:func:`pg_process_std`, their correlation dropped) with priors of their own
@@ -103,10 +105,12 @@ Drive (sec. 5, ``--drive``):
 * Smoothing (#29): ``vehjax.smooth`` (extended RTS) of the augmented EKF gives the offset,
   biases, eps and (variant ``bank``) the bank over the drive given the whole drive. Beside
   it the MPF's own smoother (:mod:`vehjax.smoothers.marginalized`; ``--mpf-smooth-paths`` M,
-  default 100, 0 skips it): one more execution of the drive's filter (its ``kalman_states``),
-  M ancestral paths, each path's Kalman states (the bank, eps) by an RTS given the path, the
-  noise statistics as the paths' estimates at each time; its offset, biases, stds and bank
-  over the drive and the smoothed bank against the pose roll.
+  default 100, 0 skips it; ``--mpf-smoother``): one more execution of the drive's filter (its
+  ``kalman_states``), M trajectories by backward simulation over all its particles (``ffbsi``,
+  the default with ``kalman_states="linear"``) or its M ancestral paths (``ancestor``), each
+  trajectory's Kalman states (the bank, eps) by an RTS given it, the noise statistics as the
+  trajectories' estimates at each time; its offset, biases, stds and bank over the drive and
+  the smoothed bank against the pose roll.
 * The yaw gyro: its estimated bias is compared with ``drive.gyro_offset_vs_reference``; the
   bias-corrected yaw rate (gyro minus the estimated bias) and each filter's yaw-rate estimate
   with the pose reference yaw rate, after 15 s; the filters' lateral velocity vy with the
@@ -200,15 +204,21 @@ def parser():
                    help="--drive: seconds of the drive PMMH fits, from its start "
                         "(default %(default)s)")
     p.add_argument("--pmmh-likelihood", choices=("bootstrap", "kalman", "mpf", "both", "pg",
-                                                 "all"),
-                   default="all",
+                                                 "standard", "all"),
+                   default="standard",
                    help="--drive: the offline reference's samplers: PMMH with the bootstrap "
                         "PF's likelihood, PMMH with the exact Kalman likelihood (plain MH, a "
                         "check), PMMH with the marginalized PF's likelihood (mpf: paper 004's "
                         "filter with the noise statistics held at the chain's values), both "
                         "(kalman and bootstrap), particle Gibbs with ancestor sampling (pg; "
-                        "--pmmh-particles particles in its conditional PF), or all four "
-                        "(default %(default)s)")
+                        "--pmmh-particles particles in its conditional PF), standard "
+                        "(kalman, bootstrap and pg: the MPF chain does not mix at its default "
+                        "size and takes about half an hour) or all four (default %(default)s)")
+    p.add_argument("--mpf-smoother", choices=("ffbsi", "ancestor"), default="ffbsi",
+                   help="--drive: the MPF smoother's method (vehjax.smooth's method): "
+                        "backward simulation over all the filter's particles (ffbsi; with "
+                        "kalman_states linear, else ancestor) or the ancestral paths "
+                        "(ancestor) (default %(default)s)")
     p.add_argument("--mpf-smooth-paths", type=_cli.at_least(int, 0), default=100,
                    help="--drive: ancestral paths M of the MPF's smoother (vehjax.smooth, one "
                         "more execution; at most N); 0 skips it (default %(default)s)")
@@ -885,21 +895,28 @@ def run_drive(args, log=print):
     M = min(N, getattr(args, "mpf_smooth_paths", MPF_SMOOTH_PATHS))
     mpf_smooth = None
     if M:
+        method = getattr(args, "mpf_smoother", "ffbsi")
+        if getattr(args, "kalman_states", "linear") != "linear":
+            method = "ancestor"  # FFBSi is built for the paper's kalman_states="linear"
         t0 = time.perf_counter()
         msm = jax.jit(lambda y, u, k: vj.smooth(est, y, u, x0=np.zeros(6), P0=P0, key=k,
-                                                n_trajectories=M))(
+                                                n_trajectories=M, method=method))(
             Y, U, jax.random.fold_in(jax.random.key(args.seed), 29))
         mpf_smooth = dict(states=np.asarray(msm.states), cov=np.asarray(msm.covariances),
                           params=np.asarray(msm.params), params_cov=np.asarray(msm.params_cov),
-                          n_unique=np.asarray(msm.n_unique), diverged=bool(msm.diverged), M=M)
+                          n_unique=np.asarray(msm.n_unique),
+                          n_distinct=np.asarray(msm.n_distinct),
+                          backward_ess=np.asarray(msm.backward_ess),
+                          diverged=bool(msm.diverged), M=M, method=method)
         mpf_smooth["seconds"] = time.perf_counter() - t0
-        log(f"MPF smoother (ancestor paths, per-path RTS): N = {N}, M = {M}, "
+        log(f"MPF smoother ({method}): N = {N}, M = {M}, "
             f"{mpf_smooth['seconds']:.1f} s (compile included), diverged "
             f"{mpf_smooth['diverged']}")
     pm_res = {}
     # the exact-likelihood chain first: its posterior mean is where the bootstrap PF's
     # log-likelihood noise is measured
-    liks = {"both": ("kalman", "bootstrap"), "all": ("kalman", "mpf", "bootstrap", "pg")}.get(
+    liks = {"both": ("kalman", "bootstrap"), "standard": ("kalman", "bootstrap", "pg"),
+            "all": ("kalman", "mpf", "bootstrap", "pg")}.get(
         getattr(args, "pmmh_likelihood", "both"), (getattr(args, "pmmh_likelihood", "both"),))
     for lik in liks:
         if getattr(args, "pmmh_iters", None) == 0:
@@ -1332,20 +1349,38 @@ def _mpf_smooth_text(res, md):
     msm = res["mpf_smooth"]
     if msm is None:
         return ["The MPF's own smoother was skipped (`--mpf-smooth-paths 0`).\n"]
+    T = res["T"]
+    mid = T // 2
+    if msm.get("method", "ancestor") == "ffbsi":
+        how = (f"M = {msm['M']} trajectories drawn backwards over all the filter's particles "
+               "(Rao-Blackwellised backward simulation, method 'ffbsi': weights from each "
+               "particle's predictive of the next sampled state and measurement; the data "
+               "after that step are not used in the weights), each trajectory's Kalman filter "
+               "and noise statistics re-run along it. Given a trajectory, ")
+        spread = (f"they pass through {int(msm['n_distinct'][0])} distinct particles at t = 0 "
+                  f"and {int(msm['n_distinct'][mid])} at the middle (backward ESS "
+                  f"{float(np.mean(msm['backward_ess'])):.1f} of {res['N']} on average)")
+        stats = ("The noise statistics in each row are the trajectories' re-run estimates at "
+                 "that time: with lambda = 0.999 each looks back about 10 s along a trajectory "
+                 "drawn given the whole drive, not a backward pass over the statistics. ")
+    else:
+        how = (f"M = {msm['M']} paths followed back through its resampling genealogy "
+               "(method 'ancestor'). Given a path, ")
+        spread = (f"the paths coalesce going back in time (they pass through "
+                  f"{int(msm['n_unique'][0])} distinct particles at t = 0, "
+                  f"{int(msm['n_unique'][mid])} at the middle), so the early rows rest on few "
+                  "particles")
+        stats = ("The noise statistics in each row are the paths' NiW estimates at that time: "
+                 "with lambda = 0.999 each looks back about 10 s along a path drawn given the "
+                 "whole drive, not a backward pass over the statistics. ")
     return [
         f"The marginalized PF's own smoother (`vehjax.smooth` on the drive's filter, "
         f"kalman_states = {res['kalman_states']!r}; `vehjax.smoothers.marginalized`): one "
-        f"more execution of the filter, M = {msm['M']} paths followed back through its "
-        f"resampling genealogy. Given a path, {_given_path(res)} "
-        "are smoothed by an RTS of the path's own Kalman filter: the exact conditional "
-        "Gaussian given the path of the model that filter runs (affine in those states, the "
-        "path's plug-in noise statistics at each step); the paths "
-        "coalesce going back in time (they pass through "
-        f"{int(msm['n_unique'][0])} distinct particles at t = 0, "
-        f"{int(msm['n_unique'][res['T'] // 2])} at the middle), so the early rows rest on few "
-        "particles. The noise statistics in each row are the paths' NiW estimates at that "
-        "time: with lambda = 0.999 each looks back about 10 s along a path drawn given the "
-        f"whole drive, not a backward pass over the statistics. Diverged: {msm['diverged']}.\n",
+        f"more execution of the filter, {how}{_given_path(res)} "
+        "are smoothed by an RTS of the trajectory's own Kalman filter: the exact conditional "
+        "Gaussian given it of the model that filter runs (affine in those states, the "
+        f"plug-in noise statistics at each step); {spread}. {stats}"
+        f"Diverged: {msm['diverged']}.\n",
         md, ""]
 
 
@@ -1364,7 +1399,8 @@ def main_drive(args, out_dir):
         "range over time", "2 std (middle of the drive)", "online EKF, end"))
     msm = res["mpf_smooth"]
     md_mpf_smooth = "" if msm is None else _table(mpf_smoothed_rows(res), head=(
-        f"smoothed over the drive (MPF, N = {res['N']}, M = {msm['M']} ancestral paths)",
+        f"smoothed over the drive (MPF, N = {res['N']}, M = {msm['M']}, "
+        f"{msm.get('method', 'ancestor')})",
         "mean over the drive", "range over time", "2 std (middle of the drive)",
         "MPF, end (mean over executions)"))
     md_pmmh = []
@@ -1402,7 +1438,10 @@ def main_drive(args, out_dir):
          f"{res['ekf_run'] / res['T'] * 1e3:.4f}", f"{res['ekf_run']:.3f}", f"{res['ekf_c']:.1f}"),
         ("extended RTS smoother (filter + backward pass)", "1 run", "-", "-",
          f"{res['rts_s']:.1f} (with run)"),
-    ] + ([] if msm is None else [("MPF smoother (filter + ancestor paths + per-path RTS)",
+    ] + ([] if msm is None else [(
+          "MPF smoother (filter + " + {"ffbsi": "backward simulation + re-run + RTS)",
+                                       "ancestor": "ancestor paths + per-path RTS)"}[
+                                           msm.get("method", "ancestor")],
           f"1 run, N = {res['N']}, M = {msm['M']}", "-", "-",
           f"{msm['seconds']:.1f} (with run)")]) + [(
           SAMPLER[lik], f"{pr.samples.shape[0]} chains x {info['iters']} iter. x {n} steps",
