@@ -54,9 +54,7 @@ def with_output_biases(model, outputs) -> Model:
         ValueError: ``outputs`` empty, repeated or not outputs of the model.
     """
     names, rows = _picked("outputs", outputs, model.output_names)
-    known = list(model.output_names)
-    nx = len(model.state_names)
-    units = _units(model)
+    nx, units = len(model.state_names), _units(model)
 
     def transition(x, u, theta):
         return jnp.concatenate([model.transition(x[:nx], u, theta), x[nx:]])
@@ -68,7 +66,7 @@ def with_output_biases(model, outputs) -> Model:
         transition=transition, observe=observe, dt=model.dt,
         state_names=tuple(model.state_names) + tuple(f"{n}_bias" for n in names),
         param_names=tuple(model.param_names), input_names=tuple(model.input_names),
-        output_names=tuple(known), theta=model.theta,
+        output_names=tuple(model.output_names), theta=model.theta,
         units={k: v for k, v in {**units, **{f"{n}_bias": units[n] for n in names}}.items()
                if v != "-"},
         fast_math=False,  # the model's own functions are called as they are
@@ -123,9 +121,7 @@ def with_input_offset(model, inputs) -> Model:
         ValueError: ``inputs`` empty, repeated or not inputs of the model.
     """
     names, cols = _picked("inputs", inputs, model.input_names)
-    known = list(model.input_names)
-    nx = len(model.state_names)
-    units = _units(model)
+    nx, units = len(model.state_names), _units(model)
 
     def shifted(x, u):
         return jnp.asarray(u).at[cols].add(x[nx:])
@@ -139,7 +135,7 @@ def with_input_offset(model, inputs) -> Model:
     kwargs = dict(
         transition=transition, observe=observe, dt=model.dt,
         state_names=tuple(model.state_names) + tuple(f"{n}_offset" for n in names),
-        param_names=tuple(model.param_names), input_names=tuple(known),
+        param_names=tuple(model.param_names), input_names=tuple(model.input_names),
         output_names=tuple(model.output_names), theta=model.theta,
         units={k: v for k, v in {**units, **{f"{n}_offset": units[n] for n in names}}.items()
                if v != "-"},
