@@ -62,16 +62,7 @@ def with_output_biases(model, outputs) -> Model:
     def observe(x, u, theta):
         return model.observe(x[:nx], u, theta).at[rows].add(x[nx:])
 
-    kwargs = dict(
-        transition=transition, observe=observe, dt=model.dt,
-        state_names=tuple(model.state_names) + tuple(f"{n}_bias" for n in names),
-        param_names=tuple(model.param_names), input_names=tuple(model.input_names),
-        output_names=tuple(model.output_names), theta=model.theta,
-        units={k: v for k, v in {**units, **{f"{n}_bias": units[n] for n in names}}.items()
-               if v != "-"},
-        fast_math=False,  # the model's own functions are called as they are
-    )
-    return _wrapped(model, len(names), kwargs)
+    return _wrapped(model, transition, observe, names, "_bias", units)
 
 
 def _picked(arg, value, known):
@@ -92,11 +83,23 @@ def _units(model) -> dict:
     return units
 
 
-def _wrapped(model, n_added, kwargs) -> Model:
-    """The :class:`Model` of ``kwargs``; a model with ``bank_noise_gain()`` keeps it (zeros on
-    the ``n_added`` states appended)."""
+def _wrapped(model, transition, observe, names, suffix, units) -> Model:
+    """The :class:`Model` of ``transition``, ``observe`` with the model's states then
+    ``<name><suffix>`` per name (each in that name's unit), the model's inputs, parameters,
+    nominal ``theta``, outputs and ``dt``; a model with ``bank_noise_gain()`` keeps it (zeros
+    on the added states)."""
+    added = tuple(f"{n}{suffix}" for n in names)
+    kwargs = dict(
+        transition=transition, observe=observe, dt=model.dt,
+        state_names=tuple(model.state_names) + added,
+        param_names=tuple(model.param_names), input_names=tuple(model.input_names),
+        output_names=tuple(model.output_names), theta=model.theta,
+        units={k: v for k, v in {**units, **{a: units[n] for a, n in zip(added, names)}}.items()
+               if v != "-"},
+        fast_math=False,  # the model's own functions are called as they are
+    )
     if hasattr(model, "bank_noise_gain"):
-        gain = np.r_[np.asarray(model.bank_noise_gain(), float), np.zeros(n_added)]
+        gain = np.r_[np.asarray(model.bank_noise_gain(), float), np.zeros(len(names))]
         return _BiasedBank(tuple(float(g) for g in gain), **kwargs)
     return Model(**kwargs)
 
@@ -132,13 +135,4 @@ def with_input_offset(model, inputs) -> Model:
     def observe(x, u, theta):
         return model.observe(x[:nx], shifted(x, u), theta)
 
-    kwargs = dict(
-        transition=transition, observe=observe, dt=model.dt,
-        state_names=tuple(model.state_names) + tuple(f"{n}_offset" for n in names),
-        param_names=tuple(model.param_names), input_names=tuple(model.input_names),
-        output_names=tuple(model.output_names), theta=model.theta,
-        units={k: v for k, v in {**units, **{f"{n}_offset": units[n] for n in names}}.items()
-               if v != "-"},
-        fast_math=False,
-    )
-    return _wrapped(model, len(names), kwargs)
+    return _wrapped(model, transition, observe, names, "_offset", units)
