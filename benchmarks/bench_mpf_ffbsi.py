@@ -35,14 +35,8 @@ def main():
     import vehjax as vj
     from vehjax.reproduce import berntorp2018 as b
 
-    drive = vj.data.load_comma2k19()
-    model = vj.models.SingleTrackBank(dt=drive.dt)
-    U, Y = drive.inputs(model), drive.measurements(model, track=b.TRACK)
-    T = len(U) if a.seconds is None else min(len(U), int(round(a.seconds / model.dt)))
-    U, Y = U[:T], Y[:T].copy()
-    eps, _ = b.virtual_yaw_scale(Y[:, 1], Y[:, 4], U[:, 0], b.TRACK)
-    Y[:, 4], _ = b.gate_virtual_yaw(Y[:, 1], Y[:, 4], 5.0 * b.DEG)
-    Y[:, 4] -= eps * U[:, 0] / b.TRACK
+    drive, model, U, Y = b.drive_arrays(a.seconds, gate_deg=5.0)
+    T = len(U)
     est = b.build_drive_filter(b.VirtualScaleBank(dt=drive.dt), a.particles, variant="bank",
                                kalman_states="linear")
     P0 = np.diag([0.1, 0.5 * b.DEG, 1e-3, 1e-3, 1e-3, 1e-12]) ** 2

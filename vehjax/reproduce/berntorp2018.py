@@ -1004,6 +1004,25 @@ def online_virtual_scale(gyro, r_virt, vx, track, *, noise_std=1.0 * DEG, bias_s
     return theta[:, 1], theta[:, 0]
 
 
+def drive_arrays(seconds=None, gate_deg=None):
+    """The shipped RAV4 drive for SingleTrackBank: (drive, model, U (T, 2), Y (T, 5)) over its
+    first ``seconds`` (None: all), the virtual yaw rate's scale error removed (eps by least
+    squares from all samples, :func:`virtual_yaw_scale`) after gating its bursts at
+    ``gate_deg`` deg/s (:func:`gate_virtual_yaw`; None: not gated)."""
+    import vehjax as vj
+
+    drive = vj.data.load_comma2k19()
+    model = vj.models.SingleTrackBank(dt=drive.dt)
+    U, Y = drive.inputs(model), drive.measurements(model, track=TRACK)
+    T = len(U) if seconds is None else min(len(U), int(round(seconds / model.dt)))
+    U, Y = U[:T], Y[:T].copy()
+    eps, _ = virtual_yaw_scale(Y[:, 1], Y[:, 4], U[:, 0], TRACK)
+    if gate_deg is not None:
+        Y[:, 4], _ = gate_virtual_yaw(Y[:, 1], Y[:, 4], gate_deg * DEG)
+    Y[:, 4] -= eps * U[:, 0] / TRACK
+    return drive, model, U, Y
+
+
 def gate_virtual_yaw(gyro, r_virt, limit):
     """r_virt with the samples more than ``limit`` [rad/s] from the gyro set to NaN (missing):
     the wheel-speed bursts of the log (|r_virt - gyro| reaches 20 deg/s; a Gaussian noise of

@@ -11,7 +11,8 @@ Simulation: exactly :mod:`vehjax.reproduce.berntorp2018`'s (its ``simulate_truth
 steering noise 0.02 deg, the piecewise-linear bank, ay / yaw-gyro / roll-gyro with random-walk
 biases from 0 and white noise of stds 0.2 m/s^2, 0.3 deg/s, 0.3 deg/s; the bank measurement
 (0.5 deg) and the virtual yaw rate (0.5 deg/s) unbiased with known stds. Drive: the shipped
-comma2k19 segment with berntorp2018's virtual-yaw-rate scale correction (no truth for offset,
+comma2k19 segment as berntorp2018 --drive reads it (:func:`berntorp2018.drive_arrays`: the
+virtual yaw rate's bursts gated at 5 deg/s, its scale error removed; no truth for offset,
 biases or stds; the pose gives the yaw rate, vy and the gyro's offset from it).
 
 The methods (one row each; nothing tuned per method beyond what is written here):
@@ -436,15 +437,9 @@ def run_simulation(args, methods=METHODS, log=print):
 
 
 def run_drive(args, methods=METHODS, log=print):
-    import vehjax as vj
-
-    drive = vj.data.load_comma2k19()
-    model = vj.models.SingleTrackBank(dt=drive.dt)
-    U, Y = drive.inputs(model), drive.measurements(model, track=b18.TRACK)
-    T = len(U) if args.duration is None else min(len(U), int(round(args.duration / model.dt)))
-    U, Y = U[:T], Y[:T].copy()
-    eps, _ = b18.virtual_yaw_scale(Y[:, 1], Y[:, 4], U[:, 0], b18.TRACK)
-    Y[:, 4] -= eps * U[:, 0] / b18.TRACK
+    # berntorp2018 --drive's data: r_virt's bursts gated at 5 deg/s, its scale error removed
+    drive, model, U, Y = b18.drive_arrays(args.duration, gate_deg=5.0)
+    T = len(U)
     ref_r = np.asarray(drive.reference["yaw_rate"])[:T]
     ref_vy = np.asarray(drive.reference["vy"])[:T]
     gyro_ref = float(drive.gyro_offset_vs_reference)
