@@ -404,8 +404,9 @@ class _Setup(NamedTuple):
     n_inputs: int
     ny: int
     resample: Callable  # smc.resample or the caller's
-    means_known: bool = False  # offset and sensor means known (zero): noise_means="kalman"
-    storvik: bool = False  # covariances drawn per particle, w as process noise (noise_means)
+    # noise_means="kalman": the offset and the sensor means known (zero, Kalman states), the
+    # covariances drawn per particle and w as process noise (_storvik_update)
+    means_known: bool = False
 
 
 def _linear_noise(model, linear_noise_std, li, linear_states) -> np.ndarray:
@@ -601,7 +602,7 @@ def _init(s: _Setup, x0, P0, theta0=None, P_theta0=None, key=None) -> MPFState:
     scale = s.nu0 - d - 1.0
     # with Gaussian particle states: zero covariance of the drawn states, the bank's after
     Pk = jnp.zeros((nk, nk), dtype).at[nk - nz:, nk - nz:].set(Pz)
-    if s.storvik:  # nothing drawn: every particle starts as the prior (sampled, linear order)
+    if s.means_known:  # nothing drawn: every particle starts as the prior (sampled, linear order)
         order = np.concatenate([nl, li]).astype(int)
         xs = jnp.broadcast_to(x0[nl][:, None], (s.nxs, n))
         zs = jnp.broadcast_to(x0[li][:, None], (nz, n))
@@ -671,6 +672,41 @@ def _kalman_stage(s: _Setup, lin, Pe, Qe, w, dw, dx, x_new, ye, ob, eta, mu_w, b
     return x_new, [], [], eta_e, [[0.0] * ns for _ in range(ns)]
 
 
+def _q_entries(s: _Setup, dtype):
+    """The linear states' process noise as entries: structural zeros as 0.0."""
+    return [[float(s.Qz[i, j]) if s.Qz[i, j] == 0.0 else jnp.asarray(s.Qz[i, j], dtype)
+             for j in range(s.nz)] for i in range(s.nz)]
+
+
+def _used_noise(s: _Setup, R_s):
+    """The noise covariance of the used output rows (entries): the sensors' ``R_s``, the known
+    variances on the diagonal elsewhere."""
+    spos, kvu = s.spos, s.kvu
+    nyu = len(s.u_idx)
+    return [[R_s[spos[i]][spos[j]] if (i in spos and j in spos) else (kvu[i] if i == j else 0.0)
+             for j in range(nyu)] for i in range(nyu)]
+
+
+def _sensor_data(s: _Setup, eta_e, V, ob, R_s, start):
+    """The sensor part of the statistics' datum: the residuals ``eta_e`` with missing ones
+    imputed from ``R_s`` (the point estimate) and the covariance added to Lambda_e (``V`` on
+    the observed pairs plus the imputation's). Returns (eta_e list, extra (ns, ns) entries)."""
+    ns = s.ns
+    ob_e = [ob[r] for r in s.srow]
+    V = [[jnp.where(ob_e[i] & ob_e[j], V[i][j], 0.0) for j in range(ns)] for i in range(ns)]
+    eta_e, V_miss = barrier(impute_missing(eta_e, R_s, ob_e), start)
+    return eta_e, [[add(V[i][j], V_miss[i][j]) for j in range(ns)] for i in range(ns)]
+
+
+def _finite_or_old(ll, news, olds):
+    """Per particle: where the log-likelihood or any new value is not finite, the weight zero
+    (-inf) and the old values kept. ``news``, ``olds``: arrays with particles last."""
+    ok = jnp.isfinite(ll)
+    for a in news:
+        ok = ok & jnp.all(jnp.isfinite(a), axis=tuple(range(a.ndim - 1)))
+    return jnp.where(ok, ll, -jnp.inf), [jnp.where(ok, n, o) for n, o in zip(news, olds)]
+
+
 def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, y, obs, u,
                      theta, gam, nu_p):
     """One step for all particles (entries over the last axis) before the weights are
@@ -686,9 +722,7 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
     ye = [y[i] for i in range(nyu)]
     ob = [obs[i] for i in range(nyu)]
     Pe, lee = entries(P), entries(lam_e)
-    Qz = s.Qz
-    Qe = [[float(Qz[i, j]) if Qz[i, j] == 0.0 else jnp.asarray(Qz[i, j], dtype)
-           for j in range(nz)] for i in range(nz)]
+    Qe = _q_entries(s, dtype)
     mu_w = mu[0]
     b = [mu[1 + j] for j in range(ns)]
     b_y = [b[spos[i]] if i in spos else 0.0 for i in range(nyu)]
@@ -707,29 +741,21 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
     inv_den = 1.0 / (nu_p - s.d - 1.0)
     sig_w2 = lam_w * inv_den
     R_s = [[lee[i][j] * inv_den for j in range(ns)] for i in range(ns)]
-    R_y = [[R_s[spos[i]][spos[j]] if (i in spos and j in spos) else (kvu[i] if i == j else 0.0)
-            for j in range(nyu)] for i in range(nyu)]
+    R_y = _used_noise(s, R_s)
     x_new, z_new, P3, eta_e, V = _kalman_stage(s, lin, Pe, Qe, w, dw, dx, x_new, ye, ob, eta,
                                                mu_w, b_y, sig_w2, R_y, D, start)
     eta_e, V = barrier((eta_e, V), start)
-    ob_e = [ob[r] for r in s.srow]
-    V = [[jnp.where(ob_e[i] & ob_e[j], V[i][j], 0.0) for j in range(ns)] for i in range(ns)]
-    eta_e, V_miss = barrier(impute_missing(eta_e, R_s, ob_e), start)
+    eta_e, extra = _sensor_data(s, eta_e, V, ob, R_s, start)
     like = x[0]
-    eta_v = stack([dw] + eta_e, like)
-    extra = stack([[add(V[i][j], V_miss[i][j]) for j in range(ns)] for i in range(ns)], like)
-    _, _, mu_new, lw_new, le_new = niw_update(gam, nu_p, mu, lam_w, lam_e, eta_v, extra)
+    _, _, mu_new, lw_new, le_new = niw_update(gam, nu_p, mu, lam_w, lam_e,
+                                             stack([dw] + eta_e, like), stack(extra, like))
     x_new = stack(x_new, like)
     z_new = stack(z_new, like) if nz else m
     P_new = stack(P3, like) if nz else P
-    bad = ~(jnp.isfinite(ll) & jnp.all(jnp.isfinite(x_new), 0) & jnp.all(jnp.isfinite(z_new), 0)
-            & jnp.all(jnp.isfinite(P_new), (0, 1)) & jnp.all(jnp.isfinite(mu_new), 0)
-            & jnp.isfinite(lw_new) & jnp.all(jnp.isfinite(le_new), (0, 1)))
-    ll = jnp.where(bad, -jnp.inf, ll)
-    keep = lambda new, old: jnp.where(bad, old, new)  # noqa: E731
+    ll, kept = _finite_or_old(ll, (x_new, z_new, P_new, mu_new, lw_new, le_new),
+                              (x, m, P, mu, lam_w, lam_e))
     cov_y = stack(S, like) * (df / (df - 2.0))
-    return (ll, keep(x_new, x), keep(z_new, m), keep(P_new, P), keep(mu_new, mu),
-            keep(lw_new, lam_w), keep(le_new, lam_e), stack(mu_y, like), cov_y, w)
+    return (ll, *kept, stack(mu_y, like), cov_y, w)
 
 
 def _storvik_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, zc, y, obs, u, theta, nu_p):
@@ -740,19 +766,16 @@ def _storvik_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, zc, y, obs, u
     zc: (1 + n_s, N) standard normals. Returns what :func:`_particle_update` returns (the
     posterior mean of w_t in place of a draw)."""
     start = (u[0] != u[0]).astype(jnp.int32)
-    nxs, nz, ns, spos, kvu, srow = s.nxs, s.nz, s.ns, s.spos, s.kvu, s.srow
+    nxs, nz, ns, srow = s.nxs, s.nz, s.ns, s.srow
     nk = s.nk
     nyu = len(s.u_idx)
     lin = _linearisation(s, mdl, x, m, u, theta, start)
     ye = [y[i] for i in range(nyu)]
     ob = [obs[i] for i in range(nyu)]
     Pe, lee = entries(P), entries(lam_e)
-    Qe = [[float(s.Qz[i, j]) if s.Qz[i, j] == 0.0 else jnp.asarray(s.Qz[i, j], x.dtype)
-           for j in range(nz)] for i in range(nz)]
+    Qe = _q_entries(s, x.dtype)
     sig_w2, R_d = draw_covariances(lam_w, lee, nu_p - s.d + 1.0, zc)
-    R_y = [[R_d[spos[i]][spos[j]] if (i in spos and j in spos) else (kvu[i] if i == j else 0.0)
-            for j in range(nyu)] for i in range(nyu)]
-    sig_w2, R_y = barrier((sig_w2, R_y), start)
+    sig_w2, R_y = barrier((sig_w2, _used_noise(s, R_d)), start)
     post, C, o, ll, S = barrier(input_noise_kalman_step(lin, Pe, sig_w2, ye, ob, [0.0] * nyu,
                                                         R_y, Qe, start), start)
     x_new = [add(lin.xb[k], post[k]) for k in range(nxs)]
@@ -763,25 +786,19 @@ def _storvik_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, zc, y, obs, u
     eta_e = [sub(o[r], dot(Hs[j], post)) for j, r in enumerate(srow)]
     CH = matmul(Hs, C)
     V = [[dot(CH[i], Hs[j]) for j in range(ns)] for i in range(ns)]
-    ob_e = [ob[r] for r in srow]
-    V = [[jnp.where(ob_e[i] & ob_e[j], V[i][j], 0.0) for j in range(ns)] for i in range(ns)]
     inv_den = 1.0 / (nu_p - s.d - 1.0)
     R_s = [[lee[i][j] * inv_den for j in range(ns)] for i in range(ns)]
-    eta_e, V_miss = barrier(impute_missing(eta_e, R_s, ob_e), start)
+    eta_e, extra = _sensor_data(s, eta_e, V, ob, R_s, start)
     like = x[0]
     eta_v = stack([post[nk]] + eta_e, like)
-    extra = stack([[add(V[i][j], V_miss[i][j]) for j in range(ns)] for i in range(ns)], like)
     _, _, _, lw_new, le_new = niw_update(0.0, nu_p, jnp.zeros_like(eta_v), lam_w, lam_e, eta_v,
-                                         extra, means_known=True, extra_w=C[nk][nk])
+                                         stack(extra, like), means_known=True, extra_w=C[nk][nk])
     x_new, z_new, P_new = stack(x_new, like), stack(z_new, like), stack(P_new, like)
-    bad = ~(jnp.isfinite(ll) & jnp.all(jnp.isfinite(x_new), 0) & jnp.all(jnp.isfinite(z_new), 0)
-            & jnp.all(jnp.isfinite(P_new), (0, 1)) & jnp.isfinite(lw_new)
-            & jnp.all(jnp.isfinite(le_new), (0, 1)))
-    ll = jnp.where(bad, -jnp.inf, ll)
-    keep = lambda new, old: jnp.where(bad, old, new)  # noqa: E731
+    ll, (x_new, z_new, P_new, lw_new, le_new) = _finite_or_old(
+        ll, (x_new, z_new, P_new, lw_new, le_new), (x, m, P, lam_w, lam_e))
     mu_y = stack([lin.yb[i] for i in range(nyu)], like)
-    return (ll, keep(x_new, x), keep(z_new, m), keep(P_new, P), None, keep(lw_new, lam_w),
-            keep(le_new, lam_e), mu_y, stack(S, like), post[nk] + 0.0 * like)
+    return (ll, x_new, z_new, P_new, None, lw_new, le_new, mu_y, stack(S, like),
+            post[nk] + 0.0 * like)
 
 
 def _mixture_moments(s: _Setup, w_now, x, z, P):
@@ -828,9 +845,9 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     n_obs = jnp.sum(obs, dtype=jnp.int32)
     gam_p, nu_p, lw_p, le_p = niw_predict(state.gamma, state.nu, state.lam_w, state.lam_e, s.lam)
     key_next, key_step = smc.split(state.key)
-    zn = barrier(smc.normals(key_step, 1 + s.ns if s.storvik else 2, n, dtype),
+    zn = barrier(smc.normals(key_step, 1 + s.ns if s.means_known else 2, n, dtype),
                  (u[0] != u[0]).astype(jnp.int32))
-    if s.storvik:
+    if s.means_known:
         ll, x, z, P, _, lam_w, lam_e, mu_y, cov_y, w_draw = _storvik_update(
             s, mdl, state.x, state.z, state.P, lw_p, le_p, zn, y0, obs, u, theta, nu_p)
         mu = state.mu
@@ -1057,7 +1074,7 @@ def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear
     Qz[-ns - 1:-1, -ns - 1:-1] = np.diag(walk ** 2)
     # the filter's own NiW: the offset's and the sensors' means zero and known
     prior = np.where(np.isin(np.arange(2 + 2 * ns), mi), 0.0, s_user.theta_prior)
-    s = s_user._replace(means_known=True, storvik=True, Qz=Qz, theta_prior=prior)
+    s = s_user._replace(means_known=True, Qz=Qz, theta_prior=prior)
     mdl = _model_fns(aug, s)
 
     def init(x0, P0, theta0=None, P_theta0=None, key=None):
