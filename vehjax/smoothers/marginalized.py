@@ -524,10 +524,10 @@ def backward_logdens(rb, theta, x, z, P, mu, lam_w, lam_e, gamma, nu, u_next, y_
     ry = jnp.where(obs[None], jnp.where(obs, yu, 0.0)[None] - mean_y, 0.0)  # (N, n_yu)
     rx = x_next.T[:, None, :] - mean_x[None]  # (M, N, n_xs)
     r = jnp.concatenate([rx, jnp.broadcast_to(ry[None], rx.shape[:2] + (nyu,))], axis=2)
-    Lb = jnp.broadcast_to(L, r.shape[:2] + L.shape[1:])
-    a = jax.scipy.linalg.solve_triangular(Lb, r[..., None], lower=True)[..., 0]
+    # one triangular solve per particle with the M trajectories as right-hand sides
+    a = jax.scipy.linalg.solve_triangular(L, jnp.transpose(r, (1, 2, 0)), lower=True)  # (N, n, M)
     logdet = jnp.sum(jnp.log(jnp.diagonal(L, axis1=1, axis2=2)), axis=1)
-    return -0.5 * jnp.sum(a * a, axis=-1) - logdet[None, :]
+    return -0.5 * jnp.sum(a * a, axis=1).T - logdet[None, :]
 
 
 def backward_ess(log_w, logdens):
