@@ -40,6 +40,12 @@ proposal is fixed after the last window, so the draws kept after warm-up come fr
 Metropolis-Hastings chain. :func:`log_likelihood_spread` measures the particle filter's
 log-likelihood noise, which should be about 1-1.5 at the posterior (Doucet et al. 2015).
 
+Correlated pseudo-marginal (``pmmh(..., correlation=rho)``, Deligiannidis, Doucet & Pitt 2018):
+the chain carries the bootstrap PF's random numbers and moves them by a Crank-Nicolson step with
+each proposal (:func:`cpm_log_likelihood_fn`, :mod:`vehjax._cpm`), so that the acceptance ratio
+compares two strongly correlated estimates; :func:`log_likelihood_difference_spread` measures
+how correlated they are.
+
 Random streams: one ``key`` is split into one key per chain; iteration i of chain c draws its
 proposal, its accept uniform and its particle filter's key from ``fold_in(key_c, i + 1)``
 (the starting values' likelihood from ``fold_in(key_c, 0)``), so a run
@@ -71,7 +77,7 @@ import numpy as np
 from . import _validate
 
 __all__ = ["Normal", "LogNormal", "Uniform", "PMMHResult", "pmmh", "log_likelihood_fn",
-           "log_likelihood_spread", "fixed_noise_mpf", "target_acceptance", "adaptation_windows",
+           "log_likelihood_spread", "cpm_log_likelihood_fn", "log_likelihood_difference_spread", "fixed_noise_mpf", "target_acceptance", "adaptation_windows",
            "adapted_covariance", "scale_update", "proposal_factor",
            "particle_gibbs", "conditional_pf_as", "log_joint", "split_rhat",
            "effective_sample_size"]
@@ -212,6 +218,22 @@ def _targets(model, names) -> _Targets:
     return _Targets(tuple(params), tuple(r_std), tuple(q_std), tuple(bias), tuple(inputs))
 
 
+def _with_values(tg: _Targets, theta, Q, R, ys, values):
+    """The named quantities set to ``values`` (d,) physical: (theta (np,), Q (nx, nx) with the
+    ``Q:`` variances, R (ny, ny) with the ``R:`` variances, ys (T, ny) minus the ``bias:``
+    values, the ``input:`` stds as a dict input name -> std, None without)."""
+    for i, j in tg.params:
+        theta = theta.at[j].set(values[i])
+    for i, j in tg.q_std:
+        Q = Q.at[j, j].set(values[i] ** 2)
+    for i, j in tg.r_std:
+        R = R.at[j, j].set(values[i] ** 2)
+    for i, j in tg.bias:
+        ys = ys.at[:, j].add(-values[i])
+    noise = {name: values[i] for i, name in tg.inputs} if tg.inputs else None
+    return theta, Q, R, ys, noise
+
+
 def log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R, names,
                       builder_kwargs=None):
     """``loglik(values (d,), key) -> ()``: the filter's log-likelihood estimate of the data with
@@ -235,20 +257,10 @@ def log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R, nam
     theta_base = jnp.asarray(model.theta, float)
 
     def loglik(values, key):
-        theta = theta_base
-        for i, j in tg.params:
-            theta = theta.at[j].set(values[i])
-        Qv, Rv = Q, R
-        for i, j in tg.q_std:
-            Qv = Qv.at[j, j].set(values[i] ** 2)
-        for i, j in tg.r_std:
-            Rv = Rv.at[j, j].set(values[i] ** 2)
-        y = ys
-        for i, j in tg.bias:
-            y = y.at[:, j].add(-values[i])
+        theta, Qv, Rv, y, noise = _with_values(tg, theta_base, Q, R, ys, values)
         kw = dict(kwargs)
         if tg.inputs:
-            kw["input_noise"] = {name: values[i] for i, name in tg.inputs}
+            kw["input_noise"] = noise
         est = builder(model, Qv, Rv, **kw)
         res = run_filter(est, y, us, x0=x0, P0=P0, theta0=theta, key=key,
                          return_covariances=False)
@@ -256,6 +268,113 @@ def log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R, nam
         return jnp.where(res.diverged | ~jnp.isfinite(ll), -jnp.inf, ll)
 
     return loglik
+
+
+# -- the correlated pseudo-marginal likelihood ----------------------------------------------
+#: ``builder_kwargs`` of the bootstrap PF that the correlated estimate (:mod:`vehjax._cpm`)
+#: reproduces; it resamples systematically at every step
+_CPM_KWARGS = ("n_particles", "resampling", "input_noise")
+
+
+def _check_correlation(correlation):
+    """``correlation`` (rho of the Crank-Nicolson move) as a float in (0, 1); ValueError."""
+    import numbers
+
+    ok = isinstance(correlation, numbers.Real) and not isinstance(correlation, (bool, np.bool_))
+    rho = float(correlation) if ok else float("nan")
+    if not 0.0 < rho < 1.0:
+        raise ValueError(f"correlation: expected a number in (0, 1) (the Crank-Nicolson move's "
+                         f"rho), got {correlation!r}")
+    return rho
+
+
+def cpm_log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R, names,
+                          builder_kwargs=None):
+    """The bootstrap PF's log-likelihood estimate as a function of its random numbers, for the
+    correlated pseudo-marginal method: ``(loglik(values (d,), aux) -> (), draw(key) -> aux)``,
+    aux a :class:`vehjax._cpm.Aux` of standard normals (:func:`vehjax._cpm.log_likelihood`:
+    particles sorted along their first principal direction and resampled systematically at
+    every step). The same model and likelihood as :func:`log_likelihood_fn` with
+    ``vehjax.filters.bootstrap_pf``; ``values`` as there.
+
+    Raises:
+        ValueError: ``builder`` not ``vehjax.filters.bootstrap_pf`` (the only filter whose
+            random numbers this reproduces), or ``builder_kwargs`` other than ``n_particles``,
+            ``resampling="systematic"`` and ``input_noise``.
+    """
+    from . import _cpm
+    from .filters import bootstrap_pf
+    from .filters import input_noise as _inoise
+    from .filters._model import chol_const
+
+    if builder is not bootstrap_pf:
+        raise ValueError(f"correlation: the correlated estimate is written for "
+                         f"vehjax.filters.bootstrap_pf only, got builder {builder!r}; use "
+                         f"correlation=None")
+    kwargs = dict(builder_kwargs or {})
+    extra = sorted(set(kwargs) - set(_CPM_KWARGS))
+    if extra or kwargs.get("resampling", "systematic") != "systematic":
+        raise ValueError(f"builder_kwargs: with correlation the bootstrap PF resamples "
+                         f"systematically at every step and takes only {_CPM_KWARGS} "
+                         f"(resampling='systematic'), got {kwargs!r}")
+    n = _validate.integer("n_particles", kwargs.get("n_particles", 1000), 2)
+    tg = _targets(model, names)
+    if tg.inputs and "input_noise" in kwargs:
+        raise ValueError("builder_kwargs: input_noise is calibrated ('input:' priors); drop it")
+    ys, us = _validate.data(measurements, inputs, model.ny, model.nu, "one")
+    ys, us = jnp.asarray(ys, float), jnp.asarray(us, float)
+    x0a, P0a = _validate.prior(model.nx, x0, P0)
+    x0a, L0 = jnp.asarray(x0a, float), jnp.asarray(np.linalg.cholesky(np.asarray(P0a, float)))
+    Qn = np.asarray(_validate.cov("Q", Q, model.nx, allow_psd=True), float)
+    Rj = jnp.asarray(_validate.cov("R", R, model.ny), float)
+    LQ_fixed = jnp.asarray(chol_const(Qn))
+    Lu_fixed = _inoise.input_factor(kwargs.get("input_noise"), model.input_names)
+    if tg.inputs:
+        k = len(tg.inputs)
+    else:
+        k = 0 if Lu_fixed is None else int(np.shape(Lu_fixed)[1])
+    theta_base = jnp.asarray(model.theta, float)
+    T = ys.shape[0]
+
+    def loglik(values, aux):
+        theta, Qv, Rv, y, noise = _with_values(tg, theta_base, jnp.asarray(Qn), Rj, ys, values)
+        LQ = jnp.linalg.cholesky(Qv) if tg.q_std else LQ_fixed
+        Lu = _inoise.input_factor(noise, model.input_names) if tg.inputs else Lu_fixed
+        Lu = None if Lu is None else jnp.asarray(Lu, float)
+        return _cpm.log_likelihood(model.transition, model.observe, y, us, theta, x0a, L0, LQ,
+                                   Rv, jnp.zeros(model.ny), aux, Lu)
+
+    def draw(key):
+        return _cpm.draw_aux(key, T, n, model.nx, k)
+
+    return loglik, draw
+
+
+def log_likelihood_difference_spread(builder, model, measurements, inputs=None, *, x0, P0, Q,
+                                     R, values, key, correlation, n_evals: int = 32,
+                                     builder_kwargs=None):
+    """How correlated the correlated estimates are, at fixed ``values`` (dict name -> physical
+    value): over ``n_evals`` draws of aux, the std [nats] of log p_hat(y | values, aux') - log
+    p_hat(y | values, aux) with aux' aux's Crank-Nicolson move (``correlation`` rho), which is
+    the noise the correlated chain's acceptance ratio sees, and the std of log p_hat(y | values,
+    aux) itself (independent estimates, the plain PMMH chain's). Returns (std of the
+    difference, std of the estimate) (:func:`cpm_log_likelihood_fn`)."""
+    from . import _cpm
+
+    rho = _check_correlation(correlation)
+    names = tuple(values)
+    loglik, draw = cpm_log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0,
+                                         Q=Q, R=R, names=names, builder_kwargs=builder_kwargs)
+    v = jnp.asarray([float(values[n]) for n in names])
+    n_evals = _validate.integer("n_evals", n_evals, 2)
+
+    def pair(k):
+        ka, ke = jax.random.split(k)
+        aux = draw(ka)
+        return loglik(v, aux), loglik(v, _cpm.crank_nicolson(aux, draw(ke), rho))
+
+    a, b = (np.asarray(t) for t in jax.jit(jax.vmap(pair))(jax.random.split(key, n_evals)))
+    return float(np.std(b - a, ddof=1)), float(np.std(a, ddof=1))
 
 
 # -- the marginalized PF's likelihood with fixed noise statistics -----------------------------
@@ -388,21 +507,32 @@ class _Chain(NamedTuple):
     z: jnp.ndarray          # (d,) unconstrained
     log_target: jnp.ndarray  # () log-lik estimate + log prior of z
     loglik: jnp.ndarray      # () the estimate held with z
+    aux: object = None       # correlated estimates: the random numbers of that estimate
 
 
-def _mh_iteration(loglik, priors, L_prop, key_chain):
-    """One PMMH step of one chain: ``(chain, i) -> (chain, (z, loglik, accepted))``."""
+def _mh_iteration(loglik, priors, L_prop, key_chain, move=None):
+    """One PMMH step of one chain: ``(chain, i) -> (chain, (z, loglik, accepted))``. Without
+    ``move`` the estimate is drawn afresh from the iteration's key (``loglik(values, key)``);
+    with it (correlated pseudo-marginal) the chain carries the estimate's random numbers and
+    proposes ``move(aux, key)`` with z, accepted or rejected together (``loglik(values, aux)``)."""
 
     def step(chain: _Chain, i):
         k = jax.random.fold_in(key_chain, i + 1)
         k_prop, k_acc, k_pf = jax.random.split(k, 3)
         z_new = chain.z + L_prop @ jax.random.normal(k_prop, chain.z.shape, chain.z.dtype)
-        ll_new = loglik(to_physical(priors, z_new), k_pf)
+        if move is None:
+            aux_new = None
+            ll_new = loglik(to_physical(priors, z_new), k_pf)
+        else:
+            aux_new = move(chain.aux, k_pf)
+            ll_new = loglik(to_physical(priors, z_new), aux_new)
         lt_new = ll_new + log_prior_unconstrained(priors, z_new)
         lt_new = jnp.where(jnp.isfinite(lt_new), lt_new, -jnp.inf)
         accept = jnp.log(jax.random.uniform(k_acc, (), chain.z.dtype)) < lt_new - chain.log_target
+        aux = None if move is None else jax.tree_util.tree_map(
+            lambda a, b: jnp.where(accept, a, b), aux_new, chain.aux)
         new = _Chain(jnp.where(accept, z_new, chain.z), jnp.where(accept, lt_new, chain.log_target),
-                     jnp.where(accept, ll_new, chain.loglik))
+                     jnp.where(accept, ll_new, chain.loglik), aux)
         return new, (new.z, new.loglik, accept)
 
     return step
@@ -524,24 +654,31 @@ def _adapt_step(ad: _Adapt, i, z, accepted, ends, target, prior_count):
     return jax.lax.cond(jnp.any(i + 1 == jnp.asarray(ends)), update, lambda ad: ad, ad)
 
 
-def _sampler(loglik, priors, n_iter: int, ends, target: float, prior_count: float):
+def _sampler(loglik, priors, n_iter: int, ends, target: float, prior_count: float,
+             draw=None, move=None):
     """``(keys (C,), z0 (C, d), L0 (d, d)) -> (draws (C, n, d), logliks (C, n), accepted (C, n),
     L, starting log targets (C,))``: the starting values' likelihoods, then ``n_iter``
     iterations of every chain (one ``lax.scan`` over iterations, the chains vmapped inside it),
     the proposal re-estimated from the pooled draws after each iteration count in ``ends``
-    (:func:`_adapt_step`; empty: never)."""
+    (:func:`_adapt_step`; empty: never). Correlated estimates: ``draw(key) -> aux`` the
+    starting random numbers (from ``fold_in(key_c, 0)``), ``move(aux, key) -> aux`` their
+    proposal (:func:`_mh_iteration`)."""
 
     def first(key, z):
-        ll = loglik(to_physical(priors, z), jax.random.fold_in(key, 0))
-        return _Chain(z, ll + log_prior_unconstrained(priors, z), ll)
+        if draw is None:
+            ll = loglik(to_physical(priors, z), jax.random.fold_in(key, 0))
+            return _Chain(z, ll + log_prior_unconstrained(priors, z), ll)
+        aux = draw(jax.random.fold_in(key, 0))
+        ll = loglik(to_physical(priors, z), aux)
+        return _Chain(z, ll + log_prior_unconstrained(priors, z), ll, aux)
 
     def run(keys, z0, L0):
         chains = jax.vmap(first)(keys, z0)
 
         def body(carry, i):
             chains, ad = carry
-            chains, out = jax.vmap(lambda k, c: _mh_iteration(loglik, priors, ad.L, k)(c, i))(
-                keys, chains)
+            chains, out = jax.vmap(
+                lambda k, c: _mh_iteration(loglik, priors, ad.L, k, move)(c, i))(keys, chains)
             ad = _adapt_step(ad, i, out[0], out[2], ends, target, prior_count)
             return (chains, ad), out
 
@@ -650,7 +787,7 @@ def _starting_values(priors, init, names) -> np.ndarray:
 def pmmh(builder, model, measurements, inputs=None, *, x0, P0, Q, R, priors, key,
          chains: int = 4, samples: int = 1000, warmup: int = 500, proposal_std=None,
          adapt: bool = True, adapt_windows: int = 5, acceptance_target=None,
-         init=None, builder_kwargs=None, proposal_cov=None) -> PMMHResult:
+         init=None, builder_kwargs=None, proposal_cov=None, correlation=None) -> PMMHResult:
     """Particle marginal Metropolis-Hastings over named quantities of a model and its noise.
 
     Args:
@@ -681,15 +818,27 @@ def pmmh(builder, model, measurements, inputs=None, *, x0, P0, Q, R, priors, key
             particle filter's estimate ``target_acceptance(d, std)`` with the estimate's std
             (:func:`log_likelihood_spread`).
         init: dict name -> starting value (physical); default the prior's centre (median).
+        correlation: None (default): every iteration's estimate has its own random numbers
+            (the plain pseudo-marginal chain). rho in (0, 1): correlated pseudo-marginal
+            (Deligiannidis, Doucet & Pitt 2018): the chain carries the bootstrap PF's random
+            numbers aux (:func:`cpm_log_likelihood_fn`, :mod:`vehjax._cpm`), each proposal
+            moves them to rho aux + sqrt(1 - rho^2) eps with the random walk's step and both
+            are accepted or rejected together; the acceptance ratio then sees the noise of a
+            difference of two strongly correlated estimates
+            (:func:`log_likelihood_difference_spread`) instead of two independent ones.
+            Only for ``builder=vehjax.filters.bootstrap_pf``. rho near 1 (e.g. 0.99 to 0.9999,
+            1 - rho about N / T by Deligiannidis et al.'s scaling) keeps that noise small.
 
     Returns:
         :class:`PMMHResult`.
 
     Raises:
         ValueError: naming the argument, for unknown names, bad priors or sizes, or a zero
-            likelihood at the starting values.
+            likelihood at the starting values; ``correlation`` outside (0, 1) or with a
+            builder other than the bootstrap PF.
     """
     names, prs = _check_priors(priors)
+    rho = None if correlation is None else _check_correlation(correlation)
     chains = _validate.integer("chains", chains, 2)
     samples = _validate.integer("samples", samples, 4)
     warmup = _validate.integer("warmup", warmup, 2 if adapt else 0)
@@ -700,13 +849,25 @@ def pmmh(builder, model, measurements, inputs=None, *, x0, P0, Q, R, priors, key
     if not acceptance_target < 1.0:
         raise ValueError(f"acceptance_target: expected a number in (0, 1), got "
                          f"{acceptance_target!r}")
-    loglik = log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0, Q=Q, R=R,
-                               names=names, builder_kwargs=builder_kwargs)
+    draw = move = None
+    if rho is None:
+        loglik = log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0, Q=Q,
+                                   R=R, names=names, builder_kwargs=builder_kwargs)
+    else:
+        from ._cpm import crank_nicolson
+
+        loglik, draw = cpm_log_likelihood_fn(builder, model, measurements, inputs, x0=x0,
+                                             P0=P0, Q=Q, R=R, names=names,
+                                             builder_kwargs=builder_kwargs)
+
+        def move(aux, k):
+            return crank_nicolson(aux, draw(k), rho)
     L0 = _proposal_factor(prs, proposal_std, proposal_cov)
     z0 = np.tile(_starting_values(prs, init, names), (chains, 1))
     keys = _validate.key(key, chains)
     ends = adaptation_windows(warmup, adapt_windows) if adapt else np.zeros(0, int)
-    run = _sampler(loglik, prs, warmup + samples, ends, acceptance_target, 5.0 * len(prs))
+    run = _sampler(loglik, prs, warmup + samples, ends, acceptance_target, 5.0 * len(prs),
+                   draw, move)
     zs, lls, acc, L, lt0 = run(keys, jnp.asarray(z0), jnp.asarray(L0))
     if not np.all(np.isfinite(np.asarray(lt0))):
         raise ValueError("init: the likelihood estimate at the starting values is zero (the "
