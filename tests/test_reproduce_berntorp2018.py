@@ -298,8 +298,17 @@ def test_pmmh_check_states_what_it_checks():
     assert "far above" not in berntorp2018.pmmh_check(good, {"loglik_std": 1.2, "particles": 9})
     args = berntorp2018.parser().parse_args(["--drive"])
     assert args.pmmh_iters is None and args.pmmh_particles is None   # per-sampler defaults
-    assert set(berntorp2018.PMMH_ITERS) == {"kalman", "mpf", "bootstrap", "pg"}
-    assert set(berntorp2018.PMMH_PARTICLES) == {"mpf", "bootstrap", "pg"}
+    assert set(berntorp2018.PMMH_ITERS) == {"kalman", "mpf", "bootstrap", "pg", "cpm"}
+    assert set(berntorp2018.PMMH_PARTICLES) == {"mpf", "bootstrap", "pg", "cpm"}
+    assert berntorp2018.PMMH_ITERS["cpm"] == berntorp2018.PMMH_ITERS["bootstrap"]
+    assert berntorp2018.PMMH_PARTICLES["cpm"] == berntorp2018.PMMH_PARTICLES["bootstrap"]
+    # the correlated chain: the difference's std beside two independent estimates'
+    cpm = berntorp2018.pmmh_check(good, {"loglik_diff_std": 11.0, "loglik_std": 14.0,
+                                         "particles": 64, "correlation": 0.999}, "cpm")
+    assert "differ by a log-likelihood std of 11.00 nats" in cpm and "against 19.80" in cpm
+    assert "far above the 1-2 nats" in cpm
+    assert "small enough" in berntorp2018.pmmh_check(
+        good, {"loglik_diff_std": 1.5, "loglik_std": 14.0, "particles": 64}, "cpm")
     assert args.pmmh_likelihood == "standard" and args.mpf_smoother == "ffbsi"
     # the marginalized PF's likelihood: its own wording, no "far above" verdict on the bootstrap
     mpf = berntorp2018.pmmh_check(good, {"loglik_std": 2.0, "particles": 256}, "mpf")

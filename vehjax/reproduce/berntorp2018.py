@@ -94,6 +94,10 @@ Drive (sec. 5, ``--drive``):
   (:func:`pg_process_std`, their correlation dropped) with priors of their own
   (:func:`pg_priors`); its moves are :data:`PG_STEP` of each prior's scale, since given a
   whole trajectory the values are known far better than the PMMH likelihood tells them.
+  ``--pmmh-likelihood cpm`` (also in ``all``): the bootstrap PF's likelihood with correlated
+  random numbers (correlated pseudo-marginal, Deligiannidis, Doucet & Pitt 2018;
+  ``pmmh(correlation=PMMH_CORRELATION)``), at the bootstrap chain's N and iterations, with the
+  measured std of the log-likelihood difference its acceptance ratio sees in the report.
   Every sampler adapts its random walk over the warm-up (:func:`vehjax.calibrate.pmmh`:
   windows of doubling length, the pooled draws' covariance and a scale tuned toward the
   optimal acceptance) and runs :data:`PMMH_ITERS` iterations by default, the exact-likelihood
@@ -203,17 +207,19 @@ def parser():
     p.add_argument("--pmmh-duration", type=_cli.positive, default=20.0,
                    help="--drive: seconds of the drive PMMH fits, from its start "
                         "(default %(default)s)")
-    p.add_argument("--pmmh-likelihood", choices=("bootstrap", "kalman", "mpf", "both", "pg",
-                                                 "standard", "all"),
+    p.add_argument("--pmmh-likelihood", choices=("bootstrap", "kalman", "mpf", "cpm", "both",
+                                                 "pg", "standard", "all"),
                    default="standard",
                    help="--drive: the offline reference's samplers: PMMH with the bootstrap "
                         "PF's likelihood, PMMH with the exact Kalman likelihood (plain MH, a "
                         "check), PMMH with the marginalized PF's likelihood (mpf: paper 004's "
-                        "filter with the noise statistics held at the chain's values), both "
+                        "filter with the noise statistics held at the chain's values), the "
+                        "bootstrap PF's with correlated random numbers (cpm: correlated "
+                        "pseudo-marginal, Deligiannidis et al. 2018), both "
                         "(kalman and bootstrap), particle Gibbs with ancestor sampling (pg; "
                         "--pmmh-particles particles in its conditional PF), standard "
                         "(kalman, bootstrap and pg: the MPF chain does not mix at its default "
-                        "size and takes about half an hour) or all four (default %(default)s)")
+                        "size and takes about half an hour) or all five (default %(default)s)")
     p.add_argument("--mpf-smoother", choices=("ffbsi", "ancestor"), default="ffbsi",
                    help="--drive: the MPF smoother's method (vehjax.smooth's method): "
                         "backward simulation over all the filter's particles (ffbsi; with "
@@ -669,6 +675,7 @@ PMMH_P0 = np.array([0.1, 0.5 * DEG]) ** 2
 #: the offline samplers' names in logs and tables, by --pmmh-likelihood value
 SAMPLER = {"bootstrap": "PMMH (bootstrap PF likelihood)", "kalman": "PMMH (Kalman likelihood)",
            "mpf": "PMMH (marginalized PF likelihood)",
+           "cpm": "correlated PMMH (bootstrap PF likelihood)",
            "pg": "particle Gibbs (ancestor sampling)"}
 
 
@@ -722,8 +729,14 @@ def _pg_init(pm, U, init):
 #: 1-1.5 band would take about 2-4 times the particles and time; its chain starts from the
 #: exact chain's adapted random walk. At 4 x 400 iterations it does not mix (R-hat to 2.7,
 #: acceptance 0.01), so the report marks it not yet a posterior
-PMMH_ITERS = {"kalman": 4000, "mpf": 400, "bootstrap": 200, "pg": 200}
-PMMH_PARTICLES = {"mpf": 256, "bootstrap": 64, "pg": 64}
+PMMH_ITERS = {"kalman": 4000, "mpf": 400, "bootstrap": 200, "pg": 200, "cpm": 200}
+PMMH_PARTICLES = {"mpf": 256, "bootstrap": 64, "pg": 64, "cpm": 64}
+#: the correlated chain (cpm: :func:`vehjax.calibrate.pmmh` with ``correlation``): the
+#: Crank-Nicolson move's rho, and the bootstrap chain's particles and iterations (to compare
+#: the two at the same cost). With the 2-state model the particles are Hilbert-sorted
+#: (:mod:`vehjax._cpm`); the report gives the measured std of the log-likelihood difference the
+#: chain's acceptance ratio sees, beside the independent estimates'
+PMMH_CORRELATION = 0.999
 #: the lowest acceptance rate the bootstrap chain's scale is tuned toward (Sherlock, Thiery,
 #: Roberts & Rosenthal 2015's overall optimum)
 PMMH_MIN_TARGET = 0.07
@@ -740,7 +753,11 @@ def run_pmmh(model, Y, U, *, iters=None, particles=None, chains=4, key, likeliho
     the same model as the EKF's: an unbiased estimate of the same likelihood) or "pg":
     particle Gibbs with ancestor sampling
     (:func:`vehjax.calibrate.particle_gibbs`, paper 004's ref. [29]; conditional PF with
-    ``particles``; the steering noise as additive process noise, :func:`pg_priors`).
+    ``particles``; the steering noise as additive process noise, :func:`pg_priors`) or "cpm":
+    the bootstrap PF's likelihood with correlated random numbers (correlated pseudo-marginal,
+    ``correlation`` :data:`PMMH_CORRELATION`; with ``spread_at`` the std of the log-likelihood
+    difference under the Crank-Nicolson move is measured too, ``info["loglik_diff_std"]``, and
+    the scale tuned toward the acceptance rate for that noise over sqrt(2)).
     ``init``: starting values by name (physical units), default the priors' centres.
     ``proposal_cov``: the PMMH random walk's starting covariance (unconstrained units, e.g.
     the exact chain's ``proposal_cov``), default 0.1 of each prior's scale.
@@ -772,7 +789,10 @@ def run_pmmh(model, Y, U, *, iters=None, particles=None, chains=4, key, likeliho
                                        warmup=iters // 2, n_particles=particles, init=init,
                                        proposal_std=step, mh_steps=PG_MOVES)
         return res, time.perf_counter() - t0, info
-    if likelihood == "bootstrap":
+    corr = PMMH_CORRELATION if likelihood == "cpm" else None
+    if corr is not None:
+        info["correlation"] = corr
+    if likelihood in ("bootstrap", "cpm"):
         builder, kw = bootstrap_pf, {"n_particles": particles}
     elif likelihood == "mpf":
         builder, kw = calibrate.fixed_noise_mpf, {"n_particles": particles}
@@ -781,9 +801,19 @@ def run_pmmh(model, Y, U, *, iters=None, particles=None, chains=4, key, likeliho
     t0 = time.perf_counter()
     priors = pmmh_priors()
     target = None
-    if likelihood in ("bootstrap", "mpf"):
+    if likelihood in ("bootstrap", "mpf", "cpm"):
         at = spread_at
-        if at is not None:
+        if at is not None and corr is not None:
+            info["loglik_diff_std"], info["loglik_std"] = \
+                calibrate.log_likelihood_difference_spread(
+                    builder, pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2), P0=PMMH_P0, Q=PMMH_Q,
+                    R=R0, values={k: at[k] for k in priors},
+                    key=jax.random.fold_in(key, 2015), correlation=corr,
+                    n_evals=spread_evals, builder_kwargs=kw)
+            # the ratio's noise is the difference's: as an estimate of std s / sqrt(2)'s
+            target = max(calibrate.target_acceptance(
+                len(priors), info["loglik_diff_std"] / math.sqrt(2.0)), PMMH_MIN_TARGET)
+        elif at is not None:
             info["loglik_std"], _ = calibrate.log_likelihood_spread(
                 builder, pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2), P0=PMMH_P0, Q=PMMH_Q, R=R0,
                 values={k: at[k] for k in priors}, key=jax.random.fold_in(key, 2015),
@@ -795,7 +825,8 @@ def run_pmmh(model, Y, U, *, iters=None, particles=None, chains=4, key, likeliho
     res = calibrate.pmmh(builder, pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2), P0=PMMH_P0, Q=PMMH_Q,
                          R=R0, priors=priors, key=key, chains=chains,
                          samples=iters - iters // 2, warmup=iters // 2, builder_kwargs=kw,
-                         init=init, acceptance_target=target, proposal_cov=proposal_cov)
+                         init=init, acceptance_target=target, proposal_cov=proposal_cov,
+                         correlation=corr)
     info["acceptance_target"] = target if target is not None else \
         calibrate.target_acceptance(len(priors))
     return res, time.perf_counter() - t0, info
@@ -916,7 +947,7 @@ def run_drive(args, log=print):
     # the exact-likelihood chain first: its posterior mean is where the bootstrap PF's
     # log-likelihood noise is measured
     liks = {"both": ("kalman", "bootstrap"), "standard": ("kalman", "bootstrap", "pg"),
-            "all": ("kalman", "mpf", "bootstrap", "pg")}.get(
+            "all": ("kalman", "mpf", "bootstrap", "cpm", "pg")}.get(
         getattr(args, "pmmh_likelihood", "both"), (getattr(args, "pmmh_likelihood", "both"),))
     for lik in liks:
         if getattr(args, "pmmh_iters", None) == 0:
@@ -930,7 +961,7 @@ def run_drive(args, log=print):
                 "R:r": float(Pm[:, -1, names.index("r_std")].mean()), "R:r_virt": rvirt_sd,
                 "input:delta": float(Pm[:, -1, names.index("delta_std")].mean())}
         at = None
-        if lik in ("bootstrap", "mpf") and "kalman" in pm_res:
+        if lik in ("bootstrap", "mpf", "cpm") and "kalman" in pm_res:
             at = dict(zip(pm_res["kalman"][0].names, map(float, pm_res["kalman"][0].mean)))
         # the MPF chain's random walk starts from the exact chain's adapted one (a pilot run)
         cov0 = pm_res["kalman"][0].proposal_cov if lik == "mpf" and "kalman" in pm_res \
@@ -1211,13 +1242,28 @@ def pmmh_check(pr, info, lik="bootstrap"):
     """The report's sentence on one sampler: whether every quantity has split R-hat <
     :data:`RHAT_MAX` and ESS >= :data:`ESS_MIN` (naming those that do not), and for a
     particle likelihood (``lik`` "bootstrap" or "mpf") its log-likelihood estimate's std
-    against :data:`LOGLIK_STD_BAND`."""
+    against :data:`LOGLIK_STD_BAND`; for the correlated chain (``info`` with
+    ``loglik_diff_std``) the std of the difference its acceptance ratio sees beside two
+    independent estimates'."""
     bad = [f"{n} (R-hat {r:.2f}, ESS {e:.0f})" for n, r, e in zip(pr.names, pr.rhat, pr.ess)
            if not (r < RHAT_MAX and e >= ESS_MIN)]
     text = (f"Check: split R-hat < {RHAT_MAX} and ESS >= {ESS_MIN} for every quantity: "
             + ("met (max R-hat {:.3f}, min ESS {:.0f}).".format(np.max(pr.rhat), np.min(pr.ess))
                if not bad else "NOT met for " + ", ".join(bad)
                + ": these chains have not mixed, their numbers are not yet a posterior."))
+    if "loglik_diff_std" in info:
+        d, sd = info["loglik_diff_std"], info["loglik_std"]
+        text += (f" The correlated estimates (N = {info['particles']}, rho = "
+                 f"{info.get('correlation')}) differ by a log-likelihood std of {d:.2f} nats "
+                 f"between an estimate and its Crank-Nicolson move at the Kalman chain's "
+                 f"posterior mean, against {math.sqrt(2.0) * sd:.2f} for two independent "
+                 f"estimates (each of std {sd:.2f}); "
+                 + ("small enough for the acceptance ratio (about 1-2 nats)."
+                    if d <= 2.0 else
+                    "far above the 1-2 nats an efficient chain needs: with two states the "
+                    "sorted resampling keeps little of the correlation (module vehjax._cpm), "
+                    "so this chain sticks as the independent one does."))
+        return text
     if "loglik_std" in info:
         lo, hi = LOGLIK_STD_BAND
         sd = info["loglik_std"]
@@ -1427,6 +1473,11 @@ def main_drive(args, out_dir):
         what = {"bootstrap": f"PMMH likelihood: bootstrap PF, N = {info['particles']}",
                 "kalman": "PMMH likelihood: EKF, exact Kalman likelihood on this linear "
                           "model, plain MH",
+                "cpm": f"PMMH likelihood: bootstrap PF, N = {info['particles']}, with "
+                       f"correlated random numbers (correlated pseudo-marginal, Deligiannidis, "
+                       f"Doucet & Pitt 2018: each proposal moves the filter's standard normals "
+                       f"by a Crank-Nicolson step, rho = {info.get('correlation')}, particles "
+                       f"Hilbert-sorted before systematic resampling at every step)",
                 "mpf": f"PMMH likelihood: marginalized PF (paper 004's filter, "
                        f"kalman_states='all', every state in each particle's Kalman filter), "
                        f"N = {info['particles']}, its noise statistics held at the chain's "
@@ -1442,12 +1493,13 @@ def main_drive(args, out_dir):
                     f"{info.get('acceptance_target', 0.255):.3f}). " + pmmh_check(pr, info, lik) + "\n",
                     _table(pmmh_rows(pr), head=("quantity", "posterior mean", "std",
                                                  "95 % interval", "split R-hat", "ESS")), ""]
-        if lik == "mpf" and "kalman" in res["pmmh"]:
+        if lik in ("mpf", "cpm") and "kalman" in res["pmmh"]:
             md_pmmh += ["Against the exact-likelihood chain (the same model and posterior): "
                         "z = difference of the means over its Monte-Carlo std (from both "
                         "chains' ESS), |z| < 3 expected where both have mixed.\n",
                         _table(posterior_agreement(pr, res["pmmh"]["kalman"][0]),
-                               head=("quantity", "mean (MPF likelihood)",
+                               head=("quantity", {"mpf": "mean (MPF likelihood)",
+                                                  "cpm": "mean (correlated PMMH)"}[lik],
                                      "mean (Kalman likelihood)", "z", "std ratio")), ""]
     cost = _table([
         ("marginalized PF", f"N = {res['N']}, {res['R']} executions in one call",
