@@ -11,7 +11,8 @@ import vehjax as vj
 from vehjax.filters._bounds import Transform
 from vehjax.filters.gaussian import GaussianState, ukf
 from vehjax.filters import smc
-from vehjax.filters.liu_west import _kernel, liu_west_ukf
+from vehjax.filters.liu_west import liu_west_ukf
+from vehjax.filters.smc import shrink_move
 
 # Scalar linear model with an unknown input gain b: x' = A x + b u + w, y = x + v.
 A, QV, RV, B_TRUE = 0.9, 0.05, 0.1, 1.0
@@ -122,7 +123,7 @@ def test_kernel_keeps_weighted_mean_and_covariance():
     a = 0.9
     # the normals the filter draws: the particle core's counter-based ones
     z = smc.normals(smc.raw_key(jax.random.key(3)), 2, M, jnp.float64)
-    moved = np.asarray(_kernel(z, jnp.asarray(parts.T), jnp.asarray(mean),
+    moved = np.asarray(shrink_move(z, jnp.asarray(parts.T), jnp.asarray(mean),
                                jnp.asarray(V), a)).T  # particles (p, M) in the filter
     new_mean = w @ moved
     new_V = ((moved - new_mean) * w[:, None]).T @ (moved - new_mean)
@@ -459,7 +460,7 @@ def test_ukf_recurrent_derivative_is_the_jacobian_of_the_ukf_step():
 
 
 def test_liu_west_move_only_where_it_should():
-    from vehjax.filters.liu_west import _kernel, liu_west_move
+    from vehjax.filters.liu_west import liu_west_move
 
     M = 8
     parts = jnp.asarray(np.linspace(-1.0, 1.0, 2 * M).reshape(2, M))
@@ -474,7 +475,7 @@ def test_liu_west_move_only_where_it_should():
         moved = liu_west_move(smc.resample, parts, w, lw, u, "systematic", 0.5, z, jit, 0.9,
                               keep, every)
         mean, V = smc.moments(w, parts)
-        return moved, _kernel(z, parts, mean, V + jit, 0.9)
+        return moved, shrink_move(z, parts, mean, V + jit, 0.9)
 
     no, yes = jnp.asarray(False), jnp.asarray(True)
     # equal weights: ESS = M, no resampling; moved only with every=True

@@ -109,6 +109,10 @@ def test_prior_and_estimates_are_mapped_as_documented():
     ("bias_walk", dict(bias_walk={"ay": -0.1})),
     ("bias_walk", dict(bias_walk=[0.1])),
     ("bias_walk", dict(noise_means="niw", bias_walk={"ay": 0.1})),
+    ("input_std_range", dict(input_std_range=(0.01,))),
+    ("input_std_range", dict(input_std_range=(0.02, 0.01))),
+    ("input_std_range", dict(input_std_range=(0.0, 0.01))),
+    ("input_std_range", dict(noise_means="niw", input_std_range=(0.01, 0.02))),
 ])
 def test_bad_options_raise_naming_them(arg, over):
     with pytest.raises(ValueError, match=arg):
@@ -148,10 +152,10 @@ def _matrices(vx):
     return F, np.r_[Bd, np.zeros(3)], np.concatenate([C, Sb], 1), Dd
 
 
-def _simulate(R, T, offset, bias, sig_phi, seed):
+def _simulate(R, T, offset, bias, sig_phi, seed, sig_w=0.0):
     """Data of the linear SingleTrackBank at the study's inputs: steering with a constant
-    offset (no steering noise), white bank jerk, constant sensor biases, white noise of the
-    stds STD0 / KNOWN. Returns (truth (R, T, 5), Y (R, T, 5), U (T, 2))."""
+    offset and white noise of std ``sig_w``, white bank jerk, constant sensor biases, white
+    noise of the stds STD0 / KNOWN. Returns (truth (R, T, 5), Y (R, T, 5), U (T, 2))."""
     from vehjax.reproduce.consistency import mpf_inputs
 
     U = mpf_inputs(T)
@@ -163,6 +167,8 @@ def _simulate(R, T, offset, bias, sig_phi, seed):
     X, Y = np.zeros((R, T, 5)), np.zeros((R, T, 5))
     for t in range(T):
         d = U[t, 1] + offset
+        if sig_w:
+            d = d + sig_w * rng.normal(size=(R, 1))
         x = x @ F.T + B * d + sig_phi * rng.normal(size=(R, 1)) * gain
         X[:, t] = x[:, :5]
         Y[:, t] = x @ H.T + D * d + std * rng.normal(size=(R, 5))
@@ -231,28 +237,95 @@ def test_with_the_noise_known_it_is_the_exact_kalman_filter_of_the_biased_model(
     np.testing.assert_allclose(out.params[:, -1, 0], offset, rtol=1e-6)
 
 
-def test_covariance_draws_have_the_inverse_wishart_marginals():
-    """draw_covariances: each variance Lambda_jj / chi^2_dof is distributed as the diagonal of
-    IW(Lambda, nu) in dimension d, dof = nu - d + 1, i.e. inverse-gamma(dof / 2, Lambda_jj / 2)
-    (scipy), within the Wilson-Hilferty cube's accuracy (KS distance); R keeps Lambda_e's
-    correlations and is positive semi-definite."""
+def _input_noise_loglik(Y, U, offset, sig_w, x0, P0, Pb0, sig_phi):
+    """numpy: the exact log-likelihood (R,) of Y under the model of :func:`_simulate` with the
+    steering noise of std ``sig_w`` (process noise B w and measurement noise D w, correlated),
+    the biases states of prior N(0, Pb0), the offset and every covariance known."""
     import scipy.stats
 
-    from vehjax.filters._niw import draw_covariances
+    F, B, H, D = _matrices(float(U[0, 0]))
+    gain = np.r_[np.asarray(MODEL.bank_noise_gain()), np.zeros(3)]
+    Q = sig_phi ** 2 * np.outer(gain, gain)
+    Rm = np.diag([STD0.get(n, KNOWN.get(n)) ** 2 for n in MODEL.output_names])
+    runs, T, _ = Y.shape
+    m = np.tile(np.r_[x0, np.zeros(3)], (runs, 1))
+    P = np.zeros((8, 8))
+    P[:5, :5], P[5:, 5:] = P0, Pb0
+    s2 = sig_w ** 2
+    ll = np.zeros(runs)
+    for t in range(T):
+        d = U[t, 1] + offset
+        m = m @ F.T + B * d
+        P = F @ P @ F.T + Q + s2 * np.outer(B, B)
+        Csy = P @ H.T + s2 * np.outer(B, D)  # Cov(s_t, y_t)
+        S = H @ Csy + s2 * np.outer(D, B) @ H.T + s2 * np.outer(D, D) + Rm
+        S = 0.5 * (S + S.T)
+        e = Y[:, t] - m @ H.T - D * d
+        ll += scipy.stats.multivariate_normal(np.zeros(5), S).logpdf(e)
+        K = np.linalg.solve(S, Csy.T).T
+        m = m + e @ K.T
+        P = P - K @ S @ K.T
+        P = 0.5 * (P + P.T)
+    return ll
 
-    n, dof = 20000, 40.0
-    lam_w = jnp.full((n,), 3.0)
-    Le = np.array([[2.0, 0.5, 0.0], [0.5, 1.0, -0.2], [0.0, -0.2, 0.5]])
-    lam_e = [[jnp.full((n,), Le[i, j]) for j in range(3)] for i in range(3)]
-    z = jax.random.normal(jax.random.key(0), (4, n), jnp.float64)
-    sw2, R = draw_covariances(lam_w, lam_e, dof, z)
-    for lam, v in [(3.0, sw2)] + [(Le[j, j], R[j][j]) for j in range(3)]:
-        ks = scipy.stats.kstest(np.asarray(v), scipy.stats.invgamma(dof / 2, scale=lam / 2).cdf)
-        assert ks.statistic < 0.015, ks
-    Rm = np.stack([np.stack([np.asarray(R[i][j]) for j in range(3)]) for i in range(3)])
-    rho = Rm[0, 1] / np.sqrt(Rm[0, 0] * Rm[1, 1])
-    np.testing.assert_allclose(rho, Le[0, 1] / np.sqrt(Le[0, 0] * Le[1, 1]), rtol=1e-12)
-    assert np.min(np.linalg.eigvalsh(np.moveaxis(Rm, -1, 0))) > 0
+
+@pytest.mark.slow  # one MPF compile (about a minute on 2 cores): `pytest -m slow` (README)
+def test_input_std_grid_is_the_exact_posterior_of_the_steering_std():
+    """With the offset and the sensor covariances known (nu0 = 1e10, forgetting 1) and the
+    steering std on a grid (``input_std_range``), each particle is the exact Kalman filter at
+    its std, so the filter's weights are the exact posterior over the grid: the reported std
+    (sqrt of the posterior mean of sigma_w^2), its reported variance (the posterior spread)
+    and the log-likelihood equal those computed from numpy Kalman likelihoods at each grid
+    value (flat prior over the grid)."""
+    T, R, N = 150, 2, 6
+    offset, sig_w, sig_phi = math.radians(0.28), math.radians(0.3), 0.05
+    _, Y, U = _simulate(R, T, offset, np.zeros(3), sig_phi, seed=4, sig_w=sig_w)
+    x0, P0 = np.zeros(5), np.array([1e-30, 1e-30, 1e-6, 1e-6, 1e-6])
+    lo, hi = sig_w / 3.0, sig_w * 3.0
+    est = marginalized_pf(MODEL, N, sensors=SENSORS, known_std=KNOWN, linear_noise_std=sig_phi,
+                          std0=STD0, mean0={"delta": offset}, mean_std0={"delta": 1e-9},
+                          forgetting=1.0, nu0=1e10, noise_means="kalman",
+                          input_std_range=(lo, hi))
+    out = vj.run(est, Y, U, x0=x0, P0=P0, key=jax.random.key(5), return_covariances=True)
+    assert not out.diverged.any()
+    grid = np.exp(np.linspace(math.log(lo), math.log(hi), N))
+    Pb0 = np.diag([STD0[s] ** 2 for s in SENSORS])
+    L = np.stack([_input_noise_loglik(Y, U, offset, g, x0, np.diag(P0), Pb0, sig_phi)
+                  for g in grid], 1)  # (R, N)
+    Lmax = L.max(1, keepdims=True)
+    w = np.exp(L - Lmax)
+    w /= w.sum(1, keepdims=True)
+    std = np.sqrt(w @ grid ** 2)
+    spread = np.sum(w * (grid[None] - std[:, None]) ** 2, 1)
+    j = est.param_names.index("delta_std")
+    np.testing.assert_allclose(out.params[:, -1, j], std, rtol=1e-6)
+    np.testing.assert_allclose(out.params_cov[:, -1, j, j], spread, rtol=1e-5)
+    total = Lmax[:, 0] + np.log(np.mean(np.exp(L - Lmax), 1))
+    np.testing.assert_allclose(np.asarray(out.loglik).reshape(R, -1).sum(1), total, rtol=1e-8,
+                               atol=1e-4)
+    assert np.max(w) < 0.99  # the posterior is spread over the grid: not a trivial check
+
+
+def test_static_grid_carries_the_inverse_wishart_prior_of_the_input_variance():
+    """static_prior_grid: the weighted grid of sigma_w^2 reproduces the prior's marginal
+    Lambda_w / chi^2_dof, inverse-gamma(dof / 2, Lambda_w / 2) (scipy): its mean, the mean of
+    log sigma^2 (log Lambda_w - digamma(dof / 2) - log 2) and the cdf at the quartiles, and it reaches into both tails."""
+    import scipy.special
+    import scipy.stats
+
+    from vehjax.filters._niw import static_prior_grid
+
+    lam, dof = 3.0e-4, 5.0
+    v, lw = static_prior_grid(jnp.asarray(lam), dof, 400)
+    v, w = np.asarray(v), np.exp(np.asarray(lw))
+    ig = scipy.stats.invgamma(dof / 2, scale=lam / 2)
+    assert abs(w.sum() - 1.0) < 1e-12 and np.all(np.diff(v) > 0)
+    np.testing.assert_allclose(w @ v, ig.mean(), rtol=0.01)
+    ref_log = math.log(lam) - scipy.special.digamma(dof / 2) - math.log(2.0)  # E log(lam / c)
+    np.testing.assert_allclose(w @ np.log(v), ref_log, atol=0.01)
+    for q in (0.25, 0.5, 0.75):
+        np.testing.assert_allclose(np.sum(w[v <= ig.ppf(q)]), q, atol=0.01)
+    assert ig.cdf(v[0]) < 1e-3 and ig.sf(v[-1]) < 1e-3
 
 
 def test_input_noise_kalman_step_is_the_kalman_update_with_the_input_error_as_a_state():

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
@@ -25,7 +26,8 @@ from ._linalg import forward_entries
 
 __all__ = [
     "niw_predict", "niw_update", "st_logpdf_whitened", "t_weight_and_proposal", "impute_missing",
-    "wilson_hilferty", "draw_offset", "draw_covariances", "noise_estimates", "t_predictive",
+    "wilson_hilferty", "draw_offset", "noise_estimates", "t_predictive",
+    "static_prior_grid",
 ]
 
 
@@ -144,27 +146,33 @@ def wilson_hilferty(z, dof):
     return base * base * base
 
 
-def draw_covariances(lam_w, lam_e, dof, z):
-    """A draw of the noise covariances (sigma_w^2, R) of one particle from its inverse-Wishart
-    statistics (the known-mean NiW of ``noise_means="kalman"``), each variance from its exact
-    marginal: Sigma_jj = Lambda_jj / c_j with c_j ~ chi^2_dof, dof = nu - d + 1 (the diagonal
-    of IW(Lambda, nu) in dimension d; Press 1982), the chi-squares by :func:`wilson_hilferty`
-    of independent standard normals; R's off-diagonal Lambda_jk / sqrt(c_j c_k), which keeps
-    Lambda's correlations and R positive semi-definite (a congruence of Lambda_e). The
-    dependence between the variances is not the inverse-Wishart's (independent c_j).
+#: how far into the tails of its prior :func:`static_prior_grid` reaches, in standard normal
+#: quantiles of the chi-square (Wilson-Hilferty): 3.5 leaves about 2e-4 of the prior outside
+GRID_Z = 3.5
+
+
+def static_prior_grid(lam_w, dof, n: int):
+    """A grid of n variances over the inverse-Wishart prior's marginal Lambda_w / chi^2_dof and
+    their prior log weights: each particle's own static sigma_w^2 (``noise_means="kalman"``).
+
+    The grid is uniform in log sigma^2 between the chi-square's Wilson-Hilferty quantiles at
+    -+ :data:`GRID_Z` (Johnson, Kotz & Balakrishnan 1994, eq. 18.25; lower base floored at 1e-3
+    of the mean); the weights are the prior density of log sigma^2 there (that of log c for
+    c = Lambda_w / sigma^2 ~ chi^2_dof: (dof / 2) log c - c / 2), normalised.
 
     Args:
-        lam_w: (N,) Lambda_w.  lam_e: (n_s, n_s) entries of Lambda_e.  dof: scalar.
-        z: (1 + n_s, N) standard normals.
+        lam_w: scalar Lambda_w (> 0); dof: nu0 - d + 1 (> 0); n: grid size >= 2.
 
     Returns:
-        (sigma_w^2 (N,), R (n_s, n_s) entries).
+        (variances (n,), log weights (n,) summing to 1 in exp).
     """
-    ns = len(lam_e)
-    c = [dof * wilson_hilferty(z[i], dof) for i in range(1 + ns)]
-    sq = [jnp.sqrt(c[1 + j]) for j in range(ns)]
-    R = [[lam_e[i][j] / (sq[i] * sq[j]) for j in range(ns)] for i in range(ns)]
-    return lam_w / c[0], R
+    c = 2.0 / (9.0 * dof)
+    q = lambda z: dof * max(1.0 - c + z * math.sqrt(c), 1e-1) ** 3  # noqa: E731
+    lo, hi = math.log(q(-GRID_Z)), math.log(q(GRID_Z))
+    log_c = jnp.linspace(hi, lo, n)  # sigma^2 from small to large
+    lw = 0.5 * dof * log_c - 0.5 * jnp.exp(log_c)
+    lw = lw - jax.scipy.special.logsumexp(lw)
+    return lam_w / jnp.exp(log_c), lw
 
 
 def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, means_known=False):
@@ -182,7 +190,9 @@ def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, means_known=False):
         w: (N,) normalised weights.  mu: (d, N).  lam_w: (N,).  lam_e: (d - 1, d - 1, N).
         nu, gamma: scalars, after the update.
         means_known: the noise's mean is known (gamma = 0, :func:`niw_update`): no
-            within-particle covariance of the offset and the biases.
+            within-particle covariance of the offset and the biases; ``lam_w`` is then each
+            particle's sigma_w^2 itself (a static parameter of the particle, not a statistic:
+            ``noise_means="kalman"``), so sigma_w has no within-particle variance either.
 
     Returns:
         (params (p,), params_cov (p, p)), p = 2 d, in the order offset mean, offset std,
@@ -193,7 +203,7 @@ def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, means_known=False):
     ns = d - 1
     p = 2 * d
     den = nu - d - 1.0
-    sw2 = lam_w / den  # (N,)
+    sw2 = lam_w if means_known else lam_w / den  # (N,)
     se = lam_e / den  # (ns, ns, N)
     m_w = jnp.sum(w * mu[0])
     b = mu[1:] @ w
@@ -213,8 +223,9 @@ def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, means_known=False):
     pd = float(d)
     iw = jnp.maximum(nu - pd - 3.0, 1.0)
     denom = (nu - pd) * (nu - pd - 1.0) ** 2 * iw
-    diag_lam = jnp.concatenate([lam_w[None], jnp.diagonal(lam_e, axis1=0, axis2=1).T])
-    Lfull = jnp.zeros((d, d, lam_w.shape[0]), dtype).at[0, 0].set(lam_w).at[1:, 1:].set(lam_e)
+    lw_stat = jnp.zeros_like(lam_w) if means_known else lam_w
+    diag_lam = jnp.concatenate([lw_stat[None], jnp.diagonal(lam_e, axis1=0, axis2=1).T])
+    Lfull = jnp.zeros((d, d, lam_w.shape[0]), dtype).at[0, 0].set(lw_stat).at[1:, 1:].set(lam_e)
     cov_diag = (2.0 * diag_lam[:, None, :] * diag_lam[None, :, :]
                 + 2.0 * (nu - pd - 1.0) * Lfull ** 2) / denom  # Cov(Sigma_ii, Sigma_jj)
     sd_i = jnp.concatenate([sd_w_i[None], sd_s_i])

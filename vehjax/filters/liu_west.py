@@ -167,7 +167,6 @@ from .. import _random, _validate
 from . import resampling as _rs
 from . import sigma, smc
 from ._bounds import Transform, check_inside, parse as _parse_bounds
-from ._linalg import cholesky
 from .base import Estimator, check_estimate
 from ._model import check_model, in_dtype, model_dims, prior
 from .gaussian import GaussianState, ukf
@@ -246,16 +245,6 @@ def _check_box(theta_low, theta_high, names) -> tuple[np.ndarray, np.ndarray]:
 
 
 # -- helpers ----------------------------------------------------------------------------------
-
-
-def _kernel(z, particles, mean, V, a: float):
-    """Liu-West move of particles (p, M): N(a theta_i + (1 - a) mean, (1 - a^2) V), V (p, p).
-
-    With weights W summing to 1 whose weighted mean and covariance of ``particles`` are
-    ``mean`` and ``V``, the moved cloud has the same weighted mean and covariance in expectation.
-    """
-    L_V = cholesky(V)
-    return a * particles + (1.0 - a) * mean[:, None] + math.sqrt(1.0 - a * a) * (L_V @ z)
 
 
 def _draw_box(u, low, high):
@@ -341,7 +330,7 @@ def weigh(log_w, y_i, y, obs, L) -> smc.Reweighted:
 def liu_west_move(resample, particles, w, log_w, u_res, scheme, threshold, z, jitter, a,
                   keep, every: bool):
     """Resample when the weights degenerate, then shrink towards the mean and jitter
-    (:func:`_kernel`) at the steps that resample, or at every step with ``every``.
+    (:func:`vehjax.filters.smc.shrink_move`) at the steps that resample, or at every step with ``every``.
 
     Args:
         resample: resampling function (:func:`vehjax.filters.smc.resample`'s signature).
@@ -356,7 +345,7 @@ def liu_west_move(resample, particles, w, log_w, u_res, scheme, threshold, z, ji
     """
     mean, V = smc.moments(w, particles)
     parts, lw_k, _, resampled = resample(particles, w, log_w, u_res, scheme, threshold)
-    moved = _kernel(z, parts, mean, V + jitter, a)
+    moved = smc.shrink_move(z, parts, mean, V + jitter, a)
     do_move = ~keep & jnp.all(jnp.isfinite(moved))
     if not every:
         do_move = do_move & resampled

@@ -129,7 +129,7 @@ batch posterior (tests/test_marginalized.py checks it).
   consistency``, 100 runs: NEES in the band on 0.17 of the steps with ``kalman_states="all"``,
   the roll-rate bias's spread over runs twice its reported std; ``vehjax reproduce
   noise-learning`` on paper 004's simulation: the NEES of (vy, r) about 4 per dof). Three
-  causes, three changes (:func:`_storvik_update`):
+  causes, three changes (:func:`_kalman_means_update`):
   (1) the particle's Kalman filter takes the NiW means as exact, and eq. 18 takes each
   residual as an exact observation of them, though the data tell some of them apart only
   slowly (the roll-rate bias from the bank rate; the ay bias from the steering offset, which
@@ -146,17 +146,30 @@ batch posterior (tests/test_marginalized.py checks it).
   expected data: the posterior mean of w_t with its variance added to Lambda_w, the sensor
   residuals at the posterior mean with H C H^T added to Lambda_e. Drawn offsets made each
   particle's statistics those of its own path, which resampling shares among few particles;
-  (3) what is random per particle is then the covariances: each step every particle draws its
-  sigma_w^2 and R from its own inverse-Wishart statistics (the marginals exactly,
-  :func:`vehjax.filters._niw.draw_covariances`), runs its Kalman step with them and is weighted
-  by that step's Gaussian predictive of y_t: Storvik's (2002) filter for static parameters
-  with sufficient statistics, the statistics here the expected ones (the states are not
-  sampled), so the spread of the particles is the spread of the covariances given the data.
-  Exact, given the covariances, for models affine in the states and the noisy input (with
-  every covariance known it is the Kalman filter of the augmented model:
-  tests/test_mpf_consistent.py). Approximate: the expected statistics (a variational-Bayes
-  style update, not the exact posterior of the covariances) and the forgetting. The prior of
-  the offset and the biases is N(mean0, gamma0 std0^2) as the paper's NiW unless ``mean_std0``
+  (3) what differs between the particles is then the steering noise's variance: each
+  particle carries its own static sigma_w^2 on a fixed grid (log-uniform over the
+  inverse-Wishart prior's marginal, weighted by that prior, :func:`vehjax.filters._niw.
+  static_prior_grid`, or flat over ``input_std_range``), runs its Kalman step with it and is
+  weighted by that step's Gaussian predictive of y_t; the grid is never resampled, so the
+  weights are the posterior over the grid (each particle is a Kalman filter given its
+  sigma_w^2: a multiple-model filter over it). The sensor covariance R is learnt per particle
+  from the expected statistics (the inverse-Wishart over the residuals, its mean used in the
+  Kalman step). Why a grid: the data tell sigma_w apart mostly through the dynamics (the
+  steering noise moves vy and r, which the sensors see over the following steps), which only
+  the predictive likelihood carries; the expected statistic of w_t given y_1:t sees only the
+  direct term d w_t in ay, beside ay's own noise, and learns nothing that separates them. On
+  paper 004's simulation that statistic (with covariances drawn per particle, Storvik's
+  filter, as first built here) ended at 3.8 times the true steering std; drawing static
+  values and moving them by Liu & West's kernel collapsed the cloud (reported std 0.007 of the
+  truth against a spread over runs of 0.2). Exact, given the sensor covariances, for models
+  affine in the states and the noisy input: with R known the weights are the exact posterior
+  over the grid (tests/test_mpf_consistent.py, against numpy Kalman likelihoods), and with
+  every covariance known it is the Kalman filter of the augmented model. Approximate: R's
+  expected statistics (a variational-Bayes style update) and its forgetting, the grid's
+  resolution. With forgetting < 1 the sensor statistics' own noise (about 200 steps' worth
+  at lambda = 0.995) makes the predictive favour a larger sigma_w (paper 004's simulation,
+  10 runs x 180 s: +22 % at 0.995, +12 % at 1). The prior of the offset and the biases is
+  N(mean0, gamma0 std0^2) as the paper's NiW unless ``mean_std0``
   gives their size: a prior tied to the noise std (0.04 deg for a 0.28 deg offset in paper
   004's simulation) holds the offset state several stds from the truth for long and makes the
   filter over-confident meanwhile. Measured on the consistency study and paper 004's
@@ -212,8 +225,9 @@ from ._entrywise import add, barrier, dot, entries, matmul, mul, stack, sub
 from ._mpf_kalman import (bank_kalman_step, input_noise_kalman_step, joint_kalman_step,
                           joint_prediction)
 from ._mpf_linearise import entry_kinds, lin_entries, linearise, merge_entries
-from ._niw import (draw_covariances, draw_offset, impute_missing, niw_predict, niw_update,
-                   noise_estimates, t_predictive, t_weight_and_proposal)
+from ._niw import (draw_offset, impute_missing, niw_predict, niw_update,
+                   noise_estimates, static_prior_grid, t_predictive,
+                   t_weight_and_proposal)
 from .base import Estimator, StepOutput
 from .sigma import cholesky, solve_lower
 
@@ -405,8 +419,11 @@ class _Setup(NamedTuple):
     ny: int
     resample: Callable  # smc.resample or the caller's
     # noise_means="kalman": the offset and the sensor means known (zero, Kalman states), the
-    # covariances drawn per particle and w as process noise (_storvik_update)
+    # covariances drawn per particle and w as process noise (_kalman_means_update)
     means_known: bool = False
+    # noise_means="kalman": the (low, high) stds of the noisy input's log-uniform grid, or None
+    # for the grid over the inverse-Wishart prior (_niw.static_prior_grid)
+    w_range: Any = None
 
 
 def _linear_noise(model, linear_noise_std, li, linear_states) -> np.ndarray:
@@ -430,6 +447,20 @@ def _linear_noise(model, linear_noise_std, li, linear_states) -> np.ndarray:
         return np.diag(np.broadcast_to(sig, (nz,)) ** 2)
     raise ValueError(f"linear_noise_std: expected a std >= 0 or {nz} of them, got "
                      f"{linear_noise_std!r}")
+
+
+def _std_range(value):
+    """Checked ``input_std_range``: None or (low, high) with 0 < low < high, finite."""
+    if value is None:
+        return None
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError):
+        lo = hi = float("nan")
+    if not (0.0 < lo < hi < math.inf) or isinstance(value, str):
+        raise ValueError(f"input_std_range: expected (low, high) with 0 < low < high, got "
+                         f"{value!r}")
+    return lo, hi
 
 
 def _noise_prior(unknown_names, std0, mean0, d):
@@ -602,22 +633,29 @@ def _init(s: _Setup, x0, P0, theta0=None, P_theta0=None, key=None) -> MPFState:
     scale = s.nu0 - d - 1.0
     # with Gaussian particle states: zero covariance of the drawn states, the bank's after
     Pk = jnp.zeros((nk, nk), dtype).at[nk - nz:, nk - nz:].set(Pz)
-    if s.means_known:  # nothing drawn: every particle starts as the prior (sampled, linear order)
-        order = np.concatenate([nl, li]).astype(int)
+    lam_w = jnp.full((n,), scale, dtype) * sd0[0] ** 2
+    log_w0 = jnp.full((n,), -math.log(n), dtype)
+    if s.means_known:  # every particle starts as the prior (sampled, linear order), its own
+        order = np.concatenate([nl, li]).astype(int)  # sigma_w^2 drawn from the prior
         xs = jnp.broadcast_to(x0[nl][:, None], (s.nxs, n))
         zs = jnp.broadcast_to(x0[li][:, None], (nz, n))
         Pk = P0[np.ix_(order, order)]
+        if s.w_range is None:
+            lam_w, log_w0 = static_prior_grid(lam_w[0], s.nu0 - d + 1.0, n)
+        else:
+            lo, hi = (2.0 * math.log(v) for v in s.w_range)
+            lam_w = jnp.exp(jnp.linspace(lo, hi, n, dtype=dtype))
     return MPFState(
         x=xs,
         z=zs,
         P=jnp.broadcast_to(Pk[:, :, None], (nk, nk, n)),
         mu=jnp.broadcast_to(mu0[:, None], (d, n)),
-        lam_w=jnp.full((n,), scale, dtype) * sd0[0] ** 2,
+        lam_w=lam_w,
         lam_e=jnp.broadcast_to((scale * jnp.diag(sd0[1:] ** 2))[:, :, None], (ns, ns, n)),
         gamma=jnp.asarray(s.g0, dtype),
         nu=jnp.asarray(s.nu0, dtype),
-        log_weights=jnp.full((n,), -math.log(n), dtype),
-        weights=jnp.full((n,), 1.0 / n, dtype),
+        log_weights=log_w0,
+        weights=jnp.exp(log_w0),
         key=smc.raw_key(k_run),
         ess=jnp.asarray(float(n), dtype),
         flag_diverged=jnp.asarray(False),
@@ -758,13 +796,14 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
     return (ll, *kept, stack(mu_y, like), cov_y, w)
 
 
-def _storvik_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, zc, y, obs, u, theta, nu_p):
-    """One step of every particle with ``noise_means="kalman"`` (module docstring): the noise
-    covariances drawn from the particle's inverse-Wishart statistics, the Kalman step with the
-    noisy input's error as process noise at the drawn sigma_w^2 and R, the Gaussian predictive
-    of y_t as the weight (Storvik 2002), the statistics updated with the expected data.
-    zc: (1 + n_s, N) standard normals. Returns what :func:`_particle_update` returns (the
-    posterior mean of w_t in place of a draw)."""
+def _kalman_means_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, y, obs, u, theta,
+                         nu_p):
+    """One step of every particle with ``noise_means="kalman"`` (module docstring): the Kalman
+    step with the noisy input's error as process noise at the particle's own sigma_w^2
+    (``lam_w``, static) and the mean of its sensor covariance's inverse-Wishart statistics,
+    the Gaussian predictive of y_t as the weight, the sensor statistics updated with the
+    expected data. Returns what :func:`_particle_update` returns (the posterior mean of w_t in
+    place of a draw)."""
     start = (u[0] != u[0]).astype(jnp.int32)
     nxs, nz, ns, srow = s.nxs, s.nz, s.ns, s.srow
     nk = s.nk
@@ -774,8 +813,9 @@ def _storvik_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, zc, y, obs, u
     ob = [obs[i] for i in range(nyu)]
     Pe, lee = entries(P), entries(lam_e)
     Qe = _q_entries(s, x.dtype)
-    sig_w2, R_d = draw_covariances(lam_w, lee, nu_p - s.d + 1.0, zc)
-    sig_w2, R_y = barrier((sig_w2, _used_noise(s, R_d)), start)
+    inv_den = 1.0 / (nu_p - s.d - 1.0)
+    R_s = [[lee[i][j] * inv_den for j in range(ns)] for i in range(ns)]
+    sig_w2, R_y = barrier((lam_w, _used_noise(s, R_s)), start)
     post, C, o, ll, S = barrier(input_noise_kalman_step(lin, Pe, sig_w2, ye, ob, [0.0] * nyu,
                                                         R_y, Qe, start), start)
     x_new = [add(lin.xb[k], post[k]) for k in range(nxs)]
@@ -786,13 +826,12 @@ def _storvik_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, zc, y, obs, u
     eta_e = [sub(o[r], dot(Hs[j], post)) for j, r in enumerate(srow)]
     CH = matmul(Hs, C)
     V = [[dot(CH[i], Hs[j]) for j in range(ns)] for i in range(ns)]
-    inv_den = 1.0 / (nu_p - s.d - 1.0)
-    R_s = [[lee[i][j] * inv_den for j in range(ns)] for i in range(ns)]
     eta_e, extra = _sensor_data(s, eta_e, V, ob, R_s, start)
     like = x[0]
     eta_v = stack([post[nk]] + eta_e, like)
-    _, _, _, lw_new, le_new = niw_update(0.0, nu_p, jnp.zeros_like(eta_v), lam_w, lam_e, eta_v,
-                                         stack(extra, like), means_known=True, extra_w=C[nk][nk])
+    _, _, _, _, le_new = niw_update(0.0, nu_p, jnp.zeros_like(eta_v), lam_w, lam_e, eta_v,
+                                    stack(extra, like), means_known=True, extra_w=C[nk][nk])
+    lw_new = lam_w  # static: moved only by the kernel after resampling (_step)
     x_new, z_new, P_new = stack(x_new, like), stack(z_new, like), stack(P_new, like)
     ll, (x_new, z_new, P_new, lw_new, le_new) = _finite_or_old(
         ll, (x_new, z_new, P_new, lw_new, le_new), (x, m, P, lam_w, lam_e))
@@ -845,13 +884,12 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     n_obs = jnp.sum(obs, dtype=jnp.int32)
     gam_p, nu_p, lw_p, le_p = niw_predict(state.gamma, state.nu, state.lam_w, state.lam_e, s.lam)
     key_next, key_step = smc.split(state.key)
-    zn = barrier(smc.normals(key_step, 1 + s.ns if s.means_known else 2, n, dtype),
-                 (u[0] != u[0]).astype(jnp.int32))
-    if s.means_known:
-        ll, x, z, P, _, lam_w, lam_e, mu_y, cov_y, w_draw = _storvik_update(
-            s, mdl, state.x, state.z, state.P, lw_p, le_p, zn, y0, obs, u, theta, nu_p)
+    if s.means_known:  # nothing drawn; sigma_w^2 is the particle's static value, not forgotten
+        ll, x, z, P, _, lam_w, lam_e, mu_y, cov_y, w_draw = _kalman_means_update(
+            s, mdl, state.x, state.z, state.P, state.lam_w, le_p, y0, obs, u, theta, nu_p)
         mu = state.mu
     else:
+        zn = barrier(smc.normals(key_step, 2, n, dtype), (u[0] != u[0]).astype(jnp.int32))
         ll, x, z, P, mu, lam_w, lam_e, mu_y, cov_y, w_draw = _particle_update(
             s, mdl, state.x, state.z, state.P, state.mu, lw_p, le_p, zn[0], zn[1],
             y0, obs, u, theta, gam_p, nu_p)
@@ -872,7 +910,10 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     # the draws and the particles' own indices ride along: the genealogy for smoothing
     parts = (x, mu, lam_w, lam_e, w_draw, jnp.arange(n, dtype=jnp.int32)) + (
         (z, P) if s.nz else ())  # no empty leaves
-    parts, lw_next, w_next, _ = s.resample(parts, w_now, lw_now, u_res, s.scheme, s.thr)
+    if s.means_known:  # a fixed grid of sigma_w^2: never resampled
+        lw_next, w_next = lw_now, w_now
+    else:
+        parts, lw_next, w_next, _ = s.resample(parts, w_now, lw_now, u_res, s.scheme, s.thr)
     x, mu, lam_w, lam_e, w_draw, anc = parts[:6]
     if s.nz:
         z, P = parts[6:]
@@ -910,6 +951,7 @@ def marginalized_pf(
     noise_means: str = "niw",
     bias_walk=None,
     mean_std0=None,
+    input_std_range=None,
 ) -> Estimator:
     """Noise-adaptive marginalized particle filter (Berntorp & Di Cairano 2018): the state, an
     unknown-mean unknown-variance input error and the biases and covariance of some sensors,
@@ -946,7 +988,9 @@ def marginalized_pf(
             noise std".
         nu0: initial degrees of freedom, > d + 1; default d + 4 (a light prior, about three
             samples' worth of std0).
-        ess_threshold: resample when ESS < ess_threshold * N, in [0, 1].
+        ess_threshold: resample when ESS < ess_threshold * N, in [0, 1] (with
+            ``noise_means="kalman"`` unused, as ``resampling`` and ``resample``: its grid is
+            never resampled).
         resampling: "systematic", "stratified", "multinomial" or "residual".
         kalman_states: what each particle's Kalman filter covers. "linear" (the paper's
             Algorithm 1): the linear states; a particle's other states are a point, x_t built
@@ -967,9 +1011,10 @@ def marginalized_pf(
             filters taking them as exact. "kalman" (not the paper's): as constant states of
             each particle's Kalman filter (exact Gaussian posterior, correlated with the
             states and each other; prior N(mean0, gamma0 std0^2) or ``mean_std0``), the input
-            error as process noise (not drawn), each particle drawing its covariances from its
-            inverse-Wishart statistics every step and weighted by its Gaussian predictive
-            (Storvik's filter; module docstring). Needs ``kalman_states="all"``; the model
+            error as process noise (not drawn), each particle a Kalman filter at its own
+            steering variance on a fixed grid (never resampled: the weights are the posterior
+            over it), the sensor covariances learnt from expected inverse-Wishart statistics
+            (module docstring). Needs ``kalman_states="all"``; the model
             must be affine in ``noisy_input`` (checked with the linear states). The
             estimator declares no Rao-Blackwell structure (``vehjax.smooth`` does not smooth
             it). Its cost per step against the paper's: ``vehjax reproduce noise-learning``
@@ -982,6 +1027,13 @@ def marginalized_pf(
             units; missing names sqrt(gamma0) std0 (the paper's NiW prior). A Kalman state's
             prior need not be tied to the noise std: give the size the offset and biases may
             have.
+        input_std_range: with ``noise_means="kalman"`` only: (low, high), 0 < low < high, the
+            range of the noisy input's std (input units) over which the N particles' grid is
+            log-uniform with equal prior weights. Default None: the grid over the
+            inverse-Wishart prior's marginal of sigma_w^2 (``std0`` and ``nu0``), weighted by
+            that prior (at the default nu0 it spans 0.35 to 7.6 times the guess, 99 % of the
+            prior between 0.42 and 2.7 times). The grid's spacing
+            is log(high / low) / (N - 1) in log std: keep it well below the posterior's width.
 
     Returns:
         ``Estimator`` (``needs_key=True``), ``nx`` = all model states, ``param_names`` =
@@ -1015,7 +1067,10 @@ def marginalized_pf(
         return _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std,
                                 linear_states, linear_noise_std, std0, mean0, forgetting,
                                 gamma0, nu0, ess_threshold, resampling, kalman_states, resample,
-                                bias_walk, mean_std0)
+                                bias_walk, mean_std0, input_std_range)
+    if input_std_range is not None:
+        raise ValueError("input_std_range: only with noise_means='kalman' (the paper's filter "
+                         "learns the input's std in its NiW statistics)")
     if mean_std0 is not None:
         raise ValueError("mean_std0: only with noise_means='kalman' (the paper's NiW ties the "
                          "means' prior to gamma0 std0^2)")
@@ -1039,7 +1094,7 @@ def marginalized_pf(
 def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear_states,
                      linear_noise_std, std0, mean0, forgetting, gamma0, nu0, ess_threshold,
                      resampling, kalman_states, resample, bias_walk=None,
-                     mean_std0=None) -> Estimator:
+                     mean_std0=None, input_std_range=None) -> Estimator:
     """:func:`marginalized_pf` with ``noise_means="kalman"``: the filter on the model with the
     sensor biases as constant linear states (:func:`_mpf_means.with_noise_means`), the sensor
     part of its NiW pinned at mean zero (``e_known``), and an estimator over the model's own
@@ -1074,7 +1129,8 @@ def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear
     Qz[-ns - 1:-1, -ns - 1:-1] = np.diag(walk ** 2)
     # the filter's own NiW: the offset's and the sensors' means zero and known
     prior = np.where(np.isin(np.arange(2 + 2 * ns), mi), 0.0, s_user.theta_prior)
-    s = s_user._replace(means_known=True, Qz=Qz, theta_prior=prior)
+    s = s_user._replace(means_known=True, Qz=Qz, theta_prior=prior,
+                        w_range=_std_range(input_std_range))
     mdl = _model_fns(aug, s)
 
     def init(x0, P0, theta0=None, P_theta0=None, key=None):

@@ -255,6 +255,18 @@ def moments(w, x):
     return mean, cov
 
 
+def shrink_move(z, particles, mean, V, a: float):
+    """Liu & West's (2001) kernel move of static-parameter particles (p, M): each to
+    N(a theta_i + (1 - a) mean, (1 - a^2) V), z (p, M) standard normals, V (p, p).
+
+    With weights W summing to 1 whose weighted mean and covariance of ``particles`` are
+    ``mean`` and ``V``, the moved cloud has the same weighted mean and covariance in expectation
+    (the shrinkage a in (0, 1) offsets the jitter's added variance).
+    """
+    L_V = cholesky(V)
+    return a * particles + (1.0 - a) * mean[:, None] + math.sqrt(1.0 - a * a) * (L_V @ z)
+
+
 def normals(key, rows: int, n: int, dtype, stream: int = 0):
     """(rows, n) standard normals from a raw key, by counter hashing and Box-Muller (see
     :func:`vehjax._random.std_normal_rows`: resolution ~1e-7, |z| <= 5.77)."""

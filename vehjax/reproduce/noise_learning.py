@@ -104,6 +104,9 @@ METHODS = ("Sage-Husa ACKF", "VB-R (CKF)", "VB-R (EKF)", "VB-PR (CKF)", "MPF (pa
            "MPF (consistent)", "augmented EKF")
 BIAS_STD0 = {"ay": 0.5, "r": 0.5 * DEG, "roll_rate": 0.5 * DEG}
 OFFSET_STD0 = 0.5 * DEG
+#: MPF (consistent)'s prior of the steering std in simulation: log-uniform over the initial
+#: guess divided and multiplied by this
+STEER_RANGE = None
 P0_SIM = np.diag([0.1, 0.5 * DEG, 0.5 * DEG, 0.2 * DEG, 0.2 * DEG]) ** 2
 
 
@@ -190,14 +193,16 @@ def _mpf_consistent(model, args, drive):
             linear_noise_std=b18.BANK_JERK_STD,
             std0={**b18.DRIVE_STD0, "roll_rate": b18.DRIVE_STD0["r"]}, forgetting=0.999,
             noise_means="kalman", bias_walk=walk, mean_std0={"delta": OFFSET_STD0, **BIAS_STD0})
+    steer0 = args.steer_factor * b18.STEER_STD
     return marginalized_pf(
         model, args.particles, noisy_input="delta", sensors=SENSORS,
         known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
         linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=b18.BANK_JERK_STD,
-        std0={"delta": args.steer_factor * b18.STEER_STD,
-              **{s: 2 * b18.SENSOR_STD[s] for s in SENSORS}},
-        forgetting=0.995, noise_means="kalman", bias_walk=walk,
-        mean_std0={"delta": OFFSET_STD0, **BIAS_STD0})
+        std0={"delta": steer0, **{s: 2 * b18.SENSOR_STD[s] for s in SENSORS}},
+        forgetting=1.0, noise_means="kalman", bias_walk=walk,
+        mean_std0={"delta": OFFSET_STD0, **BIAS_STD0},
+        input_std_range=None if STEER_RANGE is None else (steer0 / STEER_RANGE,
+                                                          steer0 * STEER_RANGE))
 
 
 def build(method, model, args, drive=False):
