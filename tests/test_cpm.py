@@ -172,13 +172,13 @@ def test_correlation_is_checked():
              builder_kwargs={"n_particles": 8, "resampling": "multinomial"}, **kw)
 
 
-@pytest.mark.slow  # a sampler study (two compiles, 2 x 4 x 1500 iterations)
+@pytest.mark.slow  # a sampler study (three compiles, 3 x 4 x 1500 iterations)
 def test_correlated_pmmh_recovers_the_grid_posterior_of_a_noise_std():
     """test_calibrate's grid posterior (an AR(1) observed in noise, the noise std unknown, the
     exact Kalman likelihood on a grid times the log-normal prior) from a correlated chain with
     few particles (N = 10, rho = 0.99): mean and std within 4 Monte-Carlo errors, and more than
     twice the effective sample size of the independent-estimate chain with the same N, key
-    and iterations."""
+    and iterations; the same call twice gives the same draws."""
     A, Q, T = 0.8, 0.3**2, 40
     rng = np.random.default_rng(11)
     x, ys = 0.0, []
@@ -207,6 +207,8 @@ def test_correlated_pmmh_recovers_the_grid_posterior_of_a_noise_std():
               key=jax.random.key(3), chains=4, samples=1200, warmup=300,
               builder_kwargs={"n_particles": 10})
     res = pmmh(vj.filters.bootstrap_pf, model, ys, None, correlation=0.99, **kw)
+    again = pmmh(vj.filters.bootstrap_pf, model, ys, None, correlation=0.99, **kw)
+    np.testing.assert_array_equal(again.samples, res.samples)      # one key, the same draws
     indep = pmmh(vj.filters.bootstrap_pf, model, ys, None, **kw)
     assert np.all(res.rhat < 1.05), res.rhat
     ess = float(res.ess[0])
