@@ -827,7 +827,10 @@ def pmmh(builder, model, measurements, inputs=None, *, x0, P0, Q, R, priors, key
             difference of two strongly correlated estimates
             (:func:`log_likelihood_difference_spread`) instead of two independent ones.
             Only for ``builder=vehjax.filters.bootstrap_pf``. rho near 1 (e.g. 0.99 to 0.9999,
-            1 - rho about N / T by Deligiannidis et al.'s scaling) keeps that noise small.
+            1 - rho about N / T by Deligiannidis et al.'s scaling) keeps that noise small for
+            a one-dimensional state; with several states the sorted resampling keeps less of
+            the correlation, the less the longer the record (:mod:`vehjax._cpm`): measure it
+            with :func:`log_likelihood_difference_spread` before relying on it.
 
     Returns:
         :class:`PMMHResult`.
