@@ -237,15 +237,15 @@ def test_with_the_noise_known_it_is_the_exact_kalman_filter_of_the_biased_model(
     np.testing.assert_allclose(out.params[:, -1, 0], offset, rtol=1e-6)
 
 
-def _input_noise_loglik(Y, U, offset, sig_w, x0, P0, Pb0, sig_phi):
-    """numpy: the exact log-likelihood (R,) of Y under the model of :func:`_simulate` with the
-    steering noise of std ``sig_w`` (process noise B w and measurement noise D w, correlated),
-    the biases states of prior N(0, Pb0), the offset and every covariance known."""
+def _input_noise_loglik(Y, U, offset, sig_w, x0, P0, Pb0, bank_std):
+    """numpy: the exact log-likelihood (R,) of Y under the linear SingleTrackBank (:func:
+    `_matrices`) with white noise of stds ``bank_std`` (3,) on the bank states, the steering
+    noise of std ``sig_w`` (process noise B w and measurement noise D w, correlated), the
+    biases states of prior N(0, Pb0), the offset and every covariance known."""
     import scipy.stats
 
     F, B, H, D = _matrices(float(U[0, 0]))
-    gain = np.r_[np.asarray(MODEL.bank_noise_gain()), np.zeros(3)]
-    Q = sig_phi ** 2 * np.outer(gain, gain)
+    Q = np.diag(np.r_[0.0, 0.0, bank_std, np.zeros(3)] ** 2)
     Rm = np.diag([STD0.get(n, KNOWN.get(n)) ** 2 for n in MODEL.output_names])
     runs, T, _ = Y.shape
     m = np.tile(np.r_[x0, np.zeros(3)], (runs, 1))
@@ -269,36 +269,57 @@ def _input_noise_loglik(Y, U, offset, sig_w, x0, P0, Pb0, sig_phi):
     return ll
 
 
+def _user_linear_bank(vx):
+    """The linear SingleTrackBank at speed vx written as a user would: a :class:`vehjax.models.Model`
+    of two plain jnp functions over its discrete matrices (no bank_noise_gain)."""
+    Ad, Bd, C, Dd = (jnp.asarray(a) for a in discrete_matrices(MODEL.theta, vx, DT))
+    return vj.models.Model(lambda x, u, th: Ad @ x + Bd * u[1], lambda x, u, th: C @ x + Dd * u[1],
+                    dt=DT, state_names=MODEL.state_names, input_names=("vx", "delta"),
+                    output_names=MODEL.output_names)
+
+
 @pytest.mark.slow  # one MPF compile (about a minute on 2 cores): `pytest -m slow` (README)
 def test_input_std_grid_is_the_exact_posterior_of_the_steering_std():
-    """With the offset and the sensor covariances known (nu0 = 1e10, forgetting 1) and the
-    steering std on a grid (``input_std_range``), each particle is the exact Kalman filter at
-    its std, so the filter's weights are the exact posterior over the grid: the reported std
-    (sqrt of the posterior mean of sigma_w^2), its reported variance (the posterior spread)
-    and the log-likelihood equal those computed from numpy Kalman likelihoods at each grid
-    value (flat prior over the grid)."""
+    """On the linear SingleTrackBank written as a user would (:func:`_user_linear_bank`, white
+    noise on each bank state), with the offset and the sensor covariances known (nu0 = 1e10,
+    forgetting 1) and the steering std on a grid (``input_std_range``): each particle is the
+    exact Kalman filter at its std, so the filter's weights are the exact posterior over the
+    grid: the reported std (sqrt of the posterior mean of sigma_w^2), its reported variance
+    (the posterior spread) and the log-likelihood equal those computed from numpy Kalman
+    likelihoods at each grid value (flat prior over the grid)."""
     T, R, N = 150, 2, 6
-    offset, sig_w, sig_phi = math.radians(0.28), math.radians(0.3), 0.05
-    _, Y, U = _simulate(R, T, offset, np.zeros(3), sig_phi, seed=4, sig_w=sig_w)
+    offset, sig_w = math.radians(0.28), math.radians(0.3)
+    bank_std = np.array([1e-5, 1e-4, 0.002])
+    from vehjax.reproduce.consistency import mpf_inputs
+
+    U = mpf_inputs(T)
+    F, B, H, D = _matrices(float(U[0, 0]))
+    std = np.array([STD0.get(n, KNOWN.get(n)) for n in MODEL.output_names])
+    rng = np.random.default_rng(4)
+    x, Y = np.zeros((R, 8)), np.zeros((R, T, 5))
+    for t in range(T):  # the data: numpy, the bank driven by white noise on each state
+        d = U[t, 1] + offset + sig_w * rng.normal(size=(R, 1))
+        x = x @ F.T + B * d + np.r_[0, 0, bank_std, 0, 0, 0] * rng.normal(size=(R, 8))
+        Y[:, t] = x @ H.T + D * d + std * rng.normal(size=(R, 5))
     x0, P0 = np.zeros(5), np.array([1e-30, 1e-30, 1e-6, 1e-6, 1e-6])
-    lo, hi = sig_w / 3.0, sig_w * 3.0
-    est = marginalized_pf(MODEL, N, sensors=SENSORS, known_std=KNOWN, linear_noise_std=sig_phi,
-                          std0=STD0, mean0={"delta": offset}, mean_std0={"delta": 1e-9},
-                          forgetting=1.0, nu0=1e10, noise_means="kalman",
-                          input_std_range=(lo, hi))
+    lo, hi = sig_w / 1.5, sig_w * 1.5
+    est = marginalized_pf(_user_linear_bank(float(U[0, 0])), N, sensors=SENSORS,
+                          known_std=KNOWN, linear_noise_std=bank_std, std0=STD0,
+                          mean0={"delta": offset}, mean_std0={"delta": 1e-9}, forgetting=1.0,
+                          nu0=1e10, noise_means="kalman", input_std_range=(lo, hi))
     out = vj.run(est, Y, U, x0=x0, P0=P0, key=jax.random.key(5), return_covariances=True)
     assert not out.diverged.any()
     grid = np.exp(np.linspace(math.log(lo), math.log(hi), N))
     Pb0 = np.diag([STD0[s] ** 2 for s in SENSORS])
-    L = np.stack([_input_noise_loglik(Y, U, offset, g, x0, np.diag(P0), Pb0, sig_phi)
+    L = np.stack([_input_noise_loglik(Y, U, offset, g, x0, np.diag(P0), Pb0, bank_std)
                   for g in grid], 1)  # (R, N)
     Lmax = L.max(1, keepdims=True)
     w = np.exp(L - Lmax)
     w /= w.sum(1, keepdims=True)
-    std = np.sqrt(w @ grid ** 2)
-    spread = np.sum(w * (grid[None] - std[:, None]) ** 2, 1)
+    std_w = np.sqrt(w @ grid ** 2)
+    spread = np.sum(w * (grid[None] - std_w[:, None]) ** 2, 1)
     j = est.param_names.index("delta_std")
-    np.testing.assert_allclose(out.params[:, -1, j], std, rtol=1e-6)
+    np.testing.assert_allclose(out.params[:, -1, j], std_w, rtol=1e-6)
     np.testing.assert_allclose(out.params_cov[:, -1, j, j], spread, rtol=1e-5)
     total = Lmax[:, 0] + np.log(np.mean(np.exp(L - Lmax), 1))
     np.testing.assert_allclose(np.asarray(out.loglik).reshape(R, -1).sum(1), total, rtol=1e-8,
