@@ -36,27 +36,40 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   0.99, both in the band on 0.95 of the steps, every learnt parameter's coverage >= 0.90.
 * **MPF (paper)**: berntorp2018's ``build_sim_filter`` (N = ``--particles``, lambda = 0.995,
   initial stds twice the truth) and ``build_drive_filter`` (bank variant, lambda = 0.999).
-* **MPF (consistent)**: the same filter with ``noise_means="kalman"`` (issue #33 item 2,
+* **MPF (consistent)**: the same model with ``noise_means="kalman"`` (issue #33 item 2,
   not the paper's: :mod:`vehjax.filters.marginalized`): the steering offset and the biases as
   Kalman states of every particle (the biases with the truth's random-walk stds, as the VB
   rows; their priors those of the VB rows, 0.5 deg, 0.5 m/s^2, 0.5 deg/s), the steering
-  noise as process noise, each particle drawing its covariances from its inverse-Wishart
-  statistics (Storvik's filter), the sensor stds' initial guesses twice the truth and the
-  steering std's ``--steer-factor`` times it (default 2, the paper's guess). Its time per
-  run-step against the paper's filter at the same N is in the table (``--particles``).
-  At the defaults (100 runs x 180 s, N = 100, at 3108ace, load ~4) it learns the offset
-  (RMS 0.001 deg), tracks the biases and the sensor stds (coverage 0.99 / 0.95), but its
-  steering std ends 3.8 times the truth (the paper's filter 1.7 times), so vy and r are
-  under-confident (NEES 0.57 per dof, in the band on 0.01 of the steps). Not the covariance
-  draws (with sigma_w^2 at its mean instead: +3.30, 0.60 per dof). Likely, not proven: ay sees
-  the steering noise directly as white noise beside its own, and the filtered expected
-  statistic of w_t cannot use the later yaw-rate evidence that tells the two apart (the ay
-  std ends 10 % low); a fixed-lag smoothed statistic is the next thing to try. With the
-  steering guess at the truth (``--steer-factor 1``, 20 runs x 60 s, N = 500) the NEES is in
-  the band on 0.85 of the steps (0.84 per dof). With the offset's prior tied to the steering
-  std as in the paper's NiW (0 +- 0.04 deg against the truth's 0.28 deg) the offset state
-  stays several stds off for long and the filter is over-confident (NEES 2.75 per dof at
-  ``--steer-factor 1``, offset coverage 0.80), hence ``mean_std0``.
+  noise as process noise at each particle's own std, the particles a fixed grid
+  (``--grid-points``, default 25) over the inverse-Wishart prior of the guess (``--steer-factor``
+  times the truth, default 2, the paper's guess; nu0 the default), never resampled, so the
+  weights are the posterior over the steering std; the sensor covariances from expected
+  inverse-Wishart statistics (guesses twice the truth). No forgetting in simulation (the
+  covariances are constant and the biases have their walk states; with the paper's 0.995 the
+  statistics' own noise pushes the steering std up: +22 % against +12 % at 1, 10 runs x
+  180 s); 0.999 on the drive, as the paper's drive filter. It draws no random numbers: one
+  execution on the drive. 25 grid points give the same numbers as 100 (20 runs x 180 s: NEES
+  0.817 per dof both, the steering std's mean 1.122 of the truth both).
+  At the defaults (100 runs x 180 s, at c9ee043 with N = 100, load ~1-3; 25 points give the
+  same) it learns the offset (RMS 0.001 deg), tracks the biases, learns the sensor stds
+  (within 0.2 %) and the steering std (+14 % over the last third, the paper's filter +68 %),
+  and every learnt parameter's interval holds the truth in 0.91-0.95 of the runs (the paper's
+  filter: the steering std's in 0.22). The NEES of (vy, r) is 0.83 per dof (under-confident) and in
+  the band on only 0.54 of the steps (the band of a 100-run average is narrow, 0.81-1.21 per
+  dof): the steering noise is the only process noise of vy and r, so their covariance scales
+  with sigma_w^2, and the posterior of sigma_w (about 13 % of the truth wide after 180 s,
+  starting from the paper's guess of twice it) stays above the truth on average through the
+  run (1.5x at 5 s, 1.2x at 60 s, 1.12x at 180 s; 20 runs). With a log-uniform prior over a
+  tenth to ten times the guess instead (``input_std_range``) it ends 11 % below the truth
+  (posterior std 0.24 of it) and the NEES is 1.31 per dof (20 runs): the data leave sigma_w
+  that uncertain (with the paper's prior its posterior std is 0.13 of the truth at 180 s,
+  0.12 with R known). First built as Storvik's filter (covariances drawn per particle from
+  expected statistics of w_t): the steering std ended at 3.8 times the truth, because the
+  filtered statistic of w_t sees only the direct d w_t term in ay and not the dynamics that
+  tell sigma_w apart. With the offset's prior tied to the
+  steering std as in the paper's NiW (0 +- 0.04 deg against the truth's 0.28 deg) the offset
+  state stays several stds off for long and the filter is over-confident, hence
+  ``mean_std0``.
 * **augmented EKF** (Remark 1, berntorp2018's ``augmented_model``): (vy, r, offset, ay bias,
   gyro bias) on (ay, r, r_virt), fixed Q and R (the MPF's initial guesses); no bank states and
   no roll gyro, as the remark's common approach.
@@ -124,9 +137,13 @@ def parser():
     p.add_argument("--particles", type=_cli.count, default=100,
                    help="MPF particles in simulation (default %(default)s)")
     p.add_argument("--drive-executions", type=_cli.count, default=10,
-                   help="MPF executions on the drive (default %(default)s)")
+                   help="executions of the paper's MPF on the drive (the consistent MPF draws "
+                        "nothing: one) (default %(default)s)")
     p.add_argument("--drive-particles", type=_cli.count, default=500,
                    help="MPF particles on the drive (default %(default)s)")
+    p.add_argument("--grid-points", type=_cli.count, default=25,
+                   help="MPF (consistent): its particles, a fixed grid of steering stds, in "
+                        "simulation and on the drive (default %(default)s)")
     p.add_argument("--forgetting", type=_cli.positive, default=0.995,
                    help="forgetting of the ACKF and the VB filters, in (0, 1] "
                         "(default %(default)s)")
@@ -187,7 +204,7 @@ def _mpf_consistent(model, args, drive):
     if drive:
         scale = ("eps",) if "eps" in model.state_names else ()
         return marginalized_pf(
-            model, args.drive_particles, noisy_input="delta", sensors=SENSORS,
+            model, args.grid_points, noisy_input="delta", sensors=SENSORS,
             known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
             linear_states=("phi", "phi_dot", "phi_ddot") + scale,
             linear_noise_std=b18.BANK_JERK_STD,
@@ -195,7 +212,7 @@ def _mpf_consistent(model, args, drive):
             noise_means="kalman", bias_walk=walk, mean_std0={"delta": OFFSET_STD0, **BIAS_STD0})
     steer0 = args.steer_factor * b18.STEER_STD
     return marginalized_pf(
-        model, args.particles, noisy_input="delta", sensors=SENSORS,
+        model, args.grid_points, noisy_input="delta", sensors=SENSORS,
         known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
         linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=b18.BANK_JERK_STD,
         std0={"delta": steer0, **{s: 2 * b18.SENSOR_STD[s] for s in SENSORS}},
@@ -454,7 +471,8 @@ def run_drive(args, methods=METHODS, log=print):
     rows = []
     results = []
     for i, meth in enumerate(methods):
-        R = args.drive_executions if meth.startswith("MPF") else 1
+        # the consistent MPF draws nothing (a fixed grid): one execution is all of them
+        R = args.drive_executions if meth == "MPF (paper)" else 1
         res = run_method(meth, model, np.tile(Y[None], (R, 1, 1)), U, args,
                          jax.random.key(args.seed + 100 + i), drive=True)
         est = res["est"]
@@ -576,8 +594,8 @@ def main(argv=None) -> int:
     args = parser().parse_args(argv)
     if not (0.0 < args.forgetting <= 1.0):
         raise ValueError(f"--forgetting: expected a number in (0, 1], got {args.forgetting}")
-    if args.particles < 2 or args.drive_particles < 2:
-        raise ValueError("--particles / --drive-particles: expected at least 2")
+    if min(args.particles, args.drive_particles, args.grid_points) < 2:
+        raise ValueError("--particles / --drive-particles / --grid-points: expected at least 2")
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
     bad = [m for m in methods if m not in METHODS]
     if bad or not methods:
@@ -599,7 +617,8 @@ def main(argv=None) -> int:
         "# vehjax reproduce noise-learning\n", f"{PAPER}.\n",
         f"Command: `vehjax reproduce noise-learning --runs {args.runs} --duration "
         f"{args.duration:g} --particles {args.particles} --drive-executions "
-        f"{args.drive_executions} --drive-particles {args.drive_particles} --forgetting "
+        f"{args.drive_executions} --drive-particles {args.drive_particles} --grid-points "
+        f"{args.grid_points} --forgetting "
         f"{args.forgetting:g} --iterations {args.iterations} --seed {args.seed}"
         + ("" if methods == METHODS else f" --methods '{','.join(methods)}'")
         + ("" if args.steer_factor == 2.0 else f" --steer-factor {args.steer_factor:g}")
