@@ -14,8 +14,8 @@ input; y = h(...) + b + e~), so each particle's Kalman filter carries them as co
 (:func:`vehjax.models.with_output_biases`, :func:`vehjax.models.with_input_offset`) with
 their exact Gaussian posterior and their correlations, and only the covariances (sigma_w^2,
 R) remain for the conjugate statistics: an inverse-Wishart on v~ = (w~, e~) of known mean
-zero (the NiW with gamma = 0). How the filter then learns the covariances (drawn per
-particle, Storvik's filter) is in :mod:`vehjax.filters.marginalized`.
+zero (the NiW with gamma = 0). How the filter then learns the covariances (sigma_w^2 on a
+fixed grid of particles, R from expected statistics) is in :mod:`vehjax.filters.marginalized`.
 
 Prior. The paper's NiW gives the offset and the biases the prior N(mean0, gamma0 Sigma_0),
 Sigma_0 = diag(std0^2); the Kalman states get that Gaussian, or the stds the caller gives
