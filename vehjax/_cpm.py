@@ -52,6 +52,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .filters import resampling as _rs
 from .filters import smc
 
 __all__ = ["Aux", "draw_aux", "crank_nicolson", "sort_direction", "hilbert_index", "sort_order",
@@ -175,11 +176,9 @@ def sort_order(x, w, method: str = "hilbert"):
 def systematic_ancestors(w, uniform):
     """Systematic resampling: ancestor indices (N,) int, non-decreasing, of the positions
     (i + uniform) / N, i = 0..N-1, in the cumulative weights of w (N,) normalised; uniform in
-    [0, 1). Monotone in the position, so sorted particles keep their order."""
-    n = w.shape[0]
-    c = jnp.cumsum(w)
-    pos = (jnp.arange(n, dtype=w.dtype) + uniform) / n
-    return jnp.clip(jnp.searchsorted(c, pos * c[-1], side="right"), 0, n - 1)
+    [0, 1). Monotone in the position, so sorted particles keep their order (the particle
+    core's :func:`vehjax.filters.resampling.indices_from_uniforms`)."""
+    return _rs.indices_from_uniforms("systematic", w, uniform, w.shape[0])
 
 
 def _measurement_logliks(e, obs, R):

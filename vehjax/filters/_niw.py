@@ -37,8 +37,7 @@ def niw_predict(gamma, nu, lam_w, lam_e, forgetting):
     return gamma / forgetting, forgetting * nu, forgetting * lam_w, forgetting * lam_e
 
 
-def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, means_known=False,
-               extra_w=None):
+def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, means_known=False):
     """Eq. 18, the conjugate update with one datum v, given as ``eta = v - mu`` (d, ...):
     gamma / (1 + gamma), nu + 1, mu + gamma / (1 + gamma) eta, and Lambda + eta eta^T /
     (1 + gamma) on the (w, w) and (e, e) blocks (Murphy 2007, one datum with kappa = 1 / gamma).
@@ -51,8 +50,6 @@ def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, means_known=False
         means_known: the noise's mean is known (zero; ``noise_means="kalman"``, where the
             offset and the biases are Kalman states): the NiW is an inverse-Wishart, gamma = 0
             (kappa = infinity), so the means stay and Lambda gains eta eta^T on both blocks.
-        extra_w: (...) added to Lambda_w, or None: the expected-statistic term of an offset
-            known only in distribution (its conditional variance).
 
     Returns:
         (gamma, nu, mu, lam_w, lam_e) after the datum.
@@ -65,8 +62,6 @@ def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, means_known=False
     if extra_e is not None:
         lam_e = lam_e + extra_e
     lam_w = lam_w + s * eta[0] ** 2
-    if extra_w is not None:
-        lam_w = lam_w + extra_w
     return g_post, nu + 1.0, mu_new, lam_w, lam_e
 
 

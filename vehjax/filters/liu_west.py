@@ -330,7 +330,8 @@ def weigh(log_w, y_i, y, obs, L) -> smc.Reweighted:
 def liu_west_move(resample, particles, w, log_w, u_res, scheme, threshold, z, jitter, a,
                   keep, every: bool):
     """Resample when the weights degenerate, then shrink towards the mean and jitter
-    (:func:`vehjax.filters.smc.shrink_move`) at the steps that resample, or at every step with ``every``.
+    (:func:`vehjax.filters.smc.shrink_move`) at the steps that resample, or at every step with
+    ``every``.
 
     Args:
         resample: resampling function (:func:`vehjax.filters.smc.resample`'s signature).

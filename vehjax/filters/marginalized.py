@@ -244,7 +244,8 @@ class MPFState(NamedTuple):
         P: (n_z, n_z, N) their covariances; with ``kalman_states="all"`` (n_x + n_z, n_x + n_z,
             N), the covariance of the particle's states and the linear states (that order).
         mu: (d, N) NiW means of v = (w, e): the offset mean, then one bias per sensor.
-        lam_w: (N,) NiW scale of the offset, Lambda_w.
+        lam_w: (N,) NiW scale of the offset, Lambda_w; with ``noise_means="kalman"`` each
+            particle's own sigma_w^2 (static, a point of its grid).
         lam_e: (n_s, n_s, N) NiW scale of the sensor noise, Lambda_e.
         gamma: scalar, the NiW gamma (1 / kappa), the same for all particles.
         nu: scalar, the NiW degrees of freedom, the same for all particles.
@@ -418,8 +419,8 @@ class _Setup(NamedTuple):
     n_inputs: int
     ny: int
     resample: Callable  # smc.resample or the caller's
-    # noise_means="kalman": the offset and the sensor means known (zero, Kalman states), the
-    # covariances drawn per particle and w as process noise (_kalman_means_update)
+    # noise_means="kalman": the offset and the sensor means known (zero, Kalman states), w as
+    # process noise at each particle's static sigma_w^2 on a grid (_kalman_means_update)
     means_known: bool = False
     # noise_means="kalman": the (low, high) stds of the noisy input's log-uniform grid, or None
     # for the grid over the inverse-Wishart prior (_niw.static_prior_grid)
@@ -636,7 +637,7 @@ def _init(s: _Setup, x0, P0, theta0=None, P_theta0=None, key=None) -> MPFState:
     lam_w = jnp.full((n,), scale, dtype) * sd0[0] ** 2
     log_w0 = jnp.full((n,), -math.log(n), dtype)
     if s.means_known:  # every particle starts as the prior (sampled, linear order), its own
-        order = np.concatenate([nl, li]).astype(int)  # sigma_w^2 drawn from the prior
+        order = np.concatenate([nl, li]).astype(int)  # sigma_w^2 a point of the grid
         xs = jnp.broadcast_to(x0[nl][:, None], (s.nxs, n))
         zs = jnp.broadcast_to(x0[li][:, None], (nz, n))
         Pk = P0[np.ix_(order, order)]
@@ -830,13 +831,13 @@ def _kalman_means_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, y, obs, 
     like = x[0]
     eta_v = stack([post[nk]] + eta_e, like)
     _, _, _, _, le_new = niw_update(0.0, nu_p, jnp.zeros_like(eta_v), lam_w, lam_e, eta_v,
-                                    stack(extra, like), means_known=True, extra_w=C[nk][nk])
-    lw_new = lam_w  # static: moved only by the kernel after resampling (_step)
+                                    stack(extra, like), means_known=True)
     x_new, z_new, P_new = stack(x_new, like), stack(z_new, like), stack(P_new, like)
-    ll, (x_new, z_new, P_new, lw_new, le_new) = _finite_or_old(
-        ll, (x_new, z_new, P_new, lw_new, le_new), (x, m, P, lam_w, lam_e))
+    ll, (x_new, z_new, P_new, le_new) = _finite_or_old(
+        ll, (x_new, z_new, P_new, le_new), (x, m, P, lam_e))
     mu_y = stack([lin.yb[i] for i in range(nyu)], like)
-    return (ll, x_new, z_new, P_new, None, lw_new, le_new, mu_y, stack(S, like),
+    # lam_w (the particle's sigma_w^2) is static: returned as it came
+    return (ll, x_new, z_new, P_new, None, lam_w, le_new, mu_y, stack(S, like),
             post[nk] + 0.0 * like)
 
 
@@ -906,13 +907,13 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     nis = _mixture_nis(state.weights, mu_y, cov_y, y0, obs)
 
     # resample for the next step
-    u_res = smc.uniforms(key_step, s.scheme, n, dtype, stream=1)
     # the draws and the particles' own indices ride along: the genealogy for smoothing
     parts = (x, mu, lam_w, lam_e, w_draw, jnp.arange(n, dtype=jnp.int32)) + (
         (z, P) if s.nz else ())  # no empty leaves
     if s.means_known:  # a fixed grid of sigma_w^2: never resampled
         lw_next, w_next = lw_now, w_now
     else:
+        u_res = smc.uniforms(key_step, s.scheme, n, dtype, stream=1)
         parts, lw_next, w_next, _ = s.resample(parts, w_now, lw_now, u_res, s.scheme, s.thr)
     x, mu, lam_w, lam_e, w_draw, anc = parts[:6]
     if s.nz:
@@ -1096,8 +1097,8 @@ def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear
                      resampling, kalman_states, resample, bias_walk=None,
                      mean_std0=None, input_std_range=None) -> Estimator:
     """:func:`marginalized_pf` with ``noise_means="kalman"``: the filter on the model with the
-    sensor biases as constant linear states (:func:`_mpf_means.with_noise_means`), the sensor
-    part of its NiW pinned at mean zero (``e_known``), and an estimator over the model's own
+    sensor biases as constant linear states (:func:`_mpf_means.with_noise_means`), its NiW
+    pinned at mean zero (``means_known``), and an estimator over the model's own
     states and the paper's parameters around it."""
     _validate.model(model)
     sensors = _validate.names("sensors", sensors, tuple(model.output_names))
