@@ -159,16 +159,17 @@ batch posterior (tests/test_marginalized.py checks it).
   the predictive likelihood carries; the expected statistic of w_t given y_1:t sees only the
   direct term d w_t in ay, beside ay's own noise, and learns nothing that separates them. On
   paper 004's simulation that statistic (with covariances drawn per particle, Storvik's
-  filter, as first built here) ended at 3.8 times the true steering std; drawing static
-  values and moving them by Liu & West's kernel collapsed the cloud (reported std 0.007 of the
-  truth against a spread over runs of 0.2). Exact, given the sensor covariances, for models
+  filter, as first built here: ``vehjax reproduce noise-learning`` at 3108ace) ended at 3.8
+  times the true steering std; drawing static values and moving them by Liu & West's kernel
+  collapsed the cloud (an experiment not kept: commit c9ee043's message). Exact, given the sensor covariances, for models
   affine in the states and the noisy input: with R known the weights are the exact posterior
   over the grid (tests/test_mpf_consistent.py, against numpy Kalman likelihoods), and with
   every covariance known it is the Kalman filter of the augmented model. Approximate: R's
   expected statistics (a variational-Bayes style update) and its forgetting, the grid's
   resolution. With forgetting < 1 the sensor statistics' own noise (about 200 steps' worth
   at lambda = 0.995) makes the predictive favour a larger sigma_w (paper 004's simulation,
-  10 runs x 180 s: +22 % at 0.995, +12 % at 1). The prior of the offset and the biases is
+  10 runs x 180 s: +22 % at 0.995, +12 % at 1; ``python benchmarks/mpf_consistent_steering.py
+  learn 10 180 25 iw 0.995``). The prior of the offset and the biases is
   N(mean0, gamma0 std0^2) as the paper's NiW unless ``mean_std0``
   gives their size: a prior tied to the noise std (0.04 deg for a 0.28 deg offset in paper
   004's simulation) holds the offset state several stds from the truth for long and makes the

@@ -61,10 +61,11 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   with sigma_w^2, and the posterior of sigma_w (about 13 % of the truth wide after 180 s,
   starting from the paper's guess of twice it) stays above the truth on average through the
   run (1.5x at 5 s, 1.2x at 60 s, 1.12x at 180 s; 20 runs). With a log-uniform prior over a
-  tenth to ten times the guess instead (``input_std_range``) it ends 11 % below the truth
-  (posterior std 0.24 of it) and the NEES is 1.31 per dof (20 runs): the data leave sigma_w
-  that uncertain (with the paper's prior its posterior std is 0.13 of the truth at 180 s,
-  0.12 with R known). First built as Storvik's filter (covariances drawn per particle from
+  tenth to ten times the guess instead (``input_std_range``) it ends 11-12 % below the truth
+  (posterior std 0.24 of it) and the NEES is 1.31-1.33 per dof (20 runs, 100 and 25 points): the data leave sigma_w
+  that uncertain (with the paper's prior its posterior std is 0.13 of the truth at 180 s).
+  These numbers: ``python benchmarks/mpf_consistent_steering.py`` (its docstring has the
+  commands). First built as Storvik's filter (covariances drawn per particle from
   expected statistics of w_t): the steering std ended at 3.8 times the truth, because the
   filtered statistic of w_t sees only the direct d w_t term in ay and not the dynamics that
   tell sigma_w apart. With the offset's prior tied to the

@@ -1,0 +1,111 @@
+"""How well paper 004's simulation pins the steering-noise std, and how the consistent MPF
+(``marginalized_pf(noise_means="kalman")``, issue #33) learns it: the numbers behind the MPF
+(consistent) paragraph of vehjax/reproduce/noise_learning.py's docstring. The data are
+``vehjax reproduce noise-learning``'s (berntorp2018's simulate_truth, seed 0).
+
+    python benchmarks/mpf_consistent_steering.py profile RUNS SECONDS
+        exact Kalman log-likelihood summed over RUNS runs at 0.5..4 times the true steering
+        std, every other covariance at the truth (the consistent MPF with nu0 = 1e7,
+        forgetting 1 and a grid of one std is that Kalman filter), relative to the truth's
+    python benchmarks/mpf_consistent_steering.py learn RUNS SECONDS POINTS PRIOR FORGETTING
+        the consistent MPF as noise-learning builds it, with POINTS grid points, PRIOR "iw"
+        (the default grid over the inverse-Wishart prior of twice the true std) or a factor F
+        (log-uniform over the guess / F .. the guess x F), FORGETTING lambda: the steering
+        std's estimate / truth over runs (mean, spread), its reported std and 95 % coverage at
+        the end of each window, and the NEES of (vy, r) per dof and its share in the 95 % band
+
+Examples (the docstring's numbers): ``profile 4 180``; ``learn 20 180 25 iw 1``;
+``learn 20 180 25 10 1``; ``learn 10 180 100 iw 0.995``.
+"""
+
+import sys
+
+import jax
+import numpy as np
+
+jax.config.update("jax_enable_x64", True)
+
+import vehjax as vj  # noqa: E402
+from vehjax import metrics  # noqa: E402
+from vehjax.filters.marginalized import marginalized_pf  # noqa: E402
+from vehjax.reproduce import berntorp2018 as b18  # noqa: E402
+from vehjax.reproduce import noise_learning as nl  # noqa: E402
+
+WINDOWS = ((0, 5), (5, 20), (20, 60), (60, 120), (120, 180))
+
+
+def data(runs, seconds):
+    drive = vj.data.load_comma2k19()
+    model = vj.models.SingleTrackBank(dt=drive.dt)
+    T = int(round(seconds / model.dt))
+    U = b18.looped_inputs(drive.inputs(model), T)
+    acc, _ = b18.bank_profile(np.arange(1, T + 1) * model.dt, model.dt)
+    X, Y, _ = (np.asarray(a) for a in b18.simulate_truth(model, U, acc, runs, jax.random.key(0)))
+    return model, X, Y, U
+
+
+def build(model, points, std0, forgetting, nu0=None, std_range=None):
+    return marginalized_pf(
+        model, points, noisy_input="delta", sensors=b18.SENSORS,
+        known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
+        linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=b18.BANK_JERK_STD,
+        std0=std0, forgetting=forgetting, nu0=nu0, noise_means="kalman",
+        bias_walk={s: b18.BIAS_WALK[s] for s in b18.SENSORS},
+        mean_std0={"delta": nl.OFFSET_STD0, **nl.BIAS_STD0}, input_std_range=std_range)
+
+
+def profile(runs, seconds):
+    model, _, Y, U = data(runs, seconds)
+    facs = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0)
+    total = []
+    for f in facs:
+        sd = f * b18.STEER_STD
+        est = build(model, 2, {"delta": sd, **b18.SENSOR_STD}, 1.0, nu0=1e7,
+                    std_range=(sd, sd * (1 + 1e-9)))
+        out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
+                     progress=False)
+        total.append(float(np.sum(out.loglik)))
+    ref = total[facs.index(1.0)]
+    print(f"exact log-likelihood, {runs} runs x {seconds:g} s, relative to the true std:")
+    for f, v in zip(facs, total):
+        print(f"  {f:4.2f} x truth: {v - ref:+10.2f} nats")
+
+
+def learn(runs, seconds, points, prior, forgetting):
+    model, X, Y, U = data(runs, seconds)
+    guess = 2.0 * b18.STEER_STD
+    rng = None if prior == "iw" else (guess / float(prior), guess * float(prior))
+    est = build(model, points, {"delta": guess, **{s: 2 * b18.SENSOR_STD[s] for s in
+                                                   b18.SENSORS}}, forgetting, std_range=rng)
+    out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
+                 return_covariances=True, progress=False)
+    j = est.param_names.index("delta_std")
+    e = np.asarray(out.params[..., j]) / b18.STEER_STD
+    sd = np.sqrt(np.asarray(out.params_cov[..., j, j])) / b18.STEER_STD
+    nees = metrics.nees(np.asarray(out.states)[..., :2],
+                        np.asarray(out.covariances)[..., :2, :2], X[..., :2])
+    print(f"{runs} runs x {seconds:g} s, {points} points, prior {prior}, forgetting "
+          f"{forgetting:g}; steering std / truth at the window's end:")
+    for a, b in WINDOWS:
+        if a >= seconds:
+            break
+        sl = slice(int(a / model.dt), int(min(b, seconds) / model.dt))
+        k = sl.stop - 1
+        c = metrics.consistency(nees[:, sl], 2)
+        cover = np.mean(np.abs(e[:, k] - 1.0) <= 1.96 * sd[:, k])
+        print(f"  {a:3d}-{b:3d} s: NEES {np.nanmean(nees[:, sl]) / 2:.3f} per dof, in band "
+              f"{c.inside:.2f} | mean {e[:, k].mean():.3f} spread {e[:, k].std():.3f} "
+              f"reported sd {sd[:, k].mean():.3f} coverage {cover:.2f}")
+    c = metrics.consistency(nees, 2)
+    print(f"  all: NEES {np.nanmean(nees) / 2:.3f} per dof, in band {c.inside:.3f}")
+
+
+if __name__ == "__main__":
+    mode = sys.argv[1] if len(sys.argv) > 1 else "learn"
+    if mode == "profile":
+        profile(int(sys.argv[2]), float(sys.argv[3]))
+    elif mode == "learn":
+        learn(int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4]), sys.argv[5],
+              float(sys.argv[6]))
+    else:
+        raise SystemExit(__doc__)
