@@ -8,19 +8,29 @@
         std, every other covariance at the truth (the consistent MPF with nu0 = 1e7,
         forgetting 1 and a grid of one std is that Kalman filter), relative to the truth's
     python benchmarks/mpf_consistent_steering.py learn RUNS SECONDS POINTS PRIOR FORGETTING
-        the consistent MPF as noise-learning builds it, with POINTS grid points, PRIOR "iw"
-        (the default grid over the inverse-Wishart prior of twice the true std) or a factor F
-        (log-uniform over the guess / F .. the guess x F), FORGETTING lambda: the steering
-        std's estimate / truth over runs (mean, spread), its reported std and 95 % coverage at
-        the end of each window, and the NEES of (vy, r) per dof and its share in the 95 % band
+        the consistent MPF as noise-learning builds it, with POINTS grid points, PRIOR
+        "jeffreys" (the default: Jeffreys' prior over a decade either side of the guess, twice
+        the true std), "iw" (the grid over the inverse-Wishart prior of the guess) or a factor
+        F (equal weights, log-uniform over the guess / F .. the guess x F), FORGETTING lambda:
+        the steering std's estimate / truth over runs (mean, spread), its reported std and
+        95 % coverage at the end of each window, and the NEES of (vy, r) per dof and its share
+        in the 95 % band; a last argument ``known`` gives it the true sensor covariances
+        (nu0 = 1e7: R known, only sigma_w learnt)
+    python benchmarks/mpf_consistent_steering.py information RUNS SECONDS
+        the Fisher information of log sigma_w per run at 0.5-4 times the true std, every other
+        covariance known: the whole (Monte Carlo: the exact log-likelihood's curvature on data
+        simulated at that std) against its covariance part (the filter's Jeffreys prior's)
 
-Examples (the docstring's numbers): ``profile 4 180``; ``learn 20 180 25 iw 1``;
-``learn 20 180 25 10 1``; ``learn 10 180 100 iw 0.995``.
+Examples (the docstrings' numbers): ``profile 20 180``; ``learn 100 180 25 jeffreys 1``;
+``learn 20 180 25 iw 1``; ``learn 20 180 25 10 1``; ``learn 20 180 25 10 1 known``; ``learn 10 180 100 iw 0.995``;
+``information 8 180``.
 """
 
+import math
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
@@ -34,24 +44,33 @@ from vehjax.reproduce import noise_learning as nl  # noqa: E402
 WINDOWS = ((0, 5), (5, 20), (20, 60), (60, 120), (120, 180))
 
 
-def data(runs, seconds):
+def data(runs, seconds, steer_factor=1.0, seed=0):
+    """noise-learning's simulation; ``steer_factor`` scales the true steering std (the
+    module constant simulate_truth reads, restored after)."""
     drive = vj.data.load_comma2k19()
     model = vj.models.SingleTrackBank(dt=drive.dt)
     T = int(round(seconds / model.dt))
     U = b18.looped_inputs(drive.inputs(model), T)
     acc, _ = b18.bank_profile(np.arange(1, T + 1) * model.dt, model.dt)
-    X, Y, _ = (np.asarray(a) for a in b18.simulate_truth(model, U, acc, runs, jax.random.key(0)))
+    true_std = b18.STEER_STD
+    b18.STEER_STD = steer_factor * true_std
+    try:
+        X, Y, _ = (np.asarray(a) for a in b18.simulate_truth(model, U, acc, runs,
+                                                             jax.random.key(seed)))
+    finally:
+        b18.STEER_STD = true_std
     return model, X, Y, U
 
 
-def build(model, points, std0, forgetting, nu0=None, std_range=None):
+def build(model, points, std0, forgetting, nu0=None, std_range=None, prior=None):
     return marginalized_pf(
         model, points, noisy_input="delta", sensors=b18.SENSORS,
         known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
         linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=b18.BANK_JERK_STD,
         std0=std0, forgetting=forgetting, nu0=nu0, noise_means="kalman",
         bias_walk={s: b18.BIAS_WALK[s] for s in b18.SENSORS},
-        mean_std0={"delta": nl.OFFSET_STD0, **nl.BIAS_STD0}, input_std_range=std_range)
+        mean_std0={"delta": nl.OFFSET_STD0, **nl.BIAS_STD0}, input_std_range=std_range,
+        input_std_prior=prior)
 
 
 def profile(runs, seconds):
@@ -61,7 +80,7 @@ def profile(runs, seconds):
     for f in facs:
         sd = f * b18.STEER_STD
         est = build(model, 2, {"delta": sd, **b18.SENSOR_STD}, 1.0, nu0=1e7,
-                    std_range=(sd, sd * (1 + 1e-9)))
+                    std_range=(sd, sd * (1 + 1e-9)), prior="log-uniform")
         out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
                      progress=False)
         total.append(float(np.sum(out.loglik)))
@@ -71,12 +90,15 @@ def profile(runs, seconds):
         print(f"  {f:4.2f} x truth: {v - ref:+10.2f} nats")
 
 
-def learn(runs, seconds, points, prior, forgetting):
+def learn(runs, seconds, points, prior, forgetting, r_known=False):
     model, X, Y, U = data(runs, seconds)
     guess = 2.0 * b18.STEER_STD
-    rng = None if prior == "iw" else (guess / float(prior), guess * float(prior))
-    est = build(model, points, {"delta": guess, **{s: 2 * b18.SENSOR_STD[s] for s in
-                                                   b18.SENSORS}}, forgetting, std_range=rng)
+    sf = 1.0 if r_known else 2.0
+    rng = None if prior in ("iw", "jeffreys") else (guess / float(prior), guess * float(prior))
+    kind = {"iw": "inverse-wishart", "jeffreys": "jeffreys"}.get(prior, "log-uniform")
+    est = build(model, points, {"delta": guess, **{s: sf * b18.SENSOR_STD[s] for s in
+                                                   b18.SENSORS}}, forgetting, std_range=rng,
+                prior=kind, nu0=1e7 if r_known else None)
     out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
                  return_covariances=True, progress=False)
     j = est.param_names.index("delta_std")
@@ -85,7 +107,8 @@ def learn(runs, seconds, points, prior, forgetting):
     nees = metrics.nees(np.asarray(out.states)[..., :2],
                         np.asarray(out.covariances)[..., :2, :2], X[..., :2])
     print(f"{runs} runs x {seconds:g} s, {points} points, prior {prior}, forgetting "
-          f"{forgetting:g}; steering std / truth at the window's end:")
+          f"{forgetting:g}{', R known' if r_known else ''}; steering std / truth at the "
+          f"window's end:")
     for a, b in WINDOWS:
         if a >= seconds:
             break
@@ -100,12 +123,41 @@ def learn(runs, seconds, points, prior, forgetting):
     print(f"  all: NEES {np.nanmean(nees) / 2:.3f} per dof, in band {c.inside:.3f}")
 
 
+def information(runs, seconds):
+    """Fisher information of log sigma_w (per run) at 0.5-4 times the truth, the sensor noise
+    known: the whole, by the curvature of the exact log-likelihood over a fine grid on data
+    simulated at that std (Monte Carlo over RUNS runs), against its covariance part, which the
+    filter's Jeffreys prior uses (the filter's ``info``, per log sigma_w^2, times 4)."""
+    pts = 49
+    print(f"Fisher information of log sigma_w per run, {runs} runs x {seconds:g} s, R known:")
+    for f in (0.5, 1.0, 2.0, 4.0):
+        model, _, Y, U = data(runs, seconds, steer_factor=f, seed=7)
+        sd = f * b18.STEER_STD
+        est = build(model, pts, {"delta": sd, **b18.SENSOR_STD}, 1.0, nu0=1e7,
+                    std_range=(sd / 2.0, sd * 2.0), prior="jeffreys")
+
+        def one(y, u):
+            s0 = est.init(jnp.zeros(5), jnp.asarray(nl.P0_SIM), key=jax.random.key(1))
+            s, _ = jax.lax.scan(lambda c, yu: (est.step(c, *yu)[0], None), s0, (y, u))
+            return s.base_log_weights, s.info
+
+        L, info = (np.asarray(a) for a in jax.jit(jax.vmap(one, in_axes=(0, None)))(
+            jnp.asarray(Y), jnp.asarray(U)))
+        h = 2.0 * math.log(2.0) / (pts - 1)  # grid step in log sigma_w
+        k = pts // 2  # the grid's middle: the true std
+        whole = -(L[:, k + 1] - 2.0 * L[:, k] + L[:, k - 1]) / h ** 2
+        print(f"  {f:3.1f} x truth: whole {whole.mean():9.2f} (sd over runs "
+              f"{whole.std():7.2f}), covariance part {4.0 * info[:, k].mean():9.2f}")
+
+
 if __name__ == "__main__":
     mode = sys.argv[1] if len(sys.argv) > 1 else "learn"
     if mode == "profile":
         profile(int(sys.argv[2]), float(sys.argv[3]))
+    elif mode == "information":
+        information(int(sys.argv[2]), float(sys.argv[3]))
     elif mode == "learn":
         learn(int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4]), sys.argv[5],
-              float(sys.argv[6]))
+              float(sys.argv[6]), len(sys.argv) > 7 and sys.argv[7] == "known")
     else:
         raise SystemExit(__doc__)

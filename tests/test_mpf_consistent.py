@@ -113,6 +113,10 @@ def test_prior_and_estimates_are_mapped_as_documented():
     ("input_std_range", dict(input_std_range=(0.02, 0.01))),
     ("input_std_range", dict(input_std_range=(0.0, 0.01))),
     ("input_std_range", dict(noise_means="niw", input_std_range=(0.01, 0.02))),
+    ("input_std_prior", dict(input_std_prior="flat")),
+    ("input_std_prior", dict(input_std_prior="log-uniform")),
+    ("input_std_prior", dict(input_std_prior="inverse-wishart", input_std_range=(0.01, 0.02))),
+    ("input_std_prior", dict(noise_means="niw", input_std_prior="jeffreys")),
 ])
 def test_bad_options_raise_naming_them(arg, over):
     with pytest.raises(ValueError, match=arg):
@@ -241,7 +245,8 @@ def _input_noise_loglik(Y, U, offset, sig_w, x0, P0, Pb0, bank_std):
     """numpy: the exact log-likelihood (R,) of Y under the linear SingleTrackBank (:func:
     `_matrices`) with white noise of stds ``bank_std`` (3,) on the bank states, the steering
     noise of std ``sig_w`` (process noise B w and measurement noise D w, correlated), the
-    biases states of prior N(0, Pb0), the offset and every covariance known."""
+    biases states of prior N(0, Pb0), the offset and every covariance known. Also returns the
+    predictive covariances S_t (T, 5, 5), the same for every run."""
     import scipy.stats
 
     F, B, H, D = _matrices(float(U[0, 0]))
@@ -253,6 +258,7 @@ def _input_noise_loglik(Y, U, offset, sig_w, x0, P0, Pb0, bank_std):
     P[:5, :5], P[5:, 5:] = P0, Pb0
     s2 = sig_w ** 2
     ll = np.zeros(runs)
+    Ss = []
     for t in range(T):
         d = U[t, 1] + offset
         m = m @ F.T + B * d
@@ -260,13 +266,20 @@ def _input_noise_loglik(Y, U, offset, sig_w, x0, P0, Pb0, bank_std):
         Csy = P @ H.T + s2 * np.outer(B, D)  # Cov(s_t, y_t)
         S = H @ Csy + s2 * np.outer(D, B) @ H.T + s2 * np.outer(D, D) + Rm
         S = 0.5 * (S + S.T)
+        Ss.append(S)
         e = Y[:, t] - m @ H.T - D * d
         ll += scipy.stats.multivariate_normal(np.zeros(5), S).logpdf(e)
         K = np.linalg.solve(S, Csy.T).T
         m = m + e @ K.T
         P = P - K @ S @ K.T
         P = 0.5 * (P + P.T)
-    return ll
+    return ll, np.array(Ss)
+
+
+def _s_information(S, dS):
+    """numpy: sum over t of 0.5 tr((S_t^-1 dS_t)^2), S and dS (T, n, n)."""
+    A = np.linalg.solve(S, dS)
+    return 0.5 * np.einsum("tij,tji->", A, A)
 
 
 def _user_linear_bank(vx):
@@ -278,15 +291,20 @@ def _user_linear_bank(vx):
                     output_names=MODEL.output_names)
 
 
-@pytest.mark.slow  # one MPF compile (about a minute on 2 cores): `pytest -m slow` (README)
-def test_input_std_grid_is_the_exact_posterior_of_the_steering_std():
+@pytest.mark.slow  # one MPF compile each (about a minute on 2 cores): `pytest -m slow` (README)
+@pytest.mark.parametrize("prior", ["log-uniform", "jeffreys"])
+def test_input_std_grid_is_the_exact_posterior_of_the_steering_std(prior):
     """On the linear SingleTrackBank written as a user would (:func:`_user_linear_bank`, white
     noise on each bank state), with the offset and the sensor covariances known (nu0 = 1e10,
     forgetting 1) and the steering std on a grid (``input_std_range``): each particle is the
     exact Kalman filter at its std, so the filter's weights are the exact posterior over the
     grid: the reported std (sqrt of the posterior mean of sigma_w^2), its reported variance
     (the posterior spread) and the log-likelihood equal those computed from numpy Kalman
-    likelihoods at each grid value (flat prior over the grid)."""
+    likelihoods at each grid value (flat prior over the grid; with ``input_std_prior=
+    "jeffreys"`` times sqrt of the covariance part of the Fisher information of log sigma_w^2,
+    sum_t 0.5 tr((S_t^-1 dS_t)^2), dS_t by central differences of the numpy S_t over the
+    grid). The grid's differences are also checked against the derivative itself (numpy S_t at
+    sigma_w^2 (1 +- 1e-4)): the information within 10 %."""
     T, R, N = 150, 2, 6
     offset, sig_w = math.radians(0.28), math.radians(0.3)
     bank_std = np.array([1e-5, 1e-4, 0.002])
@@ -306,24 +324,37 @@ def test_input_std_grid_is_the_exact_posterior_of_the_steering_std():
     est = marginalized_pf(_user_linear_bank(float(U[0, 0])), N, sensors=SENSORS,
                           known_std=KNOWN, linear_noise_std=bank_std, std0=STD0,
                           mean0={"delta": offset}, mean_std0={"delta": 1e-9}, forgetting=1.0,
-                          nu0=1e10, noise_means="kalman", input_std_range=(lo, hi))
+                          nu0=1e10, noise_means="kalman", input_std_range=(lo, hi),
+                          input_std_prior=prior)
     out = vj.run(est, Y, U, x0=x0, P0=P0, key=jax.random.key(5), return_covariances=True)
     assert not out.diverged.any()
     grid = np.exp(np.linspace(math.log(lo), math.log(hi), N))
     Pb0 = np.diag([STD0[s] ** 2 for s in SENSORS])
-    L = np.stack([_input_noise_loglik(Y, U, offset, g, x0, np.diag(P0), Pb0, bank_std)
-                  for g in grid], 1)  # (R, N)
+    ref = [_input_noise_loglik(Y, U, offset, g, x0, np.diag(P0), Pb0, bank_std) for g in grid]
+    L = np.stack([r[0] for r in ref], 1)  # (R, N)
     Lmax = L.max(1, keepdims=True)
     w = np.exp(L - Lmax)
+    if prior == "jeffreys":
+        S = np.stack([r[1] for r in ref])  # (N, T, 5, 5)
+        info = np.array([_s_information(S[i], dS) for i, dS in
+                         enumerate(np.gradient(S, 2.0 * np.log(grid), axis=0))])
+        exact = []
+        for g in grid[[1, N // 2, N - 2]]:
+            Sp, Sm = (_input_noise_loglik(Y[:1], U, offset, g * math.sqrt(1.0 + e), x0,
+                                          np.diag(P0), Pb0, bank_std)[1] for e in (1e-4, -1e-4))
+            exact.append(_s_information(0.5 * (Sp + Sm), (Sp - Sm) / 2e-4))
+        np.testing.assert_allclose(info[[1, N // 2, N - 2]], exact, rtol=0.1)
+        w = w * np.sqrt(info)
     w /= w.sum(1, keepdims=True)
     std_w = np.sqrt(w @ grid ** 2)
     spread = np.sum(w * (grid[None] - std_w[:, None]) ** 2, 1)
     j = est.param_names.index("delta_std")
     np.testing.assert_allclose(out.params[:, -1, j], std_w, rtol=1e-6)
     np.testing.assert_allclose(out.params_cov[:, -1, j, j], spread, rtol=1e-5)
-    total = Lmax[:, 0] + np.log(np.mean(np.exp(L - Lmax), 1))
-    np.testing.assert_allclose(np.asarray(out.loglik).reshape(R, -1).sum(1), total, rtol=1e-8,
-                               atol=1e-4)
+    if prior == "log-uniform":  # the marginal likelihood (with Jeffreys' prior, which
+        total = Lmax[:, 0] + np.log(np.mean(np.exp(L - Lmax), 1))  # changes, it is not one)
+        np.testing.assert_allclose(np.asarray(out.loglik).reshape(R, -1).sum(1), total,
+                                   rtol=1e-8, atol=1e-4)
     assert np.max(w) < 0.99  # the posterior is spread over the grid: not a trivial check
 
 
@@ -421,3 +452,54 @@ def _shift(X0, order, xb, dev):
     X = X0.copy()
     X[order] = xb + dev
     return X
+
+
+# ----------------------------------------------------------------------------------------------
+# Jeffreys' prior over the grid (vehjax.filters._jeffreys)
+
+
+def test_covariance_information_is_half_the_trace_of_the_squared_relative_derivative():
+    """A scalar variance component S = a s + c (s = sigma^2): 0.5 (dS / dlog s / S)^2 =
+    0.5 (a s / (a s + c))^2, exact; a 3-D case with one component missing against numpy's
+    0.5 tr((S^-1 dS)^2) over the observed block."""
+    from vehjax.filters._jeffreys import covariance_information
+
+    a, c = 2.0, 0.5
+    s = np.array([1e-3, 0.1, 1.0, 10.0])
+    S = (a * s + c)[None, None, :]
+    info = covariance_information(jnp.asarray(S), jnp.asarray((a * s)[None, None, :]),
+                                  jnp.array([True]))
+    np.testing.assert_allclose(info, 0.5 * (a * s / (a * s + c)) ** 2, rtol=1e-12)
+    rng = np.random.default_rng(0)
+    M = rng.normal(size=(3, 3, 2))
+    S = np.einsum("ikn,jkn->ijn", M, M) + 0.3 * np.eye(3)[:, :, None]
+    dS = rng.normal(size=(3, 3, 2))
+    dS = dS + dS.transpose(1, 0, 2)
+    obs = np.array([True, False, True])
+    got = covariance_information(jnp.asarray(S), jnp.asarray(dS), jnp.asarray(obs))
+    for n in range(2):
+        o = np.ix_(obs, obs)
+        A = np.linalg.solve(S[..., n][o], dS[..., n][o])
+        np.testing.assert_allclose(got[n], 0.5 * np.trace(A @ A), rtol=1e-10)
+
+
+def test_grid_derivative_is_second_order_and_the_prior_normalised():
+    """Central differences of S(theta) = a e^theta + c on a uniform grid: the relative error
+    inside is sinh(h) / h - 1 (about h^2 / 6), so it falls 4x when the spacing halves; log_prior is 0.5 log I normalised, equal before any datum."""
+    from vehjax.filters._jeffreys import grid_derivative, log_prior
+
+    errs = []
+    for n in (11, 21):
+        th = jnp.linspace(-2.0, 2.0, n)
+        S = 3.0 * jnp.exp(th) + 1.0
+        d = grid_derivative(S[None, None, :], th)[0, 0]
+        errs.append(float(jnp.max(jnp.abs(d / (3.0 * jnp.exp(th)) - 1.0)[1:-1])))
+        h = 4.0 / (n - 1)
+        np.testing.assert_allclose(errs[-1], math.sinh(h) / h - 1.0, rtol=1e-6)
+    assert 3.9 < errs[0] / errs[1] < 4.1
+    info = jnp.array([0.0, 1.0, 4.0, 16.0])
+    lp = np.asarray(log_prior(info))
+    np.testing.assert_allclose(np.exp(lp).sum(), 1.0, rtol=1e-12)
+    np.testing.assert_allclose(np.exp(lp[1:]) / np.exp(lp[1]), [1.0, 2.0, 4.0], rtol=1e-12)
+    assert np.exp(lp[0]) < 1e-100
+    np.testing.assert_allclose(log_prior(jnp.zeros(4)), np.full(4, -math.log(4)), rtol=1e-12)

@@ -49,6 +49,10 @@ def test_verdict_rules():
     assert "off on roll_rate" in nl.verdict(_metrics(roll_rate_std=-0.11))
     v = nl.verdict(_metrics(nees_in=0.5, nees_dof=3.0))
     assert "over-confident" in v and "not honest" in v
+    v = nl.verdict(_metrics(nees_in=0.5, nees_dof=0.85))
+    assert "under-confident" in v and "not honest" in v
+    v = nl.verdict(_metrics(nees_in=0.86, nees_dof=1.01))  # near 1: no lean claimed
+    assert "NEES in band 0.86, 1.01 per dof" in v and "confident" not in v
     v = nl.verdict(_metrics(coverage={"delta_offset": 0.95, "ay_std": 0.6}))
     assert "ay_std interval holds in 0.60 of runs" in v
     m = _metrics()

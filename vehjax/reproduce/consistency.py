@@ -374,12 +374,13 @@ _WHY = {
                     "has one gamma for the offset and the biases, so pinning its bias means "
                     "(gamma0 = 1e-9) pins the steering offset at its prior mean too.",
     "MPF-K": "learning everything from 300 steps: at seed 0 (100 runs, N = 1000) NEES in the "
-             "band on 0.927 of the steps (1.00 per state), NIS 0.920, coverage 0.92-0.98 but "
-             "the ay std's 0.86 (its spread over runs 1.08 times its reported std: the "
+             "band on 0.927 of the steps (1.00 per state), NIS 0.937, coverage 0.92-0.97 but "
+             "the ay std's 0.86 (its spread over runs 1.06 times its reported std: the "
              "expected statistics count each residual as a whole datum). The offset and the "
-             "biases are Kalman states, the steering std a fixed grid over its prior (the "
-             "weights its posterior), the sensor covariances from expected inverse-Wishart "
-             "statistics; see the module docstring of vehjax.filters.marginalized.",
+             "biases are Kalman states, the steering std a fixed grid under Jeffreys' prior "
+             "(the weights its posterior), the sensor covariances from expected "
+             "inverse-Wishart statistics; see the module docstring of "
+             "vehjax.filters.marginalized.",
     "MPF-G (biases known)": "the learnt sensor covariances: the ay sensor's std ends low on "
                             "average and its spread over runs exceeds its reported std (see "
                             "the parameter table), so the filter leans on ay and vy, r are "
