@@ -375,8 +375,11 @@ _WHY = {
                     "(gamma0 = 1e-9) pins the steering offset at its prior mean too.",
     "MPF-K": "learning everything from 300 steps: at seed 0 (100 runs, N = 1000) NEES in the "
              "band on 0.927 of the steps (1.00 per state), NIS 0.937, coverage 0.92-0.97 but "
-             "the ay std's 0.86 (its spread over runs 1.06 times its reported std: the "
-             "expected statistics count each residual as a whole datum). The offset and the "
+             "the ay std's 0.86: its estimate ends 2.5-3.3 % low on average (0.5-0.7 of its "
+             "reported std, seeds 0-2; the same under each of the steering std's three "
+             "priors, so not theirs), its spread over runs 1.06-1.11 times its reported std "
+             "(python benchmarks/mpf_k_param_bias.py SEED 100 [PRIOR]); cause not isolated. "
+             "The offset and the "
              "biases are Kalman states, the steering std a fixed grid under Jeffreys' prior "
              "(the weights its posterior), the sensor covariances from expected "
              "inverse-Wishart statistics; see the module docstring of "

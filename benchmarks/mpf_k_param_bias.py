@@ -1,0 +1,52 @@
+"""Bias and spread of the consistent MPF's learnt noise stds on the consistency study's data
+(``vehjax reproduce consistency --filters MPF-K``): the numbers behind its ay-std remark.
+
+    python benchmarks/mpf_k_param_bias.py SEED POINTS [PRIOR]
+
+runs ``MPF-K`` (100 runs x 300 steps, POINTS grid points, PRIOR of the steering std:
+jeffreys (default), inverse-wishart or log-uniform over a tenth to ten times the truth) and
+prints, per learnt std at steps 100, 200 and 300: mean error / mean reported std, spread of
+the estimates over runs / mean reported std, mean relative error, reported std / truth and the
+coverage of the 95 % interval.
+"""
+
+import sys
+
+import jax
+import numpy as np
+
+jax.config.update("jax_enable_x64", True)
+
+import vehjax as vj  # noqa: E402
+from vehjax.reproduce import consistency as c  # noqa: E402
+
+
+def main(seed, points, prior="jeffreys"):
+    model = vj.models.SingleTrackBank(dt=0.01)
+    X, Y, U = c.simulate_mpf(model, 100, 300, seed)
+    extra = {"jeffreys": {}, "inverse-wishart": dict(input_std_prior="inverse-wishart"),
+             "log-uniform": dict(input_std_prior="log-uniform",
+                                 input_std_range=(c._DELTA_STD / 10, c._DELTA_STD * 10))}[prior]
+    c._MPFS["MPF-K"] = dict(c._MPFS["MPF-K"], **extra)
+    P0 = np.full(len(model.state_names), 1e-12)
+    est, x0, P0_f, _ = c.mpf_setup(model, points, "MPF-K", P0)
+    out = vj.run(est, Y, U, x0=x0, P0=P0_f, key=jax.random.key(seed * 101 + 99),
+                 return_covariances=True, progress=False)
+    th = c.mpf_truth(est.param_names)
+    print(f"MPF-K, seed {seed}, {points} points, steering-std prior {prior}:")
+    for k in (99, 199, 299):
+        e = np.asarray(out.params[:, k]) - th
+        sd = np.sqrt(np.diagonal(np.asarray(out.params_cov[:, k]), axis1=-2, axis2=-1))
+        print(f"  step {k + 1}:")
+        for i, n in enumerate(est.param_names):
+            if n.endswith("_std"):
+                print(f"    {n:14s} bias/sd {e[:, i].mean() / sd[:, i].mean():+.2f}  spread/sd "
+                      f"{e[:, i].std() / sd[:, i].mean():.2f}  rel. bias "
+                      f"{e[:, i].mean() / th[i]:+.4f}  sd/truth {sd[:, i].mean() / th[i]:.4f}  "
+                      f"coverage {np.mean(np.abs(e[:, i]) <= 1.96 * sd[:, i]):.2f}")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) < 3:
+        raise SystemExit(__doc__)
+    main(int(sys.argv[1]), int(sys.argv[2]), *sys.argv[3:4])
