@@ -1,11 +1,12 @@
 """Bias and spread of the consistent MPF's learnt noise stds on the consistency study's data
 (``vehjax reproduce consistency --filters MPF-K``): the numbers behind its ay-std remark.
 
-    python benchmarks/mpf_k_param_bias.py SEED POINTS [PRIOR]
+    python benchmarks/mpf_k_param_bias.py SEED POINTS [PRIOR [STEER_FACTOR]]
 
 runs ``MPF-K`` (100 runs x 300 steps, POINTS grid points, PRIOR of the steering std:
-jeffreys (default), inverse-wishart or log-uniform over a tenth to ten times the truth) and
-prints, per learnt std at steps 100, 200 and 300: mean error / mean reported std, spread of
+jeffreys (default), inverse-wishart, log-uniform over a tenth to ten times the truth, or
+known (a grid of the true std alone); STEER_FACTOR scales the true steering std of the data
+and the filter, default 1) and prints, per learnt std at steps 100, 200 and 300: mean error / mean reported std, spread of
 the estimates over runs / mean reported std, mean relative error, reported std / truth and the
 coverage of the 95 % interval.
 """
@@ -21,10 +22,13 @@ import vehjax as vj  # noqa: E402
 from vehjax.reproduce import consistency as c  # noqa: E402
 
 
-def main(seed, points, prior="jeffreys"):
+def main(seed, points, prior="jeffreys", steer_factor=1.0):
+    c._DELTA_STD = c._DELTA_STD * float(steer_factor)  # the study's module constant
     model = vj.models.SingleTrackBank(dt=0.01)
     X, Y, U = c.simulate_mpf(model, 100, 300, seed)
     extra = {"jeffreys": {}, "inverse-wishart": dict(input_std_prior="inverse-wishart"),
+             "known": dict(input_std_prior="log-uniform",
+                           input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))),
              "log-uniform": dict(input_std_prior="log-uniform",
                                  input_std_range=(c._DELTA_STD / 10, c._DELTA_STD * 10))}[prior]
     c._MPFS["MPF-K"] = dict(c._MPFS["MPF-K"], **extra)
@@ -33,7 +37,8 @@ def main(seed, points, prior="jeffreys"):
     out = vj.run(est, Y, U, x0=x0, P0=P0_f, key=jax.random.key(seed * 101 + 99),
                  return_covariances=True, progress=False)
     th = c.mpf_truth(est.param_names)
-    print(f"MPF-K, seed {seed}, {points} points, steering-std prior {prior}:")
+    print(f"MPF-K, seed {seed}, {points} points, steering-std prior {prior}, steering std "
+          f"{steer_factor} x the study's:")
     for k in (99, 199, 299):
         e = np.asarray(out.params[:, k]) - th
         sd = np.sqrt(np.diagonal(np.asarray(out.params_cov[:, k]), axis1=-2, axis2=-1))
@@ -49,4 +54,4 @@ def main(seed, points, prior="jeffreys"):
 if __name__ == "__main__":
     if len(sys.argv) < 3:
         raise SystemExit(__doc__)
-    main(int(sys.argv[1]), int(sys.argv[2]), *sys.argv[3:4])
+    main(int(sys.argv[1]), int(sys.argv[2]), *sys.argv[3:5])
