@@ -53,7 +53,7 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   draws no random numbers: one execution on the drive. 25 grid points give the same numbers
   as 100 (inverse-Wishart grid, 20 runs x 180 s: NEES 0.817 per dof both, the steering std's
   mean 1.122 of the truth both).
-  At the defaults (100 runs x 180 s; the whole report 16:55 with other jobs beside it) it
+  At the defaults (100 runs x 180 s; at 7caecb8, the whole report 16:28 at load ~1) it
   learns the offset (RMS 0.001 deg), tracks the biases, learns the sensor stds (within 0.2 %)
   and the steering std (-0.9 % over the last third; the paper's filter +68 %), and every
   learnt parameter's interval holds the truth in 0.91-0.95 of the runs (the paper's filter:
@@ -69,12 +69,11 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   dof, in the band on 0.54 of the steps. With equal weights over a tenth to ten times the
   guess it ends 11-12 % below (posterior std 0.24 of it) and the NEES is 1.31-1.33 per dof
   (20 runs); that holds with the sensor noise known too (1.23), so the prior, not the learning
-  of R, sets it. Time: 0.049 against the paper's filter's 0.092 ms per run-step (N = 100),
-  0.23 against 0.60 ms on the drive (N = 500) in the report (the 100-run simulation's
-  timing there, 0.141 against 0.126, was taken with other jobs running beside it and before
-  the information's Cholesky was written entry by entry; the 0.049 / 0.092 pair: ``vehjax
-  reproduce noise-learning --methods "MPF (paper),MPF (consistent)" --runs 20 --duration 180
-  --no-drive``, idle).
+  of R, sets it. Time in that report: 0.100 against the paper's filter's 0.139 ms per
+  run-step (N = 100), 0.29 against 0.63 ms on the drive (N = 500); idle, the two alone
+  (``vehjax reproduce noise-learning --methods "MPF (paper),MPF (consistent)" --runs 20
+  --duration 180 --no-drive``): 0.049 against 0.092. On the drive it gives the yaw rate
+  closest to the pose's (0.106 deg/s, 0.68x the raw gyro's error; the paper's filter 0.121).
   These numbers: ``python benchmarks/mpf_consistent_steering.py`` (its docstring has the
   commands). First built as Storvik's filter (covariances drawn per particle from
   expected statistics of w_t): the steering std ended at 3.8 times the truth, because the
