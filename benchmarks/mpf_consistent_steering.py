@@ -22,7 +22,8 @@
         simulated at that std) against its covariance part (the filter's Jeffreys prior's)
 
 Examples (the docstrings' numbers): ``profile 20 180``; ``learn 100 180 25 jeffreys 1``;
-``learn 20 180 25 iw 1``; ``learn 20 180 25 10 1``; ``learn 20 180 25 10 1 known``; ``learn 10 180 100 iw 0.995``;
+``learn 20 180 25 iw 1``; ``learn 20 180 25 10 1``; ``learn 20 180 25 10 1 known``;
+``learn 10 180 100 iw 0.995``;
 ``information 8 180``.
 """
 

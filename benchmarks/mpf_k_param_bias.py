@@ -6,9 +6,9 @@
 runs ``MPF-K`` (100 runs x 300 steps, POINTS grid points, PRIOR of the steering std:
 jeffreys (default), inverse-wishart, log-uniform over a tenth to ten times the truth, or
 known (a grid of the true std alone); STEER_FACTOR scales the true steering std of the data
-and the filter, default 1) and prints, per learnt std at steps 100, 200 and 300: mean error / mean reported std, spread of
-the estimates over runs / mean reported std, mean relative error, reported std / truth and the
-coverage of the 95 % interval.
+and the filter, default 1) and prints, per learnt std at steps 100, 200 and 300: mean error /
+mean reported std, spread of the estimates over runs / mean reported std, mean relative error,
+reported std / truth and the coverage of the 95 % interval.
 """
 
 import sys

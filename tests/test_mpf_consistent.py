@@ -485,7 +485,8 @@ def test_covariance_information_is_half_the_trace_of_the_squared_relative_deriva
 
 def test_grid_derivative_is_second_order_and_the_prior_normalised():
     """Central differences of S(theta) = a e^theta + c on a uniform grid: the relative error
-    inside is sinh(h) / h - 1 (about h^2 / 6), so it falls 4x when the spacing halves; log_prior is 0.5 log I normalised, equal before any datum."""
+    inside is sinh(h) / h - 1 (about h^2 / 6), so it falls 4x when the spacing halves; log_prior
+    is 0.5 log I normalised, equal before any datum."""
     from vehjax.filters._jeffreys import grid_derivative, log_prior
 
     errs = []

@@ -163,7 +163,8 @@ batch posterior (tests/test_marginalized.py checks it).
   the flat end down by how little the data can say there (its one-parameter coverage is
   right to first order, Welch & Peers 1963). The other two priors stay as options: the
   inverse-Wishart prior's marginal, weighted by it (:func:`vehjax.filters._niw.
-  static_prior_grid`), and equal weights over ``input_std_range``. The sensor covariance R is learnt per particle
+  static_prior_grid`), and equal weights over ``input_std_range``. The sensor covariance R
+  is learnt per particle
   from the expected statistics (the inverse-Wishart over the residuals, its mean used in the
   Kalman step). Why a grid: the data tell sigma_w apart mostly through the dynamics (the
   steering noise moves vy and r, which the sensors see over the following steps), which only
@@ -172,7 +173,8 @@ batch posterior (tests/test_marginalized.py checks it).
   paper 004's simulation that statistic (with covariances drawn per particle, Storvik's
   filter, as first built here: ``vehjax reproduce noise-learning`` at 3108ace) ended at 3.8
   times the true steering std; drawing static values and moving them by Liu & West's kernel
-  collapsed the cloud (an experiment not kept: commit c9ee043's message). Exact, given the sensor covariances, for models
+  collapsed the cloud (an experiment not kept: commit c9ee043's message). Exact, given the
+  sensor covariances, for models
   affine in the states and the noisy input: with R known the weights are the exact posterior
   over the grid (tests/test_mpf_consistent.py, against numpy Kalman likelihoods), and with
   every covariance known it is the Kalman filter of the augmented model. Approximate: R's
