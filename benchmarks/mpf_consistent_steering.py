@@ -10,8 +10,9 @@
     python benchmarks/mpf_consistent_steering.py learn RUNS SECONDS POINTS PRIOR FORGETTING
         the consistent MPF as noise-learning builds it, with POINTS grid points, PRIOR
         "jeffreys" (the default: Jeffreys' prior over a decade either side of the guess, twice
-        the true std), "iw" (the grid over the inverse-Wishart prior of the guess) or a factor
-        F (equal weights, log-uniform over the guess / F .. the guess x F), FORGETTING lambda:
+        the true std), "jeffreys:F" (Jeffreys' prior over the guess / F .. the guess x F), "iw"
+        (the grid over the inverse-Wishart prior of the guess) or a factor F (equal weights,
+        log-uniform over the guess / F .. the guess x F), FORGETTING lambda:
         the steering std's estimate / truth over runs (mean, spread), its reported std and
         95 % coverage at the end of each window, and the NEES of (vy, r) per dof and its share
         in the 95 % band; a last argument ``known`` gives it the true sensor covariances
@@ -22,7 +23,8 @@
         simulated at that std) against its covariance part (the filter's Jeffreys prior's)
 
 Examples (the docstrings' numbers): ``profile 20 180``; ``learn 100 180 25 jeffreys 1``;
-``learn 20 180 25 iw 1``; ``learn 20 180 25 10 1``; ``learn 20 180 25 10 1 known``;
+``learn 20 180 25 jeffreys 1``; ``learn 20 180 25 jeffreys:100 1``; ``learn 20 180 25 iw 1``;
+``learn 20 180 25 10 1``; ``learn 20 180 25 10 1 known``;
 ``learn 10 180 100 iw 0.995``;
 ``information 8 180``.
 """
@@ -95,8 +97,10 @@ def learn(runs, seconds, points, prior, forgetting, r_known=False):
     model, X, Y, U = data(runs, seconds)
     guess = 2.0 * b18.STEER_STD
     sf = 1.0 if r_known else 2.0
-    rng = None if prior in ("iw", "jeffreys") else (guess / float(prior), guess * float(prior))
-    kind = {"iw": "inverse-wishart", "jeffreys": "jeffreys"}.get(prior, "log-uniform")
+    kind = {"iw": "inverse-wishart", "jeffreys": "jeffreys"}.get(prior.split(":")[0],
+                                                                 "log-uniform")
+    factor = prior.split(":")[-1]
+    rng = None if prior in ("iw", "jeffreys") else (guess / float(factor), guess * float(factor))
     est = build(model, points, {"delta": guess, **{s: sf * b18.SENSOR_STD[s] for s in
                                                    b18.SENSORS}}, forgetting, std_range=rng,
                 prior=kind, nu0=1e7 if r_known else None)

@@ -685,14 +685,11 @@ def _init(s: _Setup, x0, P0, theta0=None, P_theta0=None, key=None) -> MPFState:
         xs = jnp.broadcast_to(x0[nl][:, None], (s.nxs, n))
         zs = jnp.broadcast_to(x0[li][:, None], (nz, n))
         Pk = P0[np.ix_(order, order)]
-        if s.w_range is not None:
-            lo, hi = (2.0 * math.log(v) for v in s.w_range)
-            lam_w = jnp.exp(jnp.linspace(lo, hi, n, dtype=dtype))
-        elif s.jeffreys:  # a decade either side of the guess
-            lo, hi = (2.0 * jnp.log(sd0[0] * f) for f in (0.1, 10.0))
-            lam_w = jnp.exp(jnp.linspace(lo, hi, n, dtype=dtype))
-        else:
+        if s.w_range is None and not s.jeffreys:
             lam_w, log_w0 = static_prior_grid(lam_w[0], s.nu0 - d + 1.0, n)
+        else:  # log-uniform over the range, by default a decade either side of the guess
+            lo, hi = s.w_range or (sd0[0] * 0.1, sd0[0] * 10.0)
+            lam_w = jnp.exp(jnp.linspace(2.0 * jnp.log(lo), 2.0 * jnp.log(hi), n, dtype=dtype))
     jeff = {}
     if s.jeffreys:  # no information yet: equal weights
         jeff = dict(info=jnp.zeros((n,), dtype), base_log_weights=log_w0)
@@ -1148,18 +1145,14 @@ def marginalized_pf(
                                 linear_states, linear_noise_std, std0, mean0, forgetting,
                                 gamma0, nu0, ess_threshold, resampling, kalman_states, resample,
                                 bias_walk, mean_std0, input_std_range, input_std_prior)
-    if input_std_prior is not None:
-        raise ValueError("input_std_prior: only with noise_means='kalman' (the paper's filter "
-                         "learns the input's std in its NiW statistics)")
-    if input_std_range is not None:
-        raise ValueError("input_std_range: only with noise_means='kalman' (the paper's filter "
-                         "learns the input's std in its NiW statistics)")
-    if mean_std0 is not None:
-        raise ValueError("mean_std0: only with noise_means='kalman' (the paper's NiW ties the "
-                         "means' prior to gamma0 std0^2)")
-    if bias_walk is not None:
-        raise ValueError("bias_walk: only with noise_means='kalman' (the paper's filter tracks "
-                         "drifting biases by forgetting)")
+    learns_std = "the paper's filter learns the input's std in its NiW statistics"
+    for name, value, why in (
+            ("input_std_prior", input_std_prior, learns_std),
+            ("input_std_range", input_std_range, learns_std),
+            ("mean_std0", mean_std0, "the paper's NiW ties the means' prior to gamma0 std0^2"),
+            ("bias_walk", bias_walk, "the paper's filter tracks drifting biases by forgetting")):
+        if value is not None:
+            raise ValueError(f"{name}: only with noise_means='kalman' ({why})")
     s = _configure(model, n_particles, noisy_input, sensors, known_std, linear_states,
                    linear_noise_std, std0, mean0, forgetting, gamma0, nu0, ess_threshold,
                    resampling, kalman_states, resample)
