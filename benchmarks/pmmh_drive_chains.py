@@ -25,10 +25,13 @@ at = {"delta_offset": 0.01254 * DEG, "eps": -4.331e-4, "bias:ay": -0.06369, "bia
 out = {}
 for lik in sys.argv[1].split(","):
     t0 = time.time()
-    res, sec, info = B.run_pmmh(model, Y[:T], U[:T], chains=4, key=jax.random.key(8), likelihood=lik,
-                                init=at, spread_at=at, iters=int(sys.argv[2]), particles=int(sys.argv[3]))
+    res, sec, info = B.run_pmmh(model, Y[:T], U[:T], chains=4, key=jax.random.key(8),
+                                likelihood=lik, init=at, spread_at=at, iters=int(sys.argv[2]),
+                                particles=int(sys.argv[3]))
     print(lik, f"{sec:.1f} s", info, "acceptance", res.acceptance.round(3), flush=True)
     print(res.summary(), flush=True)
     print(B.pmmh_check(res, info, lik), flush=True)
-    out[lik] = dict(sec=sec, info=info, mean=res.mean.tolist(), std=res.std.tolist(), rhat=res.rhat.tolist(), ess=res.ess.tolist(), acc=res.acceptance.tolist(), names=list(res.names))
+    out[lik] = dict(sec=sec, info=info, mean=res.mean.tolist(), std=res.std.tolist(),
+                    rhat=res.rhat.tolist(), ess=res.ess.tolist(),
+                    acc=res.acceptance.tolist(), names=list(res.names))
 json.dump(out, open(sys.argv[4], "w"), indent=1)

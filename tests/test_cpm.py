@@ -36,7 +36,8 @@ def _lg_data(T=20, seed=1):
     A, Bm = np.array([[1.0, DT], [0.0, A22]]), np.array([0.0, B2])
     x, ys = rng.standard_normal(2) * np.sqrt(P0), []
     for t in range(T):
-        x = A @ x + Bm * (us[t, 0] + SU * rng.standard_normal()) + np.sqrt(QD) * rng.standard_normal(2)
+        x = (A @ x + Bm * (us[t, 0] + SU * rng.standard_normal())
+             + np.sqrt(QD) * rng.standard_normal(2))
         ys.append(x + np.sqrt(RD) * rng.standard_normal(2) + [BIAS, 0.0])
     ys = np.array(ys)
     ys[::4, 1] = np.nan
@@ -110,7 +111,8 @@ def test_crank_nicolson_move_correlates_the_estimates():
     assert sd > 0.5, sd                                    # the estimate is noisy
     assert sd_diff < 0.2 * math.sqrt(2.0) * sd, (sd_diff, sd)
     # the move itself: rho a + sqrt(1 - rho^2) e, leaf by leaf
-    a, e = _cpm.draw_aux(jax.random.key(2), 3, 4, 2, 1), _cpm.draw_aux(jax.random.key(3), 3, 4, 2, 1)
+    a = _cpm.draw_aux(jax.random.key(2), 3, 4, 2, 1)
+    e = _cpm.draw_aux(jax.random.key(3), 3, 4, 2, 1)
     b = _cpm.crank_nicolson(a, e, 0.6)
     for la, le, lb in zip(a, e, b):
         np.testing.assert_allclose(np.asarray(lb), 0.6 * np.asarray(la) + 0.8 * np.asarray(le),

@@ -283,7 +283,8 @@ def _s_information(S, dS):
 
 
 def _user_linear_bank(vx):
-    """The linear SingleTrackBank at speed vx written as a user would: a :class:`vehjax.models.Model`
+    """The linear SingleTrackBank at speed vx written as a user would: a
+    :class:`vehjax.models.Model`
     of two plain jnp functions over its discrete matrices (no bank_noise_gain)."""
     Ad, Bd, C, Dd = (jnp.asarray(a) for a in discrete_matrices(MODEL.theta, vx, DT))
     return vj.models.Model(lambda x, u, th: Ad @ x + Bd * u[1], lambda x, u, th: C @ x + Dd * u[1],
@@ -361,7 +362,8 @@ def test_input_std_grid_is_the_exact_posterior_of_the_steering_std(prior):
 def test_static_grid_carries_the_inverse_wishart_prior_of_the_input_variance():
     """static_prior_grid: the weighted grid of sigma_w^2 reproduces the prior's marginal
     Lambda_w / chi^2_dof, inverse-gamma(dof / 2, Lambda_w / 2) (scipy): its mean, the mean of
-    log sigma^2 (log Lambda_w - digamma(dof / 2) - log 2) and the cdf at the quartiles, and it reaches into both tails."""
+    log sigma^2 (log Lambda_w - digamma(dof / 2) - log 2) and the cdf at the quartiles, and it
+    reaches into both tails."""
     import scipy.special
     import scipy.stats
 

@@ -77,7 +77,8 @@ import numpy as np
 from . import _validate
 
 __all__ = ["Normal", "LogNormal", "Uniform", "PMMHResult", "pmmh", "log_likelihood_fn",
-           "log_likelihood_spread", "cpm_log_likelihood_fn", "log_likelihood_difference_spread", "fixed_noise_mpf", "target_acceptance", "adaptation_windows",
+           "log_likelihood_spread", "cpm_log_likelihood_fn", "log_likelihood_difference_spread",
+           "fixed_noise_mpf", "target_acceptance", "adaptation_windows",
            "adapted_covariance", "scale_update", "proposal_factor",
            "particle_gibbs", "conditional_pf_as", "log_joint", "split_rhat",
            "effective_sample_size"]
@@ -293,7 +294,7 @@ def cpm_log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R,
     """The bootstrap PF's log-likelihood estimate as a function of its random numbers, for the
     correlated pseudo-marginal method: ``(loglik(values (d,), aux) -> (), draw(key) -> aux)``,
     aux a :class:`vehjax._cpm.Aux` of standard normals (:func:`vehjax._cpm.log_likelihood`:
-    particles sorted along their first principal direction and resampled systematically at
+    particles sorted along a Hilbert curve (the default ``sort``) and resampled systematically at
     every step). The same model and likelihood as :func:`log_likelihood_fn` with
     ``vehjax.filters.bootstrap_pf``; ``values`` as there.
 
