@@ -17,6 +17,11 @@
         95 % coverage at the end of each window, and the NEES of (vy, r) per dof and its share
         in the 95 % band; a last argument ``known`` gives it the true sensor covariances
         (nu0 = 1e7: R known, only sigma_w learnt)
+    python benchmarks/mpf_consistent_steering.py time RUNS SECONDS
+        ms per run-step of the paper's MPF (noise-learning's, N = 100) and the consistent MPF
+        (25 grid points) with the inverse-Wishart sensor variances (the default) and the
+        scored ones (``sensor_variances="scored"``), one process, through ``vehjax.run``,
+        compiled first, then three rounds interleaved (the best of each)
     python benchmarks/mpf_consistent_steering.py information RUNS SECONDS
         the Fisher information of log sigma_w per run at 0.5-4 times the true std, every other
         covariance known: the whole (Monte Carlo: the exact log-likelihood's curvature on data
@@ -26,7 +31,7 @@ Examples (the docstrings' numbers): ``profile 20 180``; ``learn 100 180 25 jeffr
 ``learn 20 180 25 jeffreys 1``; ``learn 20 180 25 jeffreys:100 1``; ``learn 20 180 25 iw 1``;
 ``learn 20 180 25 10 1``; ``learn 20 180 25 10 1 known``;
 ``learn 10 180 100 iw 0.995``;
-``information 8 180``.
+``information 8 180``; ``time 20 30``.
 """
 
 import math
@@ -65,7 +70,8 @@ def data(runs, seconds, steer_factor=1.0, seed=0):
     return model, X, Y, U
 
 
-def build(model, points, std0, forgetting, nu0=None, std_range=None, prior=None):
+def build(model, points, std0, forgetting, nu0=None, std_range=None, prior=None,
+          variances=None):
     return marginalized_pf(
         model, points, noisy_input="delta", sensors=b18.SENSORS,
         known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
@@ -73,7 +79,7 @@ def build(model, points, std0, forgetting, nu0=None, std_range=None, prior=None)
         std0=std0, forgetting=forgetting, nu0=nu0, noise_means="kalman",
         bias_walk={s: b18.BIAS_WALK[s] for s in b18.SENSORS},
         mean_std0={"delta": nl.OFFSET_STD0, **nl.BIAS_STD0}, input_std_range=std_range,
-        input_std_prior=prior)
+        input_std_prior=prior, sensor_variances=variances)
 
 
 def profile(runs, seconds):
@@ -91,6 +97,36 @@ def profile(runs, seconds):
     print(f"exact log-likelihood, {runs} runs x {seconds:g} s, relative to the true std:")
     for f, v in zip(facs, total):
         print(f"  {f:4.2f} x truth: {v - ref:+10.2f} nats")
+
+
+def time_per_step(runs, seconds):
+    import time
+
+    model, _, Y, U = data(runs, seconds)
+    args = nl.parser().parse_args([])
+    paper, _, P0 = nl.build("MPF (paper)", model, args)
+    std0 = {"delta": 2.0 * b18.STEER_STD, **{s: 2.0 * b18.SENSOR_STD[s] for s in b18.SENSORS}}
+    default = build(model, 25, std0, 1.0)
+    scored = build(model, 25, std0, 1.0, variances="scored")
+    ests = {"MPF (paper), N = 100": (paper, P0),
+            "consistent, inverse-Wishart": (default, nl.P0_SIM),
+            "consistent, scored": (scored, nl.P0_SIM)}
+
+    def go(est, P):
+        out = vj.run(est, Y, U, x0=np.zeros(5), P0=P, key=jax.random.key(1), progress=False)
+        jax.block_until_ready(out.states)
+
+    for est, P in ests.values():  # compile
+        go(est, P)
+    best = {k: np.inf for k in ests}
+    for _ in range(3):
+        for k, (est, P) in ests.items():
+            t = time.perf_counter()
+            go(est, P)
+            best[k] = min(best[k], time.perf_counter() - t)
+    print(f"{runs} runs x {seconds:g} s, ms per run-step (best of 3, interleaved):")
+    for k, v in best.items():
+        print(f"  {k:30s} {1e3 * v / Y.shape[0] / Y.shape[1]:.4f}")
 
 
 def learn(runs, seconds, points, prior, forgetting, r_known=False):
@@ -161,6 +197,8 @@ if __name__ == "__main__":
         profile(int(sys.argv[2]), float(sys.argv[3]))
     elif mode == "information":
         information(int(sys.argv[2]), float(sys.argv[3]))
+    elif mode == "time":
+        time_per_step(int(sys.argv[2]), float(sys.argv[3]))
     elif mode == "learn":
         learn(int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4]), sys.argv[5],
               float(sys.argv[6]), len(sys.argv) > 7 and sys.argv[7] == "known")

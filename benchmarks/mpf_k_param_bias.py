@@ -1,12 +1,13 @@
 """Bias and spread of the consistent MPF's learnt noise stds on the consistency study's data
 (``vehjax reproduce consistency --filters MPF-K``): the numbers behind its ay-std remark.
 
-    python benchmarks/mpf_k_param_bias.py SEED POINTS [PRIOR [STEER_FACTOR]]
+    python benchmarks/mpf_k_param_bias.py SEED POINTS [PRIOR [STEER_FACTOR [VARIANCES]]]
 
-runs ``MPF-K`` (100 runs x 300 steps, POINTS grid points, PRIOR of the steering std:
-jeffreys (default), inverse-wishart, log-uniform over a tenth to ten times the truth, or
-known (a grid of the true std alone); STEER_FACTOR scales the true steering std of the data
-and the filter, default 1) and prints, per learnt std at steps 100, 200 and 300: mean error /
+runs ``MPF-K`` (100 runs x 300 steps, POINTS grid points, PRIOR of the steering std: jeffreys
+(default), inverse-wishart, log-uniform over a tenth to ten times the truth, or known (a grid
+of the true std alone); STEER_FACTOR scales the true steering std of the data and the filter,
+default 1; VARIANCES the sensor variances, ``marginalized_pf``'s ``sensor_variances``: inverse-
+wishart (default) or scored) and prints, per learnt std at steps 100, 200 and 300: mean error /
 mean reported std, spread of the estimates over runs / mean reported std, mean relative error,
 reported std / truth and the coverage of the 95 % interval.
 """
@@ -22,7 +23,7 @@ import vehjax as vj  # noqa: E402
 from vehjax.reproduce import consistency as c  # noqa: E402
 
 
-def main(seed, points, prior="jeffreys", steer_factor=1.0):
+def main(seed, points, prior="jeffreys", steer_factor=1.0, variances="inverse-wishart"):
     c._DELTA_STD = c._DELTA_STD * float(steer_factor)  # the study's module constant
     model = vj.models.SingleTrackBank(dt=0.01)
     X, Y, U = c.simulate_mpf(model, 100, 300, seed)
@@ -31,14 +32,14 @@ def main(seed, points, prior="jeffreys", steer_factor=1.0):
                            input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))),
              "log-uniform": dict(input_std_prior="log-uniform",
                                  input_std_range=(c._DELTA_STD / 10, c._DELTA_STD * 10))}[prior]
-    c._MPFS["MPF-K"] = dict(c._MPFS["MPF-K"], **extra)
+    c._MPFS["MPF-K"] = dict(c._MPFS["MPF-K"], **extra, sensor_variances=variances)
     P0 = np.full(len(model.state_names), 1e-12)
     est, x0, P0_f, _ = c.mpf_setup(model, points, "MPF-K", P0)
     out = vj.run(est, Y, U, x0=x0, P0=P0_f, key=jax.random.key(seed * 101 + 99),
                  return_covariances=True, progress=False)
     th = c.mpf_truth(est.param_names)
     print(f"MPF-K, seed {seed}, {points} points, steering-std prior {prior}, steering std "
-          f"{steer_factor} x the study's:")
+          f"{steer_factor} x the study's, sensor variances {variances}:")
     for k in (99, 199, 299):
         e = np.asarray(out.params[:, k]) - th
         sd = np.sqrt(np.diagonal(np.asarray(out.params_cov[:, k]), axis1=-2, axis2=-1))
@@ -54,4 +55,4 @@ def main(seed, points, prior="jeffreys", steer_factor=1.0):
 if __name__ == "__main__":
     if len(sys.argv) < 3:
         raise SystemExit(__doc__)
-    main(int(sys.argv[1]), int(sys.argv[2]), *sys.argv[3:5])
+    main(int(sys.argv[1]), int(sys.argv[2]), *sys.argv[3:6])

@@ -170,7 +170,8 @@ def static_prior_grid(lam_w, dof, n: int):
     return lam_w / jnp.exp(log_c), lw
 
 
-def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, means_known=False):
+def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, means_known=False, var_cov=None,
+                    input_var_extra=None):
     """Eq. 23, the weighted estimates of the noise statistics, and their mixture covariance.
 
     The offset mean and the biases are the weighted NiW means; the variances mix the particles'
@@ -188,6 +189,12 @@ def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, means_known=False):
             within-particle covariance of the offset and the biases; ``lam_w`` is then each
             particle's sigma_w^2 itself (a static parameter of the particle, not a statistic:
             ``noise_means="kalman"``), so sigma_w has no within-particle variance either.
+        var_cov: (d - 1, d - 1, N) or None: each particle's covariance of its sensor
+            variances in place of the inverse-Wishart's (where finite; the scored variances of
+            :mod:`vehjax.filters._sensor_scoring`).
+        input_var_extra: (N,) or None: a within-particle variance of sigma_w (its std) to add
+            (with ``means_known``: the plug-in of the scored sensor variances,
+            :func:`vehjax.filters._sensor_scoring.plug_in_variance`).
 
     Returns:
         (params (p,), params_cov (p, p)), p = 2 d, in the order offset mean, offset std,
@@ -225,6 +232,11 @@ def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, means_known=False):
                 + 2.0 * (nu - pd - 1.0) * Lfull ** 2) / denom  # Cov(Sigma_ii, Sigma_jj)
     sd_i = jnp.concatenate([sd_w_i[None], sd_s_i])
     cov_sd = cov_diag / (4.0 * sd_i[:, None, :] * sd_i[None, :, :])
+    if var_cov is not None:
+        cs = var_cov / (4.0 * sd_s_i[:, None, :] * sd_s_i[None, :, :])
+        cov_sd = cov_sd.at[1:, 1:].set(jnp.where(jnp.isfinite(cs), cs, cov_sd[1:, 1:]))
+    if input_var_extra is not None:
+        cov_sd = cov_sd.at[0, 0].add(input_var_extra)
     cov_mu = (0.0 if means_known else gamma) * jnp.zeros((d, d, lam_w.shape[0]), dtype).at[
         0, 0].set(sw2).at[1:, 1:].set(se)
     within_mu = jnp.einsum("ijn,n->ij", cov_mu, w)

@@ -163,20 +163,28 @@ batch posterior (tests/test_marginalized.py checks it).
   the flat end down by how little the data can say there (its one-parameter coverage is
   right to first order, Welch & Peers 1963). The other two priors stay as options: the
   inverse-Wishart prior's marginal, weighted by it (:func:`vehjax.filters._niw.
-  static_prior_grid`), and equal weights over ``input_std_range``. The sensor covariance R
-  is learnt per particle
-  from the expected statistics (the inverse-Wishart over the residuals, its mean used in the
-  Kalman step). Why a grid: the data tell sigma_w apart mostly through the dynamics (the
-  steering noise moves vy and r, which the sensors see over the following steps), which only
-  the predictive likelihood carries; the expected statistic of w_t given y_1:t sees only the
-  direct term d w_t in ay, beside ay's own noise, and learns nothing that separates them. On
-  paper 004's simulation that statistic (with covariances drawn per particle, Storvik's
-  filter, as first built here: ``vehjax reproduce noise-learning`` at 3108ace) ended at 3.8
-  times the true steering std; drawing static values and moving them by Liu & West's kernel
-  collapsed the cloud (an experiment not kept: commit c9ee043's message). Exact, given the
-  sensor covariances, for models
-  affine in the states and the noisy input: with R known the weights are the exact posterior
-  over the grid (tests/test_mpf_consistent.py, against numpy Kalman likelihoods), and with
+  static_prior_grid`), and equal weights over ``input_std_range``;
+  (5) the sensor covariance R is learnt per particle from the expected statistics (the
+  inverse-Wishart over the residuals, its mean used in the Kalman step). That mean forgets
+  its start as n^-F, F the fraction of a complete observation's information a step carries
+  about a variance: about 0.04 for ay on the consistency study's data, where the steering
+  noise reaches ay directly beside ay's own (started at twice the truth the ay std stayed
+  +45 % over 300 steps). ``sensor_variances="scored"`` (not the default: 4-5 times the time
+  per step) takes the variances by Fisher scoring of the innovations weighted at the guess
+  (:mod:`vehjax.filters._sensor_scoring`), with their sandwich covariance, in the Kalman
+  step and the report, and adds to sigma_w's reported variance what their plug-in adds
+  (Murphy & Topel's two-step correction, the cross information from the ridge the grid
+  points' variances lie on). Why a grid: the data tell sigma_w apart mostly through the
+  dynamics (the steering noise moves vy and r, which the sensors see over the following
+  steps), which only the predictive likelihood carries; the expected statistic of w_t given
+  y_1:t sees only the direct term d w_t in ay, beside ay's own noise, and learns nothing that
+  separates them. On paper 004's simulation that statistic (with covariances drawn per
+  particle, Storvik's filter, as first built here: ``vehjax reproduce noise-learning`` at
+  3108ace) ended at 3.8 times the true steering std; drawing static values and moving them by
+  Liu & West's kernel collapsed the cloud (an experiment not kept: commit c9ee043's message).
+  Exact, given the sensor covariances, for models affine in the states and the noisy input:
+  with R known the weights are the exact posterior over the grid
+  (tests/test_mpf_consistent.py, against numpy Kalman likelihoods), and with
   every covariance known it is the Kalman filter of the augmented model. Approximate: R's
   expected statistics (a variational-Bayes style update) and its forgetting, the grid's
   resolution. With forgetting < 1 the sensor statistics' own noise (about 200 steps' worth
@@ -241,6 +249,8 @@ from ._mpf_kalman import (bank_kalman_step, input_noise_kalman_step, joint_kalma
 from ._mpf_linearise import entry_kinds, lin_entries, linearise, merge_entries
 from ._jeffreys import covariance_information, grid_derivative
 from ._jeffreys import log_prior as jeffreys_log_prior
+from ._sensor_scoring import (plug_in_variance, prior_terms, ridge_sensitivity, scored_variances,
+                              scoring_terms)
 from ._niw import (draw_offset, impute_missing, niw_predict, niw_update,
                    noise_estimates, static_prior_grid, t_predictive,
                    t_weight_and_proposal)
@@ -280,6 +290,10 @@ class MPFState(NamedTuple):
         base_log_weights: with ``input_std_prior="jeffreys"`` (N,), the normalised log
             weights under equal prior weights (the likelihood alone); ``log_weights`` are them
             times Jeffreys' prior sqrt(info). Else None.
+        var_info, var_stat, var_sand, var_ref: with ``noise_means="kalman"``, the sensor
+            variances' scoring sums (:mod:`vehjax.filters._sensor_scoring`): J (n_s, n_s, N),
+            h (n_s, N), the sandwich's middle (n_s, n_s, N) and the prior guess v_0 (n_s, N);
+            else None.
     """
 
     x: jnp.ndarray
@@ -300,6 +314,10 @@ class MPFState(NamedTuple):
     ancestors: jnp.ndarray
     info: Any = None
     base_log_weights: Any = None
+    var_info: Any = None
+    var_stat: Any = None
+    var_sand: Any = None
+    var_ref: Any = None
 
 
 class RBTransition(NamedTuple):
@@ -452,6 +470,9 @@ class _Setup(NamedTuple):
     w_range: Any = None
     # noise_means="kalman": the grid's weights are Jeffreys' prior (_jeffreys), not equal
     jeffreys: bool = False
+    # noise_means="kalman": the sensor variances scored (_sensor_scoring), not the
+    # inverse-Wishart mean alone
+    scored: bool = False
 
 
 def _linear_noise(model, linear_noise_std, li, linear_states) -> np.ndarray:
@@ -492,6 +513,17 @@ def _std_range(value):
 
 
 INPUT_STD_PRIORS = ("jeffreys", "inverse-wishart", "log-uniform")
+SENSOR_VARIANCES = ("inverse-wishart", "scored")
+
+
+def _sensor_variances(value) -> bool:
+    """Whether ``sensor_variances`` asks for the scored variances (None: the inverse-Wishart
+    mean, the default)."""
+    if value is None:
+        return False
+    if value not in SENSOR_VARIANCES:
+        raise ValueError(f"sensor_variances: expected one of {SENSOR_VARIANCES}, got {value!r}")
+    return value == "scored"
 
 
 def _input_std_prior(prior, std_range) -> bool:
@@ -693,6 +725,10 @@ def _init(s: _Setup, x0, P0, theta0=None, P_theta0=None, key=None) -> MPFState:
     jeff = {}
     if s.jeffreys:  # no information yet: equal weights
         jeff = dict(info=jnp.zeros((n,), dtype), base_log_weights=log_w0)
+    if s.scored:  # the sensor variances' scoring sums: the prior alone
+        v_ref = jnp.broadcast_to((sd0[1:] ** 2)[:, None], (ns, n))
+        J0, h0 = prior_terms(v_ref, scale)
+        jeff.update(var_info=J0, var_stat=h0, var_sand=J0, var_ref=v_ref)
     return MPFState(
         x=xs,
         z=zs,
@@ -845,14 +881,29 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
     return (ll, *kept, stack(mu_y, like), cov_y, w)
 
 
+def _scored_scale(s: _Setup, lam_e, nu, J, h, H, start):
+    """The sensor covariance's scale with its variances scored
+    (:mod:`vehjax.filters._sensor_scoring`): Lambda_e with its diagonal (nu - d - 1) v and the
+    covariances at Lambda_e's correlations, and the covariance of v (n_s, n_s, N); where the
+    scored v is not positive, the inverse-Wishart's own (its covariance then NaN: the caller
+    uses the inverse-Wishart's)."""
+    den = nu - s.d - 1.0
+    lam_diag = jnp.diagonal(lam_e, axis1=0, axis2=1).T  # (ns, N)
+    v, C = scored_variances(J, h, H, start)
+    c = jnp.where(jnp.isnan(v), 1.0, jnp.sqrt(den * v / lam_diag))
+    return lam_e * c[:, None, :] * c[None, :, :], C
+
+
 def _kalman_means_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, y, obs, u, theta,
-                         nu_p):
+                         nu_p, J, h, H, v_ref):
     """One step of every particle with ``noise_means="kalman"`` (module docstring): the Kalman
     step with the noisy input's error as process noise at the particle's own sigma_w^2
-    (``lam_w``, static) and the mean of its sensor covariance's inverse-Wishart statistics,
-    the Gaussian predictive of y_t as the weight, the sensor statistics updated with the
-    expected data. Returns what :func:`_particle_update` returns (the posterior mean of w_t in
-    place of a draw)."""
+    (``lam_w``, static) and its sensor covariance (the inverse-Wishart statistics' mean; with
+    ``sensor_variances="scored"`` its variances scored from ``J``, ``h``, ``H`` and the prior
+    guess ``v_ref``), the Gaussian predictive of y_t as the weight, the sensor statistics
+    updated with the expected data (and the innovations' scoring terms). Returns what
+    :func:`_particle_update` returns (the posterior mean of w_t in place of a draw), then J,
+    h, H after the step (None unless scored)."""
     start = (u[0] != u[0]).astype(jnp.int32)
     nxs, nz, ns, srow = s.nxs, s.nz, s.ns, s.srow
     nk = s.nk
@@ -860,7 +911,9 @@ def _kalman_means_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, y, obs, 
     lin = _linearisation(s, mdl, x, m, u, theta, start)
     ye = [y[i] for i in range(nyu)]
     ob = [obs[i] for i in range(nyu)]
-    Pe, lee = entries(P), entries(lam_e)
+    lam_use = (barrier(_scored_scale(s, lam_e, nu_p, J, h, H, start)[0], start) if s.scored
+               else lam_e)
+    Pe, lee = entries(P), entries(lam_use)
     Qe = _q_entries(s, x.dtype)
     inv_den = 1.0 / (nu_p - s.d - 1.0)
     R_s = [[lee[i][j] * inv_den for j in range(ns)] for i in range(ns)]
@@ -881,12 +934,19 @@ def _kalman_means_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, y, obs, 
     _, _, _, _, le_new = niw_update(0.0, nu_p, jnp.zeros_like(eta_v), lam_w, lam_e, eta_v,
                                     stack(extra, like), means_known=True)
     x_new, z_new, P_new = stack(x_new, like), stack(z_new, like), stack(P_new, like)
-    ll, (x_new, z_new, P_new, le_new) = _finite_or_old(
-        ll, (x_new, z_new, P_new, le_new), (x, m, P, lam_e))
+    if s.scored:
+        Wb, Wz, Hs_t = barrier(scoring_terms(S, R_y, o, ob, srow, entries(v_ref), start), start)
+        J_new, h_new, H_new = J + stack(Wb, like), h + stack(Wz, like), H + stack(Hs_t, like)
+        ll, (x_new, z_new, P_new, le_new, J_new, h_new, H_new) = _finite_or_old(
+            ll, (x_new, z_new, P_new, le_new, J_new, h_new, H_new), (x, m, P, lam_e, J, h, H))
+    else:
+        J_new = h_new = H_new = None
+        ll, (x_new, z_new, P_new, le_new) = _finite_or_old(
+            ll, (x_new, z_new, P_new, le_new), (x, m, P, lam_e))
     mu_y = stack([lin.yb[i] for i in range(nyu)], like)
     # lam_w (the particle's sigma_w^2) is static: returned as it came
     return (ll, x_new, z_new, P_new, None, lam_w, le_new, mu_y, stack(S, like),
-            post[nk] + 0.0 * like)
+            post[nk] + 0.0 * like, J_new, h_new, H_new)
 
 
 def _mixture_moments(s: _Setup, w_now, x, z, P):
@@ -933,10 +993,16 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     n_obs = jnp.sum(obs, dtype=jnp.int32)
     gam_p, nu_p, lw_p, le_p = niw_predict(state.gamma, state.nu, state.lam_w, state.lam_e, s.lam)
     key_next, key_step = smc.split(state.key)
+    miss = {}
     if s.means_known:  # nothing drawn; sigma_w^2 is the particle's static value, not forgotten
-        ll, x, z, P, _, lam_w, lam_e, mu_y, cov_y, w_draw = _kalman_means_update(
-            s, mdl, state.x, state.z, state.P, state.lam_w, le_p, y0, obs, u, theta, nu_p)
+        ll, x, z, P, _, lam_w, lam_e, mu_y, cov_y, w_draw, J, h, H = _kalman_means_update(
+            s, mdl, state.x, state.z, state.P, state.lam_w, le_p, y0, obs, u, theta, nu_p,
+            *((s.lam * state.var_info, s.lam * state.var_stat, s.lam * state.var_sand,
+               state.var_ref) if s.scored else (None,) * 4))
         mu = state.mu
+        if s.scored:
+            J, h, H = barrier((J, h, H), (u[0] != u[0]).astype(jnp.int32))
+            miss = dict(var_info=J, var_stat=h, var_sand=H, var_ref=state.var_ref)
     else:
         zn = barrier(smc.normals(key_step, 2, n, dtype), (u[0] != u[0]).astype(jnp.int32))
         ll, x, z, P, mu, lam_w, lam_e, mu_y, cov_y, w_draw = _particle_update(
@@ -962,8 +1028,16 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     lw_now = jnp.where(under, -math.log(n), rw_lw)
 
     mean, cov = _mixture_moments(s, w_now, x, z, P)
-    params, params_cov = noise_estimates(w_now, mu, lam_w, lam_e, nu, gamma,
-                                        means_known=s.means_known)
+    lam_rep, var_cov, w_extra = lam_e, None, None
+    if s.scored:  # the scored sensor variances, and what their plug-in adds to sigma_w's
+        st0 = (u[0] != u[0]).astype(jnp.int32)
+        lam_rep, var_cov = barrier(_scored_scale(s, lam_e, nu, J, h, H, st0), st0)
+        v_used = jnp.diagonal(lam_rep, axis1=0, axis2=1).T / (nu - s.d - 1.0)
+        g = ridge_sensitivity(w_now, jnp.log(lam_w), v_used, J)
+        w_extra = 0.25 * lam_w * plug_in_variance(g, var_cov)
+    params, params_cov = noise_estimates(w_now, mu, lam_w, lam_rep, nu, gamma,
+                                        means_known=s.means_known, var_cov=var_cov,
+                                        input_var_extra=w_extra)
     nis = _mixture_nis(state.weights, mu_y, cov_y, y0, obs)
 
     # resample for the next step
@@ -984,7 +1058,7 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
         ess=jnp.where(under, 0.0, smc.ess(w_now)),
         flag_diverged=state.flag_diverged | under,
         n_reinit=state.n_reinit + under.astype(jnp.int32),
-        offset=w_draw, ancestors=anc, **jeff,
+        offset=w_draw, ancestors=anc, **jeff, **miss,
     )
     out = StepOutput(mean=mean, cov=cov, loglik=smc.step_loglik(rw), nis=nis, n_obs=n_obs,
                      params=params, params_cov=params_cov, reinit=under)
@@ -1014,6 +1088,7 @@ def marginalized_pf(
     mean_std0=None,
     input_std_range=None,
     input_std_prior: str | None = None,
+    sensor_variances: str | None = None,
 ) -> Estimator:
     """Noise-adaptive marginalized particle filter (Berntorp & Di Cairano 2018): the state, an
     unknown-mean unknown-variance input error and the biases and covariance of some sensors,
@@ -1111,6 +1186,13 @@ def marginalized_pf(
             ten times the guess, 20 runs; ``benchmarks/mpf_consistent_steering.py``). With
             Jeffreys' prior the reported ``loglik`` is each step's predictive under the prior
             at that step (the prior moves as information comes), not a marginal likelihood.
+        sensor_variances: with ``noise_means="kalman"`` only: how the sensor variances are
+            learnt. "inverse-wishart" (default, None): the mean of the inverse-Wishart
+            statistics, which a sensor seen beside other noise (ay beside the steering noise's
+            direct term) forgets its start only slowly from. "scored": Fisher scoring of the
+            innovations weighted at the ``std0`` guess, with a sandwich covariance, and
+            sigma_w's reported variance widened by their plug-in
+            (:mod:`vehjax.filters._sensor_scoring`); 4-5 times the time per step.
 
     Returns:
         ``Estimator`` (``needs_key=True``), ``nx`` = all model states, ``param_names`` =
@@ -1130,8 +1212,8 @@ def marginalized_pf(
             names, a name in both ``sensors`` and ``known_std``, a model not affine in the linear
             states, non-positive stds (negative ``linear_noise_std``), lambda outside (0, 1] or
             too small for nu0, gamma0 <= 0, nu0 <= d + 1, n_particles < 2, a bad resampling
-            scheme, ess_threshold, kalman_states, noise_means, input_std_range or
-            input_std_prior, or a ``resample`` that is not callable.
+            scheme, ess_threshold, kalman_states, noise_means, input_std_range,
+            input_std_prior or sensor_variances, or a ``resample`` that is not callable.
     """
     if noise_means not in ("niw", "kalman"):
         raise ValueError(f"noise_means: expected 'niw' or 'kalman', got {noise_means!r}")
@@ -1144,13 +1226,15 @@ def marginalized_pf(
         return _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std,
                                 linear_states, linear_noise_std, std0, mean0, forgetting,
                                 gamma0, nu0, ess_threshold, resampling, kalman_states, resample,
-                                bias_walk, mean_std0, input_std_range, input_std_prior)
+                                bias_walk, mean_std0, input_std_range, input_std_prior,
+                                sensor_variances)
     learns_std = "the paper's filter learns the input's std in its NiW statistics"
     for name, value, why in (
             ("input_std_prior", input_std_prior, learns_std),
             ("input_std_range", input_std_range, learns_std),
             ("mean_std0", mean_std0, "the paper's NiW ties the means' prior to gamma0 std0^2"),
-            ("bias_walk", bias_walk, "the paper's filter tracks drifting biases by forgetting")):
+            ("bias_walk", bias_walk, "the paper's filter tracks drifting biases by forgetting"),
+            ("sensor_variances", sensor_variances, "the paper's NiW learns them")):
         if value is not None:
             raise ValueError(f"{name}: only with noise_means='kalman' ({why})")
     s = _configure(model, n_particles, noisy_input, sensors, known_std, linear_states,
@@ -1170,7 +1254,8 @@ def marginalized_pf(
 def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear_states,
                      linear_noise_std, std0, mean0, forgetting, gamma0, nu0, ess_threshold,
                      resampling, kalman_states, resample, bias_walk=None,
-                     mean_std0=None, input_std_range=None, input_std_prior=None) -> Estimator:
+                     mean_std0=None, input_std_range=None, input_std_prior=None,
+                     sensor_variances=None) -> Estimator:
     """:func:`marginalized_pf` with ``noise_means="kalman"``: the filter on the model with the
     sensor biases as constant linear states (:func:`_mpf_means.with_noise_means`), its NiW
     pinned at mean zero (``means_known``), and an estimator over the model's own
@@ -1207,7 +1292,8 @@ def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear
     prior = np.where(np.isin(np.arange(2 + 2 * ns), mi), 0.0, s_user.theta_prior)
     s = s_user._replace(means_known=True, Qz=Qz, theta_prior=prior,
                         w_range=_std_range(input_std_range),
-                        jeffreys=_input_std_prior(input_std_prior, input_std_range))
+                        jeffreys=_input_std_prior(input_std_prior, input_std_range),
+                        scored=_sensor_variances(sensor_variances))
     mdl = _model_fns(aug, s)
 
     def init(x0, P0, theta0=None, P_theta0=None, key=None):
