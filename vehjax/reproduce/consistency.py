@@ -390,7 +390,9 @@ _WHY = {
              "from the light prior's early fluctuations it settles 6 % low in variance for "
              "good; started at twice the truth it is still +45 % after 300 steps with no "
              "interval holding the truth, and the NEES is in the band on 0.83 of the steps "
-             "(steering std known). MPF-K (scored) is the remedy. The offset and the "
+             "(steering std known; python benchmarks/mpf_k_sensor_variances.py statistic "
+             "100 300 [8], guess 2 300 inverse-wishart). MPF-K (scored) is the remedy. The "
+             "offset and the "
              "biases are Kalman states, the steering std a fixed grid under Jeffreys' prior "
              "(the weights its posterior), the sensor covariances from expected "
              "inverse-Wishart statistics; see the module docstring of "
@@ -402,7 +404,7 @@ _WHY = {
                       "std about 20 % of the truth: what filtered statistics can tell; the "
                       "exact likelihood's is about 11 %). At seed 2 the r std's coverage is "
                       "0.86 (+1.9 %, spread 1.22; python benchmarks/mpf_k_param_bias.py 2 1000 "
-                      "jeffreys 1 scored). 4-5 times MPF-K's time per step.",
+                      "jeffreys 1 scored). About 4 times MPF-K's time per step.",
     "MPF-G (biases known)": "the learnt sensor covariances: the ay sensor's std ends low on "
                             "average and its spread over runs exceeds its reported std (see "
                             "the parameter table), so the filter leans on ay and vy, r are "
