@@ -523,21 +523,6 @@ def _spd(rng, n):
     return M @ M.T + 0.5 * np.eye(n)
 
 
-def test_inverse_entries_against_numpy():
-    """Gauss-Jordan without pivoting on a positive definite matrix scaled on both sides by
-    positive diagonals (the scored variances' J and W): numpy's inverse, entry by entry over
-    a batch of two."""
-    from vehjax.filters._entrywise import inverse_entries
-
-    rng = np.random.default_rng(5)
-    A = np.stack([np.diag([1.0, 30.0, 0.2]) @ _spd(rng, 3) @ np.diag([2.0, 1e-3, 5.0])
-                  for _ in range(2)], axis=-1)
-    got = inverse_entries([[jnp.asarray(A[i, j]) for j in range(3)] for i in range(3)])
-    got = np.array([[np.asarray(e) for e in row] for row in got])
-    for n in range(2):
-        np.testing.assert_allclose(got[..., n], np.linalg.inv(A[..., n]), rtol=1e-9)
-
-
 def test_innovation_score_against_numpy_with_a_sensor_missing():
     """s_i = 0.5 ((G nu)_i^2 - G_ii), W_ij = 0.5 G_ij^2 with G the inverse of the observed block
     of S (numpy), on the learnt rows; a missing sensor's row and column zero."""

@@ -22,8 +22,8 @@ from ._linalg import chol_entries
 
 __all__ = [
     "is_zero", "is_const", "add", "sub", "mul", "div", "dot", "transpose", "matvec", "matmul",
-    "wsum", "sym_entries", "backward_entries", "chol_sym", "chol_masked", "inverse_entries",
-    "entries", "stack", "barrier",
+    "wsum", "sym_entries", "backward_entries", "chol_sym", "chol_masked", "entries", "stack",
+    "barrier",
 ]
 
 
@@ -159,22 +159,6 @@ def chol_masked(S, obs):
         eye = 1.0 if i == j else 0.0
         return jnp.where(obs[i] & obs[j], S[i][j] if i == j else 0.5 * add(S[i][j], S[j][i]), eye)
     return chol_entries(a, len(S))
-
-
-def inverse_entries(A):
-    """A^-1 of a small square matrix (nested lists) by Gauss-Jordan elimination without
-    pivoting: for matrices whose leading minors are well away from zero (positive definite
-    ones, or such ones scaled on either side by positive diagonals); NaN or inf otherwise."""
-    n = len(A)
-    M = [list(row) + [1.0 if i == j else 0.0 for j in range(n)] for i, row in enumerate(A)]
-    for k in range(n):
-        piv = M[k][k]
-        M[k] = [div(a, piv) for a in M[k]]
-        for i in range(n):
-            if i != k and not is_zero(M[i][k]):
-                f = M[i][k]
-                M[i] = [sub(a, mul(f, b)) for a, b in zip(M[i], M[k])]
-    return [row[n:] for row in M]
 
 
 def entries(a):

@@ -11,7 +11,9 @@ S_x + R' the predictive covariance of y_t, nu_t its innovation, G = S'^-1 and a 
     T_t(R') = R' a a^T R' + R' - R' G R'.
 
 At the true R its mean is R (the tower property; on the consistency study's data, R' held at
-the truth: 0.999 of ay's variance over 100 runs x 300 steps). But its slope in R'_jj is
+the truth: 0.999 of ay's variance over 100 runs x 300 steps). The numbers of this docstring
+come from ``python benchmarks/mpf_k_sensor_variances.py`` (``statistic``, ``guess``,
+``profile``, ``toy``) and ``benchmarks/mpf_k_param_bias.py``. But its slope in R'_jj is
 delta_ij - F_ij, F_ij = ((R' G)_ij)^2, the fraction of the complete-data information that y_t
 carries: 1 for a sensor that the step sees alone, small for one seen beside other noise. The
 average of T_t (the inverse-Wishart mean) is then a stochastic approximation of gain 1 / n and
@@ -22,7 +24,7 @@ holding the truth in no run; started at the truth, the light prior's early fluct
 -3 % for good. Taking each T_t to first order in the estimate (a Newton, missing-information
 correction, Louis 1982) removes the slope but weighs step t by F_t, which grows with the
 estimate r_t of that time: runs whose estimate fell early weigh the later, correcting steps
-less, and the ay std ended -12 % from the truth.
+less (in the toy below it ends 7.6 % low in variance).
 
 The estimate. Write the step's information about the sensor variances v = diag R in
 innovations form (Gaussian predictive, S_x held fixed): the score s_t = 0.5 (a o a - diag G)
@@ -40,8 +42,8 @@ its covariance the sandwich J^-1 (J_0 + sum_t W_bar_t W_t^-1 W_bar_t) J^-1 (Var 
 all sums forgotten like the statistics. For a sensor the step sees alone (S_x = 0) z_t is e_t^2
 and W_bar_t the same at every step: v is the inverse-Wishart mean. A missing sensor has no row in
 G: it adds nothing. In a toy of y_t = x_t + e_t with x_t independent N(0, 3 R) (ay's case), 300
-steps, 20,000 runs: started at the truth, this estimate ends at 1.002 R, the first-order
-corrected average at 0.925 R, Fisher scoring weighted at the current estimate at 1.030 R.
+steps, 20,000 runs: started at the truth, this estimate ends at 0.997 R, the first-order
+corrected average at 0.924 R, Fisher scoring weighted at the current estimate at 1.027 R.
 
 What it does not use. s_t and W_t hold S_x fixed: they leave out what later measurements say
 about e_t through the dynamics (the steering noise moves vy and r, which the sensors see over
@@ -82,21 +84,32 @@ these data, also with ay's noise known (+0.8 %), where, held at the truth, the p
 observations average 0.995 of r's variance: a plugged-in variance that moves makes the filter
 suboptimal, and its pseudo-observations lean away from it by the second order. Started at
 twice the truth (steering std known, seed 0): ay +4.8 % (the default: +45 %), coverage 0.98
-(0.00), the NEES in the band on 0.93 of the steps (0.83). Cost: 4-5 times the default's time
-per step on paper 004's simulation (0.16 against 0.033 ms per run-step, 20 runs, 25 grid
-points; the paper's filter at N = 100 about 0.08): the time target of issue #33 is not met
-with it.
+(0.00), the NEES in the band on 0.93 of the steps (0.83). Cost: about 4 times the default's
+time per step on paper 004's simulation (``python benchmarks/mpf_consistent_steering.py time
+20 30``: 0.110-0.127 against 0.029-0.038 ms per run-step, 25 grid points; the paper's filter
+at N = 100 0.054-0.071, so 1.8-2.2 times it): the time target of issue #33 is not met with
+it.
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._entrywise import backward_entries, barrier, chol_masked, inverse_entries
+from ._entrywise import backward_entries, barrier, chol_masked, chol_sym
 from ._linalg import forward_entries
 
 __all__ = ["innovation_score", "scoring_terms", "prior_terms", "scored_variances",
            "ridge_sensitivity", "plug_in_variance"]
+
+
+def _spd_inverse(A):
+    """A^-1 (nested entries) of a small symmetric positive definite matrix, column by column
+    from its Cholesky factor; NaN where it is not positive definite."""
+    n = len(A)
+    L = chol_sym(A)
+    cols = [backward_entries(L, forward_entries(L, [1.0 if k == j else 0.0 for k in range(n)]))
+            for j in range(n)]
+    return [[cols[j][i] for j in range(n)] for i in range(n)]
 
 
 def _inverse_rows(L, rows, ny):
@@ -151,8 +164,8 @@ def scoring_terms(S, R_y, nu, obs, rows, v_ref, start=None):
           for i in range(ny)]
     _, Wb = innovation_score(Sb, [0.0] * ny, obs, rows, start)
     ob = [obs[i] for i in rows]
-    Winv = barrier(inverse_entries([[W[p][q] + (jnp.where(ob[p], 0.0, 1.0) if p == q else 0.0)
-                                     for q in range(ns)] for p in range(ns)]), start)
+    Winv = barrier(_spd_inverse([[W[p][q] + (jnp.where(ob[p], 0.0, 1.0) if p == q else 0.0)
+                                  for q in range(ns)] for p in range(ns)]), start)
     A = [[sum(Wb[p][k] * Winv[k][q] for k in range(ns)) for q in range(ns)] for p in range(ns)]
     r = [R_y[i][i] for i in rows]
     Wz = [sum(Wb[p][q] * r[q] + A[p][q] * s[q] for q in range(ns)) for p in range(ns)]
@@ -173,7 +186,7 @@ def scored_variances(J, h, H, start=None):
     """v = J^-1 h and its covariance J^-1 H J^-1; arrays (ns, ns, ...), (ns, ...), (ns, ns,
     ...). Where v is not positive or not finite, NaN (the caller falls back)."""
     ns = h.shape[0]
-    Jinv = barrier(inverse_entries([[J[i, j] for j in range(ns)] for i in range(ns)]), start)
+    Jinv = barrier(_spd_inverse([[J[i, j] for j in range(ns)] for i in range(ns)]), start)
     v = jnp.stack([sum(Jinv[i][j] * h[j] for j in range(ns)) for i in range(ns)])
     JH = [[sum(Jinv[i][k] * H[k, j] for k in range(ns)) for j in range(ns)] for i in range(ns)]
     C = jnp.stack([jnp.stack([sum(JH[i][k] * Jinv[j][k] for k in range(ns)) for j in range(ns)])

@@ -169,7 +169,7 @@ batch posterior (tests/test_marginalized.py checks it).
   its start as n^-F, F the fraction of a complete observation's information a step carries
   about a variance: about 0.04 for ay on the consistency study's data, where the steering
   noise reaches ay directly beside ay's own (started at twice the truth the ay std stayed
-  +45 % over 300 steps). ``sensor_variances="scored"`` (not the default: 4-5 times the time
+  +45 % over 300 steps). ``sensor_variances="scored"`` (not the default: about 4 times the time
   per step) takes the variances by Fisher scoring of the innovations weighted at the guess
   (:mod:`vehjax.filters._sensor_scoring`), with their sandwich covariance, in the Kalman
   step and the report, and adds to sigma_w's reported variance what their plug-in adds
@@ -290,10 +290,11 @@ class MPFState(NamedTuple):
         base_log_weights: with ``input_std_prior="jeffreys"`` (N,), the normalised log
             weights under equal prior weights (the likelihood alone); ``log_weights`` are them
             times Jeffreys' prior sqrt(info). Else None.
-        var_info, var_stat, var_sand, var_ref: with ``noise_means="kalman"``, the sensor
-            variances' scoring sums (:mod:`vehjax.filters._sensor_scoring`): J (n_s, n_s, N),
-            h (n_s, N), the sandwich's middle (n_s, n_s, N) and the prior guess v_0 (n_s, N);
-            else None.
+        var_info, var_stat, var_sand, var_ref, var_est: with ``sensor_variances="scored"``,
+            the sensor variances' scoring sums (:mod:`vehjax.filters._sensor_scoring`): J
+            (n_s, n_s, N), h (n_s, N), the sandwich's middle (n_s, n_s, N), the prior guess v_0
+            (n_s, N) and the scored variances J^-1 h (n_s, N; NaN where not positive); else
+            None.
     """
 
     x: jnp.ndarray
@@ -318,6 +319,7 @@ class MPFState(NamedTuple):
     var_stat: Any = None
     var_sand: Any = None
     var_ref: Any = None
+    var_est: Any = None
 
 
 class RBTransition(NamedTuple):
@@ -728,7 +730,7 @@ def _init(s: _Setup, x0, P0, theta0=None, P_theta0=None, key=None) -> MPFState:
     if s.scored:  # the sensor variances' scoring sums: the prior alone
         v_ref = jnp.broadcast_to((sd0[1:] ** 2)[:, None], (ns, n))
         J0, h0 = prior_terms(v_ref, scale)
-        jeff.update(var_info=J0, var_stat=h0, var_sand=J0, var_ref=v_ref)
+        jeff.update(var_info=J0, var_stat=h0, var_sand=J0, var_ref=v_ref, var_est=v_ref)
     return MPFState(
         x=xs,
         z=zs,
@@ -881,27 +883,26 @@ def _particle_update(s: _Setup, mdl: _Model, x, m, P, mu, lam_w, lam_e, z1, z2, 
     return (ll, *kept, stack(mu_y, like), cov_y, w)
 
 
-def _scored_scale(s: _Setup, lam_e, nu, J, h, H, start):
-    """The sensor covariance's scale with its variances scored
+def _scored_scale(s: _Setup, lam_e, nu, v):
+    """The sensor covariance's scale with the scored variances ``v`` (n_s, N)
     (:mod:`vehjax.filters._sensor_scoring`): Lambda_e with its diagonal (nu - d - 1) v and the
-    covariances at Lambda_e's correlations, and the covariance of v (n_s, n_s, N); where the
-    scored v is not positive, the inverse-Wishart's own (its covariance then NaN: the caller
-    uses the inverse-Wishart's)."""
+    covariances at Lambda_e's correlations; where v is NaN (not positive), Lambda_e's own.
+    Also returns the variances it gives, (n_s, N)."""
     den = nu - s.d - 1.0
     lam_diag = jnp.diagonal(lam_e, axis1=0, axis2=1).T  # (ns, N)
-    v, C = scored_variances(J, h, H, start)
     c = jnp.where(jnp.isnan(v), 1.0, jnp.sqrt(den * v / lam_diag))
-    return lam_e * c[:, None, :] * c[None, :, :], C
+    return lam_e * c[:, None, :] * c[None, :, :], jnp.where(jnp.isnan(v), lam_diag / den, v)
 
 
 def _kalman_means_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, y, obs, u, theta,
-                         nu_p, J, h, H, v_ref):
+                         nu_p, J, h, H, v_ref, v_est):
     """One step of every particle with ``noise_means="kalman"`` (module docstring): the Kalman
     step with the noisy input's error as process noise at the particle's own sigma_w^2
     (``lam_w``, static) and its sensor covariance (the inverse-Wishart statistics' mean; with
-    ``sensor_variances="scored"`` its variances scored from ``J``, ``h``, ``H`` and the prior
-    guess ``v_ref``), the Gaussian predictive of y_t as the weight, the sensor statistics
-    updated with the expected data (and the innovations' scoring terms). Returns what
+    ``sensor_variances="scored"`` its variances the last step's scored ``v_est``, the scoring
+    sums ``J``, ``h``, ``H`` updated with the prior guess ``v_ref``), the Gaussian predictive
+    of y_t as the weight, the sensor statistics updated with the expected data (and the
+    innovations' scoring terms). Returns what
     :func:`_particle_update` returns (the posterior mean of w_t in place of a draw), then J,
     h, H after the step (None unless scored)."""
     start = (u[0] != u[0]).astype(jnp.int32)
@@ -911,8 +912,9 @@ def _kalman_means_update(s: _Setup, mdl: _Model, x, m, P, lam_w, lam_e, y, obs, 
     lin = _linearisation(s, mdl, x, m, u, theta, start)
     ye = [y[i] for i in range(nyu)]
     ob = [obs[i] for i in range(nyu)]
-    lam_use = (barrier(_scored_scale(s, lam_e, nu_p, J, h, H, start)[0], start) if s.scored
-               else lam_e)
+    lam_use = lam_e
+    if s.scored:
+        lam_use = barrier(_scored_scale(s, lam_e, nu_p, v_est)[0], start)
     Pe, lee = entries(P), entries(lam_use)
     Qe = _q_entries(s, x.dtype)
     inv_den = 1.0 / (nu_p - s.d - 1.0)
@@ -993,16 +995,18 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     n_obs = jnp.sum(obs, dtype=jnp.int32)
     gam_p, nu_p, lw_p, le_p = niw_predict(state.gamma, state.nu, state.lam_w, state.lam_e, s.lam)
     key_next, key_step = smc.split(state.key)
-    miss = {}
+    miss, var_cov = {}, None
     if s.means_known:  # nothing drawn; sigma_w^2 is the particle's static value, not forgotten
         ll, x, z, P, _, lam_w, lam_e, mu_y, cov_y, w_draw, J, h, H = _kalman_means_update(
             s, mdl, state.x, state.z, state.P, state.lam_w, le_p, y0, obs, u, theta, nu_p,
             *((s.lam * state.var_info, s.lam * state.var_stat, s.lam * state.var_sand,
-               state.var_ref) if s.scored else (None,) * 4))
+               state.var_ref, state.var_est) if s.scored else (None,) * 5))
         mu = state.mu
-        if s.scored:
-            J, h, H = barrier((J, h, H), (u[0] != u[0]).astype(jnp.int32))
-            miss = dict(var_info=J, var_stat=h, var_sand=H, var_ref=state.var_ref)
+        if s.scored:  # the scored variances (J^-1 h does not see the forgetting)
+            st0 = (u[0] != u[0]).astype(jnp.int32)
+            v_est, var_cov = scored_variances(J, h, H, st0)
+            J, h, H, v_est, var_cov = barrier((J, h, H, v_est, var_cov), st0)
+            miss = dict(var_info=J, var_stat=h, var_sand=H, var_ref=state.var_ref, var_est=v_est)
     else:
         zn = barrier(smc.normals(key_step, 2, n, dtype), (u[0] != u[0]).astype(jnp.int32))
         ll, x, z, P, mu, lam_w, lam_e, mu_y, cov_y, w_draw = _particle_update(
@@ -1028,11 +1032,9 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     lw_now = jnp.where(under, -math.log(n), rw_lw)
 
     mean, cov = _mixture_moments(s, w_now, x, z, P)
-    lam_rep, var_cov, w_extra = lam_e, None, None
+    lam_rep, w_extra = lam_e, None
     if s.scored:  # the scored sensor variances, and what their plug-in adds to sigma_w's
-        st0 = (u[0] != u[0]).astype(jnp.int32)
-        lam_rep, var_cov = barrier(_scored_scale(s, lam_e, nu, J, h, H, st0), st0)
-        v_used = jnp.diagonal(lam_rep, axis1=0, axis2=1).T / (nu - s.d - 1.0)
+        lam_rep, v_used = _scored_scale(s, lam_e, nu, v_est)
         g = ridge_sensitivity(w_now, jnp.log(lam_w), v_used, J)
         w_extra = 0.25 * lam_w * plug_in_variance(g, var_cov)
     params, params_cov = noise_estimates(w_now, mu, lam_w, lam_rep, nu, gamma,
@@ -1192,7 +1194,7 @@ def marginalized_pf(
             direct term) forgets its start only slowly from. "scored": Fisher scoring of the
             innovations weighted at the ``std0`` guess, with a sandwich covariance, and
             sigma_w's reported variance widened by their plug-in
-            (:mod:`vehjax.filters._sensor_scoring`); 4-5 times the time per step.
+            (:mod:`vehjax.filters._sensor_scoring`); about 4 times the time per step.
 
     Returns:
         ``Estimator`` (``needs_key=True``), ``nx`` = all model states, ``param_names`` =
