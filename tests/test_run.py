@@ -259,6 +259,21 @@ def test_runs_in_blocks_equal_runs_side_by_side():
     _assert_close(run(EST, ys, us, x0=X0, P0=P0, return_covariances=True, strategy=tiny), kf)
 
 
+def test_blocks_are_balanced():
+    """Runs go in as few blocks as the block size allows, as even as they can be: 20 runs at
+    a block of 19 are two blocks of 10 (not 19 and 1 padded to 19: 38 runs computed)."""
+    balanced = sys.modules["vehjax.run"].balanced_blocks
+    assert balanced(20, 19) == (2, 10)
+    assert balanced(10, 4) == (3, 4)
+    assert balanced(100, 4) == (25, 4)
+    assert balanced(7, 7) == (1, 7)
+    for runs in range(1, 40):
+        for block in range(1, 12):
+            n, size = balanced(runs, block)
+            assert size <= block and n == -(-runs // block)  # as few blocks as allowed
+            assert 0 <= n * size - runs < n  # padded by less than one run a block
+
+
 def test_compile_run_times_compilation_apart():
     ys, us = _data(R=7, seed=4)
     kw = dict(x0=X0, P0=P0, return_covariances=True, chunk_size=3, progress=False)

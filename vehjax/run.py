@@ -205,15 +205,24 @@ def _vmapped_study(estimator, return_cov, per_run, block, *args):
     return _blocked(side_by_side, per_run, block, args)
 
 
+def balanced_blocks(runs: int, block: int) -> tuple[int, int]:
+    """(number of blocks, runs per block) for ``runs`` runs in blocks of at most ``block``:
+    as few blocks as that allows, as even as they can be."""
+    n_blocks = -(-runs // block)
+    return n_blocks, -(-runs // n_blocks)
+
+
 def _blocked(side_by_side, per_run, block, args):
     """``side_by_side(*args)`` (vmapped over the runs, the leading axis of the per-run
-    arguments) in blocks of ``block`` runs, one block after the other (``lax.map``); all at
-    once when ``block`` is None or covers the chunk."""
+    arguments) in blocks of at most ``block`` runs, one block after the other (``lax.map``);
+    all at once when ``block`` is None or covers the chunk. The blocks are balanced (as the
+    chunks are): 20 runs at a block of 19 go as two blocks of 10, not 19 and 1 padded to 19,
+    which computed 38 runs for 20."""
     C = args[0].shape[0]
     if block is None or block >= C:
         return side_by_side(*args)
-    n_blocks = -(-C // block)
-    pad = n_blocks * block - C  # the last block is filled with copies of the last run
+    n_blocks, block = balanced_blocks(C, block)
+    pad = n_blocks * block - C  # < n_blocks: the last block is filled with copies of the last run
 
     def blocked(a):
         a = jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]) if pad else a
