@@ -626,8 +626,9 @@ def test_ridge_sensitivity_and_the_plug_in_variance_against_numpy():
     assert float(got[1]) == 0.0
 
 
-@pytest.mark.slow  # one MPF compile (about a minute on 2 cores): `pytest -m slow` (README)
 def test_a_sensor_seen_beside_the_input_noise_is_learnt_from_a_wrong_guess():
+    # one MPF compile, 27 s on 2 cores: the default suite's one end-to-end run of the scored
+    # sensor variances
     """The consistency study's data (``vehjax reproduce consistency``: the steering noise
     reaches ay directly, d sigma_w about 0.35 m/s^2 beside ay's 0.2), 20 runs x 300 steps, the
     steering std known, every sensor std guessed at twice the truth: the scored sensor

@@ -84,11 +84,21 @@ these data, also with ay's noise known (+0.8 %), where, held at the truth, the p
 observations average 0.995 of r's variance: a plugged-in variance that moves makes the filter
 suboptimal, and its pseudo-observations lean away from it by the second order. Started at
 twice the truth (steering std known, seed 0): ay +4.8 % (the default: +45 %), coverage 0.98
-(0.00), the NEES in the band on 0.93 of the steps (0.83). Cost: about 4 times the default's
-time per step on paper 004's simulation (``python benchmarks/mpf_consistent_steering.py time
-20 30``: 0.110-0.127 against 0.029-0.038 ms per run-step, 25 grid points; the paper's filter
-at N = 100 0.054-0.071, so 1.8-2.2 times it): the time target of issue #33 is not met with
-it.
+(0.00), the NEES in the band on 0.93 of the steps (0.83). Cost: about 1.7 times the default's
+time per step on paper 004's simulation, the paper's filter's (``python
+benchmarks/mpf_consistent_steering.py time 20 30``: 0.070 against 0.041 ms per run-step, 25
+grid points; the paper's filter at N = 100 0.069; 0.091 against 0.060 and 0.085 in ``vehjax
+reproduce noise-learning``'s 100 runs). It was 0.110-0.127 until ``vehjax.run`` balanced its
+blocks of runs: the scored state carries 3432 numbers a run against 2757, the CPU's block of
+runs fell from 23 to 19, and 20 runs went as a block of 19 and one padded to 19.
+
+Why it is not the default. On paper 004's simulation (sensors seen nearly alone, guesses twice
+the truth) each grid point's scored variances fit its own sigma_w: early on, the points above
+the true sigma_w explain the ay residuals by the steering noise and score ay's variance down
+(ay std 0.92 of the truth at 0.5 s, against 1.15 with the inverse-Wishart mean, 50 runs), so
+they keep their weight longer (sigma_w 4.4 times the truth at 0.5 s against 2.9, 1.95 against
+1.61 at 5 s) and the states' covariance is wider for longer: NEES of (vy, r) in the band on
+0.84 of the steps against 0.86 (100 runs x 180 s, ``vehjax reproduce noise-learning``).
 """
 
 from __future__ import annotations

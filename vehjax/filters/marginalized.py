@@ -169,12 +169,13 @@ batch posterior (tests/test_marginalized.py checks it).
   its start as n^-F, F the fraction of a complete observation's information a step carries
   about a variance: about 0.04 for ay on the consistency study's data, where the steering
   noise reaches ay directly beside ay's own (started at twice the truth the ay std stayed
-  +45 % over 300 steps). ``sensor_variances="scored"`` (not the default: about 4 times the time
-  per step) takes the variances by Fisher scoring of the innovations weighted at the guess
-  (:mod:`vehjax.filters._sensor_scoring`), with their sandwich covariance, in the Kalman
-  step and the report, and adds to sigma_w's reported variance what their plug-in adds
-  (Murphy & Topel's two-step correction, the cross information from the ridge the grid
-  points' variances lie on). Why a grid: the data tell sigma_w apart mostly through the
+  +45 % over 300 steps). ``sensor_variances="scored"`` (an option, not the default: 1.5-1.7
+  times the time per step, about the paper's filter's; see ``vehjax reproduce noise-learning``
+  for why not the default) takes the variances by Fisher scoring of the innovations weighted at
+  the guess (:mod:`vehjax.filters._sensor_scoring`), with their sandwich covariance, in the
+  Kalman step and the report, and adds to sigma_w's reported variance what their plug-in adds
+  (Murphy & Topel's two-step correction, the cross information from the ridge the grid points'
+  variances lie on). Why a grid: the data tell sigma_w apart mostly through the
   dynamics (the steering noise moves vy and r, which the sensors see over the following
   steps), which only the predictive likelihood carries; the expected statistic of w_t given
   y_1:t sees only the direct term d w_t in ay, beside ay's own noise, and learns nothing that
@@ -1194,7 +1195,7 @@ def marginalized_pf(
             direct term) forgets its start only slowly from. "scored": Fisher scoring of the
             innovations weighted at the ``std0`` guess, with a sandwich covariance, and
             sigma_w's reported variance widened by their plug-in
-            (:mod:`vehjax.filters._sensor_scoring`); about 4 times the time per step.
+            (:mod:`vehjax.filters._sensor_scoring`); 1.5-1.7 times the time per step.
 
     Returns:
         ``Estimator`` (``needs_key=True``), ``nx`` = all model states, ``param_names`` =

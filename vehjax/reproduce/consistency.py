@@ -404,7 +404,9 @@ _WHY = {
                       "std about 20 % of the truth: what filtered statistics can tell; the "
                       "exact likelihood's is about 11 %). At seed 2 the r std's coverage is "
                       "0.86 (+1.9 %, spread 1.22; python benchmarks/mpf_k_param_bias.py 2 1000 "
-                      "jeffreys 1 scored). About 4 times MPF-K's time per step.",
+                      "jeffreys 1 scored). About 1.7 times MPF-K's time per step, the "
+                      "paper's MPF's (python benchmarks/mpf_consistent_steering.py time 20 "
+                      "30: 0.070 against 0.041 and 0.069 ms per run-step).",
     "MPF-G (biases known)": "the learnt sensor covariances: the ay sensor's std ends low on "
                             "average and its spread over runs exceeds its reported std (see "
                             "the parameter table), so the filter leans on ay and vy, r are "
