@@ -82,11 +82,11 @@ The r std's is 0.86 at seed 2 (+1.9 %, spread 1.22 times its reported std; the d
 spread there is 1.25). Most of that is the seed's draws: the oracle, the sample std of each
 run's true r noise (states and bias known), has spread 1.18 times its theoretical std there,
 +0.6 %, coverage 0.92 (0.94-1.01 and 0.97-0.98 at seeds 0, 1, 3; the script's last lines).
-The rest is a bias: the scored r and roll-rate stds end 1.1-1.4 % above the oracle's at
-seeds 0-3 (the inverse-Wishart mean's r std 0.3 % below, seed 0). It stays with the steering
-std known (seed 0: +1.1 %), with the cross-sensor terms of W dropped (+1.2 %) and with
-constant weights in place of W_bar (+1.1 %): so neither the grid, nor the coupling to ay,
-nor weights that follow the plug-in. Held at the truth the pseudo-observations average 0.995
+The rest is a bias: the scored r std ends 1.2-1.4 % above the oracle's at seeds 0-3 (the
+roll rate's 1.1 % at seed 2; the inverse-Wishart mean's r std 0.3 % below, seed 0). At seed 0
+(oracle -0.2 %) it stays +1.1 % with the steering std known, +1.2 % with the cross-sensor
+terms of W dropped and +1.1 % with constant weights in place of W_bar: so neither the grid,
+nor the coupling to ay, nor weights that follow the plug-in. Held at the truth the pseudo-observations average 0.995
 of r's variance; a plugged-in variance that moves makes the filter suboptimal, whose actual
 error variance exceeds its reported one by the second order in the plug-in's error, and z
 sees that excess as sensor noise (the inverse-Wishart mean moves less, so its plug-in errs
