@@ -73,15 +73,16 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   (N = 100), 0.29 against 0.63 ms on the drive (N = 500); idle, the two alone (``vehjax
   reproduce noise-learning --methods "MPF (paper),MPF (consistent)" --runs 20 --duration 180
   --no-drive``): 0.049 against 0.092; idle, the three MPF rows alone, 100 runs (``--methods "MPF
-  (paper),MPF (consistent),MPF (scored)"``, 10:46 with the drive): 0.060 against 0.085, on the
-  drive 0.21 against 0.56. The NEES share is close to what the exact posterior gives under this
-  prior: with every other noise known (the filter is then the exact mixture of Kalman filters
-  over the grid), it is in the band on 0.875 of the steps (25 points; 0.876 with 97; ``learn 100
-  180 25 jeffreys 1 known``), against 0.948 for the Kalman filter at the true steering std
-  (``exact 100 180``); with the steering std's guess at the truth (``--steer-factor 1``) the
-  rows give the same 0.86 (MPF (scored): 0.84), so it is not the guess twice the truth but the
-  prior's decade either side that the first 20 s pay for. On the drive it gives the yaw rate
-  closest to the pose's (0.106 deg/s, 0.68x the raw gyro's error; the paper's filter 0.121).
+  (paper),MPF (consistent),MPF (scored)"``, 9:20 with the drive): 0.050 against 0.070, on the
+  drive 0.30 against 0.42 (an earlier run of it: 0.060 / 0.085 and 0.21 / 0.56). The NEES share
+  is close to what the exact posterior gives under this prior: with every other noise known (the
+  filter is then the exact mixture of Kalman filters over the grid), it is in the band on 0.875
+  of the steps (25 points; 0.876 with 97; ``learn 100 180 25 jeffreys 1 known``), against 0.948
+  for the Kalman filter at the true steering std (``exact 100 180``); with the steering std's
+  guess at the truth (``--steer-factor 1``) the rows give the same 0.86 (MPF (scored): 0.85), so
+  it is not the guess twice the truth but the prior's decade either side that the first 20 s pay
+  for. On the drive its yaw rate is 0.106 deg/s from the pose's (0.68x the raw gyro's error;
+  the paper's filter 0.121, MPF (scored) 0.103).
   These numbers: ``python benchmarks/mpf_consistent_steering.py`` (its docstring has the
   commands). First built as Storvik's filter (covariances drawn per particle from
   expected statistics of w_t): the steering std ended at 3.8 times the truth, because the
@@ -91,16 +92,18 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   state stays several stds off for long and the filter is over-confident, hence
   ``mean_std0``.
 * **MPF (scored)**: MPF (consistent) with ``sensor_variances="scored"`` (the sensor variances
-  by Fisher scoring of the innovations weighted at the guess, with a sandwich covariance:
-  :mod:`vehjax.filters._sensor_scoring`), which is what brings the ay std's coverage on the
-  consistency study's data to 0.96-1.00 (the inverse-Wishart mean's: 0.84-0.89). Here, where
-  the sensors are seen nearly alone, it learns the same (stds within 0.2 %, the steering std
-  +0.9 % over the last third, coverage 0.91-0.96), but its NEES of (vy, r) is in the band on
-  0.84 of the steps against MPF (consistent)'s 0.86: early on, each grid point's variances
-  fit its own steering std, so the points above the truth keep their weight longer
-  (``python benchmarks/mpf_consistent_steering.py early 50``). Time in that report (100 runs
-  x 180 s, idle): 0.091 against MPF (consistent)'s 0.060 and the paper's filter's 0.085 ms
-  per run-step; on the drive 0.19 against 0.21 and 0.56, with the same yaw rate (0.106 deg/s).
+  by Fisher scoring of the innovations weighted at the guess, with a sandwich covariance, the
+  sensors' noises uncorrelated: :mod:`vehjax.filters._sensor_scoring`), which is what brings
+  the ay std's coverage on the consistency study's data to 0.97-1.00 (the inverse-Wishart
+  mean's: 0.84-0.89). Here, where the sensors are seen nearly alone, it learns the same
+  (stds within 0.3 %, the steering std +0.3 % over the last third, coverage 0.91-0.96), but
+  its NEES of (vy, r) is in the band on 0.85 of the steps against MPF (consistent)'s 0.86:
+  early on, each grid point's variances fit its own steering std, so the points above the
+  truth keep their weight longer (``python benchmarks/mpf_consistent_steering.py early
+  50``). Time in that report (100 runs x 180 s, idle, the three MPF rows alone): 0.084
+  against MPF (consistent)'s 0.050 and the paper's filter's 0.070 ms per run-step; on the
+  drive 0.21 against 0.30 and 0.42, where it gives the yaw rate closest to the pose's (0.103
+  deg/s, 0.66x the raw gyro's error; MPF (consistent) 0.106).
 * **augmented EKF** (Remark 1, berntorp2018's ``augmented_model``): (vy, r, offset, ay bias,
   gyro bias) on (ay, r, r_virt), fixed Q and R (the MPF's initial guesses); no bank states and
   no roll gyro, as the remark's common approach.
