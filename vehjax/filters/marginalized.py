@@ -1197,9 +1197,10 @@ def marginalized_pf(
             learnt. "inverse-wishart" (default, None): the mean of the inverse-Wishart
             statistics, which a sensor seen beside other noise (ay beside the steering noise's
             direct term) forgets its start only slowly from. "scored": Fisher scoring of the
-            innovations weighted at the ``std0`` guess, with a sandwich covariance, and
-            sigma_w's reported variance widened by their plug-in
-            (:mod:`vehjax.filters._sensor_scoring`); 1.5-1.7 times the time per step.
+            innovations weighted at the ``std0`` guess, with a sandwich covariance, the
+            sensors' noises taken as uncorrelated, and sigma_w's reported variance widened
+            by their plug-in (:mod:`vehjax.filters._sensor_scoring`); 1.5-1.7 times the time
+            per step.
 
     Returns:
         ``Estimator`` (``needs_key=True``), ``nx`` = all model states, ``param_names`` =
