@@ -295,8 +295,9 @@ def _user_linear_bank(vx):
 
 
 @pytest.mark.slow  # one MPF compile each (about a minute on 2 cores): `pytest -m slow` (README)
-@pytest.mark.parametrize("prior", ["log-uniform", "jeffreys"])
-def test_input_std_grid_is_the_exact_posterior_of_the_steering_std(prior):
+@pytest.mark.parametrize("prior, variances", [("log-uniform", None), ("jeffreys", None),
+                                               ("log-uniform", "scored")])
+def test_input_std_grid_is_the_exact_posterior_of_the_steering_std(prior, variances):
     """On the linear SingleTrackBank written as a user would (:func:`_user_linear_bank`, white
     noise on each bank state), with the offset and the sensor covariances known (nu0 = 1e10,
     forgetting 1) and the steering std on a grid (``input_std_range``): each particle is the
@@ -307,7 +308,8 @@ def test_input_std_grid_is_the_exact_posterior_of_the_steering_std(prior):
     "jeffreys"`` times sqrt of the covariance part of the Fisher information of log sigma_w^2,
     sum_t 0.5 tr((S_t^-1 dS_t)^2), dS_t by central differences of the numpy S_t over the
     grid). The grid's differences are also checked against the derivative itself (numpy S_t at
-    sigma_w^2 (1 +- 1e-4)): the information within 10 %."""
+    sigma_w^2 (1 +- 1e-4)): the information within 10 %. With the scored sensor variances
+    (``sensor_variances="scored"``) the same, their prior as good as known."""
     T, R, N = 150, 2, 6
     offset, sig_w = math.radians(0.28), math.radians(0.3)
     bank_std = np.array([1e-5, 1e-4, 0.002])
@@ -328,7 +330,7 @@ def test_input_std_grid_is_the_exact_posterior_of_the_steering_std(prior):
                           known_std=KNOWN, linear_noise_std=bank_std, std0=STD0,
                           mean0={"delta": offset}, mean_std0={"delta": 1e-9}, forgetting=1.0,
                           nu0=1e10, noise_means="kalman", input_std_range=(lo, hi),
-                          input_std_prior=prior)
+                          input_std_prior=prior, sensor_variances=variances)
     out = vj.run(est, Y, U, x0=x0, P0=P0, key=jax.random.key(5), return_covariances=True)
     assert not out.diverged.any()
     grid = np.exp(np.linspace(math.log(lo), math.log(hi), N))
