@@ -62,6 +62,18 @@ from vehjax.reproduce import noise_learning as nl  # noqa: E402
 WINDOWS = ((0, 5), (5, 20), (20, 60), (60, 120), (120, 180))
 
 
+def _nees_vr(out, X):
+    """The NEES of (vy, r), (R, T), from a ``vehjax.run`` result with covariances."""
+    return metrics.nees(np.asarray(out.states)[..., :2],
+                        np.asarray(out.covariances)[..., :2, :2], X[..., :2])
+
+
+def _nees_cells(nees, digits):
+    """'NEES x per dof, in band y' of an (R, T) NEES of 2 dof."""
+    return (f"NEES {np.nanmean(nees) / 2:.3f} per dof, in band "
+            f"{metrics.consistency(nees, 2).inside:.{digits}f}")
+
+
 def data(runs, seconds, steer_factor=1.0, seed=0):
     """noise-learning's simulation; ``steer_factor`` scales the true steering std (the
     module constant simulate_truth reads, restored after)."""
@@ -155,8 +167,7 @@ def learn(runs, seconds, points, prior, forgetting, r_known=False, variances=Non
     j = est.param_names.index("delta_std")
     e = np.asarray(out.params[..., j]) / b18.STEER_STD
     sd = np.sqrt(np.asarray(out.params_cov[..., j, j])) / b18.STEER_STD
-    nees = metrics.nees(np.asarray(out.states)[..., :2],
-                        np.asarray(out.covariances)[..., :2, :2], X[..., :2])
+    nees = _nees_vr(out, X)
     print(f"{runs} runs x {seconds:g} s, {points} points, prior {prior}, forgetting "
           f"{forgetting:g}{', R known' if r_known else ''}"
           f"{', sensor variances ' + variances if variances else ''}; steering std / "
@@ -166,13 +177,11 @@ def learn(runs, seconds, points, prior, forgetting, r_known=False, variances=Non
             break
         sl = slice(int(a / model.dt), int(min(b, seconds) / model.dt))
         k = sl.stop - 1
-        c = metrics.consistency(nees[:, sl], 2)
         cover = np.mean(np.abs(e[:, k] - 1.0) <= 1.96 * sd[:, k])
-        print(f"  {a:3d}-{b:3d} s: NEES {np.nanmean(nees[:, sl]) / 2:.3f} per dof, in band "
-              f"{c.inside:.2f} | mean {e[:, k].mean():.3f} spread {e[:, k].std():.3f} "
-              f"reported sd {sd[:, k].mean():.3f} coverage {cover:.2f}")
-    c = metrics.consistency(nees, 2)
-    print(f"  all: NEES {np.nanmean(nees) / 2:.3f} per dof, in band {c.inside:.3f}")
+        print(f"  {a:3d}-{b:3d} s: {_nees_cells(nees[:, sl], 2)} | mean {e[:, k].mean():.3f} "
+              f"spread {e[:, k].std():.3f} reported sd {sd[:, k].mean():.3f} coverage "
+              f"{cover:.2f}")
+    print("  all: " + _nees_cells(nees, 3))
 
 
 def exact(runs, seconds):
@@ -182,15 +191,12 @@ def exact(runs, seconds):
                 std_range=(sd, sd * (1 + 1e-9)), prior="log-uniform")
     out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
                  return_covariances=True, progress=False)
-    nees = metrics.nees(np.asarray(out.states)[..., :2],
-                        np.asarray(out.covariances)[..., :2, :2], X[..., :2])
+    nees = _nees_vr(out, X)
     print(f"{runs} runs x {seconds:g} s, every noise known (the Kalman filter):")
     for a, b in WINDOWS:
         sl = slice(int(a / model.dt), int(min(b, seconds) / model.dt))
-        print(f"  {a:3d}-{b:3d} s: NEES {np.nanmean(nees[:, sl]) / 2:.3f} per dof, in band "
-              f"{metrics.consistency(nees[:, sl], 2).inside:.2f}")
-    print(f"  all: NEES {np.nanmean(nees) / 2:.3f} per dof, in band "
-          f"{metrics.consistency(nees, 2).inside:.3f}")
+        print(f"  {a:3d}-{b:3d} s: " + _nees_cells(nees[:, sl], 2))
+    print("  all: " + _nees_cells(nees, 3))
 
 
 def early(runs):
@@ -202,8 +208,7 @@ def early(runs):
         est = build(model, 25, std0, 1.0, variances=variances)
         out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
                      return_covariances=True, progress=False)
-        nees = metrics.nees(np.asarray(out.states)[..., :2],
-                            np.asarray(out.covariances)[..., :2, :2], X[..., :2])
+        nees = _nees_vr(out, X)
         print(f"  sensor variances {variances or 'inverse-wishart'}:")
         for t in (0.1, 0.5, 1, 2, 5, 10, 20, 30):
             k = int(round(t / model.dt)) - 1
