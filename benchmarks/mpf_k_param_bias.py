@@ -13,7 +13,9 @@ reported std / truth and the coverage of the 95 % interval. Then the oracle for 
 whose output does not depend on the (noisy) steering input: the sample std of its true noise
 per run (states and bias known, 300 steps), its mean relative error, spread over runs / its
 theoretical std truth / sqrt(2 x 300), and the coverage of that interval: how much of a
-filter's spread and coverage is the seed's draws.
+filter's spread and coverage is the seed's draws. Last, the scores of the sensor variances
+under numpy's exact Kalman filter with every noise known (:func:`exact_scores`): zero but for
+Monte-Carlo error where the data are the model's.
 """
 
 import sys
@@ -69,6 +71,48 @@ def main(seed, points, prior="jeffreys", steer_factor=1.0, variances="inverse-wi
         half = 1.0 / np.sqrt(2 * T)
         print(f"    {n + '_std':14s} rel. bias {rel.mean() - 1.0:+.4f}  spread/sd "
               f"{rel.std() / half:.2f}  coverage {np.mean(np.abs(rel - 1.0) <= 1.96 * half):.2f}")
+    exact_scores(model, Y, U)
+
+
+def exact_scores(model, Y, U):
+    """The scores of the sensor variances under numpy's exact Kalman filter (the linear
+    SingleTrackBank at the study's speed, every noise, the offset and the biases known), as
+    the scored filter's pseudo-observations see them: the mean over runs and steps of
+    s_i / W_ii (s = 0.5 (a_i^2 - G_ii), W_ii = 0.5 G_ii^2, a = G nu, G = S^-1) relative to
+    the true variance. Zero up to Monte-Carlo error when the filter's predictive covariance
+    S is right."""
+    th, x0, u0 = model.theta, jnp.zeros(len(model.state_names)), jnp.asarray([c._VX, 0.0])
+    A = np.asarray(jax.jacfwd(lambda x: model.transition(x, u0, th))(x0))
+    B = np.asarray(jax.jacfwd(lambda u: model.transition(x0, u, th))(u0))[:, 1]
+    H = np.asarray(jax.jacfwd(lambda x: model.observe(x, u0, th))(x0))
+    D = np.asarray(jax.jacfwd(lambda u: model.observe(x0, u, th))(u0))[:, 1]
+    f0, h0 = np.asarray(model.transition(x0, u0, th)), np.asarray(model.observe(x0, u0, th))
+    names = model.output_names
+    bias = np.array([c._BIAS.get(n, 0.0) for n in names])
+    var = np.array([c._STD.get(n, c._KNOWN.get(n, 0.0)) for n in names]) ** 2
+    Q = c._SIGMA_PHI ** 2 * np.outer(*(2 * [np.asarray(model.bank_noise_gain())]))
+    s2 = c._DELTA_STD ** 2
+    m, P = np.zeros((Y.shape[0], len(x0))), np.diag(np.full(len(x0), 1e-12))
+    total = np.zeros(len(names))
+    for t in range(Y.shape[1]):
+        d = U[t, 1] + c._OFFSET
+        m = m @ A.T + B * d + f0
+        P = A @ P @ A.T + Q + s2 * np.outer(B, B)
+        C = P @ H.T + s2 * np.outer(B, D)  # Cov(x_t, y_t): the steering error in both
+        S = H @ C + s2 * np.outer(D, B) @ H.T + s2 * np.outer(D, D) + np.diag(var)
+        S = 0.5 * (S + S.T)
+        nu = Y[:, t] - bias - (m @ H.T + D * d + h0)
+        L = np.linalg.cholesky(S)
+        G = np.linalg.solve(L.T, np.linalg.solve(L, np.eye(len(names))))
+        a = nu @ G
+        total += np.mean(0.5 * (a ** 2 - np.diag(G)), axis=0) / (0.5 * np.diag(G) ** 2)
+        K = np.linalg.solve(S, C.T).T
+        m = m + nu @ K.T
+        P = P - K @ S @ K.T
+        P = 0.5 * (P + P.T)
+    print("  exact Kalman filter (numpy, every noise known): mean s_i / W_ii / variance:")
+    print("    " + "  ".join(f"{n} {v:+.4f}" for n, v in zip(names, total / Y.shape[1] / var)
+                             if n in c._STD))
 
 
 if __name__ == "__main__":

@@ -69,8 +69,10 @@ kept the inverse-Wishart statistics' correlations beside the scored variances; t
 the same slowly forgetting statistics, the filter with them was suboptimal, and its gyro
 innovations exceeded its predictive covariance: the scored r and roll-rate stds ended 1.1-1.4 %
 above the oracle's (each run's sample std of its true noise, states and bias known; the
-script below prints it), with the plug-in held at the truth too. Numpy's exact Kalman filter
-on the same data (every noise known) gives unbiased scores (r: -0.3 % of its variance).
+script below prints it; at 5d3a251, before the change), also with the Kalman step's plug-in
+held at the truth (an experiment not kept). Numpy's exact Kalman filter on the same data,
+every noise known, gives scores that average -0.3 % of r's variance (the script's last line,
+seed 0).
 
 Measured (``python benchmarks/mpf_k_param_bias.py SEED 1000 jeffreys 1 scored``, 100 runs x
 300 steps, the consistency study's data, the guesses at the truth; seeds 0 / 1 / 2), the 95 %
