@@ -16,12 +16,13 @@
         the steering std's estimate / truth over runs (mean, spread), its reported std and
         95 % coverage at the end of each window, and the NEES of (vy, r) per dof and its share
         in the 95 % band; a last argument ``known`` gives it the true sensor covariances
-        (nu0 = 1e7: R known, only sigma_w learnt); ``scored``, the scored sensor variances
-        (``sensor_variances="scored"``)
+        (nu0 = 1e7: R known, only sigma_w learnt); ``inverse-wishart`` or ``scored``, the
+        sensor variances (``sensor_variances``; neither: the builder's default, scored since
+        session 23: the numbers in docstrings measured before then name ``inverse-wishart``)
     python benchmarks/mpf_consistent_steering.py time RUNS SECONDS
         ms per run-step of the paper's MPF (noise-learning's, N = 100) and the consistent MPF
-        (25 grid points) with the inverse-Wishart sensor variances (the default) and the
-        scored ones (``sensor_variances="scored"``), one process, through ``vehjax.run``,
+        (25 grid points) with the scored sensor variances (the default) and the
+        inverse-Wishart ones (``sensor_variances``), one process, through ``vehjax.run``,
         compiled first, then three rounds interleaved (the best of each)
     python benchmarks/mpf_consistent_steering.py exact RUNS SECONDS
         the NEES of (vy, r) of the Kalman filter with every noise known (the consistent MPF
@@ -29,7 +30,7 @@
         share in the band that the learning filters are held to
     python benchmarks/mpf_consistent_steering.py early RUNS
         the first 30 s of the consistent MPF learning everything from guesses of twice the
-        truth, with the inverse-Wishart sensor variances (the default) and the scored ones:
+        truth, with the inverse-Wishart sensor variances and the scored ones (the default):
         at 0.1-30 s the NEES of (vy, r) per dof (the run-average over the last 6 steps) and
         the mean over runs of each learnt std / truth
     python benchmarks/mpf_consistent_steering.py information RUNS SECONDS
@@ -38,9 +39,10 @@
         simulated at that std) against its covariance part (the filter's Jeffreys prior's)
 
 Examples (the docstrings' numbers): ``profile 20 180``; ``learn 100 180 25 jeffreys 1``;
-``learn 20 180 25 jeffreys 1``; ``learn 20 180 25 jeffreys:100 1``; ``learn 20 180 25 iw 1``;
-``learn 20 180 25 10 1``; ``learn 20 180 25 10 1 known``;
-``learn 10 180 100 iw 0.995``;
+``learn 100 180 25 jeffreys 1 inverse-wishart``; ``learn 20 180 25 jeffreys:100 1
+inverse-wishart``; ``learn 20 180 25 iw 1 inverse-wishart``; ``learn 20 180 25 10 1
+inverse-wishart``; ``learn 20 180 25 10 1 known``; ``learn 100 180 25 jeffreys:3 1 known``;
+``learn 10 180 100 iw 0.995 inverse-wishart``;
 ``information 8 180``; ``time 20 30``; ``early 50``; ``exact 100 180``.
 """
 
@@ -128,10 +130,10 @@ def time_per_step(runs, seconds):
     args = nl.parser().parse_args([])
     paper, _, P0 = nl.build("MPF (paper)", model, args)
     std0 = {"delta": 2.0 * b18.STEER_STD, **{s: 2.0 * b18.SENSOR_STD[s] for s in b18.SENSORS}}
-    default = build(model, 25, std0, 1.0)
+    iw = build(model, 25, std0, 1.0, variances="inverse-wishart")
     scored = build(model, 25, std0, 1.0, variances="scored")
     ests = {"MPF (paper), N = 100": (paper, P0),
-            "consistent, inverse-Wishart": (default, nl.P0_SIM),
+            "consistent, inverse-Wishart": (iw, nl.P0_SIM),
             "consistent, scored": (scored, nl.P0_SIM)}
 
     def go(est, P):
@@ -206,12 +208,12 @@ def early(runs):
     std0 = {"delta": 2 * b18.STEER_STD, **{s: 2 * b18.SENSOR_STD[s] for s in b18.SENSORS}}
     truth = {"delta_std": b18.STEER_STD, **{f"{s}_std": b18.SENSOR_STD[s] for s in b18.SENSORS}}
     print(f"{runs} runs, guesses twice the truth; mean estimate / truth:")
-    for variances in (None, "scored"):
+    for variances in ("inverse-wishart", "scored"):
         est = build(model, 25, std0, 1.0, variances=variances)
         out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
                      return_covariances=True, progress=False)
         nees = _nees_vr(out, X)
-        print(f"  sensor variances {variances or 'inverse-wishart'}:")
+        print(f"  sensor variances {variances}:")
         for t in (0.1, 0.5, 1, 2, 5, 10, 20, 30):
             k = int(round(t / model.dt)) - 1
             cells = [f"NEES {np.nanmean(nees[:, max(0, k - 5):k + 1]) / 2:.3f}"]
@@ -262,6 +264,6 @@ if __name__ == "__main__":
     elif mode == "learn":
         learn(int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4]), sys.argv[5],
               float(sys.argv[6]), "known" in sys.argv[7:],
-              "scored" if "scored" in sys.argv[7:] else None)
+              next((v for v in ("scored", "inverse-wishart") if v in sys.argv[7:]), None))
     else:
         raise SystemExit(__doc__)

@@ -4,17 +4,17 @@
     python benchmarks/mpf_k_param_bias.py SEED POINTS [PRIOR [STEER_FACTOR [VARIANCES]]]
 
 runs ``MPF-K`` (100 runs x 300 steps, POINTS grid points, PRIOR of the steering std: jeffreys
-(default), inverse-wishart, log-uniform over a tenth to ten times the truth, or known (a grid
-of the true std alone); STEER_FACTOR scales the true steering std of the data and the filter,
-default 1; VARIANCES the sensor variances, ``marginalized_pf``'s ``sensor_variances``: inverse-
-wishart (default) or scored) and prints, per learnt std at steps 100, 200 and 300: mean error /
-mean reported std, spread of the estimates over runs / mean reported std, mean relative error,
-reported std / truth and the coverage of the 95 % interval. Then the oracle for each sensor
-whose output does not depend on the (noisy) steering input: the sample std of its true noise
-per run (states and bias known, 300 steps), its mean relative error, spread over runs / its
-theoretical std truth / sqrt(2 x 300), and the coverage of that interval: how much of a
-filter's spread and coverage is the seed's draws. Last, the scores of the sensor variances
-under numpy's exact Kalman filter with every noise known (:func:`exact_scores`): zero but for
+(default), inverse-wishart, log-uniform over a tenth to ten times the truth, or known (a grid of
+the true std alone); STEER_FACTOR scales the true steering std of the data and the filter,
+default 1; VARIANCES the sensor variances, ``marginalized_pf``'s ``sensor_variances``: scored
+(default, as the builder's) or inverse-wishart) and prints, per learnt std at steps 100, 200 and
+300: mean error / mean reported std, spread of the estimates over runs / mean reported std, mean
+relative error, reported std / truth and the coverage of the 95 % interval. Then the oracle for
+each sensor whose output does not depend on the (noisy) steering input: the sample std of its
+true noise per run (states and bias known, 300 steps), its mean relative error, spread over runs
+/ its theoretical std truth / sqrt(2 x 300), and the coverage of that interval: how much of a
+filter's spread and coverage is the seed's draws. Last, the scores of the sensor variances under
+numpy's exact Kalman filter with every noise known (:func:`exact_scores`): zero but for
 Monte-Carlo error where the data are the model's.
 """
 
@@ -30,7 +30,7 @@ import vehjax as vj  # noqa: E402
 from vehjax.reproduce import consistency as c  # noqa: E402
 
 
-def main(seed, points, prior="jeffreys", steer_factor=1.0, variances="inverse-wishart"):
+def main(seed, points, prior="jeffreys", steer_factor=1.0, variances="scored"):
     c._DELTA_STD = c._DELTA_STD * float(steer_factor)  # the study's module constant
     model = vj.models.SingleTrackBank(dt=0.01)
     X, Y, U = c.simulate_mpf(model, 100, 300, seed)

@@ -5,11 +5,12 @@ vehjax/filters/_sensor_scoring.py's docstring and the "MPF-K" remarks of consist
 
     python benchmarks/mpf_k_sensor_variances.py statistic RUNS STEPS [NU0]
         the inverse-Wishart statistic's increments per step (the expected second moment of
-        each sensor's noise) over the truth's variance, by window: with NU0 = 1e7 (default)
-        the filter's R is held at the truth; with the default prior (NU0 = 8) it moves
+        each sensor's noise) over the truth's variance, by window, the filter's R the
+        statistics' mean (``sensor_variances="inverse-wishart"``): with NU0 = 1e7 (default)
+        it is held at the truth; with the default prior (NU0 = 8) it moves
     python benchmarks/mpf_k_sensor_variances.py guess FACTOR STEPS VARIANCES
         100 runs, the steering std known, every sensor std guessed at FACTOR x the truth,
-        VARIANCES inverse-wishart (the default) or scored: each learnt std's mean relative
+        VARIANCES inverse-wishart or scored (the default): each learnt std's mean relative
         error, spread and mean reported std (over the truth) and 95 % coverage at a third,
         two thirds and the end, and the NEES of the states (share in the band, per dof)
     python benchmarks/mpf_k_sensor_variances.py profile STEPS
@@ -53,7 +54,7 @@ def _filter(points, std0, nu0=None, variances=None):
 
 def statistic(runs, steps, nu0=1e7):
     _, Y, U = c.simulate_mpf(MODEL, runs, steps, 0)
-    est = _filter(3, c._STD, nu0)
+    est = _filter(3, c._STD, nu0, variances="inverse-wishart")
 
     def one(y, key):
         st = est.init(jnp.zeros(NX), jnp.diag(jnp.full(NX, 1e-12)), key=key)

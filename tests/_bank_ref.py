@@ -74,3 +74,36 @@ def exact_kalman(th, vx, dt, Y, delta, mu_w, sig_w, sigma_phi, bias, std, x0, P0
         P = 0.5 * (P + P.T)
         means[:, t], covs[t] = m[:, :5], P[:5, :5]
     return means, covs
+
+
+def user_linear_bank(th, vx, dt):
+    """The linear SingleTrackBank at speed vx written as a user would: a
+    :class:`vehjax.models.Model` of two plain jnp functions over its discrete matrices, inputs
+    (vx, delta), no ``bank_noise_gain``."""
+    import jax.numpy as jnp
+
+    from vehjax.models import Model
+    from vehjax.models.bank import SingleTrackBank
+
+    Ad, Bd, C, Dd = (jnp.asarray(a) for a in discrete_matrices(th, vx, dt))
+    names = SingleTrackBank(dt=dt)
+    return Model(lambda x, u, _: Ad @ x + Bd * u[1], lambda x, u, _: C @ x + Dd * u[1], dt=dt,
+                 state_names=names.state_names, input_names=("vx", "delta"),
+                 output_names=names.output_names)
+
+
+def simulate_linear_bank(th, dt, U, runs, offset, sig_w, bank_std, bias, std, seed):
+    """Data of the linear SingleTrackBank at the constant speed U[0, 0] in numpy: steering
+    U[:, 1] + ``offset`` + white noise of std ``sig_w``, white noise of stds ``bank_std`` (3,)
+    on the bank states (phi, phi_dot, phi_ddot), outputs with constant ``bias`` (5,) and white
+    noise of stds ``std`` (5,). Returns (states (runs, T, 5), Y (runs, T, 5))."""
+    Ad, Bd, C, Dd = discrete_matrices(th, float(U[0, 0]), dt)
+    rng = np.random.default_rng(seed)
+    x = np.zeros((runs, 5))
+    X, Y = np.zeros((runs, len(U), 5)), np.zeros((runs, len(U), 5))
+    for t in range(len(U)):
+        d = U[t, 1] + offset + sig_w * rng.normal(size=(runs, 1))
+        x = x @ Ad.T + Bd * d + np.r_[0.0, 0.0, bank_std] * rng.normal(size=(runs, 5))
+        X[:, t] = x
+        Y[:, t] = x @ C.T + Dd * d + bias + std * rng.normal(size=(runs, 5))
+    return X, Y

@@ -1,6 +1,6 @@
 """The sensor variances of the consistent marginalized PF by Fisher scoring of its innovations,
-weighted at the prior guess (``marginalized_pf(noise_means="kalman", sensor_variances=
-"scored")``, issue #33).
+weighted at the prior guess (``marginalized_pf(noise_means="kalman")``'s default,
+``sensor_variances="scored"``; issue #33).
 
 What was wrong with the expected statistics alone. Each particle's Kalman step with the sensor
 covariance R' (its estimate so far) gives the posterior of the sensor noise e_t given y_1:t,
@@ -74,12 +74,13 @@ held at the truth (an experiment not kept). Numpy's exact Kalman filter on the s
 every noise known, gives scores that average -0.3 % of r's variance (the script's last line,
 seed 0).
 
-Measured (``python benchmarks/mpf_k_param_bias.py SEED 1000 jeffreys 1 scored``, 100 runs x
+Measured (``python benchmarks/mpf_k_param_bias.py SEED 1000 jeffreys 1 [inverse-wishart]``,
+100 runs x
 300 steps, the consistency study's data, the guesses at the truth; seeds 0 / 1 / 2), the 95 %
 intervals' coverage with the mean relative error:
 
     ==============  ==========================  ====================================
-    std             scored                      inverse-Wishart mean (the default)
+    std             scored (the default)        inverse-Wishart mean
     ==============  ==========================  ====================================
     ay              1.00 / 0.99 / 0.97,         0.86 / 0.89 / 0.84 (seed 0 at N =
                     -0.4 / +1.6 / +1.0 %        1000; -3.3 / -2.5 / -2.9 %)
@@ -97,23 +98,28 @@ At seed 2 the data's own r noise is dispersed: the oracle's spread is 1.18 times
 theoretical std and its coverage 0.92 (0.94-1.01 and 0.97-0.98 at seeds 0, 1, 3).
 
 Started at twice the truth (steering std known, seed 0; ``python
-benchmarks/mpf_k_sensor_variances.py guess 2 300 scored``): ay +2.0 % (the default: +45 %),
-coverage 0.99 (0.00), the NEES in the band on 0.93 of the steps (0.83). Cost: about 1.7 times
-the default's time per step on paper 004's simulation, the paper's filter's (``python
-benchmarks/mpf_consistent_steering.py time 20 30``: 0.070 against 0.041 ms per run-step, 25
-grid points; the paper's filter at N = 100 0.069; 0.084 against 0.050 and 0.070 in ``vehjax
-reproduce noise-learning``'s 100 runs). It was 0.110-0.127 until ``vehjax.run`` balanced its
-blocks of runs: the scored state carries 3432 numbers a run against 2757, the CPU's block of
-runs fell from 23 to 19, and 20 runs went as a block of 19 and one padded to 19.
+benchmarks/mpf_k_sensor_variances.py guess 2 300 scored``): ay +2.0 % (the inverse-Wishart mean:
++45 %), coverage 0.99 (0.00), the NEES in the band on 0.93 of the steps (0.83). Cost: about 1.7
+times the inverse-Wishart mean's time per step on paper 004's simulation, the paper's filter's
+(``python benchmarks/mpf_consistent_steering.py time 20 30``: 0.070 against 0.041 ms per
+run-step, 25 grid points; the paper's filter at N = 100 0.069; 0.084 against 0.050 and 0.070 in
+``vehjax reproduce noise-learning``'s 100 runs; on 2026-11-27's faster machine 0.029 against
+0.016 and 0.028, and 0.034 against 0.023 and 0.035 in that report). It was 0.110-0.127 until
+``vehjax.run`` balanced its blocks of runs: the scored state carries 3432 numbers a run against
+2757, the CPU's block of runs fell from 23 to 19, and 20 runs went as a block of 19 and one
+padded to 19.
 
-Why it is not the default. On paper 004's simulation (sensors seen nearly alone, guesses twice
-the truth) each grid point's scored variances fit its own sigma_w: early on, the points above
-the true sigma_w explain the ay residuals by the steering noise and score ay's variance down
-(ay std 0.92 of the truth at 0.5 s, against 1.15 with the inverse-Wishart mean, 50 runs;
-``python benchmarks/mpf_consistent_steering.py early 50``), so they keep their weight longer
-(sigma_w 4.1 times the truth at 0.5 s against 2.9, 1.85 against 1.61 at 5 s) and the states'
-covariance is wider for longer: NEES of (vy, r) in the band on 0.85 of the steps against 0.86
-(100 runs x 180 s, ``vehjax reproduce noise-learning``).
+What it costs where the sensors are seen alone. On paper 004's simulation (sensors seen nearly
+alone, guesses twice the truth) each grid point's scored variances fit its own sigma_w: early
+on, the points above the true sigma_w explain the ay residuals by the steering noise and score
+ay's variance down (ay std 0.92 of the truth at 0.5 s, against 1.15 with the inverse-Wishart
+mean, 50 runs; ``python benchmarks/mpf_consistent_steering.py early 50``), so they keep their
+weight longer (sigma_w 4.1 times the truth at 0.5 s against 2.9, 1.85 against 1.61 at 5 s) and
+the states' covariance is wider for longer: NEES of (vy, r) in the band on 0.85 of the steps
+against 0.86 (100 runs x 180 s, ``vehjax reproduce noise-learning``, rows MPF (consistent) and
+MPF (inverse-Wishart)). It is the default all the same: that 0.01 against the inverse-Wishart
+mean's ay interval holding the truth in 0.84-0.89 of the consistency study's runs (and +45 %
+from a guess twice the truth where a sensor is seen beside other noise).
 """
 
 from __future__ import annotations
@@ -221,7 +227,7 @@ def scored_variances(J, h, H, start=None):
     return jnp.where(ok, v, jnp.nan), jnp.where(ok, C, jnp.nan)
 
 
-def ridge_sensitivity(w, theta, v, J):
+def ridge_sensitivity(w, theta, v, J, cov=None):
     """How far a grid parameter's estimate moves per unit error of the scored variances that
     each grid point plugs in: g = I_theta_v / I_theta_theta, with I_theta_theta = 1 /
     Var_w(theta), the grid's posterior, and the cross information from the ridge the grid
@@ -232,12 +238,15 @@ def ridge_sensitivity(w, theta, v, J):
     Args:
         w: (N,) normalised weights.  theta: (N,) the grid.  v: (ns, N) each point's
             variances.  J: (ns, ns, N) their information (:func:`scoring_terms`' sums).
+        cov: (ns,) or None: Cov(v, theta) in place of the weighted one (where the grid does
+            not resolve the posterior: :func:`vehjax.filters._grid.ridge_covariance`).
 
     Returns:
         (ns,) g.
     """
-    dt = theta - jnp.sum(w * theta)
-    cov = (v - jnp.sum(w * v, axis=-1, keepdims=True)) @ (w * dt)
+    if cov is None:
+        dt = theta - jnp.sum(w * theta)
+        cov = (v - jnp.sum(w * v, axis=-1, keepdims=True)) @ (w * dt)
     return jnp.einsum("ijn,n,j->i", J, w, cov)
 
 

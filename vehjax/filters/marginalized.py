@@ -164,18 +164,20 @@ batch posterior (tests/test_marginalized.py checks it).
   right to first order, Welch & Peers 1963). The other two priors stay as options: the
   inverse-Wishart prior's marginal, weighted by it (:func:`vehjax.filters._niw.
   static_prior_grid`), and equal weights over ``input_std_range``;
-  (5) the sensor covariance R is learnt per particle from the expected statistics (the
-  inverse-Wishart over the residuals, its mean used in the Kalman step). That mean forgets
-  its start as n^-F, F the fraction of a complete observation's information a step carries
-  about a variance: about 0.04 for ay on the consistency study's data, where the steering
-  noise reaches ay directly beside ay's own (started at twice the truth the ay std stayed
-  +45 % over 300 steps). ``sensor_variances="scored"`` (an option, not the default: 1.5-1.7
-  times the time per step, about the paper's filter's; see ``vehjax reproduce noise-learning``
-  for why not the default) takes the variances by Fisher scoring of the innovations weighted at
-  the guess (:mod:`vehjax.filters._sensor_scoring`), with their sandwich covariance, in the
-  Kalman step and the report, and adds to sigma_w's reported variance what their plug-in adds
-  (Murphy & Topel's two-step correction, the cross information from the ridge the grid points'
-  variances lie on). Why a grid: the data tell sigma_w apart mostly through the
+  (5) the sensor variances are learnt per particle by Fisher scoring of the innovations
+  weighted at the guess (``sensor_variances="scored"``, the default;
+  :mod:`vehjax.filters._sensor_scoring`), with their sandwich covariance, the sensors' noises
+  taken as uncorrelated, in the Kalman step and the report; sigma_w's reported variance gains
+  what their plug-in adds (Murphy & Topel's two-step correction, the cross information from
+  the ridge the grid points' variances lie on). The first build learnt R from the expected
+  statistics (the inverse-Wishart over the residuals, its mean in the Kalman step; kept as
+  ``sensor_variances="inverse-wishart"``, 0.6 times the time per step). That mean forgets its
+  start as n^-F, F the fraction of a complete observation's information a step carries about
+  a variance: about 0.04 for ay on the consistency study's data, where the steering noise
+  reaches ay directly beside ay's own (started at twice the truth the ay std stayed +45 % over
+  300 steps; scored: +2.0 %), and its ay std's interval held the truth in 0.84-0.89 of the
+  consistency study's runs (scored: 0.97-1.00). Why a grid: the data tell sigma_w apart
+  mostly through the
   dynamics (the steering noise moves vy and r, which the sensors see over the following
   steps), which only the predictive likelihood carries; the expected statistic of w_t given
   y_1:t sees only the direct term d w_t in ay, beside ay's own noise, and learns nothing that
@@ -187,12 +189,13 @@ batch posterior (tests/test_marginalized.py checks it).
   with R known the weights are the exact posterior over the grid
   (tests/test_mpf_consistent.py, against numpy Kalman likelihoods), and with
   every covariance known it is the Kalman filter of the augmented model. Approximate: R's
-  expected statistics (a variational-Bayes style update) and its forgetting, the grid's
-  resolution. With forgetting < 1 the sensor statistics' own noise (about 200 steps' worth
-  at lambda = 0.995) makes the predictive favour a larger sigma_w (paper 004's simulation,
-  10 runs x 180 s: +22 % at 0.995, +12 % at 1; ``python benchmarks/mpf_consistent_steering.py
-  learn 10 180 25 iw 0.995``). The prior of the offset and the biases is
-  N(mean0, gamma0 std0^2) as the paper's NiW unless ``mean_std0``
+  scored variances (filtered, not the whole data's likelihood; or the inverse-Wishart
+  statistics, a variational-Bayes style update) and their forgetting, the grid's
+  resolution. With forgetting < 1 the inverse-Wishart statistics' own noise (about 200
+  steps' worth at lambda = 0.995) makes the predictive favour a larger sigma_w (paper 004's
+  simulation, 10 runs x 180 s: +22 % at 0.995, +12 % at 1; ``python benchmarks/
+  mpf_consistent_steering.py learn 10 180 25 iw 0.995 inverse-wishart``). The prior of the
+  offset and the biases is N(mean0, gamma0 std0^2) as the paper's NiW unless ``mean_std0``
   gives their size: a prior tied to the noise std (0.04 deg for a 0.28 deg offset in paper
   004's simulation) holds the offset state several stds from the truth for long and makes the
   filter over-confident meanwhile. Measured on the consistency study and paper 004's
@@ -214,7 +217,10 @@ Implementation. The mathematics is in module-level functions, each documented an
 its own: the NiW recursion, the Student-t predictive and weight, the eq. 30 draw, the imputation
 and eq. 23's estimates in :mod:`vehjax.filters._niw`; the per-particle Kalman filters in
 :mod:`vehjax.filters._mpf_kalman`; the linearisation and which of its entries are constants in
-:mod:`vehjax.filters._mpf_linearise`. This module holds the state, the validation
+:mod:`vehjax.filters._mpf_linearise`; with ``noise_means="kalman"`` the sensor variances'
+scoring in :mod:`vehjax.filters._sensor_scoring`, Jeffreys' prior in
+:mod:`vehjax.filters._jeffreys` and the steering std's report where the grid does not resolve
+its posterior in :mod:`vehjax.filters._grid`. This module holds the state, the validation
 (:func:`_configure`) and the builder that composes them. Particles are last in every leaf. The
 per-particle algebra is written entry by entry (every matrix entry one (N,) vector, structural
 zeros skipped: :mod:`vehjax.filters._entrywise`, shared with the runs-last Gaussian steps), and
@@ -250,6 +256,7 @@ from ._mpf_kalman import (bank_kalman_step, input_noise_kalman_step, joint_kalma
 from ._mpf_linearise import entry_kinds, lin_entries, linearise, merge_entries
 from ._jeffreys import covariance_information, grid_derivative
 from ._jeffreys import log_prior as jeffreys_log_prior
+from ._grid import grid_posterior, ridge_covariance, with_resolved_std
 from ._sensor_scoring import (plug_in_variance, prior_terms, ridge_sensitivity, scored_variances,
                               scoring_terms)
 from ._niw import (draw_offset, impute_missing, niw_predict, niw_update,
@@ -473,8 +480,8 @@ class _Setup(NamedTuple):
     w_range: Any = None
     # noise_means="kalman": the grid's weights are Jeffreys' prior (_jeffreys), not equal
     jeffreys: bool = False
-    # noise_means="kalman": the sensor variances scored (_sensor_scoring), not the
-    # inverse-Wishart mean alone
+    # noise_means="kalman": the sensor variances scored (_sensor_scoring, the default), not
+    # the inverse-Wishart mean alone
     scored: bool = False
 
 
@@ -520,10 +527,10 @@ SENSOR_VARIANCES = ("inverse-wishart", "scored")
 
 
 def _sensor_variances(value) -> bool:
-    """Whether ``sensor_variances`` asks for the scored variances (None: the inverse-Wishart
-    mean, the default)."""
+    """Whether ``sensor_variances`` asks for the scored variances (None: scored, the
+    default)."""
     if value is None:
-        return False
+        return True
     if value not in SENSOR_VARIANCES:
         raise ValueError(f"sensor_variances: expected one of {SENSOR_VARIANCES}, got {value!r}")
     return value == "scored"
@@ -1038,13 +1045,21 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
 
     mean, cov = _mixture_moments(s, w_now, x, z, P)
     lam_rep, w_extra = lam_e, None
+    if s.means_known:  # the grid's posterior of log sigma_w^2, where the grid is too coarse
+        post = grid_posterior(lw_now, jnp.log(lam_w))
     if s.scored:  # the scored sensor variances, and what their plug-in adds to sigma_w's
         lam_rep, v_used = _scored_scale(s, lam_e, nu, v_est)
-        g = ridge_sensitivity(w_now, jnp.log(lam_w), v_used, J)
+        t = jnp.log(lam_w)
+        g = jnp.where(post.narrow,
+                      ridge_sensitivity(w_now, t, v_used, J, ridge_covariance(post, t, v_used)),
+                      ridge_sensitivity(w_now, t, v_used, J))
         w_extra = 0.25 * lam_w * plug_in_variance(g, var_cov)
     params, params_cov = noise_estimates(w_now, mu, lam_w, lam_rep, nu, gamma,
                                         means_known=s.means_known, var_cov=var_cov,
                                         input_var_extra=w_extra)
+    if s.means_known:
+        within = 0.0 if w_extra is None else jnp.sum(w_now * w_extra)
+        params, params_cov = with_resolved_std(params, params_cov, 1, post, within)
     nis = _mixture_nis(state.weights, mu_y, cov_y, y0, obs)
 
     # resample for the next step
@@ -1157,8 +1172,8 @@ def marginalized_pf(
             states and each other; prior N(mean0, gamma0 std0^2) or ``mean_std0``), the input
             error as process noise (not drawn), each particle a Kalman filter at its own
             steering variance on a fixed grid (never resampled: the weights are the posterior
-            over it), the sensor covariances learnt from expected inverse-Wishart statistics
-            (module docstring). Needs ``kalman_states="all"``; the model
+            over it), the sensor variances learnt by scoring (``sensor_variances``; module
+            docstring). Needs ``kalman_states="all"``; the model
             must be affine in ``noisy_input`` (checked with the linear states). The
             estimator declares no Rao-Blackwell structure (``vehjax.smooth`` does not smooth
             it). Its cost per step against the paper's: ``vehjax reproduce noise-learning``
@@ -1194,13 +1209,14 @@ def marginalized_pf(
             Jeffreys' prior the reported ``loglik`` is each step's predictive under the prior
             at that step (the prior moves as information comes), not a marginal likelihood.
         sensor_variances: with ``noise_means="kalman"`` only: how the sensor variances are
-            learnt. "inverse-wishart" (default, None): the mean of the inverse-Wishart
-            statistics, which a sensor seen beside other noise (ay beside the steering noise's
-            direct term) forgets its start only slowly from. "scored": Fisher scoring of the
-            innovations weighted at the ``std0`` guess, with a sandwich covariance, the
-            sensors' noises taken as uncorrelated, and sigma_w's reported variance widened
-            by their plug-in (:mod:`vehjax.filters._sensor_scoring`); 1.5-1.7 times the time
-            per step.
+            learnt. "scored" (default, None): Fisher scoring of the innovations weighted at
+            the ``std0`` guess, with a sandwich covariance, the sensors' noises taken as
+            uncorrelated, and sigma_w's reported variance widened by their plug-in
+            (:mod:`vehjax.filters._sensor_scoring`). "inverse-wishart": the mean of the
+            inverse-Wishart statistics (sensor correlations included), which a sensor seen
+            beside other noise (ay beside the steering noise's direct term) forgets its start
+            only slowly from (its ay std's 95 % interval held the truth in 0.84-0.89 of the
+            consistency study's runs); 0.6 times the scored option's time per step.
 
     Returns:
         ``Estimator`` (``needs_key=True``), ``nx`` = all model states, ``param_names`` =

@@ -54,10 +54,11 @@ What "matched" means here (nothing below is tuned per filter):
   "MPF-K" is the option ``noise_means="kalman"`` (issue #33 item 2, not the paper's
   algorithm; :mod:`vehjax.filters._mpf_means`): learns everything like MPF-G, but the
   steering offset and the sensor biases are constant states of each particle's Kalman filter
-  (Gaussian over all states) and the statistics learn the covariances alone (the means known
-  zero). "MPF-K (scored)" is MPF-K with ``sensor_variances="scored"``: the sensor variances
-  by Fisher scoring of the innovations (:mod:`vehjax.filters._sensor_scoring`), not the
-  inverse-Wishart mean alone. For
+  (Gaussian over all states), the steering std a fixed grid under Jeffreys' prior, and the
+  sensor variances by Fisher scoring of the innovations (the builder's default,
+  :mod:`vehjax.filters._sensor_scoring`). "MPF-K (inverse-Wishart)" is MPF-K with
+  ``sensor_variances="inverse-wishart"``: the sensor covariances the mean of expected
+  inverse-Wishart statistics, as first built. For
   every MPF row the report also gives the parameter coverage: the fraction of runs whose final
   95 % interval (estimate +- 1.96 reported std) holds the true value, and the spread of the
   final estimates over runs divided by their mean reported std (1 = honest, > 1 over-confident).
@@ -86,7 +87,7 @@ MODELS = ("KinematicBicycle", "Dynamic3DOF", "SevenDOF", "SingleTrackBank")
 FILTERS = ("EKF", "UKF", "CKF", "SR-UKF", "SR-CKF", "ACKF", "ACKF (paper)", "bootstrap PF", "MPF",
            "MPF (known noise)", "MPF-G", "MPF-G (known noise)", "MPF-G (biases known)",
            "MPF-G (covariances known)", "MPF-G (covariances known; biases as Kalman states)",
-           "MPF-K", "MPF-K (scored)")
+           "MPF-K", "MPF-K (inverse-Wishart)")
 #: the MPF rows: ``marginalized_pf``'s keywords. What each makes as good as known (gamma0 for
 #: the offset and the biases, nu0 for the covariances; the rows without it learn all), and
 #: MPF-G: each particle a Gaussian over all states (``kalman_states="all"``)
@@ -99,8 +100,8 @@ _MPFS = {"MPF": {}, "MPF (known noise)": _KNOWN_NOISE, "MPF-G": dict(kalman_stat
          "MPF-G (covariances known)": dict(_COVS_KNOWN, kalman_states="all"),
          _KALMAN_BIASES: dict(_KNOWN_NOISE, kalman_states="all"),
          "MPF-K": dict(kalman_states="all", noise_means="kalman"),
-         "MPF-K (scored)": dict(kalman_states="all", noise_means="kalman",
-                                sensor_variances="scored")}
+         "MPF-K (inverse-Wishart)": dict(kalman_states="all", noise_means="kalman",
+                                         sensor_variances="inverse-wishart")}
 TARGET = 0.90
 
 #: XLA options of the pairs that need them (``vehjax.run``'s ``compiler_options``): LLVM at
@@ -377,38 +378,39 @@ _WHY = {
                     "in its covariance; the bias intervals are honest (parameter table). The NiW "
                     "has one gamma for the offset and the biases, so pinning its bias means "
                     "(gamma0 = 1e-9) pins the steering offset at its prior mean too.",
-    "MPF-K": "learning everything from 300 steps: at seed 0 (100 runs, N = 1000) NEES in the "
-             "band on 0.927 of the steps (1.00 per state), NIS 0.937, coverage 0.92-0.97 but "
-             "the ay std's 0.86: its estimate ends 2.5-3.3 % low on average (0.5-0.7 of its "
-             "reported std, seeds 0-2), its spread over runs 1.06-1.11 times its reported std "
-             "(python benchmarks/mpf_k_param_bias.py SEED POINTS [PRIOR [STEER_FACTOR "
-             "[VARIANCES]]]). The cause is how slowly the inverse-Wishart mean forgets its "
-             "start: the steering noise reaches ay directly beside ay's own noise, so a step "
-             "carries about 0.04 of a complete observation's information about ay's variance, "
-             "and the mean of the expected statistics forgets its first steps as n^-0.04. "
-             "Held at the true R the step's statistic is unbiased (0.999 of ay's variance); "
-             "from the light prior's early fluctuations it settles 6 % low in variance for "
-             "good; started at twice the truth it is still +45 % after 300 steps with no "
-             "interval holding the truth, and the NEES is in the band on 0.83 of the steps "
-             "(steering std known; python benchmarks/mpf_k_sensor_variances.py statistic "
-             "100 300 [8], guess 2 300 inverse-wishart). MPF-K (scored) is the remedy. The "
-             "offset and the "
-             "biases are Kalman states, the steering std a fixed grid under Jeffreys' prior "
-             "(the weights its posterior), the sensor covariances from expected "
-             "inverse-Wishart statistics; see the module docstring of "
-             "vehjax.filters.marginalized.",
-    "MPF-K (scored)": "MPF-K with the sensor variances by Fisher scoring of the innovations "
-                      "and the sensors' noises uncorrelated "
-                      "(vehjax.filters._sensor_scoring). At seeds 0 / 1 / 2 (100 runs, N = "
-                      "1000) NEES in the band on 0.937 / 0.923 / 0.933 of the steps, NIS 0.943 "
-                      "/ 0.943 / 0.927, every parameter's coverage 0.92-1.00 (the ay std's "
-                      "0.97-1.00, its reported std about 20 % of the truth: what filtered "
-                      "statistics can tell; the exact likelihood's is about 11 %); the r and "
-                      "roll-rate stds' errors those of the oracle that knows every state "
-                      "(python benchmarks/mpf_k_param_bias.py SEED 1000 jeffreys 1 scored). "
-                      "About 1.7 times MPF-K's time per step, the paper's MPF's (python "
-                      "benchmarks/mpf_consistent_steering.py time 20 30: 0.070 against 0.041 "
-                      "and 0.069 ms per run-step).",
+    "MPF-K": "learning everything from 300 steps: the offset and the biases Kalman states, the "
+             "steering std a fixed grid under Jeffreys' prior (the weights its posterior), the "
+             "sensor variances by Fisher scoring of the innovations, the sensors' noises "
+             "uncorrelated (vehjax.filters._sensor_scoring; module docstring of "
+             "vehjax.filters.marginalized). At seeds 0 / 1 / 2 (100 runs, N = 1000) NEES in "
+             "the band on 0.937 / 0.923 / 0.933 of the steps, NIS 0.943 / 0.943 / 0.927, "
+             "every parameter's coverage 0.92-1.00 (the ay std's 0.97-1.00, its reported std "
+             "about 20 % of the truth: what filtered statistics can tell; the exact "
+             "likelihood's is about 11 %); the r and roll-rate stds' errors those of the "
+             "oracle that knows every state (python benchmarks/mpf_k_param_bias.py SEED 1000 "
+             "jeffreys 1). About the paper's MPF's time per step (python benchmarks/"
+             "mpf_consistent_steering.py time 20 30: 0.029 against 0.028 ms per run-step; "
+             "MPF-K (inverse-Wishart) 0.016).",
+    "MPF-K (inverse-Wishart)": "MPF-K with the sensor covariances the mean of expected "
+                               "inverse-Wishart statistics (as first built): at seed 0 NEES in "
+                               "the band on 0.927 of the steps, NIS 0.937, coverage 0.92-0.97 "
+                               "but the ay std's 0.86 (0.84-0.89 at seeds 0-2): its estimate "
+                               "ends 2.5-3.3 % low on average (0.5-0.7 of its reported std), "
+                               "its spread over runs 1.06-1.11 times its reported std (python "
+                               "benchmarks/mpf_k_param_bias.py SEED 1000 jeffreys 1 "
+                               "inverse-wishart). The cause is how slowly that mean forgets its "
+                               "start: the steering noise reaches ay directly beside ay's own "
+                               "noise, so a step carries about 0.04 of a complete observation's "
+                               "information about ay's variance, and the mean of the expected "
+                               "statistics forgets its first steps as n^-0.04. Held at the "
+                               "true R the step's statistic is unbiased (0.999 of ay's "
+                               "variance); from the light prior's early fluctuations it settles "
+                               "6 % low in variance for good; started at twice the truth it is "
+                               "still +45 % after 300 steps with no interval holding the truth, "
+                               "and the NEES is in the band on 0.83 of the steps (steering std "
+                               "known; python benchmarks/mpf_k_sensor_variances.py statistic "
+                               "100 300 [8], guess 2 300 inverse-wishart). MPF-K's scored "
+                               "variances remove it.",
     "MPF-G (biases known)": "the learnt sensor covariances: the ay sensor's std ends low on "
                             "average and its spread over runs exceeds its reported std (see "
                             "the parameter table), so the filter leans on ay and vy, r are "

@@ -45,44 +45,50 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   times the truth, default 2, the paper's guess) under Jeffreys' prior (the filter's default,
   ``input_std_prior="jeffreys"``: each point weighted by the square root of the Fisher
   information the data so far carry about the std there), never resampled, so the weights
-  are the posterior over the steering std; the sensor covariances from expected
-  inverse-Wishart statistics (guesses twice the truth). No forgetting in simulation (the
-  covariances are constant and the biases have their walk states; with the paper's 0.995 the
+  are the posterior over the steering std; the sensor variances by Fisher scoring of the
+  innovations weighted at the guesses (twice the truth), with a sandwich covariance, the
+  sensors' noises uncorrelated (the filter's default, ``sensor_variances="scored"``:
+  :mod:`vehjax.filters._sensor_scoring`). No forgetting in simulation (the covariances are
+  constant and the biases have their walk states; with the paper's 0.995 the inverse-Wishart
   statistics' own noise pushed the steering std up, +22 % against +12 % at 1 under the
   inverse-Wishart grid, 10 runs x 180 s); 0.999 on the drive, as the paper's drive filter. It
   draws no random numbers: one execution on the drive. 25 grid points give the same numbers
-  as 100 (inverse-Wishart grid, 20 runs x 180 s: NEES 0.817 per dof both, the steering std's
-  mean 1.122 of the truth both).
-  At the defaults (100 runs x 180 s; at 7caecb8, the whole report 16:28 at load ~1) it
-  learns the offset (RMS 0.001 deg), tracks the biases, learns the sensor stds (within 0.2 %)
-  and the steering std (-0.9 % over the last third; the paper's filter +68 %), and every
-  learnt parameter's interval holds the truth in 0.91-0.95 of the runs (the paper's filter:
-  the steering std's in 0.22). The NEES of (vy, r) is 1.01 per dof and in the band on 0.86 of
-  the steps (the band of a 100-run average is narrow, 0.81-1.21 per dof): 0.90-0.91 after
-  20 s, but 0.32 in the first 5 s and 0.58 from 5 to 20 s, where the steering std's posterior
-  is still wide and above the truth (1.64x at 5 s, 1.16x at 20 s, 1.03x at 60 s; NEES 0.78
-  and 0.84 per dof there). Why Jeffreys' prior: the steering noise is the only process noise
-  of vy and r, so their covariance scales with sigma_w^2, and the likelihood of sigma_w is
-  flat below the truth (the sensors' noise hides it) and steep above it. With the
-  inverse-Wishart prior of the guess (``input_std_prior="inverse-wishart"``, the previous
-  default) the posterior stays above the truth (1.5x at 5 s, 1.12x at 180 s): NEES 0.83 per
+  as 100 (inverse-Wishart grid and variances, 20 runs x 180 s: NEES 0.817 per dof both, the
+  steering std's mean 1.122 of the truth both); where the data pin the steering std more
+  narrowly than the grid's spacing, its estimate and interval come from the Laplace
+  approximation on the grid (:mod:`vehjax.filters._grid`; not the case here).
+  At the defaults (100 runs x 180 s; the whole report 6:18 on 2026-11-27, a machine about 2.5
+  times faster than the 16:28 of 7caecb8) it learns the offset (RMS 0.001 deg), tracks the
+  biases, learns the sensor stds (within 0.3 %) and the steering std (+0.3 % over the last
+  third; the paper's filter +68 %), and every learnt parameter's interval holds the truth in
+  0.91-0.96 of the runs (the paper's filter: the steering std's in 0.22). The NEES of (vy, r)
+  is 0.98 per dof and in the band on 0.85 of the steps (the band of a 100-run average is
+  narrow, 0.81-1.21 per dof): 0.92 after 60 s, 0.88 from 20 to 60 s, but 0.16 in the first 5
+  s and 0.42 from 5 to 20 s, where the steering std's posterior is still wide and above the
+  truth (1.92x at 5 s, 1.21x at 20 s, 1.06x at 60 s; NEES 0.74 and 0.80 per dof there;
+  ``python benchmarks/mpf_consistent_steering.py learn 100 180 25 jeffreys 1``). Why
+  Jeffreys' prior: the steering noise is the only process noise of vy and r, so their
+  covariance scales with sigma_w^2, and the likelihood of sigma_w is flat below the truth
+  (the sensors' noise hides it) and steep above it. With the inverse-Wishart prior of the
+  guess (``input_std_prior="inverse-wishart"``, the previous default; inverse-Wishart sensor
+  variances) the posterior stays above the truth (1.5x at 5 s, 1.12x at 180 s): NEES 0.83 per
   dof, in the band on 0.54 of the steps. With equal weights over a tenth to ten times the
   guess it ends 11-12 % below (posterior std 0.24 of it) and the NEES is 1.31-1.33 per dof
   (20 runs); that holds with the sensor noise known too (1.23), so the prior, not the learning
-  of R, sets it. Time in that report: 0.100 against the paper's filter's 0.139 ms per run-step
-  (N = 100), 0.29 against 0.63 ms on the drive (N = 500); idle, the two alone (``vehjax
-  reproduce noise-learning --methods "MPF (paper),MPF (consistent)" --runs 20 --duration 180
-  --no-drive``): 0.049 against 0.092; idle, the three MPF rows alone, 100 runs (``--methods "MPF
-  (paper),MPF (consistent),MPF (scored)"``, 9:20 with the drive): 0.050 against 0.070, on the
-  drive 0.30 against 0.42 (an earlier run of it: 0.060 / 0.085 and 0.21 / 0.56). The NEES share
-  is close to what the exact posterior gives under this prior: with every other noise known (the
-  filter is then the exact mixture of Kalman filters over the grid), it is in the band on 0.875
-  of the steps (25 points; 0.876 with 97; ``learn 100 180 25 jeffreys 1 known``), against 0.948
-  for the Kalman filter at the true steering std (``exact 100 180``); with the steering std's
-  guess at the truth (``--steer-factor 1``) the rows give the same 0.86 (MPF (scored): 0.85), so
-  it is not the guess twice the truth but the prior's decade either side that the first 20 s pay
-  for. On the drive its yaw rate is 0.106 deg/s from the pose's (0.68x the raw gyro's error;
-  the paper's filter 0.121, MPF (scored) 0.103).
+  of R, sets it. The NEES share is close to what the exact posterior gives under this prior:
+  with every other noise known (the filter is then the exact mixture of Kalman filters over
+  the grid), it is in the band on 0.875 of the steps (25 points; 0.876 with 97; ``learn 100
+  180 25 jeffreys 1 known``), against 0.948 for the Kalman filter at the true steering std
+  (``exact 100 180``); with the steering std's guess at the truth (``--steer-factor 1``) the
+  rows give the same 0.85-0.86, so it is not the guess twice the truth but the prior's decade
+  either side that the first 20 s pay for; a narrower prior about the guess does not help
+  (Jeffreys' over a third to three times the guess: 0.835; a fifth to five times: 0.875;
+  ``learn 100 180 25 jeffreys:3 1 known``). Time, ms per run-step, the report on 2026-11-27:
+  0.034 against the paper's filter's 0.035 (N = 100), 0.092 against 0.186 on the drive (N =
+  500); ``python benchmarks/mpf_consistent_steering.py time 20 30``, interleaved: 0.029
+  against 0.028 (earlier, on a slower machine, 0.070 against 0.069; in that day's report
+  0.084 against 0.070). On the drive its yaw rate is 0.103 deg/s from the pose's (0.66x the
+  raw gyro's error; the paper's filter 0.121), the closest of all rows.
   These numbers: ``python benchmarks/mpf_consistent_steering.py`` (its docstring has the
   commands). First built as Storvik's filter (covariances drawn per particle from
   expected statistics of w_t): the steering std ended at 3.8 times the truth, because the
@@ -91,19 +97,18 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   steering std as in the paper's NiW (0 +- 0.04 deg against the truth's 0.28 deg) the offset
   state stays several stds off for long and the filter is over-confident, hence
   ``mean_std0``.
-* **MPF (scored)**: MPF (consistent) with ``sensor_variances="scored"`` (the sensor variances
-  by Fisher scoring of the innovations weighted at the guess, with a sandwich covariance, the
-  sensors' noises uncorrelated: :mod:`vehjax.filters._sensor_scoring`), which is what brings
-  the ay std's coverage on the consistency study's data to 0.97-1.00 (the inverse-Wishart
-  mean's: 0.84-0.89). Here, where the sensors are seen nearly alone, it learns the same
-  (stds within 0.3 %, the steering std +0.3 % over the last third, coverage 0.91-0.96), but
-  its NEES of (vy, r) is in the band on 0.85 of the steps against MPF (consistent)'s 0.86:
-  early on, each grid point's variances fit its own steering std, so the points above the
-  truth keep their weight longer (``python benchmarks/mpf_consistent_steering.py early
-  50``). Time in that report (100 runs x 180 s, idle, the three MPF rows alone): 0.084
-  against MPF (consistent)'s 0.050 and the paper's filter's 0.070 ms per run-step; on the
-  drive 0.21 against 0.30 and 0.42, where it gives the yaw rate closest to the pose's (0.103
-  deg/s, 0.66x the raw gyro's error; MPF (consistent) 0.106).
+* **MPF (inverse-Wishart)**: MPF (consistent) with ``sensor_variances="inverse-wishart"``
+  (the sensor covariances the mean of expected inverse-Wishart statistics, as first built and
+  the default until 2026-11-27): here, where the sensors are seen nearly alone, it learns the
+  same (stds within 0.2 %, the steering std -0.9 % over the last third, coverage 0.91-0.95)
+  and its NEES of (vy, r) is in the band on 0.86 of the steps (1.01 per dof): early on the
+  scored variances of the grid points above the true steering std fit it and score ay's
+  variance down, so those points keep their weight longer (``python benchmarks/
+  mpf_consistent_steering.py early 50``). But on the consistency study's data, where the
+  steering noise reaches ay beside ay's own, its ay std's interval holds the truth in 0.84-0.89
+  of the runs (scored: 0.97-1.00) and from a guess twice the truth it stays +45 % (``vehjax
+  reproduce consistency``'s MPF-K rows). Time: 0.023 ms per run-step in the 2026-11-27 report
+  (0.7 of MPF (consistent)'s), 0.070 on the drive; yaw rate 0.106 deg/s on the drive.
 * **augmented EKF** (Remark 1, berntorp2018's ``augmented_model``): (vy, r, offset, ay bias,
   gyro bias) on (ay, r, r_virt), fixed Q and R (the MPF's initial guesses); no bank states and
   no roll gyro, as the remark's common approach.
@@ -149,7 +154,7 @@ PAPER = ("Online noise learning compared (issue #33): Sage-Husa ACKF, variationa
 DEG = b18.DEG
 SENSORS = b18.SENSORS
 METHODS = ("Sage-Husa ACKF", "VB-R (CKF)", "VB-R (EKF)", "VB-PR (CKF)", "MPF (paper)",
-           "MPF (consistent)", "MPF (scored)", "augmented EKF")
+           "MPF (consistent)", "MPF (inverse-Wishart)", "augmented EKF")
 BIAS_STD0 = {"ay": 0.5, "r": 0.5 * DEG, "roll_rate": 0.5 * DEG}
 OFFSET_STD0 = 0.5 * DEG
 P0_SIM = np.diag([0.1, 0.5 * DEG, 0.5 * DEG, 0.2 * DEG, 0.2 * DEG]) ** 2
@@ -290,8 +295,8 @@ def build(method, model, args, drive=False):
         return est, all5, P0
     if method == "MPF (consistent)":
         return _mpf_consistent(model, args, drive), all5, P0
-    if method == "MPF (scored)":
-        return _mpf_consistent(model, args, drive, "scored"), all5, P0
+    if method == "MPF (inverse-Wishart)":
+        return _mpf_consistent(model, args, drive, "inverse-wishart"), all5, P0
     if method == "augmented EKF":
         am = b18.augmented_model(model)
         # by state name: (vy, r, offset, ay bias, gyro bias) and, where berntorp2018's model
