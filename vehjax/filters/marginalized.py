@@ -177,8 +177,7 @@ batch posterior (tests/test_marginalized.py checks it).
   reaches ay directly beside ay's own (started at twice the truth the ay std stayed +45 % over
   300 steps; scored: +2.0 %), and its ay std's interval held the truth in 0.84-0.89 of the
   consistency study's runs (scored: 0.97-1.00). Why a grid: the data tell sigma_w apart
-  mostly through the
-  dynamics (the steering noise moves vy and r, which the sensors see over the following
+  mostly through the dynamics (the steering noise moves vy and r, which the sensors see over the following
   steps), which only the predictive likelihood carries; the expected statistic of w_t given
   y_1:t sees only the direct term d w_t in ay, beside ay's own noise, and learns nothing that
   separates them. On paper 004's simulation that statistic (with covariances drawn per
@@ -1046,10 +1045,10 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
     mean, cov = _mixture_moments(s, w_now, x, z, P)
     lam_rep, w_extra = lam_e, None
     if s.means_known:  # the grid's posterior of log sigma_w^2, where the grid is too coarse
-        post = grid_posterior(lw_now, jnp.log(lam_w))
+        t = jnp.log(lam_w)
+        post = grid_posterior(lw_now, t)
     if s.scored:  # the scored sensor variances, and what their plug-in adds to sigma_w's
         lam_rep, v_used = _scored_scale(s, lam_e, nu, v_est)
-        t = jnp.log(lam_w)
         g = jnp.where(post.narrow,
                       ridge_sensitivity(w_now, t, v_used, J, ridge_covariance(post, t, v_used)),
                       ridge_sensitivity(w_now, t, v_used, J))
@@ -1190,7 +1189,11 @@ def marginalized_pf(
             range of the noisy input's std (input units) over which the N particles' grid is
             log-uniform; its weights are ``input_std_prior``'s. Default None: a decade either
             side of the ``std0`` guess (Jeffreys' prior). The grid's spacing is
-            log(high / low) / (N - 1) in log std: keep it well below the posterior's width.
+            log(high / low) / (N - 1) in log std (0.19 for 25 points over a decade either
+            side). Where the data pin the std more narrowly than that, its estimate and
+            interval come from the Laplace approximation on the grid
+            (:mod:`vehjax.filters._grid`); the states still mix the grid's Kalman filters,
+            each at its own std, so a finer grid still serves them better.
         input_std_prior: with ``noise_means="kalman"`` only: the prior over the grid of the
             noisy input's std. "jeffreys" (default): Jeffreys' prior, each grid point weighted
             by the square root of the Fisher information the data so far carry about the std
