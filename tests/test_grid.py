@@ -122,3 +122,17 @@ def test_resolved_std_replaces_one_entry_and_keeps_the_covariance_psd():
     p3, C3 = with_resolved_std(p, C, 1, wide, 1e-9)
     np.testing.assert_array_equal(np.asarray(p3), np.asarray(p))
     np.testing.assert_array_equal(np.asarray(C3), np.asarray(C))
+
+
+def test_a_wide_posterior_passes_through_with_finite_gradients():
+    """Where the grid resolves the posterior nothing is replaced, and the unused Laplace branch
+    does not poison gradients (a mode far off the grid would overflow exp)."""
+    C = jnp.eye(3)
+
+    def f(scale):
+        post = grid_posterior(_gauss(0.0, 2.0 * H), T)._replace(mode=jnp.asarray(900.0))
+        p, c = with_resolved_std(scale * jnp.ones(3), scale * C, 1, post, 0.0)
+        return jnp.sum(p) + jnp.sum(c)
+
+    assert float(f(2.0)) == 12.0
+    assert float(jax.grad(f)(2.0)) == 6.0

@@ -112,7 +112,9 @@ def with_resolved_std(params, params_cov, i, post: GridPosterior, within):
     the estimate and spread of :func:`std_moments`, plus ``within`` (a within-point variance
     already in the weighted entry); its row and column scaled by the ratio of the stds, which
     keeps the matrix positive semi-definite (zero where the weighted variance was)."""
-    est, spread = std_moments(post)
+    # finite where not narrow too (the unused branch of a where still meets gradients)
+    est, spread = std_moments(post._replace(mode=jnp.where(post.narrow, post.mode, 0.0),
+                                            var=jnp.where(post.narrow, post.var, 1.0)))
     new = spread + within
     old = params_cov[i, i]
     a = jnp.where(old > 0.0, jnp.sqrt(new / jnp.where(old > 0.0, old, 1.0)), 0.0)
