@@ -164,23 +164,23 @@ batch posterior (tests/test_marginalized.py checks it).
   right to first order, Welch & Peers 1963). The other two priors stay as options: the
   inverse-Wishart prior's marginal, weighted by it (:func:`vehjax.filters._niw.
   static_prior_grid`), and equal weights over ``input_std_range``;
-  (5) the sensor variances are learnt per particle by Fisher scoring of the innovations
-  weighted at the guess (``sensor_variances="scored"``, the default;
+  (5) the sensor variances are learnt per particle by Fisher scoring of the innovations weighted
+  at the guess (``sensor_variances="scored"``, the default;
   :mod:`vehjax.filters._sensor_scoring`), with their sandwich covariance, the sensors' noises
   taken as uncorrelated, in the Kalman step and the report; sigma_w's reported variance gains
-  what their plug-in adds (Murphy & Topel's two-step correction, the cross information from
-  the ridge the grid points' variances lie on). The first build learnt R from the expected
+  what their plug-in adds (Murphy & Topel's two-step correction, the cross information from the
+  ridge the grid points' variances lie on). The first build learnt R from the expected
   statistics (the inverse-Wishart over the residuals, its mean in the Kalman step; kept as
   ``sensor_variances="inverse-wishart"``, 0.6 times the time per step). That mean forgets its
-  start as n^-F, F the fraction of a complete observation's information a step carries about
-  a variance: about 0.04 for ay on the consistency study's data, where the steering noise
-  reaches ay directly beside ay's own (started at twice the truth the ay std stayed +45 % over
-  300 steps; scored: +2.0 %), and its ay std's interval held the truth in 0.84-0.89 of the
-  consistency study's runs (scored: 0.97-1.00). Why a grid: the data tell sigma_w apart
-  mostly through the dynamics (the steering noise moves vy and r, which the sensors see over the following
-  steps), which only the predictive likelihood carries; the expected statistic of w_t given
-  y_1:t sees only the direct term d w_t in ay, beside ay's own noise, and learns nothing that
-  separates them. On paper 004's simulation that statistic (with covariances drawn per
+  start as n^-F, F the fraction of a complete observation's information a step carries about a
+  variance: about 0.04 for ay on the consistency study's data, where the steering noise reaches
+  ay directly beside ay's own (started at twice the truth the ay std stayed +45 % over 300
+  steps; scored: +2.0 %), and its ay std's interval held the truth in 0.84-0.89 of the
+  consistency study's runs (scored: 0.97-1.00). Why a grid: the data tell sigma_w apart mostly
+  through the dynamics (the steering noise moves vy and r, which the sensors see over the
+  following steps), which only the predictive likelihood carries; the expected statistic of w_t
+  given y_1:t sees only the direct term d w_t in ay, beside ay's own noise, and learns nothing
+  that separates them. On paper 004's simulation that statistic (with covariances drawn per
   particle, Storvik's filter, as first built here: ``vehjax reproduce noise-learning`` at
   3108ace) ended at 3.8 times the true steering std; drawing static values and moving them by
   Liu & West's kernel collapsed the cloud (an experiment not kept: commit c9ee043's message).
