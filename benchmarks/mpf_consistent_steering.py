@@ -42,6 +42,7 @@ Examples (the docstrings' numbers): ``profile 20 180``; ``learn 100 180 25 jeffr
 ``learn 100 180 25 jeffreys 1 inverse-wishart``; ``learn 20 180 25 jeffreys:100 1
 inverse-wishart``; ``learn 20 180 25 iw 1 inverse-wishart``; ``learn 20 180 25 10 1
 inverse-wishart``; ``learn 20 180 25 10 1 known``; ``learn 100 180 25 jeffreys:3 1 known``;
+``learn 100 180 25 jeffreys:5 1 known``;
 ``learn 10 180 100 iw 0.995 inverse-wishart``;
 ``information 8 180``; ``time 20 30``; ``early 50``; ``exact 100 180``.
 """
