@@ -207,7 +207,8 @@ def _vmapped_study(estimator, return_cov, per_run, block, *args):
 
 def balanced_blocks(runs: int, block: int) -> tuple[int, int]:
     """(number of blocks, runs per block) for ``runs`` runs in blocks of at most ``block``:
-    as few blocks as that allows, as even as they can be."""
+    as few blocks as that allows, as even as they can be (the chunks of a study and the
+    blocks of runs inside a chunk)."""
     n_blocks = -(-runs // block)
     return n_blocks, -(-runs // n_blocks)
 
@@ -215,9 +216,9 @@ def balanced_blocks(runs: int, block: int) -> tuple[int, int]:
 def _blocked(side_by_side, per_run, block, args):
     """``side_by_side(*args)`` (vmapped over the runs, the leading axis of the per-run
     arguments) in blocks of at most ``block`` runs, one block after the other (``lax.map``);
-    all at once when ``block`` is None or covers the chunk. The blocks are balanced (as the
-    chunks are): 20 runs at a block of 19 go as two blocks of 10, not 19 and 1 padded to 19,
-    which computed 38 runs for 20."""
+    all at once when ``block`` is None or covers the chunk. The blocks are balanced
+    (:func:`balanced_blocks`, as the chunks are): 20 runs at a block of 19 go as two blocks of
+    10, not 19 and 1 padded to 19, which computed 38 runs for 20."""
     C = args[0].shape[0]
     if block is None or block >= C:
         return side_by_side(*args)
@@ -463,7 +464,7 @@ def _plan(
     if chunk_size is None:
         chunk_size = execution.chunk_runs(strat, per_run_bytes, T, numbers)
     # Balance the chunks and make each a multiple of the device count.
-    chunk = math.ceil(R / math.ceil(R / min(int(chunk_size), R)))
+    chunk = balanced_blocks(R, int(chunk_size))[1]
     chunk = math.ceil(chunk / n_dev) * n_dev
     n_chunks = math.ceil(R / chunk)
     mesh = Mesh(np.array(devs), (_AXIS,)) if n_dev > 1 else None
