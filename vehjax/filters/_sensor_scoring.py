@@ -227,6 +227,13 @@ def scored_variances(J, h, H, start=None):
     return jnp.where(ok, v, jnp.nan), jnp.where(ok, C, jnp.nan)
 
 
+def weighted_covariance(w, theta, v):
+    """Cov_w(v, theta) over the grid: (ns,), from weights w (N,), the grid theta (N,) and
+    each point's values v (ns, N)."""
+    dt = theta - jnp.sum(w * theta)
+    return (v - jnp.sum(w * v, axis=-1, keepdims=True)) @ (w * dt)
+
+
 def ridge_sensitivity(w, theta, v, J, cov=None):
     """How far a grid parameter's estimate moves per unit error of the scored variances that
     each grid point plugs in: g = I_theta_v / I_theta_theta, with I_theta_theta = 1 /
@@ -238,15 +245,14 @@ def ridge_sensitivity(w, theta, v, J, cov=None):
     Args:
         w: (N,) normalised weights.  theta: (N,) the grid.  v: (ns, N) each point's
             variances.  J: (ns, ns, N) their information (:func:`scoring_terms`' sums).
-        cov: (ns,) or None: Cov(v, theta) in place of the weighted one (where the grid does
-            not resolve the posterior: :func:`vehjax.filters._grid.ridge_covariance`).
+        cov: (ns,) or None: Cov(v, theta); None: :func:`weighted_covariance` (where the grid
+            does not resolve the posterior, :func:`vehjax.filters._grid.ridge_covariance`).
 
     Returns:
         (ns,) g.
     """
     if cov is None:
-        dt = theta - jnp.sum(w * theta)
-        cov = (v - jnp.sum(w * v, axis=-1, keepdims=True)) @ (w * dt)
+        cov = weighted_covariance(w, theta, v)
     return jnp.einsum("ijn,n,j->i", J, w, cov)
 
 

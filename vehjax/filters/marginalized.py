@@ -257,7 +257,7 @@ from ._jeffreys import covariance_information, grid_derivative
 from ._jeffreys import log_prior as jeffreys_log_prior
 from ._grid import grid_posterior, ridge_covariance, with_resolved_std
 from ._sensor_scoring import (plug_in_variance, prior_terms, ridge_sensitivity, scored_variances,
-                              scoring_terms)
+                              scoring_terms, weighted_covariance)
 from ._niw import (draw_offset, impute_missing, niw_predict, niw_update,
                    noise_estimates, static_prior_grid, t_predictive,
                    t_weight_and_proposal)
@@ -1049,9 +1049,9 @@ def _step(s: _Setup, mdl: _Model, state: MPFState, y, u):
         post = grid_posterior(lw_now, t)
     if s.scored:  # the scored sensor variances, and what their plug-in adds to sigma_w's
         lam_rep, v_used = _scored_scale(s, lam_e, nu, v_est)
-        g = jnp.where(post.narrow,
-                      ridge_sensitivity(w_now, t, v_used, J, ridge_covariance(post, t, v_used)),
-                      ridge_sensitivity(w_now, t, v_used, J))
+        cov_vt = jnp.where(post.narrow, ridge_covariance(post, t, v_used),
+                           weighted_covariance(w_now, t, v_used))
+        g = ridge_sensitivity(w_now, t, v_used, J, cov_vt)
         w_extra = 0.25 * lam_w * plug_in_variance(g, var_cov)
     params, params_cov = noise_estimates(w_now, mu, lam_w, lam_rep, nu, gamma,
                                         means_known=s.means_known, var_cov=var_cov,
