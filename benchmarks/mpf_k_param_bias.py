@@ -26,8 +26,12 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
+sys.path.insert(0, "tests")
+
 import vehjax as vj  # noqa: E402
 from vehjax.reproduce import consistency as c  # noqa: E402
+
+from _bank_ref import exact_kalman  # noqa: E402
 
 
 def main(seed, points, prior="jeffreys", steer_factor=1.0, variances="scored"):
@@ -75,43 +79,26 @@ def main(seed, points, prior="jeffreys", steer_factor=1.0, variances="scored"):
 
 
 def exact_scores(model, Y, U):
-    """The scores of the sensor variances under numpy's exact Kalman filter (the linear
-    SingleTrackBank at the study's speed, every noise, the offset and the biases known), as
-    the scored filter's pseudo-observations see them: the mean over runs and steps of
-    s_i / W_ii (s = 0.5 (a_i^2 - G_ii), W_ii = 0.5 G_ii^2, a = G nu, G = S^-1) relative to
-    the true variance. Zero up to Monte-Carlo error when the filter's predictive covariance
-    S is right."""
-    th, x0, u0 = model.theta, jnp.zeros(len(model.state_names)), jnp.asarray([c._VX, 0.0])
-    A = np.asarray(jax.jacfwd(lambda x: model.transition(x, u0, th))(x0))
-    B = np.asarray(jax.jacfwd(lambda u: model.transition(x0, u, th))(u0))[:, 1]
-    H = np.asarray(jax.jacfwd(lambda x: model.observe(x, u0, th))(x0))
-    D = np.asarray(jax.jacfwd(lambda u: model.observe(x0, u, th))(u0))[:, 1]
-    f0, h0 = np.asarray(model.transition(x0, u0, th)), np.asarray(model.observe(x0, u0, th))
+    """The scores of the sensor variances under numpy's exact Kalman filter
+    (tests/_bank_ref.py's ``exact_kalman``: the linear SingleTrackBank at the study's speed,
+    every noise, the offset and the biases known), as the scored filter's pseudo-observations
+    see them: the mean over runs and steps of s_i / W_ii (s = 0.5 (a_i^2 - G_ii), W_ii = 0.5
+    G_ii^2, a = G nu, G = S^-1) relative to the true variance. Zero up to Monte-Carlo error
+    when the filter's predictive covariance S is right."""
     names = model.output_names
     bias = np.array([c._BIAS.get(n, 0.0) for n in names])
-    var = np.array([c._STD.get(n, c._KNOWN.get(n, 0.0)) for n in names]) ** 2
-    Q = c._SIGMA_PHI ** 2 * np.outer(*(2 * [np.asarray(model.bank_noise_gain())]))
-    s2 = c._DELTA_STD ** 2
-    m, P = np.zeros((Y.shape[0], len(x0))), np.diag(np.full(len(x0), 1e-12))
-    total = np.zeros(len(names))
-    for t in range(Y.shape[1]):
-        d = U[t, 1] + c._OFFSET
-        m = m @ A.T + B * d + f0
-        P = A @ P @ A.T + Q + s2 * np.outer(B, B)
-        C = P @ H.T + s2 * np.outer(B, D)  # Cov(x_t, y_t): the steering error in both
-        S = H @ C + s2 * np.outer(D, B) @ H.T + s2 * np.outer(D, D) + np.diag(var)
-        S = 0.5 * (S + S.T)
-        nu = Y[:, t] - bias - (m @ H.T + D * d + h0)
-        L = np.linalg.cholesky(S)
-        G = np.linalg.solve(L.T, np.linalg.solve(L, np.eye(len(names))))
-        a = nu @ G
-        total += np.mean(0.5 * (a ** 2 - np.diag(G)), axis=0) / (0.5 * np.diag(G) ** 2)
-        K = np.linalg.solve(S, C.T).T
-        m = m + nu @ K.T
-        P = P - K @ S @ K.T
-        P = 0.5 * (P + P.T)
+    std = np.array([c._STD.get(n, c._KNOWN.get(n, 0.0)) for n in names])
+    _, _, nus, Ss = exact_kalman(model.theta, c._VX, model.dt, Y, U[:, 1], c._OFFSET,
+                                 c._DELTA_STD, c._SIGMA_PHI, bias, std, np.zeros(5),
+                                 np.diag(np.full(5, 1e-12)), model.bank_noise_gain(),
+                                 innovations=True)
+    G = np.linalg.solve(Ss, np.broadcast_to(np.eye(len(names)), Ss.shape))  # S^-1, (T, 5, 5)
+    a = np.einsum("tij,rtj->rti", G, nus)
+    g = np.diagonal(G, axis1=-2, axis2=-1)  # (T, 5)
+    ratio = np.mean(0.5 * (a ** 2 - g), axis=0) / (0.5 * g ** 2)  # (T, 5)
+    var = std ** 2
     print("  exact Kalman filter (numpy, every noise known): mean s_i / W_ii / variance:")
-    print("    " + "  ".join(f"{n} {v:+.4f}" for n, v in zip(names, total / Y.shape[1] / var)
+    print("    " + "  ".join(f"{n} {v:+.4f}" for n, v in zip(names, ratio.mean(0) / var)
                              if n in c._STD))
 
 

@@ -41,13 +41,15 @@ def discrete_matrices(th, vx, dt):
     return Ad, Bd, C, Dd
 
 
-def exact_kalman(th, vx, dt, Y, delta, mu_w, sig_w, sigma_phi, bias, std, x0, P0, bank_gain):
+def exact_kalman(th, vx, dt, Y, delta, mu_w, sig_w, sigma_phi, bias, std, x0, P0, bank_gain,
+                 innovations=False):
     """Kalman filter of the linear-Gaussian SingleTrackBank at speed vx with the white steering
     error w_t ~ N(mu_w, sig_w^2) entering the transition and the observation alike (eq. 6-9),
     white bank jerk of std sigma_phi through ``bank_gain`` (eq. 3), outputs with constant
     ``bias`` and white noise of std ``std`` (5 each). State (x_t, w_t); components NaN in every
     run are skipped. Y (R, T, 5), delta (T,) the measured steering. Returns the filtered means
-    (R, T, 5) and covariances (T, 5, 5) of x_t."""
+    (R, T, 5) and covariances (T, 5, 5) of x_t; with ``innovations`` also the innovations
+    (R, T, 5) and their covariances (T, 5, 5), NaN on the skipped components."""
     Ad, Bd, C, Dd = discrete_matrices(th, vx, dt)
     F = np.zeros((6, 6))
     F[:5, :5] = Ad
@@ -62,6 +64,7 @@ def exact_kalman(th, vx, dt, Y, delta, mu_w, sig_w, sigma_phi, bias, std, x0, P0
     P = np.zeros((6, 6))
     P[:5, :5] = P0
     means, covs = np.zeros((runs, T, 5)), np.zeros((T, 5, 5))
+    nus, Ss = np.full((runs, T, 5), np.nan), np.full((T, 5, 5), np.nan)
     for t in range(T):
         m = m @ F.T + np.r_[Bd * (delta[t] + mu_w), mu_w]
         P = F @ P @ F.T + Q
@@ -69,11 +72,13 @@ def exact_kalman(th, vx, dt, Y, delta, mu_w, sig_w, sigma_phi, bias, std, x0, P0
         Ho = H[o]
         S = Ho @ P @ Ho.T + Rm[np.ix_(o, o)]
         K = np.linalg.solve(S, Ho @ P).T
-        m = m + (Y[:, t, o] - m @ Ho.T - Dd[o] * delta[t] - b[o]) @ K.T
+        nu = Y[:, t, o] - m @ Ho.T - Dd[o] * delta[t] - b[o]
+        m = m + nu @ K.T
         P = P - K @ S @ K.T
         P = 0.5 * (P + P.T)
         means[:, t], covs[t] = m[:, :5], P[:5, :5]
-    return means, covs
+        nus[:, t, o], Ss[t][np.ix_(o, o)] = nu, S
+    return (means, covs, nus, Ss) if innovations else (means, covs)
 
 
 def user_linear_bank(th, vx, dt):
