@@ -20,7 +20,6 @@ Examples (the docstrings' numbers): ``100 22 25 known``; ``100 22 25 known weigh
 ``100 22 100 known``; ``100 22 25``; ``100 22 100``; ``100 21 25``; ``100 21 100``.
 """
 
-import math
 import sys
 
 import jax
@@ -32,43 +31,17 @@ sys.path.insert(0, "tests")
 import vehjax as vj  # noqa: E402
 from vehjax import metrics  # noqa: E402
 from vehjax.filters import _grid  # noqa: E402
-from vehjax.filters.marginalized import marginalized_pf  # noqa: E402
-from vehjax.reproduce.consistency import mpf_inputs  # noqa: E402
 
-from _bank_ref import simulate_linear_bank, user_linear_bank  # noqa: E402
+from _bank_ref import user_bank_case  # noqa: E402
 
-MODEL = vj.models.SingleTrackBank(dt=0.01)
-SENSORS = ("ay", "r", "roll_rate")
-KNOWN = {"phi": math.radians(0.5), "r_virt": math.radians(0.3)}
-STD0 = {"ay": 0.2, "r": math.radians(0.6), "roll_rate": math.radians(0.6)}  # the test's
-OFFSET, SIG_W = math.radians(0.4), math.radians(0.25)
-BIAS = dict(zip(SENSORS, (-0.15, math.radians(0.3), math.radians(-0.2))))
-BANK_STD = np.array([1e-5, 1e-4, 0.002])
 STEPS = 400
 
 
 def main(runs, seed, points, known=False, weighted=False):
     if weighted:
         _grid.RESOLVED = 0.0
-    U = mpf_inputs(STEPS)
-    truth_std = {n: 1.5 * STD0[n] for n in SENSORS}
-    names = MODEL.output_names
-    std = np.array([truth_std.get(n, KNOWN.get(n)) for n in names])
-    b5 = np.array([BIAS.get(n, 0.0) for n in names])
-    X, Y = simulate_linear_bank(MODEL.theta, MODEL.dt, U, runs, OFFSET, SIG_W, BANK_STD, b5,
-                                std, seed)
-    factor = 1.0 if known else 2.0
-    est = marginalized_pf(
-        user_linear_bank(MODEL.theta, float(U[0, 0]), MODEL.dt), points, sensors=SENSORS,
-        known_std=KNOWN, linear_noise_std=BANK_STD,
-        std0={"delta": 2 * SIG_W, **{n: factor * truth_std[n] for n in SENSORS}},
-        mean_std0={"delta": math.radians(1.0), "ay": 0.5, "r": math.radians(1.0),
-                   "roll_rate": math.radians(1.0)},
-        forgetting=1.0, noise_means="kalman", nu0=1e10 if known else None)
-    out = vj.run(est, Y, U, x0=np.zeros(5), P0=np.array([1e-4, 1e-6, 1e-6, 1e-6, 1e-6]),
-                 key=jax.random.key(2), return_covariances=True, progress=False)
-    truth = {"delta_offset": OFFSET, "delta_std": SIG_W, **{f"{s}_bias": BIAS[s] for s in SENSORS},
-             **{f"{s}_std": truth_std[s] for s in SENSORS}}
+    est, X, Y, U, truth, run_kw = user_bank_case(runs, seed, points, known, STEPS)
+    out = vj.run(est, Y, U, progress=False, **run_kw)
     print(f"{runs} runs x {STEPS} steps, seed {seed}, {points} points"
           f"{', sensor covariances known' if known else ''}"
           f"{', weighted moments everywhere' if weighted else ''}:")

@@ -112,3 +112,46 @@ def simulate_linear_bank(th, dt, U, runs, offset, sig_w, bank_std, bias, std, se
         X[:, t] = x
         Y[:, t] = x @ C.T + Dd * d + bias + std * rng.normal(size=(runs, 5))
     return X, Y
+
+
+def user_bank_case(runs, seed, points, known=False, steps=400):
+    """The user-written model's study (tests/test_mpf_consistent.py's user-model test,
+    benchmarks/mpf_grid_resolution.py): :func:`user_linear_bank` at the consistency study's
+    inputs, data by :func:`simulate_linear_bank` at other values than that study's (steering
+    offset 0.4 deg and noise 0.25 deg, biases ay -0.15 m/s^2, r 0.3 deg/s, roll rate -0.2
+    deg/s, sensor stds 0.3 m/s^2, 0.9 deg/s, 0.9 deg/s), ``runs`` x ``steps``, ``seed``, and
+    ``marginalized_pf(noise_means="kalman")`` at its defaults with ``points`` grid points over
+    a decade either side of a steering guess twice the truth, the sensor stds guessed at twice
+    the truth (``known``: the sensor covariances known, guesses at the truth, nu0 = 1e10).
+    Returns (estimator, X, Y, U, truth dict of the learnt parameters, ``vehjax.run``'s keyword
+    arguments)."""
+    import jax
+
+    from vehjax.filters.marginalized import marginalized_pf
+    from vehjax.models.bank import SingleTrackBank
+    from vehjax.reproduce.consistency import mpf_inputs
+
+    dt, deg = 0.01, math.radians(1.0)
+    model = SingleTrackBank(dt=dt)
+    sensors = ("ay", "r", "roll_rate")
+    known_std = {"phi": 0.5 * deg, "r_virt": 0.3 * deg}
+    offset, sig_w, bank_std = 0.4 * deg, 0.25 * deg, np.array([1e-5, 1e-4, 0.002])
+    bias = dict(zip(sensors, (-0.15, 0.3 * deg, -0.2 * deg)))
+    std = dict(zip(sensors, (0.3, 0.9 * deg, 0.9 * deg)))
+    names = model.output_names
+    U = mpf_inputs(steps)
+    X, Y = simulate_linear_bank(model.theta, dt, U, runs, offset, sig_w, bank_std,
+                                np.array([bias.get(n, 0.0) for n in names]),
+                                np.array([{**std, **known_std}[n] for n in names]), seed)
+    factor = 1.0 if known else 2.0
+    est = marginalized_pf(
+        user_linear_bank(model.theta, float(U[0, 0]), dt), points, sensors=sensors,
+        known_std=known_std, linear_noise_std=bank_std,
+        std0={"delta": 2 * sig_w, **{n: factor * std[n] for n in sensors}},
+        mean_std0={"delta": 1.0 * deg, "ay": 0.5, "r": 1.0 * deg, "roll_rate": 1.0 * deg},
+        forgetting=1.0, noise_means="kalman", nu0=1e10 if known else None)
+    truth = {"delta_offset": offset, "delta_std": sig_w,
+             **{f"{s}_bias": bias[s] for s in sensors}, **{f"{s}_std": std[s] for s in sensors}}
+    run_kw = dict(x0=np.zeros(5), P0=np.array([1e-4, 1e-6, 1e-6, 1e-6, 1e-6]),
+                  key=jax.random.key(2), return_covariances=True)
+    return est, X, Y, U, truth, run_kw

@@ -18,7 +18,8 @@ from vehjax.models import with_input_offset
 from vehjax.filters.marginalized import marginalized_pf
 from vehjax.models.bank import SingleTrackBank
 
-from _bank_ref import discrete_matrices, simulate_linear_bank, user_linear_bank
+from _bank_ref import (discrete_matrices, simulate_linear_bank, user_bank_case,
+                       user_linear_bank)
 
 DT = 0.01
 MODEL = SingleTrackBank(dt=DT)
@@ -705,31 +706,10 @@ def test_a_user_written_model_learns_every_noise_with_honest_intervals():
     benchmarks/mpf_grid_resolution.py 100 22 25``): coverage 0.95-1.00 (the steering std's
     0.95; with the grid's weighted moments, before _grid, 0.80: ``... weighted``), NEES 0.98
     per dof."""
-    T, R = 400, 100
-    offset, sig_w = math.radians(0.4), math.radians(0.25)
-    bias = np.array([-0.15, math.radians(0.3), math.radians(-0.2)])
-    bank_std = np.array([1e-5, 1e-4, 0.002])
-    from vehjax.reproduce.consistency import mpf_inputs
-
-    U = mpf_inputs(T)
-    truth_std = {n: 1.5 * STD0[n] for n in SENSORS}
-    std = np.array([truth_std.get(n, KNOWN.get(n)) for n in MODEL.output_names])
-    b5 = np.zeros(5)
-    b5[[MODEL.output_names.index(s) for s in SENSORS]] = bias
-    X, Y = simulate_linear_bank(MODEL.theta, DT, U, R, offset, sig_w, bank_std, b5, std, 22)
-    std0 = {"delta": 2 * sig_w, **{n: 2 * truth_std[n] for n in SENSORS}}
-    est = marginalized_pf(user_linear_bank(MODEL.theta, float(U[0, 0]), DT), 25, sensors=SENSORS,
-                          known_std=KNOWN, linear_noise_std=bank_std, std0=std0,
-                          mean_std0={"delta": math.radians(1.0), "ay": 0.5,
-                                     "r": math.radians(1.0), "roll_rate": math.radians(1.0)},
-                          forgetting=1.0, noise_means="kalman")
-    P0 = np.array([1e-4, 1e-6, 1e-6, 1e-6, 1e-6])
-    out = vj.run(est, Y, U, x0=np.zeros(5), P0=P0, key=jax.random.key(2),
-                 return_covariances=True)
+    T = 400
+    est, X, Y, U, truth, run_kw = user_bank_case(100, 22, 25, steps=T)
+    out = vj.run(est, Y, U, **run_kw)
     assert not out.diverged.any()
-    truth = {"delta_offset": offset, "delta_std": sig_w,
-             **{f"{s}_bias": b for s, b in zip(SENSORS, bias)},
-             **{f"{s}_std": truth_std[s] for s in SENSORS}}
     for name, value in truth.items():
         j = est.param_names.index(name)
         got = np.asarray(out.params[:, -1, j])
