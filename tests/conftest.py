@@ -1,6 +1,10 @@
 """Test-session setup.
 
-XLA's backend (LLVM) optimisation level 0 unless XLA_FLAGS names one: see below.
+XLA's backend (LLVM) optimisation level 0 and its CPU fusion emitters off, unless XLA_FLAGS
+names them or VEHJAX_TEST_XLA_DEFAULTS=1 asks for XLA's own options: see below. These speed
+options change the last bits of floating-point results, not the programs' meaning; the
+exactness checks also run under XLA's defaults and the other combinations
+(tests/test_xla_options.py, ``pytest -m slow``).
 
 One JAX persistent compilation cache per test session, in a fresh temporary folder that the
 pytest-xdist workers and the notebook kernels inherit (the environment is set here, in the
@@ -13,7 +17,9 @@ import os
 import shutil
 import tempfile
 
-if "--xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+# VEHJAX_TEST_XLA_DEFAULTS=1: XLA's own options, as users run (tests/test_xla_options.py)
+_DEFAULTS = os.environ.get("VEHJAX_TEST_XLA_DEFAULTS") == "1"
+if not _DEFAULTS and "--xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     # The suite is compile-bound (small studies, many programs): LLVM at level 0 compiles
     # about a fifth faster (full suite on 2 cores: 14:00 before, 11:28 after with 80 s of new
     # tests). The programs (HLO, fusion) are the same; the machine code is less optimised (the
@@ -25,7 +31,7 @@ if "--xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                                + " --xla_backend_optimization_level=0"
                                + " --xla_llvm_disable_expensive_passes=true").strip()
-if "--xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+if not _DEFAULTS and "--xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
     # XLA's CPU fusion emitters off: a bootstrap PF's program compiles in about half the CPU
     # time (1.4 against 2.7-3.5 s, measured on 2 cores). vehjax.run already compiles its
     # small dense studies so on the CPU (vehjax.execution.compiler_options); here every program

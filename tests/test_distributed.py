@@ -6,6 +6,16 @@ on a free localhost port (gloo CPU collectives), process 0 with two CPU devices 
 one, load the same data, run the same studies and write their results to npz files; meanwhile
 the parent runs the studies in one process on one device, then compares. About 30 s on two
 cores, most of it XLA compiling the same programs in three processes.
+
+What is compared how. The two workers hold the same gathered arrays: bit for bit. Against one
+process the programs differ (sharded over three devices against one), so the results agree to
+a tolerance: the UKF's to 1e-10 (float64 rounding through 50 steps of small, well-conditioned
+algebra). The particle filters draw float32 normals, which two programs may round differently
+in the last float32 bit (tests/_contract.py's DRAW_RTOL), and a resampling decision can turn on
+that bit; so the particle studies run a program without resampling decisions (``ess_threshold=0``:
+the filter never resamples) and agree to DRAW_RTOL. The workers compile with this process's XLA
+code-generation options (tests/conftest.py's), so the comparison is between shardings, not
+between code generators.
 """
 
 import os
@@ -19,6 +29,7 @@ import numpy as np
 import pytest
 
 import vehjax  # noqa: F401  (float64)
+from _contract import DRAW_RTOL
 
 WORKER_TIMEOUT = 150  # s, for the pair; a hung worker fails the test instead of CI
 UKF_RUNS, UKF_STEPS = 7, 50
@@ -44,7 +55,9 @@ def _estimators():
     )
     ukf = vehjax.filters.ukf(model, Q, RN)
     assert ukf.batch is not None  # the runs-last path of vehjax.run; the PF is vmapped
-    return ukf, vehjax.filters.bootstrap_pf(model, Q, RN, n_particles=PF_PARTICLES)
+    # ess_threshold=0: never resamples, so no decision turns on a draw's last float32 bit
+    return ukf, vehjax.filters.bootstrap_pf(model, Q, RN, n_particles=PF_PARTICLES,
+                                            ess_threshold=0.0)
 
 
 def _make_data(path):
@@ -140,9 +153,9 @@ def data(tmp_path_factory):
 def _start(local_devices, data, tmp_path):
     env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_ENABLE_X64="1")
     # the workers set their own device counts; they keep this process's code generation
-    # (tests/conftest.py's LLVM level), which changes the last bits of the arithmetic
+    # (tests/conftest.py's LLVM level and fusion emitters), which changes the last bits
     keep = [f for f in os.environ.get("XLA_FLAGS", "").split()
-            if f.startswith("--xla_backend_optimization_level")]
+            if not f.startswith("--xla_force_host_platform_device_count")]
     env["XLA_FLAGS"] = " ".join(keep)
     port = _free_port()
     outs = [tmp_path / f"out{i}.npz" for i in range(2)]
@@ -175,7 +188,10 @@ def _finish(procs, outs, deadline):
     return [dict(np.load(o)) for o in outs], logs
 
 
-def _compare(got, want, name, exact):
+def _compare(got, want, name, exact, rtol=1e-10):
+    """Every field of study ``name`` from a worker (``got``) against one process's: bit for bit
+    (``exact``), or to ``rtol`` with the absolute tolerance ``rtol`` times the field's largest
+    entry (an off-diagonal covariance near zero carries the error of the largest ones)."""
     for f in FIELDS:
         a, b = got.get(f"{name}.{f}"), getattr(want, f)
         if b is None:
@@ -185,7 +201,8 @@ def _compare(got, want, name, exact):
         if exact or a.dtype.kind in "biu":
             np.testing.assert_array_equal(a, b, err_msg=f"{name}.{f}")
         else:
-            np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12, err_msg=f"{name}.{f}")
+            atol = max(1e-12, rtol * float(np.max(np.abs(b[np.isfinite(b)]), initial=0.0)))
+            np.testing.assert_allclose(a, b, rtol=rtol, atol=atol, err_msg=f"{name}.{f}")
 
 
 @pytest.mark.slow  # two fresh processes compiling the study: `pytest -m slow` (README)
@@ -204,7 +221,8 @@ def test_two_processes_equal_one_process(data, tmp_path):
     for k in outs[0]:
         np.testing.assert_array_equal(outs[0][k], outs[1][k], err_msg=k)
     for name in STUDIES:
-        _compare(outs[0], one[name], name, exact=False)
+        _compare(outs[0], one[name], name, exact=False,
+                 rtol=1e-10 if name == "ukf" else DRAW_RTOL)
     assert outs[0]["ukf.diverged"].tolist() == [False] * 4 + [True, False, False]
     # devices=False: each process ran the whole study alone, as one process does
     _compare(outs[0], one["ukf"], "local", exact=True)

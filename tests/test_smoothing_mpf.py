@@ -265,7 +265,42 @@ def test_single_track_bank_smoke():
     assert sm.params.shape == (Tb, 8) and sm.params_cov.shape == (Tb, 8, 8)
     assert not bool(sm.diverged)
     assert np.all(np.isfinite(sm.states)) and np.all(np.isfinite(sm.params))
-    assert np.all(np.linalg.eigvalsh(np.asarray(sm.covariances)) > 0)
+    assert_psd(sm.covariances)
+
+
+@pytest.mark.slow  # the bank model's MPF and smoother compile for about a minute on 2 cores
+def test_single_track_bank_long_drive_smoothed_covariances_are_psd():
+    """A drive-length run (6000 steps, a minute at 100 Hz) of the paper's filter with Gaussian
+    particle states on SingleTrackBank, smoothed along 8 paths: every smoothed covariance
+    symmetric and positive semi-definite to rounding (:func:`assert_psd`), the mixture's and
+    each path's, and the lag-one covariances finite."""
+    model = vj.models.SingleTrackBank(dt=0.01)
+    Tb = 6000
+    U, Y = _bank_drive(model, Tb, np.zeros(5), seed=1)
+    est = marginalized_pf(model, 16, known_std={"phi": 0.01, "r_virt": 0.005},
+                          linear_noise_std=0.05, kalman_states="all",
+                          std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02})
+    P0b = np.diag([0.1, 0.01, 1e-4, 1e-4, 1e-4])
+    sm = jax.jit(lambda: vj.smooth(est, Y, U, x0=np.zeros(5), P0=P0b, key=jax.random.key(5),
+                                   n_trajectories=8))()
+    assert not bool(sm.diverged)
+    assert_psd(sm.covariances)
+    assert np.all(np.isfinite(sm.cross_covariances))
+
+
+def assert_psd(covs):
+    """Symmetric positive semi-definite to rounding: each (n, n) covariance's eigenvalues
+    (numpy's eigvalsh) at or above -8 n eps of its largest. A smoothed covariance is PSD in
+    exact arithmetic and singular where the exact answer is (a particle's sampled states start
+    as a point, so at t = 0 every path's covariance has a zero block); eigvalsh of an exactly
+    PSD matrix with a zero eigenvalue returns it within a few n eps of the largest, of either
+    sign, so "> 0" cannot be asked there, and "- a few eps" can."""
+    covs = np.asarray(covs)
+    np.testing.assert_array_equal(covs, np.swapaxes(covs, -1, -2))
+    lam = np.linalg.eigvalsh(covs)
+    n = covs.shape[-1]
+    floor = -8 * n * np.finfo(covs.dtype).eps * np.max(np.abs(lam), axis=-1)
+    assert np.all(lam[..., 0] >= floor), (lam[..., 0].min(), floor.min())
 
 
 # ----------------------------------------------------------------------------------------------
@@ -392,35 +427,31 @@ def test_linear_path_rts_is_the_exact_conditional_given_the_path():
 
 @pytest.mark.slow  # the filter twice (its own scan and inside vj.smooth): about a minute on 2 cores
 def test_linear_one_path_of_the_filter_is_the_exact_conditional():
-    """vj.smooth with M = 1 on the paper's filter (kalman_states="linear", statistics unknown and
-    forgotten, two sensor readings missing): the one path's sampled states are the filter's
-    particle's, followed back through the genealogy here (the filter run again with the same
-    key), with zero smoothed variance, and its linear state's smoothed means, variances and
-    lag-one covariances equal batch Gaussian conditioning along that path (numpy, from the
-    path's own statistics and filtered moments at t = 0) to 1e-9."""
+    """The smoother with M = 1 on the paper's filter (kalman_states="linear", statistics unknown
+    and forgotten, two sensor readings missing), its backward pass over a forward pass kept
+    here: the one path's particles (``path_indices``) are those followed back through that
+    pass's genealogy, its sampled states are theirs, with zero smoothed variance, and its linear
+    state's smoothed means, variances and lag-one covariances equal batch Gaussian conditioning
+    along that path (numpy, from the path's own statistics and filtered moments at t = 0) to
+    1e-9."""
     ys, us = _data(seed=4)
     est = _linear_mpf(30)
     key = jax.random.key(3)
-
-    @jax.jit
-    def forward(key):
-        def body(st, yu):
-            st, _ = est.step(st, *yu)
-            return st, st
-
-        return jax.lax.scan(body, est.init(X0, P0, None, None, key), (ys, us))[1]
-
-    sts = forward(key)
-    sm = jax.jit(lambda k: vj.smooth(est, ys, us, x0=X0, P0=P0, key=k, n_trajectories=1))(key)
+    # the forward pass once; the smoother's backward pass reads these very particles, so what
+    # it followed is told by the indices it carries, not by matching floats across programs
+    sts = jax.jit(lambda k: ms.forward(est, jnp.asarray(ys), jnp.asarray(us), jnp.asarray(X0),
+                                       jnp.asarray(P0), None, k))(key)
+    sm = jax.jit(lambda f, k: ms.backward(est, f, ys, us, key=k, n_trajectories=1))(sts, key)
     x = np.asarray(sts.x)[:, 0]  # (T, N)
     anc = np.asarray(sts.ancestors)
     path = np.asarray(sm.path_states)[0]
-    j = np.flatnonzero(x[-1] == path[-1, 0])
-    assert j.size >= 1
+    # the path's particles as the smoother carries them: the genealogy followed here gives the
+    # same indices, and the path's sampled states are those particles' (the same arrays)
     idx = np.empty(T, int)
-    idx[-1] = j[0]
+    idx[-1] = np.asarray(sm.path_indices)[0, -1]
     for t in range(T - 1, 0, -1):
         idx[t - 1] = anc[t, idx[t]]
+    np.testing.assert_array_equal(np.asarray(sm.path_indices)[0], idx)
     tt = np.arange(T)
     np.testing.assert_array_equal(path[:, 0], x[tt, idx])
     mu = np.asarray(sts.mu)[tt, :, idx]
@@ -551,7 +582,7 @@ def test_linear_step_joint_is_the_filters_kalman_step_on_single_track_bank():
                           linear_noise_std=0.05, kalman_states="linear",
                           std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02})
     P0b = np.diag([0.1, 0.01, 1e-2, 1e-3, 1e-4]) ** 2
-    fwd = jax.jit(lambda k: ms._forward(est, jnp.asarray(Y), jnp.asarray(U), jnp.zeros(5),
+    fwd = jax.jit(lambda k: ms.forward(est, jnp.asarray(Y), jnp.asarray(U), jnp.zeros(5),
                                         jnp.asarray(P0b), None, k))(jax.random.key(4))
     rb = est.rao_blackwell
     theta = jnp.asarray(rb.theta, float)
@@ -649,7 +680,7 @@ def test_linear_path_forward_along_ancestral_paths_is_the_filter():
     est = _linear_mpf(n)
     rb = est.rao_blackwell
     theta = jnp.asarray(rb.theta, float)
-    fwd = jax.jit(lambda k: ms._forward(est, jnp.asarray(ys), jnp.asarray(us), jnp.asarray(X0),
+    fwd = jax.jit(lambda k: ms.forward(est, jnp.asarray(ys), jnp.asarray(us), jnp.asarray(X0),
                                         jnp.asarray(P0), None, k))(jax.random.key(3))
     idx = np.asarray(ms.trace_ancestors(fwd.ancestors, jnp.arange(n)))  # (T, n)
     tt = np.arange(T)[:, None]

@@ -43,14 +43,23 @@ Large studies are split into chunks of runs, each one jitted call (one compilati
 shape; the last chunk is padded); results come back to host memory chunk by chunk, so device
 memory stays bounded. When several JAX devices are visible the runs of each chunk are sharded over
 them (``jax.shard_map`` over a 1-D mesh, no communication between devices; across processes see
-below). Results do not depend on chunking or sharding beyond rounding: the number of runs
-computed together can change the last bit of a result (XLA vectorises differently), never more.
+below).
+
+What is reproducible. Bit for bit: the same call (data, key, chunking, devices, strategy and
+XLA options) on the same machine. To rounding: another chunking, blocking, sharding or number of
+processes changes which runs XLA computes together and how it vectorises them, so the last bits
+of a result can change; a Gaussian filter's results then agree to a few float64 rounding errors
+amplified by the problem's conditioning. A particle filter draws its normals in float32
+(:mod:`vehjax._random`), whose last float32 bit can change likewise (relative 1e-7), and where a
+resampling decision turns on it the run continues as another, equally valid Monte-Carlo
+realisation: particle results agree statistically, and to about 1e-6 relative only while no
+decision flips. Per-run keys do not depend on chunking (run r gets ``split(key, R)[r]``).
 
 Past one machine (multi-controller JAX): after ``jax.distributed.initialize`` in every process,
 ``run`` called in every process with the same arguments (the SPMD convention: the same data,
 key, ``chunk_size`` and ``devices``) shards each chunk's runs over the devices of all processes
 (``jax.devices()``, the global mesh) and returns the whole :class:`RunResult`, all R runs, in
-every process, equal to a one-process run up to rounding::
+every process, equal to a one-process run up to rounding (as above)::
 
     # on each of N hosts (or N local processes), process_id = 0 .. N-1
     jax.distributed.initialize(coordinator_address="host0:1234", num_processes=N,

@@ -198,9 +198,10 @@ from ..filters.base import Estimator
 from .particle import count_unique, ffbsi_indices
 
 __all__ = [
-    "MPFSmootherResult", "smooth", "METHODS", "trace_ancestors", "psd_right_solve", "rts_step",
-    "mixture_moments", "linear_step_joint", "linear_path_rts", "linear_path_step",
-    "linear_path_forward", "backward_logdens", "backward_ess",
+    "MPFSmootherResult", "MPFForward", "smooth", "forward", "backward", "METHODS",
+    "trace_ancestors", "psd_right_solve", "psd_part", "rts_step", "mixture_moments",
+    "linear_step_joint", "linear_path_rts", "linear_path_step", "linear_path_forward",
+    "backward_logdens", "backward_ess",
 ]
 
 #: The smoother's methods (module docstring).
@@ -232,6 +233,10 @@ class MPFSmootherResult(NamedTuple):
         backward_ess: (T,) the effective sample size of the backward weights at t, averaged
             over the M trajectories (``"ffbsi"``; at T - 1 that of the final filter weights);
             1 with ``"ancestor"`` (each path has one parent).
+        path_indices: (M, T) int32, the filter particle each path or trajectory passes
+            through at every time (an index into the filter's N particles after that step's
+            resampling, as in ``MPFState.ancestors``): which particles the smoother followed,
+            without comparing floating-point states.
     """
 
     states: jnp.ndarray
@@ -245,6 +250,7 @@ class MPFSmootherResult(NamedTuple):
     diverged: jnp.ndarray
     n_distinct: jnp.ndarray
     backward_ess: jnp.ndarray
+    path_indices: jnp.ndarray
 
 
 # ----------------------------------------------------------------------------------------------
@@ -288,6 +294,22 @@ def psd_right_solve(C, S, rtol: float | None = None):
     return ((C @ V) * inv) @ V.T
 
 
+def psd_part(S):
+    """The positive semi-definite part of a symmetric (n, n) S: S = V diag(l) V^T by ``eigh``,
+    returned as V diag(max(l, 0)) V^T, symmetrised.
+
+    A smoothed covariance is PSD in exact arithmetic, and singular where the exact answer has
+    zero variance in some direction (a particle's sampled states start as a point, so at t = 0
+    a path's covariance has a zero block). The RTS form ``P + G (P_next - P_pred) G^T``
+    subtracts nearly equal matrices there, and rounding leaves eigenvalues of order
+    -eps ||S|| (seen: -7.8e-21 against 8e-5 on SingleTrackBank). This removes them, so each
+    backward step starts from a PSD matrix and the errors do not grow along the recursion; a
+    positive definite S changes only by rounding."""
+    lam, V = jnp.linalg.eigh(0.5 * (S + S.T))
+    out = (V * jnp.maximum(lam, 0.0)) @ V.T
+    return 0.5 * (out + out.T)
+
+
 def rts_step(m, P, m_pred, P_pred, C, m_next, P_next):
     """One backward step of the Rauch-Tung-Striebel smoother.
 
@@ -299,12 +321,13 @@ def rts_step(m, P, m_pred, P_pred, C, m_next, P_next):
 
     Returns:
         (m_s, P_s, cross): smoothed moments at t - 1 and Cov(s_t-1, s_t | all data) = G P_next,
-        G = C P_pred^+ (:func:`psd_right_solve`).
+        G = C P_pred^+ (:func:`psd_right_solve`); P_s symmetric positive semi-definite
+        (:func:`psd_part`).
     """
     G = psd_right_solve(C, P_pred)
     m_s = m + G @ (m_next - m_pred)
     P_s = P + G @ (P_next - P_pred) @ G.T
-    return m_s, 0.5 * (P_s + P_s.T), G @ P_next
+    return m_s, psd_part(P_s), G @ P_next
 
 
 def mixture_moments(means, covs):
@@ -545,7 +568,13 @@ def backward_ess(log_w, logdens):
 # The passes
 
 
-class _Forward(NamedTuple):
+class MPFForward(NamedTuple):
+    """The filter's forward pass over one run of T steps, kept for the backward pass
+    (:func:`forward`): after every step, each of the N particles' Gaussian over the states
+    (sampled states ``x``, linear states ``z``, covariance ``P``), its NiW statistics, the offset
+    it drew, the genealogy and weights, and per step the log-likelihood and a bad-step flag.
+    Shapes are in the comments (N last, as in :class:`vehjax.filters.marginalized.MPFState`)."""
+
     x: jnp.ndarray  # (T, nxs, N)
     z: jnp.ndarray  # (T, nz, N)
     P: jnp.ndarray  # (T, nk, nk, N)
@@ -561,8 +590,19 @@ class _Forward(NamedTuple):
     bad: jnp.ndarray  # (T,)
 
 
-def _forward(estimator: Estimator, ys, us, x0, P0, theta0, key):
-    """The filter over the run, keeping what the backward pass needs after every step."""
+def forward(estimator: Estimator, ys, us, x0, P0, theta0, key) -> MPFForward:
+    """The filter over the run, keeping what the backward pass needs after every step.
+
+    Args:
+        estimator: a :func:`~vehjax.filters.marginalized_pf` estimator.
+        ys: (T, ny) measurements (NaN missing); us: (T, nu) inputs.
+        x0, P0: (nx,), (nx, nx) the prior; theta0: the filter's initial noise guesses or None.
+        key: PRNG key (the filter's own, as :func:`vehjax.filter` uses it).
+
+    Returns:
+        :class:`MPFForward`, which :func:`backward` smooths: the backward pass reads the very
+        particles this pass made (its ``path_indices`` index them).
+    """
     state0 = estimator.init(x0, P0, theta0, None, key)
     p = len(estimator.param_names)
 
@@ -574,7 +614,7 @@ def _forward(estimator: Estimator, ys, us, x0, P0, theta0, key):
         return state, keep + (out.loglik, bad)
 
     _, per = jax.lax.scan(body, state0, (ys, us))
-    return _Forward(*per)
+    return MPFForward(*per)
 
 
 def _path_rts(rb, us, theta, xs, zs, Ps, ws):
@@ -641,7 +681,7 @@ def linear_path_forward(rb, theta, ys, us, gammas, nus, xs, z0, P0, mu0, lam_w0,
     return tuple(jnp.concatenate([a[None], b]) for a, b in zip(init, per))
 
 
-def _ffbsi(rb, theta, fwd: _Forward, ys, us, m: int, key):
+def _ffbsi(rb, theta, fwd: MPFForward, ys, us, m: int, key):
     """Backward simulation over the filter's particles (module docstring, FFBSi): the
     trajectories' particle indices (T, M) and the backward ESS (T,)."""
     T, _, n = fwd.x.shape
@@ -720,7 +760,6 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, key, meth
             (``method``), a missing key, shapes that do not fit.
     """
     method, m = _check(estimator, method, n_trajectories)
-    rb = estimator.rao_blackwell
     if key is None:
         raise ValueError("key: the marginalized PF draws random numbers; pass "
                          "key=jax.random.key(...)")
@@ -730,7 +769,19 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, key, meth
                          f"{ys.shape} and {np.shape(inputs)}")
     P0 = jnp.asarray(P0)
     P0 = jnp.diag(P0) if P0.ndim == 1 else P0
-    fwd = _forward(estimator, ys, jnp.asarray(inputs), jnp.asarray(x0), P0, theta0, key)
+    fwd = forward(estimator, ys, jnp.asarray(inputs), jnp.asarray(x0), P0, theta0, key)
+    return backward(estimator, fwd, ys, inputs, key=key, method=method, n_trajectories=m)
+
+
+def backward(estimator: Estimator, fwd: MPFForward, measurements, inputs, *, key,
+             method=None, n_trajectories: int = 100) -> MPFSmootherResult:
+    """The backward pass of :func:`smooth` over a forward pass ``fwd`` (:func:`forward` of the
+    same estimator, data and key): ``smooth(...)`` is ``backward(estimator, forward(...), ...)``.
+    Arguments as :func:`smooth`'s; ``key`` draws the paths (``fold_in(key, 1)``) or the FFBSi
+    trajectories (``fold_in(key, 2)``). Pure and traceable."""
+    method, m = _check(estimator, method, n_trajectories)
+    rb = estimator.rao_blackwell
+    ys = jnp.asarray(measurements)
     dtype = fwd.x.dtype
     us = jnp.asarray(inputs).astype(dtype)
     T = ys.shape[0]
@@ -786,5 +837,5 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, key, meth
         states=mean, covariances=cov, cross_covariances=cr, path_states=ms, params=params,
         params_cov=params_cov, loglik=fwd.loglik, n_unique=jax.vmap(count_unique)(idx),
         diverged=jnp.any(fwd.bad), n_distinct=jax.vmap(count_unique)(copies),
-        backward_ess=b_ess,
+        backward_ess=b_ess, path_indices=idx.T,
     )
