@@ -10,7 +10,7 @@ Time convention (the papers' order): ``x0``/``P0`` describe the state before the
 step ``t`` predicts with ``inputs[..., t, :]``, then updates with ``measurements[:, t, :]``, so
 ``out.states[:, t]`` is the filtered estimate after the ``t``-th measurement.
 
-Each run is :func:`vehjax.filter`'s traced logic (``vehjax.filtering._one_run``), vmapped over
+Each run is :func:`vehjax.filter`'s traced logic (``vehjax.engine.one_run``), vmapped over
 the runs of a chunk. Estimators with a runs-last ``batch`` form (EKF, UKF and CKF on models with at
 most 8 states and outputs, :mod:`vehjax.filters._runs_last`) are not vmapped where the execution
 strategy says so: one scan runs the batched step with the runs axis last, and what the model
@@ -34,9 +34,9 @@ diverged at the first step), its ``nis`` is NaN, its ``n_obs`` 0 and its ``logli
 accumulating. A particle filter that re-initialises (``StepOutput.reinit``) flags the run but
 keeps going. The other runs are not touched.
 
-Estimates on a bound (as in :mod:`vehjax.filtering`): a run of a filter with parameter domains
+Estimates on a bound (as in :mod:`vehjax.engine`): a run of a filter with parameter domains
 (``Estimator.bounds``) whose estimate of some parameter lies on a finite bound (within
-``filtering.AT_BOUND_RTOL`` of the bound's scale) on more than ``filtering.AT_BOUND_FRACTION`` of
+``engine.AT_BOUND_RTOL`` of the bound's scale) on more than ``engine.AT_BOUND_FRACTION`` of
 its steps is flagged ``at_bound``; it is neither frozen nor ``diverged``.
 
 Large studies are split into chunks of runs, each one jitted call (one compilation per chunk
@@ -104,8 +104,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from . import _validate, execution, filtering
-from .filtering import FilterResult
+from . import _validate, engine, execution
+from .engine import FilterResult
 from .filters import _runs_last
 from .filters.base import Estimator
 from .result import RunResult
@@ -155,9 +155,9 @@ def _scan_prefetched(body, carry0, xs, pre):
 
 def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per_run, ys, us, x0,
                      P0, th0, Pth0, keys, predictions: bool = False):
-    """What ``vmap(filtering._one_run)`` computes, for an estimator with a runs-last ``batch``
+    """What ``vmap(engine.one_run)`` computes, for an estimator with a runs-last ``batch``
     form: one scan over time of the batched step, every array with the runs axis last (see
-    :mod:`vehjax.filters._runs_last`); the same per-run bookkeeping (``filtering._finish``).
+    :mod:`vehjax.filters._runs_last`); the same per-run bookkeeping (``engine.finish``).
 
     With ``predictions`` (static; what the runs-last smoother needs, ``return_cov`` then True)
     the scan runs the step's ``smooth_step`` instead and the result is
@@ -168,13 +168,13 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per
     p = len(estimator.param_names)
     per_run_u = us.ndim == 3
     start = jax.vmap(
-        partial(filtering._start, estimator), in_axes=tuple(0 if r else None for r in per_run)
+        partial(engine.start, estimator), in_axes=tuple(0 if r else None for r in per_run)
     )
     state0, held0 = start(ys, us, x0, P0, th0, Pth0, keys)
     batch = estimator.batch(per_run_u, held0[0].dtype, th0 is None)
     state0 = jax.tree.map(lambda a: jnp.moveaxis(a, 0, -1), state0)
 
-    ok = partial(filtering._output_ok, p=p, pd=_runs_last.is_pd,
+    ok = partial(engine.output_ok, p=p, pd=_runs_last.is_pd,
                  all_finite=_runs_last.all_finite)
     if predictions:
         if batch.smooth_step is None:
@@ -188,10 +188,10 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per
                 kept.append(pred)
                 return s, out
 
-            state, per_step = filtering._scan_body(step, ok, return_cov)(state, yu)
+            state, per_step = engine.scan_body(step, ok, return_cov)(state, yu)
             return state, (per_step, kept[0])
     else:
-        body = filtering._scan_body(batch.step, ok, return_cov)
+        body = engine.scan_body(batch.step, ok, return_cov)
 
     y_t = jnp.moveaxis(ys, 0, -1)  # (T, ny, C)
     u_t = jnp.moveaxis(us, 0, -1) if per_run_u else us  # (T, nu, C) or (T, nu)
@@ -202,14 +202,14 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per
         per_step, pred = per_step
         means, covs = per_step[0], per_step[1]
     per_step = jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), per_step)  # (C, T, ...)
-    filt = jax.vmap(partial(filtering._finish, bounds=estimator.bounds))(per_step, held0)
+    filt = jax.vmap(partial(engine.finish, bounds=estimator.bounds))(per_step, held0)
     return (filt, state0, means, covs, pred) if predictions else filt
 
 
 def _vmapped_study(estimator, return_cov, per_run, block, *args):
-    """`filtering._one_run` over the runs (leading axis of the per-run arguments), in
+    """`engine.one_run` over the runs (leading axis of the per-run arguments), in
     blocks of ``block`` runs vmapped side by side (all at once when ``block`` is None)."""
-    one = partial(filtering._one_run, estimator, return_cov)
+    one = partial(engine.one_run, estimator, return_cov)
     side_by_side = jax.vmap(one, in_axes=tuple(0 if r else None for r in per_run))
     return _blocked(side_by_side, per_run, block, args)
 
@@ -434,7 +434,7 @@ def _plan(
         has_prior=estimator.param_prior is not None, label=f"estimator {estimator.name!r}",
         model_theta=estimator.n_theta is not None)
     if p and th0 is not None:
-        filtering.check_theta0(estimator, th0)
+        engine.check_theta0(estimator, th0)
     if not p and th0 is not None and th0.shape[-1] != estimator.n_theta:
         raise ValueError(f"theta0: expected the model's {estimator.n_theta} parameters, shape "
                          f"({estimator.n_theta},) or ({R}, {estimator.n_theta}), got "

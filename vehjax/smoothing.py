@@ -55,7 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _eager, _validate
-from .filtering import FilterResult, _checked, _finish, _output_ok, _scan_body, _start
+from .engine import FilterResult, check_arguments, finish, output_ok, scan_body, start
 from .filters._entrywise import chol_sym
 from .filters._linalg import is_pd, sym
 from .filters.base import Estimator
@@ -105,8 +105,8 @@ class SmoothResult(NamedTuple):
 def forward(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
     """The filter over one run, keeping its states: (states at t = 0..T stacked, FilterResult)."""
     p = len(estimator.param_names)
-    state0, held0 = _start(estimator, y, u, x0, P0, th0, Pth0, key)
-    inner = _scan_body(estimator.step, lambda out: _output_ok(out, p), True)
+    state0, held0 = start(estimator, y, u, x0, P0, th0, Pth0, key)
+    inner = scan_body(estimator.step, lambda out: output_ok(out, p), True)
 
     def body(state, yu):
         new, per_step = inner(state, yu)
@@ -114,7 +114,7 @@ def forward(estimator: Estimator, y, u, x0, P0, th0, Pth0, key):
 
     _, (states, per_step) = jax.lax.scan(body, state0, (y, u))
     states = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), state0, states)
-    return states, _finish(per_step, held0, estimator.bounds)
+    return states, finish(per_step, held0, estimator.bounds)
 
 
 def _report(spec, M, P, cross, nx):
@@ -338,7 +338,7 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
             unknown or unsuitable ``method``, ``tol`` <= 0, ``max_iter`` < 1, ``initial`` of
             the wrong shape, and every shape error of :func:`vehjax.filter`.
     """
-    ys, us, x0, P0, th0, Pth0 = _checked(estimator, measurements, inputs, x0, P0, theta0,
+    ys, us, x0, P0, th0, Pth0 = check_arguments(estimator, measurements, inputs, x0, P0, theta0,
                                          P_theta0, key)
     if estimator.smoother is None and estimator.particle_transition is not None:
         try:

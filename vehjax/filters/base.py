@@ -26,7 +26,7 @@ Three optional parts of the contract are declared fields too, so that ``run`` re
   the domain of each estimated parameter in physical units (-inf / +inf for an open end), which
   the filter keeps its estimate in (:mod:`vehjax.filters._bounds`); None for state-only filters
   and filters without domains.
-  :func:`vehjax.filtering._finish` reads it to flag a run whose estimate sits on a bound
+  :func:`vehjax.engine.finish` reads it to flag a run whose estimate sits on a bound
   (``at_bound``), and ``run`` to check ``theta0``.
 """
 

@@ -115,6 +115,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..engine import one_run
 from . import _report
 
 PAPER = ("W. Wang, S. Bei, K. Zhu, L. Zhang, Y. Wang, Vehicle state and parameter estimation based "
@@ -362,11 +363,10 @@ def build_filter(name, model, Q, R):
 def _run_all(name, model, Q, R, ys, us, x0s, P0, theta):
     """Every run of filter ``name`` (static) in one call: Q, R, prior and theta are traced, so
     one compilation serves every case."""
-    from vehjax.filtering import _one_run
 
     model = eqx.tree_at(lambda m: m.theta, model, theta)
     est = build_filter(name, model, Q, R)
-    res = jax.vmap(lambda y, x0: _one_run(est, True, y, us, x0, P0, None, None, None))(ys, x0s)
+    res = jax.vmap(lambda y, x0: one_run(est, True, y, us, x0, P0, None, None, None))(ys, x0s)
     return res.states, res.covariances, res.nis, res.n_obs, res.diverged
 
 

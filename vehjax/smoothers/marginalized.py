@@ -191,7 +191,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _validate
-from ..filtering import _output_ok
+from ..engine import output_ok
 from ..filters._mpf_linearise import linearise
 from ..filters._niw import impute_missing, niw_predict, niw_update, noise_estimates
 from ..filters.base import Estimator
@@ -608,7 +608,7 @@ def forward(estimator: Estimator, ys, us, x0, P0, theta0, key) -> MPFForward:
 
     def body(state, yu):
         state, out = estimator.step(state, *yu)
-        bad = jnp.asarray(out.reinit, bool) | ~_output_ok(out, p)
+        bad = jnp.asarray(out.reinit, bool) | ~output_ok(out, p)
         keep = (state.x, state.z, state.P, state.mu, state.lam_w, state.lam_e, state.gamma,
                 state.nu, state.offset, state.ancestors, state.log_weights)
         return state, keep + (out.loglik, bad)

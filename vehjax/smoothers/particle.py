@@ -65,7 +65,7 @@ import jax.numpy as jnp
 from .. import _validate
 import numpy as np
 
-from ..filtering import _output_ok
+from ..engine import output_ok
 from ..filters._linalg import solve_lower
 from ..filters.base import Estimator
 
@@ -269,7 +269,7 @@ def _forward(estimator: Estimator, ys, us, x0, P0, theta0, key) -> _Forward:
 
     def body(state, yu):
         state, out = estimator.step(state, *yu)
-        bad = jnp.asarray(out.reinit, bool) | ~_output_ok(out, 0)
+        bad = jnp.asarray(out.reinit, bool) | ~output_ok(out, 0)
         return state, (state.particles, state.log_weights, state.ancestors, out.loglik, bad)
 
     _, per = jax.lax.scan(body, state0, (ys, us))
