@@ -266,12 +266,12 @@ def test_adaptive_random_walk_mixes_on_a_correlated_gaussian():
 
     priors = tuple(Normal(0.0, 1e4 * s) for s in sd)                      # flat over the target
     warmup, samples, chains = 3000, 3000, 4
-    run = C._sampler(loglik, priors, warmup + samples, C.adaptation_windows(warmup, 5),
+    run = C.marginal.sampler(loglik, priors, warmup + samples, C.adaptation_windows(warmup, 5),
                      C.target_acceptance(5), 25.0)
     L0 = np.diag(sd * 3.0)                                                 # 3x too wide, no corr.
     z0 = np.tile(mean + 2 * sd, (chains, 1))
     zs, lls, acc, L, _ = run(jax.random.split(jax.random.key(0), chains), z0, L0)
-    res = C._result(tuple("abcde"), priors, zs, lls, acc, L, warmup)
+    res = C.diagnostics.result(tuple("abcde"), priors, zs, lls, acc, L, warmup)
     assert np.all(res.rhat < 1.05), res.rhat
     assert np.all(res.ess >= 200), res.ess
     np.testing.assert_array_less(np.abs(res.mean - mean), 4 * sd / np.sqrt(res.ess))
