@@ -18,6 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _validate
+from ..filters import resampling as _rs
+from ..filters import smc
 from .adaptation import (adapt_init, adapt_step, adaptation_windows, initial_factor,
                          target_acceptance)
 from .diagnostics import PMMHResult, result
@@ -26,23 +28,38 @@ from .priors import check_priors, log_prior_unconstrained, starting_values, to_p
 
 __all__ = ["conditional_pf_as", "log_joint", "particle_gibbs"]
 
-_LOG_2PI = math.log(2.0 * math.pi)
+#: the resampling scheme of the conditional PF: multinomial, each non-reference ancestor drawn
+#: independently from the weights (Lindsten, Jordan & Schon 2014, Algorithm 2)
+_SCHEME = "multinomial"
 
 
-def _gauss_logpdf(e, L):
-    """log N(e; 0, L L^T) for e (..., n) and a lower Cholesky factor L (n, n): (...)."""
-    z = jax.scipy.linalg.solve_triangular(L, jnp.moveaxis(e, -1, 0), lower=True)
-    n = L.shape[0]
-    return (-0.5 * jnp.sum(z**2, axis=0) - jnp.sum(jnp.log(jnp.diag(L)))
-            - 0.5 * n * _LOG_2PI)
+def _gaussian_cols(e, L):
+    """log N(e_j; 0, L L^T) of the columns of e (n, M), L a lower Cholesky factor: (M,)
+    (:func:`vehjax.filters.smc.gaussian_logliks`, every component observed)."""
+    return smc.gaussian_logliks(e, jnp.ones(e.shape[0], bool), L=L)
 
 
-def _obs_logpdf(y, yhat, r_var):
-    """Sum over the observed (finite) components of log N(y_j; yhat_j, r_var_j): (...,)."""
+def _measurement_cols(y, yhat, r_var):
+    """log N(y; yhat_j, diag(r_var)) over the observed (finite) components of y (ny,), for the
+    columns yhat (ny, M): (M,)."""
     obs = jnp.isfinite(y)
-    e = jnp.where(obs, y - yhat, 0.0)
-    terms = -0.5 * (e**2 / r_var + jnp.log(r_var) + _LOG_2PI)
-    return jnp.sum(jnp.where(obs, terms, 0.0), axis=-1)
+    e = jnp.where(obs[:, None], y[:, None] - yhat, 0.0)
+    return smc.gaussian_logliks(e, obs, var=r_var)
+
+
+def _weights(log_w, log_lik):
+    """Normalised weights (N,) of ``log_w + log_lik`` (:func:`vehjax.filters.smc.reweight`),
+    equal ones where every weight vanished."""
+    r = smc.reweight(log_w, log_lik)
+    return jnp.where(r.underflow, 1.0 / log_w.shape[0], r.w), jnp.where(
+        r.underflow, -jnp.log(float(log_w.shape[0])), r.log_w)
+
+
+def _draw(w, key, n: int, stream: int):
+    """n ancestor indices drawn independently from the weights w (N,) (multinomial, the
+    particle core's :func:`vehjax.filters.resampling.indices_from_uniforms`)."""
+    u = smc.uniforms(key, _SCHEME, n, w.dtype, stream=stream)
+    return _rs.indices_from_uniforms(_SCHEME, w, u, n)
 
 
 def _pg_parts(model, tg, theta_base, Q, R, values):
@@ -70,34 +87,44 @@ def conditional_pf_as(model, key, ref, theta, LQ, r_var, bias, ys, us, x0, LP0, 
     is the reference; its ancestor at each step is drawn with weights w_{t-1}^j
     p(ref_t | x_{t-1}^j); the others resample multinomially and propagate; one trajectory is
     drawn by its final weight and traced back through the ancestors.
+
+    Built on the particle core (:mod:`vehjax.filters.smc`): particles (nx, N) with the particle
+    axis last, weights by :func:`~vehjax.filters.smc.reweight` of
+    :func:`~vehjax.filters.smc.gaussian_logliks`, random numbers hashed from a raw key
+    (:func:`~vehjax.filters.smc.normals`, :func:`~vehjax.filters.smc.uniforms`; ``key`` any
+    JAX key), ancestors by :func:`vehjax.filters.resampling.indices_from_uniforms`.
     """
-    f = jax.vmap(model.transition, in_axes=(0, None, None))
-    h = jax.vmap(model.observe, in_axes=(0, None, None))
+    f = jax.vmap(model.transition, in_axes=(1, None, None), out_axes=1)
+    h = jax.vmap(model.observe, in_axes=(1, None, None), out_axes=1)
     nx = LQ.shape[0]
-    k0, key = jax.random.split(key)
-    X0 = (x0 + jax.random.normal(k0, (n, nx)) @ LP0.T).at[n - 1].set(ref[0])
+    dtype = jnp.result_type(x0, LQ)
+    s_u = (nx + 1) // 2  # the first counter stream after the normals' rows
+    key, k0 = smc.split(smc.raw_key(key))
+    X0 = (x0[:, None] + LP0 @ smc.normals(k0, nx, n, dtype)).at[:, n - 1].set(ref[0])
 
     def step(carry, inp):
-        X, logw, key = carry
+        X, log_w, key = carry
         y, u, xref = inp
-        key, ka, kn, kr = jax.random.split(key, 4)
+        key, k = smc.split(key)
         FX = f(X, u, theta)
-        anc = jax.random.categorical(ka, logw, shape=(n,))
-        anc = anc.at[n - 1].set(jax.random.categorical(kr, logw + _gauss_logpdf(xref - FX, LQ)))
-        Xn = (FX[anc] + jax.random.normal(kn, (n, nx)) @ LQ.T).at[n - 1].set(xref)
-        logw = _obs_logpdf(y, h(Xn, u, theta) + bias, r_var)
-        logw = jnp.where(jnp.isfinite(logw), logw, -jnp.inf)
-        return (Xn, logw, key), (Xn, anc)
+        anc = _draw(jnp.exp(log_w), k, n, s_u)
+        w_ref, _ = _weights(log_w, _gaussian_cols(xref[:, None] - FX, LQ))
+        anc = anc.at[n - 1].set(_draw(w_ref, k, 1, s_u + 1)[0])
+        Xn = (FX[:, anc] + LQ @ smc.normals(k, nx, n, dtype)).at[:, n - 1].set(xref)
+        _, log_w = _weights(jnp.full(n, -math.log(n), dtype),
+                            _measurement_cols(y, h(Xn, u, theta) + bias[:, None], r_var))
+        return (Xn, log_w, key), (Xn, anc)
 
-    (_, logw, key), (Xs, ancs) = jax.lax.scan(step, (X0, jnp.zeros(n), key), (ys, us, ref[1:]))
-    k = jax.random.categorical(key, logw)
+    log_w0 = jnp.full(n, -math.log(n), dtype)
+    (_, log_w, key), (Xs, ancs) = jax.lax.scan(step, (X0, log_w0, key), (ys, us, ref[1:]))
+    k = _draw(jnp.exp(log_w), smc.split(key)[1], 1, 0)[0]
 
     def back(k, inp):
         X, anc = inp
-        return anc[k], X[k]
+        return anc[k], X[:, k]
 
     k0, traj = jax.lax.scan(back, k, (Xs, ancs), reverse=True)
-    return jnp.concatenate([X0[k0][None], traj])
+    return jnp.concatenate([X0[:, k0][None], traj])
 
 
 def log_joint(model, traj, theta, LQ, r_var, bias, ys, us, x0, LP0):
@@ -105,8 +132,9 @@ def log_joint(model, traj, theta, LQ, r_var, bias, ys, us, x0, LP0):
     :func:`conditional_pf_as`: ()."""
     fx = jax.vmap(model.transition, in_axes=(0, 0, None))(traj[:-1], us, theta)
     yhat = jax.vmap(model.observe, in_axes=(0, 0, None))(traj[1:], us, theta) + bias
-    return (_gauss_logpdf(traj[0] - x0, LP0) + jnp.sum(_gauss_logpdf(traj[1:] - fx, LQ))
-            + jnp.sum(_obs_logpdf(ys, yhat, r_var)))
+    obs = jax.vmap(lambda y, yh: _measurement_cols(y, yh[:, None], r_var)[0])(ys, yhat)
+    return (_gaussian_cols((traj[0] - x0)[:, None], LP0)[0]
+            + jnp.sum(_gaussian_cols((traj[1:] - fx).T, LQ)) + jnp.sum(obs))
 
 
 def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, key,
