@@ -374,3 +374,17 @@ def test_pmmh_with_the_marginalized_pf_recovers_the_grid_posterior():
     assert ess > 300, ess
     assert abs(res.mean[0] - mean) < 4 * std / math.sqrt(ess), (res.mean, mean, std, ess)
     assert abs(res.std[0] - std) < 4 * std / math.sqrt(2 * ess), (res.std, std, ess)
+
+
+def test_starting_values_outside_the_support_raise_naming_init():
+    """The priors' maps (vehjax.lib.transforms) take a value on or beyond a bound to a finite z;
+    the starting values are checked against the support before they are mapped."""
+    from vehjax.calibrate.priors import starting_values
+
+    for prior, bad in ((LogNormal(1.0, 0.5), -1.0), (LogNormal(1.0, 0.5), 0.0),
+                       (Uniform(0.0, 1.0), 1.0), (Uniform(0.0, 1.0), 2.0)):
+        with pytest.raises(ValueError, match="^init"):
+            starting_values((prior,), {"a": bad}, ("a",))
+    z0 = starting_values((Normal(0.0, 1.0), LogNormal(2.0, 0.1), Uniform(-1.0, 3.0)), None,
+                         ("a", "b", "c"))
+    np.testing.assert_allclose(z0, [0.0, math.log(2.0), 0.0], atol=1e-15)
