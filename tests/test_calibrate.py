@@ -266,12 +266,12 @@ def test_adaptive_random_walk_mixes_on_a_correlated_gaussian():
 
     priors = tuple(Normal(0.0, 1e4 * s) for s in sd)                      # flat over the target
     warmup, samples, chains = 3000, 3000, 4
-    run = C._sampler(loglik, priors, warmup + samples, C.adaptation_windows(warmup, 5),
+    run = C.marginal.sampler(loglik, priors, warmup + samples, C.adaptation_windows(warmup, 5),
                      C.target_acceptance(5), 25.0)
     L0 = np.diag(sd * 3.0)                                                 # 3x too wide, no corr.
     z0 = np.tile(mean + 2 * sd, (chains, 1))
     zs, lls, acc, L, _ = run(jax.random.split(jax.random.key(0), chains), z0, L0)
-    res = C._result(tuple("abcde"), priors, zs, lls, acc, L, warmup)
+    res = C.diagnostics.result(tuple("abcde"), priors, zs, lls, acc, L, warmup)
     assert np.all(res.rhat < 1.05), res.rhat
     assert np.all(res.ess >= 200), res.ess
     np.testing.assert_array_less(np.abs(res.mean - mean), 4 * sd / np.sqrt(res.ess))
@@ -374,3 +374,17 @@ def test_pmmh_with_the_marginalized_pf_recovers_the_grid_posterior():
     assert ess > 300, ess
     assert abs(res.mean[0] - mean) < 4 * std / math.sqrt(ess), (res.mean, mean, std, ess)
     assert abs(res.std[0] - std) < 4 * std / math.sqrt(2 * ess), (res.std, std, ess)
+
+
+def test_starting_values_outside_the_support_raise_naming_init():
+    """The priors' maps (vehjax.lib.transforms) take a value on or beyond a bound to a finite z;
+    the starting values are checked against the support before they are mapped."""
+    from vehjax.calibrate.priors import starting_values
+
+    for prior, bad in ((LogNormal(1.0, 0.5), -1.0), (LogNormal(1.0, 0.5), 0.0),
+                       (Uniform(0.0, 1.0), 1.0), (Uniform(0.0, 1.0), 2.0)):
+        with pytest.raises(ValueError, match="^init"):
+            starting_values((prior,), {"a": bad}, ("a",))
+    z0 = starting_values((Normal(0.0, 1.0), LogNormal(2.0, 0.1), Uniform(-1.0, 3.0)), None,
+                         ("a", "b", "c"))
+    np.testing.assert_allclose(z0, [0.0, math.log(2.0), 0.0], atol=1e-15)

@@ -1,4 +1,4 @@
-"""Correlated pseudo-marginal PMMH (vehjax._cpm, vehjax.calibrate.pmmh(correlation=...)):
+"""Correlated pseudo-marginal PMMH (vehjax.calibrate.correlated, vehjax.calibrate.pmmh(correlation=...)):
 the bootstrap PF's likelihood as a function of its random numbers is unbiased against an exact
 Kalman likelihood written here in numpy; the Crank-Nicolson move correlates successive
 estimates (measured against independent ones); the Hilbert index and systematic resampling
@@ -13,7 +13,8 @@ import pytest
 from scipy import stats
 
 import vehjax as vj
-from vehjax import _cpm, calibrate
+from vehjax import calibrate
+from vehjax.calibrate import correlated
 from vehjax.calibrate import LogNormal, pmmh
 
 # a 2-state linear-Gaussian model with noise through its input, a missing component and a bias
@@ -111,9 +112,9 @@ def test_crank_nicolson_move_correlates_the_estimates():
     assert sd > 0.5, sd                                    # the estimate is noisy
     assert sd_diff < 0.2 * math.sqrt(2.0) * sd, (sd_diff, sd)
     # the move itself: rho a + sqrt(1 - rho^2) e, leaf by leaf
-    a = _cpm.draw_aux(jax.random.key(2), 3, 4, 2, 1)
-    e = _cpm.draw_aux(jax.random.key(3), 3, 4, 2, 1)
-    b = _cpm.crank_nicolson(a, e, 0.6)
+    a = correlated.draw_aux(jax.random.key(2), 3, 4, 2, 1)
+    e = correlated.draw_aux(jax.random.key(3), 3, 4, 2, 1)
+    b = correlated.crank_nicolson(a, e, 0.6)
     for la, le, lb in zip(a, e, b):
         np.testing.assert_allclose(np.asarray(lb), 0.6 * np.asarray(la) + 0.8 * np.asarray(le),
                                    rtol=1e-14, atol=1e-15)
@@ -135,11 +136,11 @@ def _xy2d(n, x, y):
 
 def test_hilbert_index_and_systematic_resampling_against_transcriptions():
     pts = np.array([(i, j) for i in range(16) for j in range(16)], dtype=np.uint64)
-    h = np.asarray(_cpm.hilbert_index(jnp.asarray(pts), 4))
+    h = np.asarray(correlated.hilbert_index(jnp.asarray(pts), 4))
     assert [int(v) for v in h] == [_xy2d(16, int(x), int(y)) for x, y in pts]
     # 3-D: a bijection of the 8^3 cells whose consecutive cells are grid neighbours
     cube = np.array([(i, j, k) for i in range(8) for j in range(8) for k in range(8)], np.uint64)
-    h3 = np.asarray(_cpm.hilbert_index(jnp.asarray(cube), 3))
+    h3 = np.asarray(correlated.hilbert_index(jnp.asarray(cube), 3))
     assert sorted(h3.tolist()) == list(range(512))
     path = cube[np.argsort(h3)].astype(int)
     assert np.all(np.abs(np.diff(path, axis=0)).sum(axis=1) == 1)
@@ -149,12 +150,12 @@ def test_hilbert_index_and_systematic_resampling_against_transcriptions():
         c, ref = np.cumsum(w), []
         for i in range(5):
             ref.append(int(np.flatnonzero(c > (i + u) / 5)[0]))
-        assert np.asarray(_cpm.systematic_ancestors(jnp.asarray(w), u)).tolist() == ref
+        assert np.asarray(correlated.systematic_ancestors(jnp.asarray(w), u)).tolist() == ref
     # sorting: 1-D by the state, the projection's key continuous in a fixed sign
     x = jnp.asarray(np.random.default_rng(0).standard_normal((50, 2)) @ [[1.0, 0.9], [0.0, 0.3]])
-    a, _, _ = _cpm.sort_direction(x, jnp.full(50, 0.02))
+    a, _, _ = correlated.sort_direction(x, jnp.full(50, 0.02))
     assert a[0] > 0 and a[1] > 0 and abs(float(jnp.linalg.norm(a)) - 1) < 1e-12
-    assert np.all(np.diff(np.asarray(x[_cpm.sort_order(x[:, :1], jnp.full(50, 0.02)), 0])) >= 0)
+    assert np.all(np.diff(np.asarray(x[correlated.sort_order(x[:, :1], jnp.full(50, 0.02)), 0])) >= 0)
 
 
 def test_correlation_is_checked():

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import vehjax as vj
-from vehjax.filters._bounds import Transform
+from vehjax.lib.transforms import Transform
 from vehjax.filters.gaussian import GaussianState, ukf
 from vehjax.filters import smc
 from vehjax.filters.liu_west import liu_west_ukf

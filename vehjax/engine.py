@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _validate
-from .filters._bounds import check_inside
+from .filters.bounds import check_inside
 from .filters._linalg import is_pd
 from .filters.base import Estimator, StepOutput
 

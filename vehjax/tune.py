@@ -96,7 +96,7 @@ import optax
 
 from . import _validate
 from .filtering import filter as _filter
-from .filters import _bounds
+from .filters import bounds as _bounds
 from .filters import input_noise as _inoise
 from .filters import smc
 from .filters.base import Estimator

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _validate
+from ..lib.square_root import chol_const  # noqa: F401 (the filters' import of it)
 from ..models.base import Model
 
 def validate_prior(est, x0, P0) -> None:
@@ -54,19 +55,6 @@ def model_dims(model) -> dict:
     """The ``ny``/``nu``/``n_theta`` fields of an Estimator built on ``model``."""
     return dict(ny=len(model.output_names), nu=len(model.input_names),
                 n_theta=len(model.param_names))
-
-
-def chol_const(A):
-    """A square root L with L L^T = A: the lower Cholesky factor, in numpy for a constant, in jax
-    for a traced matrix; for a constant that is only positive semi-definite (a Q with zero
-    variances for noise-free states) V diag(sqrt(w)) from its eigen-decomposition."""
-    if not isinstance(A, np.ndarray):
-        return jnp.linalg.cholesky(A)
-    try:
-        return np.linalg.cholesky(A)
-    except np.linalg.LinAlgError:
-        w, V = np.linalg.eigh(A)
-        return V * np.sqrt(np.maximum(w, 0.0))[None, :]
 
 
 def in_dtype(fn):

@@ -24,7 +24,7 @@ Three optional parts of the contract are declared fields too, so that ``run`` re
   computes something else.
 * ``Estimator.bounds``: ``(low, high)``, two tuples of p Python floats (static under ``jit``),
   the domain of each estimated parameter in physical units (-inf / +inf for an open end), which
-  the filter keeps its estimate in (:mod:`vehjax.filters._bounds`); None for state-only filters
+  the filter keeps its estimate in (:mod:`vehjax.lib.transforms`); None for state-only filters
   and filters without domains.
   :func:`vehjax.engine.finish` reads it to flag a run whose estimate sits on a bound
   (``at_bound``), and ``run`` to check ``theta0``.

@@ -73,7 +73,7 @@ Reading of the transcription, where it is garbled or loose:
 Parameter domains (``bounds``): each estimated parameter theta lives in (low, high), by default
 (0, inf) for a parameter whose nominal value (``model.theta``) is positive (masses, lengths,
 stiffnesses) and unbounded otherwise. The filters estimate an unconstrained coordinate s instead
-of theta (:mod:`vehjax.filters._bounds`): ``theta = c s`` unbounded, ``low + c exp(s)``,
+of theta (:mod:`vehjax.lib.transforms`): ``theta = c s`` unbounded, ``low + c exp(s)``,
 ``high - c exp(s)`` one-sided, ``low + (high - low) sigmoid(s)`` two-sided, with c the parameter's
 ``theta_scale``. Every sigma point and every linearisation point is mapped to theta before the
 model is called, so the model never sees a parameter outside its domain. In and out of the
@@ -110,7 +110,8 @@ import numpy as np
 from .. import _validate
 from . import input_noise as _inoise
 from . import sigma
-from ._bounds import Transform, check_inside, parse as _parse_bounds
+from ..lib.transforms import Transform
+from .bounds import check_inside, parse as _parse_bounds
 from ._linalg import sym
 from .base import Estimator, GaussianSmoother, StepOutput, check_estimate
 from ._model import cast_yu, check_model, model_dims, per_point

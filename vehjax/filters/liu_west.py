@@ -4,7 +4,7 @@ The parameters named in ``estimate`` are carried as M weighted particles, drawn 
 uniform prior on the box [theta_low, theta_high]. Each particle lives in the domain of the
 parameters, ``bounds`` (default: (0, inf) for a box with theta_low > 0, the log coordinate, else
 the prior box itself), and is carried in the unconstrained
-coordinate s_i of that domain (:mod:`vehjax.filters._bounds`, unit scale: ``theta = s``
+coordinate s_i of that domain (:mod:`vehjax.lib.transforms`, unit scale: ``theta = s``
 unbounded, ``low + exp(s)`` / ``high - exp(s)`` one-sided, ``low + (high - low) sigmoid(s)`` for a
 box), theta_i = g(s_i). The state is estimated by a UKF (:func:`vehjax.filters.gaussian.ukf`)
 that runs the model at the weighted parameter mean. One step, with (mu, P) the UKF's filtered
@@ -166,7 +166,8 @@ import numpy as np
 from .. import _random, _validate
 from . import resampling as _rs
 from . import sigma, smc
-from ._bounds import Transform, check_inside, parse as _parse_bounds
+from ..lib.transforms import Transform
+from .bounds import check_inside, parse as _parse_bounds
 from .base import Estimator, check_estimate
 from ._model import check_model, in_dtype, model_dims, prior
 from .gaussian import GaussianState, ukf
@@ -187,7 +188,7 @@ class LiuWestState(NamedTuple):
         P: (nx, nx) its covariance.
         particles: (p, M) parameter particles (particle axis last) after the last step's kernel,
             in the unconstrained coordinates s of the parameter domains (module docstring;
-            physical units for an unbounded parameter). ``vehjax.filters._bounds.Transform(
+            physical units for an unbounded parameter). ``vehjax.lib.transforms.Transform(
             *estimator.bounds).to_physical(particles, axis=0)`` gives them in physical units.
         log_weights: (M,) their normalised log weights (``logsumexp == 0``), residual weight
             applied.
@@ -255,7 +256,7 @@ def _draw_box(u, low, high):
 def _domain(low_n, high_n, bounds, names, nominal) -> tuple[np.ndarray, np.ndarray]:
     """The parameters' domains (low, high), each (p,) with +-inf for open ends: with ``bounds``
     None, (0, inf) where the prior box is positive (low_n > 0, the log coordinate), else the box
-    [low_n, high_n] itself; else :func:`vehjax.filters._bounds.parse` of ``bounds`` (nominal
+    [low_n, high_n] itself; else :func:`vehjax.filters.bounds.parse` of ``bounds`` (nominal
     values ``nominal`` (p,)), which must contain the box (ValueError naming ``bounds``)."""
     if bounds is None:
         pos = low_n > 0

@@ -52,8 +52,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from .filters import resampling as _rs
-from .filters import smc
+from ..filters import resampling as _rs
+from ..filters import smc
 
 __all__ = ["Aux", "draw_aux", "crank_nicolson", "sort_direction", "hilbert_index", "sort_order",
            "systematic_ancestors", "log_likelihood"]

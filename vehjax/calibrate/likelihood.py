@@ -1,0 +1,231 @@
+"""The likelihoods particle MCMC calibrates with, as functions of the calibrated values.
+
+What is calibrated (``names``; :func:`targets` reads them):
+
+* a model parameter by its name (``"cf"``), in the parameter's units;
+* ``"R:<output>"``: the measurement-noise std of that output [output units];
+* ``"Q:<state>"``: the process-noise std of that state [state units per step];
+* ``"bias:<output>"``: a constant sensor bias, y = h(x, u) + bias + noise [output units];
+* ``"input:<input>"``: the std of noise entering through that input [input units], for builders
+  that take ``input_noise`` (every vehjax filter).
+
+:func:`log_likelihood_fn`: any vehjax filter builder's log-likelihood (estimate), a fresh key
+per evaluation; :func:`cpm_log_likelihood_fn`: the bootstrap PF's estimate as a function of its
+random numbers (:mod:`vehjax.calibrate.correlated`), for the correlated pseudo-marginal chain.
+:func:`log_likelihood_spread` and :func:`log_likelihood_difference_spread` measure how noisy
+either is.
+"""
+
+from __future__ import annotations
+
+import numbers
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import _validate
+from ..filtering import filter as run_filter
+from ..filters import bootstrap_pf
+from ..filters import input_noise as inoise
+from ..lib import square_root
+from . import correlated
+
+__all__ = ["Targets", "targets", "with_values", "log_likelihood_fn", "log_likelihood_spread",
+           "CPM_KWARGS", "check_correlation", "cpm_log_likelihood_fn",
+           "log_likelihood_difference_spread"]
+
+
+class Targets(NamedTuple):
+    params: tuple      # (index in priors, index in theta)
+    r_std: tuple       # (index in priors, output index)
+    q_std: tuple       # (index in priors, state index)
+    bias: tuple        # (index in priors, output index)
+    inputs: tuple      # (index in priors, input name)
+
+
+def targets(model, names) -> Targets:
+    params, r_std, q_std, bias, inputs = [], [], [], [], []
+    for i, name in enumerate(names):
+        kind, _, what = name.partition(":")
+        table = {"R": (model.output_names, r_std), "Q": (model.state_names, q_std),
+                 "bias": (model.output_names, bias), "input": (model.input_names, inputs)}
+        if what and kind in table:
+            known, dest = table[kind]
+            if what not in known:
+                raise ValueError(f"priors: {name!r}: no {what!r} among {tuple(known)}")
+            dest.append((i, what if kind == "input" else known.index(what)))
+        elif name in model.param_names:
+            params.append((i, model.param_names.index(name)))
+        else:
+            raise ValueError(
+                f"priors: unknown name {name!r}; expected a model parameter {model.param_names} "
+                f"or 'R:<output>', 'Q:<state>', 'bias:<output>', 'input:<input>'")
+    return Targets(tuple(params), tuple(r_std), tuple(q_std), tuple(bias), tuple(inputs))
+
+
+def with_values(tg: Targets, theta, Q, R, ys, values):
+    """The named quantities set to ``values`` (d,) physical: (theta (np,), Q (nx, nx) with the
+    ``Q:`` variances, R (ny, ny) with the ``R:`` variances, ys (T, ny) minus the ``bias:``
+    values, the ``input:`` stds as a dict input name -> std, None without)."""
+    for i, j in tg.params:
+        theta = theta.at[j].set(values[i])
+    for i, j in tg.q_std:
+        Q = Q.at[j, j].set(values[i] ** 2)
+    for i, j in tg.r_std:
+        R = R.at[j, j].set(values[i] ** 2)
+    for i, j in tg.bias:
+        ys = ys.at[:, j].add(-values[i])
+    noise = {name: values[i] for i, name in tg.inputs} if tg.inputs else None
+    return theta, Q, R, ys, noise
+
+
+def log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R, names,
+                      builder_kwargs=None):
+    """``loglik(values (d,), key) -> ()``: the filter's log-likelihood estimate of the data with
+    the quantities ``names`` (see the module docstring) set to ``values`` (physical units).
+
+    ``builder(model, Q, R, **builder_kwargs)`` builds the filter (``vehjax.filters.bootstrap_pf``
+    for PMMH; a Kalman filter's exact likelihood gives plain Metropolis-Hastings). Q, R: (n,)
+    variances or (n, n) covariances; named stds replace their diagonal entries. A run that
+    diverges (or re-initialises its particles) has likelihood zero (-inf).
+    """
+    tg = targets(model, names)
+    ys, us = _validate.data(measurements, inputs, model.ny, model.nu, "one")
+    ys, us = jnp.asarray(ys, float), jnp.asarray(us, float)
+    Q = jnp.asarray(_validate.cov("Q", Q, model.nx, allow_psd=True))
+    R = jnp.asarray(_validate.cov("R", R, model.ny))
+    kwargs = dict(builder_kwargs or {})
+    if tg.inputs and "input_noise" in kwargs:
+        raise ValueError("builder_kwargs: input_noise is calibrated ('input:' priors); drop it")
+    theta_base = jnp.asarray(model.theta, float)
+
+    def loglik(values, key):
+        theta, Qv, Rv, y, noise = with_values(tg, theta_base, Q, R, ys, values)
+        kw = dict(kwargs)
+        if tg.inputs:
+            kw["input_noise"] = noise
+        est = builder(model, Qv, Rv, **kw)
+        res = run_filter(est, y, us, x0=x0, P0=P0, theta0=theta, key=key,
+                         return_covariances=False)
+        ll = jnp.sum(res.loglik)
+        return jnp.where(res.diverged | ~jnp.isfinite(ll), -jnp.inf, ll)
+
+    return loglik
+
+
+# -- the correlated pseudo-marginal likelihood ----------------------------------------------
+#: ``builder_kwargs`` of the bootstrap PF that the correlated estimate (:mod:`vehjax.calibrate.correlated`)
+#: reproduces; it resamples systematically at every step
+CPM_KWARGS = ("n_particles", "resampling", "input_noise")
+
+
+def check_correlation(correlation):
+    """``correlation`` (rho of the Crank-Nicolson move) as a float in (0, 1); ValueError."""
+    ok = isinstance(correlation, numbers.Real) and not isinstance(correlation, (bool, np.bool_))
+    rho = float(correlation) if ok else float("nan")
+    if not 0.0 < rho < 1.0:
+        raise ValueError(f"correlation: expected a number in (0, 1) (the Crank-Nicolson move's "
+                         f"rho), got {correlation!r}")
+    return rho
+
+
+def cpm_log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R, names,
+                          builder_kwargs=None):
+    """The bootstrap PF's log-likelihood estimate as a function of its random numbers, for the
+    correlated pseudo-marginal method: ``(loglik(values (d,), aux) -> (), draw(key) -> aux)``,
+    aux a :class:`vehjax.correlated.Aux` of standard normals (:func:`vehjax.correlated.log_likelihood`:
+    particles sorted along a Hilbert curve (the default ``sort``) and resampled systematically at
+    every step). The same model and likelihood as :func:`log_likelihood_fn` with
+    ``vehjax.filters.bootstrap_pf``; ``values`` as there.
+
+    Raises:
+        ValueError: ``builder`` not ``vehjax.filters.bootstrap_pf`` (the only filter whose
+            random numbers this reproduces), or ``builder_kwargs`` other than ``n_particles``,
+            ``resampling="systematic"`` and ``input_noise``.
+    """
+    if builder is not bootstrap_pf:
+        raise ValueError(f"correlation: the correlated estimate is written for "
+                         f"vehjax.filters.bootstrap_pf only, got builder {builder!r}; use "
+                         f"correlation=None")
+    kwargs = dict(builder_kwargs or {})
+    extra = sorted(set(kwargs) - set(CPM_KWARGS))
+    if extra or kwargs.get("resampling", "systematic") != "systematic":
+        raise ValueError(f"builder_kwargs: with correlation the bootstrap PF resamples "
+                         f"systematically at every step and takes only {CPM_KWARGS} "
+                         f"(resampling='systematic'), got {kwargs!r}")
+    n = _validate.integer("n_particles", kwargs.get("n_particles", 1000), 2)
+    tg = targets(model, names)
+    if tg.inputs and "input_noise" in kwargs:
+        raise ValueError("builder_kwargs: input_noise is calibrated ('input:' priors); drop it")
+    ys, us = _validate.data(measurements, inputs, model.ny, model.nu, "one")
+    ys, us = jnp.asarray(ys, float), jnp.asarray(us, float)
+    x0a, P0a = _validate.prior(model.nx, x0, P0)
+    x0a, L0 = jnp.asarray(x0a, float), jnp.asarray(np.linalg.cholesky(np.asarray(P0a, float)))
+    Qn = np.asarray(_validate.cov("Q", Q, model.nx, allow_psd=True), float)
+    Rj = jnp.asarray(_validate.cov("R", R, model.ny), float)
+    LQ_fixed = jnp.asarray(square_root.chol_const(Qn))
+    Lu_fixed = inoise.input_factor(kwargs.get("input_noise"), model.input_names)
+    if tg.inputs:
+        k = len(tg.inputs)
+    else:
+        k = 0 if Lu_fixed is None else int(np.shape(Lu_fixed)[1])
+    theta_base = jnp.asarray(model.theta, float)
+    T = ys.shape[0]
+
+    def loglik(values, aux):
+        theta, Qv, Rv, y, noise = with_values(tg, theta_base, jnp.asarray(Qn), Rj, ys, values)
+        LQ = jnp.linalg.cholesky(Qv) if tg.q_std else LQ_fixed
+        Lu = inoise.input_factor(noise, model.input_names) if tg.inputs else Lu_fixed
+        Lu = None if Lu is None else jnp.asarray(Lu, float)
+        return correlated.log_likelihood(model.transition, model.observe, y, us, theta, x0a, L0, LQ,
+                                   Rv, jnp.zeros(model.ny), aux, Lu)
+
+    def draw(key):
+        return correlated.draw_aux(key, T, n, model.nx, k)
+
+    return loglik, draw
+
+
+def log_likelihood_difference_spread(builder, model, measurements, inputs=None, *, x0, P0, Q,
+                                     R, values, key, correlation, n_evals: int = 32,
+                                     builder_kwargs=None):
+    """How correlated the correlated estimates are, at fixed ``values`` (dict name -> physical
+    value): over ``n_evals`` draws of aux, the std [nats] of log p_hat(y | values, aux') - log
+    p_hat(y | values, aux) with aux' aux's Crank-Nicolson move (``correlation`` rho), which is
+    the noise the correlated chain's acceptance ratio sees, and the std of log p_hat(y | values,
+    aux) itself (independent estimates, the plain PMMH chain's). Returns (std of the
+    difference, std of the estimate) (:func:`cpm_log_likelihood_fn`)."""
+    rho = check_correlation(correlation)
+    names = tuple(values)
+    loglik, draw = cpm_log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0,
+                                         Q=Q, R=R, names=names, builder_kwargs=builder_kwargs)
+    v = jnp.asarray([float(values[n]) for n in names])
+    n_evals = _validate.integer("n_evals", n_evals, 2)
+
+    def pair(k):
+        ka, ke = jax.random.split(k)
+        aux = draw(ka)
+        return loglik(v, aux), loglik(v, correlated.crank_nicolson(aux, draw(ke), rho))
+
+    a, b = (np.asarray(t) for t in jax.jit(jax.vmap(pair))(jax.random.split(key, n_evals)))
+    return float(np.std(b - a, ddof=1)), float(np.std(a, ddof=1))
+
+
+
+
+def log_likelihood_spread(builder, model, measurements, inputs=None, *, x0, P0, Q, R, values,
+                          key, n_evals: int = 32, builder_kwargs=None):
+    """The std [nats] of a particle filter's log-likelihood estimate at fixed ``values`` (dict
+    name -> physical value, as the priors of :func:`pmmh`), over ``n_evals`` keys (vmapped),
+    and its mean: (std, mean). Doucet, Pitt, Deligiannidis & Kohn (2015, Biometrika 102(2)):
+    PMMH is most efficient for its cost with this std about 1.0-1.5 at the posterior mean; a
+    larger one makes the chain stick."""
+    names = tuple(values)
+    loglik = log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0, Q=Q, R=R,
+                               names=names, builder_kwargs=builder_kwargs)
+    v = jnp.asarray([float(values[n]) for n in names])
+    n_evals = _validate.integer("n_evals", n_evals, 2)
+    lls = np.asarray(jax.jit(jax.vmap(lambda k: loglik(v, k)))(jax.random.split(key, n_evals)))
+    return float(np.std(lls, ddof=1)), float(np.mean(lls))

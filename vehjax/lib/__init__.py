@@ -1,0 +1,11 @@
+"""vehjax's mathematics layer: pure functions on arrays, one concept a module.
+
+The modules here validate nothing (their callers check arguments before anything is traced),
+know no platform (no execution strategy, no device rules) and import nothing of vehjax from
+above them: filters, fitting and calibration are built on them, never the other way round.
+
+Modules:
+    transforms: maps between bounded parameters and unconstrained coordinates (the ``bounds=``
+        of tune, dual and Liu-West, and the priors of calibrate).
+    square_root: a square root L L^T = A of a constant or traced covariance.
+"""
