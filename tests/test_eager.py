@@ -1,11 +1,11 @@
-"""vehjax._eager: eager calls of filter/smooth run as one compiled program, traced calls inline."""
+"""vehjax.eager: eager calls of filter/smooth run as one compiled program, traced calls inline."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import vehjax as vj
-from vehjax import _eager
+from vehjax import eager
 
 MODEL = vj.models.Model(
     transition=lambda x, u, th: jnp.array([x[0] + 0.1 * x[1], x[1] - 0.1 * jnp.sin(x[0]) + 0.1 * u[0]]),
@@ -24,17 +24,17 @@ def test_eager_filter_and_smooth_equal_the_users_jit_and_compile_once():
     ys, us = _data()
     est = vj.filters.ukf(MODEL, np.eye(2) * 0.01, np.eye(1) * 0.1)
     kw = dict(x0=[0.1, 0.0], P0=np.eye(2))
-    eager = vj.filter(est, ys, us, **kw)
+    eagerly = vj.filter(est, ys, us, **kw)
     jitted = jax.jit(lambda y: vj.filter(est, y, us, **kw))(ys)
-    for a, b in zip(jax.tree.leaves(eager), jax.tree.leaves(jitted)):
+    for a, b in zip(jax.tree.leaves(eagerly), jax.tree.leaves(jitted)):
         np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-15)
     sm = vj.smooth(est, ys, us, **kw)
     sm_j = jax.jit(lambda y: vj.smooth(est, y, us, **kw))(ys)
     np.testing.assert_allclose(sm.states, sm_j.states, rtol=1e-13, atol=1e-15)
     # the second eager call with the same estimator reuses the compiled program
-    n = len(_eager._CACHE)
+    n = len(eager._CACHE)
     vj.filter(est, ys + 0.1, us, **kw)
-    assert len(_eager._CACHE) == n
+    assert len(eager._CACHE) == n
 
 
 def test_traced_arguments_are_traced_inline_and_the_cache_is_bounded(monkeypatch):
@@ -48,12 +48,12 @@ def test_traced_arguments_are_traced_inline_and_the_cache_is_bounded(monkeypatch
         value = 3.0
 
     h = Held()
-    assert float(_eager.call(f, (h,), {"power": 2}, jnp.asarray(2.0))) == 12.0
-    assert float(_eager.call(f, (h,), {"power": 2}, jnp.asarray(5.0))) == 75.0
+    assert float(eager.call(f, (h,), {"power": 2}, jnp.asarray(2.0))) == 12.0
+    assert float(eager.call(f, (h,), {"power": 2}, jnp.asarray(5.0))) == 75.0
     assert len(calls) == 1  # traced once by the cached jit, not again
-    g = jax.grad(lambda x: _eager.call(f, (h,), {"power": 2}, x))(2.0)
+    g = jax.grad(lambda x: eager.call(f, (h,), {"power": 2}, x))(2.0)
     assert float(g) == 12.0 and len(calls) == 2  # under grad: inline, not through the cache
-    monkeypatch.setattr(_eager, "CACHE_SIZE", 3)
+    monkeypatch.setattr(eager, "CACHE_SIZE", 3)
     for p in range(6):
-        _eager.call(f, (h,), {"power": p}, jnp.asarray(1.0))
-    assert len(_eager._CACHE) == 3
+        eager.call(f, (h,), {"power": p}, jnp.asarray(1.0))
+    assert len(eager._CACHE) == 3

@@ -1,4 +1,4 @@
-"""Every public entry point checks its arguments by the same rules (vehjax._validate): the same
+"""Every public entry point checks its arguments by the same rules (vehjax.validation): the same
 bad or edge input is accepted by all of filter, run, compile_run, simulate and tune.objective
 with equal results, or refused by all with a ValueError naming the argument.
 
@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import vehjax as vj
-from vehjax import _validate
+from vehjax import validation
 from vehjax import filters as F
 from vehjax import tune
 
@@ -127,7 +127,7 @@ def _mutate(kind: str, a: np.ndarray, where: int):
 
 
 def _expected_refused(arg: str, kind: str) -> bool:
-    """The documented rules (vehjax._validate): whether ``arg`` changed by ``kind`` is refused."""
+    """The documented rules (vehjax.validation): whether ``arg`` changed by ``kind`` is refused."""
     if kind in ("float32", "int", "list"):
         return False  # real numbers in another precision or container: accepted
     if kind == "nan":
@@ -209,7 +209,7 @@ def test_dtypes_containers_and_shapes_alike_everywhere(arg, kind):
 
 def test_validate_imports_nothing_of_vehjax():
     """The import circle with models/base is gone: _validate is a leaf module."""
-    tree = ast.parse(Path(_validate.__file__).read_text())
+    tree = ast.parse(Path(validation.__file__).read_text())
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
             assert node.level == 0 and not (node.module or "").startswith("vehjax"), node.module
@@ -221,17 +221,17 @@ def test_array_rule_names_the_first_bad_index():
     a = np.zeros((3, 2))
     a[1, 1], a[2, 0] = np.nan, np.inf
     with pytest.raises(ValueError, match=r"^u: expected finite values, found nan at index \(1, 1\)"):
-        _validate.array("u", a)
+        validation.array("u", a)
     with pytest.raises(ValueError, match=r"^y: expected no \+-inf, found inf at index \(2, 0\)"):
-        _validate.array("y", a, missing=True)
+        validation.array("y", a, missing=True)
     a[2, 0] = 0.0
-    assert np.isnan(_validate.array("y", a, missing=True)[1, 1])  # NaN: missing
-    assert _validate.array("y", [[1, 2]]).dtype == np.float64
-    assert _validate.array("y", np.ones(2, np.float32)).dtype == np.float32
+    assert np.isnan(validation.array("y", a, missing=True)[1, 1])  # NaN: missing
+    assert validation.array("y", [[1, 2]]).dtype == np.float64
+    assert validation.array("y", np.ones(2, np.float32)).dtype == np.float32
     for bad, what in ((np.ones(2, complex), "complex"), (np.ones(2, bool), "bool"),
                       (["a"], "<U1"), ([[1.0], [1.0, 2.0]], "numeric array")):
         with pytest.raises(ValueError, match=f"^v: expected a .*{re.escape(what)}"):
-            _validate.array("v", bad)
+            validation.array("v", bad)
 
 
 def test_one_prior_check_the_same_message_everywhere():

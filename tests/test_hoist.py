@@ -1,4 +1,4 @@
-"""vehjax._hoist.split: the early/late partition of a model function computes what it does."""
+"""vehjax.hoist.split: the early/late partition of a model function computes what it does."""
 
 import jax
 import jax.numpy as jnp
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import vehjax as vj
-from vehjax._hoist import split
+from vehjax.hoist import split
 
 SD = jax.ShapeDtypeStruct
 
@@ -66,7 +66,7 @@ def test_split_rejects_wrong_number_of_flags():
 
 # -- dependence: which output entries are constants of the function --------------------------
 
-from vehjax._hoist import dependence  # noqa: E402
+from vehjax.hoist import dependence  # noqa: E402
 
 
 def test_dependence_follows_entries_through_moves_and_elementwise_ops():
@@ -128,9 +128,9 @@ def test_entries_found_constant_are_the_same_at_random_points(model):
 
 
 def test_numpy_evaluation_of_equations_equals_the_primitives():
-    """``dependence`` evaluates common primitives in numpy (_hoist._apply); each such equation of
+    """``dependence`` evaluates common primitives in numpy (hoist._apply); each such equation of
     a function using them gives what binding the primitive gives, dtype and shape included."""
-    from vehjax import _hoist
+    from vehjax import hoist
 
     def fn(x, i):
         a = jnp.stack([x[0] * x[1] - x[2] / x[1], -x[0], jnp.abs(x[2]) + jnp.floor(x[1])])
@@ -148,7 +148,7 @@ def test_numpy_evaluation_of_equations_equals_the_primitives():
     n_numpy = 0
     for eqn in closed.jaxpr.eqns:
         vals = [v.val if isinstance(v, jax.extend.core.Literal) else env[v] for v in eqn.invars]
-        got = _hoist._apply(eqn, vals)
+        got = hoist._apply(eqn, vals)
         ref = eqn.primitive.bind(*vals, **eqn.params)
         ref = list(ref) if eqn.primitive.multiple_results else [ref]
         for g, r in zip(got, ref):
@@ -156,6 +156,6 @@ def test_numpy_evaluation_of_equations_equals_the_primitives():
             np.testing.assert_allclose(np.asarray(g, float), np.asarray(r, float), rtol=1e-14,
                                        err_msg=str(eqn))
         n_numpy += all(isinstance(g, np.ndarray) for g in got) and eqn.primitive.name in (
-            _hoist._NUMPY)
+            hoist._NUMPY)
         env.update(zip(eqn.outvars, got))
     assert n_numpy >= 20

@@ -12,7 +12,7 @@ import pytest
 import scipy.stats
 
 import vehjax as vj
-from vehjax.filters._entrywise import entries, stack
+from vehjax.lib.entrywise import entries, stack
 from vehjax.filters._mpf_kalman import bank_kalman_step
 from vehjax.filters._mpf_linearise import Lin, entry_kinds, lin_entries, linearise
 from vehjax.filters._niw import (

@@ -397,7 +397,7 @@ def test_input_noise_kalman_step_is_the_kalman_update_with_the_input_error_as_a_
     appended as a state (scipy for the density), one component missing."""
     import scipy.stats
 
-    from vehjax.filters._entrywise import entries
+    from vehjax.lib.entrywise import entries
     from vehjax.filters._mpf_kalman import input_noise_kalman_step
     from vehjax.filters._mpf_linearise import lin_entries, linearise
 

@@ -448,7 +448,7 @@ _SHARDED = textwrap.dedent(
     prepared = compile_run(t.EST, ys, us, chunk_size=1, **kw)
     assert (prepared.chunk_size, prepared.n_chunks) == (2, 3)  # rounded up to the device count
     t._assert_close(prepared(progress=False), one)
-    # the runs-last UKF step (vehjax.filters._runs_last) sharded the same way
+    # the runs-last UKF step (vehjax.filters.runs_last) sharded the same way
     import vehjax as vj
     model = vj.models.Dynamic3DOF(dt=0.01)
     scn = vj.scenarios.sine_steer(model, speed=20.0, duration=0.2)

@@ -1,4 +1,4 @@
-"""vehjax.run's runs-last EKF and UKF/CKF steps (vehjax.filters._runs_last) against the vmapped
+"""vehjax.run's runs-last EKF and UKF/CKF steps (vehjax.filters.runs_last) against the vmapped
 per-run step they replace: the same study both ways agrees to rounding, field by field."""
 
 import jax
@@ -185,7 +185,7 @@ def test_runs_last_step_reads_theta_from_state_unless_constant(study, per_run_in
 def test_ekf_measurement_jacobian_constants_are_the_jacobian():
     """The entries of dh/dx the runs-last EKF folds as constants are exactly those that are the
     same at random states, inputs and parameters, with those values; the others vary."""
-    from vehjax.filters._runs_last import _jacobian_constants
+    from vehjax.filters.runs_last import _jacobian_constants
 
     model = vj.models.Dynamic3DOF(dt=0.01, outputs="matlab")  # vx, ay (nonlinear), r
     h = model.observe
@@ -207,11 +207,11 @@ def test_ekf_measurement_jacobian_constants_are_the_jacobian():
 
 
 def test_entrywise_algebra_equals_numpy():
-    """The shared entry-by-entry algebra (vehjax.filters._entrywise) against numpy on (R,)
+    """The shared entry-by-entry algebra (vehjax.lib.entrywise) against numpy on (R,)
     entries with structural zeros and ones mixed in: products, Cholesky factors on an observed
     block, back substitution, the barrier (values unchanged), entries/stack round trip."""
-    from vehjax.filters import _entrywise as ew
-    from vehjax.filters._linalg import forward_entries
+    from vehjax.lib import entrywise as ew
+    from vehjax.lib.linalg import forward_entries
 
     rng = np.random.default_rng(0)
     R = 3

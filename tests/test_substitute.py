@@ -1,4 +1,4 @@
-"""vehjax._substitute.fast_elementary: a user's model written with jnp.sin/cos/arctan2 runs with
+"""vehjax.substitute.fast_elementary: a user's model written with jnp.sin/cos/arctan2 runs with
 vehjax's vectorisable elementary functions, to their ulp bounds, derivatives included."""
 
 import jax
@@ -8,8 +8,8 @@ import pytest
 from jax import lax
 
 import vehjax as vj
-from vehjax._hoist import split
-from vehjax._substitute import fast_elementary
+from vehjax.hoist import split
+from vehjax.substitute import fast_elementary
 
 SD = jax.ShapeDtypeStruct
 SUBSTITUTED = {"sin", "cos", "tan", "atan", "atan2"}
@@ -177,7 +177,7 @@ def test_cond_scan_and_while_bodies_are_rewritten():
 
 
 def test_public_math_module_is_the_elementary_functions():
-    import vehjax._elementary as el
+    import vehjax.elementary as el
     import vehjax.math as vm
 
     assert all(getattr(vm, n) is getattr(el, n) for n in vm.__all__)

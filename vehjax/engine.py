@@ -48,9 +48,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _validate
+from . import validation
 from .filters.bounds import check_inside
-from .filters._linalg import is_pd
+from .lib.linalg import is_pd
 from .filters.base import Estimator, StepOutput
 
 __all__ = [
@@ -258,15 +258,15 @@ def one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key
 
 def check_arguments(estimator, ys, us, x0, P0, theta0, P_theta0, key):
     """The arguments of one run (:func:`vehjax.filter`, :func:`vehjax.smooth`) checked by
-    :mod:`vehjax._validate` (the rules every entry point shares): concrete values in full,
+    :mod:`vehjax.validation` (the rules every entry point shares): concrete values in full,
     traced ones by dtype and shape. Returns (ys, us, x0, P0, th0, Pth0) as arrays."""
     if not isinstance(estimator, Estimator):
         raise ValueError(
             f"estimator: expected a vehjax.filters.Estimator, got {type(estimator).__name__}"
         )
-    ys, us = _validate.data(ys, us, estimator.ny, estimator.nu, "one")
-    x0, P0 = _validate.prior(estimator.nx, x0, P0)
-    th0, Pth0 = _validate.initial_params(
+    ys, us = validation.data(ys, us, estimator.ny, estimator.nu, "one")
+    x0, P0 = validation.prior(estimator.nx, x0, P0)
+    th0, Pth0 = validation.initial_params(
         tuple(estimator.param_names), theta0, P_theta0,
         has_prior=estimator.param_prior is not None, label=f"estimator {estimator.name!r}")
     if estimator.needs_key and key is None:
@@ -274,7 +274,7 @@ def check_arguments(estimator, ys, us, x0, P0, theta0, P_theta0, key):
             f"key: estimator {estimator.name!r} draws random numbers; pass key=jax.random.key(...)"
         )
     if key is not None:
-        _validate.key(key, 1)  # a PRNG key (an int such as 0 is not), as run checks it
+        validation.key(key, 1)  # a PRNG key (an int such as 0 is not), as run checks it
     if estimator.param_names:
         check_theta0(estimator, th0)
     return ys, us, x0, P0, th0, Pth0

@@ -42,10 +42,10 @@ CPU:
   bootstrap PF (``workload="particles"``) runs slower with it and does not get it.
 * **Substitutes** (``substitute_elementary``): XLA:CPU evaluates float64 sin/cos/tan/atan/atan2
   by one scalar library call per element; a model built with ``fast_math=True`` evaluates them
-  with :mod:`vehjax._elementary`'s arithmetic forms, which vectorise: a markedly faster filter
+  with :mod:`vehjax.elementary`'s arithmetic forms, which vectorise: a markedly faster filter
   on a model written with trigonometry.
 * **Runs-last step** (``runs_last``): a filter's batched step with the runs axis last
-  (:mod:`vehjax.filters._runs_last`) vectorises across runs, faster than vmapping. Its
+  (:mod:`vehjax.filters.runs_last`) vectorises across runs, faster than vmapping. Its
   prepared inputs reach it through the scan's carry where the filter asks (``prefetch_inputs``),
   which helps the EKF further.
 
@@ -64,7 +64,7 @@ GPU (measured on one H100, float64, through the public API, issue #28):
 TPU: the GPU rules (no measurement; nothing in them is GPU-specific).
 
 Random numbers are the same on every platform by design: the particle filters hash counters
-with Threefry-2x32 (:mod:`vehjax._random`), several times cheaper than ``jax.random`` in float64
+with Threefry-2x32 (:mod:`vehjax.prng`), several times cheaper than ``jax.random`` in float64
 on CPU, and the same draws everywhere, so that a strategy changes timings, never results beyond
 rounding (``tests/test_execution.py`` holds every family's GPU strategy, forced on the CPU, to
 its CPU strategy's results).
@@ -112,7 +112,7 @@ class Strategy(NamedTuple):
         runs_last: use an estimator's runs-last ``batch`` step where it declares one.
         elemental_emitter: compile ``small_dense`` estimators with XLA:CPU's elemental emitter.
         substitute_elementary: evaluate ``fast_math`` models with the vectorisable
-            trigonometric substitutes (:mod:`vehjax._substitute`).
+            trigonometric substitutes (:mod:`vehjax.substitute`).
         results_to_host: bring each chunk's results to host memory (numpy) as it finishes;
             False keeps them on the device (``RunResult`` of jax arrays, one device).
         prefetch_inputs: hand a runs-last step its prepared inputs through the scan's carry

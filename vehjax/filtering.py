@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from . import _eager
+from . import eager
 from .engine import AT_BOUND_FRACTION, AT_BOUND_RTOL, FilterResult, check_arguments, one_run
 from .filters.base import Estimator
 
@@ -48,7 +48,7 @@ def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_th
 
     Raises:
         ValueError: naming the argument (and the first bad index), by the rules every entry
-            point shares (:mod:`vehjax._validate`): shapes that do not fit and complex or
+            point shares (:mod:`vehjax.validation`): shapes that do not fit and complex or
             non-numeric arrays (also under ``jit``); for concrete values also +-inf
             measurements, non-finite inputs, x0, P0, theta0, P_theta0, covariances that are
             not symmetric positive definite, a theta0 outside ``estimator.bounds``; a missing
@@ -56,6 +56,6 @@ def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_th
     """
     ys, us, x0, P0, th0, Pth0 = check_arguments(estimator, measurements, inputs, x0, P0,
                                                  theta0, P_theta0, key)
-    # called eagerly: compiled as one program (vehjax._eager); under a trace: inline
-    return _eager.call(one_run, (estimator, bool(return_covariances)), {}, jnp.asarray(ys),
+    # called eagerly: compiled as one program (vehjax.eager); under a trace: inline
+    return eager.call(one_run, (estimator, bool(return_covariances)), {}, jnp.asarray(ys),
                        jnp.asarray(us), jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key)

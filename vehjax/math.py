@@ -24,7 +24,7 @@ When to use them: in a model's ``transition``/``observe`` that runs on CPU, for 
 float64 angles. Write ``from vehjax.math import sin, cos, arctan2`` in place of the ``jnp``
 ones. On GPU, or for complex, float16 or bfloat16 arguments, ``jnp``'s are as good or the only
 choice. A model already written with ``jnp`` functions can be converted without editing it by
-:func:`vehjax._substitute.fast_elementary`, which replaces these five functions in its trace.
+:func:`vehjax.substitute.fast_elementary`, which replaces these five functions in its trace.
 
 Example::
 
@@ -38,6 +38,6 @@ Example::
 
 from __future__ import annotations
 
-from ._elementary import arctan, arctan2, cos, sin, tan
+from .elementary import arctan, arctan2, cos, sin, tan
 
 __all__ = ["sin", "cos", "tan", "arctan", "arctan2"]

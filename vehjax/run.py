@@ -12,10 +12,10 @@ step ``t`` predicts with ``inputs[..., t, :]``, then updates with ``measurements
 
 Each run is :func:`vehjax.filter`'s traced logic (``vehjax.engine.one_run``), vmapped over
 the runs of a chunk. Estimators with a runs-last ``batch`` form (EKF, UKF and CKF on models with at
-most 8 states and outputs, :mod:`vehjax.filters._runs_last`) are not vmapped where the execution
+most 8 states and outputs, :mod:`vehjax.filters.runs_last`) are not vmapped where the execution
 strategy says so: one scan runs the batched step with the runs axis last, and what the model
 computes from the inputs alone is computed once for the whole input sequence before the time
-loop (:mod:`vehjax._hoist`); results agree to rounding.
+loop (:mod:`vehjax.hoist`); results agree to rounding.
 
 How a study executes on its platform (chunk budget, blocking of runs inside a chunk, runs-last
 or vmapped step, XLA options, trigonometric substitutes, results to the host) is decided in one
@@ -50,7 +50,7 @@ XLA options) on the same machine. To rounding: another chunking, blocking, shard
 processes changes which runs XLA computes together and how it vectorises them, so the last bits
 of a result can change; a Gaussian filter's results then agree to a few float64 rounding errors
 amplified by the problem's conditioning. A particle filter draws its normals in float32
-(:mod:`vehjax._random`), whose last float32 bit can change likewise (relative 1e-7), and where a
+(:mod:`vehjax.prng`), whose last float32 bit can change likewise (relative 1e-7), and where a
 resampling decision turns on it the run continues as another, equally valid Monte-Carlo
 realisation: particle results agree statistically, and to about 1e-6 relative only while no
 decision flips. Per-run keys do not depend on chunking (run r gets ``split(key, R)[r]``).
@@ -104,9 +104,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from . import _validate, engine, execution
+from . import engine, execution, validation
 from .engine import FilterResult
-from .filters import _runs_last
+from .filters import runs_last
 from .filters.base import Estimator
 from .result import RunResult
 
@@ -134,7 +134,7 @@ def _scan_prefetched(body, carry0, xs, pre):
     the carry: it is read at the end of step t - 1 (of the first step, before the loop).
 
     XLA on CPU fuses a slice of a scanned-over array into every kernel that reads it; a carried
-    value is a plain buffer. Which is faster depends on the step (``_runs_last.Batch.prefetch``).
+    value is a plain buffer. Which is faster depends on the step (``runs_last.Batch.prefetch``).
     """
     T = jax.tree.leaves(xs)[0].shape[0]
     if T == 0 or not jax.tree.leaves(pre):
@@ -157,13 +157,13 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per
                      P0, th0, Pth0, keys, predictions: bool = False):
     """What ``vmap(engine.one_run)`` computes, for an estimator with a runs-last ``batch``
     form: one scan over time of the batched step, every array with the runs axis last (see
-    :mod:`vehjax.filters._runs_last`); the same per-run bookkeeping (``engine.finish``).
+    :mod:`vehjax.filters.runs_last`); the same per-run bookkeeping (``engine.finish``).
 
     With ``predictions`` (static; what the runs-last smoother needs, ``return_cov`` then True)
     the scan runs the step's ``smooth_step`` instead and the result is
     ``(FilterResult, state0, means, covs, prediction)``: the init states (runs-last
     GaussianState), the filtered means (T, nx, R) and covariances (T, nx, nx, R) and every
-    step's :class:`vehjax.filters._runs_last.Prediction` stacked (leading T), all runs last.
+    step's :class:`vehjax.filters.runs_last.Prediction` stacked (leading T), all runs last.
     Without it only the FilterResult, and the scan is the filter's alone."""
     p = len(estimator.param_names)
     per_run_u = us.ndim == 3
@@ -174,8 +174,8 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per
     batch = estimator.batch(per_run_u, held0[0].dtype, th0 is None)
     state0 = jax.tree.map(lambda a: jnp.moveaxis(a, 0, -1), state0)
 
-    ok = partial(engine.output_ok, p=p, pd=_runs_last.is_pd,
-                 all_finite=_runs_last.all_finite)
+    ok = partial(engine.output_ok, p=p, pd=runs_last.is_pd,
+                 all_finite=runs_last.all_finite)
     if predictions:
         if batch.smooth_step is None:
             raise ValueError(f"estimator: {estimator.name!r}'s runs-last step has no smooth_step")
@@ -424,12 +424,12 @@ def _plan(
     if nx < 1:
         raise ValueError(f"estimator: nx must be >= 1, got {estimator.nx}")
 
-    # the checks every entry point shares (vehjax._validate): real arrays, NaN measurements
+    # the checks every entry point shares (vehjax.validation): real arrays, NaN measurements
     # missing, +-inf and every other non-finite value refused naming the first bad index
-    ys, us = _validate.data(measurements, inputs, estimator.ny, estimator.nu, "many")
+    ys, us = validation.data(measurements, inputs, estimator.ny, estimator.nu, "many")
     R, T, ny = ys.shape
-    x0, P0 = _validate.prior(nx, x0, P0, runs=R)
-    th0, Pth0 = _validate.initial_params(
+    x0, P0 = validation.prior(nx, x0, P0, runs=R)
+    th0, Pth0 = validation.initial_params(
         tuple(estimator.param_names), theta0, P_theta0, runs=R,
         has_prior=estimator.param_prior is not None, label=f"estimator {estimator.name!r}",
         model_theta=estimator.n_theta is not None)
@@ -444,7 +444,7 @@ def _plan(
         raise ValueError(
             f"key: estimator {estimator.name!r} draws random numbers; pass key=jax.random.key(...)"
         )
-    keys = None if key is None else _validate.key(key, R)
+    keys = None if key is None else validation.key(key, R)
 
     if not isinstance(return_covariances, (bool, np.bool_)):
         raise ValueError(f"return_covariances: expected True or False, got {return_covariances!r}")

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _validate
+from . import validation
 from .models.base import DrivableModel
 
 __all__ = [
@@ -99,11 +99,11 @@ def _check_model(model):
 
 
 def _check_positive(name, value):
-    return _validate.number(name, value, 0.0)
+    return validation.number(name, value, 0.0)
 
 
 def _check_finite(name, value):
-    return _validate.number(name, value)
+    return validation.number(name, value)
 
 
 def _drive(model, name: str, speed: float, duration: float, steer: Callable | None, offset=3.5):
@@ -252,17 +252,17 @@ def sine_with_dwell(model, speed: float = 22.0, amplitude: float = 0.08, frequen
 def from_inputs(model, inputs, x0, name: str = "custom"):
     """Wrap an input sequence (T, nu) and initial state (nx,) of your own as a Scenario.
 
-    Checked by the rules every entry point shares (:mod:`vehjax._validate`): real, finite,
+    Checked by the rules every entry point shares (:mod:`vehjax.validation`): real, finite,
     T >= 1; ValueError naming ``inputs`` or ``x0`` and the first bad index."""
-    _validate.model(model)
+    validation.model(model)
     nu, nx = len(model.input_names), len(model.state_names)
-    inputs = np.asarray(_validate.array("inputs", inputs), dtype=float)
+    inputs = np.asarray(validation.array("inputs", inputs), dtype=float)
     if inputs.ndim != 2 or inputs.shape[1] != nu or inputs.shape[0] == 0:
         raise ValueError(
             f"inputs: expected shape (T, {nu}) with T >= 1 for inputs "
             f"{tuple(model.input_names)}, got {inputs.shape}"
         )
-    x0 = np.asarray(_validate.per_run("x0", x0, (nx,), what=f"nx = {nx} states"), dtype=float)
+    x0 = np.asarray(validation.per_run("x0", x0, (nx,), what=f"nx = {nx} states"), dtype=float)
     t = np.arange(inputs.shape[0]) * model.dt
     path = np.full((inputs.shape[0], 3), np.nan)
     return Scenario(name, t, jnp.asarray(inputs), jnp.asarray(x0), tuple(model.input_names), path)

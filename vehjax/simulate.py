@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _validate
+from . import validation
 
 __all__ = ["Simulation", "simulate"]
 
@@ -76,7 +76,7 @@ def _vector(name: str, value, n: int, what: str, allow_none=True):
     """A non-negative finite vector of length n from a scalar or a sequence."""
     if value is None:
         return np.zeros(n)
-    arr = np.asarray(_validate.array(name, value, allow_nan=True), dtype=float)  # real
+    arr = np.asarray(validation.array(name, value, allow_nan=True), dtype=float)  # real
     if arr.ndim == 0:
         arr = np.full(n, float(arr))
     if arr.shape != (n,):
@@ -90,7 +90,7 @@ def _scale(name: str, value, t: np.ndarray):
     """A non-negative (T,) std multiplier from None, a callable of t [s], or an array."""
     if value is None:
         return np.ones_like(t)
-    arr = np.asarray(_validate.array(name, value(t) if callable(value) else value,
+    arr = np.asarray(validation.array(name, value(t) if callable(value) else value,
                                      allow_nan=True), dtype=float)  # real; finite below
     if arr.ndim == 0:
         arr = np.full_like(t, float(arr))
@@ -103,20 +103,20 @@ def _scale(name: str, value, t: np.ndarray):
 
 def _scenario(model, scenario):
     """(inputs (T, nu), x0 (nx,)) of a Scenario, checked against ``model`` by the rules every
-    entry point shares (:mod:`vehjax._validate`: real, finite, naming ``scenario.inputs`` or
+    entry point shares (:mod:`vehjax.validation`: real, finite, naming ``scenario.inputs`` or
     ``scenario.x0`` and the first bad index), also for a Scenario built directly."""
     if not all(hasattr(scenario, a) for a in ("inputs", "x0")):
         raise ValueError(f"scenario: expected a vehjax.scenarios.Scenario (inputs, x0), got "
                          f"{type(scenario).__name__}")
     nu, nx = len(model.input_names), len(model.state_names)
-    inputs = np.asarray(_validate.array("scenario.inputs", scenario.inputs), dtype=float)
+    inputs = np.asarray(validation.array("scenario.inputs", scenario.inputs), dtype=float)
     if inputs.ndim != 2 or inputs.shape[1] != nu or inputs.shape[0] == 0:
         raise ValueError(
             f"scenario.inputs: expected shape (T, {nu}) with T >= 1 for {type(model).__name__}'s "
             f"inputs {tuple(model.input_names)}, got {inputs.shape}; build the scenario for "
             f"this model"
         )
-    x0 = np.asarray(_validate.per_run("scenario.x0", scenario.x0, (nx,),
+    x0 = np.asarray(validation.per_run("scenario.x0", scenario.x0, (nx,),
                                       what=f"{type(model).__name__}'s {nx} states"), dtype=float)
     return inputs, x0
 
@@ -163,7 +163,7 @@ def simulate(
     Returns:
         A :class:`Simulation`.
     """
-    _validate.model(model)
+    validation.model(model)
     if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
         raise ValueError(f"runs: expected an integer >= 1, got {runs!r}")
     runs = int(runs)
@@ -177,7 +177,7 @@ def simulate(
     p_std = _vector("param_std", param_std, n_par, "a relative std per parameter")
     s_std = _vector("x0_std", x0_std, nx, "one std per state")
     b_std = _vector("bias_walk_std", bias_walk_std, ny, "one std per output")
-    b0 = np.asarray(_validate.array("bias0", 0.0 if bias0 is None else bias0, allow_nan=True),
+    b0 = np.asarray(validation.array("bias0", 0.0 if bias0 is None else bias0, allow_nan=True),
                     dtype=float)
     b0 = np.full(ny, float(b0)) if b0.ndim == 0 else b0
     if b0.shape != (ny,) or not np.all(np.isfinite(b0)):
@@ -199,11 +199,11 @@ def simulate(
             )
         offset[list(model.input_names).index("delta")] = steering_offset
 
-    base_theta = _validate.per_run("theta", np.asarray(model.theta) if theta is None else theta,
+    base_theta = validation.per_run("theta", np.asarray(model.theta) if theta is None else theta,
                                    (n_par,), runs, f"parameters {tuple(model.param_names)}")
     base_theta = np.asarray(base_theta, dtype=float)
     base_theta = np.broadcast_to(base_theta, (runs, n_par))
-    keys = _validate.key(jax.random.key(0) if key is None else key, runs)
+    keys = validation.key(jax.random.key(0) if key is None else key, runs)
 
     dtype = jnp.result_type(float)
     arrays = dict(

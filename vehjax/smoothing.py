@@ -54,10 +54,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _eager, _validate
+from . import eager, validation
 from .engine import FilterResult, check_arguments, finish, output_ok, scan_body, start
-from .filters._entrywise import chol_sym
-from .filters._linalg import is_pd, sym
+from .lib.entrywise import chol_sym
+from .lib.linalg import is_pd, sym
 from .filters.base import Estimator
 from .smoothers import gaussian as _gauss
 from .smoothers import iterated as _iter
@@ -231,7 +231,7 @@ def _smooth_runs_last(estimator: Estimator, filt: FilterResult, state0, means, c
         state0: the filter's init states of the runs (``estimator.init``), runs axis last.
         means, covs: the forward pass's filtered means (T, nx, R) and covariances
             (T, nx, nx, R), before any divergence hold (such runs are reported held anyway).
-        pred: the forward pass's :class:`vehjax.filters._runs_last.Prediction` of every step,
+        pred: the forward pass's :class:`vehjax.filters.runs_last.Prediction` of every step,
             leading T.
 
     Returns:
@@ -286,15 +286,15 @@ def check_options(estimator: Estimator, method=None, tol=1e-6, max_iter=20):
             f"estimator: {estimator.name!r} has no smoother; vehjax.smooth smooths the EKF, "
             f"UKF, CKF (plain and square-root), the joint EKF/UKF and the bootstrap PF (dual "
             f"filters do not form the joint state-parameter Gaussian a smoother needs)")
-    method = "rts" if method is None else _validate.choice("method", method, METHODS)
+    method = "rts" if method is None else validation.choice("method", method, METHODS)
     if method == "ieks" and not spec.taylor:
         raise ValueError(f"method: 'ieks' iterates Jacobian linearisations; {estimator.name!r} "
                          f"linearises by sigma points, use method='ipls'")
     if method == "ipls" and spec.taylor:
         raise ValueError(f"method: 'ipls' iterates sigma-point linearisations; "
                          f"{estimator.name!r} linearises by Jacobians, use method='ieks'")
-    return (method, _validate.number("tol", tol, 0.0),
-            _validate.integer("max_iter", max_iter, 1))
+    return (method, validation.number("tol", tol, 0.0),
+            validation.integer("max_iter", max_iter, 1))
 
 
 def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=None,
@@ -374,7 +374,7 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
         if np.shape(initial) != (T, n):
             raise ValueError(f"initial: expected shape ({T}, {n}), got {np.shape(initial)}")
     ys, us = jnp.asarray(ys), jnp.asarray(us)
-    # called eagerly: compiled as one program (vehjax._eager); under a trace: inline
-    return _eager.call(smooth_one_run, (estimator,),
+    # called eagerly: compiled as one program (vehjax.eager); under a trace: inline
+    return eager.call(smooth_one_run, (estimator,),
                        dict(method=method, parallel=parallel, tol=tol, max_iter=max_iter),
                        ys, us, jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key, initial=initial)

@@ -94,7 +94,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from . import _validate
+from . import validation
 from .filtering import filter as _filter
 from .filters import bounds as _bounds
 from .filters import input_noise as _inoise
@@ -282,7 +282,7 @@ class _InputNoise:
             self.z0 = np.log(np.array([float(spec[n]) for n in self.names]))
             self.cov = None
         else:
-            S = _validate.cov("input_noise", np.asarray(spec, dtype=float), len(names),
+            S = validation.cov("input_noise", np.asarray(spec, dtype=float), len(names),
                               allow_diag=False)
             self.names, self.diag = names, _is_diag(S)
             self.cov = _Cov(S, self.diag)
@@ -298,7 +298,7 @@ def _param_transform(params, bounds, theta0: np.ndarray, names: tuple):
     """(indices (q,) in ``names``, :class:`vehjax.filters._bounds.Transform`) of the fitted
     parameters; ValueError naming ``bounds``. A parameter not in ``bounds`` is kept positive when
     its starting value is positive, else left free (module docstring)."""
-    bounds = _validate.keyed("bounds", bounds, params, "the fitted params")
+    bounds = validation.keyed("bounds", bounds, params, "the fitted params")
     idx = np.array([names.index(p) for p in params], dtype=int)
     low, high = np.empty(len(params)), np.empty(len(params))
     for j, p in enumerate(params):
@@ -409,10 +409,10 @@ def stop_gradient_pf(model, Q, R, n_particles: int = 1000, resampling: str = "sy
 
 
 def _float_array(name: str, value, allow_nan: bool = False) -> np.ndarray:
-    if _validate.is_tracer(value):
+    if validation.is_tracer(value):
         raise ValueError(f"{name}: expected a concrete array; call vehjax.tune outside jit/grad")
     # the rules every entry point shares (real; NaN missing in measurements, else finite)
-    return np.array(_validate.array(name, value, missing=allow_nan), dtype=float)
+    return np.array(validation.array(name, value, missing=allow_nan), dtype=float)
 
 
 def _check_builder(builder):
@@ -429,19 +429,19 @@ def _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bound
              fit_x0, key, builder_kwargs):
     """Everything checked before tracing; returns the pieces of the objective."""
     builder = _check_builder(builder)
-    _validate.model(model)
+    validation.model(model)
     nx, ny, nu = len(model.state_names), len(model.output_names), len(model.input_names)
-    noise = _validate.names("noise", noise, _NOISE_KINDS, allow_empty=True)
+    noise = validation.names("noise", noise, _NOISE_KINDS, allow_empty=True)
     # a Q0 that is not fitted may be singular (zero with the noise through the inputs)
-    Qa = _validate.cov("Q0", _float_array("Q0", Q0), nx, allow_psd="Q" not in noise)
-    Ra = _validate.cov("R0", _float_array("R0", R0), ny)
+    Qa = validation.cov("Q0", _float_array("Q0", Q0), nx, allow_psd="Q" not in noise)
+    Ra = validation.cov("R0", _float_array("R0", R0), ny)
     diagQ = np.ndim(Q0) == 1 or _is_diag(Qa)
     diagR = np.ndim(R0) == 1 or _is_diag(Ra)
     names = tuple(model.param_names)
     if isinstance(params, Mapping):
         raise ValueError("params: expected a sequence of parameter names; give their bounds in "
                          "bounds={name: (lo, hi)}")
-    params = _validate.names("params", params, names, allow_empty=True)
+    params = validation.names("params", params, names, allow_empty=True)
     theta0 = np.asarray(model.theta, dtype=float)
     idx, theta_map = _param_transform(params, bounds, theta0, names)
     if not isinstance(fit_x0, (bool, np.bool_)):
@@ -461,14 +461,14 @@ def _prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bound
                              "builder_kwargs={'input_noise': {input name: std, ...}}")
         inp = _InputNoise(builder_kwargs["input_noise"], model)
 
-    # the checks every entry point shares (vehjax._validate): shapes, values, the prior
-    ys, us = _validate.data(_float_array("measurements", measurements, allow_nan=True),
+    # the checks every entry point shares (vehjax.validation): shapes, values, the prior
+    ys, us = validation.data(_float_array("measurements", measurements, allow_nan=True),
                             None if inputs is None else _float_array("inputs", inputs), ny, nu,
                             "either")
     ys = ys[None] if ys.ndim == 2 else ys
     us = None if inputs is None else us
     n_runs, T, _ = ys.shape
-    x0a, P0a = _validate.prior(nx, _float_array("x0", x0), _float_array("P0", P0), runs=n_runs)
+    x0a, P0a = validation.prior(nx, _float_array("x0", x0), _float_array("P0", P0), runs=n_runs)
     x0a, P0a = np.asarray(x0a, dtype=float), np.asarray(P0a, dtype=float)
 
     # the builder with the starting values: checks its own arguments, says whether it needs a key
@@ -613,7 +613,7 @@ class _Progress:
 def _optimizer(optimizer, learning_rate, steps):
     """(optax transformation, is_lbfgs)."""
     if isinstance(optimizer, str):
-        _validate.choice("optimizer", optimizer, _OPTIMIZERS)
+        validation.choice("optimizer", optimizer, _OPTIMIZERS)
         if optimizer == "adam":
             lr = _ADAM_LR if learning_rate is None else learning_rate
             sched = optax.cosine_decay_schedule(lr, max(steps, 1), alpha=0.05)
@@ -1208,20 +1208,20 @@ def _check_fit_options(learning_rate, tol, gtol, hessian, steps, patience, optim
     """:func:`fit`'s optimiser options checked (ValueError naming the first bad one):
     (learning_rate, tol, gtol) as numbers."""
     if learning_rate is not None:
-        learning_rate = _validate.number("learning_rate", learning_rate, 0.0)
-    tol = _validate.number("tol", tol, 0.0, low_open=False)
-    gtol = _validate.number("gtol", gtol, 0.0)
+        learning_rate = validation.number("learning_rate", learning_rate, 0.0)
+    tol = validation.number("tol", tol, 0.0, low_open=False)
+    gtol = validation.number("gtol", gtol, 0.0)
     if hessian is not None:
-        _validate.choice("hessian", hessian, ("differences", "jax"))
+        validation.choice("hessian", hessian, ("differences", "jax"))
     if steps is not None:
-        _validate.integer("steps", steps, 1)
+        validation.integer("steps", steps, 1)
     if patience is not None:
-        _validate.integer("patience", patience, 1)
+        validation.integer("patience", patience, 1)
     if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
         if not isinstance(optimizer, str):
             raise ValueError(f"optimizer: expected 'adam', 'lbfgs' or an "
                              f"optax.GradientTransformation, got {optimizer!r}")
-        _validate.choice("optimizer", optimizer, _OPTIMIZERS)
+        validation.choice("optimizer", optimizer, _OPTIMIZERS)
     return learning_rate, tol, gtol
 
 

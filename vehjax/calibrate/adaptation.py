@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import validation
 
 __all__ = ["RW_SCALE", "RW_ACCEPTANCE", "target_acceptance", "adaptation_windows",
            "adapted_covariance", "scale_update", "proposal_factor", "initial_factor", "Adapt",
@@ -47,7 +47,7 @@ def target_acceptance(d: int, loglik_std=0.0):
     factor the noise takes off it at the large-d optimal scale l = 2.38 (Sherlock, Thiery,
     Roberts & Rosenthal 2015, Ann. Statist. 43(1): acceptance 2 Phi(-sqrt(l^2 + 2 sigma^2) / 2),
     0.234 at sigma = 0, 0.144 at 1.2, 0.11 at 1.5). Dimensionless, in (0, 1)."""
-    d = _validate.integer("d", d, 1)
+    d = validation.integer("d", d, 1)
     s = float(loglik_std)
     a_d = _RW_ACCEPTANCE_D[d - 1] if d <= len(_RW_ACCEPTANCE_D) else RW_ACCEPTANCE
     noisy = math.erfc(0.5 * math.sqrt(RW_SCALE**2 + 2.0 * s * s) / math.sqrt(2.0))

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import validation
 from ..filters import resampling as _rs
 from ..filters import smc
 from .adaptation import (adapt_init, adapt_step, adaptation_windows, initial_factor,
@@ -169,27 +169,27 @@ def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, ke
     tg = targets(model, names)
     if tg.inputs:
         raise ValueError("priors: particle_gibbs does not calibrate input noise ('input:')")
-    chains = _validate.integer("chains", chains, 2)
-    samples = _validate.integer("samples", samples, 4)
-    warmup = _validate.integer("warmup", warmup, 2 if adapt else 0)
-    adapt_windows = _validate.integer("adapt_windows", adapt_windows, 1)
+    chains = validation.integer("chains", chains, 2)
+    samples = validation.integer("samples", samples, 4)
+    warmup = validation.integer("warmup", warmup, 2 if adapt else 0)
+    adapt_windows = validation.integer("adapt_windows", adapt_windows, 1)
     if acceptance_target is None:
         acceptance_target = target_acceptance(len(prs))
-    acceptance_target = _validate.number("acceptance_target", acceptance_target, 0.0)
-    n = _validate.integer("n_particles", n_particles, 2)
-    mh_steps = _validate.integer("mh_steps", mh_steps, 1)
-    ys, us = _validate.data(measurements, inputs, model.ny, model.nu, "one")
+    acceptance_target = validation.number("acceptance_target", acceptance_target, 0.0)
+    n = validation.integer("n_particles", n_particles, 2)
+    mh_steps = validation.integer("mh_steps", mh_steps, 1)
+    ys, us = validation.data(measurements, inputs, model.ny, model.nu, "one")
     ys, us = jnp.asarray(ys, float), jnp.asarray(us, float)
-    x0a, P0a = _validate.prior(model.nx, x0, P0)
+    x0a, P0a = validation.prior(model.nx, x0, P0)
     x0a, LP0 = jnp.asarray(x0a, float), jnp.asarray(np.linalg.cholesky(np.asarray(P0a, float)))
-    Qm = jnp.asarray(_validate.cov("Q", Q, model.nx))
-    Rm = np.asarray(_validate.cov("R", R, model.ny))
+    Qm = jnp.asarray(validation.cov("Q", Q, model.nx))
+    Rm = np.asarray(validation.cov("R", R, model.ny))
     if not np.allclose(Rm, np.diag(np.diag(Rm))):
         raise ValueError("R: particle_gibbs needs a diagonal measurement covariance")
     Rm = jnp.asarray(Rm)
     L = jnp.asarray(initial_factor(prs, proposal_std))
     z0 = jnp.tile(starting_values(prs, init, names), (chains, 1))
-    keys = _validate.key(key, chains)
+    keys = validation.key(key, chains)
     theta_base = jnp.asarray(model.theta, float)
     T = ys.shape[0]
 

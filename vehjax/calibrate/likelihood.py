@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import validation
 from ..filtering import filter as run_filter
 from ..filters import bootstrap_pf
 from ..filters import input_noise as inoise
@@ -92,10 +92,10 @@ def log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R, nam
     diverges (or re-initialises its particles) has likelihood zero (-inf).
     """
     tg = targets(model, names)
-    ys, us = _validate.data(measurements, inputs, model.ny, model.nu, "one")
+    ys, us = validation.data(measurements, inputs, model.ny, model.nu, "one")
     ys, us = jnp.asarray(ys, float), jnp.asarray(us, float)
-    Q = jnp.asarray(_validate.cov("Q", Q, model.nx, allow_psd=True))
-    R = jnp.asarray(_validate.cov("R", R, model.ny))
+    Q = jnp.asarray(validation.cov("Q", Q, model.nx, allow_psd=True))
+    R = jnp.asarray(validation.cov("R", R, model.ny))
     kwargs = dict(builder_kwargs or {})
     if tg.inputs and "input_noise" in kwargs:
         raise ValueError("builder_kwargs: input_noise is calibrated ('input:' priors); drop it")
@@ -155,16 +155,16 @@ def cpm_log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R,
         raise ValueError(f"builder_kwargs: with correlation the bootstrap PF resamples "
                          f"systematically at every step and takes only {CPM_KWARGS} "
                          f"(resampling='systematic'), got {kwargs!r}")
-    n = _validate.integer("n_particles", kwargs.get("n_particles", 1000), 2)
+    n = validation.integer("n_particles", kwargs.get("n_particles", 1000), 2)
     tg = targets(model, names)
     if tg.inputs and "input_noise" in kwargs:
         raise ValueError("builder_kwargs: input_noise is calibrated ('input:' priors); drop it")
-    ys, us = _validate.data(measurements, inputs, model.ny, model.nu, "one")
+    ys, us = validation.data(measurements, inputs, model.ny, model.nu, "one")
     ys, us = jnp.asarray(ys, float), jnp.asarray(us, float)
-    x0a, P0a = _validate.prior(model.nx, x0, P0)
+    x0a, P0a = validation.prior(model.nx, x0, P0)
     x0a, L0 = jnp.asarray(x0a, float), jnp.asarray(np.linalg.cholesky(np.asarray(P0a, float)))
-    Qn = np.asarray(_validate.cov("Q", Q, model.nx, allow_psd=True), float)
-    Rj = jnp.asarray(_validate.cov("R", R, model.ny), float)
+    Qn = np.asarray(validation.cov("Q", Q, model.nx, allow_psd=True), float)
+    Rj = jnp.asarray(validation.cov("R", R, model.ny), float)
     LQ_fixed = jnp.asarray(square_root.chol_const(Qn))
     Lu_fixed = inoise.input_factor(kwargs.get("input_noise"), model.input_names)
     if tg.inputs:
@@ -202,7 +202,7 @@ def log_likelihood_difference_spread(builder, model, measurements, inputs=None, 
     loglik, draw = cpm_log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0,
                                          Q=Q, R=R, names=names, builder_kwargs=builder_kwargs)
     v = jnp.asarray([float(values[n]) for n in names])
-    n_evals = _validate.integer("n_evals", n_evals, 2)
+    n_evals = validation.integer("n_evals", n_evals, 2)
 
     def pair(k):
         ka, ke = jax.random.split(k)
@@ -226,6 +226,6 @@ def log_likelihood_spread(builder, model, measurements, inputs=None, *, x0, P0, 
     loglik = log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0, Q=Q, R=R,
                                names=names, builder_kwargs=builder_kwargs)
     v = jnp.asarray([float(values[n]) for n in names])
-    n_evals = _validate.integer("n_evals", n_evals, 2)
+    n_evals = validation.integer("n_evals", n_evals, 2)
     lls = np.asarray(jax.jit(jax.vmap(lambda k: loglik(v, k)))(jax.random.split(key, n_evals)))
     return float(np.std(lls, ddof=1)), float(np.mean(lls))

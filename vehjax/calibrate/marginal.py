@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import validation
 from .adaptation import (adapt_init, adapt_step, adaptation_windows, initial_factor,
                          target_acceptance)
 from .correlated import crank_nicolson
@@ -171,13 +171,13 @@ def pmmh(builder, model, measurements, inputs=None, *, x0, P0, Q, R, priors, key
     """
     names, prs = check_priors(priors)
     rho = None if correlation is None else check_correlation(correlation)
-    chains = _validate.integer("chains", chains, 2)
-    samples = _validate.integer("samples", samples, 4)
-    warmup = _validate.integer("warmup", warmup, 2 if adapt else 0)
-    adapt_windows = _validate.integer("adapt_windows", adapt_windows, 1)
+    chains = validation.integer("chains", chains, 2)
+    samples = validation.integer("samples", samples, 4)
+    warmup = validation.integer("warmup", warmup, 2 if adapt else 0)
+    adapt_windows = validation.integer("adapt_windows", adapt_windows, 1)
     if acceptance_target is None:
         acceptance_target = target_acceptance(len(prs))
-    acceptance_target = _validate.number("acceptance_target", acceptance_target, 0.0)
+    acceptance_target = validation.number("acceptance_target", acceptance_target, 0.0)
     if not acceptance_target < 1.0:
         raise ValueError(f"acceptance_target: expected a number in (0, 1), got "
                          f"{acceptance_target!r}")
@@ -194,7 +194,7 @@ def pmmh(builder, model, measurements, inputs=None, *, x0, P0, Q, R, priors, key
             return crank_nicolson(aux, draw(k), rho)
     L0 = initial_factor(prs, proposal_std, proposal_cov)
     z0 = np.tile(starting_values(prs, init, names), (chains, 1))
-    keys = _validate.key(key, chains)
+    keys = validation.key(key, chains)
     ends = adaptation_windows(warmup, adapt_windows) if adapt else np.zeros(0, int)
     run = sampler(loglik, prs, warmup + samples, ends, acceptance_target, 5.0 * len(prs),
                    draw, move)

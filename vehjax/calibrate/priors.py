@@ -22,7 +22,7 @@ from typing import Mapping
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import validation
 from ..lib import transforms
 
 __all__ = ["Normal", "LogNormal", "Uniform", "PRIORS", "log_prior_unconstrained",
@@ -57,8 +57,8 @@ class Normal(_Mapped):
     std: float
 
     def __post_init__(self):
-        _validate.number("Normal.mean", self.mean)
-        _validate.number("Normal.std", self.std, 0.0)
+        validation.number("Normal.mean", self.mean)
+        validation.number("Normal.std", self.std, 0.0)
 
     def _map(self):
         return "none", -_INF, _INF, 1.0
@@ -78,8 +78,8 @@ class LogNormal(_Mapped):
     sigma: float
 
     def __post_init__(self):
-        _validate.number("LogNormal.median", self.median, 0.0)
-        _validate.number("LogNormal.sigma", self.sigma, 0.0)
+        validation.number("LogNormal.median", self.median, 0.0)
+        validation.number("LogNormal.sigma", self.sigma, 0.0)
 
     def _map(self):
         return "lower", 0.0, _INF, 1.0
@@ -101,8 +101,8 @@ class Uniform(_Mapped):
     high: float
 
     def __post_init__(self):
-        lo = _validate.number("Uniform.low", self.low)
-        _validate.number("Uniform.high", self.high, lo)
+        lo = validation.number("Uniform.low", self.low)
+        validation.number("Uniform.high", self.high, lo)
 
     def _map(self):
         return "box", float(self.low), float(self.high), 1.0
@@ -145,7 +145,7 @@ def check_priors(priors) -> tuple:
 def starting_values(priors, init, names) -> np.ndarray:
     """(d,) unconstrained starting values: ``init`` where given, else the priors' centres.
     ValueError naming ``init`` for a value outside its prior's support (zero prior density)."""
-    init = _validate.keyed("init", init, names)
+    init = validation.keyed("init", init, names)
     x0 = [init.get(n, p.center) for n, p in zip(names, priors)]
     inside = [bool(np.isfinite(float(p.log_density(jnp.asarray(x, float)))))
               for x, p in zip(x0, priors)]

@@ -107,7 +107,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .. import _validate
+from .. import validation
 from .drive import Drive, check_time
 
 __all__ = ["Comma2k19Drive", "load_comma2k19"]
@@ -421,7 +421,7 @@ def _load_array(path: Path) -> np.ndarray:
         raise ValueError(f"{path}: not a readable numeric NumPy array ({exc})") from None
     # real numbers only (complex, bool, text refused, naming the file); values checked by the
     # callers, with the first bad sample
-    return np.asarray(_validate.array(str(path), a, allow_nan=True), dtype=float)
+    return np.asarray(validation.array(str(path), a, allow_nan=True), dtype=float)
 
 
 def _load_times(folder: Path, rel: str) -> np.ndarray:

@@ -1,13 +1,13 @@
 """What every filter built on a vehjax model needs: the prior, the model's parameters and
 dimensions, the model's functions in the filter's dtype. Validation itself is
-:mod:`vehjax._validate`."""
+:mod:`vehjax.validation`."""
 
 from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import validation
 from ..lib.square_root import chol_const  # noqa: F401 (the filters' import of it)
 from ..models.base import Model
 
@@ -15,17 +15,17 @@ def validate_prior(est, x0, P0) -> None:
     """Check a prior before tracing; ``est`` is an Estimator or the state dimension nx.
 
     ``x0`` is (nx,) or batched (R, nx); ``P0`` is (nx, nx) or (nx,) variances, or batched
-    (R, nx, nx). Raises ValueError naming ``x0`` or ``P0`` (:func:`vehjax._validate.prior`,
+    (R, nx, nx). Raises ValueError naming ``x0`` or ``P0`` (:func:`vehjax.validation.prior`,
     the one check of a prior).
     """
     nx = est if isinstance(est, (int, np.integer)) else est.nx
-    _validate.prior(nx, x0, P0, runs=_validate.ANY_RUNS)
+    validation.prior(nx, x0, P0, runs=validation.ANY_RUNS)
 
 
 def prior(nx: int, x0, P0):
-    """x0, P0 as arrays of one float dtype, checked (:func:`vehjax._validate.prior`: shapes
+    """x0, P0 as arrays of one float dtype, checked (:func:`vehjax.validation.prior`: shapes
     always, values when concrete); P0 given as (nx,) variances becomes diagonal."""
-    x0, P0 = _validate.prior(nx, x0, P0)
+    x0, P0 = validation.prior(nx, x0, P0)
     x0, P0 = jnp.asarray(x0), jnp.asarray(P0)
     dtype = jnp.result_type(x0.dtype, P0.dtype)
     if not jnp.issubdtype(dtype, jnp.floating):
@@ -47,7 +47,7 @@ def model_theta(model, theta0, dtype):
 
 def check_model(model):
     """(nx, ny) of a model satisfying :class:`vehjax.models.base.ModelProtocol`."""
-    _validate.model(model)
+    validation.model(model)
     return len(model.state_names), len(model.output_names)
 
 

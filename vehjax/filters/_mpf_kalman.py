@@ -1,12 +1,12 @@
 """The Kalman filters of each particle of the marginalized PF (Berntorp & Di Cairano 2018,
 sec. 3.4, and the Gaussian particle states of ``kalman_states="all"``), written entry by entry
-over the particles (:mod:`vehjax.filters._entrywise`): every argument is a list or nested list
+over the particles (:mod:`vehjax.lib.entrywise`): every argument is a list or nested list
 of (N,) arrays or structural constants, ``lin`` a :class:`~vehjax.filters._mpf_linearise.Lin`
 of entries. Sequential conditioning of joint Gaussians, Cholesky factors and forward
 substitutions throughout (no inverses). The derivations are in
 :mod:`vehjax.filters.marginalized`.
 
-``start``: the opaque zero of :func:`vehjax.filters._entrywise.barrier` (None: from the data).
+``start``: the opaque zero of :func:`vehjax.lib.entrywise.barrier` (None: from the data).
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ import math
 
 import jax.numpy as jnp
 
-from ._entrywise import add, barrier, chol_masked, div, dot, is_zero, matmul, matvec, mul, sub
-from ._linalg import forward_entries
+from ..lib.entrywise import add, barrier, chol_masked, div, dot, is_zero, matmul, matvec, mul, sub
+from ..lib.linalg import forward_entries
 
 __all__ = ["bank_kalman_step", "kalman_update", "joint_kalman_step", "joint_prediction",
            "gaussian_loglik", "input_noise_kalman_step"]

@@ -14,8 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _hoist
-from ._entrywise import entries
+from .. import hoist
+from ..lib.entrywise import entries
 
 __all__ = ["Lin", "linearise", "lin_entries", "entry_kinds", "merge_entries"]
 
@@ -79,13 +79,13 @@ def linearise(f, h, x, m, u, theta, nl, li, i_in):
 
 def lin_entries(lin):
     """:class:`Lin` of arrays (one point, or particles last) -> :class:`Lin` of entries
-    (:func:`vehjax.filters._entrywise.entries`)."""
+    (:func:`vehjax.lib.entrywise.entries`)."""
     return Lin(*(entries(a) for a in lin))
 
 
 def entry_kinds(f, h, theta, nl, li, i_in, n_u, rows):
     """:class:`Lin` of nested lists saying how each entry of the linearisation varies, found
-    from the traced model (:func:`vehjax._hoist.dependence`); ``rows``: the output rows the
+    from the traced model (:func:`vehjax.hoist.dependence`); ``rows``: the output rows the
     filter uses. An entry is
 
     * a Python float: the same number at every particle, bank mean and input (a structural
@@ -103,9 +103,9 @@ def entry_kinds(f, h, theta, nl, li, i_in, n_u, rows):
         lin = linearise(f, h, x, m, u, theta, nl, li, i_in)
         return lin._replace(yb=lin.yb[rows], Cx=lin.Cx[rows], Cz=lin.Cz[rows], d=lin.d[rows])
 
-    dep = _hoist.dependence(lin_one, probe)
-    dep_particle = _hoist.dependence(lambda x, m: lin_one(x, m, probe[2]), probe[:2])
-    val = _hoist.evaluate(lin_one, probe)
+    dep = hoist.dependence(lin_one, probe)
+    dep_particle = hoist.dependence(lambda x, m: lin_one(x, m, probe[2]), probe[:2])
+    val = hoist.evaluate(lin_one, probe)
 
     def kinds(d, dp, v):
         if d.ndim == 2:

@@ -9,7 +9,7 @@ input and the sensor noise e. Only the (w, w) block ``lam_w`` (scalar) and the (
 ``lam_e`` (n_s, n_s) of Lambda are kept (eq. 21). Arrays may carry trailing particle axes
 (``mu`` (d, N), ``lam_w`` (N,), ``lam_e`` (n_s, n_s, N)); gamma and nu are the same for all
 particles. The functions whose arguments are "entries" take the nested lists of
-:mod:`vehjax.filters._entrywise` (each entry an (N,) array over the particles or a constant).
+:mod:`vehjax.lib.entrywise` (each entry an (N,) array over the particles or a constant).
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
 
-from ._entrywise import add, barrier, chol_masked, dot, is_zero, matmul, mul
-from ._linalg import forward_entries
+from ..lib.entrywise import add, barrier, chol_masked, dot, is_zero, matmul, mul
+from ..lib.linalg import forward_entries
 
 __all__ = [
     "niw_predict", "niw_update", "st_logpdf_whitened", "t_weight_and_proposal", "impute_missing",

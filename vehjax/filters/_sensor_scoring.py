@@ -126,8 +126,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._entrywise import backward_entries, barrier, chol_masked, chol_sym
-from ._linalg import forward_entries
+from ..lib.entrywise import backward_entries, barrier, chol_masked, chol_sym
+from ..lib.linalg import forward_entries
 
 __all__ = ["innovation_score", "scoring_terms", "prior_terms", "scored_variances",
            "ridge_sensitivity", "plug_in_variance"]
@@ -157,7 +157,7 @@ def innovation_score(S, nu, obs, rows, start=None):
     Args:
         S: (ny, ny) nested entries.  nu: (ny) entries.  obs: (ny) booleans.
         rows: the learnt sensors' rows in y (ns).
-        start: :func:`vehjax.filters._entrywise.barrier`'s.
+        start: :func:`vehjax.lib.entrywise.barrier`'s.
 
     Returns:
         (s (ns) entries, W (ns, ns) nested entries).
@@ -185,7 +185,7 @@ def scoring_terms(S, R_y, nu, obs, rows, v_ref, start=None):
         R_y: (ny, ny) nested entries, the noise covariance the step used.
         nu: (ny) entries, the innovation.  obs: (ny) booleans.
         rows: the learnt sensors' rows in y (ns).  v_ref: (ns) the prior guess's variances.
-        start: :func:`vehjax.filters._entrywise.barrier`'s.
+        start: :func:`vehjax.lib.entrywise.barrier`'s.
     """
     ns, ny = len(rows), len(S)
     s, W = innovation_score(S, nu, obs, rows, start)

@@ -37,10 +37,10 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import validation
 from . import input_noise as _inoise
 from . import sigma
-from ._linalg import sym
+from ..lib.linalg import sym
 from .base import Estimator, state_output
 from ._model import (
     cast_yu, chol_const, check_model, in_dtype, model_dims, model_theta, per_point, point_fns,
@@ -134,14 +134,14 @@ def ackf(
     nx, ny = check_model(model)
     if isinstance(adapt, str):
         adapt = (adapt,)
-    adapt = _validate.names("adapt", adapt, _ADAPT, allow_empty=True)
-    Q0n = _validate.cov("Q0", Q0, nx, allow_psd="Q" not in adapt)
-    R0n = _validate.cov("R0", R0, ny)
-    b = _validate.number("forgetting", forgetting, 0.0, 1.0, high_open=False)
+    adapt = validation.names("adapt", adapt, _ADAPT, allow_empty=True)
+    Q0n = validation.cov("Q0", Q0, nx, allow_psd="Q" not in adapt)
+    R0n = validation.cov("R0", R0, ny)
+    b = validation.number("forgetting", forgetting, 0.0, 1.0, high_open=False)
     Lu = _inoise.input_factor(input_noise, model.input_names)
     tr = in_dtype(per_point(model)[0])
-    floor = _validate.number("floor", floor, 0.0, 1.0)
-    s0 = _validate.number("prior_steps", prior_steps, 0.0, low_open=False)
+    floor = validation.number("floor", floor, 0.0, 1.0)
+    s0 = validation.number("prior_steps", prior_steps, 0.0, low_open=False)
 
     rule = sigma.cubature_rule(nx)
     rule_a = None if Lu is None else sigma.cubature_rule(nx + Lu.shape[1])

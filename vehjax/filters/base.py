@@ -16,7 +16,7 @@ Three optional parts of the contract are declared fields too, so that ``run`` re
 * ``Estimator.batch``: ``batch(per_run_inputs: bool, dtype, default_theta: bool) ->
   Batch(prepare, step, prefetch)``, the same step for a whole batch of runs at once with the
   runs axis last in every leaf of the state, of y and of the StepOutput (see
-  :mod:`vehjax.filters._runs_last`). ``prepare`` maps the whole input sequence, (T, nu) shared or
+  :mod:`vehjax.filters.runs_last`). ``prepare`` maps the whole input sequence, (T, nu) shared or
   (T, nu, R) when ``per_run_inputs``, to what the batch ``step`` takes in place of u at each
   time; ``dtype`` is the filter's float dtype and ``default_theta`` says that every run was
   started with ``theta0=None``. ``vehjax.run`` uses it instead of ``vmap``-ing ``step``. It is a
@@ -209,10 +209,10 @@ def check_estimate(model, estimate) -> tuple[tuple[str, ...], tuple[int, ...]]:
     ``estimate`` is one name or a sequence of unique names of the model's parameters. Raises
     ValueError naming ``estimate`` when it is missing, empty, not strings, repeated or unknown.
     """
-    from .. import _validate
+    from .. import validation
 
     known = tuple(model.param_names)
     if estimate is None:
         raise ValueError(f"estimate: required, the names of the parameters to estimate from {known}")
-    names = _validate.names("estimate", estimate, known)
+    names = validation.names("estimate", estimate, known)
     return names, tuple(known.index(n) for n in names)

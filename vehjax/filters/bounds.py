@@ -16,7 +16,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .. import _validate
+from .. import validation
 from ..lib.transforms import Transform
 
 __all__ = ["Transform", "check_pair", "parse", "check_inside"]
@@ -25,7 +25,7 @@ __all__ = ["Transform", "check_pair", "parse", "check_inside"]
 def check_inside(arg: str, theta, low, high, names: tuple) -> None:
     """ValueError naming ``arg`` unless every row of a concrete ``theta`` ((p,) or (R, p),
     physical units) lies strictly inside (low, high) and is finite; traced values pass."""
-    if _validate.is_tracer(theta):
+    if validation.is_tracer(theta):
         return
     th = np.asarray(theta, dtype=float)
     low, high = np.asarray(low, dtype=float), np.asarray(high, dtype=float)
@@ -50,8 +50,8 @@ def check_pair(arg: str, name: str, value) -> tuple[float, float]:
     except (TypeError, ValueError):
         raise ValueError(f"{arg}: expected a pair (low, high) for {name!r}, None for an open "
                          f"end, got {value!r}") from None
-    lo = -np.inf if lo is None else _validate.number(f"{arg}[{name!r}] low", lo)
-    hi = np.inf if hi is None else _validate.number(f"{arg}[{name!r}] high", hi)
+    lo = -np.inf if lo is None else validation.number(f"{arg}[{name!r}] low", lo)
+    hi = np.inf if hi is None else validation.number(f"{arg}[{name!r}] high", hi)
     if not lo < hi:
         raise ValueError(f"{arg}: expected low < high for {name!r}, got ({lo}, {hi})")
     return lo, hi
@@ -72,7 +72,7 @@ def parse(bounds, names: tuple, nominal, arg: str = "bounds") -> tuple[np.ndarra
         return low, np.full(len(names), np.inf)
     if not isinstance(bounds, Mapping):
         raise ValueError(f"{arg}: expected a dict name -> (low, high) or None, got {bounds!r}")
-    given = _validate.keyed(arg, bounds, names, "the estimated parameters")
+    given = validation.keyed(arg, bounds, names, "the estimated parameters")
     pairs = [check_pair(arg, n, given[n]) if n in given else (-np.inf, np.inf) for n in names]
     return (np.array([lo for lo, _ in pairs], dtype=float),
             np.array([hi for _, hi in pairs], dtype=float))

@@ -107,12 +107,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import validation
 from . import input_noise as _inoise
 from . import sigma
 from ..lib.transforms import Transform
 from .bounds import check_inside, parse as _parse_bounds
-from ._linalg import sym
+from ..lib.linalg import sym
 from .base import Estimator, GaussianSmoother, StepOutput, check_estimate
 from ._model import cast_yu, check_model, model_dims, per_point
 from ._model import prior as _state_prior
@@ -207,10 +207,10 @@ def _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds,
                 f"{names}, got {theta_scale!r}"
             )
 
-    decay = _validate.number("theta_decay", theta_decay, 0.0, 1.0, high_open=False)
+    decay = validation.number("theta_decay", theta_decay, 0.0, 1.0, high_open=False)
 
-    Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
-    Qth = _validate.cov("Q_theta", Q_theta, p)
+    Qn, Rn = validation.cov("Q", Q, nx, allow_psd=True), validation.cov("R", R, ny)
+    Qth = validation.cov("Q_theta", Q_theta, p)
     if not isinstance(Qth, np.ndarray):
         raise ValueError("Q_theta: expected a concrete array (it is decayed in the filter state)")
     low, high = _parse_bounds(bounds, names, theta_nom[idx])
@@ -240,7 +240,7 @@ def _prior(cfg: _Setup, x0, P0, theta0, P_theta0):
     check_inside("theta0", theta0, cfg.tf.low, cfg.tf.high, cfg.names)
     if P_theta0 is None:
         raise ValueError(f"P_theta0: required, the covariance ({p}, {p}) of theta0 for {cfg.names}")
-    Pth0 = _validate.cov("P_theta0", P_theta0, p)
+    Pth0 = validation.cov("P_theta0", P_theta0, p)
 
     dtype = x0.dtype
     z0 = cfg.tf.to_unconstrained(jnp.asarray(theta0).astype(dtype))

@@ -19,7 +19,7 @@ draw fresh points from (x-, P-) for the update, so that Q enters S and C.
 The algebra is the one Gaussian core: :func:`vehjax.filters.sigma.predict` /
 :func:`~vehjax.filters.sigma.update` and their square-root forms, and the Jacobian forms of
 :mod:`vehjax.filters.kalman`. This file holds what is particular to these filters: their state,
-their prior, and which of them get the runs-last form of :mod:`vehjax.filters._runs_last`.
+their prior, and which of them get the runs-last form of :mod:`vehjax.filters.runs_last`.
 
 Missing measurements: components of ``y_t`` that are NaN (or +-inf) are not observed; the update
 uses only the observed ones (exactly, by masking) and ``loglik``/``nis``/``n_obs`` count only
@@ -37,9 +37,9 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import validation
 from . import input_noise as _inoise
-from . import _runs_last
+from . import runs_last
 from . import sigma
 from ._model import (
     cast_yu,
@@ -54,7 +54,7 @@ from ._model import (
     validate_prior,
 )
 from .base import Estimator, GaussianSmoother, state_output
-from ._linalg import UNROLL_MAX
+from ..lib.linalg import UNROLL_MAX
 from .kalman import (
     UpdateResult,
     cov_entries,
@@ -71,7 +71,7 @@ from .sigma import SigmaRule, cubature_rule, unscented_rule
 __all__ = ["GaussianState", "SqrtGaussianState", "ekf", "ukf", "ckf", "masked_update",
            "UpdateResult", "validate_prior", "check_cov"]
 
-check_cov = _validate.cov
+check_cov = validation.cov
 
 
 class GaussianState(NamedTuple):
@@ -125,7 +125,7 @@ def ekf(model, Q, R, input_noise=None) -> Estimator:
     covariance update in Joseph form (stays positive definite for very wide priors).
 
     :func:`vehjax.run` runs models with at most 8 states and outputs and constant ``Q``, ``R``
-    through the same step written for all runs at once (:func:`vehjax.filters._runs_last.ekf_step`,
+    through the same step written for all runs at once (:func:`vehjax.filters.runs_last.ekf_step`,
     results equal to rounding).
 
     Args:
@@ -144,7 +144,7 @@ def ekf(model, Q, R, input_noise=None) -> Estimator:
         ``Estimator`` with state :class:`GaussianState` (x, P, theta).
     """
     nx, ny = check_model(model)
-    Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
+    Qn, Rn = validation.cov("Q", Q, nx, allow_psd=True), validation.cov("R", R, ny)
     Lu = _inoise.input_factor(input_noise, model.input_names)
     tr = in_dtype(per_point(model)[0])
 
@@ -166,7 +166,7 @@ def ekf(model, Q, R, input_noise=None) -> Estimator:
             r = masked_update(x_pred, P_pred, y, m.y_hat, m.S, m.C, joseph=(m.H, Rd))
         return GaussianState(r.x, r.P, theta), state_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
 
-    batch = None if Lu is not None else _runs_last_form(model, Qn, Rn, _runs_last.ekf_step)
+    batch = None if Lu is not None else _runs_last_form(model, Qn, Rn, runs_last.ekf_step)
     return Estimator(init=_prior_init(model, False), step=step, nx=nx, name="EKF", batch=batch,
                      workload="small_dense", smoother=_ekf_smoother(model, Qn, Rn, Lu, tr),
                      **model_dims(model))
@@ -200,22 +200,22 @@ def _ekf_entries(x, P, y, u, theta, f, h, tr, Qn, Rn, Lu):
 
 
 def _runs_last_form(model, Qn, Rn, build):
-    """``Estimator.batch`` from a builder of :mod:`vehjax.filters._runs_last` (``sigma_step``,
-    ``ekf_step``), for models with at most ``_runs_last.MAX_DIM`` states and outputs and constant
+    """``Estimator.batch`` from a builder of :mod:`vehjax.filters.runs_last` (``sigma_step``,
+    ``ekf_step``), for models with at most ``runs_last.MAX_DIM`` states and outputs and constant
     (numpy) noise covariances; None otherwise (``run`` then vmaps the per-run step)."""
-    small = max(Qn.shape[0], Rn.shape[0]) <= _runs_last.MAX_DIM
+    small = max(Qn.shape[0], Rn.shape[0]) <= runs_last.MAX_DIM
     if not (small and isinstance(Qn, np.ndarray) and isinstance(Rn, np.ndarray)):
         return None
     f1, h1 = in_dtype(model.transition), in_dtype(model.observe)
 
-    def runs_last(per_run_inputs: bool, dtype, default_theta: bool):
+    def batch_form(per_run_inputs: bool, dtype, default_theta: bool):
         # every run at model.theta (init's default): a constant of the compiled step
-        const = default_theta and not _validate.is_tracer(model.theta)
+        const = default_theta and not validation.is_tracer(model.theta)
         return build(f1, h1, Qn, Rn, nu=len(model.input_names),
                      n_params=len(model.param_names), per_run_inputs=per_run_inputs, dtype=dtype,
                      theta=np.asarray(model.theta) if const else None)
 
-    return runs_last
+    return batch_form
 
 
 # --------------------------------------------------------------------------------------------
@@ -228,7 +228,7 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str, input_noi
     ``input_noise`` the prediction uses ``make_rule(nx + k)`` on the state augmented with the
     k standardised input-noise components (:mod:`vehjax.filters.input_noise`)."""
     nx, ny = check_model(model)
-    Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
+    Qn, Rn = validation.cov("Q", Q, nx, allow_psd=True), validation.cov("R", R, ny)
     Lu = _inoise.input_factor(input_noise, model.input_names)
     tr = in_dtype(per_point(model)[0])
     rule_a = None if Lu is None else make_rule(nx + Lu.shape[1])
@@ -256,7 +256,7 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str, input_noi
             return GaussianState(r.x, r.P, theta), state_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
 
         batch = None if Lu is not None else _runs_last_form(
-            model, Qn, Rn, partial(_runs_last.sigma_step, rule=rule))
+            model, Qn, Rn, partial(runs_last.sigma_step, rule=rule))
 
         return Estimator(init=_prior_init(model, False), step=step, nx=nx, name=name, batch=batch,
                          workload="small_dense",

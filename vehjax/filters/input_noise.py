@@ -33,8 +33,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
-from ._linalg import cholesky, sym
+from .. import validation
+from ..lib.linalg import cholesky, sym
 from .sigma import SigmaRule, sigma_points, sqrt_unscented_transform, unscented_transform
 
 __all__ = ["input_factor", "input_covariance", "linearized_input_noise", "augmented_points",
@@ -55,7 +55,7 @@ def _std_entries(input_noise: Mapping, input_names) -> tuple[np.ndarray, list]:
         if k not in input_noise:
             continue
         s = input_noise[k]
-        if not _validate.is_tracer(s):
+        if not validation.is_tracer(s):
             if isinstance(s, (bool, np.bool_)) or np.ndim(s) != 0:
                 raise ValueError(f"input_noise: expected a number (std) for {k!r}, got {s!r}")
             try:
@@ -98,16 +98,16 @@ def input_factor(input_noise, input_names):
     if isinstance(input_noise, Mapping):
         idx, stds = _std_entries(input_noise, names)
         k = len(idx)
-        if not any(_validate.is_tracer(s) for s in stds):
+        if not any(validation.is_tracer(s) for s in stds):
             Lu = np.zeros((nu, k))
             Lu[idx, np.arange(k)] = np.asarray(stds, dtype=float)
             return Lu
         return jnp.zeros((nu, k)).at[idx, np.arange(k)].set(jnp.stack(
             [jnp.asarray(s) for s in stds]))
-    if _validate.is_tracer(input_noise):
-        S = _validate.cov("input_noise", input_noise, nu, allow_diag=False)
+    if validation.is_tracer(input_noise):
+        S = validation.cov("input_noise", input_noise, nu, allow_diag=False)
         return jnp.linalg.cholesky(S)
-    S = _validate.cov("input_noise", input_noise, nu, allow_diag=False, allow_psd=True)
+    S = validation.cov("input_noise", input_noise, nu, allow_diag=False, allow_psd=True)
     w, V = np.linalg.eigh(S)
     keep = w > 1e-12 * max(float(w.max()), np.finfo(float).tiny)
     if not np.any(keep):

@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._entrywise import add, chol_masked, dot, joseph_entries, sym_entries
-from ._linalg import LOG_2PI, cholesky, forward_entries, logdet_from_chol, solve_lower, sym
+from ..lib.entrywise import add, chol_masked, dot, joseph_entries, sym_entries
+from ..lib.linalg import LOG_2PI, cholesky, forward_entries, logdet_from_chol, solve_lower, sym
 
 
 class UpdateResult(NamedTuple):
@@ -123,7 +123,7 @@ def linearized_measure(x, P, h, R) -> Measurement:
 # A vehicle model has a handful of states and outputs. Written with matrix products, one EKF
 # step is some thirty tiny dot products and triangular solves, each its own XLA operation; the
 # forward-mode derivatives of :mod:`vehjax.tune` (a batch of tangents through every one of them)
-# triple that. Written entry by entry (nested lists of scalars, :mod:`vehjax.filters._entrywise`),
+# triple that. Written entry by entry (nested lists of scalars, :mod:`vehjax.lib.entrywise`),
 # the step is elementwise arithmetic only, which XLA fuses into a few loops and compiles
 # faster; structural zeros (a zero Q, an output that is a state) drop out at trace time. Same
 # algebra as :func:`linearized_predict`, :func:`linearized_measure` and :func:`masked_update`

@@ -163,7 +163,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _random, _validate
+from .. import prng, validation
 from . import resampling as _rs
 from . import sigma, smc
 from ..lib.transforms import Transform
@@ -227,7 +227,7 @@ def _check_box(theta_low, theta_high, names) -> tuple[np.ndarray, np.ndarray]:
     p = len(names)
     out = []
     for arg, v in (("theta_low", theta_low), ("theta_high", theta_high)):
-        a = np.asarray(_validate.array(arg, v), dtype=float)  # real and finite, else refused
+        a = np.asarray(validation.array(arg, v), dtype=float)  # real and finite, else refused
         a = a.reshape(-1) if a.ndim <= 1 else a
         if a.shape != (p,):
             raise ValueError(
@@ -460,7 +460,7 @@ def _init(cfg: _Config, x0, P0, theta0=None, P_theta0=None, key=None) -> LiuWest
     return LiuWestState(
         x=x0,
         P=P0,
-        particles=_draw(cfg, _random.uniforms(k_draw, p * n, dtype).reshape(p, n), low, high),
+        particles=_draw(cfg, prng.uniforms(k_draw, p * n, dtype).reshape(p, n), low, high),
         log_weights=jnp.full((n,), -math.log(n), dtype),
         key=k_run,
         theta_mean=0.5 * (low + high),
@@ -485,7 +485,7 @@ def _step(cfg: _Config, state: LiuWestState, y, u):
     # the step's random numbers, each from its own counter stream of the particle core:
     # kernel normals (p, M), uniforms for a fresh box draw (p, M) and for resampling
     z = smc.normals(k_step, p, n, dtype)
-    u_box = _random.uniforms(k_step, p * n, dtype, stream=cfg.s_box).reshape(p, n)
+    u_box = prng.uniforms(k_step, p * n, dtype, stream=cfg.s_box).reshape(p, n)
     u_res = smc.uniforms(k_step, cfg.scheme, n, dtype, stream=cfg.s_box + 1)
     obs = jnp.isfinite(y)
     has_obs = jnp.any(obs)
@@ -649,14 +649,14 @@ def liu_west_ukf(
     centre = 0.5 * (low_n + high_n)
     width_s = (high_n - low_n) / np.abs(np.asarray(tf.jacobian(tf.to_unconstrained(centre))))
     n = smc.check_n_particles(n_particles)
-    a = _validate.number("a", a, 0.0, 1.0)
-    gamma = _validate.number("gamma", gamma, 0.0, 1.0, high_open=False)
+    a = validation.number("a", a, 0.0, 1.0)
+    gamma = validation.number("gamma", gamma, 0.0, 1.0, high_open=False)
     scheme = _rs.check_scheme(resampling)
     thr = smc.check_ess_threshold(ess_threshold)
-    likelihood = _validate.choice("likelihood", likelihood, _LIKELIHOODS)
-    move = _validate.choice("move", move, _MOVES)
+    likelihood = validation.choice("likelihood", likelihood, _LIKELIHOODS)
+    move = validation.choice("move", move, _MOVES)
     resample = smc.check_resample(resample)
-    Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
+    Qn, Rn = validation.cov("Q", Q, nx, allow_psd=True), validation.cov("R", R, ny)
     cfg = _Config(
         f=in_dtype(model.transition), h=in_dtype(model.observe), theta=model.theta, names=names,
         idx=np.asarray(idx, np.int32),  # int32: valid with x64 off too (float32 studies)

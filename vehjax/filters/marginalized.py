@@ -222,9 +222,9 @@ scoring in :mod:`vehjax.filters._sensor_scoring`, Jeffreys' prior in
 its posterior in :mod:`vehjax.filters._grid`. This module holds the state, the validation
 (:func:`_configure`) and the builder that composes them. Particles are last in every leaf. The
 per-particle algebra is written entry by entry (every matrix entry one (N,) vector, structural
-zeros skipped: :mod:`vehjax.filters._entrywise`, shared with the runs-last Gaussian steps), and
+zeros skipped: :mod:`vehjax.lib.entrywise`, shared with the runs-last Gaussian steps), and
 its stages are materialised through a trivial while loop
-(:func:`vehjax.filters._entrywise.barrier`) so that XLA does not recompute long elementwise
+(:func:`vehjax.lib.entrywise.barrier`) so that XLA does not recompute long elementwise
 chains in every consumer; weights, moments and random numbers are the shared particle core
 :mod:`vehjax.filters.smc`, and resampling is ``smc.resample`` unless the caller passes another
 function (``resample=``). Cholesky factors and triangular solves throughout, no inverses.
@@ -245,11 +245,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import validation
 from . import _mpf_means
 from . import resampling as _rs
 from . import smc
-from ._entrywise import add, barrier, dot, entries, matmul, mul, stack, sub
+from ..lib.entrywise import add, barrier, dot, entries, matmul, mul, stack, sub
 from ._mpf_kalman import (bank_kalman_step, input_noise_kalman_step, joint_kalman_step,
                           joint_prediction)
 from ._mpf_linearise import entry_kinds, lin_entries, linearise, merge_entries
@@ -553,7 +553,7 @@ def _noise_prior(unknown_names, std0, mean0, d):
     """Checked (std0 values, mean0 values, lambda-free priors) of the unknown noise."""
     std0 = _std_dict("std0", {} if std0 is None else std0, unknown_names, unknown_names,
                      "input and output units")
-    mean0 = _validate.keyed("mean0", mean0, unknown_names)
+    mean0 = validation.keyed("mean0", mean0, unknown_names)
     mean0v = []
     for k in unknown_names:
         try:
@@ -568,9 +568,9 @@ def _noise_prior(unknown_names, std0, mean0, d):
 
 def _forgetting(forgetting, gamma0, nu0, d):
     """Checked (lambda, gamma0, nu0): lambda min(nu0, 1 / (1 - lambda)) > d + 1."""
-    lam = _validate.number("forgetting", forgetting, 0.0, 1.0, high_open=False)
-    g0 = _validate.number("gamma0", gamma0, 0.0, np.inf)
-    nu0 = float(d + 4) if nu0 is None else _validate.number("nu0", nu0, d + 1.0, np.inf)
+    lam = validation.number("forgetting", forgetting, 0.0, 1.0, high_open=False)
+    g0 = validation.number("gamma0", gamma0, 0.0, np.inf)
+    nu0 = float(d + 4) if nu0 is None else validation.number("nu0", nu0, d + 1.0, np.inf)
     nu_low = nu0 if lam == 1.0 else min(nu0, 1.0 / (1.0 - lam))
     if not lam * nu_low > d + 1:
         raise ValueError(
@@ -586,7 +586,7 @@ def _configure(model, n_particles, noisy_input, sensors, known_std, linear_state
                resampling, kalman_states, resample) -> _Setup:
     """Every check of :func:`marginalized_pf`'s arguments (ValueError naming the argument) and
     the constants the filter is built from."""
-    _validate.model(model)
+    validation.model(model)
     n = smc.check_n_particles(n_particles, low=2)
     scheme = _rs.check_scheme(resampling)
     thr = smc.check_ess_threshold(ess_threshold)
@@ -597,14 +597,14 @@ def _configure(model, n_particles, noisy_input, sensors, known_std, linear_state
     if not isinstance(noisy_input, str) or noisy_input not in input_names:
         raise ValueError(f"noisy_input: expected one of the model's inputs {input_names}, got "
                          f"{noisy_input!r}")
-    sensors = _validate.names("sensors", sensors, output_names)
+    sensors = validation.names("sensors", sensors, output_names)
     known = {} if known_std is None else _std_dict("known_std", known_std, (), output_names,
                                                   "output units")
     both = [k for k in known if k in sensors]
     if both:
         raise ValueError(f"known_std: {both} are also in sensors (unknown noise); name each "
                          f"output once")
-    linear_states = _validate.names("linear_states", linear_states, state_names,
+    linear_states = validation.names("linear_states", linear_states, state_names,
                                     allow_empty=True)
     li = np.array([state_names.index(s) for s in linear_states], dtype=int)
     nl = np.array([i for i in range(len(state_names)) if i not in set(li.tolist())], dtype=int)
@@ -686,7 +686,7 @@ def _init(s: _Setup, x0, P0, theta0=None, P_theta0=None, key=None) -> MPFState:
     if key is None:
         raise ValueError("key: marginalized_pf draws its particles at random; pass a PRNG key")
     nl, li, nz, nk, n, d, ns = s.nl, s.li, s.nz, s.nk, s.n, s.d, s.ns
-    _validate.prior(s.nx, x0, P0)
+    validation.prior(s.nx, x0, P0)
     x0, P0 = jnp.asarray(x0), jnp.asarray(P0)
     dtype = jnp.result_type(x0.dtype, P0.dtype)
     if not jnp.issubdtype(dtype, jnp.floating):
@@ -1287,9 +1287,9 @@ def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear
     sensor biases as constant linear states (:func:`_mpf_means.with_noise_means`), its NiW
     pinned at mean zero (``means_known``), and an estimator over the model's own
     states and the paper's parameters around it."""
-    _validate.model(model)
-    sensors = _validate.names("sensors", sensors, tuple(model.output_names))
-    linear_states = _validate.names("linear_states", linear_states, tuple(model.state_names),
+    validation.model(model)
+    sensors = validation.names("sensors", sensors, tuple(model.output_names))
+    linear_states = validation.names("linear_states", linear_states, tuple(model.state_names),
                                     allow_empty=True)
     if not isinstance(noisy_input, str) or noisy_input not in tuple(model.input_names):
         raise ValueError(f"noisy_input: expected one of the model's inputs "
@@ -1325,7 +1325,7 @@ def _kalman_means_pf(model, n_particles, noisy_input, sensors, known_std, linear
 
     def init(x0, P0, theta0=None, P_theta0=None, key=None):
         del P_theta0
-        _validate.prior(nx, x0, P0)
+        validation.prior(nx, x0, P0)
         p = len(s.param_names)
         if theta0 is not None and np.shape(theta0) != (p,):
             raise ValueError(f"theta0: expected shape ({p},) for {s.param_names}, got "

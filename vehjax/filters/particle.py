@@ -25,7 +25,7 @@ is finite, ``log(finfo.tiny)`` otherwise. Outputs are never NaN. A single partic
 propagated state or predicted measurement is not finite gets weight zero.
 
 Random numbers. A step splits its key once and hashes counters with Threefry-2x32 for all its
-draws (process noise and resampling uniforms), see :mod:`vehjax._random` for why that is cheaper
+draws (process noise and resampling uniforms), see :mod:`vehjax.prng` for why that is cheaper
 than ``jax.random.normal`` in float64 mode on CPU. The process-noise standard normals are
 Box-Muller transforms of float32 uniforms on a 2^-24 grid, scaled by chol(Q) in the working
 precision: their resolution (~1e-7) and truncation (|z| <= 5.77) are far below the Monte-Carlo
@@ -47,11 +47,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import validation
 from . import input_noise as _inoise
 from . import resampling as _rs
 from . import smc
-from ._linalg import cholesky, is_pd, solve_lower
+from ..lib.linalg import cholesky, is_pd, solve_lower
 from .base import Estimator, ParticleTransition, StepOutput
 from ._model import chol_const, check_model, in_dtype, model_dims, model_theta, prior
 
@@ -450,7 +450,7 @@ def bootstrap_pf(
     scheme = _rs.check_scheme(resampling)
     thr = smc.check_ess_threshold(ess_threshold)
     resample = smc.check_resample(resample)
-    Qn, Rn = _validate.cov("Q", Q, nx, allow_psd=True), _validate.cov("R", R, ny)
+    Qn, Rn = validation.cov("Q", Q, nx, allow_psd=True), validation.cov("R", R, ny)
     Lu = _inoise.input_factor(input_noise, model.input_names)
     k_u = 0 if Lu is None else Lu.shape[1]
     f = in_dtype(model.transition)

@@ -28,7 +28,7 @@ dual and joint UKF, Liu-West's state UKF)::
 and their square-root forms :func:`sqrt_predict`, :func:`sqrt_update`. ``f`` and ``h`` are
 functions of one point (closures over the input and the parameters); they are vmapped here.
 The small-matrix kernels (:func:`cholesky`, :func:`solve_lower`) come from
-:mod:`vehjax.filters._linalg`.
+:mod:`vehjax.lib.linalg`.
 """
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
-from ._linalg import cholesky, solve_lower
+from .. import validation
+from ..lib.linalg import cholesky, solve_lower
 from .kalman import Measurement, UpdateResult, gaussian_loglik, masked_update, observed
 
 __all__ = [
@@ -101,7 +101,7 @@ def unscented_rule(n: int, alpha: float = 1.0, beta: float = 2.0, kappa: float =
     for name, v in (("alpha", alpha), ("beta", beta), ("kappa", kappa)):
         if np.ndim(v) != 0:
             raise ValueError(f"{name}: expected a finite number, got {v!r}")
-        _validate.number(name, v)  # finite, real (text, complex: ValueError naming it)
+        validation.number(name, v)  # finite, real (text, complex: ValueError naming it)
     alpha, beta, kappa = float(alpha), float(beta), float(kappa)
     if alpha <= 0.0:
         raise ValueError(f"alpha: expected alpha > 0, got {alpha}")

@@ -23,7 +23,7 @@ its own way (:func:`reinitialise` gives it uniform weights and fresh particles) 
 
 Random numbers: keys are raw (2,) uint32 Threefry keys carried in the filter state.
 :func:`normals` and :func:`uniforms` hash counters in straight-line code
-(:mod:`vehjax._random`, which says why that is cheaper than ``jax.random`` in float64 on CPU:
+(:mod:`vehjax.prng`, which says why that is cheaper than ``jax.random`` in float64 on CPU:
 no rolled hash loop, no 64-bit uniforms and inverse error function).
 """
 
@@ -36,9 +36,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _random, _validate
+from .. import prng, validation
 from . import resampling as _rs
-from ._linalg import LOG_2PI, cholesky, solve_lower
+from ..lib.linalg import LOG_2PI, cholesky, solve_lower
 
 __all__ = [
     "Reweighted", "reweight", "ess", "resample", "resample_stop_gradient", "check_resample",
@@ -73,12 +73,12 @@ def log_tiny(dtype) -> float:
 
 def check_n_particles(n_particles, low: int = 1) -> int:
     """``n_particles`` as an int in [low, 2**30], else ValueError naming it."""
-    return _validate.integer("n_particles", n_particles, low, 2**30)
+    return validation.integer("n_particles", n_particles, low, 2**30)
 
 
 def check_ess_threshold(ess_threshold) -> float:
     """A resampling threshold in [0, 1], else ValueError naming ``ess_threshold``."""
-    return _validate.number("ess_threshold", ess_threshold, 0.0, 1.0, low_open=False,
+    return validation.number("ess_threshold", ess_threshold, 0.0, 1.0, low_open=False,
                             high_open=False)
 
 
@@ -269,20 +269,20 @@ def shrink_move(z, particles, mean, V, a: float):
 
 def normals(key, rows: int, n: int, dtype, stream: int = 0):
     """(rows, n) standard normals from a raw key, by counter hashing and Box-Muller (see
-    :func:`vehjax._random.std_normal_rows`: resolution ~1e-7, |z| <= 5.77)."""
-    return _random.std_normal_rows(key, rows, n, dtype, stream=stream)
+    :func:`vehjax.prng.std_normal_rows`: resolution ~1e-7, |z| <= 5.77)."""
+    return prng.std_normal_rows(key, rows, n, dtype, stream=stream)
 
 
 def uniforms(key, scheme: str, n: int, dtype, stream: int = 0):
     """The uniforms :func:`resample` needs for ``scheme`` and N = n, from a raw key."""
-    return _random.uniforms(key, _rs.uniforms_needed(scheme, n), dtype, stream=stream)
+    return prng.uniforms(key, _rs.uniforms_needed(scheme, n), dtype, stream=stream)
 
 
 def split(key):
     """(next key, sub-key) from a raw (2,) uint32 key."""
-    return _random.split(key)
+    return prng.split(key)
 
 
 def raw_key(key):
     """A raw (2,) uint32 key from any JAX PRNG key."""
-    return _random.raw_key(key)
+    return prng.raw_key(key)

@@ -107,10 +107,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import polygamma
 
-from .. import _validate
+from .. import validation
 from . import input_noise as _inoise
 from . import sigma
-from ._linalg import sym
+from ..lib.linalg import sym
 from ._model import cast_yu, check_model, in_dtype, model_dims, model_theta, per_point, prior
 from .base import Estimator, StepOutput
 from .kalman import linearized_measure, linearized_predict, masked_update
@@ -254,25 +254,25 @@ def _setup(model, Q, sensors, known_std, biases, input_offsets, bias_walk, offse
            bias_std0, offset_std0, input_noise):
     nx, ny = check_model(model)
     outs, ins = tuple(model.output_names), tuple(model.input_names)
-    known = {} if known_std is None else _validate.keyed("known_std", known_std, outs, "outputs")
+    known = {} if known_std is None else validation.keyed("known_std", known_std, outs, "outputs")
     if sensors is None:
         sensors = tuple(o for o in outs if o not in known)
-    sensors = _validate.names("sensors", sensors, outs)
+    sensors = validation.names("sensors", sensors, outs)
     both = set(sensors) & set(known)
     if both:
         raise ValueError(f"known_std: {sorted(both)} also in sensors; an output's noise is "
                          "either learnt or known")
     for k, v in known.items():
-        _validate.number(f"known_std[{k!r}]", v, 0.0)
-    biases = _validate.names("biases", () if biases is None else biases, sensors,
+        validation.number(f"known_std[{k!r}]", v, 0.0)
+    biases = validation.names("biases", () if biases is None else biases, sensors,
                              allow_empty=True)
-    offs = _validate.names("input_offsets", () if input_offsets is None else input_offsets,
+    offs = validation.names("input_offsets", () if input_offsets is None else input_offsets,
                            ins, allow_empty=True)
     bw = _per_name("bias_walk", bias_walk, biases, closed=True)
     ow = _per_name("offset_walk", offset_walk, offs, closed=True)
     b0 = _per_name("bias_std0", bias_std0, biases)
     o0 = _per_name("offset_std0", offset_std0, offs)
-    Qn = _validate.cov("Q", Q, nx, allow_psd=True)
+    Qn = validation.cov("Q", Q, nx, allow_psd=True)
     Lu = _inoise.input_factor(input_noise, ins)
     nb, no = len(biases), len(offs)
     n = nx + nb + no
@@ -318,7 +318,7 @@ def _per_name(arg, value, names, closed=False):
         vals = [value[n] for n in names]
     else:
         vals = [value] * len(names)
-    return np.array([_validate.number(arg, v, 0.0, low_open=not closed) for v in vals], float)
+    return np.array([validation.number(arg, v, 0.0, low_open=not closed) for v in vals], float)
 
 
 def _sensor_R0(R0, m, sensors_names):
@@ -328,7 +328,7 @@ def _sensor_R0(R0, m, sensors_names):
             raise ValueError(f"R0: expected {m} positive variances (one per sensor "
                              f"{sensors_names}), got {R0!r}")
         return np.diag(R0)
-    return _validate.cov("R0", R0, m)
+    return validation.cov("R0", R0, m)
 
 
 def _param_prior(setup, R0_diag, dof_shape):
@@ -417,8 +417,8 @@ def _predicted(setup, fm, z, P, y, u, theta):
 
 
 def _check_common(form, forgetting, iterations):
-    form = _validate.choice("form", form, FORMS)
-    rho = _validate.number("forgetting", forgetting, 0.0, 1.0, high_open=False)
+    form = validation.choice("form", form, FORMS)
+    rho = validation.number("forgetting", forgetting, 0.0, 1.0, high_open=False)
     if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) \
             or iterations < 1:
         raise ValueError(f"iterations: expected an integer >= 1, got {iterations!r}")
@@ -484,7 +484,7 @@ def vbakf_r(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterati
             < 1, dof0 <= 0, bad names, R0 not m positive variances, non-positive stds.
     """
     form, rho, N = _check_common(form, forgetting, iterations)
-    a0 = _validate.number("dof0", dof0, 0.0)
+    a0 = validation.number("dof0", dof0, 0.0)
     st = _setup(model, Q, sensors, known_std, biases, input_offsets, bias_walk, offset_walk,
                 bias_std0, offset_std0, input_noise)
     m = len(st.sens)
@@ -588,12 +588,12 @@ def vbakf_pr(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterat
         ValueError: naming the argument (forgetting, iterations, tau, dof0, R0, names, ...).
     """
     form, rho, N = _check_common(form, forgetting, iterations)
-    tau = _validate.number("tau", tau, 0.0, low_open=False)
+    tau = validation.number("tau", tau, 0.0, low_open=False)
     st = _setup(model, Q, sensors, known_std, biases, input_offsets, bias_walk, offset_walk,
                 bias_std0, offset_std0, input_noise)
     m = len(st.sens)
     R0m = _sensor_R0(R0, m, tuple(str(model.output_names[i]) for i in st.sens))
-    u0 = m + 11.0 if dof0 is None else _validate.number("dof0", dof0, m + 1.0)
+    u0 = m + 11.0 if dof0 is None else validation.number("dof0", dof0, m + 1.0)
     fm = _form(form, st.n, st.Lu)
     sens = st.sens
     n = st.n

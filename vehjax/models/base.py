@@ -26,7 +26,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import validation
 
 INTEGRATORS = ("euler", "rk4")
 
@@ -43,7 +43,7 @@ def integrate(derivative: Callable, x, u, theta, dt: float, integrator: str):
 
 
 def _check_dt(dt) -> float:
-    return _validate.number("dt", dt, 0.0)
+    return validation.number("dt", dt, 0.0)
 
 
 def _check_integrator(integrator) -> str:
@@ -64,7 +64,7 @@ def _check_names(arg: str, names) -> tuple[str, ...]:
 
 
 def _check_theta(theta, param_names: tuple[str, ...]):
-    theta = _validate.array("theta", theta)  # real and finite, or ValueError naming theta
+    theta = validation.array("theta", theta)  # real and finite, or ValueError naming theta
     theta = theta.astype(np.float64).reshape(-1) if theta.ndim <= 1 else theta
     if theta.ndim != 1 or theta.shape[0] != len(param_names):
         raise ValueError(
@@ -129,7 +129,7 @@ class BaseModel(eqx.Module):
 
     dt: float = eqx.field(static=True)
     theta: jnp.ndarray
-    #: its functions' shapes and dtypes were checked (:func:`vehjax._validate.model_shapes`):
+    #: its functions' shapes and dtypes were checked (:func:`vehjax.validation.model_shapes`):
     #: at construction for :class:`Model`, by the tests for the built-in models
     shapes_checked: ClassVar[bool] = True
 
@@ -243,7 +243,7 @@ class Model(BaseModel):
         units: optional dict name -> unit string for any of the names.
         fast_math: evaluate the functions with ``jnp.sin``, ``cos``, ``tan``, ``arctan`` and
             ``arctan2`` replaced by :mod:`vehjax.math`'s vectorisable versions (same results
-            to a few ulps, gradients intact; see :func:`vehjax._substitute.fast_elementary`),
+            to a few ulps, gradients intact; see :func:`vehjax.substitute.fast_elementary`),
             which XLA on CPU fuses into vector loops: about twice as fast a filter on a model
             written with trigonometry. False keeps the functions exactly as given. Filters
             that evaluate the model one point at a time (EKF; every Gaussian filter's per-run
@@ -286,7 +286,7 @@ class Model(BaseModel):
             raise ValueError(f"observe: expected a function h(x, u, theta), got {observe!r}")
         self.written_fns = (transition, observe)
         if fast_math:
-            from .._substitute import fast_elementary
+            from ..substitute import fast_elementary
 
             transition, observe = fast_elementary(transition), fast_elementary(observe)
         self.transition_fn = transition
@@ -303,7 +303,7 @@ class Model(BaseModel):
         theta = np.zeros(len(self.param_names)) if theta is None else theta
         self.theta = _check_theta(theta, self.param_names)
         self.units = tuple(sorted((units or {}).items()))
-        _validate.model_shapes(self)  # transition -> (nx,), observe -> (ny,), or ValueError
+        validation.model_shapes(self)  # transition -> (nx,), observe -> (ny,), or ValueError
 
     def _probe_output(self):
         x = jnp.zeros(len(self.state_names))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .._elementary import arctan, cos, sin, tan
+from ..elementary import arctan, cos, sin, tan
 from .base import VehicleModel
 
 

@@ -125,7 +125,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._elementary import arctan2, cos, sin
+from ..elementary import arctan2, cos, sin
 from .base import VehicleModel
 from .tyres import pacejka89_lateral, pacejka89_longitudinal
 

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .._elementary import arctan, sin
+from ..elementary import arctan, sin
 
 #: Pacejka '89 lateral-force coefficients a0..a13 (Fz in kN, alpha and camber in deg, Fy in N).
 LATERAL_89 = (

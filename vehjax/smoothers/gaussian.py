@@ -12,7 +12,7 @@ Cholesky factors throughout (:func:`vehjax.smoothers.linear.sqrt_rts_step`).
 Index 0 is the prior (the filter state before the first step), so the pass also smooths x_0.
 
 Where the forward pass ran the runs-last filter step (``vehjax.run(smooth=True)`` on the CPU,
-:mod:`vehjax.filters._runs_last`), that step has kept its predictions and cross-covariances, and
+:mod:`vehjax.filters.runs_last`), that step has kept its predictions and cross-covariances, and
 :func:`backward_predicted` runs the recursion from them, the runs axis last, without evaluating
 the model again.
 
@@ -25,8 +25,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..filters._entrywise import backward_entries, chol_sym, dot
-from ..filters._linalg import cholesky, forward_entries, sym
+from ..lib.entrywise import backward_entries, chol_sym, dot
+from ..lib.linalg import cholesky, forward_entries, sym
 from ..filters.base import GaussianSmoother
 from .linear import Affine, rts_apply, rts_gain, slr, sqrt_rts_apply, sqrt_rts_gain
 
@@ -173,7 +173,7 @@ def _unpack_sym(packed, n: int):
 def backward_predicted(m, P, m_pred, P_pred, C):
     """The RTS backward pass (:func:`backward`, plain covariances) over a batch of R runs with
     the runs axis last, from the forward pass's own predictions (the runs-last filter steps'
-    ``smooth_step``, :mod:`vehjax.filters._runs_last`): nothing of the model is evaluated
+    ``smooth_step``, :mod:`vehjax.filters.runs_last`): nothing of the model is evaluated
     again. All that does not depend on the smoothed moments is computed for every step at
     once, entry by entry: the gains (:func:`gains_runs_last`), b = m - G m-,
     A = P - G P- G^T (:func:`_recursion_terms`); the scan over time then runs

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular
 
-from ..filters._linalg import cholesky, solve_lower, sym
+from ..lib.linalg import cholesky, solve_lower, sym
 from ..filters.kalman import masked_update
 from ..filters.sigma import triangularize
 
@@ -62,7 +62,7 @@ class Affine(NamedTuple):
 
 def solve_upper_t(L, B):
     """``L^-T B`` for lower-triangular L (n, n) and B (n,) or (n, k): back substitution, as the
-    forward substitution of :func:`vehjax.filters._linalg.solve_lower` on the reversed system
+    forward substitution of :func:`vehjax.lib.linalg.solve_lower` on the reversed system
     (J L^T J is lower triangular for the reversal permutation J); unrolled for n <= 8."""
     Lr = jnp.swapaxes(L, -1, -2)[..., ::-1, ::-1]
     vec = B.ndim == L.ndim - 1

@@ -190,7 +190,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _validate
+from .. import validation
 from ..engine import output_ok
 from ..filters._mpf_linearise import linearise
 from ..filters._niw import impute_missing, niw_predict, niw_update, noise_estimates
@@ -717,14 +717,14 @@ def _check(estimator, method, n_trajectories):
         raise ValueError(
             "estimator: this marginalized_pf with kalman_states='linear' does not declare its "
             "setup and model (RBTransition.setup, .model), which the smoother needs")
-    method = "ancestor" if method is None else _validate.choice("method", method, METHODS)
+    method = "ancestor" if method is None else validation.choice("method", method, METHODS)
     if method == "ffbsi" and (rb.gauss or rb.setup is None or rb.model is None):
         raise ValueError(
             "method: 'ffbsi' needs the paper's filter (kalman_states='linear', whose particles "
             "sample the vehicle states): with kalman_states='all' the particles sample only "
             "the offsets, which one-step backward weights do not tie together (module "
             "docstring); use method='ancestor'")
-    return method, _validate.integer("n_trajectories", n_trajectories, 1, 2**24)
+    return method, validation.integer("n_trajectories", n_trajectories, 1, 2**24)
 
 
 def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, key, method=None,

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..filters._linalg import sym
+from ..lib.linalg import sym
 from ..filters.kalman import masked_update, observed
 from .linear import Affine, affine_predict, chol_solve
 

@@ -62,11 +62,11 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from .. import _validate
+from .. import validation
 import numpy as np
 
 from ..engine import output_ok
-from ..filters._linalg import solve_lower
+from ..lib.linalg import solve_lower
 from ..filters.base import Estimator
 
 __all__ = [
@@ -346,9 +346,9 @@ def _check(estimator, method, n_trajectories, max_tries):
         raise ValueError(
             f"estimator: {estimator.name!r} has a process noise Q that is only positive "
             f"semi-definite; backward simulation needs a transition density (Q positive definite)")
-    method = _validate.choice("method", method, METHODS)
-    m = _validate.integer("n_trajectories", n_trajectories, 1, 2**24)
-    tries = _validate.integer("max_tries", max_tries, 1, 2**16)
+    method = validation.choice("method", method, METHODS)
+    m = validation.integer("n_trajectories", n_trajectories, 1, 2**24)
+    tries = validation.integer("max_tries", max_tries, 1, 2**16)
     return method, m, tries
 
 

@@ -1,5 +1,5 @@
 """Small dense algebra written entry by entry, shared by the runs-last Gaussian steps
-(:mod:`vehjax.filters._runs_last`) and the marginalized PF (:mod:`vehjax.filters.marginalized`).
+(:mod:`vehjax.filters.runs_last`) and the marginalized PF (:mod:`vehjax.filters.marginalized`).
 
 A matrix is a nested list of entries and a vector a list; every entry is one array over a batch
 axis (the runs, or the particles: (R,) or (N,)) or a Python float. A Python float is a
@@ -10,7 +10,7 @@ every small matrix operation as a loop over it, which is slower on CPU for 3 x 3
 matrices (``vehjax bench all`` and ``vehjax bench marginalized`` time the filters built on this).
 
 Cholesky factors and forward substitutions of such nested lists are
-:func:`vehjax.filters._linalg.chol_entries` and :func:`~vehjax.filters._linalg.forward_entries`.
+:func:`vehjax.lib.linalg.chol_entries` and :func:`~vehjax.lib.linalg.forward_entries`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ._linalg import chol_entries
+from .linalg import chol_entries
 
 __all__ = [
     "is_zero", "is_const", "add", "sub", "mul", "div", "dot", "transpose", "matvec", "matmul",

@@ -17,7 +17,7 @@ vectorisation applies (``vehjax bench all``, rows ekf and ukf, measures vehjax w
 runs both are bound by XLA's fixed cost per kernel and step.
 
 The UKF/CKF model is evaluated at all sigma points of all runs as one flat batch, points laid out
-(n, m * R), after :func:`vehjax._hoist.split` has taken out what depends on the input and the
+(n, m * R), after :func:`vehjax.hoist.split` has taken out what depends on the input and the
 parameters alone: :attr:`Batch.prepare` computes that once for the whole input sequence before
 the time loop, instead of XLA recomputing it for every point inside it. When every run uses the
 model's own parameters they are constants of the compiled step. What ``prepare`` computes goes
@@ -38,11 +38,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _hoist
-from .._hoist import Split, split
+from .. import hoist
+from ..hoist import Split, split
 from .base import StepOutput
-from ._entrywise import chol_sym, dot, joseph_entries, stack, sym_entries, wsum
-from ._linalg import LOG_2PI, UNROLL_MAX, cholesky, forward_entries
+from ..lib.entrywise import chol_sym, dot, joseph_entries, stack, sym_entries, wsum
+from ..lib.linalg import LOG_2PI, UNROLL_MAX, cholesky, forward_entries
 from .sigma import SigmaRule
 
 MAX_DIM = UNROLL_MAX  # nx and ny up to this use the runs-last step
@@ -123,7 +123,7 @@ def _prediction(xp, Pp, C) -> Prediction:
 
 
 def _point_model(fn, nx: int, nu: int, n_params: int, dtype, theta_const) -> Split:
-    """``fn(x, u, theta)`` of one point split by :func:`vehjax._hoist.split` into
+    """``fn(x, u, theta)`` of one point split by :func:`vehjax.hoist.split` into
     ``early(u)`` and ``late(x, theta, *residuals)``; with ``theta_const`` (np,) the parameters
     are that constant and the ``theta`` argument of ``late`` is ignored."""
     if theta_const is not None:
@@ -318,7 +318,7 @@ def _output(x, P, loglik, nis, n_obs) -> StepOutput:
 def _jacobian_constants(fn, nx: int, nu: int, n_params: int, dtype, theta_const):
     """Nested lists over the entries of d fn / dx: the entry's value (a Python float) where it
     is the same number for every state, input and parameter vector (a structural zero or one,
-    :func:`vehjax._hoist.dependence`), None where it varies. With ``theta_const`` the
+    :func:`vehjax.hoist.dependence`), None where it varies. With ``theta_const`` the
     parameters are that constant."""
     th0 = np.zeros(n_params) if theta_const is None else np.asarray(theta_const)
 
@@ -327,7 +327,7 @@ def _jacobian_constants(fn, nx: int, nu: int, n_params: int, dtype, theta_const)
         return jax.jacfwd(fn)(x, u, th)
 
     args = (np.ones(nx, dtype), np.ones(nu, dtype), np.asarray(th0, dtype))
-    dep, val = _hoist.dependence(jac, args), _hoist.evaluate(jac, args)
+    dep, val = hoist.dependence(jac, args), hoist.evaluate(jac, args)
     return [[None if dep[i, j] else float(val[i, j]) for j in range(nx)]
             for i in range(dep.shape[0])]
 

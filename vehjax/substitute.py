@@ -3,12 +3,12 @@
 A user's own model written with ``jnp.sin``, ``jnp.cos``, ``jnp.arctan2``... traces to the
 ``sin``, ``cos``, ``tan``, ``atan``, ``atan2`` primitives, which XLA on CPU evaluates in float64
 by one scalar library call per element and does not fuse into vectorised loops (see
-:mod:`vehjax._elementary`). :func:`fast_elementary` traces the function once per argument
+:mod:`vehjax.elementary`). :func:`fast_elementary` traces the function once per argument
 signature, re-traces its jaxpr through an interpreter that binds every primitive as it is
-except those five, which it replaces by the corresponding :mod:`vehjax._elementary` function
+except those five, which it replaces by the corresponding :mod:`vehjax.elementary` function
 (arithmetic and ``where`` only, 1-3 ulp from libm, derivatives by ``custom_jvp``), and
 evaluates the rewritten jaxpr. Nested jaxprs are rewritten too: ``jit``/``closed_call`` bodies
-are inlined (so that :func:`vehjax._hoist.split` sees their equations; a ``jit`` with shardings,
+are inlined (so that :func:`vehjax.hoist.split` sees their equations; a ``jit`` with shardings,
 layouts, donation or compiler options is rewritten in place instead); ``cond`` branches,
 ``scan``/``while`` bodies, ``checkpoint`` bodies and the primal function of a user's
 ``custom_jvp``/``custom_vjp`` are rewritten in place. A user's custom derivative rules are kept
@@ -33,19 +33,28 @@ import numpy as np
 from jax import lax
 from jax.extend.core import ClosedJaxpr, DropVar, Jaxpr, Literal, jaxpr_as_fun, jaxprs_in_params
 
-from . import _elementary, execution
+from . import elementary, execution
+
+
+
+def _weak_convert(x, dtype):
+    """``x`` as ``dtype`` with JAX's weak type (what a Python scalar operand has), by binding
+    the public primitive ``lax.convert_element_type_p``."""
+    return lax.convert_element_type_p.bind(x, new_dtype=dtype, weak_type=True, sharding=None)
+
 
 try:  # restores a weak type after substitution; without it weakly typed operands are skipped
-    from jax._src.lax.lax import _convert_element_type as _convert_weak
-except ImportError:  # pragma: no cover - internal API moved
+    _weak_convert(np.zeros((), np.float32), np.dtype(np.float32))
+    _convert_weak = _weak_convert
+except TypeError:  # pragma: no cover - the primitive's parameters changed
     _convert_weak = None
 
 _SUBSTITUTES: dict[Any, Callable] = {
-    lax.sin_p: _elementary.sin,
-    lax.cos_p: _elementary.cos,
-    lax.tan_p: _elementary.tan,
-    lax.atan_p: _elementary.arctan,
-    lax.atan2_p: _elementary.arctan2,
+    lax.sin_p: elementary.sin,
+    lax.cos_p: elementary.cos,
+    lax.tan_p: elementary.tan,
+    lax.atan_p: elementary.arctan,
+    lax.atan2_p: elementary.arctan2,
 }
 _FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
 #: Calls inlined into the enclosing jaxpr (function-call boundaries with no semantics on CPU).
@@ -90,7 +99,7 @@ def _like(out, aval):
     if out.dtype != aval.dtype:
         out = lax.convert_element_type(out, aval.dtype)
     if getattr(aval, "weak_type", False) and not jax.typeof(out).weak_type:
-        out = _convert_weak(out, aval.dtype, weak_type=True)
+        out = _convert_weak(out, aval.dtype)
     return out
 
 
@@ -210,7 +219,7 @@ class _nullcontext:
 
 def substitute_jaxpr(closed: ClosedJaxpr) -> ClosedJaxpr:
     """``closed`` with every float32/float64 sin, cos, tan, atan, atan2 (nested ones included,
-    where rewritable) replaced by :mod:`vehjax._elementary`'s; same input and output types.
+    where rewritable) replaced by :mod:`vehjax.elementary`'s; same input and output types.
     Returns ``closed`` itself when there is nothing to replace or it has effects."""
     if closed.jaxpr.effects:
         return closed
@@ -277,11 +286,11 @@ def fast_elementary(fn: Callable) -> Callable:
     Returns:
         ``fast(*args, **kwargs)``: what ``fn`` returns, same structure, shapes and dtypes, with
         every float32/float64 ``sin``, ``cos``, ``tan``, ``atan``, ``atan2`` primitive of its
-        trace computed by :mod:`vehjax._elementary` (within 1-3 ulp of libm, derivatives those
+        trace computed by :mod:`vehjax.elementary` (within 1-3 ulp of libm, derivatives those
         of the true functions, see there). ``fast`` works under ``jit``, ``vmap``, ``grad`` and
         ``jacfwd``/``jacrev``. The rewritten jaxpr is cached per argument shapes and dtypes;
         called with concrete arrays it runs compiled (``jax.jit``), called with tracers it
-        binds its equations into the caller's trace, so :func:`vehjax._hoist.split` and XLA
+        binds its equations into the caller's trace, so :func:`vehjax.hoist.split` and XLA
         see them as if written out.
 
     ``fn`` is called as it is (same results, bit for bit) when its trace has effects, when it

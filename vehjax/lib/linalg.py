@@ -9,7 +9,7 @@ instead of one LAPACK call per run and matrix. Larger n go to ``jnp.linalg`` /
 The entry-wise cores :func:`chol_entries` and :func:`forward_entries` work on nested lists of
 arrays of any one shape, so the same code serves matrices with the batch axes first
 (:func:`cholesky`, :func:`solve_lower`: (..., n, n)) and the runs-last layout of
-:mod:`vehjax.filters._runs_last` (every entry an (R,) vector).
+:mod:`vehjax.filters.runs_last` (every entry an (R,) vector).
 """
 
 from __future__ import annotations
