@@ -189,15 +189,15 @@ def time_fit(steps: int, seed: int = 0, baseline: bool = False):
     kw, truth = single_track_problem()
     ys, us = single_track_data(steps, seed)
     builder, model, Q0, R0 = (kw.pop(k) for k in ("builder", "model", "Q0", "R0"))
-    saved = vt._FORWARD_MAX
+    saved = vt.program.FORWARD_MAX
     if baseline:
-        vt._FORWARD_MAX, kw["optimizer"] = 0, "lbfgs"
+        vt.program.FORWARD_MAX, kw["optimizer"] = 0, "lbfgs"
     try:
         c0, w0 = time.process_time(), time.perf_counter()
         res = vt.fit(builder, model, Q0, R0, ys, us, progress=False, **kw)
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
     finally:
-        vt._FORWARD_MAX = saved
+        vt.program.FORWARD_MAX = saved
     run_s = res.seconds - res.compile_seconds
     label = "baseline (lbfgs, reverse)" if baseline else "default"
     print(f"{label}: {steps} steps, 5 fitted numbers, optimizer {res.optimizer}, derivatives "

@@ -229,8 +229,8 @@ def test_forward_scores_and_bhhh_equal_numpy_differences():
     import jax.flatten_util
 
     ys, us = simulate(5, q=Q_TRUE, T=40)
-    obj, info = vt._prepare(vj.filters.ekf, scalar_model(), [0.4], [0.7], ys, us, X0, P0,
-                            ("a",), None, ("Q", "R"), False, None, None)
+    obj, info = vt.prepare(vj.filters.ekf, scalar_model(), [0.4], [0.7], ys, us, X0, P0,
+                           ("a",), None, ("Q", "R"), False, None, None)
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
     ll, dll, div = vt.forward_scores(lambda g, d: info["per_step"](unravel(g), d), flat,
                                      obj.data)
@@ -319,7 +319,7 @@ def test_hessian_from_gradients_batched_equals_one_by_one_and_the_analytic_hessi
         points.append(np.array(f))
         return 0.0, None, grad(f)
 
-    fwd = vt.hessian_from_gradients(vg, x, scales, rel=vt._FORWARD_REL, g0=grad(x))
+    fwd = vt.hessian_from_gradients(vg, x, scales, rel=vt.information.FORWARD_REL, g0=grad(x))
     assert len(points) == 3 and not any(np.array_equal(p, x) for p in points)
     np.testing.assert_allclose(fwd, want, rtol=1e-5)
     assert np.max(np.abs(fwd - want)) > 1e-12  # really one-sided: not the central result
@@ -329,7 +329,7 @@ def test_fit_with_the_batched_hessian_matches_the_inverse_information(monkeypatc
     """A fit long enough for the batched Hessian (threshold lowered to take this short run):
     its standard errors within 2 % of the numpy inverse observed information at scipy's
     optimum, the optimum within 1e-3, and the Hessian went through the batched program."""
-    monkeypatch.setattr(vt, "_BATCH_HESSIAN_STEPS", 1)
+    monkeypatch.setattr(vt.program, "BATCH_HESSIAN_STEPS", 1)
     ys, us = simulate(7, q=Q_TRUE, T=150)
     fn = lambda p: loglik(p[0], p[1], p[2], ys, us)  # noqa: E731
     p_ml, cov = reference(fn, np.array([0.5, 1.0, 1.0]))

@@ -93,7 +93,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import sys
 import time
 from functools import partial
 from typing import Any, NamedTuple, Sequence
@@ -108,6 +107,7 @@ from . import engine, execution, validation
 from .engine import FilterResult
 from .filters import runs_last
 from .filters.base import Estimator
+from .progress import Progress, text_bar
 from .result import RunResult
 
 __all__ = ["RunResult", "CompiledRun", "run", "compile_run", "Strategy"]
@@ -604,52 +604,24 @@ def _call_args(plan: _Plan, i: int):
             plan.smooth), n
 
 
-class _Progress:
-    """A progress bar per chunk: tqdm's (``tqdm.auto``, a widget in Jupyter) when tqdm is
-    installed, else one text line on stderr."""
+def _bar(n_chunks: int, n_runs: int, enabled: bool) -> Progress:
+    """The study's progress bar per chunk (:mod:`vehjax.progress`)."""
+    return Progress(n_chunks, "vehjax.run", enabled, unit="chunk",
+                    bar_format="{desc} [{bar:30}] chunk {n_fmt}/{total_fmt}{postfix}, "
+                               "{elapsed}",  # tqdm puts ", " before a postfix
+                    postfix=f"0/{n_runs} runs", first_text=_bar_text(0, n_chunks, 0, n_runs))
 
-    def __init__(self, n_chunks: int, n_runs: int, enabled: bool, width: int = 30):
-        self.n_chunks, self.n_runs, self.enabled, self.width = n_chunks, n_runs, enabled, width
-        self.t0 = time.perf_counter()
-        self.bar = None
-        if not enabled:
-            return
-        try:
-            from tqdm.auto import tqdm
-        except ImportError:
-            self.update(0, 0)
-            return
-        self.bar = tqdm(total=n_chunks, desc="vehjax.run", unit="chunk", file=sys.stderr,
-                        bar_format="{desc} [{bar:30}] chunk {n_fmt}/{total_fmt}{postfix}, "
-                                   "{elapsed}",  # tqdm puts ", " before a postfix
-                        postfix=f"0/{n_runs} runs")
 
-    def update(self, chunks: int, runs: int):
-        if not self.enabled:
-            return
-        if self.bar is not None:
-            self.bar.set_postfix_str(f"{runs}/{self.n_runs} runs", refresh=False)
-            self.bar.update(chunks - self.bar.n)
-            if chunks == self.n_chunks:
-                self.bar.close()
-            return
-        filled = round(self.width * chunks / self.n_chunks)
-        bar = "#" * filled + "." * (self.width - filled)
-        elapsed = time.perf_counter() - self.t0
-        sys.stderr.write(
-            f"\rvehjax.run [{bar}] chunk {chunks}/{self.n_chunks}, "
-            f"{runs}/{self.n_runs} runs, {elapsed:.1f} s"
-        )
-        if chunks == self.n_chunks:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
+def _bar_text(chunks: int, n_chunks: int, runs: int, n_runs: int) -> str:
+    return (f"vehjax.run [{text_bar(chunks, n_chunks)}] chunk {chunks}/{n_chunks}, "
+            f"{runs}/{n_runs} runs")
 
 
 def _execute(plan: _Plan, fn, progress) -> RunResult:
     show = plan.n_chunks > 1 if progress is None else bool(progress)
     if show and jax.process_count() > 1:
         show = jax.process_index() == 0  # one bar, process 0's
-    bar = _Progress(plan.n_chunks, plan.R, show)
+    bar = _bar(plan.n_chunks, plan.R, show)
     to_host = plan.strategy is None or plan.strategy.results_to_host
     parts = []
     pending = None  # (device outputs, n valid); the next chunk is dispatched before fetching
@@ -664,7 +636,8 @@ def _execute(plan: _Plan, fn, progress) -> RunResult:
             parts.append(tuple(None if a is None else (np.asarray(a)[:n] if to_host else a[:n])
                                for a in out))
             done += n
-            bar.update(len(parts), done)
+            bar.update(len(parts), f"{done}/{plan.R} runs",
+                       _bar_text(len(parts), plan.n_chunks, done, plan.R))
         pending = nxt
 
     def cat(k):  # np.array copies: writable results, device buffers released

@@ -1,0 +1,107 @@
+"""Tuning: fit noise covariances, model parameters and x0 by maximising the filter's likelihood.
+
+::
+
+    res = vehjax.tune.fit_noise(vehjax.filters.ukf, model, Q0, R0, sim.measurements, sim.inputs,
+                                x0=x0, P0=P0)
+    res.Q, res.R                 # fitted covariances (full matrices)
+    res.history                  # loss per iteration
+    out = vehjax.run(res.estimator, ys, us, x0=x0, P0=P0)   # the tuned filter, ready to run
+    print(res.summary())         # fitted values with names and units
+
+    res = vehjax.tune.fit(vehjax.filters.ekf, model, Q0, R0, ys, us, x0=x0, P0=P0,
+                          params=("m", "iz"), noise=("R",))   # model parameters too
+
+The objective is the summed log-likelihood ``sum_r vehjax.filter(est, y_r, u_r, ...).loglik.sum()``
+over a batch of runs (one run ``(T, ny)`` or a batch ``(R, T, ny)``), ``jax.grad`` of it through
+``vehjax.filter`` vmapped over the runs, with the estimator rebuilt by ``builder(model, Q, R)``
+inside the differentiated function. The optimiser minimises the loss
+``-sum loglik / (R T)``, the negative mean log-likelihood per step, which is what
+``history`` records.
+
+Parameterisations (unconstrained vector -> physical value), chosen from the starting values:
+
+* a diagonal ``Q0``/``R0`` ((n,) variances, or a matrix with zero off-diagonal entries) is fitted
+  as diagonal: ``Q = diag(exp(2 d))`` (log standard deviations);
+* a full one as full, by its log-Cholesky factor: ``Q = L L^T``, ``L`` lower triangular with
+  diagonal ``exp(d)`` and free entries below it. Both keep Q positive definite.
+* model parameters named in ``params``: ``bounds={name: (lo, hi)}`` gives a box
+  (``lo + (hi - lo) sigmoid(s)``), ``(lo, None)`` a lower bound (``lo + exp(s)``), ``(None, hi)`` an
+  upper bound, ``(None, None)`` none; a parameter not in ``bounds`` is kept positive
+  (``exp(s)``) when its starting value is positive, else left free. The starting values are
+  ``model.theta`` (set them with ``model.with_theta(...)``). The maps are the parameter-domain
+  transforms the filters use (unit scale; :mod:`vehjax.tune.parameterisation`).
+* ``x0`` (``fit_x0=True``): free, shared (nx,) or one per run (R, nx) as given.
+
+* the input noise (``noise=(..., "input")``, starting value ``builder_kwargs["input_noise"]``):
+  stds by input name as log standard deviations, a covariance like Q.
+
+Optimisers (:mod:`vehjax.tune.optimisers`). ``"scoring"``, the default for deterministic
+filters (EKF, UKF, CKF and their square-root forms) with at most 12 fitted coordinates: the
+derivatives by forward mode (:func:`forward_scores`: each step's score with n tangents carried
+through the filter, several times cheaper than reverse mode through a long scan), BHHH steps
+on the outer product of the per-step scores (:func:`score_outer_product`,
+:func:`scoring_direction`; a Gauss-Newton-type curvature from the same evaluation) with a
+backtracking line search, then Newton steps on the Hessian by differences of the gradient,
+which the standard errors need anyway. ``"lbfgs"``, the default with more coordinates:
+``optax.lbfgs`` with its zoom line search (strong Wolfe conditions), stopping when every
+component of the gradient of the loss with respect to the unconstrained coordinates is at most
+``gtol`` (the projected gradient: the coordinates are unconstrained), then one Newton step on
+the Hessian. ``"adam"``, the default for particle filters (learning rate 0.05 with a cosine
+decay to 5 % of it over ``steps``, on the unconstrained scale, i.e. about 5 % relative change
+of a standard deviation per step at first), or any ``optax.GradientTransformation``: updates
+whose gradient is not finite are skipped, and the fit ends when the best loss has not improved
+by more than ``tol * max(1, |best|)`` for ``patience`` iterations; the values at the best loss
+are returned. Every part of a fit (iterations, line search, curvature) evaluates one compiled
+program, the loss and its gradient (:mod:`vehjax.tune.program`); a long fit
+(:data:`vehjax.tune.program.BATCH_HESSIAN_STEPS` run-steps or more, forward mode) also
+compiles the gradient at the Hessian's 2 n central-difference points side by side, which costs
+about 2 evaluations; a shorter one forms the Hessian by forward differences, n evaluations.
+
+How sure (:mod:`vehjax.tune.information`). Every fit reports the standard error of each fitted
+quantity in its units and their correlations (``TuneResult.std_errors``, ``correlations``),
+from the observed information: the Hessian of minus the log-likelihood in the unconstrained
+coordinates (differences of JAX's exact gradient, or ``hessian="jax"``), inverted over the
+directions the data determine and carried to the physical quantities by the delta method
+(:func:`uncertainty`). Directions with no or too little curvature are named
+(``TuneResult.undetermined`` and a warning): a parameter or noise entry the data cannot
+determine does not come back silently at its start value.
+
+Particle filter (:mod:`vehjax.tune.particle`). A particle filter
+(``builder=vehjax.filters.bootstrap_pf``) is differentiated with stop-gradient resampling, built
+with ``resample=vehjax.filters.smc.resample_stop_gradient`` (:func:`stop_gradient_pf`; Scibior &
+Wood 2021, "Differentiable particle filtering without modifying the forward pass"): its forward
+pass is the bootstrap PF's, value for value (same keys, same particles, same log-likelihood),
+and after a resampling each particle's log weight is ``-log N + log W_a - stop_gradient(log
+W_a)`` for its ancestor a, so the gradient of the log-likelihood estimate also carries the score
+of the resampling. Particles are moved by the reparameterised ``f(x) + chol(Q) z``, so
+gradients with respect to Q, R, model parameters and x0 all flow. The estimate of the score is
+consistent (bias O(1/N)), with a Monte-Carlo error; each run uses the key
+``jax.random.split(key, R)[r]`` for every iteration (common random numbers), as
+:func:`vehjax.run` does. Prefer adam: the piecewise-constant resampling makes the PF's
+objective unsuitable for a line search.
+
+Modules: :mod:`~vehjax.tune.likelihood` (the objective), :mod:`~vehjax.tune.parameterisation`
+(the coordinates), :mod:`~vehjax.tune.program` (the compiled loss and scores),
+:mod:`~vehjax.tune.optimisers`, :mod:`~vehjax.tune.information` (observed information, standard
+errors), :mod:`~vehjax.tune.quantities` (names, units, scales), :mod:`~vehjax.tune.result`,
+:mod:`~vehjax.tune.driver` (:func:`fit`, :func:`fit_noise`). Measurements behind the defaults:
+``benchmarks/results/notes_tune.md``.
+"""
+
+from __future__ import annotations
+
+from . import driver, information, likelihood, optimisers, program, quantities
+from .driver import fit, fit_noise
+from .information import Uncertainty, hessian_from_gradients, uncertainty
+from .likelihood import Objective, objective, prepare
+from .optimisers import scoring_direction
+from .particle import stop_gradient, stop_gradient_pf
+from .program import forward_scores, score_outer_product
+from .quantities import fitted_quantities
+from .result import TuneResult
+
+__all__ = ["fit", "fit_noise", "objective", "Objective", "TuneResult", "stop_gradient_pf",
+           "forward_scores", "score_outer_product", "scoring_direction",
+           "uncertainty", "Uncertainty", "fitted_quantities", "hessian_from_gradients",
+           "stop_gradient", "prepare"]

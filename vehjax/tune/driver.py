@@ -1,0 +1,241 @@
+"""The drivers of a fit: :func:`fit` (noise, model parameters, x0) and :func:`fit_noise` (the
+noise only): the objective (:mod:`vehjax.tune.likelihood`) compiled once
+(:mod:`vehjax.tune.program`), an optimiser (:mod:`vehjax.tune.optimisers`), the observed
+information and standard errors (:mod:`vehjax.tune.information`), the result
+(:mod:`vehjax.tune.result`). The method is described in :mod:`vehjax.tune`."""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from .. import validation
+from ..progress import Progress
+from . import optimisers as opt
+from . import program
+from .information import difference_hessian, uncertainty
+from .likelihood import NOISE, prepare
+from .optimisers import GTOL
+from .quantities import coordinates, fitted_quantities
+from .result import TuneResult, make_result
+
+__all__ = ["fit", "fit_noise"]
+
+
+def _check_fit_options(learning_rate, tol, gtol, hessian, steps, patience, optimizer):
+    """:func:`fit`'s optimiser options checked (ValueError naming the first bad one):
+    (learning_rate, tol, gtol) as numbers."""
+    if learning_rate is not None:
+        learning_rate = validation.number("learning_rate", learning_rate, 0.0)
+    tol = validation.number("tol", tol, 0.0, low_open=False)
+    gtol = validation.number("gtol", gtol, 0.0)
+    if hessian is not None:
+        validation.choice("hessian", hessian, ("differences", "jax"))
+    if steps is not None:
+        validation.integer("steps", steps, 1)
+    if patience is not None:
+        validation.integer("patience", patience, 1)
+    if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
+        if not isinstance(optimizer, str):
+            raise ValueError(f"optimizer: expected 'adam', 'lbfgs' or an "
+                             f"optax.GradientTransformation, got {optimizer!r}")
+        validation.choice("optimizer", optimizer, opt.OPTIMIZERS)
+    return learning_rate, tol, gtol
+
+
+def _progress(steps: int, enabled, name: str):
+    """``(report(i, loss, best), bar)``: the fit's progress bar (:mod:`vehjax.progress`),
+    labelled ``vehjax.tune (name)``, its text line rewritten at most 5 times a second."""
+    label = f"vehjax.tune ({name})"
+    bar = Progress(steps, label, bool(enabled), interval=0.2)
+
+    def report(i: int, loss: float, best: float):
+        bar.update(i, f"loss={loss:.6g}, best={best:.6g}",
+                   f"{label}: iteration {i}/{steps}, loss {loss:.6g}, best {best:.6g}")
+
+    return report, bar
+
+
+def _optimise(loss, optimizer, opts: dict, report, scales):
+    """The chosen optimiser on the compiled loss: (x, aux, history, iterations, converged,
+    skipped)."""
+    steps, gtol = opts["steps"], opts["gtol"]
+    if optimizer == "scoring":
+        return (*opt.scoring(loss, steps, gtol, report, scales), 0)
+    if optimizer == "lbfgs":
+        return (*opt.lbfgs(loss, steps, gtol, report), 0)
+    return opt.first_order(loss, opts["first"], steps, opts["tol"], opts["patience"], report)
+
+
+def _hessian_fn(obj, setup, loss, hessian, scales):
+    """``hess(x) -> (n, n)``, the Hessian of the mean loss: ``jax.hessian`` compiled
+    (``"jax"``, the default for particle filters) or differences of the compiled gradient."""
+    if hessian is None:
+        hessian = "jax" if setup["stochastic"] else "differences"
+    if hessian == "jax":
+        hfn = jax.jit(jax.hessian(lambda f, data: obj.loss(loss.unravel(f), data)[0])).lower(
+            jnp.asarray(loss.x0), obj.data).compile(compiler_options=loss.stats["options"])
+        return lambda f: np.asarray(hfn(jnp.asarray(f), obj.data))
+    return lambda f: difference_hessian(loss, f, scales)
+
+
+def _standard_errors(obj, setup, model, loss, x, optimizer, hessian, gtol, scales, names):
+    """The Newton polish (deterministic filters) and the observed information at its end:
+    (x, aux, max |gradient|, polished to gtol, :class:`vehjax.tune.Uncertainty`)."""
+    hess = _hessian_fn(obj, setup, loss, hessian, scales)
+    polished = False
+    if setup["stochastic"]:  # no Newton step on a Monte-Carlo objective
+        _, aux, g = loss.vg(x)
+        grad_max, Hm = float(np.max(np.abs(g))), hess(x)
+    else:
+        for _ in range(3 if optimizer == "scoring" else 1):
+            x, aux, grad_max, Hm = opt.newton(loss, x, scales, gtol, hess)
+            if grad_max <= gtol:
+                break
+        polished = grad_max <= gtol
+
+    def values(f):
+        return jnp.stack([jnp.asarray(q[2]) for q in fitted_quantities(
+            setup, model, obj.unpack(loss.unravel(f)))])
+
+    unc = uncertainty(obj.n_steps * Hm, np.asarray(jax.jacfwd(values)(jnp.asarray(x))), scales,
+                      names)
+    return x, aux, grad_max, polished, unc
+
+
+def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(), bounds=None,
+        noise=NOISE, fit_x0: bool = False, optimizer=None, learning_rate=None,
+        steps: int | None = None, tol: float = 1e-7, patience: int | None = None,
+        gtol: float = GTOL, key=None, builder_kwargs=None, progress: bool = True,
+        standard_errors: bool = True, hessian: str | None = None) -> TuneResult:
+    """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum likelihood,
+    with standard errors.
+
+    Args:
+        builder: a filter builder ``builder(model, Q, R, **builder_kwargs) -> Estimator``:
+            ``vehjax.filters.ekf``, ``ukf``, ``ckf`` (``builder_kwargs={"sqrt": True}`` for the
+            square-root forms), ``bootstrap_pf`` (differentiated with stop-gradient
+            resampling, :func:`vehjax.tune.stop_gradient_pf`), or one's own state-only builder.
+        model: a vehjax model; ``model.theta`` holds the starting parameter values.
+        Q0, R0: starting covariances, (n, n) or (n,) variances; diagonal ones are fitted as
+            diagonal, full ones as full (:mod:`vehjax.tune`). Positive definite when fitted; a Q0
+            that is not fitted may be positive semi-definite (zero, with input noise).
+        measurements: (T, ny) one run or (R, T, ny) runs; NaN components are missing.
+        inputs: (T, nu) shared or (R, T, nu) per run; None for a model without inputs.
+        x0, P0: prior of every run: x0 (nx,) or (R, nx), P0 (nx, nx), (nx,) or (R, nx, nx).
+        params: names of model parameters to fit (default none).
+        bounds: ``{name: (lo, hi)}`` for fitted parameters, either end None (:mod:`vehjax.tune`).
+        noise: which noise to fit, a subset of ("Q", "R", "input") (default ("Q", "R")).
+            "input" fits the input noise whose starting value is
+            ``builder_kwargs["input_noise"]``: stds by input name (log stds fitted, reported as
+            ``"input[name]"`` stds in the input's unit) or an (nu, nu) covariance (fitted like
+            Q0, reported in units squared).
+        fit_x0: also fit x0 (the shape it was given in).
+        optimizer: None (default): "scoring" for deterministic filters with at most 12
+            fitted coordinates (forward-mode derivatives), "lbfgs" for those with more,
+            "adam" for particle filters; "adam", "lbfgs", "scoring" or an
+            ``optax.GradientTransformation``. "lbfgs": ``optax.lbfgs`` with its zoom line
+            search. "scoring": BHHH steps (the outer product of the
+            per-step scores as curvature, :func:`vehjax.tune.score_outer_product`) with a line
+            search, then Newton steps on the Hessian by differences (up to 3) until ``gtol``.
+        learning_rate: > 0; adam's peak rate (default 0.05, cosine decay to 5 % over
+            ``steps``); not for L-BFGS (line search).
+        steps: maximum number of iterations, >= 1 (default 300 adam, 100 lbfgs/scoring).
+        tol: >= 0 (adam, custom): the improvement of the best loss that resets ``patience``,
+            relative to max(1, |best loss|).
+        patience: >= 1 (adam, custom), iterations without improvement before stopping (default
+            50: adam's momentum can overshoot for a few tens of iterations).
+        gtol: > 0, L-BFGS stops, converged, when every component of the gradient of the loss
+            (the mean negative log-likelihood per step) with respect to the unconstrained
+            coordinates is at most gtol (the parameterisation is unconstrained: this is the
+            projected gradient), or when its line search finds no lower loss. For every
+            deterministic filter a Newton step on the Hessian then polishes the result, and
+            ``converged`` says whether the gradient there is at most gtol.
+        key: PRNG key, required for particle filters; run r uses ``jax.random.split(key, R)[r]``
+            at every iteration.
+        builder_kwargs: further keyword arguments of ``builder`` (``sqrt``, ``alpha``,
+            ``n_particles``, ``input_noise``, ...).
+        progress: show a progress bar (tqdm.auto when installed, else a line on stderr).
+        standard_errors: compute the observed information (the Hessian of the log-likelihood),
+            standard errors, correlations and the undetermined directions (default).
+        hessian: how the Hessian is formed from JAX's exact gradient: "differences" (the
+            default for deterministic filters) by forward differences of the gradient, steps
+            1e-6 of each coordinate's natural size, with the one compiled gradient program
+            (n evaluations beside the one at the point, relative error ~1e-6; central
+            differences, 2 n points in one call, where a long fit compiles the batched
+            program); "jax": ``jax.hessian`` (forward over
+            reverse), exact, one more program to compile (on a vehicle model that compile can
+            take longer than the fit); the default for particle filters, whose resampling
+            makes differences unreliable.
+
+    Returns:
+        :class:`TuneResult`. A warning names the quantities the data do not determine
+        (:func:`vehjax.tune.uncertainty`), also in ``TuneResult.undetermined``.
+
+    Raises:
+        ValueError: naming the argument, before anything is traced: an unknown parameter name,
+            wrong shapes, a Q0/R0/P0 that is not positive definite, learning_rate <= 0,
+            steps < 1, an unknown optimizer, a missing key, nothing to fit.
+    """
+    t_start = time.perf_counter()
+    learning_rate, tol, gtol = _check_fit_options(learning_rate, tol, gtol, hessian, steps,
+                                                  patience, optimizer)
+    obj, setup = prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
+                         noise, fit_x0, key, builder_kwargs)
+    if optimizer == "scoring" and setup["stochastic"]:
+        raise ValueError("optimizer: 'scoring' needs a deterministic filter (EKF, UKF, CKF); "
+                         "use 'adam' for a particle filter")
+    differences = not setup["stochastic"] and hessian in (None, "differences")
+    loss = program.compiled_loss(obj, setup, batch_hessian=differences and obj.n_steps >=
+                                 program.BATCH_HESSIAN_STEPS and (standard_errors or optimizer
+                                                                  in (None, "scoring")))
+    if optimizer is None:
+        optimizer = ("adam" if setup["stochastic"] else
+                     "scoring" if loss.vgo is not None else "lbfgs")
+    if optimizer == "scoring" and loss.vgo is None:  # too many coordinates for forward mode
+        optimizer = "lbfgs"
+    line_search = isinstance(optimizer, str) and optimizer in ("lbfgs", "scoring")
+    if line_search and learning_rate is not None:
+        raise ValueError(f"learning_rate: {optimizer} takes its steps by a line search; leave "
+                         f"it None")
+    steps = (opt.LBFGS_STEPS if line_search else opt.ADAM_STEPS) if steps is None else steps
+    patience = 50 if patience is None else patience
+    first = None if line_search else opt.first_order_optimizer(optimizer, learning_rate, steps)
+    report, bar = _progress(steps, progress, setup["name"])
+    names, scales = coordinates(setup, model, obj.z0)
+    x, aux, history, iters, converged, skipped = _optimise(
+        loss, optimizer, dict(steps=steps, gtol=gtol, tol=tol, patience=patience, first=first),
+        report, scales)
+    bar.close()
+    unc, grad_max = None, float("nan")
+    if optimizer == "scoring" and not standard_errors:  # the Newton polish finishes scoring
+        x, aux, grad_max, _ = opt.newton(loss, x, scales, gtol,
+                                         lambda f: difference_hessian(loss, f, scales))
+        converged = converged or grad_max <= gtol
+    if standard_errors:
+        x, aux, grad_max, polished, unc = _standard_errors(obj, setup, model, loss, x, optimizer,
+                                                           hessian, gtol, scales, names)
+        converged = converged or polished
+    res = make_result(obj, setup, model, loss.unravel(jnp.asarray(x)), aux, history, iters,
+                      converged, skipped, unc, grad_max, t_start)
+    st = loss.stats
+    return res._replace(evaluations=st["evaluations"], optimizer=str(optimizer)
+                        if isinstance(optimizer, str) else "optax", derivatives=st["mode"],
+                        compile_seconds=st["compile_seconds"],
+                        hessian_batches=st["batch_evaluations"],
+                        hessian_compile_seconds=st["batch_compile_seconds"],
+                        compile_cpu_seconds=st["compile_cpu_seconds"])
+
+
+def fit_noise(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, noise=NOISE,
+              **kwargs) -> TuneResult:
+    """Fit the noise covariances Q and R (``noise``: both by default) by maximum likelihood:
+    :func:`fit` with no model parameters. Same arguments and result."""
+    if "params" in kwargs:
+        raise ValueError("params: fit_noise fits Q and R only; use vehjax.tune.fit for model "
+                         "parameters")
+    return fit(builder, model, Q0, R0, measurements, inputs, x0=x0, P0=P0, noise=noise, **kwargs)

@@ -1,0 +1,238 @@
+"""The objective of a fit: the negative mean log-likelihood per step of a batch of runs, as a
+function of the unconstrained coordinates (module docstring of :mod:`vehjax.tune`).
+
+Everything is checked before tracing (:func:`prepare`, ValueError naming the argument); the
+loss rebuilds the estimator with ``builder(model, Q, R, **builder_kwargs)`` inside the
+differentiated function and runs :func:`vehjax.filter` vmapped over the runs.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Mapping, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import validation
+from ..filtering import filter as _filter
+from ..filters.base import Estimator
+from ..filters.particle import bootstrap_pf
+from .parameterisation import Cov, InputNoise, is_diag, param_transform
+from .particle import resample_keyword, stop_gradient_pf
+
+__all__ = ["Objective", "objective", "prepare", "NOISE", "NOISE_KINDS"]
+
+NOISE = ("Q", "R")
+NOISE_KINDS = ("Q", "R", "input")
+
+
+class Objective(NamedTuple):
+    """The objective :func:`vehjax.tune.fit` minimises, for use with an optimiser of one's own.
+
+    Attributes:
+        loss: ``loss(z, data) -> (value, (loglik (R,), diverged (R,)))``, value the negative
+            mean log-likelihood per step; pure and differentiable in ``z``.
+        z0: starting point, a dict of unconstrained arrays (keys among "Q", "R", "theta", "x0").
+        data: the batch of runs the loss reads (pass it as the second argument).
+        unpack: ``unpack(z) -> dict`` of physical values: "Q" (nx, nx), "R" (ny, ny), "theta"
+            (np,) the model's whole parameter vector, "x0".
+        n_steps: R T, the number of run-steps the loss is averaged over.
+    """
+
+    loss: Callable
+    z0: dict
+    data: tuple
+    unpack: Callable
+    n_steps: int
+
+
+def float_array(name: str, value, allow_nan: bool = False) -> np.ndarray:
+    """``value`` as a concrete float array by the rules every entry point shares (real; NaN
+    missing in measurements, else finite); ValueError naming ``name``."""
+    if validation.is_tracer(value):
+        raise ValueError(f"{name}: expected a concrete array; call vehjax.tune outside jit/grad")
+    return np.array(validation.array(name, value, missing=allow_nan), dtype=float)
+
+
+def _check_builder(builder):
+    if not callable(builder):
+        raise ValueError(
+            f"builder: expected a filter builder such as vehjax.filters.ukf, got {builder!r}"
+        )
+    if builder is stop_gradient_pf:  # the same filter forward; its gradients are applied anyway
+        return bootstrap_pf
+    return builder
+
+
+def _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs) -> dict:
+    """The fitted quantities and their starting values checked: a dict of the set-up."""
+    nx, ny = len(model.state_names), len(model.output_names)
+    noise = validation.names("noise", noise, NOISE_KINDS, allow_empty=True)
+    # a Q0 that is not fitted may be singular (zero with the noise through the inputs)
+    Qa = validation.cov("Q0", float_array("Q0", Q0), nx, allow_psd="Q" not in noise)
+    Ra = validation.cov("R0", float_array("R0", R0), ny)
+    names = tuple(model.param_names)
+    if isinstance(params, Mapping):
+        raise ValueError("params: expected a sequence of parameter names; give their bounds in "
+                         "bounds={name: (lo, hi)}")
+    params = validation.names("params", params, names, allow_empty=True)
+    theta0 = np.asarray(model.theta, dtype=float)
+    idx, theta_map = param_transform(params, bounds, theta0, names)
+    if not isinstance(fit_x0, (bool, np.bool_)):
+        raise ValueError(f"fit_x0: expected True or False, got {fit_x0!r}")
+    if not noise and not params and not fit_x0:
+        raise ValueError("noise: nothing to fit: noise=(), params=() and fit_x0=False")
+    if builder_kwargs is None:
+        builder_kwargs = {}
+    if not isinstance(builder_kwargs, Mapping):
+        raise ValueError(f"builder_kwargs: expected a dict of keyword arguments, got "
+                         f"{builder_kwargs!r}")
+    builder_kwargs = dict(builder_kwargs)
+    inp = None
+    if "input" in noise:
+        if builder_kwargs.get("input_noise") is None:
+            raise ValueError("noise: 'input' fits the input noise, whose starting value goes in "
+                             "builder_kwargs={'input_noise': {input name: std, ...}}")
+        inp = InputNoise(builder_kwargs["input_noise"], model)
+    return dict(builder_kwargs=builder_kwargs, params=params, noise=noise, Qa=Qa, Ra=Ra,
+                diagQ=np.ndim(Q0) == 1 or is_diag(Qa), diagR=np.ndim(R0) == 1 or is_diag(Ra),
+                theta0=theta0, idx=idx, fit_x0=fit_x0, input=inp, theta_map=theta_map)
+
+
+def _check_data(model, measurements, inputs, x0, P0):
+    """(ys (R, T, ny), us or None, x0, P0) by the checks every entry point shares
+    (:mod:`vehjax.validation`): shapes, values, the prior."""
+    ny, nu = len(model.output_names), len(model.input_names)
+    ys, us = validation.data(float_array("measurements", measurements, allow_nan=True),
+                            None if inputs is None else float_array("inputs", inputs), ny, nu,
+                            "either")
+    ys = ys[None] if ys.ndim == 2 else ys
+    us = None if inputs is None else us
+    x0a, P0a = validation.prior(len(model.state_names), float_array("x0", x0),
+                               float_array("P0", P0), runs=ys.shape[0])
+    return ys, us, np.asarray(x0a, dtype=float), np.asarray(P0a, dtype=float)
+
+
+def _start_estimator(builder, model, setup: dict, key, n_runs: int):
+    """(the estimator at the starting values, the stop-gradient keyword, per-run keys or None):
+    the builder checks its own arguments and says whether it needs a key."""
+    try:
+        est0 = builder(model, setup["Qa"], setup["Ra"], **setup["builder_kwargs"])
+    except TypeError as err:  # not a state-only builder(model, Q, R, **kw), or bad keywords
+        raise ValueError(
+            f"builder: calling it as builder(model, Q, R, **builder_kwargs) failed ({err}); tune "
+            f"takes a state-only filter builder (ekf, ukf, ckf, ackf, bootstrap_pf) and fits "
+            f"model parameters with params="
+        ) from None
+    if not isinstance(est0, Estimator):
+        raise ValueError(f"builder: expected a function returning a vehjax.filters.Estimator, "
+                         f"got {type(est0).__name__}")
+    if est0.param_names:
+        raise ValueError(f"builder: {est0.name} estimates parameters {est0.param_names}; tune "
+                         f"a state-only filter (ekf, ukf, ckf, bootstrap_pf) and fit model "
+                         f"parameters with params=")
+    keys, sg = None, {}
+    if est0.needs_key:  # a particle filter: differentiated with stop-gradient resampling
+        sg = resample_keyword(builder, est0.name, setup["builder_kwargs"])
+        if key is None:
+            raise ValueError(f"key: {est0.name} draws random numbers; pass key=jax.random.key(...)")
+        try:
+            keys = jax.random.split(key, n_runs)
+        except Exception:
+            raise ValueError(f"key: expected a jax.random.key, got {key!r}") from None
+    return est0, sg, keys
+
+
+def _coordinates(setup: dict):
+    """(z0, unpack): the starting coordinates (a dict) and the map to the physical values."""
+    noise, inp, idx, theta_map = setup["noise"], setup["input"], setup["idx"], setup["theta_map"]
+    Qa, Ra, theta0, x0a = setup["Qa"], setup["Ra"], setup["theta0"], setup["x0"]
+    covQ = Cov(Qa, setup["diagQ"]) if "Q" in noise else None
+    covR = Cov(Ra, setup["diagR"])
+    z0 = {}
+    if "Q" in noise:
+        z0["Q"] = jnp.asarray(covQ.z0)
+    if "R" in noise:
+        z0["R"] = jnp.asarray(covR.z0)
+    if inp is not None:
+        z0["input"] = jnp.asarray(inp.z0)
+    if setup["params"]:
+        z0["theta"] = theta_map.to_unconstrained(jnp.asarray(theta0[idx]))
+    if setup["fit_x0"]:
+        z0["x0"] = jnp.asarray(x0a)
+
+    def unpack(z):
+        Q = covQ(z["Q"]) if "Q" in z else jnp.asarray(Qa)
+        R = covR(z["R"]) if "R" in z else jnp.asarray(Ra)
+        theta = jnp.asarray(theta0)
+        if "theta" in z:
+            theta = theta.at[idx].set(theta_map.to_physical(z["theta"]))
+        return {"Q": Q, "R": R, "theta": theta, "x0": z["x0"] if "x0" in z else jnp.asarray(x0a),
+                "input": inp(z["input"]) if "input" in z else None}
+
+    return z0, unpack
+
+
+def _per_step(builder, model, setup: dict, unpack, sg: dict):
+    """``per_step(z, data) -> (log p(y_t | y_1:t-1) per run and step (R, T), diverged (R,))``."""
+    Qa, Ra, builder_kwargs = setup["Qa"], setup["Ra"], setup["builder_kwargs"]
+
+    def per_step(z, data):
+        ys_, us_, x0_, P0_, keys_ = data
+        v = unpack(z)
+        Q = v["Q"] if "Q" in z else Qa  # constants stay numpy: the builder may specialise
+        R = v["R"] if "R" in z else Ra
+        mdl = eqx.tree_at(lambda m: m.theta, model, v["theta"]) if "theta" in z else model
+        kw = builder_kwargs if "input" not in z else {**builder_kwargs, "input_noise": v["input"]}
+        est = builder(mdl, Q, R, **kw, **sg)
+        x0v = v["x0"] if "x0" in z else x0_
+
+        def one(y, u, xi, Pi, k):
+            res = _filter(est, y, u, xi, Pi, key=k, return_covariances=False)
+            return res.loglik, res.diverged
+
+        axes = (0, None if us_ is None or us_.ndim == 2 else 0, 0 if x0v.ndim == 2 else None,
+                0 if P0_.ndim == 3 else None, None if keys_ is None else 0)
+        return jax.vmap(one, in_axes=axes)(ys_, us_, x0v, P0_, keys_)
+
+    return per_step
+
+
+def prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds, noise,
+            fit_x0, key, builder_kwargs):
+    """Everything checked before tracing (ValueError naming the argument): the
+    :class:`Objective` and a dict of the fit's set-up (the builder, the starting values, the
+    parameterisations, ``per_step``, ``stochastic``, ...) for the optimisers and the report."""
+    builder = _check_builder(builder)
+    validation.model(model)
+    setup = _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs)
+    ys, us, x0a, P0a = _check_data(model, measurements, inputs, x0, P0)
+    n_runs, T, _ = ys.shape
+    est0, sg, keys = _start_estimator(builder, model, setup, key, n_runs)
+    setup.update(x0=x0a, P0=P0a)
+    z0, unpack = _coordinates(setup)
+    per_step = _per_step(builder, model, setup, unpack, sg)
+
+    def loss(z, data):
+        lls, div = per_step(z, data)
+        ll = jnp.sum(lls, axis=-1)
+        return -jnp.sum(ll) / (n_runs * T), (ll, div)
+
+    data = (jnp.asarray(ys), None if us is None else jnp.asarray(us), jnp.asarray(x0a),
+            jnp.asarray(P0a), keys)
+    setup.update(name=est0.name, builder=builder, stochastic=bool(est0.needs_key),
+                 per_step=per_step, workload=est0.workload)
+    return Objective(loss, z0, data, unpack, n_runs * T), setup
+
+
+def objective(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
+              bounds=None, noise=NOISE, fit_x0: bool = False, key=None,
+              builder_kwargs=None) -> Objective:
+    """The objective of :func:`vehjax.tune.fit` (same arguments), to evaluate, differentiate
+    or optimise with tools of one's own: ``obj.loss(obj.z0, obj.data)``,
+    ``obj.unpack(z)["Q"]``."""
+    obj, _ = prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
+                     noise, fit_x0, key, builder_kwargs)
+    return obj

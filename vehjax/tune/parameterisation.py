@@ -1,0 +1,97 @@
+"""Unconstrained coordinates of the fitted quantities: the maps from the optimiser's vector to
+the physical values (module docstring of :mod:`vehjax.tune`).
+
+* a covariance by its log-diagonal (``A = diag(exp(2 d))``) or its log-Cholesky factor
+  (``A = L L^T``, ``L`` lower triangular with diagonal ``exp(d)``): :class:`Cov`;
+* the input noise, stds by input name (log stds) or a covariance like Q: :class:`InputNoise`;
+* model parameters by the parameter-domain transforms the filters use (a box, a half line,
+  or free; unit scale): :func:`param_transform`.
+
+Both covariance maps keep the covariance positive definite for every coordinate vector.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import jax.numpy as jnp
+import numpy as np
+
+from .. import validation
+from ..filters import bounds as bounds_maps  # the one import of the parameter-domain maps
+from ..filters import input_noise as _inoise
+
+__all__ = ["Cov", "InputNoise", "is_diag", "param_transform"]
+
+
+def is_diag(A: np.ndarray) -> bool:
+    """Whether A has no non-zero entry off its diagonal."""
+    return not np.any(A - np.diag(np.diagonal(A)))
+
+
+class Cov:
+    """Log-diagonal or log-Cholesky parameterisation of an (n, n) covariance: ``z0`` the
+    coordinates of ``A``, ``cov(z)`` the covariance at ``z``."""
+
+    def __init__(self, A: np.ndarray, diag: bool):
+        self.n, self.diag = A.shape[0], diag
+        self.rows, self.cols = np.tril_indices(self.n, -1)
+        L = np.linalg.cholesky(A)
+        d = np.log(np.diagonal(L))
+        self.z0 = d if diag else np.concatenate([d, L[self.rows, self.cols]])
+
+    def __call__(self, z):
+        n = self.n
+        if self.diag:
+            return jnp.diag(jnp.exp(2.0 * z))
+        L = jnp.diag(jnp.exp(z[:n])).at[self.rows, self.cols].set(z[n:])
+        return L @ L.T
+
+
+class InputNoise:
+    """Parameterisation of the input noise (``builder_kwargs["input_noise"]``, its starting
+    value): a dict ``{input name: std}`` is fitted by the log standard deviations of the named
+    inputs (the builder gets ``{name: exp(z)}``), an (nu, nu) covariance like Q0 (log-diagonal
+    or log-Cholesky, positive definite)."""
+
+    def __init__(self, spec, model):
+        names = tuple(model.input_names)
+        _inoise.input_factor(spec, names)  # the filters' own checks, ValueError naming it
+        if isinstance(spec, Mapping):
+            self.names = tuple(n for n in names if n in spec)
+            self.z0 = np.log(np.array([float(spec[n]) for n in self.names]))
+            self.cov = None
+        else:
+            S = validation.cov("input_noise", np.asarray(spec, dtype=float), len(names),
+                              allow_diag=False)
+            self.names, self.diag = names, is_diag(S)
+            self.cov = Cov(S, self.diag)
+            self.z0 = self.cov.z0
+
+    def __call__(self, z):
+        if self.cov is None:
+            return {n: jnp.exp(z[i]) for i, n in enumerate(self.names)}
+        return self.cov(z)
+
+
+def param_transform(params, bounds, theta0: np.ndarray, names: tuple):
+    """(indices (q,) in ``names``, the parameter-domain ``Transform``) of the fitted parameters;
+    ValueError naming ``bounds``. A parameter not in ``bounds`` is kept positive when its
+    starting value is positive, else left free (module docstring of :mod:`vehjax.tune`)."""
+    bounds = validation.keyed("bounds", bounds, params, "the fitted params")
+    idx = np.array([names.index(p) for p in params], dtype=int)
+    low, high = np.empty(len(params)), np.empty(len(params))
+    for j, p in enumerate(params):
+        v = float(theta0[idx[j]])
+        if p in bounds:
+            low[j], high[j] = bounds_maps.check_pair("bounds", p, bounds[p])
+            if not low[j] < v < high[j]:
+                show = lambda b: None if np.isinf(b) else float(b)  # noqa: E731
+                raise ValueError(
+                    f"bounds: the starting value {p} = {v} (model.theta) must lie strictly "
+                    f"inside ({show(low[j])}, {show(high[j])}); set it with "
+                    f"model.with_theta({p}=...)"
+                )
+        else:
+            low[j], high[j] = (0.0 if v > 0 else -np.inf), np.inf
+    return idx, bounds_maps.Transform(low, high)

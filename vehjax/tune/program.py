@@ -1,0 +1,182 @@
+"""The compiled program of a fit: the loss, its gradient and (forward mode) the per-step scores
+on a flat vector of coordinates, compiled once and used by every part of the fit (optimiser,
+line search, curvature, Newton polish).
+
+Forward mode (:func:`forward_scores`) for a deterministic filter with at most
+:data:`FORWARD_MAX` coordinates: n tangents carried through the filter beside the state, every
+step's score, nothing stored for a backward pass; for a few coordinates and long runs several
+times cheaper than reverse mode through the scan. Reverse mode (``jax.value_and_grad``)
+beyond, and for particle filters. Measurements: ``benchmarks/results/notes_tune.md``.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable, NamedTuple
+
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import numpy as np
+
+from .. import execution
+
+__all__ = ["CompiledLoss", "forward_scores", "score_outer_product", "compiled_loss",
+           "FORWARD_MAX", "BATCH_HESSIAN_STEPS"]
+
+#: forward-mode derivatives (:func:`forward_scores`) for at most this many coordinates; reverse
+#: mode beyond (its cost does not grow with the number of coordinates)
+FORWARD_MAX = 12
+
+#: fits of at least this many run-steps (R T) with forward-mode derivatives and a Hessian by
+#: differences compute the Hessian's 2 n gradients in one program vmapped over the 2 n points
+#: (a second compile, once per fit): the filter's scan on XLA:CPU is bound by the cost of
+#: launching many tiny operations per step, so 2 n points side by side cost about 2
+#: evaluations of one point rather than 2 n; the second compile pays only on long fits
+#: (measurements: ``benchmarks/results/notes_tune.md``).
+BATCH_HESSIAN_STEPS = 50000
+
+
+class CompiledLoss(NamedTuple):
+    """The loss on a flat vector of coordinates (``ravel_pytree`` of z): ``vg(f) -> (loss,
+    aux, grad)`` compiled once per fit and used by every part of it. ``vgo(f) -> (loss, aux,
+    grad, opg)`` (forward mode only, else None) also gives the outer product of the per-step
+    scores (:func:`score_outer_product`) from the same evaluation. ``grads(F) -> (k, n)``: the
+    gradients at the k = 2 n points F (k, n) of the Hessian's central differences
+    (:func:`vehjax.tune.hessian_from_gradients`) in one vmapped forward-mode program, or None
+    (:data:`BATCH_HESSIAN_STEPS`). ``stats``: ``mode`` ("forward" or "reverse"),
+    ``compile_seconds``, ``evaluations`` (of vg/vgo; a repeated point is not evaluated again),
+    ``batch_compile_seconds`` and ``batch_evaluations`` (of grads)."""
+
+    vg: Callable
+    unravel: Callable
+    x0: np.ndarray
+    vgo: Callable | None = None
+    stats: dict | None = None
+    grads: Callable | None = None
+
+
+def forward_scores(per_step, f, data):
+    """Per-step log-likelihoods and their derivatives by forward mode.
+
+    ``n`` Jacobian-vector products of ``per_step`` along the coordinate axes, vmapped: one
+    pass through the filter carrying n tangents beside the state, nothing stored for a
+    backward pass. For a few coordinates and long runs this is several times cheaper than
+    reverse mode through the scan (``benchmarks/results/notes_tune.md``), and it gives every
+    step's score, not only their sum.
+
+    Args:
+        per_step: ``per_step(f, data) -> (loglik (R, T), aux)``, f (n,) flat coordinates.
+        f: (n,) point; data: the objective's data.
+
+    Returns:
+        (loglik (R, T), d loglik / df (n, R, T), aux).
+    """
+    basis = jnp.eye(f.shape[0], dtype=f.dtype)
+
+    def jvp(v):
+        return jax.jvp(lambda g: per_step(g, data), (f,), (v,), has_aux=True)
+
+    return jax.vmap(jvp, out_axes=(None, 0, None))(basis)
+
+
+def score_outer_product(scores, n_steps: int):
+    """The BHHH matrix (Berndt, Hall, Hall & Hausman 1974): ``sum_t s_t s_t^T / n_steps`` of
+    the per-step scores ``s_t = d log p(y_t | y_1:t-1) / dz`` (``scores`` (n, ...) with the
+    steps in the trailing axes), (n, n). At the true parameters it has the expectation of the
+    Hessian of the mean negative log-likelihood per step (the information identity), so it
+    is a positive semi-definite Gauss-Newton-type curvature from first derivatives only."""
+    s = scores.reshape(scores.shape[0], -1)
+    return (s @ s.T) / n_steps
+
+
+def _program(obj, setup, unravel, n: int, forward: bool):
+    """The function compiled: ``(f, data) -> (loss, aux, grad, BHHH matrix or None)``."""
+    if forward:
+        per_step = setup["per_step"]
+
+        def program(f, data):
+            ll, dll, lls_div = forward_scores(lambda g, d: per_step(unravel(g), d), f, data)
+            loss = -jnp.sum(ll) / obj.n_steps
+            grad = -jnp.sum(dll.reshape(n, -1), axis=1) / obj.n_steps
+            return loss, (jnp.sum(ll, axis=-1), lls_div), grad, score_outer_product(dll,
+                                                                                     obj.n_steps)
+        return program
+    vgf = jax.value_and_grad(lambda f, data: obj.loss(unravel(f), data), has_aux=True)
+
+    def program(f, data):
+        (v, aux), g = vgf(f, data)
+        return v, aux, g, None
+
+    return program
+
+
+def compiled_loss(obj, setup=None, batch_hessian: bool = False) -> CompiledLoss:
+    """The compiled loss of a fit (:class:`CompiledLoss`): forward mode for deterministic
+    filters with at most :data:`FORWARD_MAX` coordinates, else ``jax.value_and_grad``;
+    compiled ahead of time once, with the XLA options :mod:`vehjax.execution` gives the
+    estimator's workload. ``batch_hessian`` (forward mode only): also give
+    ``CompiledLoss.grads`` (its program compiled at its first call)."""
+    flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
+    n = flat.shape[0]
+    forward = setup is not None and not setup["stochastic"] and n <= FORWARD_MAX
+    options = None
+    if setup is not None:
+        options = execution.compiler_options(execution.current(), setup["workload"])
+    t0, c0 = time.perf_counter(), time.process_time()
+    compiled = jax.jit(_program(obj, setup, unravel, n, forward)).lower(
+        jnp.asarray(flat), obj.data).compile(compiler_options=options)
+    stats = {"mode": "forward" if forward else "reverse",
+             "compile_seconds": time.perf_counter() - t0,
+             "compile_cpu_seconds": time.process_time() - c0, "evaluations": 0,
+             "batch_compile_seconds": 0.0, "batch_evaluations": 0, "options": options}
+    last = []  # (point, result) of the latest evaluation: the optimiser's last point is the
+    # Newton polish's first
+
+    def vgo(f):
+        f = np.array(f, dtype=float)
+        if last and np.array_equal(last[0], f):
+            return last[1]
+        stats["evaluations"] += 1
+        v, aux, g, B = compiled(jnp.asarray(f, dtype=flat.dtype), obj.data)
+        out = (float(v), aux, np.asarray(g, dtype=float),
+               None if B is None else np.asarray(B, dtype=float))
+        last[:] = [f, out]
+        return out
+
+    def vg(f):
+        return vgo(f)[:3]
+
+    grads = _batched_gradients(setup["per_step"], unravel, obj, flat, options, stats) \
+        if forward and batch_hessian else None
+    return CompiledLoss(vg, unravel, np.asarray(flat, dtype=float), vgo if forward else None,
+                        stats, grads)
+
+
+def _batched_gradients(per_step, unravel, obj, flat, options, stats):
+    """``CompiledLoss.grads``: the gradient of the loss at 2 n points at once (forward mode,
+    vmapped over the points), compiled at its first call (the first Hessian of the fit), in
+    the caller's thread: XLA:CPU already runs an evaluation on every core, and a compile in a
+    background thread slows the iterations as much as it hides."""
+    n = flat.shape[0]
+
+    def program(F, data):
+        def one(f):
+            _, dll, _ = forward_scores(lambda g, d: per_step(unravel(g), d), f, data)
+            return -jnp.sum(dll.reshape(n, -1), axis=1) / obj.n_steps
+
+        return jax.vmap(one)(F)
+
+    box = {}
+
+    def grads(F):
+        if "compiled" not in box:
+            t0 = time.perf_counter()
+            box["compiled"] = jax.jit(program).lower(
+                jnp.zeros((2 * n, n), flat.dtype), obj.data).compile(compiler_options=options)
+            stats["batch_compile_seconds"] = time.perf_counter() - t0
+        stats["batch_evaluations"] += 1
+        return np.asarray(box["compiled"](jnp.asarray(F, dtype=flat.dtype), obj.data),
+                          dtype=float)
+
+    return grads

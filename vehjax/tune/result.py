@@ -1,0 +1,163 @@
+"""What a fit returns: :class:`TuneResult` (the fitted values by name with their units and
+standard errors, the tuned estimator, the optimiser's record) and its text summary."""
+
+from __future__ import annotations
+
+import time
+import warnings
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+
+from ..filters.base import Estimator
+from .quantities import fitted_quantities
+
+__all__ = ["TuneResult", "make_result"]
+
+
+class TuneResult(NamedTuple):
+    """What :func:`vehjax.tune.fit` and :func:`vehjax.tune.fit_noise` return.
+
+    Attributes:
+        Q: fitted process-noise covariance, (nx, nx) (``Q0`` when Q was not fitted).
+        R: fitted measurement-noise covariance, (ny, ny) (``R0`` when not fitted).
+        theta: the fitted model's whole parameter vector, (np,).
+        params: fitted model parameters by name (empty when none were fitted).
+        x0: the fitted initial state ((nx,) or (R, nx)), or the given one.
+        model: the model with the fitted parameters (``model.with_theta``).
+        estimator: ``builder(model, Q, R, **builder_kwargs)`` at the fitted values, ready for
+            :func:`vehjax.run`.
+        loglik: total log-likelihood of the runs at the fitted values (sum over runs).
+        loglik0: the same at the starting values.
+        history: loss per iteration, (iterations,): ``-sum loglik / (R T)`` at the values that
+            iteration started from.
+        iterations: how many optimiser iterations ran.
+        converged: L-BFGS (and deterministic filters after the Newton polish): the gradient
+            reached ``gtol``; adam and custom optimisers: the loss stopped improving
+            (``patience``).
+        diverged: how many runs diverged (``vehjax.filter``'s flag) at the fitted values.
+        skipped: iterations whose gradient was not finite.
+        values: every fitted quantity by name: ``"Q[x,x]"``, ``"R[y,y]"``, a parameter name,
+            ``"x0[v]"`` (``"x0[r,v]"`` per run); covariances as variances/covariances.
+        units: the unit of each entry of ``values`` (``"m^2"``, ``"kg"``, ...; ``"-"`` unknown).
+        seconds: wall-clock time of the fit, including compilation.
+        std_errors: standard error of each entry of ``values`` in its units (same keys), from
+            the observed information (the Hessian of the log-likelihood by JAX in the
+            unconstrained coordinates, carried to the physical quantities by the delta method);
+            inf for a quantity the data do not determine; empty with
+            ``standard_errors=False``. For a particle filter a Monte-Carlo estimate.
+        correlations: (m, m) correlations of the entries of ``values`` (in their order); NaN
+            rows and columns for undetermined quantities.
+        undetermined: names of the fitted quantities (coordinates) along directions of no or
+            too little curvature (:func:`vehjax.tune.uncertainty`); a warning names them too.
+        gradient: max |d loss / dz| at the result (the loss per step, z unconstrained).
+        input_noise: the fitted input noise as the builder takes it (stds by name or a
+            covariance), or the given one, or None.
+        evaluations: evaluations of the compiled loss-and-gradient program (optimiser, line
+            search, Hessian by differences, Newton polish).
+        optimizer: the optimiser that ran ("scoring", "lbfgs", "adam" or "optax").
+        derivatives: "forward" (:func:`vehjax.tune.forward_scores`) or "reverse"
+            (``jax.value_and_grad``).
+        compile_seconds: wall-clock seconds of compiling that program (part of ``seconds``).
+        hessian_batches: calls of the program that evaluates the gradient at the Hessian's 2 n
+            difference points at once (long forward-mode fits,
+            :data:`vehjax.tune.program.BATCH_HESSIAN_STEPS`; 0 when the points went through
+            the one program, one by one).
+        hessian_compile_seconds: wall-clock seconds of compiling that second program (part of
+            ``seconds``; 0.0 when there was none).
+        compile_cpu_seconds: CPU seconds (``time.process_time``, every thread of the process)
+            of compiling the loss-and-gradient program: on a machine shared with other work
+            the compile's wall-clock time says more about the load than about the compile.
+    """
+
+    Q: np.ndarray
+    R: np.ndarray
+    theta: np.ndarray
+    params: dict
+    x0: np.ndarray
+    model: Any
+    estimator: Estimator
+    loglik: float
+    loglik0: float
+    history: np.ndarray
+    iterations: int
+    converged: bool
+    diverged: int
+    skipped: int
+    values: dict
+    units: dict
+    seconds: float
+    std_errors: dict = {}
+    correlations: np.ndarray | None = None
+    undetermined: tuple = ()
+    gradient: float = float("nan")
+    input_noise: Any = None
+    evaluations: int = 0
+    optimizer: str = ""
+    derivatives: str = ""
+    compile_seconds: float = float("nan")
+    hessian_batches: int = 0
+    hessian_compile_seconds: float = 0.0
+    compile_cpu_seconds: float = float("nan")
+
+    def summary(self) -> str:
+        """A text table of the fitted values with their units and the log-likelihood."""
+        lines = [
+            f"{self.estimator.name} tuned in {self.iterations} iterations ({self.seconds:.1f} s)"
+            f"{', converged' if self.converged else ''}: log-likelihood {self.loglik0:.6g} -> "
+            f"{self.loglik:.6g}" + (f", {self.diverged} runs diverged" if self.diverged else "")
+        ]
+        width = max((len(k) for k in self.values), default=0)
+        for k, v in self.values.items():
+            se = self.std_errors.get(k)
+            pm = "" if se is None else f" +- {se:.3g}"
+            lines.append(f"  {k:<{width}} = {v:.6g}{pm} [{self.units[k]}]")
+        if self.undetermined:
+            lines.append(f"  not determined by the data: {', '.join(self.undetermined)}")
+        return "\n".join(lines)
+
+
+def make_result(obj, info, model, best_z, best_aux, history, iters, converged, skipped, unc,
+                grad_max, t_start) -> TuneResult:
+    """The :class:`TuneResult` at ``best_z``, with warnings for diverged runs and undetermined
+    quantities."""
+    ll, div = jax.jit(obj.loss)(best_z, obj.data)[1] if best_aux is None else best_aux
+    v = jax.tree.map(np.asarray, obj.unpack(best_z))
+    Q, R, theta, x0_fit = v["Q"], v["R"], v["theta"], v["x0"]
+    Q, R = 0.5 * (Q + Q.T), 0.5 * (R + R.T)
+    fitted_model = model
+    if info["params"]:
+        fitted_model = model.with_theta(**{p: float(theta[model.param_names.index(p)])
+                                           for p in info["params"]})
+    kw = dict(info["builder_kwargs"])
+    if v["input"] is not None:
+        kw["input_noise"] = ({k: float(s) for k, s in v["input"].items()}
+                             if isinstance(v["input"], dict) else np.asarray(v["input"]))
+    estimator = info["builder"](fitted_model, Q, R, **kw)
+    n_div = int(np.sum(np.asarray(div)))
+    if n_div:
+        warnings.warn(f"vehjax.tune: {n_div} of {len(div)} runs diverged at the fitted values; "
+                      f"their log-likelihood counts only the steps before", stacklevel=3)
+    qs = fitted_quantities(info, model, v)
+    values = {k: float(x) for k, _, x in qs}
+    units = {k: u for k, u, _ in qs}
+    se, corr, undetermined = {}, np.full((len(qs),) * 2, np.nan), ()
+    if unc is not None:
+        se = {k: float(s) for (k, _, _), s in zip(qs, unc.std_errors)}
+        corr, undetermined = unc.correlations, unc.undetermined
+        if undetermined:
+            warnings.warn(
+                f"vehjax.tune: the data do not determine {', '.join(undetermined)} (no or too "
+                f"little curvature of the log-likelihood; their standard errors are inf): "
+                f"fix them, or give data that excite them", stacklevel=3)
+    return TuneResult(
+        Q=Q, R=R, theta=np.asarray(theta),
+        params={p: float(theta[model.param_names.index(p)]) for p in info["params"]},
+        x0=x0_fit, model=fitted_model, estimator=estimator,
+        loglik=float(np.sum(np.asarray(ll))), loglik0=-history[0] * obj.n_steps,
+        history=np.asarray(history), iterations=iters, converged=converged, diverged=n_div,
+        skipped=skipped, values=values, units=units, seconds=time.perf_counter() - t_start,
+        std_errors=se, correlations=corr, undetermined=undetermined, gradient=grad_max,
+        input_noise=kw.get("input_noise"),
+    )
