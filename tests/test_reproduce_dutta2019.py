@@ -298,10 +298,10 @@ def test_smoothed_rows_beside_the_joint_filters_and_below_their_rmse():
 
 
 def test_presentation_names_are_lent_by_the_study_module():
-    """The tables, figures and CLI live in _dutta2019_report; dutta2019 lends their names."""
-    from vehjax.reproduce import _dutta2019_report
+    """The tables, figures and CLI live in dutta2019.report; the package lends their names."""
+    from vehjax.reproduce.dutta2019 import report
 
     for name in dutta2019._PRESENTATION:
-        assert getattr(dutta2019, name) is getattr(_dutta2019_report, name), name
+        assert getattr(dutta2019, name) is getattr(report, name), name
     with pytest.raises(AttributeError, match="no_such_name"):
         dutta2019.no_such_name  # noqa: B018

@@ -103,7 +103,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from . import engine, execution, validation
+from . import engine, execution, smoothing, validation
 from .engine import FilterResult
 from .filters import runs_last
 from .filters.base import Estimator
@@ -253,8 +253,6 @@ def _smoothed_study(estimator, method, return_cov, per_run, block, strategy, *ar
     runs forward and backward with the runs axis last instead
     (:func:`vehjax.smoothing._smooth_runs_last`): the same numbers to rounding, several times
     faster on the CPU (``vehjax bench smooth``)."""
-    from . import smoothing
-
     def as_result(sm):
         f = sm.filtered
         div_at = jnp.where(f.diverged, f.diverged_at, jnp.where(sm.diverged, 0, -1))
@@ -499,8 +497,6 @@ def _smooth_method(estimator, smooth) -> str | None:
     a method of :data:`vehjax.smoothing.METHODS`; ValueError naming ``smooth`` otherwise."""
     if smooth is None or (isinstance(smooth, (bool, np.bool_)) and not smooth):
         return None
-    from . import smoothing
-
     if not isinstance(smooth, (bool, np.bool_, str)):
         raise ValueError(f"smooth: expected True, False or one of {smoothing.METHODS}, got "
                          f"{smooth!r}")

@@ -61,6 +61,8 @@ from .lib.linalg import is_pd, sym
 from .filters.base import Estimator
 from .smoothers import gaussian as _gauss
 from .smoothers import iterated as _iter
+from .smoothers import marginalized as _marginalized
+from .smoothers import particle as _particle
 
 __all__ = ["SmoothResult", "smooth", "smooth_one_run", "check_options", "METHODS"]
 
@@ -341,12 +343,6 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
     ys, us, x0, P0, th0, Pth0 = check_arguments(estimator, measurements, inputs, x0, P0, theta0,
                                          P_theta0, key)
     if estimator.smoother is None and estimator.particle_transition is not None:
-        try:
-            from .smoothers import particle as _particle
-        except ImportError:
-            raise ValueError(
-                f"estimator: {estimator.name!r} is a particle filter and the particle smoothers "
-                f"(vehjax.smoothers.particle) are not available") from None
         opts = dict(particle_options)
         if method is not None:
             opts["method"] = method
@@ -354,8 +350,6 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
             opts["theta0"] = theta0
         return _particle.smooth(estimator, measurements, inputs, x0=x0, P0=P0, key=key, **opts)
     if estimator.smoother is None and estimator.rao_blackwell is not None:
-        from .smoothers import marginalized as _marginalized
-
         opts = dict(particle_options, method=method)
         return _marginalized.smooth(estimator, measurements, inputs, x0=x0, P0=P0, key=key,
                                     theta0=theta0, **opts)

@@ -36,6 +36,8 @@ from typing import Any, Callable, NamedTuple
 
 import jax.numpy as jnp
 
+from .. import validation
+
 
 class StepOutput(NamedTuple):
     """What one filter step reports for the current time.
@@ -209,8 +211,6 @@ def check_estimate(model, estimate) -> tuple[tuple[str, ...], tuple[int, ...]]:
     ``estimate`` is one name or a sequence of unique names of the model's parameters. Raises
     ValueError naming ``estimate`` when it is missing, empty, not strings, repeated or unknown.
     """
-    from .. import validation
-
     known = tuple(model.param_names)
     if estimate is None:
         raise ValueError(f"estimate: required, the names of the parameters to estimate from {known}")

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import validation
+from ..substitute import fast_elementary
 
 INTEGRATORS = ("euler", "rk4")
 
@@ -286,8 +287,6 @@ class Model(BaseModel):
             raise ValueError(f"observe: expected a function h(x, u, theta), got {observe!r}")
         self.written_fns = (transition, observe)
         if fast_math:
-            from ..substitute import fast_elementary
-
             transition, observe = fast_elementary(transition), fast_elementary(observe)
         self.transition_fn = transition
         self.observe_fn = observe

@@ -55,7 +55,9 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from jax.numpy import arctan, cos, sin
-from .base import VehicleModel, _check_dt, _check_integrator, _check_theta
+
+from .. import validation
+from .base import VehicleModel, _check_dt, _check_integrator, _check_theta, integrate
 
 #: Gravitational acceleration [m/s^2].
 G = 9.81
@@ -152,8 +154,6 @@ class SingleTrack(VehicleModel):
 
     def __init__(self, dt: float = 0.01, integrator: str = "rk4", theta=None,
                  tyres: str = "linear", substeps: int = 2):
-        from .. import validation
-
         self.tyres = validation.choice("tyres", tyres, TYRES)
         self.substeps = validation.integer("substeps", substeps, 1)
         names, _, nominal = _PARAMS[self.tyres]
@@ -237,6 +237,4 @@ class SingleTrack(VehicleModel):
 
 
 def _step(derivative, x, u, theta, h, integrator):
-    from .base import integrate
-
     return integrate(derivative, x, u, theta, h, integrator)

@@ -1,8 +1,8 @@
-"""Paper reproductions, one module each, run by ``vehjax reproduce NAME [options]``.
+"""Paper reproductions, one module or package each, run by ``vehjax reproduce NAME [options]``.
 
-The modules with a leading underscore are not reproductions: ``_report`` holds what the reports
-share (markdown tables, report files, timing) and ``_dutta2019_report`` dutta2019's tables,
-figures and CLI, so that each paper's module shows its study first.
+``reporting`` is not a reproduction: it holds what the reports share (markdown tables, report
+files, timing). A large reproduction is a package whose study and report are modules of their
+own (``dutta2019.study`` and ``dutta2019.report``).
 
 Every module defines ``main(argv: list[str] | None) -> int`` (printed tables, a ``report.md``
 that links the figures it saves), ``parser()``, its argparse parser (every option's help

@@ -78,7 +78,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _report
+from . import reporting
 
 PAPER = ("NEES / NIS consistency (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4) of every state "
          "filter on every built-in model, noise matched")
@@ -163,7 +163,7 @@ def parser():
 
 
 def _choices(option, text, allowed):
-    names = _report.split_names(text)
+    names = reporting.split_names(text)
     bad = [n for n in names if n not in allowed]
     if bad or not names:
         raise ValueError(f"{option}: unknown {bad or 'empty list'}; expected some of {allowed}")
@@ -302,7 +302,7 @@ def check(estimator, Y, U, X, x0, P0, key, compiler_options=None, theta=None,
     from .. import metrics
     from ..run import run
 
-    out, seconds = _report.timed(run, estimator, Y, U, x0=x0, P0=P0,
+    out, seconds = reporting.timed(run, estimator, Y, U, x0=x0, P0=P0,
                                  key=key if estimator.needs_key else None,
                                  return_covariances=True, compiler_options=compiler_options)
     nx = X.shape[-1]
@@ -483,7 +483,7 @@ def table(rows):
     """The markdown table of the rows."""
     head = ("model", "filter", "runs x steps", "particles", "NEES in band", "NEES / nx",
             "NIS in band", "NIS / dof", "diverged", "verdict")
-    return _report.md_table(head, (
+    return reporting.md_table(head, (
         (r["model"], r["filter"], f"{r['runs']} x {r['steps']}", r.get("particles") or "-",
          f"{r['nees_in']:.3f}", f"{r['nees_per_dof']:.3g}", f"{r['nis_in']:.3f}",
          f"{r['nis_per_dof']:.3g}", r["diverged"], _verdict(r)) for r in rows))
@@ -496,7 +496,7 @@ def param_table(rows):
     if not rows:
         return ""
     names = list(rows[0]["coverage"])
-    return _report.md_table(["model", "filter"] + names, (
+    return reporting.md_table(["model", "filter"] + names, (
         [r["model"], r["filter"]] + [f"{r['coverage'][n]:.2f} / {r['spread'][n]:.2f}"
                                      for n in names] for r in rows))
 
@@ -528,7 +528,7 @@ def main(argv=None) -> int:
                   if bad else "."))
     why = [f"- {f}: {_WHY[f]}" for f in dict.fromkeys(r["filter"] for r in bad) if f in _WHY]
     report = "\n".join([
-        _report.title("consistency", PAPER),
+        reporting.title("consistency", PAPER),
         f"{args.runs} runs per pair, seed {args.seed}. How the data "
         "and the filters are matched: the docstring of `vehjax/reproduce/consistency.py`. "
         "NEES / nx and NIS / dof: the run average per degree of freedom, averaged over the "
@@ -539,7 +539,7 @@ def main(argv=None) -> int:
             "reported std (1 = honest, > 1 over-confident; near 0 for what a row makes as good "
             "as known):", "", ptab, ""] if ptab else [])
         + (["Why the others miss it:", ""] + why + [""] if why else []))
-    _report.write_report(out_dir, report)
+    reporting.write_report(out_dir, report)
     with open(out_dir / "consistency.csv", "w") as fh:
         keys = ("model", "filter", "runs", "steps", "particles", "nees_in", "nees_per_dof",
                 "nis_in", "nis_per_dof", "diverged", "seconds")

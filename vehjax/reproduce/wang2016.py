@@ -116,7 +116,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..engine import one_run
-from . import _report
+from . import reporting
 
 PAPER = ("W. Wang, S. Bei, K. Zhu, L. Zhang, Y. Wang, Vehicle state and parameter estimation based "
          "on adaptive cubature Kalman filter, ICIC Express Letters 10(8), 2016 (paper 001)")
@@ -242,7 +242,7 @@ _parser = parser
 
 
 def _names(option, text, allowed):
-    names = tuple(dict.fromkeys(_report.split_names(text, lower=True)))
+    names = tuple(dict.fromkeys(reporting.split_names(text, lower=True)))
     bad = [f for f in names if f not in allowed]
     if bad or not names:
         raise ValueError(f"{option}: expected a comma-separated subset of {allowed}, got {text!r}")
@@ -378,7 +378,7 @@ def run_case(name, study, case, log=print):
     c = study["cases"][case]
     sim, model = c["sim"], study["filter_model"]
     f = lambda x: jnp.asarray(x, dtype=jnp.result_type(float))
-    (states, covs, nis, n_obs, diverged), dt = _report.timed(lambda: jax.block_until_ready(
+    (states, covs, nis, n_obs, diverged), dt = reporting.timed(lambda: jax.block_until_ready(
         _run_all(name, model, f(c["Q"]), f(c["R"]), f(sim.measurements), f(sim.inputs),
                  f(c["x0"]), f(c["P0"]), f(c["theta"]))))
     states, covs = np.asarray(states), np.asarray(covs)
@@ -418,7 +418,7 @@ def run_case_smoothed(name, study, case, log=print):
     model = eqx.tree_at(lambda m: m.theta, study["filter_model"],
                         jnp.asarray(c["theta"], jnp.result_type(float)))
     est = build_filter(name, model, np.asarray(c["Q"], float), np.asarray(c["R"], float))
-    out, dt = _report.timed(vj.run, est, np.asarray(sim.measurements), np.asarray(sim.inputs),
+    out, dt = reporting.timed(vj.run, est, np.asarray(sim.measurements), np.asarray(sim.inputs),
                             x0=c["x0"], P0=c["P0"], return_covariances=True, smooth=True,
                             progress=False)
     states, covs = np.asarray(out.states), np.asarray(out.covariances)
@@ -489,14 +489,14 @@ def _verdict_word(s):
 def format_consistency(rows):
     head = ["filter", "NEES in band", "above / below", "mean NEES / 7", "reading",
             "NIS in band", "above / below", "mean NIS / 3", "reading"]
-    lines = [_report.md_row(head), _report.md_rule(len(head))]
+    lines = [reporting.md_row(head), reporting.md_rule(len(head))]
     for name, row in rows.items():
         cells = [name.upper()]
         for stat in ("NEES", "NIS"):
             s = row[stat]
             cells += [f"{100 * s['inside']:.0f} %", f"{100 * s['above']:.0f} / {100 * s['below']:.0f} %",
                       f"{s['ratio']:.3g}", _verdict_word(s)]
-        lines.append(_report.md_row(cells))
+        lines.append(reporting.md_row(cells))
     return "\n".join(lines)
 
 
@@ -512,13 +512,13 @@ def format_table(table, filters, metrics_=("MAE", "RMSE")):
     cols = [f.upper() for f in filters] + ["meas."]
     paper_cols = [f"paper {c.upper()}" for c in _PAPER_COLUMNS]
     head = ["metric", "quantity"] + cols + paper_cols
-    lines = [_report.md_row(head), _report.md_rule(len(head))]
+    lines = [reporting.md_row(head), reporting.md_rule(len(head))]
     for metric in metrics_:
         for q, unit in zip(QUANTITIES, UNITS):
             row = table[metric][q]
             ours = [_fmt(row[f]) for f in filters] + [_fmt(row["meas."]) if "meas." in row else "-"]
             paper = [f"{v:.3g}" for v in PAPER_TABLE[metric][q]]
-            lines.append(_report.md_row([metric, f"{q} [{unit}]"] + ours + paper))
+            lines.append(reporting.md_row([metric, f"{q} [{unit}]"] + ours + paper))
     return "\n".join(lines)
 
 
@@ -599,7 +599,7 @@ def _write_consistency_csv(path, cons):
 
 def _runs(study, results) -> str:
     n = study["sim"].measurements.shape[0]
-    return _report.runs_text(n, sum(int((~r["mask"]).sum()) for r in results))
+    return reporting.runs_text(n, sum(int((~r["mask"]).sum()) for r in results))
 
 
 def plot_fig3(path, study, results, run=0):
@@ -651,7 +651,7 @@ def _labels(study, results, rel: float = 0.03):
 
 def _width(k, n):
     """Line width of the k-th of n overlapping lines: the first thickest."""
-    return _report.line_width(k, n, 0.8, 1.4)
+    return reporting.line_width(k, n, 0.8, 1.4)
 
 
 def plot_errors(path, study, results, window_s: float = 0.2):
@@ -663,7 +663,7 @@ def plot_errors(path, study, results, window_s: float = 0.2):
     t = np.asarray(study["sim"].t)
     truth = study["truth_derived"]
     meas = np.asarray(study["sim"].measurements)
-    w = _report.window_steps(t, window_s)
+    w = reporting.window_steps(t, window_s)
     skip = max(1, len(t) // 100)  # the first steps start at the true state: keep them off the scale
     fig, axes = plt.subplots(3, 2, figsize=(11, 9.4), sharex=True)
     cyc = plots.colors()
@@ -755,7 +755,7 @@ def main(argv=None) -> int:
         if args.smooth:
             smoothed[case] = [run_case_smoothed(name, study, case) for name in filters
                               if name in SMOOTHABLE]
-    report = [_report.title("wang2016", PAPER),
+    report = [reporting.title("wang2016", PAPER),
               f"{args.runs} Monte-Carlo runs, seed {args.seed}, double lane change at "
               f"{args.speed:.1f} m/s for {args.duration:g} s; truth SevenDOF (RK4, 1 ms), filters "
               "SevenDOF (ROS2, 10 ms). Every choice the paper leaves open, and why there are "
@@ -823,9 +823,9 @@ def main(argv=None) -> int:
                 (plot_error_bands(out_dir / f"error_bands_{case}.png", cs, results),
                  f"Case ({case}): estimation error, each filter's mean and 5-95 % band over runs"),
             ]
-            report += [_report.figure_link(p, cap) for p, cap in figures]
+            report += [reporting.figure_link(p, cap) for p, cap in figures]
             written += [p for p, _ in figures]
-    _report.write_report(out_dir, "\n".join(report) + "\n")
+    reporting.write_report(out_dir, "\n".join(report) + "\n")
     written.insert(0, out_dir / "report.md")
     print("wrote " + ", ".join(str(p) for p in written))
     print(f"total {time.perf_counter() - t0:.1f} s")

@@ -66,18 +66,17 @@ This module is the study: the paper's settings and ours, the excitations, the si
 the "tuned" fit, the filters and the two stages (:func:`kinematic_study`,
 :func:`dynamic_study`). How its results are read and shown (tables, the written summaries,
 figures, ``report.md``) and the command line (:func:`main`, :func:`parser`) are in
-:mod:`vehjax.reproduce._dutta2019_report`; their names can be imported from here as well.
+:mod:`vehjax.reproduce.dutta2019.report`; the package lends both modules' names.
 """
 
 from __future__ import annotations
 
-import sys
 from typing import NamedTuple
 
 import jax
 import numpy as np
 
-from . import _report
+from .. import reporting
 
 PAPER = "Dutta, Singh, Alam (2019), Dual state and parameter estimation of a four wheel vehicle"
 
@@ -426,7 +425,7 @@ def _stage(model, scn, estimate, settings, box, runs, key, estimators, inputs=No
         """One study of ``est``, its seconds in ``seconds[label]``, progress around it."""
         if progress:
             progress(f"  {label}: {runs} runs x {len(scn.t)} steps ...")
-        out, seconds[label] = _report.timed(
+        out, seconds[label] = reporting.timed(
             run, est, sim.measurements, us, x0=x0, P0=np.diag(settings["P0"]), theta0=theta0,
             P_theta0=np.diag(settings["P_theta0"]), key=k_run, **kw)
         if progress:
@@ -600,31 +599,3 @@ def dynamic_study(filters, setting: str, key, kinematic: Stage, *, runs: int, pa
                  "above):\n")
     return _stage(model, scn_m, ("m", "cx", "cy"), cfg, box, runs, key, ests, inputs=inputs,
                   progress=progress, tuning=tuning, smooth=smooth)
-
-
-# ----------------------------------------------------------------------------------------------
-# Presentation and command line: vehjax.reproduce._dutta2019_report, importable from here too
-
-#: the names this module lends from ``_dutta2019_report`` (imported on first use: that module
-#: imports this one)
-_PRESENTATION = (
-    "SMOOTHED_NOTE", "NOT_LEARNED_FRACTION", "SAME_RMSE_RTOL", "table_consistency",
-    "table_parameters", "learning", "learning_summary", "table_states", "state_rmse",
-    "smoothed_summary", "same_rmse_groups", "states_summary", "frequency_table", "table_noise",
-    "tuning_summary", "table_settings", "table_settings_states", "plot_parameters",
-    "plot_states", "plot_frequency", "parser", "main", "_check_args", "_report_settings",
-)
-
-
-def __getattr__(name):
-    if name in _PRESENTATION:
-        from . import _dutta2019_report
-
-        return getattr(_dutta2019_report, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-if __name__ == "__main__":
-    from ._dutta2019_report import main
-
-    sys.exit(main())

@@ -2,9 +2,9 @@
 (tables, the summaries written from the numbers, figures, ``report.md``) and its command line.
 
 The study itself (settings, excitations, runs, filters, the two stages) is
-:mod:`vehjax.reproduce.dutta2019`, which also lends this module's public names. What the
+:mod:`vehjax.reproduce.dutta2019.study`; the package lends both modules' names. What the
 reproductions' reports share (markdown rows, figure links, report.md, run counts, timings) is
-:mod:`vehjax.reproduce._report`.
+:mod:`vehjax.reproduce.reporting`.
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from . import _report
-from . import dutta2019 as _study
-from .dutta2019 import (
+from .. import reporting
+from . import study as _study
+from .study import (
     _FILTERS,
     _FREQUENCIES,
     _SETTINGS,
@@ -126,13 +126,13 @@ def table_parameters(stage: Stage, paper: dict, dt: float, tol, digits, scale=No
     head = "| filter | " + " | ".join(cols)
     head += " | " + " | ".join(f"t_conv {n} [s]" for n in names) + " | diverged |"
     blank = " |" * len(names) + " |"
-    lines = [head, _report.md_rule(2 * len(names) + 2)]
+    lines = [head, reporting.md_rule(2 * len(names) + 2)]
     lines.append("| truth | " + " | ".join(f"{v / s:.{d}f}" for v, s, d in zip(stage.truth, scale, digits))
                  + " |" + blank)
     g = np.asarray(stage.theta0) / scale
     g_err = np.abs(g - stage.truth / scale).mean(axis=0)
     lines.append("| initial guess | " + " | ".join(
-        f"{_report.pm(g[:, j].mean(), g[:, j].std(), d)} ({g_err[j]:.{d}f})"
+        f"{reporting.pm(g[:, j].mean(), g[:, j].std(), d)} ({g_err[j]:.{d}f})"
         for j, d in enumerate(digits)) + " |" + blank)
     for name in (n for n in BOX_PRIOR if n in stage.results):
         c = np.asarray(stage.box, float).mean(axis=1) / scale
@@ -151,7 +151,7 @@ def table_parameters(stage: Stage, paper: dict, dt: float, tol, digits, scale=No
             med = np.median(c[np.isfinite(c)]) if n_conv else np.inf
             conv_s.append(f"{med:.1f} ({n_conv}/{ok.sum()})" if n_conv else f"never (0/{ok.sum()})")
         err = np.abs(fin - stage.truth / scale)
-        cells = [f"{_report.pm(fin[:, j].mean(), fin[:, j].std(), d)} ({err[:, j].mean():.{d}f})"
+        cells = [f"{reporting.pm(fin[:, j].mean(), fin[:, j].std(), d)} ({err[:, j].mean():.{d}f})"
                  if len(fin) else "-" for j, d in enumerate(digits)]
         lines.append(f"| {name} (vehjax) | " + " | ".join(cells) + " | " + " | ".join(conv_s)
                      + f" | {int((~ok).sum())}/{len(ok)} |")
@@ -265,7 +265,7 @@ def learning_summary(stage: Stage, tol, tol_text: str, scale=None, digits=None, 
             if guessed:
                 g = g_all / s
                 text += (f", so the mean +- std over runs in the table for {_names_and(guessed)} "
-                         f"is essentially the initial guesses' {_report.pm(g.mean(), g.std(), d)}, "
+                         f"is essentially the initial guesses' {reporting.pm(g.mean(), g.std(), d)}, "
                          "not a result of the data")
             parts.append(text)
         notes = []
@@ -294,7 +294,7 @@ def table_states(stage: Stage, paper: dict):
 
     names = stage.sim.state_names
     lines = ["| filter | " + " | ".join(f"RMSE {n} {_unit(u)}" for n, u in zip(names, stage.state_units))
-             + " |", _report.md_rule(len(names) + 1)]
+             + " |", reporting.md_rule(len(names) + 1)]
     raw = _raw_rmse(stage)
     if raw is not None:
         lines.append("| raw measurements | " + " | ".join(f"{v:.4f}" for v in raw) + " |")
@@ -408,8 +408,8 @@ def frequency_table(freq_results: dict, truth, dt: float, tol: float, units=("m"
                (np.median(c[np.isfinite(c)]) if np.isfinite(c).any() else np.inf) for c in conv.T]
         err = np.abs(fin - np.asarray(truth)).mean(axis=0)
         conv_s = [f"{c:.1f}" if np.isfinite(c) else "never" for c in med]
-        lines.append(f"| {f:g} | {_report.pm(fin[:, 0].mean(), fin[:, 0].std(), 3)} ({err[0]:.3f}) | "
-                     f"{_report.pm(fin[:, 1].mean(), fin[:, 1].std(), 3)} ({err[1]:.3f}) | "
+        lines.append(f"| {f:g} | {reporting.pm(fin[:, 0].mean(), fin[:, 0].std(), 3)} ({err[0]:.3f}) | "
+                     f"{reporting.pm(fin[:, 1].mean(), fin[:, 1].std(), 3)} ({err[1]:.3f}) | "
                      f"{conv_s[0]} | {conv_s[1]} |")
     return "\n".join(lines)
 
@@ -527,7 +527,7 @@ def table_settings(stages: dict, scale=None, digits=None) -> str:
     digits = (3,) * n if digits is None else digits
     lines = ["| filter | setting | " + " | ".join(
         f"error {p} {_unit(u, s)}" for p, u, s in zip(first.names, first.param_units, scale))
-        + " | diverged |", _report.md_rule(n + 3)]
+        + " | diverged |", reporting.md_rule(n + 3)]
     for name in first.results:
         for setting, st in stages.items():
             err = _mean_abs_error(st, name) / scale
@@ -555,7 +555,7 @@ def table_settings_states(stages: dict) -> str:
     names = first.sim.state_names
     lines = ["| filter | setting | " + " | ".join(
         f"RMSE {n} {_unit(u)}" for n, u in zip(names, first.state_units)) + " |",
-        _report.md_rule(len(names) + 2)]
+        reporting.md_rule(len(names) + 2)]
     for name in first.results:
         for setting, st in stages.items():
             r = state_rmse(st).get(name)
@@ -571,7 +571,7 @@ def table_settings_states(stages: dict) -> str:
 def _runs_text(results: dict) -> str:
     """'10 runs' or '10 runs, 2 diverged run(s) left out' over a dict of results."""
     runs = max(len(np.asarray(r.diverged)) for r in results.values())
-    return _report.runs_text(runs, sum(int(np.sum(r.diverged)) for r in results.values()))
+    return reporting.runs_text(runs, sum(int(np.sum(r.diverged)) for r in results.values()))
 
 
 def plot_parameters(stage: Stage, path, title: str, scale=None, tol=None):
@@ -613,7 +613,7 @@ def plot_states(stage: Stage, path, title: str, window_s: float = 1.0):
                              sharex=True, squeeze=False)
     cyc = plots.colors()
     truth = np.asarray(stage.sim.states)
-    window = _report.window_steps(t, window_s)
+    window = reporting.window_steps(t, window_s)
     raw = None
     if tuple(stage.sim.output_names) == tuple(names):
         raw = plots.moving_rms(np.moveaxis(np.asarray(stage.sim.measurements) - truth, -1, 1), window)
@@ -622,7 +622,7 @@ def plot_states(stage: Stage, path, title: str, window_s: float = 1.0):
         n_f = len(filters)
         for k, (name, res) in enumerate(stage.results.items()):  # first thickest: overlaps show
             ax.plot(t, res.states[0, :, i], color=cyc[k % len(cyc)], label=name,
-                    lw=_report.line_width(k, n_f, 0.7, 1.3))
+                    lw=reporting.line_width(k, n_f, 0.7, 1.3))
         plots.truth_line(ax, t, truth[0, :, i], label="truth")
         ax.set_ylabel(plots.label(n, u))
         for k, (name, res) in enumerate(stage.results.items()):
@@ -668,7 +668,7 @@ def plot_frequency(freq_results: dict, t, truth, path, units=("m", "m"), title: 
 
 def _figure(report: list, path: Path, caption: str) -> Path:
     """Add a markdown link to ``path`` (written next to report.md) under ``caption``."""
-    report.append(_report.figure_link(path, caption))
+    report.append(reporting.figure_link(path, caption))
     return path
 
 
@@ -727,11 +727,11 @@ def _say(msg):
 
 
 def _check_args(args):
-    filters = _report.split_names(args.filters)
+    filters = reporting.split_names(args.filters)
     unknown = [f for f in filters if f not in _FILTERS]
     if unknown or not filters:
         raise ValueError(f"--filters: unknown {unknown}; expected a subset of {list(_FILTERS)}")
-    settings = _report.split_names(args.settings)
+    settings = reporting.split_names(args.settings)
     if not settings or any(x not in _SETTINGS for x in settings):
         raise ValueError(f"--settings: expected a subset of {list(_SETTINGS)}, got {args.settings!r}")
     if args.runs < 2:
@@ -852,7 +852,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
-    report = [_report.title("dutta2019", PAPER),
+    report = [reporting.title("dutta2019", PAPER),
               f"{args.runs} Monte-Carlo runs per filter, M = {args.particles} particles, "
               f"dt = {args.dt} s, seed {args.seed}. The dynamic model's excitation is generated "
               "with Dynamic3DOF (MATLAB's vehicledata, which the paper used, cannot ship)"
@@ -888,7 +888,7 @@ def main(argv=None) -> int:
     report += [f"- {k}: {v:.1f} s" for k, v in times.items()]
     report += [f"\nTotal: {time.perf_counter() - t_start:.0f} s"]
     text = "\n".join(report) + "\n"
-    _report.write_report(out, text)
+    reporting.write_report(out, text)
     print()
     print(text)
     print(f"wrote {out / 'report.md'} and figures in {out}")
