@@ -13,6 +13,7 @@ from vehjax.filters.gaussian import GaussianState, ukf
 from vehjax.filters import smc
 from vehjax.filters.liu_west import liu_west_ukf
 from vehjax.filters.smc import shrink_move
+from vehjax.lib.entrywise import cholesky_observed
 
 # Scalar linear model with an unknown input gain b: x' = A x + b u + w, y = x + v.
 A, QV, RV, B_TRUE = 0.9, 0.05, 0.1, 1.0
@@ -401,7 +402,7 @@ def test_predictions_and_weights_of_the_particles():
     lw0 = np.log(np.array([0.1, 0.2, 0.3, 0.4]))
     obs = jnp.ones(2, bool)
     rw = jax.jit(weigh)(jnp.asarray(lw0), jnp.asarray(y_i), jnp.asarray(y), obs,
-                        smc.masked_chol(jnp.asarray(S), obs))
+                        cholesky_observed(jnp.asarray(S), obs))
     ll = stats.multivariate_normal(np.zeros(2), S).logpdf(y - ref)
     un = np.exp(lw0[:3] + ll)
     np.testing.assert_allclose(np.asarray(rw.w), np.append(un / un.sum(), 0.0), rtol=1e-12)

@@ -174,7 +174,7 @@ def _runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per
     batch = estimator.batch(per_run_u, held0[0].dtype, th0 is None)
     state0 = jax.tree.map(lambda a: jnp.moveaxis(a, 0, -1), state0)
 
-    ok = partial(engine.output_ok, p=p, pd=runs_last.is_pd,
+    ok = partial(engine.output_ok, p=p, pd=runs_last.runs_pd,
                  all_finite=runs_last.all_finite)
     if predictions:
         if batch.smooth_step is None:

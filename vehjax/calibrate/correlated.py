@@ -54,6 +54,7 @@ import jax.numpy as jnp
 
 from ..filters import resampling as _rs
 from ..filters import smc
+from ..lib.entrywise import cholesky_observed
 
 __all__ = ["Aux", "draw_aux", "crank_nicolson", "sort_direction", "hilbert_index", "sort_order",
            "systematic_ancestors", "log_likelihood"]
@@ -184,7 +185,7 @@ def systematic_ancestors(w, uniform):
 def _measurement_logliks(e, obs, R):
     """log N(e_i; 0, R) over the observed components: e (N, ny) zero where missing, obs (ny,)
     bool, R (ny, ny). Returns (N,)."""
-    return smc.gaussian_logliks(e.T, obs, L=smc.masked_chol(R, obs))
+    return smc.gaussian_logliks(e.T, obs, L=cholesky_observed(R, obs))
 
 
 def log_likelihood(f, h, ys, us, theta, x0, L0, LQ, R, bias, aux: Aux, Lu=None,

@@ -166,6 +166,7 @@ import numpy as np
 from .. import prng, validation
 from . import resampling as _rs
 from . import sigma, smc
+from ..lib.entrywise import cholesky_observed
 from ..lib.transforms import Transform
 from .bounds import check_inside, parse as _parse_bounds
 from .base import Estimator, check_estimate
@@ -304,7 +305,7 @@ def predict_particles(f, h, x, u, base, idx, theta_i, D=None, theta_mean=None):
 
 def likelihood_factor(rule, f, h, x, P, u, theta, Q, R, obs, predictive: bool):
     """Cholesky factor of the particles' likelihood covariance S restricted to the observed
-    components ``obs`` (ny,) (:func:`vehjax.filters.smc.masked_chol`): with ``predictive`` the
+    components ``obs`` (ny,) (:func:`vehjax.lib.entrywise.cholesky_observed`): with ``predictive`` the
     unscented one-step innovation covariance Cov[h(f(x))] + R from N(x (nx,), P (nx, nx)) at
     the full parameter vector ``theta`` (np,) with process noise Q (the sigma-point ``rule``),
     else R (ny, ny); R's factor when S's is not finite."""
@@ -313,8 +314,8 @@ def likelihood_factor(rule, f, h, x, P, u, theta, Q, R, obs, predictive: bool):
         S = sigma.measure(rule, x_pred, P_pred, lambda v: h(v, u, theta), R).S
     else:
         S = R
-    L = smc.masked_chol(S, obs)
-    return jnp.where(jnp.all(jnp.isfinite(L)), L, smc.masked_chol(R, obs))  # broken S: R
+    L = cholesky_observed(S, obs)
+    return jnp.where(jnp.all(jnp.isfinite(L)), L, cholesky_observed(R, obs))  # broken S: R
 
 
 def weigh(log_w, y_i, y, obs, L) -> smc.Reweighted:

@@ -51,6 +51,7 @@ from .. import validation
 from . import input_noise as _inoise
 from . import resampling as _rs
 from . import smc
+from ..lib.entrywise import cholesky_observed
 from ..lib.linalg import cholesky, is_pd, solve_lower
 from .base import Estimator, ParticleTransition, StepOutput
 from ._model import chol_const, check_model, in_dtype, model_dims, model_theta, prior
@@ -199,7 +200,7 @@ def measurement_logliks(e, obs, R, r_diag=None):
     (the cheaper form of :func:`vehjax.filters.smc.gaussian_logliks`). Returns (N,)."""
     if r_diag is not None:
         return smc.gaussian_logliks(e, obs, var=r_diag)
-    return smc.gaussian_logliks(e, obs, L=smc.masked_chol(R, obs))
+    return smc.gaussian_logliks(e, obs, L=cholesky_observed(R, obs))
 
 
 def predicted_nis(e, prior_w, bad, R, obs):
@@ -219,7 +220,7 @@ def predicted_nis(e, prior_w, bad, R, obs):
     wp = jnp.where(bad, 0.0, prior_w)
     wp = wp / jnp.maximum(jnp.sum(wp), jnp.finfo(e.dtype).tiny)
     r_hat, S_h = smc.moments(wp, e)
-    w_nis = solve_lower(smc.masked_chol(S_h + R, obs), r_hat)
+    w_nis = solve_lower(cholesky_observed(S_h + R, obs), r_hat)
     return w_nis @ w_nis
 
 

@@ -42,7 +42,7 @@ from .. import hoist
 from ..hoist import Split, split
 from .base import StepOutput
 from ..lib.entrywise import chol_sym, dot, joseph_entries, stack, sym_entries, wsum
-from ..lib.linalg import LOG_2PI, UNROLL_MAX, cholesky, forward_entries
+from ..lib.linalg import LOG_2PI, UNROLL_MAX, cholesky_succeeds, forward_entries, is_pd
 from .sigma import SigmaRule
 
 MAX_DIM = UNROLL_MAX  # nx and ny up to this use the runs-last step
@@ -409,15 +409,14 @@ def all_finite(a):
     return ok
 
 
-def is_pd(C):
-    """(R,) bool: whether each run's matrix of C (n, n, R) is finite and positive definite."""
+def runs_pd(C):
+    """(R,) bool: whether each run's matrix of C (n, n, R) is finite and positive definite:
+    :func:`vehjax.lib.linalg.cholesky_succeeds` on the runs-last entries (one fused elementwise
+    kernel), :func:`vehjax.lib.linalg.is_pd` on a runs-first copy for n > MAX_DIM."""
     n = C.shape[0]
     if n == 0:
         return jnp.ones(C.shape[-1], bool)
-    if n > MAX_DIM:  # sigma.cholesky on a runs-first copy (it goes to LAPACK for such n)
-        Cr = jnp.moveaxis(C, -1, 0)
-        return jnp.all(jnp.isfinite(Cr), axis=(1, 2)) & jnp.all(jnp.isfinite(cholesky(Cr)),
-                                                                axis=(1, 2))
-    L = chol_sym([[C[i, j] for j in range(n)] for i in range(n)])
-    # a NaN pivot makes every later column NaN (chol_entries), the last pivot included
-    return all_finite(C) & jnp.isfinite(L[n - 1][n - 1])
+    if n > MAX_DIM:
+        return is_pd(jnp.moveaxis(C, -1, 0))
+    return all_finite(C) & cholesky_succeeds(
+        lambda i, j: C[i, i] if i == j else 0.5 * (C[i, j] + C[j, i]), n)

@@ -44,7 +44,7 @@ __all__ = [
     "Reweighted", "reweight", "ess", "resample", "resample_stop_gradient", "check_resample",
     "equal_weights", "stop_gradient_weights", "reinitialise", "moments", "normals",
     "uniforms", "split", "raw_key", "log_tiny", "check_n_particles",
-    "check_ess_threshold", "masked_chol", "gaussian_logliks", "step_loglik",
+    "check_ess_threshold", "gaussian_logliks", "step_loglik",
 ]
 
 _UNROLL = 64  # matrices with at most this many entries are handled with unrolled scalar code
@@ -98,16 +98,9 @@ def reweight(log_w_prior, log_lik) -> Reweighted:
     return Reweighted(lw_un - incr, w_un / total, incr, ~(incr > log_tiny(lw_un.dtype)))
 
 
-def masked_chol(M, obs):
-    """Cholesky factor of M (n, n) restricted to the observed components ``obs`` (n,) bool,
-    identity rows and columns elsewhere."""
-    both = obs[:, None] & obs[None, :]
-    return cholesky(jnp.where(both, M, jnp.eye(M.shape[0], dtype=M.dtype)))
-
-
 def gaussian_logliks(e, obs, L=None, var=None):
     """Per-particle log N(e_i; 0, S) over the observed components: e (ny, N) residuals with zeros
-    on the missing ones, ``obs`` (ny,) bool; S given by ``L = masked_chol(S, obs)`` or, for a
+    on the missing ones, ``obs`` (ny,) bool; S given by ``L = cholesky_observed(S, obs)`` (:func:`vehjax.lib.entrywise.cholesky_observed`) or, for a
     diagonal S, by its variances ``var`` (ny,) (cheaper). Returns (N,)."""
     n_obs = jnp.sum(obs).astype(e.dtype)
     if var is not None:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from .linalg import chol_entries
+from .linalg import UNROLL_MAX, chol_entries, cholesky, lower_from_entries
 
 __all__ = [
     "is_zero", "is_const", "add", "sub", "mul", "div", "dot", "transpose", "matvec", "matmul",
@@ -159,6 +159,19 @@ def chol_masked(S, obs):
         eye = 1.0 if i == j else 0.0
         return jnp.where(obs[i] & obs[j], S[i][j] if i == j else 0.5 * add(S[i][j], S[j][i]), eye)
     return chol_entries(a, len(S))
+
+
+def cholesky_observed(M, obs):
+    """:func:`chol_masked` on arrays: the lower Cholesky factor (n, n) of M (n, n) on the
+    observed components ``obs`` (n,) bool, the identity elsewhere (all NaN where that is not
+    positive definite). Unrolled for n <= UNROLL_MAX, LAPACK beyond."""
+    n = M.shape[-1]
+    if n == 0 or n > UNROLL_MAX:
+        both = obs[:, None] & obs[None, :]
+        return cholesky(jnp.where(both, M, jnp.eye(n, dtype=M.dtype)))
+    L = chol_masked(entries(M), [obs[i] for i in range(n)])
+    return lower_from_entries([[jnp.asarray(L[i][j], M.dtype) if j <= i else None
+                                for j in range(n)] for i in range(n)])
 
 
 def entries(a):

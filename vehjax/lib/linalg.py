@@ -80,8 +80,15 @@ def cholesky(A):
     def a(i, j):
         return A[..., i, i] if i == j else 0.5 * (A[..., i, j] + A[..., j, i])
 
-    L = chol_entries(a, n)
-    zero = jnp.zeros_like(L[0][0])
+    return lower_from_entries(chol_entries(a, n))
+
+
+def lower_from_entries(L):
+    """The (..., n, n) array of a lower Cholesky factor given as nested lists ``L[i][j]``
+    (j <= i, arrays of one shape), zeros above the diagonal; all NaN where any entry is not
+    finite (as :func:`cholesky` fails)."""
+    n = len(L)
+    zero = jnp.zeros_like(L[0][0])  # entries above the diagonal are not read
     out = jnp.stack(
         [jnp.stack([L[i][j] if j <= i else zero for j in range(n)], axis=-1) for i in range(n)],
         axis=-2,
@@ -113,10 +120,25 @@ def logdet_from_chol(L):
     return 2.0 * jnp.sum(jnp.log(jnp.diagonal(L, axis1=-2, axis2=-1)), axis=-1)
 
 
+def cholesky_succeeds(a, n: int):
+    """Whether the Cholesky factorisation of the symmetric n x n matrix whose entries ``a(i, j)``
+    returns (arrays of one shape, i >= j) succeeds: a bool array of the entries' shape. A
+    non-positive or NaN pivot makes every later column NaN (:func:`chol_entries`), the last
+    pivot included, so that pivot tells. The one positive-definiteness test: :func:`is_pd`
+    applies it to matrices with the batch axes first, :func:`vehjax.filters.runs_last.runs_pd`
+    to the runs-last layout."""
+    L = chol_entries(a, n)
+    return jnp.isfinite(L[n - 1][n - 1])
+
+
 def is_pd(C):
     """Whether a square matrix (..., n, n) is finite and positive definite (its Cholesky
     succeeds); a bool of the batch shape. An empty matrix is positive definite."""
     if C.shape[-1] == 0:
         return jnp.ones(C.shape[:-2], bool)
     finite = jnp.all(jnp.isfinite(C), axis=(-2, -1))
-    return finite & jnp.all(jnp.isfinite(cholesky(C)), axis=(-2, -1))
+    n = C.shape[-1]
+    if n > UNROLL_MAX:
+        return finite & jnp.all(jnp.isfinite(cholesky(C)), axis=(-2, -1))
+    return finite & cholesky_succeeds(
+        lambda i, j: C[..., i, i] if i == j else 0.5 * (C[..., i, j] + C[..., j, i]), n)
