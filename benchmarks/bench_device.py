@@ -105,18 +105,18 @@ def peers(ba, args, sizes) -> list:
 def marginalized(args, size) -> dict:
     """The marginalized PF at N particles: ms per run-step at ``runs`` runs, ms per step for
     one run (both through ``vehjax.compile_run``)."""
-    from vehjax.reproduce import berntorp2018 as b18
+    from vehjax import banked_road as road
 
     drive = vj.data.load_comma2k19()
     model = vj.models.SingleTrackBank(dt=drive.dt)
     T, R, N = size["steps"], size["runs"], size["particles"]
-    U = b18.looped_inputs(drive.inputs(model), T)
+    U = road.looped_inputs(drive.inputs(model), T)
     t = np.arange(1, T + 1) * model.dt
-    acc, _ = b18.bank_profile(t, model.dt)
-    _, Y, _ = (np.asarray(a) for a in b18.simulate_truth(model, U, acc, R, jax.random.key(0)))
-    est = b18.build_sim_filter(model, N)
+    acc, _ = road.bank_profile(t, model.dt)
+    _, Y, _ = (np.asarray(a) for a in road.simulate_truth(model, U, acc, R, jax.random.key(0)))
+    est = road.build_sim_filter(model, N)
     x0 = np.zeros(5)
-    P0 = np.diag([0.1, 0.5 * b18.DEG, 0.5 * b18.DEG, 0.2 * b18.DEG, 0.2 * b18.DEG]) ** 2
+    P0 = np.diag([0.1, 0.5 * road.DEG, 0.5 * road.DEG, 0.2 * road.DEG, 0.2 * road.DEG]) ** 2
     res = {}
     for runs in (R, 1):
         c, prep = _prepared(est, Y[:runs], U, x0, P0, args.strategy, key=jax.random.key(1))

@@ -54,15 +54,15 @@ def parser() -> argparse.ArgumentParser:
 
 def _problem(runs: int, steps: int):
     import vehjax as vj
-    from vehjax.reproduce import berntorp2018 as b18
+    from vehjax import banked_road as road
 
     drive = vj.data.load_comma2k19()
     model = vj.models.SingleTrackBank(dt=drive.dt)
-    U = b18.looped_inputs(drive.inputs(model), steps)
+    U = road.looped_inputs(drive.inputs(model), steps)
     t = np.arange(1, steps + 1) * model.dt
-    acc, _ = b18.bank_profile(t, model.dt)
-    X, Y, _ = (np.asarray(a) for a in b18.simulate_truth(model, U, acc, runs, jax.random.key(0)))
-    return b18, model, U, X, Y
+    acc, _ = road.bank_profile(t, model.dt)
+    X, Y, _ = (np.asarray(a) for a in road.simulate_truth(model, U, acc, runs, jax.random.key(0)))
+    return road, model, U, X, Y
 
 
 def _options(est):
@@ -98,16 +98,16 @@ def _driver(est, U, x0, P0, batched: bool):
     return jax.jit(jax.vmap(one) if batched else one)
 
 
-def _bootstrap(model, b18, n):
+def _bootstrap(model, road, n):
     from vehjax.filters.particle import bootstrap_pf
 
-    D = b18.DEG
+    D = road.DEG
     # the steering noise and the bank jerk as additive process noise, the sensors' true stds
     g = np.asarray(model.steering_noise_gain(jnp.zeros(5), jnp.array([15.0, 0.0]), model.theta))
     Bq = np.asarray(model.bank_noise_gain())
-    Q = np.outer(g, g) * (0.05 * D) ** 2 + np.outer(Bq, Bq) * b18.BANK_JERK_STD ** 2
+    Q = np.outer(g, g) * (0.05 * D) ** 2 + np.outer(Bq, Bq) * road.BANK_JERK_STD ** 2
     Q = Q + np.diag([1e-4, 1e-4 * D, 1e-6, 1e-6, 1e-6]) ** 2
-    R = np.array([0.2, 0.3 * D, 0.3 * D, b18.PHI_STD, b18.RVIRT_STD]) ** 2
+    R = np.array([0.2, 0.3 * D, 0.3 * D, road.PHI_STD, road.RVIRT_STD]) ** 2
     return bootstrap_pf(model, Q, R, n, "systematic", 0.5)
 
 
@@ -131,9 +131,9 @@ def main(argv=None) -> int:
     if not Ns or min(Ns) < 2 or args.steps < 1 or args.runs < 1 or args.repeat < 1:
         print("bench marginalized: --particles >= 2, --steps, --runs, --repeat >= 1")
         return 2
-    b18, model, U, X, Y = _problem(args.runs, args.steps)
+    road, model, U, X, Y = _problem(args.runs, args.steps)
     x0 = np.zeros(5)
-    P0 = np.diag([0.1, 0.5 * b18.DEG, 0.5 * b18.DEG, 0.2 * b18.DEG, 0.2 * b18.DEG]) ** 2
+    P0 = np.diag([0.1, 0.5 * road.DEG, 0.5 * road.DEG, 0.2 * road.DEG, 0.2 * road.DEG]) ** 2
     keys = jax.random.split(jax.random.key(1), args.runs)
     Yj = jnp.asarray(Y)
     platform = jax.devices()[0].platform.upper()
@@ -144,7 +144,7 @@ def main(argv=None) -> int:
     rows = {}
     ref = 500 if 500 in Ns else max(Ns)
     for n in Ns:
-        est = b18.build_sim_filter(model, n)
+        est = road.build_sim_filter(model, n)
         opts = _options(est)
         rows[(n, "MPF", 1)] = _compile(_driver(est, U, x0, P0, False), keys[0], Yj[0],
                                        options=opts)
@@ -159,14 +159,14 @@ def main(argv=None) -> int:
                 rows[(n, "MPF default", args.runs)] = _compile(_driver(est, U, x0, P0, True),
                                                                keys, Yj)
         if not args.no_bootstrap:
-            bs = _bootstrap(model, b18, n)
+            bs = _bootstrap(model, road, n)
             rows[(n, "bootstrap", 1)] = _compile(_driver(bs, U, x0, P0, False), keys[0], Yj[0])
             if args.runs > 1:
                 rows[(n, "bootstrap", args.runs)] = _compile(_driver(bs, U, x0, P0, True),
                                                              keys, Yj)
     # sanity: the MPF at the largest N tracks r better than the raw gyro
     mean = np.asarray(rows[(max(Ns), "MPF", 1)][0]())
-    rmse = float(np.sqrt(np.mean((mean[:, 1] - X[0, :, 1]) ** 2)) / b18.DEG)
+    rmse = float(np.sqrt(np.mean((mean[:, 1] - X[0, :, 1]) ** 2)) / road.DEG)
     print(f"MPF (N = {max(Ns)}) yaw-rate RMSE {rmse:.3f} deg/s vs the gyro's noise 0.3 deg/s")
     best = {k: math.inf for k in rows}
     for fn, _ in rows.values():
@@ -217,12 +217,12 @@ def main(argv=None) -> int:
         print(f"target: MPF / bootstrap PF per particle <= 4: worst {ratio:.2f} (1 run), "
               f"{ratio_r:.2f} ({R} runs) -> {'met' if max(ratio, ratio_r) <= 4 else 'NOT met'}")
     # what the amortized target asks of the machine
-    f_mpf, b_mpf = _step_flops(b18.build_sim_filter(model, ref), x0, P0, keys[0], Y[0, 0],
+    f_mpf, b_mpf = _step_flops(road.build_sim_filter(model, ref), x0, P0, keys[0], Y[0, 0],
                                U[0], ref)
     line = (f"operations and bytes accessed per particle-step (XLA cost analysis of one step): "
             f"MPF {f_mpf:.0f}, {b_mpf / 1e3:.1f} kB")
     if not args.no_bootstrap:
-        f_bs, b_bs = _step_flops(_bootstrap(model, b18, ref), x0, P0, keys[0], Y[0, 0], U[0],
+        f_bs, b_bs = _step_flops(_bootstrap(model, road, ref), x0, P0, keys[0], Y[0, 0], U[0],
                                  ref)
         line += (f"; bootstrap PF {f_bs:.0f}, {b_bs / 1e3:.1f} kB (ratios {f_mpf / f_bs:.1f}, "
                  f"{b_mpf / b_bs:.1f})")

@@ -2,8 +2,9 @@
 --drive``'s data and filter, issue #29 item 2): ancestor tracing against Rao-Blackwellised
 backward simulation (``vehjax.smooth(..., method="ffbsi")``, :mod:`vehjax.smoothers.marginalized`).
 
-The drive is prepared as ``berntorp2018.run_drive`` does with its defaults (virtual yaw rate's
-scale error removed offline, gated at 5 deg/s; :class:`VirtualScaleBank`, the ``bank`` variant,
+The drive is prepared as ``vehjax reproduce berntorp2018 --drive`` does with its defaults
+(:func:`vehjax.data.prepare_drive`: virtual yaw rate's scale error removed offline, gated at
+5 deg/s; :class:`VirtualScaleBank`, the ``bank`` variant,
 ``kalman_states="linear"``, forgetting 0.999). For each method: compile + first call, then a
 second call with another key (run time), and per time the number of distinct particle slots
 (``n_unique``) and particles by value (``n_distinct``) the M trajectories pass through and the
@@ -33,13 +34,15 @@ def main():
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args()
     import vehjax as vj
-    from vehjax.reproduce import berntorp2018 as b
+    from vehjax.banked_road import DEG, build_drive_filter
 
-    drive, model, U, Y = b.drive_arrays(a.seconds, gate_deg=5.0)
+    drive = vj.data.load_comma2k19()
+    model = vj.models.SingleTrackBank(dt=drive.dt)
+    U, Y = vj.data.prepare_drive(drive, model, seconds=a.seconds, gate=5.0 * DEG)
     T = len(U)
-    est = b.build_drive_filter(b.VirtualScaleBank(dt=drive.dt), a.particles, variant="bank",
-                               kalman_states="linear")
-    P0 = np.diag([0.1, 0.5 * b.DEG, 1e-3, 1e-3, 1e-3, 1e-12]) ** 2
+    est = build_drive_filter(vj.models.VirtualScaleBank(dt=drive.dt), a.particles,
+                             variant="bank", kalman_states="linear")
+    P0 = np.diag([0.1, 0.5 * DEG, 1e-3, 1e-3, 1e-3, 1e-12]) ** 2
     print(f"RAV4 drive: T = {T} steps, N = {a.particles}, M = {a.paths}")
     for method in a.methods.split(","):
         fn = jax.jit(lambda y, u, k, method=method: vj.smooth(

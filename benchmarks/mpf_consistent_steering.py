@@ -1,7 +1,7 @@
 """How well paper 004's simulation pins the steering-noise std, and how the consistent MPF
 (``marginalized_pf(noise_means="kalman")``, issue #33) learns it: the numbers behind the MPF
 (consistent) paragraph of vehjax/reproduce/noise_learning.py's docstring. The data are
-``vehjax reproduce noise-learning``'s (berntorp2018's simulate_truth, seed 0).
+``vehjax reproduce noise-learning``'s (vehjax.banked_road's simulate_truth, seed 0).
 
     python benchmarks/mpf_consistent_steering.py profile RUNS SECONDS
         exact Kalman log-likelihood summed over RUNS runs at 0.5..4 times the true steering
@@ -59,7 +59,7 @@ jax.config.update("jax_enable_x64", True)
 import vehjax as vj  # noqa: E402
 from vehjax import metrics  # noqa: E402
 from vehjax.filters.marginalized import marginalized_pf  # noqa: E402
-from vehjax.reproduce import berntorp2018 as b18  # noqa: E402
+from vehjax import banked_road as road  # noqa: E402
 from vehjax.reproduce import noise_learning as nl  # noqa: E402
 
 WINDOWS = ((0, 5), (5, 20), (20, 60), (60, 120), (120, 180))
@@ -78,31 +78,25 @@ def _nees_cells(nees, digits):
 
 
 def data(runs, seconds, steer_factor=1.0, seed=0):
-    """noise-learning's simulation; ``steer_factor`` scales the true steering std (the
-    module constant simulate_truth reads, restored after)."""
+    """noise-learning's simulation; ``steer_factor`` scales the true steering std."""
     drive = vj.data.load_comma2k19()
     model = vj.models.SingleTrackBank(dt=drive.dt)
     T = int(round(seconds / model.dt))
-    U = b18.looped_inputs(drive.inputs(model), T)
-    acc, _ = b18.bank_profile(np.arange(1, T + 1) * model.dt, model.dt)
-    true_std = b18.STEER_STD
-    b18.STEER_STD = steer_factor * true_std
-    try:
-        X, Y, _ = (np.asarray(a) for a in b18.simulate_truth(model, U, acc, runs,
-                                                             jax.random.key(seed)))
-    finally:
-        b18.STEER_STD = true_std
+    U = road.looped_inputs(drive.inputs(model), T)
+    acc, _ = road.bank_profile(np.arange(1, T + 1) * model.dt, model.dt)
+    X, Y, _ = (np.asarray(a) for a in road.simulate_truth(
+        model, U, acc, runs, jax.random.key(seed), steer_std=steer_factor * road.STEER_STD))
     return model, X, Y, U
 
 
 def build(model, points, std0, forgetting, nu0=None, std_range=None, prior=None,
           variances=None):
     return marginalized_pf(
-        model, points, noisy_input="delta", sensors=b18.SENSORS,
-        known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
-        linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=b18.BANK_JERK_STD,
+        model, points, noisy_input="delta", sensors=road.SENSORS,
+        known_std={"phi": road.PHI_STD, "r_virt": road.RVIRT_STD},
+        linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=road.BANK_JERK_STD,
         std0=std0, forgetting=forgetting, nu0=nu0, noise_means="kalman",
-        bias_walk={s: b18.BIAS_WALK[s] for s in b18.SENSORS},
+        bias_walk={s: road.BIAS_WALK[s] for s in road.SENSORS},
         mean_std0={"delta": nl.OFFSET_STD0, **nl.BIAS_STD0}, input_std_range=std_range,
         input_std_prior=prior, sensor_variances=variances)
 
@@ -112,8 +106,8 @@ def profile(runs, seconds):
     facs = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0)
     total = []
     for f in facs:
-        sd = f * b18.STEER_STD
-        est = build(model, 2, {"delta": sd, **b18.SENSOR_STD}, 1.0, nu0=1e7,
+        sd = f * road.STEER_STD
+        est = build(model, 2, {"delta": sd, **road.SENSOR_STD}, 1.0, nu0=1e7,
                     std_range=(sd, sd * (1 + 1e-9)), prior="log-uniform")
         out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
                      progress=False)
@@ -130,7 +124,7 @@ def time_per_step(runs, seconds):
     model, _, Y, U = data(runs, seconds)
     args = nl.parser().parse_args([])
     paper, _, P0 = nl.build("MPF (paper)", model, args)
-    std0 = {"delta": 2.0 * b18.STEER_STD, **{s: 2.0 * b18.SENSOR_STD[s] for s in b18.SENSORS}}
+    std0 = {"delta": 2.0 * road.STEER_STD, **{s: 2.0 * road.SENSOR_STD[s] for s in road.SENSORS}}
     iw = build(model, 25, std0, 1.0, variances="inverse-wishart")
     scored = build(model, 25, std0, 1.0, variances="scored")
     ests = {"MPF (paper), N = 100": (paper, P0),
@@ -156,20 +150,20 @@ def time_per_step(runs, seconds):
 
 def learn(runs, seconds, points, prior, forgetting, r_known=False, variances=None):
     model, X, Y, U = data(runs, seconds)
-    guess = 2.0 * b18.STEER_STD
+    guess = 2.0 * road.STEER_STD
     sf = 1.0 if r_known else 2.0
     kind = {"iw": "inverse-wishart", "jeffreys": "jeffreys"}.get(prior.split(":")[0],
                                                                  "log-uniform")
     factor = prior.split(":")[-1]
     rng = None if prior in ("iw", "jeffreys") else (guess / float(factor), guess * float(factor))
-    est = build(model, points, {"delta": guess, **{s: sf * b18.SENSOR_STD[s] for s in
-                                                   b18.SENSORS}}, forgetting, std_range=rng,
+    est = build(model, points, {"delta": guess, **{s: sf * road.SENSOR_STD[s] for s in
+                                                   road.SENSORS}}, forgetting, std_range=rng,
                 prior=kind, nu0=1e7 if r_known else None, variances=variances)
     out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
                  return_covariances=True, progress=False)
     j = est.param_names.index("delta_std")
-    e = np.asarray(out.params[..., j]) / b18.STEER_STD
-    sd = np.sqrt(np.asarray(out.params_cov[..., j, j])) / b18.STEER_STD
+    e = np.asarray(out.params[..., j]) / road.STEER_STD
+    sd = np.sqrt(np.asarray(out.params_cov[..., j, j])) / road.STEER_STD
     nees = _nees_vr(out, X)
     print(f"{runs} runs x {seconds:g} s, {points} points, prior {prior}, forgetting "
           f"{forgetting:g}{', R known' if r_known else ''}"
@@ -189,8 +183,8 @@ def learn(runs, seconds, points, prior, forgetting, r_known=False, variances=Non
 
 def exact(runs, seconds):
     model, X, Y, U = data(runs, seconds)
-    sd = b18.STEER_STD
-    est = build(model, 2, {"delta": sd, **b18.SENSOR_STD}, 1.0, nu0=1e7,
+    sd = road.STEER_STD
+    est = build(model, 2, {"delta": sd, **road.SENSOR_STD}, 1.0, nu0=1e7,
                 std_range=(sd, sd * (1 + 1e-9)), prior="log-uniform")
     out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
                  return_covariances=True, progress=False)
@@ -206,8 +200,8 @@ def exact(runs, seconds):
 
 def early(runs):
     model, X, Y, U = data(runs, 30)
-    std0 = {"delta": 2 * b18.STEER_STD, **{s: 2 * b18.SENSOR_STD[s] for s in b18.SENSORS}}
-    truth = {"delta_std": b18.STEER_STD, **{f"{s}_std": b18.SENSOR_STD[s] for s in b18.SENSORS}}
+    std0 = {"delta": 2 * road.STEER_STD, **{s: 2 * road.SENSOR_STD[s] for s in road.SENSORS}}
+    truth = {"delta_std": road.STEER_STD, **{f"{s}_std": road.SENSOR_STD[s] for s in road.SENSORS}}
     print(f"{runs} runs, guesses twice the truth; mean estimate / truth:")
     for variances in ("inverse-wishart", "scored"):
         est = build(model, 25, std0, 1.0, variances=variances)
@@ -232,8 +226,8 @@ def information(runs, seconds):
     print(f"Fisher information of log sigma_w per run, {runs} runs x {seconds:g} s, R known:")
     for f in (0.5, 1.0, 2.0, 4.0):
         model, _, Y, U = data(runs, seconds, steer_factor=f, seed=7)
-        sd = f * b18.STEER_STD
-        est = build(model, pts, {"delta": sd, **b18.SENSOR_STD}, 1.0, nu0=1e7,
+        sd = f * road.STEER_STD
+        est = build(model, pts, {"delta": sd, **road.SENSOR_STD}, 1.0, nu0=1e7,
                     std_range=(sd / 2.0, sd * 2.0), prior="jeffreys")
 
         def one(y, u):

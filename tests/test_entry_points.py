@@ -208,7 +208,7 @@ def test_dtypes_containers_and_shapes_alike_everywhere(arg, kind):
 # ---- the rules themselves, and the cases of issue 31 -----------------------------------------
 
 def test_validate_imports_nothing_of_vehjax():
-    """The import circle with models/base is gone: _validate is a leaf module."""
+    """The import circle with models/base is gone: vehjax.validation is a leaf module."""
     tree = ast.parse(Path(validation.__file__).read_text())
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):

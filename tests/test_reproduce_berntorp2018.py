@@ -4,7 +4,6 @@ each test compiles it as few times as it can."""
 
 import contextlib
 import io
-import math
 import re
 
 import jax.numpy as jnp
@@ -46,33 +45,6 @@ def test_citation_as_published():
     assert "Journal of Dynamic Systems, Measurement, and Control" in berntorp2018.PAPER
     assert "TR2018-181" in berntorp2018.PAPER
     assert "Noise-statistics learning" in berntorp2018.parser().description
-
-
-def test_virtual_yaw_scale_from_the_sensors_alone():
-    # synthetic: a yaw rate the estimate never sees, a gyro bias, a rolling-radius mismatch
-    rng = np.random.default_rng(0)
-    T, track, eps, bias = 6000, 1.61, -4e-4, 6e-4
-    t = np.arange(T) * 0.01
-    vx = 14.0 + 6.0 * np.sin(2 * np.pi * t / 40.0)
-    r = 0.02 * np.sin(2 * np.pi * t / 7.0) + 0.01 * rng.standard_normal(T).cumsum() / 50
-    gyro = r + bias + 0.003 * rng.standard_normal(T)
-    r_virt = r + eps * vx / track + 0.008 * rng.standard_normal(T)
-    r_virt[::97] = np.nan                                           # missing samples skipped
-    e, b = berntorp2018.virtual_yaw_scale(gyro, r_virt, vx, track)
-    # least-squares standard errors of the two coefficients, from the noise written above
-    A = np.stack([np.ones(T), -vx / track], 1)
-    se = np.sqrt(np.diag(np.linalg.inv(A.T @ A))) * math.hypot(0.003, 0.008)
-    assert abs(b - bias) < 4 * se[0] and abs(e - eps) < 4 * se[1], (b, e, se)
-
-
-def test_bank_path_and_looped_inputs():
-    t = np.arange(1, 12001) * 0.01
-    acc, phi = berntorp2018.bank_profile(t, 0.01)
-    assert np.degrees(np.abs(phi)).max() == pytest.approx(6.0, abs=0.05)
-    assert np.degrees(phi[-1]) == pytest.approx(0.0, abs=1e-6)  # two full cycles
-    U = np.arange(10.0)[:, None] * np.ones((1, 2))
-    L = berntorp2018.looped_inputs(U, 25)
-    assert L.shape == (25, 2) and np.all(np.abs(np.diff(L[:, 0])) <= 1.0)  # continuous joints
 
 
 @pytest.mark.slow  # a reduced study: `pytest -m slow` (README)
@@ -162,43 +134,6 @@ def test_bench_marginalized_smoke(capsys):
     assert "compiled with XLA's defaults" in out
 
 
-def test_virtual_scale_model_and_augmented_ekf_model():
-    """VirtualScaleBank and the augmented EKF's model against SingleTrackBank and eq. 10 with
-    a rolling-radius mismatch, written out here."""
-    import jax.numpy as jnp
-
-    from vehjax.models import SingleTrackBank
-
-    base = SingleTrackBank()
-    m = berntorp2018.VirtualScaleBank()
-    assert m.state_names[-1] == "eps" and m.nx == 6
-    x = jnp.array([0.3, 0.05, 0.01, 0.002, -0.001, -4e-4])
-    u = jnp.array([15.0, 0.01])
-    th = jnp.asarray(m.theta)
-    xn = np.asarray(m.transition(x, u, th))
-    np.testing.assert_allclose(xn[:5], base.transition(x[:5], u, th), rtol=1e-12, atol=1e-15)
-    assert xn[5] == -4e-4                                         # a constant
-    y = np.asarray(m.observe(x, u, th))
-    # (v_rr - v_rl) / l_T with v_rr = (1 + eps) v_right, v_right - v_left = r l_T, to first order
-    v_left = 15.0 - 0.05 * berntorp2018.TRACK / 2
-    v_right = 15.0 + 0.05 * berntorp2018.TRACK / 2
-    exact = ((1 - 4e-4) * v_right - v_left) / berntorp2018.TRACK
-    assert y[4] == pytest.approx(exact, abs=4e-4 * 0.05)
-    np.testing.assert_allclose(y[:4], np.asarray(base.observe(x[:5], u, th))[:4], rtol=1e-12)
-    B = np.asarray(m.bank_noise_gain())
-    assert B.shape == (6,) and B[5] == 0.0
-    for bank in (False, True):
-        am = berntorp2018.augmented_model(base, bank=bank)
-        xa = np.zeros(am.nx)
-        xa[:6] = [0.3, 0.05, 0.002, 0.1, 0.001, -4e-4]
-        ya = np.asarray(am.observe(jnp.asarray(xa), u, th))
-        full = jnp.array([0.3, 0.05, 0.0, 0.0, 0.0])
-        yb = np.asarray(base.observe(full, u.at[1].add(0.002), th))
-        assert ya[0] == pytest.approx(yb[0] + 0.1) and ya[1] == pytest.approx(0.05 + 0.001)
-        assert ya[2] == pytest.approx(0.05 - 4e-4 * 15.0 / berntorp2018.TRACK)
-        assert am.nx == (10 if bank else 6) and am.ny == (4 if bank else 3)
-
-
 def test_online_scale_of_the_ekf_matches_the_offline_estimate_on_the_drive():
     """On the shipped drive the augmented EKF, fed the raw virtual yaw rate, learns the rear
     rolling-radius mismatch online: same sign and size as the offline least squares from the
@@ -222,39 +157,6 @@ def test_online_scale_of_the_ekf_matches_the_offline_estimate_on_the_drive():
     assert -6e-4 < eps_off < -2e-4 and -6e-4 < eps_pose < -2e-4      # about -4e-4
     assert abs(eps_end - eps_off) < 3 * sd_end + 0.25 * abs(eps_off), (eps_end, sd_end, eps_off)
     assert sd_end < 0.5 * abs(eps_off)                               # learnt, not the prior
-
-
-def test_online_virtual_scale_is_recursive_least_squares():
-    """The causal estimate at every step equals the regularised least squares over the samples
-    so far (numpy lstsq on the stacked prior and data rows), and with a diffuse prior its last
-    value equals virtual_yaw_scale's."""
-    rng = np.random.default_rng(3)
-    T, track = 400, 1.61
-    vx = 10.0 + 8.0 * rng.random(T)
-    gyro = 0.01 * rng.standard_normal(T) + 7e-4
-    r_virt = gyro - 7e-4 + 4e-4 * vx / track + 0.004 * rng.standard_normal(T)
-    r_virt[5] = np.nan
-    s, pb, pe = 0.004, 1e-3, 2e-3
-    eps_t, b_t = berntorp2018.online_virtual_scale(gyro, r_virt, vx, track, noise_std=s,
-                                                    bias_std=pb, eps_std=pe)
-    for t in (3, 50, T - 1):
-        z = (gyro - r_virt)[: t + 1]
-        ok = np.isfinite(z)
-        A = np.vstack([np.stack([np.ones(ok.sum()), -vx[: t + 1][ok] / track], 1) / s,
-                       np.diag([1 / pb, 1 / pe])])
-        rhs = np.concatenate([z[ok] / s, [0.0, 0.0]])
-        (b, e), *_ = np.linalg.lstsq(A, rhs, rcond=None)
-        assert b_t[t] == pytest.approx(b, rel=1e-9, abs=1e-15)
-        assert eps_t[t] == pytest.approx(e, rel=1e-9, abs=1e-15)
-    e_d, b_d = berntorp2018.online_virtual_scale(gyro, r_virt, vx, track, noise_std=s,
-                                                  bias_std=10.0, eps_std=10.0)
-    e_ls, b_ls = berntorp2018.virtual_yaw_scale(gyro, r_virt, vx, track)
-    assert e_d[-1] == pytest.approx(e_ls, rel=1e-6) and b_d[-1] == pytest.approx(b_ls, rel=1e-6)
-    assert eps_t[-1] == pytest.approx(4e-4, abs=1e-4)
-    with pytest.raises(ValueError, match="noise_std"):
-        berntorp2018.online_virtual_scale(gyro, r_virt, vx, track, noise_std=0.0)
-    g, n = berntorp2018.gate_virtual_yaw(gyro, np.where(np.arange(T) == 7, 1.0, r_virt), 0.1)
-    assert n == 1 and np.isnan(g[7]) and np.isnan(g[5])
 
 
 def test_particle_gibbs_process_noise_stands_for_the_steering_noise():

@@ -1,9 +1,14 @@
 """Recorded drives: :class:`Drive` holds your own (from arrays or a CSV, with units, resampled
 onto a model's grid); ``load_comma2k19`` reads a comma2k19 segment (one ships with vehjax) into a
 :class:`Drive` on a uniform time grid, with inputs and measurements for
-:class:`~vehjax.models.SingleTrackBank`."""
+:class:`~vehjax.models.SingleTrackBank`; ``prepare_drive`` (module ``prepare``) readies a drive's
+virtual yaw rate for filtering (bursts gated, the rear rolling-radius scale removed)."""
 
 from .comma2k19 import Comma2k19Drive, load_comma2k19
 from .drive import UNITS, Drive
+from .prepare import (gate_virtual_yaw, online_virtual_scale, pose_virtual_scale, prepare_drive,
+                      remove_virtual_scale, virtual_yaw_scale)
 
-__all__ = ["Drive", "UNITS", "Comma2k19Drive", "load_comma2k19"]
+__all__ = ["Drive", "UNITS", "Comma2k19Drive", "load_comma2k19", "prepare_drive",
+           "gate_virtual_yaw", "virtual_yaw_scale", "online_virtual_scale", "pose_virtual_scale",
+           "remove_virtual_scale"]

@@ -108,6 +108,7 @@ from typing import Mapping
 import numpy as np
 
 from .. import validation
+from ..models.bank import SingleTrackBank, virtual_yaw_rate
 from .drive import Drive, check_time
 
 __all__ = ["Comma2k19Drive", "load_comma2k19"]
@@ -229,16 +230,12 @@ class Comma2k19Drive(Drive):
         """
         self._check_model(model)
         track = _positive("track", track)
-        from ..models.bank import virtual_yaw_rate
-
         s = self.signals
         r_virt = np.asarray(virtual_yaw_rate(s["wheel_speed_rl"], s["wheel_speed_rr"], 1.0, track))
         nan = np.full_like(self.t, np.nan)
         return np.stack([s["accel_y"], s["gyro_z"], s["gyro_x"], nan, r_virt], axis=1)
 
     def _check_model(self, model) -> None:
-        from ..models.bank import SingleTrackBank
-
         if not isinstance(model, SingleTrackBank):
             raise ValueError(
                 f"model: expected a SingleTrackBank (the only model this drive's signals map "
@@ -258,8 +255,6 @@ class Comma2k19Drive(Drive):
         ``roll_rate`` [rad/s] = ``gyro_x``, ``r_virt`` [rad/s] as in :meth:`measurements`.
         """
         steer_ratio, track = _positive("steer_ratio", steer_ratio), _positive("track", track)
-        from ..models.bank import virtual_yaw_rate
-
         s = self.signals
         derived = {
             "delta": s["steering_wheel_angle"] / steer_ratio,
@@ -316,11 +311,33 @@ def load_comma2k19(folder=None, rate: float = 100.0, *, start=None, stop=None,
         "accel": _load_series(folder, "processed_log/IMU/accelerometer", 3),
     }
     tp = _load_times(folder, "global_pose/frame_times")
+    pose = _pose(folder, tp, mount)
+    t = _grid(series, tp, pose["tm"], start, stop, dt, rate, folder)
+    signals = _signals(t, series, pose["v_from_d"])
+    reference = _references(t, tp, pose)
+    for a in (t, *signals.values(), *reference.values()):
+        a.setflags(write=False)
+    offset = float(np.mean(signals["gyro_z"] - reference["yaw_rate"]))
+    roll, pitch, yaw = pose["mount"]
+    return Comma2k19Drive(
+        t=t, dt=dt,
+        signals=signals,
+        reference=reference,
+        units=dict(_UNITS),
+        mount={"roll": roll, "pitch": pitch, "yaw": yaw},
+        gyro_offset_vs_reference=offset,
+        folder=str(folder),
+    )
+
+
+# -- the pose, the grid, resampling ---------------------------------------------------------------
+def _pose(folder: Path, tp: np.ndarray, mount) -> dict:
+    """The pose's rotations, local level and body rates: the IMU mount (estimated or given), the
+    yaw rate about the local vertical (at the frames' midpoints ``tm``), the velocity in the
+    car frame and the roll, on the pose's own time stamps ``tp``."""
     quat = _load_values(folder, "global_pose/frame_orientations", len(tp), 4)
     pos = _load_values(folder, "global_pose/frame_positions", len(tp), 3)
     vel = _load_values(folder, "global_pose/frame_velocities", len(tp), 3)
-
-    # -- pose: rotations, local level, body rates -------------------------------------------
     norm = np.linalg.norm(quat, axis=1)
     if not np.all(np.isfinite(norm)) or np.any(norm < 1e-6):
         raise ValueError(f"{folder / 'global_pose/frame_orientations'}: zero or non-finite "
@@ -334,8 +351,6 @@ def load_comma2k19(folder=None, rate: float = 100.0, *, start=None, stop=None,
         r_vf = _estimate_mount(v_dev, np.einsum("mji,mj->mi", r_ed, up), folder)
     else:
         r_vf = _mount_matrix(mount)
-    roll, pitch, yaw = _euler_zyx(r_vf)
-    v_from_d = r_vf @ _F                                  # vehicle <- device FRD
 
     # body rate between frames k and k+1 in device FRD; the same vector in ECEF is R_k w
     d_r = np.einsum("mji,mjk->mik", r_ed[:-1], r_ed[1:])
@@ -343,15 +358,17 @@ def load_comma2k19(folder=None, rate: float = 100.0, *, start=None, stop=None,
     w_ecef = np.einsum("mij,mj->mi", r_ed[:-1], w_dev)
     up_mid = up[:-1] + up[1:]
     up_mid /= np.linalg.norm(up_mid, axis=1, keepdims=True)
-    yaw_rate_pose = np.sum(w_ecef * up_mid, axis=1)
-    tm = 0.5 * (tp[:-1] + tp[1:])
 
     r_ev = np.einsum("mij,kj->mik", r_ed @ _F, r_vf)     # ECEF <- vehicle: R_ED F R_VF^T
-    v_veh = np.einsum("mji,mj->mi", r_ev, vel)
     r_nv = np.einsum("mji,mjk->mik", enu, r_ev)          # ENU <- vehicle
-    roll_pose = np.arctan2(r_nv[:, 2, 1], r_nv[:, 2, 2])
+    return dict(mount=_euler_zyx(r_vf), v_from_d=r_vf @ _F,   # vehicle <- device FRD
+                yaw_rate=np.sum(w_ecef * up_mid, axis=1), tm=0.5 * (tp[:-1] + tp[1:]),
+                v_veh=np.einsum("mji,mj->mi", r_ev, vel), speed=np.linalg.norm(vel, axis=1),
+                roll=np.arctan2(r_nv[:, 2, 1], r_nv[:, 2, 2]))
 
-    # -- grid --------------------------------------------------------------------------------
+
+def _grid(series, tp, tm, start, stop, dt, rate, folder) -> np.ndarray:
+    """The uniform time grid over the span where every signal exists (or [start, stop])."""
     spans = [(s[0][0], s[0][-1]) for s in series.values()] + [(tp[0], tp[-1]), (tm[0], tm[-1])]
     lo = max(a for a, _ in spans)
     hi = min(b for _, b in spans)
@@ -367,7 +384,11 @@ def load_comma2k19(folder=None, rate: float = 100.0, *, start=None, stop=None,
         t = t[:-1]
     if len(t) < 2:
         raise ValueError(f"rate: {rate} Hz gives fewer than 2 samples between {t0} and {t1} s")
+    return t
 
+
+def _signals(t, series, v_from_d) -> dict:
+    """The CAN and IMU signals on the grid, the IMU rotated into the car frame."""
     def interp(ts, y):
         return np.interp(t, ts, y)
 
@@ -378,8 +399,7 @@ def load_comma2k19(folder=None, rate: float = 100.0, *, start=None, stop=None,
     ta, acc = series["accel"]
     gyro_v = np.stack([interp(tg, gyro[:, k]) for k in range(3)], axis=1) @ v_from_d.T
     acc_v = np.stack([interp(ta, acc[:, k]) for k in range(3)], axis=1) @ v_from_d.T
-
-    signals = {
+    return {
         "speed_can": interp(ts, sp[:, 0]),
         "steering_wheel_angle": np.radians(interp(tst, st[:, 0])),
         "wheel_speed_fl": interp(tw, wheels[:, 0]),
@@ -389,26 +409,19 @@ def load_comma2k19(folder=None, rate: float = 100.0, *, start=None, stop=None,
         "gyro_x": gyro_v[:, 0], "gyro_y": gyro_v[:, 1], "gyro_z": gyro_v[:, 2],
         "accel_x": acc_v[:, 0], "accel_y": acc_v[:, 1], "accel_z": acc_v[:, 2],
     }
-    reference = {
-        "yaw_rate": interp(tm, yaw_rate_pose),
-        "vx": interp(tp, v_veh[:, 0]),
-        "vy": interp(tp, v_veh[:, 1]),
-        "vz": interp(tp, v_veh[:, 2]),
-        "speed": interp(tp, np.linalg.norm(vel, axis=1)),
-        "roll": interp(tp, roll_pose),
+
+
+def _references(t, tp, pose) -> dict:
+    """The pose's references on the grid (yaw rate, velocity in the car frame, speed, roll)."""
+    v_veh = pose["v_veh"]
+    return {
+        "yaw_rate": np.interp(t, pose["tm"], pose["yaw_rate"]),
+        "vx": np.interp(t, tp, v_veh[:, 0]),
+        "vy": np.interp(t, tp, v_veh[:, 1]),
+        "vz": np.interp(t, tp, v_veh[:, 2]),
+        "speed": np.interp(t, tp, pose["speed"]),
+        "roll": np.interp(t, tp, pose["roll"]),
     }
-    for a in (t, *signals.values(), *reference.values()):
-        a.setflags(write=False)
-    offset = float(np.mean(signals["gyro_z"] - reference["yaw_rate"]))
-    return Comma2k19Drive(
-        t=t, dt=dt,
-        signals=signals,
-        reference=reference,
-        units=dict(_UNITS),
-        mount={"roll": roll, "pitch": pitch, "yaw": yaw},
-        gyro_offset_vs_reference=offset,
-        folder=str(folder),
-    )
 
 
 # -- file reading -------------------------------------------------------------------------------

@@ -1,6 +1,7 @@
 """Vehicle models as pure functions ``transition(x, u, theta)`` and ``observe(x, u, theta)``."""
 
 from .bank import SingleTrackBank, virtual_yaw_rate
+from .bank_scale import VirtualScaleBank, virtual_yaw_reading
 from .base import BaseModel, Model, VehicleModel, integrate
 from .biases import with_input_offset, with_output_biases
 from .dynamic import Dynamic3DOF
@@ -9,7 +10,8 @@ from .sevendof import SevenDOF
 from .single_track import SingleTrack
 
 __all__ = ["BaseModel", "Model", "VehicleModel", "integrate", "KinematicBicycle", "Dynamic3DOF",
-           "SingleTrackBank", "SevenDOF", "SingleTrack", "virtual_yaw_rate", "with_output_biases",
+           "SingleTrackBank", "SevenDOF", "SingleTrack", "virtual_yaw_rate",
+           "VirtualScaleBank", "virtual_yaw_reading", "with_output_biases",
            "with_input_offset"]
 
 #: name -> class, for the CLI.

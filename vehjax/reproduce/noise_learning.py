@@ -6,12 +6,12 @@ study and on the shipped RAV4 drive (issue #33, item 3).
                                     [--drive-executions 10] [--drive-particles 500]
                                     [--no-drive] [--seed 0] [--out out/noise_learning]
 
-Simulation: exactly :mod:`vehjax.reproduce.berntorp2018`'s (its ``simulate_truth``,
-``bank_profile``, ``looped_inputs``): SingleTrackBank, steering offset 0.28 deg plus white
+Simulation: exactly ``vehjax reproduce berntorp2018``'s (:mod:`vehjax.banked_road`'s
+``simulate_truth``, ``bank_profile``, ``looped_inputs``): SingleTrackBank, steering offset 0.28 deg plus white
 steering noise 0.02 deg, the piecewise-linear bank, ay / yaw-gyro / roll-gyro with random-walk
 biases from 0 and white noise of stds 0.2 m/s^2, 0.3 deg/s, 0.3 deg/s; the bank measurement
 (0.5 deg) and the virtual yaw rate (0.5 deg/s) unbiased with known stds. Drive: the shipped
-comma2k19 segment as berntorp2018 --drive reads it (:func:`berntorp2018.drive_arrays`: the
+comma2k19 segment as berntorp2018 --drive reads it (:func:`vehjax.data.prepare_drive`: the
 virtual yaw rate's bursts gated at 5 deg/s, its scale error removed; no truth for offset,
 biases or stds; the pose gives the yaw rate, vy and the gyro's offset from it).
 
@@ -34,7 +34,7 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   under-confident (20 runs x 90 s: NEES of (vy, r) 0.56 per dof, in the band on 0.29 of the
   steps); at the truth (``--steer-factor 1``) VB-R (CKF) has NEES 1.00 per dof and VB-PR (CKF)
   0.99, both in the band on 0.95 of the steps, every learnt parameter's coverage >= 0.90.
-* **MPF (paper)**: berntorp2018's ``build_sim_filter`` (N = ``--particles``, lambda = 0.995,
+* **MPF (paper)**: :mod:`vehjax.banked_road`'s ``build_sim_filter`` (N = ``--particles``, lambda = 0.995,
   initial stds twice the truth) and ``build_drive_filter`` (bank variant, lambda = 0.999).
 * **MPF (consistent)**: the same model with ``noise_means="kalman"`` (issue #33 item 2,
   not the paper's: :mod:`vehjax.filters.marginalized`): the steering offset and the biases as
@@ -109,7 +109,7 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   of the runs (scored: 0.97-1.00) and from a guess twice the truth it stays +45 % (``vehjax
   reproduce consistency``'s MPF-K rows). Time: 0.023 ms per run-step in the 2026-11-27 report
   (0.7 of MPF (consistent)'s), 0.072 on the drive; yaw rate 0.106 deg/s on the drive.
-* **augmented EKF** (Remark 1, berntorp2018's ``augmented_model``): (vy, r, offset, ay bias,
+* **augmented EKF** (Remark 1, :func:`vehjax.models.bank_scale.augmented_model`): (vy, r, offset, ay bias,
   gyro bias) on (ay, r, r_virt), fixed Q and R (the MPF's initial guesses); no bank states and
   no roll gyro, as the remark's common approach.
 
@@ -145,14 +145,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import berntorp2018 as b18
+import vehjax as vj
+from vehjax import banked_road as road
+from vehjax.data import prepare_drive
+from vehjax.models.bank_scale import augmented_model
 
 PAPER = ("Online noise learning compared (issue #33): Sage-Husa ACKF, variational adaptive "
          "Kalman filters (Särkkä & Nummenmaa 2009; Huang et al. 2017), the marginalized PF of "
          "Berntorp & Di Cairano 2018 (paper 004) and its Remark 1 augmented EKF")
 
-DEG = b18.DEG
-SENSORS = b18.SENSORS
+DEG = road.DEG
+SENSORS = road.SENSORS
 METHODS = ("Sage-Husa ACKF", "VB-R (CKF)", "VB-R (EKF)", "VB-PR (CKF)", "MPF (paper)",
            "MPF (consistent)", "MPF (inverse-Wishart)", "augmented EKF")
 BIAS_STD0 = {"ay": 0.5, "r": 0.5 * DEG, "roll_rate": 0.5 * DEG}
@@ -207,7 +210,7 @@ def parser():
 def _q_bank(model):
     """Process noise of the model's states: the bank jerk through ``bank_noise_gain`` (PSD)."""
     g = np.asarray(model.bank_noise_gain(), float)
-    return b18.BANK_JERK_STD ** 2 * np.outer(g, g)
+    return road.BANK_JERK_STD ** 2 * np.outer(g, g)
 
 
 def ackf_with_R(est, idx, names, R0):
@@ -238,23 +241,23 @@ def _mpf_consistent(model, args, drive, variances=None):
     ``sensor_variances``."""
     from vehjax.filters.marginalized import marginalized_pf
 
-    walk = {s: b18.BIAS_WALK[s] for s in SENSORS}
+    walk = {s: road.BIAS_WALK[s] for s in SENSORS}
     if drive:
         scale = ("eps",) if "eps" in model.state_names else ()
         return marginalized_pf(
             model, args.grid_points, noisy_input="delta", sensors=SENSORS,
-            known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
+            known_std={"phi": road.PHI_STD, "r_virt": road.RVIRT_STD},
             linear_states=("phi", "phi_dot", "phi_ddot") + scale,
-            linear_noise_std=b18.BANK_JERK_STD,
-            std0={**b18.DRIVE_STD0, "roll_rate": b18.DRIVE_STD0["r"]}, forgetting=0.999,
+            linear_noise_std=road.BANK_JERK_STD,
+            std0={**road.DRIVE_STD0, "roll_rate": road.DRIVE_STD0["r"]}, forgetting=0.999,
             noise_means="kalman", bias_walk=walk, mean_std0={"delta": OFFSET_STD0, **BIAS_STD0},
             sensor_variances=variances)
-    steer0 = args.steer_factor * b18.STEER_STD
+    steer0 = args.steer_factor * road.STEER_STD
     return marginalized_pf(
         model, args.grid_points, noisy_input="delta", sensors=SENSORS,
-        known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
-        linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=b18.BANK_JERK_STD,
-        std0={"delta": steer0, **{s: 2 * b18.SENSOR_STD[s] for s in SENSORS}},
+        known_std={"phi": road.PHI_STD, "r_virt": road.RVIRT_STD},
+        linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=road.BANK_JERK_STD,
+        std0={"delta": steer0, **{s: 2 * road.SENSOR_STD[s] for s in SENSORS}},
         forgetting=1.0, noise_means="kalman", bias_walk=walk,
         mean_std0={"delta": OFFSET_STD0, **BIAS_STD0}, sensor_variances=variances)
 
@@ -264,17 +267,17 @@ def build(method, model, args, drive=False):
     and the drive stds of berntorp2018 as initial guesses."""
     from vehjax import filters
 
-    std0 = ({"ay": b18.DRIVE_STD0["ay"], "r": b18.DRIVE_STD0["r"],
-             "roll_rate": b18.DRIVE_STD0["r"]} if drive
-            else {s: 2 * b18.SENSOR_STD[s] for s in SENSORS})
-    steer0 = b18.DRIVE_STD0["delta"] if drive else args.steer_factor * b18.STEER_STD
+    std0 = ({"ay": road.DRIVE_STD0["ay"], "r": road.DRIVE_STD0["r"],
+             "roll_rate": road.DRIVE_STD0["r"]} if drive
+            else {s: 2 * road.SENSOR_STD[s] for s in SENSORS})
+    steer0 = road.DRIVE_STD0["delta"] if drive else args.steer_factor * road.STEER_STD
     R0 = np.array([std0[s] ** 2 for s in SENSORS])
     Q = _q_bank(model)
-    known = {"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD}
+    known = {"phi": road.PHI_STD, "r_virt": road.RVIRT_STD}
     all5 = [0, 1, 2, 3, 4]
     P0 = P0_SIM
     if method == "Sage-Husa ACKF":
-        Rall = np.diag(np.r_[R0, b18.PHI_STD ** 2, b18.RVIRT_STD ** 2])
+        Rall = np.diag(np.r_[R0, road.PHI_STD ** 2, road.RVIRT_STD ** 2])
         est = filters.ackf(model, Q, Rall, forgetting=args.forgetting, adapt=("R",),
                            prior_steps=200, input_noise={"delta": steer0})
         return ackf_with_R(est, [0, 1, 2], [f"{s}_std" for s in SENSORS], Rall), all5, P0
@@ -282,23 +285,23 @@ def build(method, model, args, drive=False):
         kw = dict(form="ckf" if "CKF" in method else "ekf", forgetting=args.forgetting,
                   iterations=args.iterations, sensors=SENSORS, known_std=known,
                   biases=SENSORS, input_offsets=("delta",),
-                  bias_walk={s: b18.BIAS_WALK[s] for s in SENSORS},
+                  bias_walk={s: road.BIAS_WALK[s] for s in SENSORS},
                   bias_std0=BIAS_STD0, offset_std0=OFFSET_STD0, input_noise={"delta": steer0})
         if method.startswith("VB-R"):
             return filters.vbakf_r(model, Q, R0, dof0=10.0, **kw), all5, P0
         return filters.vbakf_pr(model, Q, R0, tau=3.0, **kw), all5, P0
     if method == "MPF (paper)":
         if drive:
-            est = b18.build_drive_filter(model, args.drive_particles, variant="bank")
+            est = road.build_drive_filter(model, args.drive_particles, variant="bank")
         else:
-            est = b18.build_sim_filter(model, args.particles)
+            est = road.build_sim_filter(model, args.particles)
         return est, all5, P0
     if method == "MPF (consistent)":
         return _mpf_consistent(model, args, drive), all5, P0
     if method == "MPF (inverse-Wishart)":
         return _mpf_consistent(model, args, drive, "inverse-wishart"), all5, P0
     if method == "augmented EKF":
-        am = b18.augmented_model(model)
+        am = augmented_model(model)
         # by state name: (vy, r, offset, ay bias, gyro bias) and, where berntorp2018's model
         # has it, the rolling-radius mismatch eps held at 0 (r_virt taken as unbiased)
         q = {"vy": 0.01, "r": 0.01 * DEG, "delta_offset": 1e-5 * DEG, "ay_bias": 1e-4,
@@ -307,7 +310,7 @@ def build(method, model, args, drive=False):
               "r_bias": BIAS_STD0["r"], "eps": 1e-9}
         Qa = np.array([q[n] for n in am.state_names]) ** 2
         P0a = np.diag(np.array([p0[n] for n in am.state_names]) ** 2)
-        Ra = np.array([std0["ay"], std0["r"], b18.RVIRT_STD]) ** 2
+        Ra = np.array([std0["ay"], std0["r"], road.RVIRT_STD]) ** 2
         return filters.ekf(am, Qa, Ra), [0, 1, 4], P0a
     raise ValueError(f"method: unknown {method!r}; expected one of {METHODS}")
 
@@ -364,23 +367,23 @@ def sim_metrics(res, X, B, ss):
     est, sd = res["est"], res["sd"]
     m = dict(method=res["method"], diverged=res["diverged"], ms=res["ms_per_step"],
              compile_s=res["compile_s"])
-    truth = {"delta_offset": np.full(X.shape[:2], b18.OFFSET),
-             "delta_std": np.full(X.shape[:2], b18.STEER_STD)}
+    truth = {"delta_offset": np.full(X.shape[:2], road.OFFSET),
+             "delta_std": np.full(X.shape[:2], road.STEER_STD)}
     for j, s in enumerate(SENSORS):
         truth[f"{s}_bias"] = B[..., j]
-        truth[f"{s}_std"] = np.full(X.shape[:2], b18.SENSOR_STD[s])
+        truth[f"{s}_std"] = np.full(X.shape[:2], road.SENSOR_STD[s])
     if "delta_offset" in est:
-        e = (est["delta_offset"][:, ss] - b18.OFFSET) / DEG
+        e = (est["delta_offset"][:, ss] - road.OFFSET) / DEG
         m["offset_mean"], m["offset_rms"] = float(np.nanmean(e)), _rms(e)
     if "delta_std" in est:
-        m["delta_std"] = float(np.nanmean(est["delta_std"][:, ss] / b18.STEER_STD - 1.0))
+        m["delta_std"] = float(np.nanmean(est["delta_std"][:, ss] / road.STEER_STD - 1.0))
     for s in SENSORS:
         k = f"{s}_bias"
         if k in est:
-            m[k] = _rms(est[k][:, ss] - B[:, ss, SENSORS.index(s)]) / b18.SENSOR_UNIT[s][1]
+            m[k] = _rms(est[k][:, ss] - B[:, ss, SENSORS.index(s)]) / road.SENSOR_UNIT[s][1]
         k = f"{s}_std"
         if k in est:
-            m[k] = float(np.nanmean(est[k][:, ss] / b18.SENSOR_STD[s] - 1.0))
+            m[k] = float(np.nanmean(est[k][:, ss] / road.SENSOR_STD[s] - 1.0))
     cov = {}
     for k, v in est.items():
         if sd.get(k) is not None:
@@ -406,7 +409,7 @@ def verdict(m):
     bk = [s for s in SENSORS if f"{s}_bias" in m]
     if bk:
         bad = [s for s in bk
-               if m[f"{s}_bias"] > 0.25 * b18.SENSOR_STD[s] / b18.SENSOR_UNIT[s][1]]
+               if m[f"{s}_bias"] > 0.25 * road.SENSOR_STD[s] / road.SENSOR_UNIT[s][1]]
         parts.append("biases " + ("tracked" if not bad else "off on " + ", ".join(bad))
                      + ("" if len(bk) == 3 else f" ({len(bk)} of 3 sensors)"))
     else:
@@ -478,10 +481,10 @@ def run_simulation(args, methods=METHODS, log=print):
     drive = vj.data.load_comma2k19()
     model = vj.models.SingleTrackBank(dt=drive.dt)
     T = int(round(args.duration / model.dt))
-    U = b18.looped_inputs(drive.inputs(model), T)
+    U = road.looped_inputs(drive.inputs(model), T)
     t = np.arange(1, T + 1) * model.dt
-    acc, _ = b18.bank_profile(t, model.dt)
-    X, Y, B = (np.asarray(a) for a in b18.simulate_truth(model, U, acc, args.runs,
+    acc, _ = road.bank_profile(t, model.dt)
+    X, Y, B = (np.asarray(a) for a in road.simulate_truth(model, U, acc, args.runs,
                                                           jax.random.key(args.seed)))
     ss = slice(int(T * 2 / 3), T)
     results, ms = [], []
@@ -501,7 +504,9 @@ def run_simulation(args, methods=METHODS, log=print):
 
 def run_drive(args, methods=METHODS, log=print):
     # berntorp2018 --drive's data: r_virt's bursts gated at 5 deg/s, its scale error removed
-    drive, model, U, Y = b18.drive_arrays(args.duration, gate_deg=5.0)
+    drive = vj.data.load_comma2k19()
+    model = vj.models.SingleTrackBank(dt=drive.dt)
+    U, Y = prepare_drive(drive, model, seconds=args.duration, gate=5.0 * road.DEG)
     T = len(U)
     ref_r = np.asarray(drive.reference["yaw_rate"])[:T]
     ref_vy = np.asarray(drive.reference["vy"])[:T]
@@ -526,7 +531,7 @@ def run_drive(args, methods=METHODS, log=print):
             m["ay_bias"] = float(np.mean(est["ay_bias"][:, after]))
         for s in ("ay", "r"):
             if f"{s}_std" in est:
-                m[f"{s}_std"] = float(np.mean(est[f"{s}_std"][:, after])) / b18.SENSOR_UNIT[s][1]
+                m[f"{s}_std"] = float(np.mean(est[f"{s}_std"][:, after])) / road.SENSOR_UNIT[s][1]
         from vehjax import metrics
 
         ci = metrics.consistency(res["nis"][:, after], res["n_obs"][:, after])
@@ -596,11 +601,11 @@ def figure(path, sim, drive):
         if "delta_offset" in est:
             axes[0, 0].plot(t, np.nanmean(est["delta_offset"], 0) / DEG, **{**kw, "label": None})
         if "ay_std" in est:
-            axes[0, 1].plot(t, np.nanmean(est["ay_std"], 0) / b18.SENSOR_STD["ay"], **kw)
+            axes[0, 1].plot(t, np.nanmean(est["ay_std"], 0) / road.SENSOR_STD["ay"], **kw)
         if "r_bias" in est:
             e = (est["r_bias"] - sim["B"][..., 1]) / DEG
             axes[1, 0].plot(t, np.sqrt(np.nanmean(e ** 2, 0)), **kw)
-    axes[0, 0].axhline(b18.OFFSET / DEG, color="k", ls="--", label="truth")
+    axes[0, 0].axhline(road.OFFSET / DEG, color="k", ls="--", label="truth")
     axes[0, 0].set_ylabel("steering offset, mean over runs [deg]")
     axes[0, 1].axhline(1.0, color="k", ls="--")
     axes[0, 1].set_ylabel("ay std estimate / truth, mean over runs")

@@ -1,0 +1,161 @@
+"""Paper 004's banked-road problem (Berntorp & Di Cairano 2018, sec. 4-5): the simulated
+scenario, with its truth and biased IMU, and the adaptive marginalized PF set-ups for
+:class:`~vehjax.models.SingleTrackBank`, shared by ``vehjax reproduce berntorp2018``,
+``vehjax reproduce noise-learning`` and the marginalized-PF benchmarks.
+
+The simulated scenario (sec. 4), how the paper's words are read:
+
+* Inputs: "measured input data from an experimental test drive": a recorded drive's speed and
+  steering played forward, then backwards in time, then forward ... (:func:`looped_inputs`, a
+  palindrome loop, continuous at every joint) up to the wanted length.
+* Truth: SingleTrackBank (RK4, 10 ms, nominal parameters), driven by the true steering
+  delta_m + w_t, w_t ~ N(:data:`OFFSET` = 0.28 deg, (:data:`STEER_STD` = 0.02 deg)^2) (the
+  paper's constant road-wheel offset, plus a small white steering noise so that sigma_w exists).
+* Bank: "the road bank rate is modeled as piecewise linear". :func:`vehjax.simulate` has no way
+  to prescribe the bank, so :func:`simulate_truth` is its own ``lax.scan`` of
+  ``model.transition``: before every step the bank acceleration state phi_ddot is overwritten
+  by a prescribed piecewise-constant value (:func:`bank_profile`; RK4 integrates the bank chain
+  exactly, so phi_dot is exactly piecewise linear and phi piecewise quadratic). The profile
+  repeats every 60 s: 10 s level, a 10 s ramp up by :data:`BANK_DEG` = 6 deg (triangular bank
+  rate, peak 1.2 deg/s), 20 s at 6 deg, a 10 s ramp back down, 10 s level; every other cycle
+  banks the other way.
+* Sensors :data:`SENSORS`: ay, r, roll_rate (roll_rate reads phi_dot) with fixed white-noise
+  stds :data:`SENSOR_STD` (0.2 m/s^2, 0.3 deg/s, 0.3 deg/s) plus random-walk biases starting at
+  0 (the paper: "zero initially due to averaging"), increments per 10 ms step
+  :data:`BIAS_WALK` (1e-3 m/s^2, 3e-4 deg/s, 3e-4 deg/s); a bank-angle measurement of known std
+  :data:`PHI_STD` = 0.5 deg and eq. 10's virtual yaw rate of known std :data:`RVIRT_STD` =
+  0.5 deg/s, both unbiased.
+
+The filters (:func:`~vehjax.filters.marginalized.marginalized_pf`): :func:`build_sim_filter`
+(sec. 4: lambda = 0.995, initial std guesses twice the truth, offset and biases guessed 0, bank
+jerk std :data:`BANK_JERK_STD` = 2 deg/s^3; it models the biases as constant means with
+forgetting, not as random walks, the robustness check the paper intends) and
+:func:`build_drive_filter` (sec. 5 and Remark 2: lambda = 0.999, initial guesses
+:data:`DRIVE_STD0`).
+
+Limits: the bank path is the same in every run; the truth's steering noise is white.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .filters.marginalized import marginalized_pf
+
+__all__ = ["DEG", "OFFSET", "STEER_STD", "SENSORS", "SENSOR_STD", "SENSOR_UNIT", "BIAS_WALK",
+           "PHI_STD", "RVIRT_STD", "BANK_JERK_STD", "BANK_DEG", "DRIVE_STD0", "looped_inputs",
+           "bank_profile", "simulate_truth", "build_sim_filter", "build_drive_filter"]
+
+DEG = math.pi / 180.0
+OFFSET = 0.28 * DEG  # rad, road wheel
+STEER_STD = 0.02 * DEG
+SENSORS = ("ay", "r", "roll_rate")
+SENSOR_STD = {"ay": 0.2, "r": 0.3 * DEG, "roll_rate": 0.3 * DEG}
+SENSOR_UNIT = {"ay": ("m/s^2", 1.0), "r": ("deg/s", DEG), "roll_rate": ("deg/s", DEG),
+               "delta": ("deg", DEG)}
+BIAS_WALK = {"ay": 1e-3, "r": 3e-4 * DEG, "roll_rate": 3e-4 * DEG}
+PHI_STD = 0.5 * DEG
+RVIRT_STD = 0.5 * DEG
+BANK_JERK_STD = 2.0 * DEG
+BANK_DEG = 6.0
+#: the drive filter's initial std guesses (steering, ay, yaw gyro; the roll gyro as the yaw's)
+DRIVE_STD0 = {"delta": 0.2 * DEG, "ay": 0.4, "r": 0.5 * DEG}
+
+
+def looped_inputs(U: np.ndarray, n_steps: int) -> np.ndarray:
+    """``U`` forward, backward, forward ... (continuous at the joints), cut to ``n_steps``."""
+    pieces, n, fwd = [], 0, True
+    while n < n_steps:
+        pieces.append(U if fwd else U[::-1])
+        n += len(U)
+        fwd = not fwd
+    return np.concatenate(pieces)[:n_steps]
+
+
+def bank_profile(t: np.ndarray, dt: float):
+    """(phi_ddot per step [rad/s^2], phi [rad]): the piecewise-linear bank rate of the module
+    docstring (cycles of 60 s, 6 deg, alternating sign)."""
+    amp = BANK_DEG * DEG
+    D = 5.0  # half ramp [s]; a ramp of 2 D raises phi by a D^2
+    a = amp / D**2
+    tc = np.mod(t, 60.0)
+    sign = np.where(np.mod(np.floor(t / 60.0), 2) == 0, 1.0, -1.0)
+    acc = np.zeros_like(t)
+    acc[(tc >= 10) & (tc < 15)] = a
+    acc[(tc >= 15) & (tc < 20)] = -a
+    acc[(tc >= 40) & (tc < 45)] = -a
+    acc[(tc >= 45) & (tc < 50)] = a
+    acc = sign * acc
+    # the value each step applies over [t_k, t_k + dt]: steps start at t - dt
+    phi_dot = np.concatenate([[0.0], np.cumsum(acc * dt)])
+    phi = np.concatenate([[0.0], np.cumsum(0.5 * (phi_dot[1:] + phi_dot[:-1]) * dt)])
+    return acc, phi[1:]
+
+
+def simulate_truth(model, inputs, acc, runs, key, steer_std=None):
+    """R runs of the truth: states (R, T, 5), measurements (R, T, 5), biases (R, T, 3).
+    ``steer_std``: the white steering noise's std [rad] (default :data:`STEER_STD`)."""
+    steer_std = STEER_STD if steer_std is None else steer_std
+    nx = 5
+    s_std = jnp.array([SENSOR_STD[s] for s in SENSORS])
+    walk = jnp.array([BIAS_WALK[s] for s in SENSORS])
+    theta = jnp.asarray(model.theta)
+    U = jnp.asarray(inputs)
+    A = jnp.asarray(acc)
+
+    def one(k):
+        eps = jax.random.normal(k, (U.shape[0], 1 + 3 + 3 + 2))
+
+        def step(carry, xs):
+            x, b = carry
+            u, a, e = xs
+            w = OFFSET + steer_std * e[0]
+            ut = u.at[1].add(w)
+            x = x.at[4].set(a)
+            xn = model.transition(x, ut, theta)
+            b = b + walk * e[1:4]
+            h = model.observe(xn, ut, theta)
+            y = jnp.concatenate([h[:3] + b + s_std * e[4:7],
+                                 jnp.stack([h[3] + PHI_STD * e[7], h[4] + RVIRT_STD * e[8]])])
+            return (xn, b), (xn, y, b)
+
+        _, out = jax.lax.scan(step, (jnp.zeros(nx), jnp.zeros(3)), (U, A, eps))
+        return out
+
+    return jax.jit(jax.vmap(one))(jax.random.split(key, runs))
+
+
+def build_sim_filter(model, n_particles, kalman_states="linear"):
+    """The simulation study's filter (sec. 4): N = ``n_particles``, lambda = 0.995, initial
+    std guesses twice the truth; ``kalman_states`` as in ``marginalized_pf``."""
+    return marginalized_pf(
+        model, n_particles, noisy_input="delta", sensors=SENSORS,
+        known_std={"phi": PHI_STD, "r_virt": RVIRT_STD},
+        linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=BANK_JERK_STD,
+        std0={"delta": 2 * STEER_STD, **{s: 2 * SENSOR_STD[s] for s in SENSORS}},
+        forgetting=0.995, kalman_states=kalman_states)
+
+
+def build_drive_filter(model, n_particles, forgetting=0.999, variant="bank",
+                       kalman_states="linear"):
+    """The drive's filter: ``planar`` (Remark 2: ay, r; r_virt known; no bank) or ``bank``
+    (sensors ay, r, roll rate; phi (NaN on a log without a bank sensor) and r_virt known; bank
+    in a KF); ``kalman_states`` as in ``marginalized_pf`` (no difference for ``planar``). With a
+    :class:`~vehjax.models.VirtualScaleBank` model the rolling-radius mismatch eps joins each
+    particle's Kalman filter (no process noise: a constant learnt online)."""
+    scale = ("eps",) if "eps" in model.state_names else ()
+    if variant == "bank":
+        return marginalized_pf(
+            model, n_particles, noisy_input="delta", sensors=("ay", "r", "roll_rate"),
+            known_std={"phi": PHI_STD, "r_virt": RVIRT_STD},
+            linear_states=("phi", "phi_dot", "phi_ddot") + scale, linear_noise_std=BANK_JERK_STD,
+            std0={**DRIVE_STD0, "roll_rate": DRIVE_STD0["r"]}, forgetting=forgetting,
+            kalman_states=kalman_states)
+    return marginalized_pf(model, n_particles, noisy_input="delta", sensors=("ay", "r"),
+                           known_std={"r_virt": RVIRT_STD}, linear_states=scale,
+                           linear_noise_std=0.0 if scale else None,
+                           std0=DRIVE_STD0, forgetting=forgetting, kalman_states=kalman_states)
