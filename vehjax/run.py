@@ -398,22 +398,9 @@ class _Plan(NamedTuple):
     smooth: str | None = None  # the smoothing method (vehjax.smoothing.METHODS), or None
 
 
-def _plan(
-    estimator,
-    measurements,
-    inputs,
-    x0,
-    P0,
-    theta0,
-    P_theta0,
-    key,
-    return_covariances,
-    chunk_size,
-    progress,
-    devices,
-    strategy=None,
-    smooth=False,
-) -> _Plan:
+def _checked_data(estimator, measurements, inputs, x0, P0, theta0, P_theta0, key):
+    """A study's estimator, data, prior, initial parameters and key checked (before anything is
+    traced): (ys, us, x0, P0, th0, Pth0, keys) as arrays, keys split per run or None."""
     if not isinstance(estimator, Estimator):
         raise ValueError(
             f"estimator: expected a vehjax.filters.Estimator, got {type(estimator).__name__}"
@@ -425,7 +412,7 @@ def _plan(
     # the checks every entry point shares (vehjax.validation): real arrays, NaN measurements
     # missing, +-inf and every other non-finite value refused naming the first bad index
     ys, us = validation.data(measurements, inputs, estimator.ny, estimator.nu, "many")
-    R, T, ny = ys.shape
+    R = ys.shape[0]
     x0, P0 = validation.prior(nx, x0, P0, runs=R)
     th0, Pth0 = validation.initial_params(
         tuple(estimator.param_names), theta0, P_theta0, runs=R,
@@ -443,7 +430,12 @@ def _plan(
             f"key: estimator {estimator.name!r} draws random numbers; pass key=jax.random.key(...)"
         )
     keys = None if key is None else validation.key(key, R)
+    return ys, us, x0, P0, th0, Pth0, keys
 
+
+def _check_options(return_covariances, progress, chunk_size) -> None:
+    """ValueError naming the option unless ``return_covariances`` is a bool, ``progress`` None
+    or a bool and ``chunk_size`` None or an integer >= 1."""
     if not isinstance(return_covariances, (bool, np.bool_)):
         raise ValueError(f"return_covariances: expected True or False, got {return_covariances!r}")
     if progress is not None and not isinstance(progress, (bool, np.bool_)):
@@ -454,6 +446,29 @@ def _plan(
         or chunk_size < 1
     ):
         raise ValueError(f"chunk_size: expected None or an integer >= 1, got {chunk_size!r}")
+
+
+def _plan(
+    estimator,
+    measurements,
+    inputs,
+    x0,
+    P0,
+    theta0,
+    P_theta0,
+    key,
+    return_covariances,
+    chunk_size,
+    progress,
+    devices,
+    strategy=None,
+    smooth=False,
+) -> _Plan:
+    ys, us, x0, P0, th0, Pth0, keys = _checked_data(estimator, measurements, inputs, x0, P0,
+                                                    theta0, P_theta0, key)
+    _check_options(return_covariances, progress, chunk_size)
+    R, T, _ = ys.shape
+    nx = int(estimator.nx)
 
     method = _smooth_method(estimator, smooth)
     devs = tuple(_resolve_devices(devices))

@@ -177,28 +177,10 @@ def simulate(
     p_std = _vector("param_std", param_std, n_par, "a relative std per parameter")
     s_std = _vector("x0_std", x0_std, nx, "one std per state")
     b_std = _vector("bias_walk_std", bias_walk_std, ny, "one std per output")
-    b0 = np.asarray(validation.array("bias0", 0.0 if bias0 is None else bias0, allow_nan=True),
-                    dtype=float)
-    b0 = np.full(ny, float(b0)) if b0.ndim == 0 else b0
-    if b0.shape != (ny,) or not np.all(np.isfinite(b0)):
-        raise ValueError(f"bias0: expected a finite scalar or shape ({ny},), got {b0}")
+    b0 = _bias0(bias0, ny)
     q_scale = _scale("process_scale", process_scale, t)
     r_scale = _scale("meas_scale", meas_scale, t)
-    try:
-        steering_offset = float(steering_offset)
-    except (TypeError, ValueError):
-        raise ValueError(f"steering_offset: expected a number in rad, got {steering_offset!r}") from None
-    if not np.isfinite(steering_offset):
-        raise ValueError(f"steering_offset: expected a finite number in rad, got {steering_offset}")
-    offset = np.zeros(len(model.input_names))
-    if steering_offset != 0.0:
-        if "delta" not in model.input_names:
-            raise ValueError(
-                f"steering_offset: {type(model).__name__} has no input named 'delta' "
-                f"(inputs {tuple(model.input_names)})"
-            )
-        offset[list(model.input_names).index("delta")] = steering_offset
-
+    offset = _input_offset(model, steering_offset)
     base_theta = validation.per_run("theta", np.asarray(model.theta) if theta is None else theta,
                                    (n_par,), runs, f"parameters {tuple(model.param_names)}")
     base_theta = np.asarray(base_theta, dtype=float)
@@ -232,6 +214,36 @@ def simulate(
         param_names=tuple(model.param_names),
         output_names=tuple(model.output_names),
     )
+
+
+def _bias0(bias0, ny: int) -> np.ndarray:
+    """``simulate``'s initial output biases (ny,): None (zeros), a scalar or one per output."""
+    b0 = np.asarray(validation.array("bias0", 0.0 if bias0 is None else bias0, allow_nan=True),
+                    dtype=float)
+    b0 = np.full(ny, float(b0)) if b0.ndim == 0 else b0
+    if b0.shape != (ny,) or not np.all(np.isfinite(b0)):
+        raise ValueError(f"bias0: expected a finite scalar or shape ({ny},), got {b0}")
+    return b0
+
+
+def _input_offset(model, steering_offset) -> np.ndarray:
+    """The constant offset (nu,) added to the inputs: ``steering_offset`` [rad] on "delta"."""
+    try:
+        steering_offset = float(steering_offset)
+    except (TypeError, ValueError):
+        raise ValueError(f"steering_offset: expected a number in rad, got {steering_offset!r}") from None
+    if not np.isfinite(steering_offset):
+        raise ValueError(f"steering_offset: expected a finite number in rad, got {steering_offset}")
+    offset = np.zeros(len(model.input_names))
+    if steering_offset != 0.0:
+        if "delta" not in model.input_names:
+            raise ValueError(
+                f"steering_offset: {type(model).__name__} has no input named 'delta' "
+                f"(inputs {tuple(model.input_names)})"
+            )
+        offset[list(model.input_names).index("delta")] = steering_offset
+
+    return offset
 
 
 def _simulate_jit(model, keys, a):

@@ -731,6 +731,48 @@ def _settings_text(args):
             f"{1 + _CONTROL_PARAM_ERROR:g}, x0 true, P0 = diag{_P0_STD}^2.")
 
 
+def _write_files(out_dir, args, settings, md_all, tables, cons, study, cases, all_results,
+                 filters):
+    """table1.md, table1.csv, consistency.csv and results.npz; returns their paths."""
+    (out_dir / "table1.md").write_text(
+        f"{PAPER}\n\n{args.runs} runs, seed {args.seed}, speed {args.speed:.2f} m/s. {settings}\n\n"
+        + "\n".join(md_all))
+    _write_csv(out_dir / "table1.csv", tables, filters)
+    _write_consistency_csv(out_dir / "consistency.csv", cons)
+    first = study["cases"][cases[0]]
+    np.savez(out_dir / "results.npz", t=np.asarray(first["sim"].t),
+             quantities=np.array(QUANTITIES), cases=np.array(cases),
+             **{f"{c}_truth": study["cases"][c]["truth_derived"] for c in cases},
+             **{f"{c}_measurements": np.asarray(study["cases"][c]["sim"].measurements) for c in cases},
+             **{f"{c}_{r['name']}": r["derived"] for c in cases for r in all_results[c]},
+             **{f"{c}_{r['name']}_diverged": ~r["mask"] for c in cases for r in all_results[c]})
+    written = [out_dir / "table1.md", out_dir / "table1.csv", out_dir / "consistency.csv",
+               out_dir / "results.npz"]
+    return written
+
+
+def _figures(out_dir, report: list, study, cases, all_results) -> list:
+    """The figures of every case, linked into ``report`` (appended in place); their paths."""
+    written = []
+    report += ["## Figures\n",
+               "The true ax carries white noise: eq. 31's process noise on the wheel speeds "
+               "moves the tyre forces from step to step (see the module docstring); no filter "
+               "follows it.\n"]
+    for case in cases:
+        cs, results = study["cases"][case], all_results[case]
+        figures = [
+            (plot_fig3(out_dir / f"fig3_{case}.png", cs, results),
+             f"Case ({case}), Fig. 3: truth, measurement and each filter's estimate, run 0"),
+            (plot_errors(out_dir / f"rmse_time_{case}.png", cs, results),
+             f"Case ({case}): RMSE over runs (and a 0.2 s window) against time"),
+            (plot_error_bands(out_dir / f"error_bands_{case}.png", cs, results),
+             f"Case ({case}): estimation error, each filter's mean and 5-95 % band over runs"),
+        ]
+        report += [reporting.figure_link(p, cap) for p, cap in figures]
+        written += [p for p, _ in figures]
+    return written
+
+
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     filters, cases = _check(args)
@@ -794,37 +836,10 @@ def main(argv=None) -> int:
             report += [SMOOTHED_NOTE + " " + smoothed_summary(results, smoothed[case], cs), ""]
         report += ["Consistency:\n", cmd, ""]
         report += [f"* {line}" for line in ver] + [""]
-    (out_dir / "table1.md").write_text(
-        f"{PAPER}\n\n{args.runs} runs, seed {args.seed}, speed {args.speed:.2f} m/s. {settings}\n\n"
-        + "\n".join(md_all))
-    _write_csv(out_dir / "table1.csv", tables, filters)
-    _write_consistency_csv(out_dir / "consistency.csv", cons)
-    first = study["cases"][cases[0]]
-    np.savez(out_dir / "results.npz", t=np.asarray(first["sim"].t),
-             quantities=np.array(QUANTITIES), cases=np.array(cases),
-             **{f"{c}_truth": study["cases"][c]["truth_derived"] for c in cases},
-             **{f"{c}_measurements": np.asarray(study["cases"][c]["sim"].measurements) for c in cases},
-             **{f"{c}_{r['name']}": r["derived"] for c in cases for r in all_results[c]},
-             **{f"{c}_{r['name']}_diverged": ~r["mask"] for c in cases for r in all_results[c]})
-    written = [out_dir / "table1.md", out_dir / "table1.csv", out_dir / "consistency.csv",
-               out_dir / "results.npz"]
+    written = _write_files(out_dir, args, settings, md_all, tables, cons, study, cases,
+                           all_results, filters)
     if not args.no_plots:
-        report += ["## Figures\n",
-                   "The true ax carries white noise: eq. 31's process noise on the wheel speeds "
-                   "moves the tyre forces from step to step (see the module docstring); no filter "
-                   "follows it.\n"]
-        for case in cases:
-            cs, results = study["cases"][case], all_results[case]
-            figures = [
-                (plot_fig3(out_dir / f"fig3_{case}.png", cs, results),
-                 f"Case ({case}), Fig. 3: truth, measurement and each filter's estimate, run 0"),
-                (plot_errors(out_dir / f"rmse_time_{case}.png", cs, results),
-                 f"Case ({case}): RMSE over runs (and a 0.2 s window) against time"),
-                (plot_error_bands(out_dir / f"error_bands_{case}.png", cs, results),
-                 f"Case ({case}): estimation error, each filter's mean and 5-95 % band over runs"),
-            ]
-            report += [reporting.figure_link(p, cap) for p, cap in figures]
-            written += [p for p, _ in figures]
+        written += _figures(out_dir, report, study, cases, all_results)
     reporting.write_report(out_dir, "\n".join(report) + "\n")
     written.insert(0, out_dir / "report.md")
     print("wrote " + ", ".join(str(p) for p in written))

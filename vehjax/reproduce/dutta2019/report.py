@@ -63,7 +63,7 @@ def table_consistency(stage: Stage) -> str:
     parameter the share of runs whose true value lies in the final 95 % interval
     (estimate +- 1.96 sqrt(params_cov)); diverged runs are left out.
     """
-    from ..metrics import consistency, nees
+    from ...metrics import consistency, nees
 
     names = ", ".join(stage.names)
     lines = [f"| filter | NEES in band | mean NEES / nx | NIS in band | mean NIS / dof | "
@@ -105,7 +105,7 @@ SAME_RMSE_RTOL = 0.01
 
 def _unit(u, s=1.0):
     """The unit of a column, ``[m]`` or ``[1e4 N]``."""
-    from ..plots import label
+    from ...plots import label
 
     return label("", u, s).strip()
 
@@ -118,7 +118,7 @@ def _names_and(names) -> str:
 def table_parameters(stage: Stage, paper: dict, dt: float, tol, digits, scale=None, window=None):
     """Markdown table: the initial guesses and each filter's final estimate as mean +- std over
     runs (mean absolute error), convergence time, the paper's value."""
-    from .. import metrics
+    from ... import metrics
 
     names = stage.names
     scale = np.ones(len(names)) if scale is None else np.asarray(scale)
@@ -279,7 +279,7 @@ def learning_summary(stage: Stage, tol, tol_text: str, scale=None, digits=None, 
 
 def _raw_rmse(stage: Stage):
     """RMSE of the raw measurements against the true states, when each output is a state."""
-    from .. import metrics
+    from ... import metrics
 
     sim = stage.sim
     if tuple(sim.output_names) != tuple(sim.state_names):
@@ -290,7 +290,7 @@ def _raw_rmse(stage: Stage):
 def table_states(stage: Stage, paper: dict):
     """Markdown table: state RMSE over all runs and steps with its 95 % interval over runs, and
     the raw measurements' RMSE when the states are measured."""
-    from .. import metrics
+    from ... import metrics
 
     names = stage.sim.state_names
     lines = ["| filter | " + " | ".join(f"RMSE {n} {_unit(u)}" for n, u in zip(names, stage.state_units))
@@ -318,7 +318,7 @@ def table_states(stage: Stage, paper: dict):
 
 def state_rmse(stage: Stage) -> dict:
     """Filter -> (nx,) state RMSE over its converged runs and all steps (filters with any)."""
-    from .. import metrics
+    from ... import metrics
 
     return {name: np.asarray(metrics.rmse(res.states, stage.sim.states, mask=_ok(res)))
             for name, res in stage.results.items() if _ok(res).any()}
@@ -327,7 +327,7 @@ def state_rmse(stage: Stage) -> dict:
 def smoothed_summary(stage: Stage) -> str:
     """One sentence from the numbers: for each smoothed filter, its smoothed state RMSE over its
     filtered one (both over the runs where both converged)."""
-    from .. import metrics
+    from ... import metrics
 
     parts = []
     for name, sm in (stage.smoothed or {}).items():
@@ -395,7 +395,7 @@ def states_summary(stage: Stage, tol=None) -> str:
 
 
 def frequency_table(freq_results: dict, truth, dt: float, tol: float, units=("m", "m")):
-    from .. import metrics
+    from ... import metrics
 
     lines = [f"| steering frequency [Hz] | final lf {_unit(units[0])} | final lr {_unit(units[1])} "
              "| t_conv lf [s] | t_conv lr [s] |",
@@ -578,7 +578,7 @@ def plot_parameters(stage: Stage, path, title: str, scale=None, tol=None):
     """Small multiples: one row per parameter, one column per filter; mean and 5-95 % band of
     the estimate over runs, the truth on top. With ``tol`` each panel names the verdict of
     :func:`learning` when it is not "learned"."""
-    from .. import plots
+    from ... import plots
 
     n = len(stage.names)
     scale = np.ones(n) if scale is None else np.asarray(scale)
@@ -602,8 +602,8 @@ def plot_states(stage: Stage, path, title: str, window_s: float = 1.0):
     """Row per state. Left: the truth of run 0 (on top) and each filter's estimate of it. Then
     one column per filter: its RMS error over a moving ``window_s`` window, mean and 5-95 %
     band over runs, with the raw measurements' RMS error (grey) when the state is measured."""
-    from .. import plots
-    from ..plots import plt
+    from ... import plots
+    from ...plots import plt
 
     t = np.asarray(stage.sim.t)
     names = stage.sim.state_names
@@ -655,7 +655,7 @@ def plot_states(stage: Stage, path, title: str, window_s: float = 1.0):
 def plot_frequency(freq_results: dict, t, truth, path, units=("m", "m"), title: str = ""):
     """Small multiples: rows lf, lr; one column per steering frequency; the Dual UKF's mean and
     5-95 % band over runs, the truth on top."""
-    from .. import plots
+    from ... import plots
 
     freqs = list(freq_results)
     series = [[res.params[_ok(res), :, j] if _ok(res).any() else None for res in freq_results.values()]
@@ -678,7 +678,7 @@ def _figure(report: list, path: Path, caption: str) -> Path:
 
 def parser():
     """The study's options (``vehjax reproduce dutta2019 --help``); each help states its default."""
-    from .. import cli as _cli  # one-line user errors, finite numbers in range
+    from ... import cli as _cli  # one-line user errors, finite numbers in range
 
     p = _cli.ArgumentParser(
         prog="vehjax reproduce dutta2019",

@@ -174,7 +174,7 @@ def _ok(res):
 def kinematic_scenario(model, duration: float = 60.0, frequency: float = 0.5,
                        amplitude: float = 0.3, speed: float = 5.0):
     """Open-loop inputs (a, delta) for KinematicBicycle: a steering sine and a slow speed swing."""
-    from .. import scenarios
+    from ... import scenarios
 
     t = np.arange(int(round(duration / model.dt))) * model.dt
     a = 0.5 * np.sin(2 * np.pi * 0.05 * t)
@@ -187,7 +187,7 @@ def dynamic_scenario(model, duration: float = 60.0, speed: float = 20.0):
     """Open-loop inputs (s_fl, s_fr, s_rl, s_rr, delta) for Dynamic3DOF, in the style of MATLAB's
     vehicledata: front slips that balance air drag at ``speed`` and swing the speed between
     about 14 and 23 m/s, two-tone steering, rear slips zero."""
-    from .. import scenarios
+    from ... import scenarios
 
     m, cx, ca = (float(model.theta[model.param_index(n)[0]]) for n in ("m", "cx", "ca"))
     t = np.arange(int(round(duration / model.dt))) * model.dt
@@ -208,7 +208,7 @@ def chirp_scenario(model, duration: float = 60.0, speed: float = 15.0):
     """The second dynamic excitation (``--excitation chirp``, module docstring): front slips that
     hold ``speed`` against drag with a +-0.8 m/s^2 swing of 12 s period, a 0.03 rad steering
     chirp from 0.1 to 1.5 Hz, rear slips zero."""
-    from .. import scenarios
+    from ... import scenarios
 
     m, cx, ca = (float(model.theta[model.param_index(n)[0]]) for n in ("m", "cx", "ca"))
     t = np.arange(int(round(duration / model.dt))) * model.dt
@@ -222,7 +222,7 @@ def chirp_scenario(model, duration: float = 60.0, speed: float = 15.0):
 
 def _with_axle_inputs(dyn):
     """Dynamic3DOF with lf, lr taken from two extra inputs (per-run values from stage 1)."""
-    from ..models import Model
+    from ...models import Model
 
     i_lf, i_lr = dyn.param_index(("lf", "lr"))
 
@@ -262,7 +262,7 @@ def _simulate(model, scn, runs: int, key):
     """``runs`` noisy runs of ``scn`` on ``model`` (its ``theta`` is the truth): process noise of
     ``_SIM_STD`` per square-root second and measurement noise of std ``_SIM_STD`` on every
     component."""
-    from .. import simulate
+    from ... import simulate
 
     return simulate(model, scn, runs=runs, key=key, process_std=_SIM_STD * np.sqrt(model.dt),
                     meas_std=_SIM_STD)
@@ -365,8 +365,8 @@ def tuned_settings(paper: dict, model, scn, estimate, truth, box, key, runs: int
     -------
     Tuning
     """
-    from .. import tune
-    from ..filters import ukf
+    from ... import tune
+    from ...filters import ukf
 
     sim = training_runs(model, scn, runs, key)
     low, high = np.asarray(box, dtype=float).T
@@ -389,8 +389,8 @@ def tuned_settings(paper: dict, model, scn, estimate, truth, box, key, runs: int
 
 
 def _builders(model, s, estimate, box, particles: int):
-    from ..filters.dual import dual_ekf, dual_ukf, joint_ekf, joint_ukf
-    from ..filters.liu_west import liu_west_ukf
+    from ...filters.dual import dual_ekf, dual_ukf, joint_ekf, joint_ukf
+    from ...filters.liu_west import liu_west_ukf
 
     common = dict(estimate=estimate, theta_decay=_DECAY)
     low, high = np.asarray(box).T
@@ -411,7 +411,7 @@ def _stage(model, scn, estimate, settings, box, runs, key, estimators, inputs=No
     with ``smooth`` each one with a Gaussian smoother (``Estimator.smoother``: the joint
     EKF/UKF) also smoothed on the same runs (``vehjax.run(..., smooth=True)``, its own RTS),
     in ``Stage.smoothed``."""
-    from .. import run
+    from ... import run
 
     _, k_guess, k_run = jax.random.split(key, 3)
     sim = study_runs(model, scn, runs, key)
@@ -500,7 +500,7 @@ def kinematic_study(filters, setting: str, key, *, runs: int, particles: int,
         The stage, and the frequency study: steering frequency [Hz] -> the Dual UKF's RunResult
         (None when not run).
     """
-    from ..models import KinematicBicycle
+    from ...models import KinematicBicycle
 
     kin = KinematicBicycle(dt=dt)
     scn = kinematic_scenario(kin, duration)
@@ -560,7 +560,7 @@ def dynamic_study(filters, setting: str, key, kinematic: Stage, *, runs: int, pa
         ``Stage.model`` is the dynamic model with lf, lr as two extra inputs; its ``theta`` the
         truth.
     """
-    from ..models import Dynamic3DOF
+    from ...models import Dynamic3DOF
 
     dyn = Dynamic3DOF(dt=dt)
     nominal = np.asarray(dyn.theta)[list(dyn.param_index(("m", "cx", "cy")))]
