@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import vehjax as vj
-from vehjax import filtering
+from vehjax import engine
 from vehjax import filters as F
 from vehjax.lib.transforms import Transform
 
@@ -120,13 +120,13 @@ def test_at_bound_rule():
     """On a finite bound (within AT_BOUND_RTOL of its scale) on more than AT_BOUND_FRACTION of the
     steps; the scale of a box is its width, of a one-sided bound max(|bound|, |theta0|)."""
     T = 100
-    n_on = int(filtering.AT_BOUND_FRACTION * T)
-    tol = filtering.AT_BOUND_RTOL
+    n_on = int(engine.AT_BOUND_FRACTION * T)
+    tol = engine.AT_BOUND_RTOL
 
     def flag(on_steps, value, bounds, theta0=(2.0,)):
         params = np.full((T, 1), 2.0)
         params[:on_steps] = value
-        return bool(filtering.on_bound(jnp.asarray(params), jnp.asarray(theta0), bounds))
+        return bool(engine.on_bound(jnp.asarray(params), jnp.asarray(theta0), bounds))
 
     box = ((1.0,), (3.0,))  # width 2
     assert flag(n_on + 1, 1.0 + 0.9 * tol * 2, box)
