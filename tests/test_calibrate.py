@@ -388,3 +388,24 @@ def test_starting_values_outside_the_support_raise_naming_init():
     z0 = starting_values((Normal(0.0, 1.0), LogNormal(2.0, 0.1), Uniform(-1.0, 3.0)), None,
                          ("a", "b", "c"))
     np.testing.assert_allclose(z0, [0.0, math.log(2.0), 0.0], atol=1e-15)
+
+
+@pytest.mark.parametrize("sampler", ["pmmh", "particle_gibbs"])
+@pytest.mark.parametrize("arg, value, match", [
+    ("acceptance_target", 23.4, r"^acceptance_target: expected a number in \(0, 1\)"),
+    ("acceptance_target", 0.0, r"^acceptance_target"),
+    ("chains", 1, r"^chains"),
+    ("proposal_std", [0.1, 0.2, 0.3], r"^proposal_std: expected a positive number or 1 positive"),
+])
+def test_samplers_check_the_same_options_the_same_way(sampler, arg, value, match):
+    """The same bad value gives the same error in every sampler that takes the option (issue
+    46), before anything is run, naming the argument."""
+    ys = np.zeros((5, 1))
+    kw = dict(x0=[0.0], P0=[1.0], Q=[0.1], R=[1.0], priors={"R:y": LogNormal(0.6, 0.5)},
+              key=jax.random.key(0), samples=4, warmup=2, **{arg: value})
+    with pytest.raises(ValueError, match=match):
+        if sampler == "pmmh":
+            pmmh(vj.filters.bootstrap_pf, _model(), ys, None, builder_kwargs={"n_particles": 4},
+                 **kw)
+        else:
+            particle_gibbs(_model(), ys, None, n_particles=4, **kw)

@@ -54,6 +54,25 @@ def target_acceptance(d: int, loglik_std=0.0):
     return a_d * noisy / math.erfc(0.5 * RW_SCALE / math.sqrt(2.0))
 
 
+def chain_options(chains, samples, warmup, adapt: bool, adapt_windows, acceptance_target,
+                  d: int):
+    """The chain sizes and adaptation options every sampler takes, checked the same way:
+    (chains >= 2, samples >= 4, warmup >= 2 with adaptation else >= 0, adapt_windows >= 1,
+    acceptance_target in (0, 1), default :func:`target_acceptance` of the d parameters).
+    ValueError naming the argument."""
+    chains = validation.integer("chains", chains, 2)
+    samples = validation.integer("samples", samples, 4)
+    warmup = validation.integer("warmup", warmup, 2 if adapt else 0)
+    adapt_windows = validation.integer("adapt_windows", adapt_windows, 1)
+    if acceptance_target is None:
+        acceptance_target = target_acceptance(d)
+    acceptance_target = validation.number("acceptance_target", acceptance_target, 0.0)
+    if not (0.0 < acceptance_target < 1.0):
+        raise ValueError(f"acceptance_target: expected a number in (0, 1), got "
+                         f"{acceptance_target!r}")
+    return chains, samples, warmup, adapt_windows, acceptance_target
+
+
 def adaptation_windows(warmup: int, windows: int) -> np.ndarray:
     """The iterations (1-based counts) after which the warm-up re-estimates the proposal:
     ``windows`` windows whose lengths double (1, 2, 4, ...) and fill the first 80 % of the
@@ -163,8 +182,8 @@ def initial_factor(priors, proposal_std, proposal_cov=None):
         return L
     if proposal_std is None:
         return np.diag([0.1 * p.scale for p in priors])
-    s = np.broadcast_to(np.asarray(proposal_std, float), (d,)) if np.ndim(proposal_std) <= 1 \
-        else None
+    s = np.asarray(proposal_std, float) if np.ndim(proposal_std) <= 1 else None
+    s = None if s is None or s.shape not in ((), (1,), (d,)) else np.broadcast_to(s, (d,))
     if s is None or not np.all(np.isfinite(s)) or np.any(s <= 0):
         raise ValueError(f"proposal_std: expected a positive number or {d} positive numbers "
                          f"(unconstrained units), got {proposal_std!r}")

@@ -20,8 +20,8 @@ import numpy as np
 from .. import validation
 from ..filters import resampling as _rs
 from ..filters import smc
-from .adaptation import (adapt_init, adapt_step, adaptation_windows, initial_factor,
-                         target_acceptance)
+from .adaptation import (adapt_init, adapt_step, adaptation_windows, chain_options,
+                         initial_factor)
 from .diagnostics import PMMHResult, result
 from .likelihood import targets
 from .priors import check_priors, log_prior_unconstrained, starting_values, to_physical
@@ -169,13 +169,8 @@ def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, ke
     tg = targets(model, names)
     if tg.inputs:
         raise ValueError("priors: particle_gibbs does not calibrate input noise ('input:')")
-    chains = validation.integer("chains", chains, 2)
-    samples = validation.integer("samples", samples, 4)
-    warmup = validation.integer("warmup", warmup, 2 if adapt else 0)
-    adapt_windows = validation.integer("adapt_windows", adapt_windows, 1)
-    if acceptance_target is None:
-        acceptance_target = target_acceptance(len(prs))
-    acceptance_target = validation.number("acceptance_target", acceptance_target, 0.0)
+    chains, samples, warmup, adapt_windows, acceptance_target = chain_options(
+        chains, samples, warmup, adapt, adapt_windows, acceptance_target, len(prs))
     n = validation.integer("n_particles", n_particles, 2)
     mh_steps = validation.integer("mh_steps", mh_steps, 1)
     ys, us = validation.data(measurements, inputs, model.ny, model.nu, "one")

@@ -30,8 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import validation
-from .adaptation import (adapt_init, adapt_step, adaptation_windows, initial_factor,
-                         target_acceptance)
+from .adaptation import (adapt_init, adapt_step, adaptation_windows, chain_options,
+                         initial_factor)
 from .correlated import crank_nicolson
 from .diagnostics import PMMHResult, result
 from .likelihood import check_correlation, cpm_log_likelihood_fn, log_likelihood_fn
@@ -171,16 +171,8 @@ def pmmh(builder, model, measurements, inputs=None, *, x0, P0, Q, R, priors, key
     """
     names, prs = check_priors(priors)
     rho = None if correlation is None else check_correlation(correlation)
-    chains = validation.integer("chains", chains, 2)
-    samples = validation.integer("samples", samples, 4)
-    warmup = validation.integer("warmup", warmup, 2 if adapt else 0)
-    adapt_windows = validation.integer("adapt_windows", adapt_windows, 1)
-    if acceptance_target is None:
-        acceptance_target = target_acceptance(len(prs))
-    acceptance_target = validation.number("acceptance_target", acceptance_target, 0.0)
-    if not acceptance_target < 1.0:
-        raise ValueError(f"acceptance_target: expected a number in (0, 1), got "
-                         f"{acceptance_target!r}")
+    chains, samples, warmup, adapt_windows, acceptance_target = chain_options(
+        chains, samples, warmup, adapt, adapt_windows, acceptance_target, len(prs))
     draw = move = None
     if rho is None:
         loglik = log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0, Q=Q,
