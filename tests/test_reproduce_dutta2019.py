@@ -241,6 +241,11 @@ def test_bad_options_are_refused():
         dutta2019.main(["--settings", "tuning"])
     with pytest.raises(ValueError, match="--runs"):
         dutta2019.main(["--runs", "1"])
+    # a stage shorter than two steps: named, in seconds and steps, not an internal array
+    with pytest.raises(ValueError, match="^--kinematic-duration: expected at least two steps"):
+        dutta2019.main(["--kinematic-duration", "0.01"])
+    with pytest.raises(ValueError, match="^--dynamic-duration: expected at least two steps"):
+        dutta2019.main(["--dynamic-duration", "0.03", "--dt", "0.02"])
 
 
 def test_settings_option_accepts_tuned_and_runs_all_three_by_default():

@@ -527,3 +527,14 @@ def test_summary_names_diverged_runs_and_leaves_them_out_of_the_rmse():
     text = out.summary(np.zeros(2))
     assert "1 diverged" in text and "diverged runs: [1]" in text and "RMSE over 2 runs" in text
     assert "x0" in text and "nan" not in text.lower()
+
+
+def test_compiled_study_takes_no_data_positionally():
+    """A compiled study runs with its own data: new measurements given positionally are refused
+    with a message that says how to run new data, not taken for ``progress`` (issue 46)."""
+    ys, us = _data(R=5, seed=4)
+    prepared = compile_run(EST, ys, us, x0=X0, P0=P0, progress=False)
+    with pytest.raises(TypeError, match="compile_run.*or vehjax.run.*keyword-only"):
+        prepared(ys + 1.0)
+    with pytest.raises(ValueError, match="^progress"):
+        prepared(progress="yes")

@@ -813,8 +813,18 @@ class CompiledRun:
         self.compile_seconds = compile_seconds
         self.chunk_size, self.n_chunks = plan.chunk, plan.n_chunks
 
-    def __call__(self, progress: bool | None = None) -> RunResult:
-        """Execute the whole study (all chunks) and return its :class:`RunResult`."""
+    def __call__(self, *args, progress: bool | None = None) -> RunResult:
+        """Execute the whole study (all chunks) and return its :class:`RunResult`.
+
+        The study is the one compiled, with its own data: new measurements need a new
+        :func:`compile_run` (or :func:`run`). ``progress``: keyword only, None (as compiled),
+        True or False."""
+        if args:
+            raise TypeError(
+                "CompiledRun: a compiled study runs with the data it was compiled with and takes "
+                f"no positional arguments (got {len(args)}); for new measurements call "
+                "vehjax.compile_run(...) or vehjax.run(...) again; progress is keyword-only")
+        _check_options(False, progress, None)
         progress = self._plan.progress if progress is None else progress
         return _execute(self._plan, self._compiled, progress)
 

@@ -741,6 +741,10 @@ def _check_args(args):
     for name in ("kinematic_duration", "dynamic_duration", "dt"):
         if not getattr(args, name) > 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive number of seconds")
+    for name in ("kinematic_duration", "dynamic_duration"):
+        if getattr(args, name) < 2 * args.dt:
+            raise ValueError(f"--{name.replace('_', '-')}: expected at least two steps of --dt "
+                             f"({args.dt:g} s), got {getattr(args, name):g} s")
     return filters, settings
 
 
