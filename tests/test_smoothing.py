@@ -289,6 +289,24 @@ def test_bad_input_names_the_argument(data):
         vj.smooth(vj.filters.ukf(model, Q, R), ys, us, x0=X0, P0=P0, method="ieks")
 
 
+@pytest.mark.parametrize("kw", [dict(parallel=True), dict(tol=1e-3), dict(max_iter=5),
+                                dict(initial=np.zeros((3, 2)))])
+def test_options_are_checked_against_the_estimator_family(data, kw):
+    """An option that does not apply is refused naming it, with the reason (issue 46): the
+    Gaussian smoothers' options for a particle filter, the iteration options for the plain RTS
+    smoother; a particle filter's own options for a Gaussian filter."""
+    ys, us = data
+    model = linear_model()
+    name = next(iter(kw))
+    pf = vj.filters.bootstrap_pf(model, Q, R, n_particles=16)
+    with pytest.raises(ValueError, match=f"^{name}: an option of the Gaussian smoothers; "
+                                         f"'bootstrap_pf' is a particle filter"):
+        vj.smooth(pf, ys, us, x0=X0, P0=P0, key=jax.random.key(0), **kw)
+    if name in ("tol", "max_iter", "initial"):
+        with pytest.raises(ValueError, match=f"^{name}: only the iterated smoothers"):
+            vj.smooth(vj.filters.ekf(model, Q, R), ys, us, x0=X0, P0=P0, **kw)
+
+
 def test_joint_ukf_smooths_parameters_as_constant_states():
     """The joint UKF's smoothing (issue 29, item 1's "parameters smoothed as constant states")
     through ``vehjax.smooth``: on a model whose parameter (an acceleration bias) enters linearly

@@ -274,11 +274,17 @@ def _good_runs_last(M, P, cross):
 # the public single-run function
 
 
-def check_options(estimator: Estimator, method=None, tol=1e-6, max_iter=20):
+#: The iterated smoothers' defaults: ``tol`` and ``max_iter`` of :func:`smooth`.
+TOL, MAX_ITER = 1e-6, 20
+
+
+def check_options(estimator: Estimator, method=None, tol=None, max_iter=None):
     """The Gaussian smoothing options checked before tracing: (method, tol, max_iter) with
-    ``method`` None turned into ``"rts"``. ValueError naming ``estimator`` (no smoother),
-    ``method`` (unknown, or 'ieks' for a sigma-point filter / 'ipls' for a Jacobian one),
-    ``tol`` (not > 0) or ``max_iter`` (not an integer >= 1)."""
+    ``method`` None turned into ``"rts"`` and ``tol``/``max_iter`` None into :data:`TOL` /
+    :data:`MAX_ITER`. ValueError naming ``estimator`` (no smoother), ``method`` (unknown, or
+    'ieks' for a sigma-point filter / 'ipls' for a Jacobian one), ``tol`` (not > 0) or
+    ``max_iter`` (not an integer >= 1), and ``tol``/``max_iter`` given to the plain RTS
+    smoother, which does not iterate."""
     if not isinstance(estimator, Estimator):
         raise ValueError(
             f"estimator: expected a vehjax.filters.Estimator, got {type(estimator).__name__}")
@@ -286,8 +292,9 @@ def check_options(estimator: Estimator, method=None, tol=1e-6, max_iter=20):
     if spec is None:
         raise ValueError(
             f"estimator: {estimator.name!r} has no smoother; vehjax.smooth smooths the EKF, "
-            f"UKF, CKF (plain and square-root), the joint EKF/UKF and the bootstrap PF (dual "
-            f"filters do not form the joint state-parameter Gaussian a smoother needs)")
+            f"UKF, CKF (plain and square-root), the joint EKF/UKF, the bootstrap PF without "
+            f"input noise and the marginalized PF (dual filters do not form the joint "
+            f"state-parameter Gaussian a smoother needs)")
     method = "rts" if method is None else validation.choice("method", method, METHODS)
     if method == "ieks" and not spec.taylor:
         raise ValueError(f"method: 'ieks' iterates Jacobian linearisations; {estimator.name!r} "
@@ -295,13 +302,31 @@ def check_options(estimator: Estimator, method=None, tol=1e-6, max_iter=20):
     if method == "ipls" and spec.taylor:
         raise ValueError(f"method: 'ipls' iterates sigma-point linearisations; "
                          f"{estimator.name!r} linearises by Jacobians, use method='ieks'")
-    return (method, validation.number("tol", tol, 0.0),
-            validation.integer("max_iter", max_iter, 1))
+    if method == "rts":
+        for name, value in (("tol", tol), ("max_iter", max_iter)):
+            if value is not None:
+                raise ValueError(f"{name}: only the iterated smoothers ('ieks', 'ipls') "
+                                 f"iterate; the RTS smoother takes no {name}")
+    return (method, validation.number("tol", TOL if tol is None else tol, 0.0),
+            validation.integer("max_iter", MAX_ITER if max_iter is None else max_iter, 1))
+
+
+def _refuse_gaussian_options(estimator: Estimator, parallel, tol, max_iter, initial) -> None:
+    """ValueError naming the first Gaussian-smoother option given to a particle filter's
+    smoother, which would ignore it."""
+    given = [name for name, on in (("parallel", parallel is not False), ("tol", tol is not None),
+                                   ("max_iter", max_iter is not None),
+                                   ("initial", initial is not None)) if on]
+    if given:
+        raise ValueError(
+            f"{given[0]}: an option of the Gaussian smoothers; {estimator.name!r} is a particle "
+            f"filter, whose smoother takes method and its own options (n_trajectories, ...), "
+            f"not {', '.join(given)}")
 
 
 def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=None,
-           P_theta0=None, key=None, method=None, parallel=False, tol: float = 1e-6,
-           max_iter: int = 20, initial=None, **particle_options) -> SmoothResult:
+           P_theta0=None, key=None, method=None, parallel=False, tol: float | None = None,
+           max_iter: int | None = None, initial=None, **particle_options) -> SmoothResult:
     """Smooth one run of T steps (module docstring for the methods).
 
     Pure and traceable (``jax.jit`` with the options static, ``jax.vmap`` over runs,
@@ -324,9 +349,9 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
             2-core machine) or "doubling" (recursive doubling, O(T log T) work, one copy:
             compiles in seconds at any T); False: sequential.
         tol: iterated smoothers: stop when no smoothed mean moves by more than ``tol`` of its
-            smoothed standard deviation in a pass (> 0).
+            smoothed standard deviation in a pass (> 0); None: 1e-6.
         max_iter: iterated smoothers: at most this many passes (>= 1); ``converged`` False in
-            the result when they did not meet ``tol``.
+            the result when they did not meet ``tol``; None: 20.
         initial: iterated smoothers: the start, (T, n) means (n = nx, or nx + p unconstrained
             for joint filters) with the prior covariance at every step; None: the filter's own
             filtered means and covariances.
@@ -338,10 +363,15 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
     Raises:
         ValueError: naming the argument: a filter without a smoother (``estimator``), an
             unknown or unsuitable ``method``, ``tol`` <= 0, ``max_iter`` < 1, ``initial`` of
-            the wrong shape, and every shape error of :func:`vehjax.filter`.
+            the wrong shape, ``parallel``, ``tol``, ``max_iter`` or ``initial`` given where
+            they do not apply (a particle filter; the plain RTS), and every shape error of
+            :func:`vehjax.filter`.
     """
     ys, us, x0, P0, th0, Pth0 = check_arguments(estimator, measurements, inputs, x0, P0, theta0,
                                          P_theta0, key)
+    if estimator.smoother is None and (estimator.particle_transition is not None
+                                       or estimator.rao_blackwell is not None):
+        _refuse_gaussian_options(estimator, parallel, tol, max_iter, initial)
     if estimator.smoother is None and estimator.particle_transition is not None:
         opts = dict(particle_options)
         if method is not None:
