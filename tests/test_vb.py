@@ -315,3 +315,12 @@ def test_per_name_bias_stds():
         vb.vbakf_r(LINEAR, Q, [0.1, 0.1], biases=("y1", "y2"), bias_std0={"y1": 2.0})
     with pytest.raises(ValueError, match="bias_walk"):
         vb.vbakf_r(LINEAR, Q, [0.1, 0.1], biases=("y1",), bias_walk=-1.0)
+
+
+def test_vbakf_r_refuses_a_full_R0_rather_than_dropping_its_correlations():
+    """vbakf_r learns one variance per sensor: a full R0 would lose its correlations silently,
+    so it is refused naming R0 and the way out (issue 46); its diagonal is accepted."""
+    R_full = np.array([[0.1, 0.03], [0.03, 0.1]])
+    with pytest.raises(ValueError, match="^R0: vbakf_r learns one variance per sensor.*vbakf_pr"):
+        vb.vbakf_r(LINEAR, Q, R_full)
+    vb.vbakf_r(LINEAR, Q, np.diag(np.diag(R_full)))  # a diagonal matrix is the variances

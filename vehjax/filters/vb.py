@@ -488,9 +488,13 @@ def vbakf_r(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterati
     st = _setup(model, Q, sensors, known_std, biases, input_offsets, bias_walk, offset_walk,
                 bias_std0, offset_std0, input_noise)
     m = len(st.sens)
-    R0 = np.diag(_sensor_R0(R0, m, tuple(str(model.output_names[i]) for i in st.sens)))
-    if np.ndim(R0) != 1:
-        raise ValueError("R0: expected the sensors' variances (m,)")
+    R0m = _sensor_R0(R0, m, tuple(str(model.output_names[i]) for i in st.sens))
+    if np.any(R0m != np.diag(np.diag(R0m))):
+        raise ValueError(
+            "R0: vbakf_r learns one variance per sensor (a diagonal R, the sensors' noises "
+            "independent) and would drop the correlations of a full R0; give the (m,) variances "
+            "(np.diag(R0)), or use vbakf_pr for a full covariance")
+    R0 = np.diag(R0m)
     fm = _form(form, st.n, st.Lu)
     sens = st.sens
 
