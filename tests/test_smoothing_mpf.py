@@ -246,6 +246,15 @@ def _bank_drive(model, Tb, x0, seed):
     return U, np.asarray(Y) + 0.01 * np.random.default_rng(seed).normal(size=(Tb, 5))
 
 
+def _bank_mpf(model):
+    """The paper's filter with Gaussian particle states on SingleTrackBank (16 particles) and
+    its prior covariance."""
+    est = marginalized_pf(model, 16, known_std={"phi": 0.01, "r_virt": 0.005},
+                          linear_noise_std=0.05, kalman_states="all",
+                          std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02})
+    return est, np.diag([0.1, 0.01, 1e-4, 1e-4, 1e-4])
+
+
 @pytest.mark.slow  # the bank model's MPF and smoother compile for about a minute on 2 cores
 def test_single_track_bank_smoke():
     """The paper's filter with Gaussian particle states on SingleTrackBank, 40 steps of
@@ -254,10 +263,7 @@ def test_single_track_bank_smoke():
     model = vj.models.SingleTrackBank(dt=0.01)
     Tb = 40
     U, Y = _bank_drive(model, Tb, np.zeros(5), seed=0)
-    est = marginalized_pf(model, 16, known_std={"phi": 0.01, "r_virt": 0.005},
-                          linear_noise_std=0.05, kalman_states="all",
-                          std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02})
-    P0b = np.diag([0.1, 0.01, 1e-4, 1e-4, 1e-4])
+    est, P0b = _bank_mpf(model)
     key = jax.random.key(2)
     sm = jax.jit(lambda: vj.smooth(est, Y, U, x0=np.zeros(5), P0=P0b, key=key,
                                    n_trajectories=8))()
@@ -277,10 +283,7 @@ def test_single_track_bank_long_drive_smoothed_covariances_are_psd():
     model = vj.models.SingleTrackBank(dt=0.01)
     Tb = 6000
     U, Y = _bank_drive(model, Tb, np.zeros(5), seed=1)
-    est = marginalized_pf(model, 16, known_std={"phi": 0.01, "r_virt": 0.005},
-                          linear_noise_std=0.05, kalman_states="all",
-                          std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02})
-    P0b = np.diag([0.1, 0.01, 1e-4, 1e-4, 1e-4])
+    est, P0b = _bank_mpf(model)
     sm = jax.jit(lambda: vj.smooth(est, Y, U, x0=np.zeros(5), P0=P0b, key=jax.random.key(5),
                                    n_trajectories=8))()
     assert not bool(sm.diverged)
