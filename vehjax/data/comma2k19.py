@@ -311,7 +311,7 @@ def load_comma2k19(folder=None, rate: float = 100.0, *, start=None, stop=None,
             read gravity: the mean specific force over the file must be :data:`GRAVITY` to
             :data:`GRAVITY_TOLERANCE` in size (else naming the file) and, after mounting, on
             the car's up axis with the sign of z up (else naming ``mount`` and the gravity
-            found, and saying when the angles read as degrees would pass).
+            found, and saying when the angles converted from degrees would pass).
     """
     rate = _positive("rate", rate)
     dt = 1.0 / rate
@@ -464,7 +464,7 @@ def _check_gravity(folder: Path, acc: np.ndarray, v_from_d: np.ndarray, mount) -
     hint = ""
     up_deg = float((_mount_matrix(np.radians(vals)) @ _F @ f)[2])
     if abs(up_deg - GRAVITY) <= GRAVITY_TOLERANCE:
-        hint = (f"; the angles look like degrees: mount=numpy.radians("
+        hint = (f"; if these angles are degrees, mount=numpy.radians("
                 f"{tuple(round(v, 6) for v in vals)}) reads {up_deg:+.4g} m/s^2")
     raise ValueError(f"mount: with (roll, pitch, yaw) = {tuple(round(v, 6) for v in vals)} rad "
                      f"gravity reads {up:+.4g} m/s^2 on the car's up axis (the accelerometer's "

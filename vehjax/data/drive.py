@@ -514,7 +514,7 @@ def _column(arg, name, value, n):
         raise ValueError(f"{arg}: {name!r} has shape {a.shape}, expected ({n},) like t")
     if np.any(np.isinf(a)):
         k = int(np.flatnonzero(np.isinf(a))[0])
-        raise ValueError(f"{arg}: {name!r} has infinite values, the first {a[k]!r} at row "
+        raise ValueError(f"{arg}: {name!r} has infinite values, the first {float(a[k])} at row "
                          f"{k + 1} (index {k}) (use NaN for missing samples)")
     a.setflags(write=False)
     return a

@@ -9,7 +9,8 @@
 * Line ends: LF, CRLF or CR, as the ``csv`` module reads them.
 * Separator: ``delimiter`` when given, else sniffed (``csv.Sniffer``) among ``,`` ``;`` tab ``|``
   from the first lines, falling back to the one that splits the header into the most fields.
-* Quoting: fields and headers in double quotes (``"t [s]"``), a doubled quote inside.
+* Quoting: fields and headers in double quotes (``"t [s]"``, also after a space following the
+  separator), a doubled quote inside.
 * Blank lines anywhere (before the header, between rows, at the end) and rows whose every field
   is empty (a spreadsheet's empty row, ``,,,``) are skipped: they hold no time stamp.
 * Trailing separators: empty fields after the last named column, on the header or on any row
@@ -129,7 +130,7 @@ def read_table(path, delimiter: str | None = None, encoding: str | None = None) 
     if not present:
         raise ValueError(f"path: {str(path)!r} has no header row")
     delim = _sniff([ln.rstrip("\r\n") for ln in present]) if delimiter is None else delimiter
-    reader = csv.reader(io.StringIO(text, newline=""), delimiter=delim)
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter=delim, skipinitialspace=True)
     names, rows, lines = None, [], []
     for row in reader:
         if not any(f.strip() for f in row):       # blank line or a row of empty fields
