@@ -487,7 +487,10 @@ def numeric_column(arg: str, name, value) -> np.ndarray:
     except (TypeError, ValueError):
         raise ValueError(f"{arg}: {name!r} is not a numeric column") from None
     if a.dtype.kind not in "USO":
-        return np.asarray(a, dtype=float)
+        try:
+            return np.asarray(a, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"{arg}: {name!r} is not a numeric column (dtype {a.dtype})") from None
     if a.ndim != 1:
         raise ValueError(f"{arg}: {name!r} has shape {a.shape}, expected a 1-D column")
     out = np.empty(len(a))

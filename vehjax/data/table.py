@@ -171,6 +171,11 @@ def parse_cells(column: str, cells, where, decimal: str = ".", delimiter: str = 
     ``decimal=","`` (naming the file's ``delimiter``) when the cell reads as a number with a
     decimal comma.
     """
+    if decimal == ".":
+        try:                                      # every cell a number: numpy reads them at once
+            return np.array(cells, dtype=float)
+        except ValueError:
+            pass
     out = np.empty(len(cells))
     for k, cell in enumerate(cells):
         if is_missing(cell):
