@@ -284,3 +284,38 @@ def test_for_model_with_declared_units(drive):
     bad = _linear_model(units={"delta": "degrees"})
     with pytest.raises(ValueError, match=r"input 'delta' declares the unit 'degrees'.*units="):
         d.for_model(bad, NAMES)
+
+
+# -- to_csv's promise: from_csv reads it back, whatever the names -------------------------------
+ODD = ["a,b", 'say "hi"', "a[1]", "x;y", "tab\there", "Lenkwinkel δ", "g [x]y"]
+
+
+def test_to_csv_round_trip_with_odd_names(tmp_path):
+    t = np.arange(6) * 0.05
+    rng = np.random.default_rng(1)
+    vals = {n: rng.normal(size=6) for n in ODD}
+    vals[ODD[0]][2] = np.nan
+    d = Drive.from_arrays(t, vals, dict.fromkeys(ODD, "deg"), reference=(ODD[1],))
+    d.to_csv(tmp_path / "x.csv")
+    back = Drive.from_csv(tmp_path / "x.csv", reference=(ODD[1],))
+    _same(back, d)
+    np.testing.assert_array_equal(back.reference[ODD[1]], d.reference[ODD[1]])
+    # pandas writes the same header: the same drive
+    both = {**d.signals, **d.reference}
+    df = pd.DataFrame({"t [s]": t, **{f"{n} [rad]": both[n] for n in ODD}})
+    df.to_csv(tmp_path / "p.csv", index=False)
+    _same(Drive.from_csv(tmp_path / "p.csv", reference=(ODD[1],)), d)
+
+
+def test_names_a_file_cannot_keep_are_refused(tmp_path):
+    t = np.arange(3) * 0.1
+    for bad in ("", " x", "x ", 1):
+        with pytest.raises(ValueError, match="values: names must be non-empty strings"):
+            Drive.from_arrays(t, {bad: np.ones(3)}, {bad: "m"})
+    d = Drive.from_arrays(t, {"t": np.ones(3)}, {"t": "m"})
+    with pytest.raises(ValueError, match="a signal is named 't' too"):
+        d.to_csv(tmp_path / "x.csv")
+    (tmp_path / "y.csv").write_text("t,steer [deg]\n0,1\n0.1,2\n")
+    with pytest.raises(ValueError, match=r"units: no column 'stear'"):    # a typo is not ignored
+        Drive.from_csv(tmp_path / "y.csv", units={"stear": "rad"})
+    assert Drive.from_csv(tmp_path / "y.csv", units={"steer": "rad"}).signals["steer"][1] == 2.0

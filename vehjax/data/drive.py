@@ -58,7 +58,8 @@ UNITS = {
     "kg": ("kg", 1.0), "-": ("-", 1.0), "1": ("-", 1.0), "%": ("-", 1e-2),
 }
 
-_HEADER = re.compile(r"^\s*(?P<name>[^\[\]]*?)\s*\[(?P<unit>[^\[\]]*)\]\s*$")
+#: "name [unit]": the unit is the last bracketed group, so a name may hold brackets ("a[1] [m]")
+_HEADER = re.compile(r"^\s*(?P<name>.*?)\s*\[(?P<unit>[^\[\]]*)\]\s*$")
 
 
 def to_si(name: str, values, unit: str):
@@ -155,7 +156,9 @@ class Drive:
             group = getattr(self, arg)
             if not isinstance(group, Mapping):
                 raise ValueError(f"{arg}: expected a mapping name -> (T,) array, got {group!r}")
-            groups[arg] = {str(k): _column(arg, k, v, len(t)) for k, v in group.items()}
+            for k in group:
+                _check_name(arg, k)
+            groups[arg] = {k: _column(arg, k, v, len(t)) for k, v in group.items()}
         both = set(groups["signals"]) & set(groups["reference"])
         if both:
             raise ValueError(f"reference: names also in signals: {sorted(both)}")
@@ -196,6 +199,7 @@ class Drive:
         t, _ = to_si("t", check_time(t), time_unit)
         sig, ref, si_units = {}, {}, {}
         for name, v in values.items():
+            _check_name("values", name)
             if name not in units:
                 raise ValueError(f"units: no unit for {name!r}; give units={{{name!r}: ...}}")
             v = numeric_column("values", name, v)
@@ -233,7 +237,11 @@ class Drive:
             raise ValueError(f"decimal: expected '.' or ',', got {decimal!r}")
         table = read_table(path, delimiter, encoding)
         names, header_units = _split_units(path, table.names)
-        given = dict(header_units, **dict(units or {}))
+        units = dict(units or {})
+        unknown = [k for k in units if k not in names]
+        if unknown:
+            raise ValueError(f"units: no column {unknown[0]!r} in {str(path)!r}; columns: {names}")
+        given = dict(header_units, **units)
         want = list(names) if columns is None else list(_names("columns", columns, names))
         if time not in names:
             hint = _separator_hint(table)
@@ -257,10 +265,13 @@ class Drive:
 
     def to_csv(self, path) -> None:
         """Write ``t`` and every signal and reference column, headers ``"name [unit]"``, missing
-        samples as empty fields; :meth:`from_csv` reads it back (pass ``reference=``)."""
+        samples as empty fields, UTF-8; :meth:`from_csv` reads it back (pass ``reference=``)."""
         names = [*self.signals, *self.reference]
+        if "t" in names:
+            raise ValueError("path: to_csv writes the time column as 't [s]', and a signal is "
+                             "named 't' too; rename it (from_csv would refuse the two columns)")
         cols = [self.t] + [self.signals.get(n, self.reference.get(n)) for n in names]
-        with open(path, "w", newline="") as fh:
+        with open(path, "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
             w.writerow(["t [s]"] + [f"{n} [{self.units[n]}]" for n in names])
             for row in np.stack(cols, axis=1):
@@ -506,6 +517,13 @@ def numeric_column(arg: str, name, value) -> np.ndarray:
             raise ValueError(f"{arg}: row {k + 1} (index {k}): not a number in column {name!r}: "
                              f"{v!r} (a missing sample is NaN, None, '', 'nan' or 'NA')") from None
     return out
+
+
+def _check_name(arg, name) -> None:
+    """A signal name: a non-empty string without surrounding spaces (a file's header keeps it)."""
+    if not isinstance(name, str) or not name.strip() or name != name.strip():
+        raise ValueError(f"{arg}: names must be non-empty strings without surrounding spaces "
+                         f"(they become a file's column names), got {name!r}")
 
 
 def _column(arg, name, value, n):
