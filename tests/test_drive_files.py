@@ -77,6 +77,8 @@ PANDAS = {
     "nonnumeric": dict(quoting=csv.QUOTE_NONNUMERIC),         # quoted headers only
     "tab": dict(sep="\t"),
     "semicolon": dict(sep=";"),
+    "semicolon_quoted": dict(sep=";", quoting=csv.QUOTE_ALL),
+    "tab_quoted": dict(sep="\t", quoting=csv.QUOTE_ALL, lineterminator="\r\n"),
     "pipe": dict(sep="|"),
     "na_rep_NA": dict(na_rep="NA"),
     "na_rep_nan": dict(na_rep="nan"),
@@ -110,6 +112,9 @@ def test_semicolons_with_decimal_commas(frame, plain, tmp_path):
     with pytest.raises(ValueError, match=r"separated by ';'.*decimal comma: pass decimal=','"):
         Drive.from_csv(path)
     _same(Drive.from_csv(path, decimal=","), plain)
+    frame.to_csv(path, index=False, sep=";", decimal=",", quoting=csv.QUOTE_ALL,
+                 encoding="utf-8-sig", lineterminator="\r\n")
+    _same(Drive.from_csv(path, decimal=","), plain)
     # a point as well as a comma (a thousands separator) is not read
     path.write_text("t [s];x [m]\n0;1\n0,1;1.234,5\n0,2;3\n")
     with pytest.raises(ValueError, match=r"data row 2, line 3: not a number in column 'x'"):
@@ -132,7 +137,7 @@ def test_csv_module_dialects(dialect, frame, plain, tmp_path):
     _same(Drive.from_csv(path, delimiter=csv.get_dialect(dialect).delimiter), plain)
 
 
-@pytest.mark.parametrize("end", ["\n", "\r\n"])
+@pytest.mark.parametrize("end", ["\n", "\r\n", "\r"])
 @pytest.mark.parametrize("edit", ["trailing", "blank_lines", "row_of_separators", "spaces",
                                   "short_header_trailing", "all"])
 def test_hand_edited_layouts(edit, end, frame, plain, tmp_path):
@@ -204,6 +209,10 @@ def test_time_cells(tmp_path):
     path = tmp_path / "x.csv"
     path.write_text("t [s],x [m]\n0,1\n\nNA,2\n0.2,3\n")
     with pytest.raises(ValueError, match=r"data row 2, line 4: time column 't' has no time stamp"):
+        Drive.from_csv(path)
+    path.write_text("t,x [m]\n2024-05-01 12:00:00.00,1\n2024-05-01 12:00:00.01,2\n")
+    with pytest.raises(ValueError, match=r"data row 1, line 2: not a number in column 't'.*"
+                                         r"convert date-times to seconds first"):
         Drive.from_csv(path)
     path.write_text("t [s],x [m]\n0,1\n0.2,2\n0.1,3\n")
     with pytest.raises(ValueError, match=r"data row 3, line 4: time stamps must be strictly "

@@ -258,7 +258,13 @@ class Drive:
             return f"path: {str(path)!r}, data row {k + 1}, line {table.lines[k]}"
 
         cells = {c: table.cells[table.names[names.index(c)]] for c in [time] + want}
-        data = {c: parse_cells(c, cells[c], where, decimal, table.delimiter) for c in cells}
+        try:
+            data = {time: parse_cells(time, cells[time], where, decimal, table.delimiter)}
+        except ValueError as exc:
+            raise ValueError(f"{exc}; time stamps are numbers in the time column's unit (convert "
+                             f"date-times to seconds first, e.g. with pandas: (pd.to_datetime(col)"
+                             f" - pd.to_datetime(col)[0]).dt.total_seconds())") from None
+        data.update({c: parse_cells(c, cells[c], where, decimal, table.delimiter) for c in want})
         _check_csv_time(data[time], time, where)
         return cls.from_arrays(data[time], {c: data[c] for c in want}, {c: given[c] for c in want},
                                reference=reference, time_unit=given.get(time, "s"))
