@@ -328,3 +328,19 @@ def test_names_a_file_cannot_keep_are_refused(tmp_path):
     with pytest.raises(ValueError, match=r"units: no column 'stear'"):    # a typo is not ignored
         Drive.from_csv(tmp_path / "y.csv", units={"stear": "rad"})
     assert Drive.from_csv(tmp_path / "y.csv", units={"steer": "rad"}).signals["steer"][1] == 2.0
+
+
+def test_files_that_are_not_utf8_text(frame, plain, tmp_path):
+    path = tmp_path / "x.csv"
+    frame.rename(columns={"ay [g]": "ay° [g]"}).to_csv(path, index=False, encoding="cp1252")
+    with pytest.raises(ValueError, match=r"is not UTF-8 text \(byte \d+: b'\\xb0'\).*encoding="):
+        Drive.from_csv(path)
+    d = Drive.from_csv(path, encoding="cp1252")
+    np.testing.assert_array_equal(d.signals["ay°"], plain.signals["ay"])
+    path.write_bytes(b"PK\x03\x04" + bytes(100))
+    with pytest.raises(ValueError, match="zip archive"):
+        Drive.from_csv(path)
+    for text in ("", "\n\n", "t [s],x [m]\n", "t [s],x [m]\n0,1\n"):
+        path.write_text(text)
+        with pytest.raises(ValueError, match="no header row|fewer than 2 rows of data"):
+            Drive.from_csv(path)

@@ -65,6 +65,9 @@ class Table:
 
 
 def _decode(path, data: bytes, encoding) -> str:
+    if data.startswith(b"PK\x03\x04"):
+        raise ValueError(f"path: {str(path)!r} is a zip archive (an Excel workbook?), not a text "
+                         f"table: save it as 'CSV UTF-8' or read it with pandas.read_excel")
     if encoding is None:
         if data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
             encoding = "utf-16"
@@ -73,7 +76,8 @@ def _decode(path, data: bytes, encoding) -> str:
     try:
         return data.decode(encoding)
     except UnicodeDecodeError as exc:
-        raise ValueError(f"path: {str(path)!r} is not {encoding} text (byte {exc.start}: "
+        shown = "UTF-8" if encoding == "utf-8-sig" else encoding
+        raise ValueError(f"path: {str(path)!r} is not {shown} text (byte {exc.start}: "
                          f"{data[exc.start:exc.start + 1]!r}); save it as UTF-8 ('CSV UTF-8' "
                          f"in Excel) or pass encoding=, e.g. encoding='cp1252'") from None
     except LookupError:
