@@ -95,6 +95,9 @@ def test_pandas_dialects_give_the_plain_drive(kind, frame, plain, tmp_path):
     d = Drive.from_csv(path)
     _same(d, plain)
     _check_against_frame(d, frame)
+    encoding = PANDAS[kind].get("encoding")
+    if encoding:                                              # the same, named
+        _same(Drive.from_csv(path, encoding=encoding.replace("-sig", "")), plain)
 
 
 def test_pandas_trailing_separator_column(frame, plain, tmp_path):

@@ -74,7 +74,8 @@ def _decode(path, data: bytes, encoding) -> str:
         else:
             encoding = "utf-8-sig"               # strips Excel's byte-order mark
     try:
-        return data.decode(encoding)
+        text = data.decode(encoding)
+        return text[1:] if text.startswith("\ufeff") else text   # a mark under encoding=
     except UnicodeDecodeError as exc:
         shown = "UTF-8" if encoding == "utf-8-sig" else encoding
         raise ValueError(f"path: {str(path)!r} is not {shown} text (byte {exc.start}: "
@@ -89,7 +90,7 @@ def _sniff(lines: list) -> str:
     sample = "\n".join(lines[:20])
     try:
         found = csv.Sniffer().sniff(sample, delimiters=_CANDIDATES).delimiter
-        if found in _CANDIDATES:
+        if found and found in _CANDIDATES:
             return found
     except csv.Error:
         pass
