@@ -381,3 +381,37 @@ def test_bad_model_and_keywords(drive, synthetic):
         load_comma2k19(synthetic, mount=(0.0, 0.0))
     with pytest.raises(ValueError, match="mount"):
         load_comma2k19(synthetic, mount=(0.0, float("nan"), 0.0))
+
+
+# -- gravity after mounting ------------------------------------------------------------------------
+def test_mount_in_degrees_given_as_radians_refused(drive):
+    deg = tuple(math.degrees(v) for v in drive.mount.values())    # ~ (1.25, 3.77, 0.90)
+    with pytest.raises(ValueError, match=r"mount: with \(roll, pitch, yaw\) = \(1\.25\d*, "
+                                         r"3\.76\d*, 0\.90\d*\) rad gravity reads -2\.87\d* m/s\^2"
+                                         r".*if these angles are degrees, mount=numpy\.radians"):
+        load_comma2k19(mount=deg)
+    # the module docstring's figures, in radians, load with gravity on the car's up axis
+    d = load_comma2k19(mount=np.radians([1.25, 3.77, 0.90]))
+    assert abs(d.signals["accel_z"].mean() - G) < 0.3
+    assert abs(d.signals["accel_y"].mean()) < 0.15
+
+
+def test_gravity_checked_on_a_synthetic_folder(synthetic):
+    roll, pitch, yaw = (math.degrees(a) for a in SYN["mount"])    # (1, 3, -0.5): as radians
+    f_dev = np.load(synthetic / "processed_log/IMU/accelerometer/value").mean(axis=0)
+    up = (_rz(yaw) @ _ry(pitch) @ _rx(roll) @ np.diag([1.0, -1.0, -1.0]) @ f_dev)[2]
+    assert up < 8.0                                               # the test's own rotation
+    with pytest.raises(ValueError, match=rf"mount: .* gravity reads {up:+.4g} m/s\^2 on the "
+                                         rf"car's up axis.*expected \+9\.81 \+- 1\.5"):
+        load_comma2k19(synthetic, mount=(roll, pitch, yaw))
+    with pytest.raises(ValueError, match=r"gravity reads -9\.\d* m/s\^2"):   # upside down
+        load_comma2k19(synthetic, mount=(math.pi, 0.0, 0.0))
+    load_comma2k19(synthetic, mount=SYN["mount"])                 # in radians: loads
+    # an accelerometer in g: refused naming the file, whatever the mount
+    path = synthetic / "processed_log/IMU/accelerometer/value"
+    in_g = np.load(path) / 9.80665
+    with open(path, "wb") as f:
+        np.save(f, in_g)
+    with pytest.raises(ValueError, match=r"accelerometer/value: its mean specific force is "
+                                         r"1\.0\d* m/s\^2, expected gravity.*in g\?"):
+        load_comma2k19(synthetic)

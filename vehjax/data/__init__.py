@@ -1,8 +1,10 @@
-"""Recorded drives: :class:`Drive` holds your own (from arrays or a CSV, with units, resampled
-onto a model's grid); ``load_comma2k19`` reads a comma2k19 segment (one ships with vehjax) into a
-:class:`Drive` on a uniform time grid, with inputs and measurements for
-:class:`~vehjax.models.SingleTrackBank`; ``prepare_drive`` (module ``prepare``) readies a drive's
-virtual yaw rate for filtering (bursts gated, the rear rolling-radius scale removed)."""
+"""Recorded drives: :class:`Drive` holds your own (from arrays or from a CSV as spreadsheets,
+loggers and pandas write it, read by module ``table``; with units, resampled onto a model's grid);
+``load_comma2k19`` reads a comma2k19 segment (one ships with vehjax) into a :class:`Drive` on a
+uniform time grid, with inputs and measurements for :class:`~vehjax.models.SingleTrackBank`,
+checking that its accelerometer reads gravity after mounting; ``prepare_drive`` (module
+``prepare``) readies a drive's virtual yaw rate for filtering (bursts gated, the rear
+rolling-radius scale removed)."""
 
 from .comma2k19 import Comma2k19Drive, load_comma2k19
 from .drive import UNITS, Drive

@@ -55,6 +55,11 @@ device vector goes to V as ``R_VF F v_D``. Estimated from the pose (unless ``mou
   mean road cross-fall (typically 1 to 2 %, up to ~1 deg) cannot be told apart from the
   mounting roll by anything in the log and ends up in it.
 
+Either way the loader checks the result against gravity: the accelerometer's mean specific force
+over the file must read 9.81 m/s^2 in size and on the car's up axis (``GRAVITY``,
+``GRAVITY_TOLERANCE`` = 1.5 m/s^2); a ``mount`` given in degrees where radians are due, or an
+accelerometer in g, is refused saying so.
+
 Found on the shipped segment: roll = +1.25 deg (device's left side up relative to the car),
 pitch = +3.77 deg (nose down about the car's y-left axis; the device's forward axis points 3.8
 deg below the car's), yaw = +0.90 deg (device points to the left of the car's x axis). The same
@@ -124,6 +129,14 @@ _WGS84_E2 = _WGS84_F * (2.0 - _WGS84_F)
 
 #: pose frames slower than this are left out of the mount estimate [m/s]
 _MIN_SPEED = 1.0
+
+#: gravity [m/s^2] and the tolerance [m/s^2] within which the accelerometer's mean specific force
+#: over the whole file must read it, in size and on the car's up axis after mounting (+g: z up).
+#: 1.5 m/s^2 admits a mean tilt of the car (grade, cross-fall, mounting error) up to ~30 deg
+#: and a mean acceleration up to ~1.5 m/s^2; a mount given in degrees as radians, an upside-down
+#: mount or an accelerometer in g fails it.
+GRAVITY = 9.81
+GRAVITY_TOLERANCE = 1.5
 
 _UNITS = {
     "speed_can": "m/s",
@@ -288,12 +301,17 @@ def load_comma2k19(folder=None, rate: float = 100.0, *, start=None, stop=None,
             pose and the pose's finite-difference yaw rate) exists. Both must lie inside it: the
             loader never extrapolates.
         mount: the IMU's (roll, pitch, yaw) [rad] relative to the car, a 3-sequence or a
-            mapping like ``Drive.mount``; None estimates it from the pose.
+            mapping like ``Drive.mount``; None estimates it from the pose. In radians: angles
+            in degrees go through ``numpy.radians`` first.
 
     Raises:
         ValueError: a missing folder or file, an unreadable or misshaped array, non-finite or
             non-increasing time stamps (naming the file); a non-positive ``rate``; ``start`` /
-            ``stop`` outside the recording; a bad ``mount``.
+            ``stop`` outside the recording; a bad ``mount``; an accelerometer that does not
+            read gravity: the mean specific force over the file must be :data:`GRAVITY` to
+            :data:`GRAVITY_TOLERANCE` in size (else naming the file) and, after mounting, on
+            the car's up axis with the sign of z up (else naming ``mount`` and the gravity
+            found, and saying when the angles converted from degrees would pass).
     """
     rate = _positive("rate", rate)
     dt = 1.0 / rate
@@ -312,6 +330,7 @@ def load_comma2k19(folder=None, rate: float = 100.0, *, start=None, stop=None,
     }
     tp = _load_times(folder, "global_pose/frame_times")
     pose = _pose(folder, tp, mount)
+    _check_gravity(folder, series["accel"][1], pose["v_from_d"], mount)
     t = _grid(series, tp, pose["tm"], start, stop, dt, rate, folder)
     signals = _signals(t, series, pose["v_from_d"])
     reference = _references(t, tp, pose)
@@ -422,6 +441,35 @@ def _references(t, tp, pose) -> dict:
         "speed": np.interp(t, tp, pose["speed"]),
         "roll": np.interp(t, tp, pose["roll"]),
     }
+
+
+def _check_gravity(folder: Path, acc: np.ndarray, v_from_d: np.ndarray, mount) -> None:
+    """The accelerometer's mean specific force reads gravity, +GRAVITY on the car's up axis
+    after mounting (to GRAVITY_TOLERANCE); ValueError saying what is off otherwise."""
+    f = acc.mean(axis=0)                                  # device frame, the whole file
+    size = float(np.linalg.norm(f))
+    want = f"{GRAVITY} +- {GRAVITY_TOLERANCE} m/s^2"
+    if abs(size - GRAVITY) > GRAVITY_TOLERANCE:
+        in_g = " (is it in g? comma2k19 stores m/s^2)" if abs(size - 1.0) < 0.2 else ""
+        raise ValueError(f"{folder / 'processed_log/IMU/accelerometer/value'}: its mean specific "
+                         f"force is {size:.4g} m/s^2, expected gravity, {want}{in_g}")
+    up = float((v_from_d @ f)[2])
+    if abs(up - GRAVITY) <= GRAVITY_TOLERANCE:
+        return
+    if mount is None:
+        raise ValueError(f"{folder}: with the IMU mount estimated from the pose, gravity reads "
+                         f"{up:+.4g} m/s^2 on the car's up axis, expected +{want}: the pose and "
+                         f"the IMU disagree on the device's axes; pass mount=(roll, pitch, yaw)")
+    vals = _mount_angles(mount)
+    hint = ""
+    up_deg = float((_mount_matrix(np.radians(vals)) @ _F @ f)[2])
+    if abs(up_deg - GRAVITY) <= GRAVITY_TOLERANCE:
+        hint = (f"; if these angles are degrees, mount=numpy.radians("
+                f"{tuple(round(v, 6) for v in vals)}) reads {up_deg:+.4g} m/s^2")
+    raise ValueError(f"mount: with (roll, pitch, yaw) = {tuple(round(v, 6) for v in vals)} rad "
+                     f"gravity reads {up:+.4g} m/s^2 on the car's up axis (the accelerometer's "
+                     f"mean specific force, +g at rest with z up), expected +{want}; mount is in "
+                     f"radians{hint}")
 
 
 # -- file reading -------------------------------------------------------------------------------
@@ -545,7 +593,8 @@ def _estimate_mount(v_dev: np.ndarray, up_dev: np.ndarray, folder: Path) -> np.n
     return np.stack([x, y, z])
 
 
-def _mount_matrix(mount) -> np.ndarray:
+def _mount_angles(mount) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) [rad] of a ``mount`` argument; ValueError naming it otherwise."""
     try:
         if isinstance(mount, Mapping):
             vals = [float(mount[k]) for k in ("roll", "pitch", "yaw")]
@@ -556,7 +605,12 @@ def _mount_matrix(mount) -> np.ndarray:
     if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
         raise ValueError(f"mount: expected 3 finite angles (roll, pitch, yaw) in rad, got "
                          f"{mount!r}")
-    roll, pitch, yaw = vals
+    return tuple(vals)
+
+
+def _mount_matrix(mount) -> np.ndarray:
+    """R_VF = Rz(yaw) Ry(pitch) Rx(roll) of a ``mount`` argument."""
+    roll, pitch, yaw = _mount_angles(mount)
     cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
                               math.cos(yaw), math.sin(yaw))
     rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])

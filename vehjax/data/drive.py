@@ -18,6 +18,11 @@ Typical use::
 NaN across gaps longer than ``max_gap`` and outside a signal's recorded span) and returns the
 inputs (T, nu) and the measurements (T, ny) in the model's order. :func:`vehjax.data.load_comma2k19`
 is one producer of a Drive (``load_comma2k19().to_drive()`` gives one with model-named columns).
+
+Files are read as spreadsheets, loggers and pandas write them (:mod:`vehjax.data.table`: a
+byte-order mark, CRLF, quoted headers, blank lines, separators at the end of every line, the
+separator sniffed); a column name given twice or left empty is refused, and so is a cell that is
+neither a number nor missing (an empty cell, ``nan`` or ``NA``), naming the column and the row.
 """
 
 from __future__ import annotations
@@ -31,7 +36,9 @@ from typing import Mapping
 
 import numpy as np
 
-__all__ = ["Drive", "UNITS", "to_si"]
+from .table import is_missing, parse_cells, read_table
+
+__all__ = ["Drive", "UNITS", "to_si", "declared_units", "numeric_column"]
 
 #: Standard gravity [m/s^2], the unit "g" of accelerometers.
 STANDARD_GRAVITY = 9.80665
@@ -51,7 +58,8 @@ UNITS = {
     "kg": ("kg", 1.0), "-": ("-", 1.0), "1": ("-", 1.0), "%": ("-", 1e-2),
 }
 
-_HEADER = re.compile(r"^\s*(?P<name>[^\[\]]*?)\s*\[(?P<unit>[^\[\]]*)\]\s*$")
+#: "name [unit]": the unit is the last bracketed group, so a name may hold brackets ("a[1] [m]")
+_HEADER = re.compile(r"^\s*(?P<name>.*?)\s*\[(?P<unit>[^\[\]]*)\]\s*$")
 
 
 def to_si(name: str, values, unit: str):
@@ -148,7 +156,9 @@ class Drive:
             group = getattr(self, arg)
             if not isinstance(group, Mapping):
                 raise ValueError(f"{arg}: expected a mapping name -> (T,) array, got {group!r}")
-            groups[arg] = {str(k): _column(arg, k, v, len(t)) for k, v in group.items()}
+            for k in group:
+                _check_name(arg, k)
+            groups[arg] = {k: _column(arg, k, v, len(t)) for k, v in group.items()}
         both = set(groups["signals"]) & set(groups["reference"])
         if both:
             raise ValueError(f"reference: names also in signals: {sorted(both)}")
@@ -175,64 +185,99 @@ class Drive:
                     time_unit: str = "s") -> "Drive":
         """A drive from arrays: ``t`` (T,) in ``time_unit``, ``values`` name -> (T,) in
         ``units[name]`` (every name needs one; see :data:`UNITS`). Names listed in
-        ``reference`` go to :attr:`reference`. Raises ValueError for a missing or unknown unit,
-        a misshaped column, time stamps that are not strictly increasing."""
+        ``reference`` go to :attr:`reference`.
+
+        A column may hold text (a column read from a file): numbers as ``float`` reads them,
+        and missing samples (NaN) as NaN, None, an empty string, ``"nan"`` (any case) or
+        ``"NA"`` (:data:`vehjax.data.table.MISSING`); any other text (``"n/a"``) is refused.
+        Raises ValueError for a missing or unknown unit, a misshaped column, a cell that is not
+        a number (naming the column and the row), time stamps that are not strictly increasing.
+        """
         if not isinstance(values, Mapping) or not isinstance(units, Mapping):
             raise ValueError("values, units: expected mappings name -> array and name -> unit")
         reference = _names("reference", reference, values)
         t, _ = to_si("t", check_time(t), time_unit)
         sig, ref, si_units = {}, {}, {}
         for name, v in values.items():
+            _check_name("values", name)
             if name not in units:
                 raise ValueError(f"units: no unit for {name!r}; give units={{{name!r}: ...}}")
+            v = numeric_column("values", name, v)
             (ref if name in reference else sig)[name], si_units[name] = to_si(name, v, units[name])
         return cls(t=t, signals=sig, reference=ref, units=si_units)
 
     @classmethod
     def from_csv(cls, path, time: str = "t", units: Mapping | None = None, *, columns=None,
-                 reference=(), delimiter: str = ",") -> "Drive":
-        """A drive from a CSV file with a header row of column names.
+                 reference=(), delimiter: str | None = None, decimal: str = ".",
+                 encoding: str | None = None) -> "Drive":
+        """A drive from a delimited text file with a header row of column names.
 
+        Reads files the way spreadsheets, loggers and pandas write them
+        (:mod:`vehjax.data.table`): UTF-8 with or without a byte-order mark, CRLF or LF line
+        ends, quoted headers and fields, blank lines anywhere, separators at the end of every
+        line; the separator (``,`` ``;`` tab ``|``) is sniffed unless ``delimiter`` is given.
         A header may carry its unit in brackets, ``"steer [deg]"``; ``units`` (name -> unit)
-        gives or overrides them, the time column's too (default s). Empty fields are missing
-        (NaN). ``columns`` selects the columns to read (default all); ``reference`` names those
-        that go to :attr:`reference`. Raises ValueError naming a missing column, a column
-        without a unit or with an unknown one, unreadable numbers, non-monotonic time.
+        gives or overrides them, the time column's too (default s). A missing sample (NaN) is an
+        empty cell, ``nan`` (any case) or ``NA``. ``columns`` selects the columns to read
+        (default all); ``reference`` names those that go to :attr:`reference`.
+
+        Args:
+            decimal: ``"."`` (default) or ``","`` for files with decimal commas (semicolon
+                separated, as a spreadsheet in a German or French locale writes them).
+            encoding: None (UTF-8, or UTF-16 with a byte-order mark) or a codec name.
+
+        Raises ValueError naming a missing column, an unnamed or duplicated column name, a
+        column without a unit or with an unknown one, a cell that is not a number (the column,
+        the data row and the file line), missing or non-increasing time stamps (the lines).
         """
         path = Path(path)
         if not path.is_file():
             raise ValueError(f"path: {str(path)!r} is not a file")
-        with open(path, newline="") as fh:
-            header = next(csv.reader(fh, delimiter=delimiter), None)
-        if not header:
-            raise ValueError(f"path: {str(path)!r} has no header row")
-        names, header_units = [], {}
-        for h in header:
-            m = _HEADER.match(h)
-            name = m["name"] if m else h.strip()
-            if m:
-                header_units[name] = m["unit"].strip()
-            names.append(name)
-        given = dict(header_units, **dict(units or {}))
+        if decimal not in (".", ","):
+            raise ValueError(f"decimal: expected '.' or ',', got {decimal!r}")
+        table = read_table(path, delimiter, encoding)
+        names, header_units = _split_units(path, table.names)
+        units = dict(units or {})
+        unknown = [k for k in units if k not in names]
+        if unknown:
+            raise ValueError(f"units: no column {unknown[0]!r} in {str(path)!r}; columns: {names}")
+        given = dict(header_units, **units)
         want = list(names) if columns is None else list(_names("columns", columns, names))
         if time not in names:
-            raise ValueError(f"time: no column {time!r} in {str(path)!r}; columns: {names}")
+            hint = _separator_hint(table)
+            raise ValueError(f"time: no column {time!r} in {str(path)!r}; columns: {names}{hint}")
         want = [c for c in want if c != time]
         for c in want:
             if c not in given:
                 raise ValueError(f"units: no unit for column {c!r}: give units={{{c!r}: ...}} "
                                  f"or write it in the header as '{c} [unit]'")
-        data = _read_table(path, delimiter, [names.index(c) for c in [time] + want], len(names))
-        values = {c: data[:, i + 1] for i, c in enumerate(want)}
-        return cls.from_arrays(data[:, 0], values, {c: given[c] for c in want},
+        if len(table.lines) < 2:
+            raise ValueError(f"path: {str(path)!r}: fewer than 2 rows of data")
+
+        def where(k):
+            return f"path: {str(path)!r}, data row {k + 1}, line {table.lines[k]}"
+
+        cells = {c: table.cells[table.names[names.index(c)]] for c in [time] + want}
+        try:
+            data = {time: parse_cells(time, cells[time], where, decimal, table.delimiter)}
+        except ValueError as exc:
+            raise ValueError(f"{exc}; time stamps are numbers in the time column's unit (convert "
+                             f"date-times to seconds first, e.g. with pandas: (pd.to_datetime(col)"
+                             f" - pd.to_datetime(col)[0]).dt.total_seconds())") from None
+        data.update({c: parse_cells(c, cells[c], where, decimal, table.delimiter) for c in want})
+        _check_csv_time(data[time], time, where)
+        return cls.from_arrays(data[time], {c: data[c] for c in want}, {c: given[c] for c in want},
                                reference=reference, time_unit=given.get(time, "s"))
 
     def to_csv(self, path) -> None:
         """Write ``t`` and every signal and reference column, headers ``"name [unit]"``, missing
-        samples as empty fields; :meth:`from_csv` reads it back (pass ``reference=``)."""
+        samples as empty fields, UTF-8; :meth:`from_csv` reads it back (pass ``reference=``)."""
         names = [*self.signals, *self.reference]
+        if "t" in names:
+            raise ValueError("path: to_csv writes the time column as 't [s]', and a signal is "
+                             "named 't' too; rename it (from_csv would refuse the two columns)")
         cols = [self.t] + [self.signals.get(n, self.reference.get(n)) for n in names]
-        with open(path, "w", newline="") as fh:
+        with open(path, "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
             w.writerow(["t [s]"] + [f"{n} [{self.units[n]}]" for n in names])
             for row in np.stack(cols, axis=1):
@@ -292,13 +337,19 @@ class Drive:
 
         The drive is resampled to ``model.dt`` unless it is already on that grid. Each model
         input and output is read from the signal of the same name, or from the column that
-        ``names`` (column name -> model name) maps onto it; its unit must match the model's
-        (both in SI, so a column given in deg feeds a model input in rad). Missing samples of
-        the measurements stay NaN (a filter skips them); inputs must be complete.
+        ``names`` (column name -> model name) maps onto it. Units are matched only where the
+        model declares them (:func:`declared_units`): there the column's SI unit must be the
+        SI unit of the model's, and the column is converted to the model's unit (a column
+        given in deg feeds a model input in rad, or in deg if the model declares deg). Where
+        the model declares none (a :class:`~vehjax.models.Model` built without ``units=``, or
+        a name left out of it) the column goes in unchecked, in its SI unit; declare units
+        with ``Model(..., units={"delta": "rad", "ay": "m/s^2"})`` to have them checked.
+        Missing samples of the measurements stay NaN (a filter skips them); inputs must be
+        complete.
 
         Args:
             model: any vehjax model (``dt``, ``input_names``/``output_names``, optionally
-                ``input_units``/``output_units``).
+                ``input_units``/``output_units``, or a Model's ``units=``).
             names: column name -> model input/output name.
             missing_outputs: model outputs with no column in this drive, returned as NaN
                 (e.g. a bank angle that was not measured); any other absent one is an error.
@@ -306,7 +357,8 @@ class Drive:
 
         Raises:
             ValueError: an unknown name in ``names``, a model input or output with no column,
-                mismatched units, NaN inputs (naming the input and the first time).
+                mismatched units (saying how to declare a Model's units), a declared unit not in
+                :data:`UNITS`, NaN inputs (naming the input and the first time).
         """
         names = dict(names or {})
         for col, target in names.items():
@@ -321,18 +373,20 @@ class Drive:
         if self.dt is None or abs(self.dt - float(model.dt)) > 1e-9 * float(model.dt):
             drive = self.resample(float(model.dt), max_gap=max_gap)
         source = {target: col for col, target in names.items()}
-        u = drive._columns("input", model.input_names, _units(model, "input"), source, ())
+        hint = _declare_hint if _keyword_units(model) else None
+        u = drive._columns("input", model.input_names, declared_units(model, "input"), source,
+                           (), hint)
         bad = ~np.isfinite(u)
         if bad.any():
             k, j = np.argwhere(bad)[0]
             raise ValueError(f"inputs: {int(bad[:, j].sum())} missing samples of input "
                              f"{model.input_names[j]!r}, the first at t = {drive.t[k]:.6g} s; cut "
                              f"the drive with between() or fill the gap")
-        y = drive._columns("output", model.output_names, _units(model, "output"), source,
-                           missing_outputs)
+        y = drive._columns("output", model.output_names, declared_units(model, "output"),
+                           source, missing_outputs, hint)
         return u, y
 
-    def _columns(self, kind, targets, units, source, absent):
+    def _columns(self, kind, targets, units, source, absent, hint):
         cols = []
         for target, unit in zip(targets, units):
             col = source.get(target, target)
@@ -345,10 +399,15 @@ class Drive:
                     f"with names={{'<column>': {target!r}}}"
                     + (" or list it in missing_outputs" if kind == "output" else "")
                     + f" (signals: {sorted(self.signals)})")
-            if unit in UNITS and UNITS[unit][0] != self.units[col]:
-                raise ValueError(f"units: signal {col!r} is in {self.units[col]!r} but the "
-                                 f"model's {kind} {target!r} is in {unit!r}")
-            cols.append(self.signals[col] / (UNITS[unit][1] if unit in UNITS else 1.0))
+            if unit is None:                      # the model declares no unit: no check
+                cols.append(self.signals[col])
+                continue
+            if UNITS[unit][0] != self.units[col]:
+                raise ValueError(
+                    f"units: signal {col!r} is in {self.units[col]!r} but the model's {kind} "
+                    f"{target!r} is in {unit!r}; map a column in {UNITS[unit][0]!r} onto it"
+                    + (hint(target, self.units[col]) if hint else ""))
+            cols.append(self.signals[col] / UNITS[unit][1])
         return np.stack(cols, axis=1)
 
     def __repr__(self) -> str:
@@ -357,32 +416,120 @@ class Drive:
                 f"signals {sorted(self.signals)}, reference {sorted(self.reference)})")
 
 
-def _read_table(path, delimiter, cols, width) -> np.ndarray:
-    """Columns ``cols`` of a CSV file below its header as floats (empty field -> NaN)."""
-    rows = []
-    with open(path, newline="") as fh:
-        reader = csv.reader(fh, delimiter=delimiter)
-        next(reader)
-        for line, row in enumerate(reader, start=2):
-            if not row:
-                continue
-            if len(row) != width:
-                raise ValueError(f"path: {str(path)!r} line {line}: {len(row)} fields, expected "
-                                 f"{width} like the header")
-            try:
-                rows.append([float(row[c]) if row[c].strip() else math.nan for c in cols])
-            except ValueError:
-                raise ValueError(f"path: {str(path)!r} line {line}: not a number in "
-                                 f"{[row[c] for c in cols]}") from None
-    if len(rows) < 2:
-        raise ValueError(f"path: {str(path)!r}: fewer than 2 rows of data")
-    return np.array(rows, dtype=float)
+def declared_units(model, kind: str) -> tuple:
+    """The unit the model declares for each of its ``kind`` ("input" or "output") names, None
+    where it declares none.
+
+    A :class:`~vehjax.models.Model` declares the names in its ``units=`` mapping (every other
+    name: None, though its ``input_units`` reads "-" there); any other model declares
+    ``<kind>_units`` when it has one entry per name (the built-in models do), else nothing.
+    ValueError for a declared unit that :data:`UNITS` does not know (it could not be checked).
+    """
+    names = tuple(getattr(model, f"{kind}_names"))
+    if _keyword_units(model):
+        declared = dict(model.units)
+        units = tuple(declared.get(n) for n in names)
+    else:
+        units = tuple(getattr(model, f"{kind}_units", ()) or ())
+        units = units if len(units) == len(names) else (None,) * len(names)
+    for n, u in zip(names, units):
+        if u is not None and (not isinstance(u, str) or u.strip() not in UNITS):
+            raise ValueError(
+                f"model: its {kind} {n!r} declares the unit {u!r}, which vehjax.data.UNITS does "
+                f"not know, so a column cannot be checked against it; declare one of "
+                f"{', '.join(sorted(UNITS))} or leave {n!r} out of the model's units=")
+    return tuple(None if u is None else u.strip() for u in units)
 
 
-def _units(model, kind):
-    names = getattr(model, f"{kind}_names")
-    units = tuple(getattr(model, f"{kind}_units", ()) or ())
-    return units if len(units) == len(names) else ("-?",) * len(names)
+def _keyword_units(model) -> bool:
+    """Whether the model declares its units by a ``units=`` keyword (a :class:`Model`)."""
+    own = getattr(model, "units", None)
+    return isinstance(own, Mapping) or (isinstance(own, tuple) and all(
+        isinstance(p, tuple) and len(p) == 2 for p in own))
+
+
+def _declare_hint(target, column_unit) -> str:
+    return (f", or, if the model's unit is not what you meant, declare it where the model is "
+            f"built: Model(..., units={{{target!r}: {column_unit!r}}}) (a Model declares units "
+            f"only for the names in units=; names left out are not checked)")
+
+
+def _split_units(path, header) -> tuple[list, dict]:
+    """Names and bracketed units of a header; ValueError for two columns of one name."""
+    names, units = [], {}
+    for i, h in enumerate(header):
+        m = _HEADER.match(h)
+        name = m["name"] if m else h.strip()
+        if not name:
+            raise ValueError(f"path: {str(path)!r}: column {i + 1} ({h!r}) has no name")
+        if name in names:
+            raise ValueError(f"path: {str(path)!r}: the header names {name!r} twice (columns "
+                             f"{names.index(name) + 1} and {i + 1}: {header[names.index(name)]!r} "
+                             f"and {h!r}); give every column its own name")
+        if m:
+            units[name] = m["unit"].strip()
+        names.append(name)
+    return names, units
+
+
+def _separator_hint(table) -> str:
+    """A hint when the header reads as one column holding another candidate separator."""
+    if len(table.names) == 1:
+        found = [d for d in ",;\t|" if d in table.names[0] and d != table.delimiter]
+        if found:
+            return (f" (the header reads as one column with separator {table.delimiter!r}; the "
+                    f"file seems separated by {found[0]!r}: pass delimiter={found[0]!r})")
+    return ""
+
+
+def _check_csv_time(t, name, where) -> None:
+    """Time stamps read from a file: every row has one, strictly increasing (naming lines)."""
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:
+        raise ValueError(f"{where(int(bad[0]))}: time column {name!r} has no time stamp "
+                         f"({float(t[bad[0]])}); every data row needs one")
+    down = np.flatnonzero(np.diff(t) <= 0.0)
+    if down.size:
+        k = int(down[0])
+        raise ValueError(f"{where(k + 1)}: time stamps must be strictly increasing; "
+                         f"{down.size} steps are not, the first {float(t[k])} -> {float(t[k + 1])} "
+                         f"(data rows {k + 1} and {k + 2})")
+
+
+def numeric_column(arg: str, name, value) -> np.ndarray:
+    """``value`` as a float array; text cells read as :func:`vehjax.data.table.parse_cells`
+    does (None is missing too); ValueError naming ``arg``, the column ``name`` and the row."""
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{arg}: {name!r} is not a numeric column") from None
+    if a.dtype.kind not in "USO":
+        try:
+            return np.asarray(a, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"{arg}: {name!r} is not a numeric column (dtype {a.dtype})") from None
+    if a.ndim != 1:
+        raise ValueError(f"{arg}: {name!r} has shape {a.shape}, expected a 1-D column")
+    out = np.empty(len(a))
+    for k, v in enumerate(a.tolist()):
+        if v is None or (isinstance(v, str) and is_missing(v)):
+            out[k] = math.nan
+            continue
+        try:
+            if not isinstance(v, (str, int, float, np.number)):
+                raise TypeError
+            out[k] = float(v)
+        except (TypeError, ValueError):
+            raise ValueError(f"{arg}: row {k + 1} (index {k}): not a number in column {name!r}: "
+                             f"{v!r} (a missing sample is NaN, None, '', 'nan' or 'NA')") from None
+    return out
+
+
+def _check_name(arg, name) -> None:
+    """A signal name: a non-empty string without surrounding spaces (a file's header keeps it)."""
+    if not isinstance(name, str) or not name.strip() or name != name.strip():
+        raise ValueError(f"{arg}: names must be non-empty strings without surrounding spaces "
+                         f"(they become a file's column names), got {name!r}")
 
 
 def _column(arg, name, value, n):
@@ -393,7 +540,9 @@ def _column(arg, name, value, n):
     if a.shape != (n,):
         raise ValueError(f"{arg}: {name!r} has shape {a.shape}, expected ({n},) like t")
     if np.any(np.isinf(a)):
-        raise ValueError(f"{arg}: {name!r} has infinite values (use NaN for missing samples)")
+        k = int(np.flatnonzero(np.isinf(a))[0])
+        raise ValueError(f"{arg}: {name!r} has infinite values, the first {float(a[k])} at row "
+                         f"{k + 1} (index {k}) (use NaN for missing samples)")
     a.setflags(write=False)
     return a
 
