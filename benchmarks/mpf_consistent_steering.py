@@ -58,7 +58,8 @@ jax.config.update("jax_enable_x64", True)
 
 import vehjax as vj  # noqa: E402
 from vehjax import metrics  # noqa: E402
-from vehjax.filters.marginalized import marginalized_pf  # noqa: E402
+from vehjax.filters.marginalized import (InputStdGrid, MeanStates, NiW,  # noqa: E402
+                                         marginalized_pf_grid)
 from vehjax.reproduce import berntorp2018 as b18  # noqa: E402
 from vehjax.reproduce import noise_learning as nl  # noqa: E402
 
@@ -97,14 +98,13 @@ def data(runs, seconds, steer_factor=1.0, seed=0):
 
 def build(model, points, std0, forgetting, nu0=None, std_range=None, prior=None,
           variances=None):
-    return marginalized_pf(
-        model, points, noisy_input="delta", sensors=b18.SENSORS,
-        known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
-        linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=b18.BANK_JERK_STD,
-        std0=std0, forgetting=forgetting, nu0=nu0, noise_means="kalman",
-        bias_walk={s: b18.BIAS_WALK[s] for s in b18.SENSORS},
-        mean_std0={"delta": nl.OFFSET_STD0, **nl.BIAS_STD0}, input_std_range=std_range,
-        input_std_prior=prior, sensor_variances=variances)
+    return marginalized_pf_grid(model, points, noisy_input="delta", sensors=b18.SENSORS,
+                                known_std={"phi": b18.PHI_STD, "r_virt": b18.RVIRT_STD},
+                                linear_states=("phi", "phi_dot", "phi_ddot"),
+                                linear_noise_std=b18.BANK_JERK_STD, sensor_variances=variances,
+                                niw=NiW(std0=std0, forgetting=forgetting, nu0=nu0),
+                                means=MeanStates(bias_walk={s: b18.BIAS_WALK[s] for s in b18.SENSORS}, mean_std0={"delta": nl.OFFSET_STD0, **nl.BIAS_STD0}),
+                                grid=InputStdGrid(input_std_range=std_range, input_std_prior=prior))
 
 
 def profile(runs, seconds):

@@ -10,7 +10,7 @@ the test module's STD0), RUNS runs x 400 steps, seed SEED; ``marginalized_pf(noi
 "kalman")`` at its defaults with POINTS grid points over a decade either side of the steering
 guess (twice the truth), the sensor stds guessed at twice the truth; ``known``: the sensor
 covariances known instead (guesses at the truth, nu0 = 1e10); ``weighted``: the grid's
-weighted moments everywhere (``vehjax.filters._grid.RESOLVED = 0``, as before that module).
+weighted moments everywhere (``vehjax.filters.marginalized.grid.RESOLVED = 0``, as before that module).
 Prints per learnt parameter the mean estimate over the truth (stds) or its mean error in mean
 reported stds (offset, biases), the spread over runs / mean reported std, the reported std
 over the truth (mean and least) and the 95 % intervals' coverage; then the NEES of (vy, r)
@@ -30,7 +30,7 @@ sys.path.insert(0, "tests")
 
 import vehjax as vj  # noqa: E402
 from vehjax import metrics  # noqa: E402
-from vehjax.filters import _grid  # noqa: E402
+from vehjax.filters.marginalized import grid as _grid  # noqa: E402
 
 from _bank_ref import user_bank_case  # noqa: E402
 

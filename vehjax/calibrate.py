@@ -416,14 +416,14 @@ def _fixed_noise_model(model, noisy_input: str):
 def _fixed_noise_filter(aug, n_particles, name, q_std, resampling, ess_threshold):
     """:func:`vehjax.filters.marginalized_pf` on :func:`_fixed_noise_model`'s ``aug`` with
     the statistics held (placeholder stds 1: :func:`fixed_noise_mpf`'s ``init`` sets them)."""
-    from .filters import marginalized_pf
+    from .filters import NiW, marginalized_pf
 
     states = aug.state_names[1:]
     return marginalized_pf(
         aug, n_particles, noisy_input=name, sensors=tuple(aug.output_names),
         linear_states=states, linear_noise_std=q_std,
-        std0={k: 1.0 for k in (name,) + tuple(aug.output_names)}, forgetting=1.0,
-        gamma0=FIXED_GAMMA0, nu0=FIXED_NU0, kalman_states="all", resampling=resampling,
+        niw=NiW(std0={k: 1.0 for k in (name,) + tuple(aug.output_names)}, forgetting=1.0,
+                gamma0=FIXED_GAMMA0, nu0=FIXED_NU0), kalman_states="all", resampling=resampling,
         ess_threshold=ess_threshold)
 
 

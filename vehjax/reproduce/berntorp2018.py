@@ -300,14 +300,14 @@ def simulate_truth(model, inputs, acc, runs, key):
 def build_sim_filter(model, n_particles, kalman_states="linear"):
     """The simulation study's filter (sec. 4): N = ``n_particles``, lambda = 0.995, initial
     std guesses twice the truth; ``kalman_states`` as in ``marginalized_pf``."""
-    from vehjax.filters.marginalized import marginalized_pf
+    from vehjax.filters.marginalized import NiW, marginalized_pf
 
     return marginalized_pf(
         model, n_particles, noisy_input="delta", sensors=SENSORS,
         known_std={"phi": PHI_STD, "r_virt": RVIRT_STD},
         linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=BANK_JERK_STD,
-        std0={"delta": 2 * STEER_STD, **{s: 2 * SENSOR_STD[s] for s in SENSORS}},
-        forgetting=0.995, kalman_states=kalman_states)
+        niw=NiW(std0={"delta": 2 * STEER_STD, **{s: 2 * SENSOR_STD[s] for s in SENSORS}},
+                forgetting=0.995), kalman_states=kalman_states)
 
 
 def _rms(a, axis=None):
@@ -507,7 +507,7 @@ def build_drive_filter(model, n_particles, forgetting=0.999, variant="bank",
     ``kalman_states`` as in ``marginalized_pf`` (no difference for ``planar``). With a
     :class:`VirtualScaleBank` model the rolling-radius mismatch eps joins each particle's
     Kalman filter (no process noise: a constant learnt online)."""
-    from vehjax.filters.marginalized import marginalized_pf
+    from vehjax.filters.marginalized import NiW, marginalized_pf
 
     scale = ("eps",) if "eps" in model.state_names else ()
     if variant == "bank":
@@ -515,12 +515,13 @@ def build_drive_filter(model, n_particles, forgetting=0.999, variant="bank",
             model, n_particles, noisy_input="delta", sensors=("ay", "r", "roll_rate"),
             known_std={"phi": PHI_STD, "r_virt": RVIRT_STD},
             linear_states=("phi", "phi_dot", "phi_ddot") + scale, linear_noise_std=BANK_JERK_STD,
-            std0={**DRIVE_STD0, "roll_rate": DRIVE_STD0["r"]}, forgetting=forgetting,
+            niw=NiW(std0={**DRIVE_STD0, "roll_rate": DRIVE_STD0["r"]}, forgetting=forgetting),
             kalman_states=kalman_states)
     return marginalized_pf(model, n_particles, noisy_input="delta", sensors=("ay", "r"),
                            known_std={"r_virt": RVIRT_STD}, linear_states=scale,
                            linear_noise_std=0.0 if scale else None,
-                           std0=DRIVE_STD0, forgetting=forgetting, kalman_states=kalman_states)
+                           niw=NiW(std0=DRIVE_STD0, forgetting=forgetting),
+                           kalman_states=kalman_states)
 
 
 def virtual_yaw_reading(r, eps, vx, track):

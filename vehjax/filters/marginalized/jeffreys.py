@@ -42,8 +42,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._entrywise import chol_masked, entries
-from ._linalg import forward_entries
+from .._entrywise import chol_masked, entries
+from .._linalg import forward_entries
 
 __all__ = ["grid_derivative", "covariance_information", "log_prior"]
 

@@ -32,8 +32,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from ..models.base import Model
-from ..models.biases import with_input_offset, with_output_biases
+from ...models.base import Model
+from ...models.biases import with_input_offset, with_output_biases
 
 __all__ = ["with_noise_means", "mean_state_names", "pad_linear_noise", "bias_walk_stds",
            "augment_prior", "map_estimates"]

@@ -126,8 +126,9 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._entrywise import backward_entries, barrier, chol_masked, chol_sym
-from ._linalg import forward_entries
+from .._entrywise import backward_entries, chol_masked, chol_sym
+from .._linalg import forward_entries
+from .staging import stage
 
 __all__ = ["innovation_score", "scoring_terms", "prior_terms", "scored_variances",
            "ridge_sensitivity", "plug_in_variance"]
@@ -148,7 +149,7 @@ def _inverse_rows(L, rows, ny):
     return [forward_entries(L, [1.0 if k == j else 0.0 for k in range(ny)]) for j in rows]
 
 
-def innovation_score(S, nu, obs, rows, start=None):
+def innovation_score(S, nu, obs, rows):
     """The score s and expected information W of the sensor variances from one Gaussian
     predictive N(0, S) of the innovation ``nu``, S_x held fixed: s_i = 0.5 (a_i^2 - G_ii),
     W_ij = 0.5 G_ij^2, a = G nu, G = S^-1 on the observed components; zero rows where a sensor
@@ -157,18 +158,17 @@ def innovation_score(S, nu, obs, rows, start=None):
     Args:
         S: (ny, ny) nested entries.  nu: (ny) entries.  obs: (ny) booleans.
         rows: the learnt sensors' rows in y (ns).
-        start: :func:`vehjax.filters._entrywise.barrier`'s.
 
     Returns:
         (s (ns) entries, W (ns, ns) nested entries).
     """
     ny = len(S)
-    L = barrier(chol_masked(S, obs), start)
+    L = stage(chol_masked(S, obs))
     a = backward_entries(L, forward_entries(L, [jnp.where(obs[k], nu[k], 0.0)
                                                 for k in range(ny)]))
     E = _inverse_rows(L, rows, ny)
-    G = barrier([[sum(E[p][k] * E[q][k] for k in range(ny)) for q in range(len(rows))]
-                 for p in range(len(rows))], start)
+    G = stage([[sum(E[p][k] * E[q][k] for k in range(ny)) for q in range(len(rows))]
+               for p in range(len(rows))])
     ob = [obs[i] for i in rows]
     s = [jnp.where(ob[p], 0.5 * (a[i] * a[i] - G[p][p]), 0.0) for p, i in enumerate(rows)]
     W = [[jnp.where(ob[p] & ob[q], 0.5 * G[p][q] * G[p][q], 0.0) for q in range(len(rows))]
@@ -176,7 +176,7 @@ def innovation_score(S, nu, obs, rows, start=None):
     return s, W
 
 
-def scoring_terms(S, R_y, nu, obs, rows, v_ref, start=None):
+def scoring_terms(S, R_y, nu, obs, rows, v_ref):
     """One step's terms of the scored estimate (module docstring): (W_bar, W_bar z, W_bar W^-1
     W_bar) over the learnt sensors, nested entries (ns, ns), (ns), (ns, ns).
 
@@ -185,18 +185,17 @@ def scoring_terms(S, R_y, nu, obs, rows, v_ref, start=None):
         R_y: (ny, ny) nested entries, the noise covariance the step used.
         nu: (ny) entries, the innovation.  obs: (ny) booleans.
         rows: the learnt sensors' rows in y (ns).  v_ref: (ns) the prior guess's variances.
-        start: :func:`vehjax.filters._entrywise.barrier`'s.
     """
     ns, ny = len(rows), len(S)
-    s, W = innovation_score(S, nu, obs, rows, start)
+    s, W = innovation_score(S, nu, obs, rows)
     pos = {i: p for p, i in enumerate(rows)}
     Sb = [[S[i][j] if (i not in pos or j not in pos) else
            S[i][j] - R_y[i][j] + (v_ref[pos[i]] if i == j else 0.0) for j in range(ny)]
           for i in range(ny)]
-    _, Wb = innovation_score(Sb, [0.0] * ny, obs, rows, start)
+    _, Wb = innovation_score(Sb, [0.0] * ny, obs, rows)
     ob = [obs[i] for i in rows]
-    Winv = barrier(_spd_inverse([[W[p][q] + (jnp.where(ob[p], 0.0, 1.0) if p == q else 0.0)
-                                  for q in range(ns)] for p in range(ns)]), start)
+    Winv = stage(_spd_inverse([[W[p][q] + (jnp.where(ob[p], 0.0, 1.0) if p == q else 0.0)
+                                  for q in range(ns)] for p in range(ns)]))
     A = [[sum(Wb[p][k] * Winv[k][q] for k in range(ns)) for q in range(ns)] for p in range(ns)]
     r = [R_y[i][i] for i in rows]
     Wz = [sum(Wb[p][q] * r[q] + A[p][q] * s[q] for q in range(ns)) for p in range(ns)]
@@ -213,11 +212,11 @@ def prior_terms(v_ref, count):
     return eye * j0[None], j0 * v_ref
 
 
-def scored_variances(J, h, H, start=None):
+def scored_variances(J, h, H):
     """v = J^-1 h and its covariance J^-1 H J^-1; arrays (ns, ns, ...), (ns, ...), (ns, ns,
     ...). Where v is not positive or not finite, NaN (the caller falls back)."""
     ns = h.shape[0]
-    Jinv = barrier(_spd_inverse([[J[i, j] for j in range(ns)] for i in range(ns)]), start)
+    Jinv = stage(_spd_inverse([[J[i, j] for j in range(ns)] for i in range(ns)]))
     v = jnp.stack([sum(Jinv[i][j] * h[j] for j in range(ns)) for i in range(ns)])
     JH = [[sum(Jinv[i][k] * H[k, j] for k in range(ns)) for j in range(ns)] for i in range(ns)]
     C = jnp.stack([jnp.stack([sum(JH[i][k] * Jinv[j][k] for k in range(ns)) for j in range(ns)])
@@ -246,7 +245,7 @@ def ridge_sensitivity(w, theta, v, J, cov=None):
         w: (N,) normalised weights.  theta: (N,) the grid.  v: (ns, N) each point's
             variances.  J: (ns, ns, N) their information (:func:`scoring_terms`' sums).
         cov: (ns,) or None: Cov(v, theta); None: :func:`weighted_covariance` (where the grid
-            does not resolve the posterior, :func:`vehjax.filters._grid.ridge_covariance`).
+            does not resolve the posterior, :func:`vehjax.filters.marginalized.grid.ridge_covariance`).
 
     Returns:
         (ns,) g.

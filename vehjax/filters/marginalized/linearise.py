@@ -14,8 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _hoist
-from ._entrywise import entries
+from ... import _hoist
+from .._entrywise import entries
 
 __all__ = ["Lin", "linearise", "lin_entries", "entry_kinds", "merge_entries"]
 
