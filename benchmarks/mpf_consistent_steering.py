@@ -103,8 +103,10 @@ def build(model, points, std0, forgetting, nu0=None, std_range=None, prior=None,
                                 linear_states=("phi", "phi_dot", "phi_ddot"),
                                 linear_noise_std=b18.BANK_JERK_STD, sensor_variances=variances,
                                 niw=NiW(std0=std0, forgetting=forgetting, nu0=nu0),
-                                means=MeanStates(bias_walk={s: b18.BIAS_WALK[s] for s in b18.SENSORS}, mean_std0={"delta": nl.OFFSET_STD0, **nl.BIAS_STD0}),
-                                grid=InputStdGrid(input_std_range=std_range, input_std_prior=prior))
+                                means=MeanStates(bias_walk={s: b18.BIAS_WALK[s] for s in b18.SENSORS},
+                                                 mean_std0={"delta": nl.OFFSET_STD0, **nl.BIAS_STD0}),
+                                grid=InputStdGrid(input_std_range=std_range,
+                                                  input_std_prior=prior))
 
 
 def profile(runs, seconds):

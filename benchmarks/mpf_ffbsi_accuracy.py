@@ -56,7 +56,8 @@ n = int(sys.argv[1])
 est = marginalized_pf(t._model_lin(ab=AB), n, noisy_input="u", sensors=("y1",),
                       known_std={"y2": t.SD2}, linear_states=("a",), linear_noise_std=t.SIG_Z,
                       kalman_states="linear",
-                      niw=NiW(std0={"u": t.SIG_W, "y1": t.SD1}, mean0={"u": t.MU_W, "y1": t.B1}, forgetting=1.0, nu0=1e7, gamma0=1e-9))
+                      niw=NiW(std0={"u": t.SIG_W, "y1": t.SD1}, mean0={"u": t.MU_W, "y1": t.B1},
+                              forgetting=1.0, nu0=1e7, gamma0=1e-9))
 for meth in ("ffbsi", "ancestor"):
     sm = jax.jit(jax.vmap(lambda k, meth=meth: vj.smooth(
         est, ys, us, x0=t.X0, P0=t.P0, key=k, n_trajectories=n, method=meth)))(

@@ -48,8 +48,11 @@ def _filter(points, std0, nu0=None, variances=None):
                                 linear_noise_std=c._SIGMA_PHI,
                                 linear_states=("phi", "phi_dot", "phi_ddot"),
                                 sensor_variances=variances,
-                                niw=NiW(std0={"delta": c._DELTA_STD, **std0}, mean0={"delta": c._OFFSET, **c._BIAS}, forgetting=1.0, nu0=nu0),
-                                grid=InputStdGrid(input_std_prior="log-uniform", input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))))
+                                niw=NiW(std0={"delta": c._DELTA_STD, **std0},
+                                        mean0={"delta": c._OFFSET, **c._BIAS}, forgetting=1.0,
+                                        nu0=nu0),
+                                grid=InputStdGrid(input_std_prior="log-uniform",
+                                                  input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))))
 
 
 def statistic(runs, steps, nu0=1e7):

@@ -399,7 +399,9 @@ def test_known_noise_limit_agrees_with_the_bootstrap_pf():
     Xs, Ys, U, _ = _simulate(T, R, seed=5, bank=False, offset=mu_w, delta_std=sig_w)
     est = marginalized_pf(MODEL, 500, sensors=("ay", "r"), known_std={"r_virt": STD["r_virt"]},
                           linear_states=(),
-                          niw=NiW(std0={"delta": sig_w, "ay": STD["ay"], "r": STD["r"]}, mean0={"delta": mu_w, "ay": BIAS["ay"], "r": BIAS["r"]}, forgetting=1.0, nu0=1e7, gamma0=1e-9))
+                          niw=NiW(std0={"delta": sig_w, "ay": STD["ay"], "r": STD["r"]},
+                                  mean0={"delta": mu_w, "ay": BIAS["ay"], "r": BIAS["r"]},
+                                  forgetting=1.0, nu0=1e7, gamma0=1e-9))
     x0, P0 = np.zeros(5), np.diag([1e-4, 1e-6, 1e-12, 1e-12, 1e-12])
     out = vj.run(est, Ys, U, x0=x0, P0=P0, key=jax.random.key(1), return_covariances=True)
     assert not out.diverged.any()
@@ -450,7 +452,9 @@ def test_known_noise_with_gaussian_particle_states_is_the_exact_kalman_filter():
                           [BIAS.get(k, 0.0) for k in names], [STD[k] for k in names], x0, P0,
                           MODEL.bank_noise_gain())
     est = marginalized_pf(MODEL, N, known_std=KNOWN, linear_noise_std=sig_phi, kalman_states="all",
-                          niw=NiW(std0={"delta": sig_w, "ay": STD["ay"], "r": STD["r"], "roll_rate": STD["roll_rate"]}, mean0={"delta": OFFSET, **BIAS}, forgetting=1.0, nu0=1e7, gamma0=1e-9))
+                          niw=NiW(std0={"delta": sig_w, "ay": STD["ay"], "r": STD["r"], "roll_rate": STD["roll_rate"]},
+                                  mean0={"delta": OFFSET, **BIAS}, forgetting=1.0, nu0=1e7,
+                                  gamma0=1e-9))
     out = vj.run(est, Ys, U, x0=x0, P0=P0, key=jax.random.key(4), return_covariances=True)
     assert not out.diverged.any()
     sd = np.sqrt(np.diagonal(kc[20:], axis1=1, axis2=2))  # (T', 5)

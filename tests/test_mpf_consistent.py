@@ -229,7 +229,8 @@ def test_with_the_noise_known_it_is_the_exact_kalman_filter_of_the_biased_model(
     std0 = dict(STD0, delta=1e-10)
     est = marginalized_pf_grid(MODEL, N, sensors=SENSORS, known_std=KNOWN,
                                linear_noise_std=sig_phi,
-                               niw=NiW(std0=std0, mean0={"delta": offset}, forgetting=1.0, nu0=1e7, gamma0=1.0))
+                               niw=NiW(std0=std0, mean0={"delta": offset}, forgetting=1.0, nu0=1e7,
+                                       gamma0=1.0))
     out = vj.run(est, Y, U, x0=x0, P0=P0, key=jax.random.key(5), return_covariances=True)
     assert not out.diverged.any()
     Pb0 = np.diag([STD0[s] ** 2 for s in SENSORS])
@@ -324,7 +325,8 @@ def test_input_std_grid_is_the_exact_posterior_of_the_steering_std(prior, varian
     est = marginalized_pf_grid(user_linear_bank(MODEL.theta, float(U[0, 0]), DT), N,
                                sensors=SENSORS, known_std=KNOWN, linear_noise_std=bank_std,
                                sensor_variances=variances,
-                               niw=NiW(std0=STD0, mean0={"delta": offset}, forgetting=1.0, nu0=1e10),
+                               niw=NiW(std0=STD0, mean0={"delta": offset}, forgetting=1.0,
+                                       nu0=1e10),
                                means=MeanStates(mean_std0={"delta": 1e-9}),
                                grid=InputStdGrid(input_std_range=(lo, hi), input_std_prior=prior))
     out = vj.run(est, Y, U, x0=x0, P0=P0, key=jax.random.key(5), return_covariances=True)
@@ -653,8 +655,10 @@ def test_a_sensor_seen_beside_the_input_noise_is_learnt_from_a_wrong_guess():
     std0 = {"delta": c._DELTA_STD, **{k: 2.0 * v for k, v in c._STD.items()}}
     est = marginalized_pf_grid(MODEL, 3, sensors=SENSORS, known_std=c._KNOWN,
                                linear_noise_std=c._SIGMA_PHI,
-                               niw=NiW(std0=std0, mean0={"delta": c._OFFSET, **c._BIAS}, forgetting=1.0),
-                               grid=InputStdGrid(input_std_prior="log-uniform", input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))))
+                               niw=NiW(std0=std0, mean0={"delta": c._OFFSET, **c._BIAS},
+                                       forgetting=1.0),
+                               grid=InputStdGrid(input_std_prior="log-uniform",
+                                                 input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))))
     out = vj.run(est, Y, U, x0=np.zeros(5), P0=np.full(5, 1e-12), key=jax.random.key(0),
                  return_covariances=True)
     assert not out.diverged.any()
@@ -679,8 +683,10 @@ def test_the_gyros_scored_variances_match_the_oracle():
     X, Y, U = c.simulate_mpf(MODEL, 20, 300, 11)
     est = marginalized_pf_grid(MODEL, 3, sensors=SENSORS, known_std=c._KNOWN,
                                linear_noise_std=c._SIGMA_PHI, sensor_variances="scored",
-                               niw=NiW(std0={"delta": c._DELTA_STD, **c._STD}, mean0={"delta": c._OFFSET, **c._BIAS}, forgetting=1.0),
-                               grid=InputStdGrid(input_std_prior="log-uniform", input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))))
+                               niw=NiW(std0={"delta": c._DELTA_STD, **c._STD},
+                                       mean0={"delta": c._OFFSET, **c._BIAS}, forgetting=1.0),
+                               grid=InputStdGrid(input_std_prior="log-uniform",
+                                                 input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))))
     out = vj.run(est, Y, U, x0=np.zeros(5), P0=np.full(5, 1e-12), key=jax.random.key(0))
     assert not out.diverged.any()
     u0 = jnp.asarray([c._VX, 0.0])

@@ -92,7 +92,8 @@ def _known_noise_mpf(n, **kw):
     return marginalized_pf(_model(), n, noisy_input="u", sensors=("y1",), known_std={"y2": SD2},
                            linear_states=("a",), linear_noise_std=SIG_Z,
                            kalman_states=kw.pop("kalman_states", "all"), **kw,
-                           niw=NiW(std0={"u": SIG_W, "y1": SD1}, mean0={"u": MU_W, "y1": B1}, forgetting=1.0, nu0=1e7, gamma0=1e-9))
+                           niw=NiW(std0={"u": SIG_W, "y1": SD1}, mean0={"u": MU_W, "y1": B1},
+                                   forgetting=1.0, nu0=1e7, gamma0=1e-9))
 
 
 @functools.lru_cache(maxsize=None)
@@ -489,7 +490,8 @@ def _smoothed_linear(n, reps=8, method=None):
     est = marginalized_pf(_model_lin(ab=0.0), n, noisy_input="u", sensors=("y1",),
                           known_std={"y2": SD2}, linear_states=("a",), linear_noise_std=SIG_Z,
                           kalman_states="linear",
-                          niw=NiW(std0={"u": SIG_W, "y1": SD1}, mean0={"u": MU_W, "y1": B1}, forgetting=1.0, nu0=1e7, gamma0=1e-9))
+                          niw=NiW(std0={"u": SIG_W, "y1": SD1}, mean0={"u": MU_W, "y1": B1},
+                                  forgetting=1.0, nu0=1e7, gamma0=1e-9))
 
     def one(key):
         return vj.smooth(est, ys, us, x0=X0, P0=P0, key=key, n_trajectories=n, method=method)

@@ -69,8 +69,8 @@ kept the inverse-Wishart statistics' correlations beside the scored variances; t
 the same slowly forgetting statistics, the filter with them was suboptimal, and its gyro
 innovations exceeded its predictive covariance: the scored r and roll-rate stds ended 1.1-1.4 %
 above the oracle's (each run's sample std of its true noise, states and bias known; the
-script below prints it; at 5d3a251, before the change), also with the Kalman step's plug-in
-held at the truth (an experiment not kept). Numpy's exact Kalman filter on the same data,
+script below prints it), also with the Kalman step's plug-in held at the truth (an experiment
+not kept; benchmarks/results/notes_marginalized.md). Numpy's exact Kalman filter on the same data,
 every noise known, gives scores that average -0.3 % of r's variance (the script's last line,
 seed 0).
 
@@ -100,14 +100,8 @@ theoretical std and its coverage 0.92 (0.94-1.01 and 0.97-0.98 at seeds 0, 1, 3)
 Started at twice the truth (steering std known, seed 0; ``python
 benchmarks/mpf_k_sensor_variances.py guess 2 300 scored``): ay +2.0 % (the inverse-Wishart mean:
 +45 %), coverage 0.99 (0.00), the NEES in the band on 0.93 of the steps (0.83). Cost: about 1.7
-times the inverse-Wishart mean's time per step on paper 004's simulation, the paper's filter's
-(``python benchmarks/mpf_consistent_steering.py time 20 30``: 0.070 against 0.041 ms per
-run-step, 25 grid points; the paper's filter at N = 100 0.069; 0.084 against 0.050 and 0.070 in
-``vehjax reproduce noise-learning``'s 100 runs; on 2026-11-27's faster machine 0.029 against
-0.016 and 0.028, and 0.034 against 0.023 and 0.035 in that report). It was 0.110-0.127 until
-``vehjax.run`` balanced its blocks of runs: the scored state carries 3432 numbers a run against
-2757, the CPU's block of runs fell from 23 to 19, and 20 runs went as a block of 19 and one
-padded to 19.
+times the inverse-Wishart mean's time per step (``python benchmarks/mpf_consistent_steering.py
+time 20 30``; the dated timings: benchmarks/results/notes_marginalized.md).
 
 What it costs where the sensors are seen alone. On paper 004's simulation (sensors seen nearly
 alone, guesses twice the truth) each grid point's scored variances fit its own sigma_w: early
