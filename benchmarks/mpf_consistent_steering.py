@@ -1,5 +1,5 @@
 """How well paper 004's simulation pins the steering-noise std, and how the consistent MPF
-(``marginalized_pf(noise_means="kalman")``, issue #33) learns it: the numbers behind the MPF
+(``marginalized_pf_grid``, issue #33) learns it: the numbers behind the MPF
 (consistent) paragraph of vehjax/reproduce/noise_learning.py's docstring. The data are
 ``vehjax reproduce noise-learning``'s (berntorp2018's simulate_truth, seed 0).
 

@@ -1,5 +1,5 @@
-"""The marginalized PF with the noise means as Kalman states (``marginalized_pf(...,
-noise_means="kalman")``, issue #33 item 2) against independent references: the augmented model
+"""The marginalized PF with the noise means as Kalman states (``marginalized_pf_grid``,
+issue #33 item 2) against independent references: the augmented model
 against the model written out, the prior and the estimates' mapping against numpy, the filter
 with the covariances known against the exact Kalman filter of the augmented linear-Gaussian
 SingleTrackBank (written out in numpy), its bad options, and the paper's default left as it

@@ -19,7 +19,8 @@ from .vb import VBPRState, VBState, vbakf_pr, vbakf_r
 __all__ = [
     "Estimator", "StepOutput", "ekf", "ukf", "ckf", "ackf", "bootstrap_pf",
     "dual_ekf", "dual_ukf", "joint_ekf", "joint_ukf", "liu_west_ukf", "marginalized_pf",
-    "marginalized_pf_grid", "NiW", "MeanStates", "InputStdGrid", "MPFState", "DualState", "JointState", "LiuWestState",
+    "marginalized_pf_grid", "NiW", "MeanStates", "InputStdGrid", "MPFState",
+    "DualState", "JointState", "LiuWestState",
     "GaussianState", "SqrtGaussianState", "AckfState", "PFState",
     "vbakf_r", "vbakf_pr", "VBState", "VBPRState",
     "masked_update", "validate_prior", "sigma", "kalman", "smc", "resampling",

@@ -122,12 +122,12 @@ batch posterior (tests/test_marginalized.py checks it).
   taken to the stds by the delta method (d sigma = d Sigma / (2 sigma)), with nu - d - 3
   floored at 1 where that variance does not exist, plus the spread of the particles' values
   about the reported estimate.
-* The consistent filter, :func:`marginalized_pf_grid` (not the paper's; issue #33 item 2). The paper's filter says it
-  knows the noise statistics better than it does when it learns them (``vehjax reproduce
-  consistency``, 100 runs: NEES in the band on 0.17 of the steps with ``kalman_states="all"``,
-  the roll-rate bias's spread over runs twice its reported std; ``vehjax reproduce
-  noise-learning`` on paper 004's simulation: the NEES of (vy, r) about 4 per dof). Three
-  causes, three changes (:mod:`.grid_filter`):
+* The consistent filter, :func:`marginalized_pf_grid` (not the paper's; issue #33 item 2). The
+  paper's filter says it knows the noise statistics better than it does when it learns them
+  (``vehjax reproduce consistency``, 100 runs: NEES in the band on 0.17 of the steps with
+  ``kalman_states="all"``, the roll-rate bias's spread over runs twice its reported std;
+  ``vehjax reproduce noise-learning`` on paper 004's simulation: the NEES of (vy, r) about 4 per
+  dof). Three causes, three changes (:mod:`.grid_filter`):
   (1) the particle's Kalman filter takes the NiW means as exact, and eq. 18 takes each
   residual as an exact observation of them, though the data tell some of them apart only
   slowly (the roll-rate bias from the bank rate; the ay bias from the steering offset, which
@@ -191,11 +191,11 @@ batch posterior (tests/test_marginalized.py checks it).
   simulation, 10 runs x 180 s: +22 % at 0.995, +12 % at 1; ``python benchmarks/
   mpf_consistent_steering.py learn 10 180 25 iw 0.995 inverse-wishart``). The prior of the
   offset and the biases is N(mean0, gamma0 std0^2) as the paper's NiW unless
-  ``MeanStates.mean_std0`` gives their size: a prior tied to the noise std (0.04 deg for a
-  0.28 deg offset in paper 004's simulation) holds the offset state several stds from the truth for long and makes the
-  filter over-confident meanwhile. Measured on the consistency study and paper 004's
-  simulation: ``vehjax reproduce consistency --filters MPF-K`` and ``vehjax reproduce
-  noise-learning`` (their docstrings have the numbers).
+  ``MeanStates.mean_std0`` gives their size: a prior tied to the noise std (0.04 deg for a 0.28
+  deg offset in paper 004's simulation) holds the offset state several stds from the truth for
+  long and makes the filter over-confident meanwhile. Measured on the consistency study and
+  paper 004's simulation: ``vehjax reproduce consistency --filters MPF-K`` and ``vehjax
+  reproduce noise-learning`` (their docstrings have the numbers).
 
 Linearisation. The model enters through forward-mode derivatives (``jax.jacfwd``) at each
 particle: g = d f / d delta, A_bar = d f_x / d z, the bank transition, C = d h / d (x, z) and
@@ -205,7 +205,7 @@ others it is first order in the offset and the bank (an EKF-like step inside eac
 Affinity in the linear states is checked numerically when the filter is built. Which entries
 of these derivatives are constants, which depend on the input alone (computed once per step,
 not per particle) and which on the particle is read off the traced model when the filter is
-built (:func:`vehjax.filters._mpf_linearise.entry_kinds`): for SingleTrackBank only the
+built (:func:`.linearise.entry_kinds`): for SingleTrackBank only the
 predicted x_t, z_t and y_t are per particle.
 
 Implementation. The mathematics is in module-level functions, each documented and tested on

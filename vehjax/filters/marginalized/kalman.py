@@ -1,7 +1,7 @@
 """The Kalman filters of each particle of the marginalized PF (Berntorp & Di Cairano 2018,
 sec. 3.4, and the Gaussian particle states of ``kalman_states="all"``), written entry by entry
 over the particles (:mod:`vehjax.filters._entrywise`): every argument is a list or nested list
-of (N,) arrays or structural constants, ``lin`` a :class:`~vehjax.filters.marginalized.linearise.Lin`
+of (N,) arrays or structural constants, ``lin`` a :class:`~.linearise.Lin`
 of entries. Sequential conditioning of joint Gaussians, Cholesky factors and forward
 substitutions throughout (no inverses). The derivations are in
 :mod:`vehjax.filters.marginalized`.
@@ -112,7 +112,7 @@ def gaussian_loglik(L, alpha, obs):
 
 def input_noise_kalman_step(lin, P, sig_w2, y, obs, b_y, R_y, Qz):
     """The Kalman step of Gaussian particle states with the noisy input's error w ~ N(0,
-    sig_w2) as process noise (not drawn; ``noise_means="kalman"``, where the offset is a
+    sig_w2) as process noise (not drawn; ``marginalized_pf_grid``, where the offset is a
     state): the deviations xi = (x_{t-1} - x_hat, z_{t-1} - m) ~ N(0, P) and w predicted
     jointly, s_t = Phi xi + (g, gz) w (+ the linear states' noise Qz), then conditioned on the
     observed components of o = y - yb - b_y = H s_t + d w + noise(R_y), H = (Cx, Cz).
@@ -181,7 +181,7 @@ def joint_prediction(lin, w, P, Qz):
     :func:`joint_kalman_step`, before its update).
 
     Args:
-        lin: :class:`~vehjax.filters.marginalized.linearise.Lin` of arrays at the particle's means and
+        lin: :class:`~.linearise.Lin` of arrays at the particle's means and
             u_t.
         w: scalar, the offset draw w_t.  P: (n, n) covariance at t - 1, n = n_x + n_z.
         Qz: (n_z, n_z) process noise of the linear states.

@@ -48,7 +48,7 @@ def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, means_known=False
         eta: (d, ...) the datum minus mu.
         extra_e: (d - 1, d - 1, ...) added to Lambda_e, or None: the expected-statistic term for
             uncertain or missing sensor data (module docstring of the filter).
-        means_known: the noise's mean is known (zero; ``noise_means="kalman"``, where the
+        means_known: the noise's mean is known (zero; the grid filter's, where the
             offset and the biases are Kalman states): the NiW is an inverse-Wishart, gamma = 0
             (kappa = infinity), so the means stay and Lambda gains eta eta^T on both blocks.
 
@@ -149,7 +149,7 @@ GRID_Z = 3.5
 
 def static_prior_grid(lam_w, dof, n: int):
     """A grid of n variances over the inverse-Wishart prior's marginal Lambda_w / chi^2_dof and
-    their prior log weights: each particle's own static sigma_w^2 (``noise_means="kalman"``).
+    their prior log weights: each particle's own static sigma_w^2 (``marginalized_pf_grid``).
 
     The grid is uniform in log sigma^2 between the chi-square's Wilson-Hilferty quantiles at
     -+ :data:`GRID_Z` (Johnson, Kotz & Balakrishnan 1994, eq. 18.25; lower base floored at 1e-3
@@ -189,7 +189,7 @@ def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, means_known=False, var_cov=N
         means_known: the noise's mean is known (gamma = 0, :func:`niw_update`): no
             within-particle covariance of the offset and the biases; ``lam_w`` is then each
             particle's sigma_w^2 itself (a static parameter of the particle, not a statistic:
-            ``noise_means="kalman"``), so sigma_w has no within-particle variance either.
+            ``marginalized_pf_grid``), so sigma_w has no within-particle variance either.
         var_cov: (d - 1, d - 1, N) or None: each particle's covariance of its sensor
             variances in place of the inverse-Wishart's (where finite; the scored variances of
             :mod:`vehjax.filters.marginalized.sensor_scoring`).

@@ -214,7 +214,8 @@ def marginalized_pf(
 ) -> Estimator:
     """Noise-adaptive marginalized particle filter (Berntorp & Di Cairano 2018): the state, an
     unknown-mean unknown-variance input error and the biases and covariance of some sensors,
-    with the affine substate in a Kalman filter per particle (see the module docstring).
+    with the affine substate in a Kalman filter per particle (:mod:`vehjax.filters.marginalized`
+    and this module's docstring).
 
     Args:
         model: a vehjax model, e.g. :class:`~vehjax.models.bank.SingleTrackBank`.
@@ -247,7 +248,8 @@ def marginalized_pf(
             of offset draws and carries the Gaussian of all states given them, so the bank's
             uncertainty reaches vy and r (with known noise statistics this is exact for models
             affine in the states: it matches the exact Kalman filter, where "linear" reports
-            vy's variance about 8 % too small on SingleTrackBank; module docstring). 1.2-1.3x
+            vy's variance about 8 % too small on SingleTrackBank;
+            :mod:`vehjax.filters.marginalized`). 1.2-1.3x
             the time per step. No difference without linear states.
         resample: the resampling function, ``resample(particles, w, log_w, u, scheme,
             threshold) -> (particles, log_w, w, resampled)`` with the signature and meaning of
@@ -261,7 +263,8 @@ def marginalized_pf(
         units. ``init(x0, P0, theta0=None, P_theta0=None, key)``: x0 (nx,), P0 over all model
         states (the bank's Kalman filters start from the Gaussian conditional of the linear
         states given each particle); ``theta0``, when given, replaces the guesses (offset, std,
-        biases, stds) of ``niw.mean0``/``niw.std0`` (``P_theta0`` is ignored). ``step(state, y, u)``:
+        biases, stds) of ``niw.mean0``/``niw.std0`` (``P_theta0`` is ignored).
+        ``step(state, y, u)``:
         StepOutput ``mean``/``cov`` the weighted mean and covariance over all model states
         (linear states from the mixture of the Kalman filters), ``params`` eq. 23's estimates,
         ``params_cov`` their mixture covariance, ``loglik`` log p(y_t | y_1:t-1) of the used

@@ -1,6 +1,6 @@
 """The sensor variances of the consistent marginalized PF by Fisher scoring of its innovations,
-weighted at the prior guess (``marginalized_pf(noise_means="kalman")``'s default,
-``sensor_variances="scored"``; issue #33).
+weighted at the prior guess (:func:`~vehjax.filters.marginalized.marginalized_pf_grid`'s
+default, ``sensor_variances="scored"``; issue #33).
 
 What was wrong with the expected statistics alone. Each particle's Kalman step with the sensor
 covariance R' (its estimate so far) gives the posterior of the sensor noise e_t given y_1:t,
@@ -239,7 +239,7 @@ def ridge_sensitivity(w, theta, v, J, cov=None):
         w: (N,) normalised weights.  theta: (N,) the grid.  v: (ns, N) each point's
             variances.  J: (ns, ns, N) their information (:func:`scoring_terms`' sums).
         cov: (ns,) or None: Cov(v, theta); None: :func:`weighted_covariance` (where the grid
-            does not resolve the posterior, :func:`vehjax.filters.marginalized.grid.ridge_covariance`).
+            does not resolve the posterior, :func:`.grid.ridge_covariance`).
 
     Returns:
         (ns,) g.

@@ -21,7 +21,8 @@ __all__ = ["MPFState", "initial_state", "prior_in_dtype"]
 
 class MPFState(NamedTuple):
     """State of :func:`~vehjax.filters.marginalized.marginalized_pf` and
-    :func:`~vehjax.filters.marginalized.marginalized_pf_grid` for one run; the particle axis N is last.
+    :func:`~vehjax.filters.marginalized.marginalized_pf_grid` for one run; the particle axis N is
+    last.
 
     Attributes:
         x: (n_x, N) sampled states (the model states not in ``linear_states``, model order);
@@ -50,8 +51,8 @@ class MPFState(NamedTuple):
         base_log_weights: in the grid filter with Jeffreys' prior (N,), the normalised log
             weights under equal prior weights (the likelihood alone); ``log_weights`` are them
             times Jeffreys' prior sqrt(info). Else None.
-        var_info, var_stat, var_sand, var_ref, var_est: in the grid filter with scored sensor variances,
-            the sensor variances' scoring sums (:mod:`.sensor_scoring`): J
+        var_info, var_stat, var_sand, var_ref, var_est: in the grid filter with scored sensor
+            variances, the sensor variances' scoring sums (:mod:`.sensor_scoring`): J
             (n_s, n_s, N), h (n_s, N), the sandwich's middle (n_s, n_s, N), the prior guess v_0
             (n_s, N) and the scored variances J^-1 h (n_s, N; NaN where not positive); else
             None.
