@@ -1,5 +1,5 @@
 """How well paper 004's simulation pins the steering-noise std, and how the consistent MPF
-(``marginalized_pf(noise_means="kalman")``, issue #33) learns it: the numbers behind the MPF
+(``marginalized_pf_grid``, issue #33) learns it: the numbers behind the MPF
 (consistent) paragraph of vehjax/reproduce/noise_learning.py's docstring. The data are
 ``vehjax reproduce noise-learning``'s (vehjax.banked_road's simulate_truth, seed 0).
 
@@ -58,7 +58,8 @@ jax.config.update("jax_enable_x64", True)
 
 import vehjax as vj  # noqa: E402
 from vehjax import metrics  # noqa: E402
-from vehjax.filters.marginalized import marginalized_pf  # noqa: E402
+from vehjax.filters.marginalized import (InputStdGrid, MeanStates, NiW,  # noqa: E402
+                                         marginalized_pf_grid)
 from vehjax import banked_road as road  # noqa: E402
 from vehjax.reproduce import noise_learning as nl  # noqa: E402
 
@@ -91,14 +92,14 @@ def data(runs, seconds, steer_factor=1.0, seed=0):
 
 def build(model, points, std0, forgetting, nu0=None, std_range=None, prior=None,
           variances=None):
-    return marginalized_pf(
+    return marginalized_pf_grid(
         model, points, noisy_input="delta", sensors=road.SENSORS,
         known_std={"phi": road.PHI_STD, "r_virt": road.RVIRT_STD},
         linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=road.BANK_JERK_STD,
-        std0=std0, forgetting=forgetting, nu0=nu0, noise_means="kalman",
-        bias_walk={s: road.BIAS_WALK[s] for s in road.SENSORS},
-        mean_std0={"delta": nl.OFFSET_STD0, **nl.BIAS_STD0}, input_std_range=std_range,
-        input_std_prior=prior, sensor_variances=variances)
+        sensor_variances=variances, niw=NiW(std0=std0, forgetting=forgetting, nu0=nu0),
+        means=MeanStates(bias_walk={s: road.BIAS_WALK[s] for s in road.SENSORS},
+                         mean_std0={"delta": nl.OFFSET_STD0, **nl.BIAS_STD0}),
+        grid=InputStdGrid(input_std_range=std_range, input_std_prior=prior))
 
 
 def profile(runs, seconds):

@@ -18,7 +18,7 @@ import jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
 import vehjax as vj
 import test_smoothing_mpf as t
-from vehjax.filters.marginalized import marginalized_pf
+from vehjax.filters.marginalized import NiW, marginalized_pf
 AB = float(sys.argv[2]) if len(sys.argv) > 2 else 0.1
 T = t.T
 rng = np.random.default_rng(3)
@@ -53,11 +53,11 @@ m, Ps, C = t._rts_backward(F, xf, Pf, xp, Pp)
 m, Ps = m[:, :2], Ps[:, :2, :2]
 sd = np.sqrt(np.diagonal(Ps, axis1=1, axis2=2))
 n = int(sys.argv[1])
-est = marginalized_pf(
-    t._model_lin(ab=AB), n, noisy_input="u", sensors=("y1",), known_std={"y2": t.SD2},
-    linear_states=("a",), linear_noise_std=t.SIG_Z, std0={"u": t.SIG_W, "y1": t.SD1},
-    mean0={"u": t.MU_W, "y1": t.B1}, forgetting=1.0, nu0=1e7, gamma0=1e-9,
-    kalman_states="linear")
+est = marginalized_pf(t._model_lin(ab=AB), n, noisy_input="u", sensors=("y1",),
+                      known_std={"y2": t.SD2}, linear_states=("a",), linear_noise_std=t.SIG_Z,
+                      kalman_states="linear",
+                      niw=NiW(std0={"u": t.SIG_W, "y1": t.SD1}, mean0={"u": t.MU_W, "y1": t.B1},
+                              forgetting=1.0, nu0=1e7, gamma0=1e-9))
 for meth in ("ffbsi", "ancestor"):
     sm = jax.jit(jax.vmap(lambda k, meth=meth: vj.smooth(
         est, ys, us, x0=t.X0, P0=t.P0, key=k, n_trajectories=n, method=meth)))(

@@ -1,16 +1,16 @@
 """The consistent MPF's steering std where its grid does not resolve the posterior: the numbers
-behind vehjax/filters/_grid.py's docstring and tests/test_mpf_consistent.py's user-model test.
+behind vehjax/filters/marginalized/grid.py's docstring and tests/test_mpf_consistent.py's user-model test.
 
     python benchmarks/mpf_grid_resolution.py RUNS SEED POINTS [known] [weighted]
 
 The linear SingleTrackBank written as a user would (tests/_bank_ref.py's user_linear_bank),
 data simulated in numpy at other values than the consistency study's (steering offset 0.4 deg,
 noise 0.25 deg, biases ay -0.15 m/s^2, r 0.3 deg/s, roll rate -0.2 deg/s, sensor stds 1.5 x
-the test module's STD0), RUNS runs x 400 steps, seed SEED; ``marginalized_pf(noise_means=
-"kalman")`` at its defaults with POINTS grid points over a decade either side of the steering
+the test module's STD0), RUNS runs x 400 steps, seed SEED; ``marginalized_pf_grid``
+at its defaults with POINTS grid points over a decade either side of the steering
 guess (twice the truth), the sensor stds guessed at twice the truth; ``known``: the sensor
 covariances known instead (guesses at the truth, nu0 = 1e10); ``weighted``: the grid's
-weighted moments everywhere (``vehjax.filters._grid.RESOLVED = 0``, as before that module).
+weighted moments everywhere (``vehjax.filters.marginalized.grid.RESOLVED = 0``, as before that module).
 Prints per learnt parameter the mean estimate over the truth (stds) or its mean error in mean
 reported stds (offset, biases), the spread over runs / mean reported std, the reported std
 over the truth (mean and least) and the 95 % intervals' coverage; then the NEES of (vy, r)
@@ -30,7 +30,7 @@ sys.path.insert(0, "tests")
 
 import vehjax as vj  # noqa: E402
 from vehjax import metrics  # noqa: E402
-from vehjax.filters import _grid  # noqa: E402
+from vehjax.filters.marginalized import grid as _grid  # noqa: E402
 
 from _bank_ref import user_bank_case  # noqa: E402
 

@@ -1,7 +1,7 @@
-"""How the consistent MPF (``marginalized_pf(noise_means="kalman")``) learns the sensor
+"""How the consistent MPF (``marginalized_pf_grid``) learns the sensor
 variances on the consistency study's data (``vehjax reproduce consistency``, where the
 steering noise reaches ay directly beside ay's own noise): the numbers behind
-vehjax/filters/_sensor_scoring.py's docstring and the "MPF-K" remarks of consistency.py.
+vehjax/filters/marginalized/sensor_scoring.py's docstring and the "MPF-K" remarks of consistency.py.
 
     python benchmarks/mpf_k_sensor_variances.py statistic RUNS STEPS [NU0]
         the inverse-Wishart statistic's increments per step (the expected second moment of
@@ -35,7 +35,7 @@ jax.config.update("jax_enable_x64", True)
 
 import vehjax as vj  # noqa: E402
 from vehjax import metrics  # noqa: E402
-from vehjax.filters import marginalized_pf  # noqa: E402
+from vehjax.filters import InputStdGrid, NiW, marginalized_pf_grid  # noqa: E402
 from vehjax.reproduce import consistency as c  # noqa: E402
 
 MODEL = vj.models.SingleTrackBank(dt=0.01)
@@ -44,12 +44,15 @@ NX = len(MODEL.state_names)
 
 def _filter(points, std0, nu0=None, variances=None):
     """MPF-K as the study builds it, the steering std known (a grid of the true std)."""
-    return marginalized_pf(
-        MODEL, points, sensors=c._SENSORS, known_std=c._KNOWN, linear_noise_std=c._SIGMA_PHI,
-        std0={"delta": c._DELTA_STD, **std0}, mean0={"delta": c._OFFSET, **c._BIAS},
-        forgetting=1.0, linear_states=("phi", "phi_dot", "phi_ddot"), noise_means="kalman",
-        nu0=nu0, input_std_prior="log-uniform",
-        input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9)), sensor_variances=variances)
+    return marginalized_pf_grid(MODEL, points, sensors=c._SENSORS, known_std=c._KNOWN,
+                                linear_noise_std=c._SIGMA_PHI,
+                                linear_states=("phi", "phi_dot", "phi_ddot"),
+                                sensor_variances=variances,
+                                niw=NiW(std0={"delta": c._DELTA_STD, **std0},
+                                        mean0={"delta": c._OFFSET, **c._BIAS}, forgetting=1.0,
+                                        nu0=nu0),
+                                grid=InputStdGrid(input_std_prior="log-uniform",
+                                                  input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))))
 
 
 def statistic(runs, steps, nu0=1e7):

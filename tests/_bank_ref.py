@@ -120,14 +120,14 @@ def user_bank_case(runs, seed, points, known=False, steps=400):
     inputs, data by :func:`simulate_linear_bank` at other values than that study's (steering
     offset 0.4 deg and noise 0.25 deg, biases ay -0.15 m/s^2, r 0.3 deg/s, roll rate -0.2
     deg/s, sensor stds 0.3 m/s^2, 0.9 deg/s, 0.9 deg/s), ``runs`` x ``steps``, ``seed``, and
-    ``marginalized_pf(noise_means="kalman")`` at its defaults with ``points`` grid points over
+    ``marginalized_pf_grid`` at its defaults with ``points`` grid points over
     a decade either side of a steering guess twice the truth, the sensor stds guessed at twice
     the truth (``known``: the sensor covariances known, guesses at the truth, nu0 = 1e10).
     Returns (estimator, X, Y, U, truth dict of the learnt parameters, ``vehjax.run``'s keyword
     arguments)."""
     import jax
 
-    from vehjax.filters.marginalized import marginalized_pf
+    from vehjax.filters.marginalized import MeanStates, NiW, marginalized_pf_grid
     from vehjax.models.bank import SingleTrackBank
     from vehjax.reproduce.consistency import mpf_inputs
 
@@ -144,14 +144,33 @@ def user_bank_case(runs, seed, points, known=False, steps=400):
                                 np.array([bias.get(n, 0.0) for n in names]),
                                 np.array([{**std, **known_std}[n] for n in names]), seed)
     factor = 1.0 if known else 2.0
-    est = marginalized_pf(
+    est = marginalized_pf_grid(
         user_linear_bank(model.theta, float(U[0, 0]), dt), points, sensors=sensors,
         known_std=known_std, linear_noise_std=bank_std,
-        std0={"delta": 2 * sig_w, **{n: factor * std[n] for n in sensors}},
-        mean_std0={"delta": 1.0 * deg, "ay": 0.5, "r": 1.0 * deg, "roll_rate": 1.0 * deg},
-        forgetting=1.0, noise_means="kalman", nu0=1e10 if known else None)
+        niw=NiW(std0={"delta": 2 * sig_w, **{n: factor * std[n] for n in sensors}},
+                forgetting=1.0, nu0=1e10 if known else None),
+        means=MeanStates(mean_std0={"delta": 1.0 * deg, "ay": 0.5, "r": 1.0 * deg,
+                                    "roll_rate": 1.0 * deg}))
     truth = {"delta_offset": offset, "delta_std": sig_w,
              **{f"{s}_bias": bias[s] for s in sensors}, **{f"{s}_std": std[s] for s in sensors}}
     run_kw = dict(x0=np.zeros(5), P0=np.array([1e-4, 1e-6, 1e-6, 1e-6, 1e-6]),
                   key=jax.random.key(2), return_covariances=True)
     return est, X, Y, U, truth, run_kw
+
+
+def mpf_kwargs(**kw):
+    """The marginalized PFs' keyword arguments from flat ones: the NiW fields (std0, mean0,
+    gamma0, nu0, forgetting) grouped into ``niw=NiW(...)``, mean_std0 and bias_walk into
+    ``means=MeanStates(...)``, input_std_range and input_std_prior into
+    ``grid=InputStdGrid(...)``."""
+    from vehjax.filters.marginalized import InputStdGrid, MeanStates, NiW
+
+    groups = {"niw": (NiW, ("std0", "mean0", "gamma0", "nu0", "forgetting")),
+              "means": (MeanStates, ("mean_std0", "bias_walk")),
+              "grid": (InputStdGrid, ("input_std_range", "input_std_prior"))}
+    out = dict(kw)
+    for name, (cls, fields) in groups.items():
+        got = {k: out.pop(k) for k in fields if k in out}
+        if got:
+            out[name] = cls(**got)
+    return out

@@ -1,4 +1,4 @@
-"""vehjax.filters._grid: the posterior of a static parameter on a fixed grid, where the grid
+"""vehjax.filters.marginalized.grid: the posterior of a static parameter on a fixed grid, where the grid
 resolves it and where it does not, against closed forms and scipy quadrature."""
 
 import math
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from vehjax.filters._grid import (RESOLVED, grid_posterior, ridge_covariance, std_moments,
+from vehjax.filters.marginalized.grid import (RESOLVED, grid_posterior, ridge_covariance, std_moments,
                                   with_resolved_std)
 
 jax.config.update("jax_enable_x64", True)

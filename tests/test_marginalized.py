@@ -13,19 +13,19 @@ import scipy.stats
 
 import vehjax as vj
 from vehjax.lib.entrywise import entries, stack
-from vehjax.filters._mpf_kalman import bank_kalman_step
-from vehjax.filters._mpf_linearise import Lin, entry_kinds, lin_entries, linearise
-from vehjax.filters._niw import (
+from vehjax.filters.marginalized.kalman import bank_kalman_step
+from vehjax.filters.marginalized.linearise import Lin, entry_kinds, lin_entries, linearise
+from vehjax.filters.marginalized.niw import (
     impute_missing,
     niw_predict,
     niw_update,
     t_weight_and_proposal,
 )
-from vehjax.filters.marginalized import marginalized_pf
+from vehjax.filters.marginalized import NiW, marginalized_pf
 from vehjax.filters.particle import bootstrap_pf
 from vehjax.models.bank import SingleTrackBank
 
-from _bank_ref import continuous_matrices, discrete_matrices, exact_kalman
+from _bank_ref import continuous_matrices, discrete_matrices, exact_kalman, mpf_kwargs
 
 DT = 0.01
 VX = 20.0
@@ -333,7 +333,8 @@ def study():
     Ys = Ys.copy()
     Ys[:, :, 2][rng.random((STUDY_R, STUDY_T)) < 0.1] = np.nan
     Ys[:, STUDY_T // 2:STUDY_T // 2 + 20, :] = np.nan
-    est = marginalized_pf(MODEL, STUDY_N, known_std=KNOWN, linear_noise_std=0.05, std0=STD0)
+    est = marginalized_pf(MODEL, STUDY_N, known_std=KNOWN, linear_noise_std=0.05,
+                          niw=NiW(std0=STD0))
     x0, P0 = _bank_prior(Xs)
     out = vj.run(est, Ys, U, x0=x0, P0=P0, key=jax.random.key(0), return_covariances=True)
     return est, Xs, Ys, out
@@ -396,12 +397,11 @@ def test_known_noise_limit_agrees_with_the_bootstrap_pf():
     T, R = 120, 2
     sig_w, mu_w = math.radians(0.3), OFFSET
     Xs, Ys, U, _ = _simulate(T, R, seed=5, bank=False, offset=mu_w, delta_std=sig_w)
-    est = marginalized_pf(
-        MODEL, 500, sensors=("ay", "r"), known_std={"r_virt": STD["r_virt"]}, linear_states=(),
-        std0={"delta": sig_w, "ay": STD["ay"], "r": STD["r"]},
-        mean0={"delta": mu_w, "ay": BIAS["ay"], "r": BIAS["r"]},
-        forgetting=1.0, nu0=1e7, gamma0=1e-9,
-    )
+    est = marginalized_pf(MODEL, 500, sensors=("ay", "r"), known_std={"r_virt": STD["r_virt"]},
+                          linear_states=(),
+                          niw=NiW(std0={"delta": sig_w, "ay": STD["ay"], "r": STD["r"]},
+                                  mean0={"delta": mu_w, "ay": BIAS["ay"], "r": BIAS["r"]},
+                                  forgetting=1.0, nu0=1e7, gamma0=1e-9))
     x0, P0 = np.zeros(5), np.diag([1e-4, 1e-6, 1e-12, 1e-12, 1e-12])
     out = vj.run(est, Ys, U, x0=x0, P0=P0, key=jax.random.key(1), return_covariances=True)
     assert not out.diverged.any()
@@ -451,11 +451,10 @@ def test_known_noise_with_gaussian_particle_states_is_the_exact_kalman_filter():
     km, kc = exact_kalman(MODEL.theta, VX, DT, Ys, U[:, 1], OFFSET, sig_w, sig_phi,
                           [BIAS.get(k, 0.0) for k in names], [STD[k] for k in names], x0, P0,
                           MODEL.bank_noise_gain())
-    est = marginalized_pf(
-        MODEL, N, known_std=KNOWN, linear_noise_std=sig_phi,
-        std0={"delta": sig_w, "ay": STD["ay"], "r": STD["r"], "roll_rate": STD["roll_rate"]},
-        mean0={"delta": OFFSET, **BIAS}, forgetting=1.0, nu0=1e7, gamma0=1e-9,
-        kalman_states="all")
+    est = marginalized_pf(MODEL, N, known_std=KNOWN, linear_noise_std=sig_phi, kalman_states="all",
+                          niw=NiW(std0={"delta": sig_w, "ay": STD["ay"], "r": STD["r"], "roll_rate": STD["roll_rate"]},
+                                  mean0={"delta": OFFSET, **BIAS}, forgetting=1.0, nu0=1e7,
+                                  gamma0=1e-9))
     out = vj.run(est, Ys, U, x0=x0, P0=P0, key=jax.random.key(4), return_covariances=True)
     assert not out.diverged.any()
     sd = np.sqrt(np.diagonal(kc[20:], axis1=1, axis2=2))  # (T', 5)
@@ -475,7 +474,8 @@ def test_planar_filter_learns_the_offset_and_biases_on_a_flat_road():
     T, R = 2000, 2
     Xs, Ys, U, _ = _simulate(T, R, seed=13, bank=False)
     est = marginalized_pf(MODEL, 64, sensors=("ay", "r"), known_std={"r_virt": STD["r_virt"]},
-                          linear_states=(), std0={k: STD0[k] for k in ("delta", "ay", "r")})
+                          linear_states=(),
+                          niw=NiW(std0={k: STD0[k] for k in ("delta", "ay", "r")}))
     P0 = np.diag([0.1, 0.01, 1e-20, 1e-20, 1e-20])
     out = vj.run(est, Ys, U, x0=np.zeros(5), P0=P0, key=jax.random.key(5))
     assert est.param_names == ("delta_offset", "delta_std", "ay_bias", "r_bias", "ay_std",
@@ -494,7 +494,7 @@ def test_float32_runs_and_learns():
     """The bank filter in float32 end to end: finite, no divergence, the offset learnt."""
     T, R = 400, 2
     Xs, Ys, U, _ = _simulate(T, R, seed=11)
-    est = marginalized_pf(MODEL, 32, known_std=KNOWN, linear_noise_std=0.05, std0=STD0)
+    est = marginalized_pf(MODEL, 32, known_std=KNOWN, linear_noise_std=0.05, niw=NiW(std0=STD0))
     x0, P0 = _bank_prior(Xs)
     f32 = np.float32
     out = vj.run(est, Ys.astype(f32), U.astype(f32), x0=x0.astype(f32), P0=P0.astype(f32),
@@ -525,7 +525,7 @@ def test_many_runs_form_equals_the_step_run_by_run():
     ys[1, 2, 0] = np.nan
     est = marginalized_pf(model, 8, noisy_input="u", sensors=("y",), linear_states=("w",),
                           known_std={"z": 0.2}, linear_noise_std=0.05,
-                          std0={"u": 0.5, "y": 0.3})
+                          niw=NiW(std0={"u": 0.5, "y": 0.3}))
     x0 = 0.1 * np.arange(runs)[:, None] * np.ones((runs, 2))
     form = assert_batch_equals_step(est, ys, us, x0, np.eye(2),
                                     keys=jax.random.split(jax.random.key(0), runs))
@@ -539,7 +539,7 @@ def test_many_runs_form_equals_the_step_run_by_run():
 def _kw(**over):
     kw = dict(known_std=KNOWN, linear_noise_std=0.05, std0=STD0)
     kw.update(over)
-    return kw
+    return mpf_kwargs(**kw)
 
 
 @pytest.mark.parametrize("arg, over", [
@@ -584,8 +584,8 @@ def test_model_not_affine_in_the_linear_states_is_refused():
     model = vj.models.Model(transition=trans, observe=lambda x, u, th: jnp.stack([x[0], x[1]]),
                             dt=0.01, state_names=("v", "phi", "phid"), input_names=("delta",),
                             output_names=("vm", "phim"))
-    kw = dict(sensors=("vm",), known_std={"phim": 0.01}, linear_states=("phi", "phid"),
-              linear_noise_std=0.1, std0={"delta": 0.01, "vm": 0.1})
+    kw = mpf_kwargs(sensors=("vm",), known_std={"phim": 0.01}, linear_states=("phi", "phid"),
+                    linear_noise_std=0.1, std0={"delta": 0.01, "vm": 0.1})
     with pytest.raises(ValueError, match="linear_states"):
         marginalized_pf(model, 10, **kw)
     # the same with the bank linear is accepted
@@ -663,7 +663,7 @@ def test_per_step_entries_change_nothing_on_a_nonlinear_user_model(monkeypatch):
     gives the same estimates as with every non-constant entry computed per particle (the
     per-step hoisting switched off), same key, 150 steps, 2 runs; and it learns: the offset's
     estimate after 150 steps lies within 3 reported std of the truth."""
-    import vehjax.filters.marginalized as mpf
+    import vehjax.filters.marginalized.setup as mpf
 
     model = _nonlinear_bank_model()
     T, R = 150, 2
@@ -685,8 +685,9 @@ def test_per_step_entries_change_nothing_on_a_nonlinear_user_model(monkeypatch):
 
     Y = np.asarray(jax.vmap(sim)(jax.random.split(jax.random.key(3), R)))
     Y = Y + np.array([0.1, 0.005, 0.002]) * rng.standard_normal(Y.shape) + np.array([0.05, 0, 0])
-    kw = dict(sensors=("ay", "r"), known_std={"phim": 0.002}, linear_states=("phi", "phid"),
-              linear_noise_std=0.01, std0={"delta": math.radians(0.4), "ay": 0.2, "r": 0.01})
+    kw = mpf_kwargs(sensors=("ay", "r"), known_std={"phim": 0.002},
+                    linear_states=("phi", "phid"), linear_noise_std=0.01,
+                    std0={"delta": math.radians(0.4), "ay": 0.2, "r": 0.01})
     args = dict(x0=np.zeros(4), P0=np.diag([0.01, 0.001, 1e-4, 1e-4]), key=jax.random.key(4),
                 return_covariances=True)
     out = vj.run(marginalized_pf(model, 200, **kw), Y, U, **args)
@@ -716,8 +717,8 @@ def _tiny_mpf_run(**extra):
                             dt=0.1, state_names=("v",), input_names=("u",), output_names=("y",))
     rng = np.random.default_rng(0)
     ys, us = rng.normal(size=(12, 1)), rng.normal(size=(12, 1))
-    est = marginalized_pf(model, 16, noisy_input="u", sensors=("y",), linear_states=(),
-                          std0={"u": 0.5, "y": 0.3}, **extra)
+    est = marginalized_pf(model, 16, noisy_input="u", sensors=("y",), linear_states=(), **extra,
+                          niw=NiW(std0={"u": 0.5, "y": 0.3}))
     return vj.filter(est, ys, us, x0=np.zeros(1), P0=np.eye(1), key=jax.random.key(0))
 
 

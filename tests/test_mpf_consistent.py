@@ -1,5 +1,5 @@
-"""The marginalized PF with the noise means as Kalman states (``marginalized_pf(...,
-noise_means="kalman")``, issue #33 item 2) against independent references: the augmented model
+"""The marginalized PF with the noise means as Kalman states (``marginalized_pf_grid``,
+issue #33 item 2) against independent references: the augmented model
 against the model written out, the prior and the estimates' mapping against numpy, the filter
 with the covariances known against the exact Kalman filter of the augmented linear-Gaussian
 SingleTrackBank (written out in numpy), its bad options, and the paper's default left as it
@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 
 import vehjax as vj
-from vehjax.filters._mpf_means import augment_prior, map_estimates, with_noise_means
+from vehjax.filters.marginalized.means import augment_prior, map_estimates, with_noise_means
 from vehjax.models import with_input_offset
-from vehjax.filters.marginalized import marginalized_pf
+from vehjax.filters.marginalized import (InputStdGrid, MeanStates, NiW, marginalized_pf,
+                                         marginalized_pf_grid)
 from vehjax.models.bank import SingleTrackBank
 
-from _bank_ref import (discrete_matrices, simulate_linear_bank, user_bank_case,
+from _bank_ref import (discrete_matrices, mpf_kwargs, simulate_linear_bank, user_bank_case,
                        user_linear_bank)
 
 DT = 0.01
@@ -30,9 +31,9 @@ STD0 = {"delta": math.radians(0.3), "ay": 0.2, "r": math.radians(0.6),
 
 
 def _kw(**over):
-    kw = dict(known_std=KNOWN, linear_noise_std=0.05, std0=STD0, noise_means="kalman")
+    kw = dict(known_std=KNOWN, linear_noise_std=0.05, std0=STD0)
     kw.update(over)
-    return kw
+    return mpf_kwargs(**kw)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -97,9 +98,6 @@ def test_prior_and_estimates_are_mapped_as_documented():
 
 
 @pytest.mark.parametrize("arg, over", [
-    ("noise_means", dict(noise_means="gibbs")),
-    ("noise_means", dict(noise_means=None)),
-    ("kalman_states", dict(kalman_states="bank")),
     ("gamma0", dict(gamma0=0.0)),
     ("nu0", dict(nu0=4.0)),
     ("forgetting", dict(forgetting=1.5)),
@@ -109,34 +107,40 @@ def test_prior_and_estimates_are_mapped_as_documented():
     ("bias_walk", dict(bias_walk={"gps": 0.1})),
     ("bias_walk", dict(bias_walk={"ay": -0.1})),
     ("bias_walk", dict(bias_walk=[0.1])),
-    ("bias_walk", dict(noise_means="niw", bias_walk={"ay": 0.1})),
     ("input_std_range", dict(input_std_range=(0.01,))),
     ("input_std_range", dict(input_std_range=(0.02, 0.01))),
     ("input_std_range", dict(input_std_range=(0.0, 0.01))),
-    ("input_std_range", dict(noise_means="niw", input_std_range=(0.01, 0.02))),
     ("input_std_prior", dict(input_std_prior="flat")),
     ("input_std_prior", dict(input_std_prior="log-uniform")),
     ("input_std_prior", dict(input_std_prior="inverse-wishart", input_std_range=(0.01, 0.02))),
-    ("input_std_prior", dict(noise_means="niw", input_std_prior="jeffreys")),
     ("sensor_variances", dict(sensor_variances="fisher")),
-    ("sensor_variances", dict(noise_means="niw", sensor_variances="scored")),
 ])
 def test_bad_options_raise_naming_them(arg, over):
     with pytest.raises(ValueError, match=arg):
-        marginalized_pf(MODEL, 100, **_kw(**over))
+        marginalized_pf_grid(MODEL, 100, **_kw(**over))
+
+
+@pytest.mark.parametrize("arg", ["bias_walk", "mean_std0", "input_std_range", "input_std_prior",
+                                 "sensor_variances", "means", "grid", "noise_means"])
+def test_the_papers_filter_takes_no_grid_option(arg):
+    """The grid filter is its own builder: marginalized_pf has none of its options (they were
+    refused with a ValueError while they were keywords of one builder)."""
+    with pytest.raises(TypeError, match=arg):
+        marginalized_pf(MODEL, 100, **_kw(), **{arg: None})
 
 
 def test_default_is_the_papers_filter():
-    """Without noise_means the filter is the paper's: the NiW learns the means (the parameters'
+    """marginalized_pf is the paper's filter: the NiW learns the means (the parameters'
     prior is mean0 with gamma0 std0^2), the particles' Kalman filters cover the bank only
     ("linear"), and it declares its Rao-Blackwell structure for smoothing."""
-    est = marginalized_pf(MODEL, 100, **_kw(noise_means="niw"))
-    default = marginalized_pf(MODEL, 100, known_std=KNOWN, linear_noise_std=0.05, std0=STD0)
+    est = marginalized_pf(MODEL, 100, **_kw())
+    default = marginalized_pf(MODEL, 100, known_std=KNOWN, linear_noise_std=0.05,
+                              niw=NiW(std0=STD0))
     for e in (est, default):
         assert e.rao_blackwell is not None and not e.rao_blackwell.gauss
         assert e.rao_blackwell.nz == 3
-        assert e.rao_blackwell.setup.g0 == 1.0
-    variant = marginalized_pf(MODEL, 100, **_kw())
+        assert e.param_prior[1][0, 0] == 1.0 * STD0["delta"] ** 2  # gamma0 = 1
+    variant = marginalized_pf_grid(MODEL, 100, **_kw())
     assert variant.rao_blackwell is None and variant.nx == 5
     assert variant.param_names == default.param_names
     np.testing.assert_array_equal(variant.param_prior[0], default.param_prior[0])
@@ -223,9 +227,10 @@ def test_with_the_noise_known_it_is_the_exact_kalman_filter_of_the_biased_model(
     # error; the bank's prior uncertainty is Gaussian in every particle
     x0, P0 = np.zeros(5), np.array([1e-30, 1e-30, 1e-6, 1e-6, 1e-6])
     std0 = dict(STD0, delta=1e-10)
-    est = marginalized_pf(MODEL, N, sensors=SENSORS, known_std=KNOWN, linear_noise_std=sig_phi,
-                          std0=std0, mean0={"delta": offset}, forgetting=1.0, nu0=1e7,
-                          gamma0=1.0, noise_means="kalman")
+    est = marginalized_pf_grid(MODEL, N, sensors=SENSORS, known_std=KNOWN,
+                               linear_noise_std=sig_phi,
+                               niw=NiW(std0=std0, mean0={"delta": offset}, forgetting=1.0, nu0=1e7,
+                                       gamma0=1.0))
     out = vj.run(est, Y, U, x0=x0, P0=P0, key=jax.random.key(5), return_covariances=True)
     assert not out.diverged.any()
     Pb0 = np.diag([STD0[s] ** 2 for s in SENSORS])
@@ -301,11 +306,11 @@ def test_input_std_grid_is_the_exact_posterior_of_the_steering_std(prior, varian
     the numpy S_t over the grid). The grid's differences are also checked against the derivative
     itself (numpy S_t at sigma_w^2 (1 +- 1e-4)): the information within 10 %. Where the grid
     does not resolve the posterior (6 points), the reported std and spread are the Laplace
-    approximation's from the three largest numpy log weights (:mod:`vehjax.filters._grid`,
+    approximation's from the three largest numpy log weights (:mod:`vehjax.filters.marginalized.grid`,
     written out here again). The sensor variances scored (the default) or the inverse-Wishart
     mean (``sensor_variances="inverse-wishart"``), their prior as good as known either way."""
     # 6 points: the grid does not resolve the posterior (the Laplace branch of
-    # vehjax.filters._grid); 12 with Jeffreys' prior: it does (the weighted moments)
+    # vehjax.filters.marginalized.grid); 12 with Jeffreys' prior: it does (the weighted moments)
     T, R, N = 150, 2, 12 if prior == "jeffreys" else 6
     offset, sig_w = math.radians(0.28), math.radians(0.3)
     bank_std = np.array([1e-5, 1e-4, 0.002])
@@ -317,11 +322,13 @@ def test_input_std_grid_is_the_exact_posterior_of_the_steering_std(prior, varian
                                 std, 4)
     x0, P0 = np.zeros(5), np.array([1e-30, 1e-30, 1e-6, 1e-6, 1e-6])
     lo, hi = sig_w / 1.5, sig_w * 1.5
-    est = marginalized_pf(user_linear_bank(MODEL.theta, float(U[0, 0]), DT), N, sensors=SENSORS,
-                          known_std=KNOWN, linear_noise_std=bank_std, std0=STD0,
-                          mean0={"delta": offset}, mean_std0={"delta": 1e-9}, forgetting=1.0,
-                          nu0=1e10, noise_means="kalman", input_std_range=(lo, hi),
-                          input_std_prior=prior, sensor_variances=variances)
+    est = marginalized_pf_grid(user_linear_bank(MODEL.theta, float(U[0, 0]), DT), N,
+                               sensors=SENSORS, known_std=KNOWN, linear_noise_std=bank_std,
+                               sensor_variances=variances,
+                               niw=NiW(std0=STD0, mean0={"delta": offset}, forgetting=1.0,
+                                       nu0=1e10),
+                               means=MeanStates(mean_std0={"delta": 1e-9}),
+                               grid=InputStdGrid(input_std_range=(lo, hi), input_std_prior=prior))
     out = vj.run(est, Y, U, x0=x0, P0=P0, key=jax.random.key(5), return_covariances=True)
     assert not out.diverged.any()
     grid = np.exp(np.linspace(math.log(lo), math.log(hi), N))
@@ -375,7 +382,7 @@ def test_static_grid_carries_the_inverse_wishart_prior_of_the_input_variance():
     import scipy.special
     import scipy.stats
 
-    from vehjax.filters._niw import static_prior_grid
+    from vehjax.filters.marginalized.niw import static_prior_grid
 
     lam, dof = 3.0e-4, 5.0
     v, lw = static_prior_grid(jnp.asarray(lam), dof, 400)
@@ -398,8 +405,8 @@ def test_input_noise_kalman_step_is_the_kalman_update_with_the_input_error_as_a_
     import scipy.stats
 
     from vehjax.lib.entrywise import entries
-    from vehjax.filters._mpf_kalman import input_noise_kalman_step
-    from vehjax.filters._mpf_linearise import lin_entries, linearise
+    from vehjax.filters.marginalized.kalman import input_noise_kalman_step
+    from vehjax.filters.marginalized.linearise import lin_entries, linearise
 
     aug = with_noise_means(MODEL, SENSORS, "delta")
     nx = len(aug.state_names)
@@ -465,14 +472,14 @@ def _shift(X0, order, xb, dev):
 
 
 # ----------------------------------------------------------------------------------------------
-# Jeffreys' prior over the grid (vehjax.filters._jeffreys)
+# Jeffreys' prior over the grid (vehjax.filters.marginalized.jeffreys)
 
 
 def test_covariance_information_is_half_the_trace_of_the_squared_relative_derivative():
     """A scalar variance component S = a s + c (s = sigma^2): 0.5 (dS / dlog s / S)^2 =
     0.5 (a s / (a s + c))^2, exact; a 3-D case with one component missing against numpy's
     0.5 tr((S^-1 dS)^2) over the observed block."""
-    from vehjax.filters._jeffreys import covariance_information
+    from vehjax.filters.marginalized.jeffreys import covariance_information
 
     a, c = 2.0, 0.5
     s = np.array([1e-3, 0.1, 1.0, 10.0])
@@ -497,7 +504,7 @@ def test_grid_derivative_is_second_order_and_the_prior_normalised():
     """Central differences of S(theta) = a e^theta + c on a uniform grid: the relative error
     inside is sinh(h) / h - 1 (about h^2 / 6), so it falls 4x when the spacing halves; log_prior
     is 0.5 log I normalised, equal before any datum."""
-    from vehjax.filters._jeffreys import grid_derivative, log_prior
+    from vehjax.filters.marginalized.jeffreys import grid_derivative, log_prior
 
     errs = []
     for n in (11, 21):
@@ -517,7 +524,7 @@ def test_grid_derivative_is_second_order_and_the_prior_normalised():
 
 
 # ----------------------------------------------------------------------------------------------
-# the sensor variances by Fisher scoring (vehjax.filters._sensor_scoring)
+# the sensor variances by Fisher scoring (vehjax.filters.marginalized.sensor_scoring)
 
 
 def _nested(A):
@@ -532,7 +539,7 @@ def _spd(rng, n):
 def test_innovation_score_against_numpy_with_a_sensor_missing():
     """s_i = 0.5 ((G nu)_i^2 - G_ii), W_ij = 0.5 G_ij^2 with G the inverse of the observed block
     of S (numpy), on the learnt rows; a missing sensor's row and column zero."""
-    from vehjax.filters._sensor_scoring import innovation_score
+    from vehjax.filters.marginalized.sensor_scoring import innovation_score
 
     rng = np.random.default_rng(1)
     S, nu = _spd(rng, 5), rng.normal(size=5)
@@ -554,7 +561,7 @@ def test_the_score_is_unbiased_for_the_true_variances():
     """Innovations drawn with the sensors' true variances R where the step used r: the mean
     score over 400,000 draws is W (R - r) within its Monte-Carlo error, so z = r + W^-1 s is
     an unbiased pseudo-observation of R (the module docstring's claim)."""
-    from vehjax.filters._sensor_scoring import innovation_score
+    from vehjax.filters.marginalized.sensor_scoring import innovation_score
 
     rng = np.random.default_rng(2)
     rows = [0, 1, 3]
@@ -577,7 +584,7 @@ def test_scored_variances_of_a_sensor_seen_alone_are_the_inverse_wishart_mean():
     """S_x = 0 (each sensor seen alone): whatever variances r_t each step used, the scored
     estimate after n steps is (count v_0 + sum e_t^2) / (count + n), the inverse-Wishart mean;
     with the weights' reference at the variances used, the sandwich is J^-1."""
-    from vehjax.filters._sensor_scoring import prior_terms, scored_variances, scoring_terms
+    from vehjax.filters.marginalized.sensor_scoring import prior_terms, scored_variances, scoring_terms
 
     rng = np.random.default_rng(3)
     v0, count, n = np.array([0.04, 1e-4]), 3.0, 40
@@ -613,7 +620,7 @@ def test_scored_variances_of_a_sensor_seen_alone_are_the_inverse_wishart_mean():
 def test_ridge_sensitivity_and_the_plug_in_variance_against_numpy():
     """ridge_sensitivity is J_w Cov_w(v, theta) (numpy weighted moments); on an exact ridge
     v = v0 + b theta it is J_w b Var_w(theta); plug_in_variance is g C g^T, 0 where C is NaN."""
-    from vehjax.filters._sensor_scoring import plug_in_variance, ridge_sensitivity
+    from vehjax.filters.marginalized.sensor_scoring import plug_in_variance, ridge_sensitivity
 
     rng = np.random.default_rng(4)
     theta = np.linspace(-1.0, 1.0, 40)
@@ -638,7 +645,7 @@ def test_a_sensor_seen_beside_the_input_noise_is_learnt_from_a_wrong_guess():
     """The consistency study's data (``vehjax reproduce consistency``: the steering noise
     reaches ay directly, d sigma_w about 0.35 m/s^2 beside ay's 0.2), 20 runs x 300 steps, the
     steering std known, every sensor std guessed at twice the truth: the scored sensor
-    variances (the default, vehjax.filters._sensor_scoring) bring the ay std to within 15 % of
+    variances (the default, vehjax.filters.marginalized.sensor_scoring) bring the ay std to within 15 % of
     the truth on average and its 95 % interval holds the truth in at least 0.8 of the runs.
     The inverse-Wishart mean alone (``sensor_variances="inverse-wishart"``) stayed at +45 %
     with no interval holding the truth (100 runs, seed 0)."""
@@ -646,11 +653,12 @@ def test_a_sensor_seen_beside_the_input_noise_is_learnt_from_a_wrong_guess():
 
     X, Y, U = c.simulate_mpf(MODEL, 20, 300, 7)
     std0 = {"delta": c._DELTA_STD, **{k: 2.0 * v for k, v in c._STD.items()}}
-    est = marginalized_pf(MODEL, 3, sensors=SENSORS, known_std=c._KNOWN,
-                          linear_noise_std=c._SIGMA_PHI, std0=std0,
-                          mean0={"delta": c._OFFSET, **c._BIAS}, forgetting=1.0,
-                          noise_means="kalman", input_std_prior="log-uniform",
-                          input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9)))
+    est = marginalized_pf_grid(MODEL, 3, sensors=SENSORS, known_std=c._KNOWN,
+                               linear_noise_std=c._SIGMA_PHI,
+                               niw=NiW(std0=std0, mean0={"delta": c._OFFSET, **c._BIAS},
+                                       forgetting=1.0),
+                               grid=InputStdGrid(input_std_prior="log-uniform",
+                                                 input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))))
     out = vj.run(est, Y, U, x0=np.zeros(5), P0=np.full(5, 1e-12), key=jax.random.key(0),
                  return_covariances=True)
     assert not out.diverged.any()
@@ -673,12 +681,12 @@ def test_the_gyros_scored_variances_match_the_oracle():
     from vehjax.reproduce import consistency as c
 
     X, Y, U = c.simulate_mpf(MODEL, 20, 300, 11)
-    est = marginalized_pf(MODEL, 3, sensors=SENSORS, known_std=c._KNOWN,
-                          linear_noise_std=c._SIGMA_PHI, std0={"delta": c._DELTA_STD, **c._STD},
-                          mean0={"delta": c._OFFSET, **c._BIAS}, forgetting=1.0,
-                          noise_means="kalman", input_std_prior="log-uniform",
-                          input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9)),
-                          sensor_variances="scored")
+    est = marginalized_pf_grid(MODEL, 3, sensors=SENSORS, known_std=c._KNOWN,
+                               linear_noise_std=c._SIGMA_PHI, sensor_variances="scored",
+                               niw=NiW(std0={"delta": c._DELTA_STD, **c._STD},
+                                       mean0={"delta": c._OFFSET, **c._BIAS}, forgetting=1.0),
+                               grid=InputStdGrid(input_std_prior="log-uniform",
+                                                 input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))))
     out = vj.run(est, Y, U, x0=np.zeros(5), P0=np.full(5, 1e-12), key=jax.random.key(0))
     assert not out.diverged.any()
     u0 = jnp.asarray([c._VX, 0.0])
@@ -699,7 +707,7 @@ def test_a_user_written_model_learns_every_noise_with_honest_intervals():
     everything (offset and biases as Kalman states, the steering std on Jeffreys' grid from a
     guess twice the truth, the sensor variances scored from guesses twice the truth), 25 grid
     points over a decade either side of the guess (19 % apart in sigma_w, where the data pin
-    it to about 6 %: the grid does not resolve its posterior, vehjax.filters._grid): each
+    it to about 6 %: the grid does not resolve its posterior, vehjax.filters.marginalized.grid): each
     learnt parameter's mean error is within 15 % of the truth (stds) or 2 mean reported stds
     (offset, biases), its 95 % interval holds the truth in at least 0.85 of the runs, and the
     NEES of (vy, r) averages 0.7-1.4 per dof over the last half. Measured (``python

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import vehjax as vj
-from vehjax.filters.marginalized import marginalized_pf
+from vehjax.filters.marginalized import NiW, marginalized_pf
 from vehjax.smoothers import marginalized as ms
 
 # x = (v, a): v' = 0.95 v + 0.1 a + 0.1 (u + w), a' = 0.05 v + 0.9 a + zeta; y = (v + e1, a + e2)
@@ -89,11 +89,11 @@ def kalman_rts(ys, us):
 def _known_noise_mpf(n, **kw):
     """The MPF with its noise statistics made known (nu0 = 1e7, lambda = 1, gamma0 = 1e-9, the
     true means and stds as prior) and the linear state in each particle's Gaussian."""
-    return marginalized_pf(
-        _model(), n, noisy_input="u", sensors=("y1",), known_std={"y2": SD2},
-        linear_states=("a",), linear_noise_std=SIG_Z, std0={"u": SIG_W, "y1": SD1},
-        mean0={"u": MU_W, "y1": B1}, forgetting=1.0, nu0=1e7, gamma0=1e-9,
-        kalman_states=kw.pop("kalman_states", "all"), **kw)
+    return marginalized_pf(_model(), n, noisy_input="u", sensors=("y1",), known_std={"y2": SD2},
+                           linear_states=("a",), linear_noise_std=SIG_Z,
+                           kalman_states=kw.pop("kalman_states", "all"), **kw,
+                           niw=NiW(std0={"u": SIG_W, "y1": SD1}, mean0={"u": MU_W, "y1": B1},
+                                   forgetting=1.0, nu0=1e7, gamma0=1e-9))
 
 
 @functools.lru_cache(maxsize=None)
@@ -222,7 +222,7 @@ def test_bad_input_names_the_argument():
     with pytest.raises(ValueError, match="method"):
         vj.smooth(lin10, ys, us, method="FFBSi", **kw)
     lin = _known_noise_mpf(10, kalman_states="linear")  # smoothed since issue 29's item 2
-    undeclared = lin._replace(rao_blackwell=lin.rao_blackwell._replace(setup=None))
+    undeclared = lin._replace(rao_blackwell=lin.rao_blackwell._replace(linear=None))
     with pytest.raises(ValueError, match="estimator.*kalman_states='linear'"):
         ms.smooth(undeclared, ys, us, **kw)
     with pytest.raises(ValueError, match="estimator"):
@@ -251,7 +251,7 @@ def _bank_mpf(model):
     its prior covariance."""
     est = marginalized_pf(model, 16, known_std={"phi": 0.01, "r_virt": 0.005},
                           linear_noise_std=0.05, kalman_states="all",
-                          std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02})
+                          niw=NiW(std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02}))
     return est, np.diag([0.1, 0.01, 1e-4, 1e-4, 1e-4])
 
 
@@ -333,10 +333,10 @@ LAM_LIN = 0.9
 def _linear_mpf(n, ab=AB):
     """The paper's filter on _model_lin, noise statistics unknown and forgotten (lambda 0.9), so
     that the plug-in estimates move along a path."""
-    return marginalized_pf(
-        _model_lin(ab), n, noisy_input="u", sensors=("y1",), known_std={"y2": SD2},
-        linear_states=("a",), linear_noise_std=SIG_Z, std0={"u": 0.5, "y1": 0.2},
-        forgetting=LAM_LIN, kalman_states="linear")
+    return marginalized_pf(_model_lin(ab), n, noisy_input="u", sensors=("y1",),
+                           known_std={"y2": SD2}, linear_states=("a",), linear_noise_std=SIG_Z,
+                           kalman_states="linear",
+                           niw=NiW(std0={"u": 0.5, "y1": 0.2}, forgetting=LAM_LIN))
 
 
 def _batch_path_reference(xs, m0, P0z, mu, lam_w, lam_e, nus, ys, us, ab=AB):
@@ -521,11 +521,11 @@ def kalman_rts_exact(ys, us):
 @functools.lru_cache(maxsize=None)
 def _smoothed_linear(n, reps=8, method=None):
     ys, us = _data_exact()
-    est = marginalized_pf(
-        _model_lin(ab=0.0), n, noisy_input="u", sensors=("y1",), known_std={"y2": SD2},
-        linear_states=("a",), linear_noise_std=SIG_Z, std0={"u": SIG_W, "y1": SD1},
-        mean0={"u": MU_W, "y1": B1}, forgetting=1.0, nu0=1e7, gamma0=1e-9,
-        kalman_states="linear")
+    est = marginalized_pf(_model_lin(ab=0.0), n, noisy_input="u", sensors=("y1",),
+                          known_std={"y2": SD2}, linear_states=("a",), linear_noise_std=SIG_Z,
+                          kalman_states="linear",
+                          niw=NiW(std0={"u": SIG_W, "y1": SD1}, mean0={"u": MU_W, "y1": B1},
+                                  forgetting=1.0, nu0=1e7, gamma0=1e-9))
 
     def one(key):
         return vj.smooth(est, ys, us, x0=X0, P0=P0, key=key, n_trajectories=n, method=method)
@@ -583,7 +583,7 @@ def test_linear_step_joint_is_the_filters_kalman_step_on_single_track_bank():
     n = 16
     est = marginalized_pf(model, n, known_std={"phi": 0.01, "r_virt": 0.005},
                           linear_noise_std=0.05, kalman_states="linear",
-                          std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02})
+                          niw=NiW(std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02}))
     P0b = np.diag([0.1, 0.01, 1e-2, 1e-3, 1e-4]) ** 2
     fwd = jax.jit(lambda k: ms.forward(est, jnp.asarray(Y), jnp.asarray(U), jnp.zeros(5),
                                         jnp.asarray(P0b), None, k))(jax.random.key(4))

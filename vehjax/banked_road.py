@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .filters.marginalized import marginalized_pf
+from .filters.marginalized import NiW, marginalized_pf
 
 __all__ = ["DEG", "OFFSET", "STEER_STD", "SENSORS", "SENSOR_STD", "SENSOR_UNIT", "BIAS_WALK",
            "PHI_STD", "RVIRT_STD", "BANK_JERK_STD", "BANK_DEG", "DRIVE_STD0", "looped_inputs",
@@ -136,8 +136,8 @@ def build_sim_filter(model, n_particles, kalman_states="linear"):
         model, n_particles, noisy_input="delta", sensors=SENSORS,
         known_std={"phi": PHI_STD, "r_virt": RVIRT_STD},
         linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=BANK_JERK_STD,
-        std0={"delta": 2 * STEER_STD, **{s: 2 * SENSOR_STD[s] for s in SENSORS}},
-        forgetting=0.995, kalman_states=kalman_states)
+        niw=NiW(std0={"delta": 2 * STEER_STD, **{s: 2 * SENSOR_STD[s] for s in SENSORS}},
+                forgetting=0.995), kalman_states=kalman_states)
 
 
 def build_drive_filter(model, n_particles, forgetting=0.999, variant="bank",
@@ -153,9 +153,10 @@ def build_drive_filter(model, n_particles, forgetting=0.999, variant="bank",
             model, n_particles, noisy_input="delta", sensors=("ay", "r", "roll_rate"),
             known_std={"phi": PHI_STD, "r_virt": RVIRT_STD},
             linear_states=("phi", "phi_dot", "phi_ddot") + scale, linear_noise_std=BANK_JERK_STD,
-            std0={**DRIVE_STD0, "roll_rate": DRIVE_STD0["r"]}, forgetting=forgetting,
+            niw=NiW(std0={**DRIVE_STD0, "roll_rate": DRIVE_STD0["r"]}, forgetting=forgetting),
             kalman_states=kalman_states)
     return marginalized_pf(model, n_particles, noisy_input="delta", sensors=("ay", "r"),
                            known_std={"r_virt": RVIRT_STD}, linear_states=scale,
                            linear_noise_std=0.0 if scale else None,
-                           std0=DRIVE_STD0, forgetting=forgetting, kalman_states=kalman_states)
+                           niw=NiW(std0=DRIVE_STD0, forgetting=forgetting),
+                           kalman_states=kalman_states)

@@ -86,7 +86,8 @@ import jax
 import jax.numpy as jnp
 
 __all__ = ["Strategy", "for_platform", "for_device", "current", "using", "resolve",
-           "compiler_options", "check_options", "block_size", "memory_limit", "check_fits", "WORKLOADS"]
+           "compiler_options", "check_options", "block_size", "memory_limit", "check_fits", "resolve_devices",
+           "WORKLOADS"]
 
 #: What an estimator may declare its step to be (``Estimator.workload``).
 WORKLOADS = ("default", "small_dense", "particles")
@@ -175,6 +176,35 @@ def host_memory() -> int | None:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
         return None
+
+
+def resolve_devices(devices) -> list:
+    """The devices a study runs on: ``devices`` of :func:`vehjax.run` (None or True: every
+    device, the global mesh under ``jax.distributed``; False: this process's first device; or
+    a sequence of devices, all this process's or including every process's). ValueError naming
+    ``devices`` otherwise."""
+    if devices is None or devices is True:
+        return list(jax.devices())
+    if devices is False:
+        # jax.devices()[0] belongs to process 0; under jax.distributed each process uses its own
+        return [jax.devices()[0] if jax.process_count() == 1 else jax.local_devices()[0]]
+    try:
+        devices = list(devices)
+    except TypeError:
+        raise ValueError(
+            f"devices: expected None (all devices), False (one device) or a sequence of "
+            f"jax devices, got {devices!r}"
+        ) from None
+    if not devices or not all(isinstance(d, jax.Device) for d in devices):
+        raise ValueError(f"devices: expected a non-empty sequence of jax devices, got {devices!r}")
+    owners = {d.process_index for d in devices}
+    if owners != {jax.process_index()} and owners != set(range(jax.process_count())):
+        raise ValueError(
+            f"devices: under jax.distributed the devices must be either all this process's "
+            f"(jax.local_devices()) or include devices of every process "
+            f"({jax.process_count()}); got devices of processes {sorted(owners)}"
+        )
+    return devices
 
 
 def check_fits(per_run_bytes: int, results_bytes: int, device) -> None:

@@ -332,31 +332,6 @@ def _study_traced(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh, 
 # Validation (before anything is traced)
 
 
-def _resolve_devices(devices):
-    if devices is None or devices is True:
-        return list(jax.devices())
-    if devices is False:
-        # jax.devices()[0] belongs to process 0; under jax.distributed each process uses its own
-        return [jax.devices()[0] if jax.process_count() == 1 else jax.local_devices()[0]]
-    try:
-        devices = list(devices)
-    except TypeError:
-        raise ValueError(
-            f"devices: expected None (all devices), False (one device) or a sequence of "
-            f"jax devices, got {devices!r}"
-        ) from None
-    if not devices or not all(isinstance(d, jax.Device) for d in devices):
-        raise ValueError(f"devices: expected a non-empty sequence of jax devices, got {devices!r}")
-    owners = {d.process_index for d in devices}
-    if owners != {jax.process_index()} and owners != set(range(jax.process_count())):
-        raise ValueError(
-            f"devices: under jax.distributed the devices must be either all this process's "
-            f"(jax.local_devices()) or include devices of every process "
-            f"({jax.process_count()}); got devices of processes {sorted(owners)}"
-        )
-    return devices
-
-
 def _state_numbers(estimator, x0, P0, th0, Pth0, keys) -> int:
     """How many numbers the filter carries for one run (its state from ``init``)."""
     def first(a, per_run_ndim):
@@ -471,7 +446,7 @@ def _plan(
     nx = int(estimator.nx)
 
     method = _smooth_method(estimator, smooth)
-    devs = tuple(_resolve_devices(devices))
+    devs = tuple(execution.resolve_devices(devices))
     if len(set(devs)) != len(devs):  # a mesh of repeated devices fails deep inside JAX
         raise ValueError(f"devices: expected each device at most once, got {list(devs)}")
     n_dev = len(devs)

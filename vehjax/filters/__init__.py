@@ -11,14 +11,16 @@ from .base import Estimator, StepOutput
 from .dual import DualState, JointState, dual_ekf, dual_ukf, joint_ekf, joint_ukf
 from .gaussian import GaussianState, SqrtGaussianState, ckf, ekf, masked_update, ukf, validate_prior
 from .liu_west import LiuWestState, liu_west_ukf
-from .marginalized import MPFState, marginalized_pf
+from .marginalized import (InputStdGrid, MeanStates, MPFState, NiW, marginalized_pf,
+                           marginalized_pf_grid)
 from .particle import PFState, bootstrap_pf
 from .vb import VBPRState, VBState, vbakf_pr, vbakf_r
 
 __all__ = [
     "Estimator", "StepOutput", "ekf", "ukf", "ckf", "ackf", "bootstrap_pf",
     "dual_ekf", "dual_ukf", "joint_ekf", "joint_ukf", "liu_west_ukf", "marginalized_pf",
-    "MPFState", "DualState", "JointState", "LiuWestState",
+    "marginalized_pf_grid", "NiW", "MeanStates", "InputStdGrid", "MPFState",
+    "DualState", "JointState", "LiuWestState",
     "GaussianState", "SqrtGaussianState", "AckfState", "PFState",
     "vbakf_r", "vbakf_pr", "VBState", "VBPRState",
     "masked_update", "validate_prior", "sigma", "kalman", "smc", "resampling",

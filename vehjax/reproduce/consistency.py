@@ -51,12 +51,12 @@ What "matched" means here (nothing below is tuned per filter):
   (covariances known; biases as Kalman states)" is not the paper's algorithm: the model gets a
   constant state per sensor added to its output (:func:`vehjax.models.with_output_biases`)
   that the per-particle Kalman filter estimates with the rest (prior: the other rows'). For
-  "MPF-K" is the option ``noise_means="kalman"`` (issue #33 item 2, not the paper's
-  algorithm; :mod:`vehjax.filters._mpf_means`): learns everything like MPF-G, but the
+  "MPF-K" is :func:`vehjax.filters.marginalized_pf_grid` (issue #33 item 2, not the paper's
+  algorithm; :mod:`vehjax.filters.marginalized.means`): learns everything like MPF-G, but the
   steering offset and the sensor biases are constant states of each particle's Kalman filter
   (Gaussian over all states), the steering std a fixed grid under Jeffreys' prior, and the
   sensor variances by Fisher scoring of the innovations (the builder's default,
-  :mod:`vehjax.filters._sensor_scoring`). "MPF-K (inverse-Wishart)" is MPF-K with
+  :mod:`vehjax.filters.marginalized.sensor_scoring`). "MPF-K (inverse-Wishart)" is MPF-K with
   ``sensor_variances="inverse-wishart"``: the sensor covariances the mean of expected
   inverse-Wishart statistics, as first built. For
   every MPF row the report also gives the parameter coverage: the fraction of runs whose final
@@ -88,7 +88,8 @@ FILTERS = ("EKF", "UKF", "CKF", "SR-UKF", "SR-CKF", "ACKF", "ACKF (paper)", "boo
            "MPF (known noise)", "MPF-G", "MPF-G (known noise)", "MPF-G (biases known)",
            "MPF-G (covariances known)", "MPF-G (covariances known; biases as Kalman states)",
            "MPF-K", "MPF-K (inverse-Wishart)")
-#: the MPF rows: ``marginalized_pf``'s keywords. What each makes as good as known (gamma0 for
+#: the MPF rows: ``marginalized_pf``'s keywords (``builder="grid"``: ``marginalized_pf_grid``'s;
+#: nu0, gamma0 go into its ``NiW``, input_std_range, input_std_prior into its ``InputStdGrid``). What each makes as good as known (gamma0 for
 #: the offset and the biases, nu0 for the covariances; the rows without it learn all), and
 #: MPF-G: each particle a Gaussian over all states (``kalman_states="all"``)
 _KNOWN_NOISE, _BIASES_KNOWN, _COVS_KNOWN = (dict(nu0=1e7, gamma0=1e-9), dict(gamma0=1e-9),
@@ -99,9 +100,8 @@ _MPFS = {"MPF": {}, "MPF (known noise)": _KNOWN_NOISE, "MPF-G": dict(kalman_stat
          "MPF-G (biases known)": dict(_BIASES_KNOWN, kalman_states="all"),
          "MPF-G (covariances known)": dict(_COVS_KNOWN, kalman_states="all"),
          _KALMAN_BIASES: dict(_KNOWN_NOISE, kalman_states="all"),
-         "MPF-K": dict(kalman_states="all", noise_means="kalman"),
-         "MPF-K (inverse-Wishart)": dict(kalman_states="all", noise_means="kalman",
-                                         sensor_variances="inverse-wishart")}
+         "MPF-K": dict(builder="grid"),
+         "MPF-K (inverse-Wishart)": dict(builder="grid", sensor_variances="inverse-wishart")}
 TARGET = 0.90
 
 #: XLA options of the pairs that need them (``vehjax.run``'s ``compiler_options``): LLVM at
@@ -256,15 +256,22 @@ def mpf_filter(model, n_particles, row="MPF"):
     Kalman states ``model`` must have the bias states (:func:`mpf_setup`) and the NiW's bias
     means are pinned at zero (gamma0 = 1e-9, which pins the steering offset at its prior mean
     too: the NiW has one gamma for both)."""
-    from ..filters import marginalized_pf
+    from ..filters import InputStdGrid, NiW, marginalized_pf, marginalized_pf_grid
 
     kalman = row == _KALMAN_BIASES
-    return marginalized_pf(
-        model, n_particles, sensors=_SENSORS, known_std=_KNOWN, linear_noise_std=_SIGMA_PHI,
-        std0={"delta": _DELTA_STD, **_STD},
-        mean0={"delta": _OFFSET} if kalman else {"delta": _OFFSET, **_BIAS}, forgetting=1.0,
-        linear_states=("phi", "phi_dot", "phi_ddot")
-        + (tuple(f"{s}_bias" for s in _SENSORS) if kalman else ()), **_MPFS[row])
+    opts = dict(_MPFS[row])
+    grid = opts.pop("builder", None) == "grid"
+    niw = NiW(std0={"delta": _DELTA_STD, **_STD},
+              mean0={"delta": _OFFSET} if kalman else {"delta": _OFFSET, **_BIAS}, forgetting=1.0,
+              **{k: opts.pop(k) for k in ("nu0", "gamma0") if k in opts})
+    common = dict(sensors=_SENSORS, known_std=_KNOWN, linear_noise_std=_SIGMA_PHI, niw=niw,
+                  linear_states=("phi", "phi_dot", "phi_ddot")
+                  + (tuple(f"{s}_bias" for s in _SENSORS) if kalman else ()))
+    if grid:
+        std_grid = InputStdGrid(**{k: opts.pop(k) for k in ("input_std_range", "input_std_prior")
+                                   if k in opts})
+        return marginalized_pf_grid(model, n_particles, grid=std_grid, **common, **opts)
+    return marginalized_pf(model, n_particles, **common, **opts)
 
 
 def mpf_setup(model, n_particles, row, P0):
@@ -381,7 +388,7 @@ _WHY = {
     "MPF-K": "learning everything from 300 steps: the offset and the biases Kalman states, the "
              "steering std a fixed grid under Jeffreys' prior (the weights its posterior), the "
              "sensor variances by Fisher scoring of the innovations, the sensors' noises "
-             "uncorrelated (vehjax.filters._sensor_scoring; module docstring of "
+             "uncorrelated (vehjax.filters.marginalized.sensor_scoring; module docstring of "
              "vehjax.filters.marginalized). At seeds 0 / 1 / 2 (100 runs, N = 1000) NEES in "
              "the band on 0.937 / 0.923 / 0.933 of the steps, NIS 0.943 / 0.943 / 0.927, "
              "every parameter's coverage 0.92-1.00 (the ay std's 0.97-1.00, its reported std "

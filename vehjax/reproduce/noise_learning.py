@@ -36,7 +36,7 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   0.99, both in the band on 0.95 of the steps, every learnt parameter's coverage >= 0.90.
 * **MPF (paper)**: :mod:`vehjax.banked_road`'s ``build_sim_filter`` (N = ``--particles``, lambda = 0.995,
   initial stds twice the truth) and ``build_drive_filter`` (bank variant, lambda = 0.999).
-* **MPF (consistent)**: the same model with ``noise_means="kalman"`` (issue #33 item 2,
+* **MPF (consistent)**: the same model in ``marginalized_pf_grid`` (issue #33 item 2,
   not the paper's: :mod:`vehjax.filters.marginalized`): the steering offset and the biases as
   Kalman states of every particle (the biases with the truth's random-walk stds, as the VB
   rows; their priors those of the VB rows, 0.5 deg, 0.5 m/s^2, 0.5 deg/s), the steering
@@ -48,7 +48,7 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   are the posterior over the steering std; the sensor variances by Fisher scoring of the
   innovations weighted at the guesses (twice the truth), with a sandwich covariance, the
   sensors' noises uncorrelated (the filter's default, ``sensor_variances="scored"``:
-  :mod:`vehjax.filters._sensor_scoring`). No forgetting in simulation (the covariances are
+  :mod:`vehjax.filters.marginalized.sensor_scoring`). No forgetting in simulation (the covariances are
   constant and the biases have their walk states; with the paper's 0.995 the inverse-Wishart
   statistics' own noise pushed the steering std up, +22 % against +12 % at 1 under the
   inverse-Wishart grid, 10 runs x 180 s); 0.999 on the drive, as the paper's drive filter. It
@@ -56,7 +56,7 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   as 100 (inverse-Wishart grid and variances, 20 runs x 180 s: NEES 0.817 per dof both, the
   steering std's mean 1.122 of the truth both); where the data pin the steering std more
   narrowly than the grid's spacing, its estimate and interval come from the Laplace
-  approximation on the grid (:mod:`vehjax.filters._grid`; not the case here).
+  approximation on the grid (:mod:`vehjax.filters.marginalized.grid`; not the case here).
   At the defaults (100 runs x 180 s; the whole report 6:19 on 2026-11-27, a machine about 2.5
   times faster than the 16:28 of 7caecb8) it learns the offset (RMS 0.001 deg), tracks the
   biases, learns the sensor stds (within 0.3 %) and the steering std (+0.3 % over the last
@@ -235,31 +235,28 @@ def ackf_with_R(est, idx, names, R0):
 
 
 def _mpf_consistent(model, args, drive, variances=None):
-    """The MPF (paper)'s filter with ``noise_means="kalman"`` (issue #33 item 2): the biases as
-    Kalman states with the truth's random-walk stds (as the VB rows), the statistics averaged
-    over the offset's conditional, Gaussian particle states; ``variances``, its
-    ``sensor_variances``."""
-    from vehjax.filters.marginalized import marginalized_pf
+    """The MPF (paper)'s model in :func:`vehjax.filters.marginalized_pf_grid` (issue #33 item
+    2): the biases as Kalman states with the truth's random-walk stds (as the VB rows), the
+    statistics averaged over the offset's conditional, Gaussian particle states;
+    ``variances``, its ``sensor_variances``."""
+    from vehjax.filters.marginalized import MeanStates, NiW, marginalized_pf_grid
 
-    walk = {s: road.BIAS_WALK[s] for s in SENSORS}
+    means = MeanStates(bias_walk={s: road.BIAS_WALK[s] for s in SENSORS},
+                       mean_std0={"delta": OFFSET_STD0, **BIAS_STD0})
+    common = dict(noisy_input="delta", sensors=SENSORS,
+                  known_std={"phi": road.PHI_STD, "r_virt": road.RVIRT_STD},
+                  linear_noise_std=road.BANK_JERK_STD, means=means, sensor_variances=variances)
     if drive:
         scale = ("eps",) if "eps" in model.state_names else ()
-        return marginalized_pf(
-            model, args.grid_points, noisy_input="delta", sensors=SENSORS,
-            known_std={"phi": road.PHI_STD, "r_virt": road.RVIRT_STD},
-            linear_states=("phi", "phi_dot", "phi_ddot") + scale,
-            linear_noise_std=road.BANK_JERK_STD,
-            std0={**road.DRIVE_STD0, "roll_rate": road.DRIVE_STD0["r"]}, forgetting=0.999,
-            noise_means="kalman", bias_walk=walk, mean_std0={"delta": OFFSET_STD0, **BIAS_STD0},
-            sensor_variances=variances)
+        niw = NiW(std0={**road.DRIVE_STD0, "roll_rate": road.DRIVE_STD0["r"]}, forgetting=0.999)
+        return marginalized_pf_grid(model, args.grid_points, niw=niw,
+                                    linear_states=("phi", "phi_dot", "phi_ddot") + scale,
+                                    **common)
     steer0 = args.steer_factor * road.STEER_STD
-    return marginalized_pf(
-        model, args.grid_points, noisy_input="delta", sensors=SENSORS,
-        known_std={"phi": road.PHI_STD, "r_virt": road.RVIRT_STD},
-        linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=road.BANK_JERK_STD,
-        std0={"delta": steer0, **{s: 2 * road.SENSOR_STD[s] for s in SENSORS}},
-        forgetting=1.0, noise_means="kalman", bias_walk=walk,
-        mean_std0={"delta": OFFSET_STD0, **BIAS_STD0}, sensor_variances=variances)
+    niw = NiW(std0={"delta": steer0, **{s: 2 * road.SENSOR_STD[s] for s in SENSORS}},
+              forgetting=1.0)
+    return marginalized_pf_grid(model, args.grid_points, niw=niw,
+                                linear_states=("phi", "phi_dot", "phi_ddot"), **common)
 
 
 def build(method, model, args, drive=False):

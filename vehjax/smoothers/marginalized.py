@@ -22,7 +22,7 @@ after every step each particle's Gaussian over the states (means ``x``, ``z``, c
    ``G = C_t P_t|t-1^+``, ``m_t-1|T = m_t-1 + G (m_t|T - m_t|t-1)``,
    ``P_t-1|T = P_t-1 + G (P_t|T - P_t|t-1) G^T`` and ``Cov(s_t-1, s_t | .) = G P_t|T``, where
    ``m_t|t-1, P_t|t-1`` and ``C_t = Cov(s_t-1, s_t)`` are the particle's prediction with its
-   w_t (:func:`vehjax.filters._mpf_kalman.joint_prediction`). ``P_t|t-1`` may be singular (a
+   w_t (:func:`vehjax.filters.marginalized.kalman.joint_prediction`). ``P_t|t-1`` may be singular (a
    particle's sampled states start as a point, and the linear states' noise has rank one on
    SingleTrackBank): ``^+`` is the pseudo-inverse on the range of ``P_t|t-1``, which holds
    the rows of C_t, so the recursion is the exact conditional (:func:`psd_right_solve`).
@@ -49,7 +49,7 @@ after every step each particle's Gaussian over the states (means ``x``, ``z``, c
    weighted mixture of the M per-path Gaussians (:func:`mixture_moments`), the lag-one
    covariance likewise.
 4. **Noise statistics.** At each time t the NiW statistics of the M paths' particles at t give
-   eq. 23's estimates and their mixture covariance (:func:`vehjax.filters._niw.
+   eq. 23's estimates and their mixture covariance (:func:`vehjax.filters.marginalized.niw.
    noise_estimates`, equal weights).
 
 Backward simulation (``method="ffbsi"``, ``kalman_states="linear"``)
@@ -192,8 +192,8 @@ import numpy as np
 
 from .. import validation
 from ..engine import output_ok
-from ..filters._mpf_linearise import linearise
-from ..filters._niw import impute_missing, niw_predict, niw_update, noise_estimates
+from ..filters.marginalized.linearise import linearise
+from ..filters.marginalized.niw import impute_missing, niw_predict, niw_update, noise_estimates
 from ..filters.base import Estimator
 from .particle import count_unique, ffbsi_indices
 
@@ -347,7 +347,7 @@ def _mixture_cross(m0, m1, cross):
 
 def linear_step_joint(rb, theta, x_prev, z_prev, P_prev, mu, lam_w, lam_e, nu, x_new, y, u):
     """Step t of one particle's Kalman filter of the linear states (``kalman_states="linear"``,
-    sec. 3.4 as :func:`vehjax.filters._mpf_kalman.bank_kalman_step` does it) recomputed with
+    sec. 3.4 as :func:`vehjax.filters.marginalized.kalman.bank_kalman_step` does it) recomputed with
     z_t-1 kept: the joint Gaussian of (z_t-1, z_t) given the particle's path x_0:t and y_0:t.
 
     With s1 = z_t-1 - m, s2 = w_t - mu_w, zeta_t the linear states' process noise (prior
@@ -368,22 +368,23 @@ def linear_step_joint(rb, theta, x_prev, z_prev, P_prev, mu, lam_w, lam_e, nu, x
     Returns:
         (mean (2 n_z,), cov (2 n_z, 2 n_z)) of (z_t-1, z_t).
     """
-    s, mdl = rb.setup, rb.model
+    s = rb.linear
     dtype = x_prev.dtype
-    nz, rows = s.nz, np.asarray(s.u_idx)
-    srow = np.asarray(s.srow, int)
-    lin = linearise(mdl.f, mdl.h, x_prev, z_prev, u, theta, s.nl, s.li, s.i_in)
+    nz, rows = rb.nz, np.asarray(s.used_rows)
+    srow = np.asarray(s.sensor_rows, int)
+    lin = linearise(s.transition, s.observe, x_prev, z_prev, u, theta, s.sampled_idx,
+                    s.linear_idx, s.input_idx)
     yb, Cx, Cz, d = lin.yb[rows], lin.Cx[rows], lin.Cz[rows], lin.d[rows]
     yu = y[rows]
     obs = ~jnp.isnan(yu)
     # the point estimates the filter's step uses (eq. 20, 23)
-    nu_p = s.lam * nu
-    inv_den = 1.0 / (nu_p - s.d - 1.0)
-    sig_w2 = s.lam * lam_w * inv_den
+    nu_p = s.forgetting * nu
+    inv_den = 1.0 / (nu_p - s.noise_dim - 1.0)
+    sig_w2 = s.forgetting * lam_w * inv_den
     mu_w = mu[0]
     b_y = jnp.zeros(len(rows), dtype).at[srow].set(mu[1:])
-    R_y = jnp.diag(jnp.asarray(s.kvu, dtype)).at[np.ix_(srow, srow)].set(
-        s.lam * lam_e * inv_den)
+    R_y = jnp.diag(jnp.asarray(s.known_variances, dtype)).at[np.ix_(srow, srow)].set(
+        s.forgetting * lam_e * inv_den)
     g = lin.g
     gg = g @ g
     gp = g / jnp.where(gg > 0, gg, 1.0)
@@ -391,7 +392,7 @@ def linear_step_joint(rb, theta, x_prev, z_prev, P_prev, mu, lam_w, lam_e, nu, x
     dx = x_new - lin.xb
     r1 = gp @ dx - mu_w
     o2 = jnp.where(obs, yu - yb - Cx @ dx - (Cz @ lin.gz + d) * mu_w - b_y, 0.0)
-    Qz = jnp.asarray(s.Qz, dtype)
+    Qz = jnp.asarray(s.linear_noise, dtype)
     n = 2 * nz + 1
     Sv = jnp.zeros((n, n), dtype).at[:nz, :nz].set(P_prev).at[nz, nz].set(sig_w2)
     Sv = Sv.at[nz + 1:, nz + 1:].set(Qz)
@@ -429,7 +430,7 @@ def linear_path_step(rb, theta, x_prev, z_prev, P_prev, mu, lam_w, lam_e, gamma,
     w_t = g^+ (x_t - xb) (the filter's draw when x_t is the particle's own), the sensor residual
     e_t = y - yb - Cx (x_t - xb) - Cz (z_t - zb) - d w_t - b at the posterior mean z_t, with
     Cz P_t Cz^T on the observed sensor pairs and the conditional covariance of missing sensors
-    (:func:`vehjax.filters._niw.impute_missing`) added to Lambda_e.
+    (:func:`vehjax.filters.marginalized.niw.impute_missing`) added to Lambda_e.
 
     Args:
         rb: the filter's :class:`~vehjax.filters.marginalized.RBTransition`.
@@ -442,9 +443,9 @@ def linear_path_step(rb, theta, x_prev, z_prev, P_prev, mu, lam_w, lam_e, gamma,
     Returns:
         (z_t (n_z,), P_t (n_z, n_z), mu (d,), lam_w (), lam_e (n_s, n_s)) after step t.
     """
-    s, mdl = rb.setup, rb.model
-    nz, rows = s.nz, np.asarray(s.u_idx)
-    srow = np.asarray(s.srow, int)
+    s = rb.linear
+    nz, rows = rb.nz, np.asarray(s.used_rows)
+    srow = np.asarray(s.sensor_rows, int)
     ns = len(srow)
     if nz:
         mj, Cj = linear_step_joint(rb, theta, x_prev, z_prev, P_prev, mu, lam_w, lam_e, nu,
@@ -452,8 +453,9 @@ def linear_path_step(rb, theta, x_prev, z_prev, P_prev, mu, lam_w, lam_e, gamma,
         z_new, P_new = mj[nz:], Cj[nz:, nz:]
     else:
         z_new, P_new = z_prev, P_prev
-    lin = linearise(mdl.f, mdl.h, x_prev, z_prev, u, theta, s.nl, s.li, s.i_in)
-    gam_p, nu_p, lw_p, le_p = niw_predict(gamma, nu, lam_w, lam_e, s.lam)
+    lin = linearise(s.transition, s.observe, x_prev, z_prev, u, theta, s.sampled_idx,
+                    s.linear_idx, s.input_idx)
+    gam_p, nu_p, lw_p, le_p = niw_predict(gamma, nu, lam_w, lam_e, s.forgetting)
     g = lin.g
     gg = g @ g
     dx = x_new - lin.xb
@@ -465,7 +467,7 @@ def linear_path_step(rb, theta, x_prev, z_prev, P_prev, mu, lam_w, lam_e, gamma,
             + lin.d[rows][srow] * w)
     eta = jnp.where(obs, yu - pred - mu[1:], 0.0)
     V = jnp.where(obs[:, None] & obs[None, :], Cz @ P_new @ Cz.T, 0.0)
-    R_s = le_p / (nu_p - s.d - 1.0)
+    R_s = le_p / (nu_p - s.noise_dim - 1.0)
     ob = [obs[i] for i in range(ns)]
     eta_l, V_miss = impute_missing([eta[i] for i in range(ns)],
                                    [[R_s[i, j] for j in range(ns)] for i in range(ns)], ob)
@@ -505,20 +507,21 @@ def backward_logdens(rb, theta, x, z, P, mu, lam_w, lam_e, gamma, nu, u_next, y_
     Returns:
         (M, N) log densities, each -|L_j^-1 r_mj|^2 / 2 - log det L_j (finite).
     """
-    s, mdl = rb.setup, rb.model
-    nxs, nz = x.shape[0], s.nz
-    rows = np.asarray(s.u_idx)
-    srow = np.asarray(s.srow, int)
+    s = rb.linear
+    nxs, nz = x.shape[0], rb.nz
+    rows = np.asarray(s.used_rows)
+    srow = np.asarray(s.sensor_rows, int)
     dtype = x.dtype
-    lin = jax.vmap(lambda xj, zj: linearise(mdl.f, mdl.h, xj, zj, u_next, theta, s.nl, s.li,
-                                            s.i_in), in_axes=(1, 1))(x, z)
-    gam_p, nu_p = gamma / s.lam, s.lam * nu
-    c = (1.0 + gam_p) * s.lam / (nu_p - s.d - 1.0)
+    lin = jax.vmap(lambda xj, zj: linearise(s.transition, s.observe, xj, zj, u_next, theta,
+                                            s.sampled_idx, s.linear_idx, s.input_idx),
+                   in_axes=(1, 1))(x, z)
+    gam_p, nu_p = gamma / s.forgetting, s.forgetting * nu
+    c = (1.0 + gam_p) * s.forgetting / (nu_p - s.noise_dim - 1.0)
     var_w = c * lam_w  # (N,)
     yu = y_next[rows]
     obs = ~jnp.isnan(yu)
     nyu = len(rows)
-    R = jnp.broadcast_to(jnp.diag(jnp.asarray(s.kvu, dtype)), (x.shape[1], nyu, nyu))
+    R = jnp.broadcast_to(jnp.diag(jnp.asarray(s.known_variances, dtype)), (x.shape[1], nyu, nyu))
     R = R.at[:, srow[:, None], srow[None, :]].set(c * jnp.moveaxis(lam_e, -1, 0))
     b_y = jnp.zeros((x.shape[1], nyu), dtype).at[:, srow].set(mu[1:].T)
     # V = (s1, w, zeta): x_t+1 - xb = Jx V, z_t+1 - zb = Jz V, y - yb - b - e = Jy V
@@ -531,7 +534,7 @@ def backward_logdens(rb, theta, x, z, P, mu, lam_w, lam_e, gamma, nu, u_next, y_
     Jy = Jy.at[:, :, nz].add(d)
     nv = 2 * nz + 1
     Sv = jnp.zeros((N, nv, nv), dtype).at[:, :nz, :nz].set(jnp.moveaxis(P, -1, 0))
-    Sv = Sv.at[:, nz, nz].set(var_w).at[:, nz + 1:, nz + 1:].set(jnp.asarray(s.Qz, dtype))
+    Sv = Sv.at[:, nz, nz].set(var_w).at[:, nz + 1:, nz + 1:].set(jnp.asarray(s.linear_noise, dtype))
     J = jnp.concatenate([Jx, Jy], axis=1)  # (N, n_xs + n_yu, nv)
     S = J @ Sv @ jnp.swapaxes(J, 1, 2)
     S = S.at[:, nxs:, nxs:].add(R)
@@ -713,12 +716,12 @@ def _check(estimator, method, n_trajectories):
         name = getattr(estimator, "name", type(estimator).__name__)
         raise ValueError(f"estimator: the marginalized-PF smoother needs a marginalized_pf "
                          f"estimator, got {name!r}")
-    if rb.nz and not rb.gauss and (rb.setup is None or rb.model is None):
+    if rb.nz and not rb.gauss and rb.linear is None:
         raise ValueError(
             "estimator: this marginalized_pf with kalman_states='linear' does not declare its "
-            "setup and model (RBTransition.setup, .model), which the smoother needs")
+            "linear step (RBTransition.linear), which the smoother needs")
     method = "ancestor" if method is None else validation.choice("method", method, METHODS)
-    if method == "ffbsi" and (rb.gauss or rb.setup is None or rb.model is None):
+    if method == "ffbsi" and (rb.gauss or rb.linear is None):
         raise ValueError(
             "method: 'ffbsi' needs the paper's filter (kalman_states='linear', whose particles "
             "sample the vehicle states): with kalman_states='all' the particles sample only "

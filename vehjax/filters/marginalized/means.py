@@ -1,6 +1,6 @@
-"""The marginalized PF with the noise means as Kalman states (``marginalized_pf(...,
-noise_means="kalman")``): the model seen by that filter, and its priors and estimates mapped
-to and from the paper's parameters.
+"""The marginalized PF with the noise means as Kalman states
+(:func:`~vehjax.filters.marginalized.marginalized_pf_grid`): the model seen by that filter, and its
+priors and estimates mapped to and from the paper's parameters.
 
 Why. In the paper's filter (eq. 18) each particle's NiW statistics take the particle's
 residuals as exact observations of the noise means, and the particle's Kalman filter takes the
@@ -32,8 +32,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from ..models.base import Model
-from ..models.biases import with_input_offset, with_output_biases
+from ...models.base import Model
+from ...models.biases import with_input_offset, with_output_biases
 
 __all__ = ["with_noise_means", "mean_state_names", "pad_linear_noise", "bias_walk_stds",
            "augment_prior", "map_estimates"]

@@ -1,12 +1,12 @@
 """The Kalman filters of each particle of the marginalized PF (Berntorp & Di Cairano 2018,
 sec. 3.4, and the Gaussian particle states of ``kalman_states="all"``), written entry by entry
 over the particles (:mod:`vehjax.lib.entrywise`): every argument is a list or nested list
-of (N,) arrays or structural constants, ``lin`` a :class:`~vehjax.filters._mpf_linearise.Lin`
+of (N,) arrays or structural constants, ``lin`` a :class:`~.linearise.Lin`
 of entries. Sequential conditioning of joint Gaussians, Cholesky factors and forward
 substitutions throughout (no inverses). The derivations are in
 :mod:`vehjax.filters.marginalized`.
 
-``start``: the opaque zero of :func:`vehjax.lib.entrywise.barrier` (None: from the data).
+Intermediate results are materialised by :func:`~vehjax.filters.marginalized.staging.stage`.
 """
 
 from __future__ import annotations
@@ -15,14 +15,15 @@ import math
 
 import jax.numpy as jnp
 
-from ..lib.entrywise import add, barrier, chol_masked, div, dot, is_zero, matmul, matvec, mul, sub
-from ..lib.linalg import forward_entries
+from ...lib.entrywise import add, chol_masked, div, dot, is_zero, matmul, matvec, mul, sub
+from ...lib.linalg import forward_entries
+from .staging import stage
 
 __all__ = ["bank_kalman_step", "kalman_update", "joint_kalman_step", "joint_prediction",
            "gaussian_loglik", "input_noise_kalman_step"]
 
 
-def bank_kalman_step(lin, P, dx, y, obs, mu_w, b_y, sig_w2, R_y, Qz, start=None):
+def bank_kalman_step(lin, P, dx, y, obs, mu_w, b_y, sig_w2, R_y, Qz):
     """The bank's Kalman step (sec. 3.4) for x_t = lin.xb + dx, all arguments entries.
 
     Deviations s1 = z_{t-1} - m, s2 = w - mu_w, s3 = z_t - zb - gz mu_w (prior mean zero):
@@ -49,7 +50,7 @@ def bank_kalman_step(lin, P, dx, y, obs, mu_w, b_y, sig_w2, R_y, Qz, start=None)
     P1 = [[sub(P[i][j], mul(kz[i], Pa[j])) for j in range(nz)] for i in range(nz)]
     c1 = [mul(k, -sig_w2) for k in kz]  # cov(s1, s2)
     v1 = sig_w2 - kw * sig_w2
-    m1, mw, P1, c1, v1 = barrier((m1, mw, P1, c1, v1), start)
+    m1, mw, P1, c1, v1 = stage((m1, mw, P1, c1, v1))
     # predict (s2, s3)
     Ac = matvec(A, c1)
     mt = [add(dot(A[i], m1), mul(gz[i], mw)) for i in range(nz)]
@@ -66,12 +67,12 @@ def bank_kalman_step(lin, P, dx, y, obs, mu_w, b_y, sig_w2, R_y, Qz, start=None)
     o2 = [jnp.where(obs[i], sub(sub(sub(y[i] - lin.yb[i], dot(lin.Cx[i], dx)),
                                       mul(add(dot(Cz[i], gz), d[i]), mu_w)), b_y[i]), 0.0)
           for i in range(ny)]
-    mean, cov, o2 = barrier((mean, cov, o2), start)
-    post, C = kalman_update(mean, cov, H, o2, R_y, obs, start)
+    mean, cov, o2 = stage((mean, cov, o2))
+    post, C = kalman_update(mean, cov, H, o2, R_y, obs)
     return post[1:], [row[1:] for row in C[1:]], o2, post[0]
 
 
-def _update_parts(mean, cov, H, r, R_y, obs, start):
+def _update_parts(mean, cov, H, r, R_y, obs):
     """The Kalman update's pieces (entries): the posterior mean and covariance (symmetrised),
     the Cholesky factor L of the innovation covariance S on the observed components (identity
     rows elsewhere), the whitened innovation alpha = L^-1 (r - H mean), B[k] = L^-1 (H cov)[:, k]
@@ -79,7 +80,7 @@ def _update_parts(mean, cov, H, r, R_y, obs, start):
     n, ny = len(mean), len(r)
     HS = matmul(H, cov)  # (ny, n)
     S2 = [[add(dot(HS[i], H[j]), R_y[i][j]) for j in range(ny)] for i in range(ny)]
-    HS, S2 = barrier((HS, S2), start)
+    HS, S2 = stage((HS, S2))
     L = chol_masked(S2, obs)
     alpha = forward_entries(L, [jnp.where(obs[i], sub(r[i], dot(H[i], mean)), 0.0)
                                 for i in range(ny)])
@@ -95,10 +96,10 @@ def _update_parts(mean, cov, H, r, R_y, obs, start):
     return post, C, L, alpha, B, S2
 
 
-def kalman_update(mean, cov, H, r, R_y, obs, start=None):
+def kalman_update(mean, cov, H, r, R_y, obs):
     """Kalman update (entries): N(mean, cov) conditioned on the observed components of
     r = H s + noise(R_y). Returns the posterior mean and covariance (symmetric)."""
-    return _update_parts(mean, cov, H, r, R_y, obs, start)[:2]
+    return _update_parts(mean, cov, H, r, R_y, obs)[:2]
 
 
 def gaussian_loglik(L, alpha, obs):
@@ -109,9 +110,9 @@ def gaussian_loglik(L, alpha, obs):
             - 0.5 * math.log(2.0 * math.pi) * n_obs)
 
 
-def input_noise_kalman_step(lin, P, sig_w2, y, obs, b_y, R_y, Qz, start=None):
+def input_noise_kalman_step(lin, P, sig_w2, y, obs, b_y, R_y, Qz):
     """The Kalman step of Gaussian particle states with the noisy input's error w ~ N(0,
-    sig_w2) as process noise (not drawn; ``noise_means="kalman"``, where the offset is a
+    sig_w2) as process noise (not drawn; ``marginalized_pf_grid``, where the offset is a
     state): the deviations xi = (x_{t-1} - x_hat, z_{t-1} - m) ~ N(0, P) and w predicted
     jointly, s_t = Phi xi + (g, gz) w (+ the linear states' noise Qz), then conditioned on the
     observed components of o = y - yb - b_y = H s_t + d w + noise(R_y), H = (Cx, Cz).
@@ -139,12 +140,12 @@ def input_noise_kalman_step(lin, P, sig_w2, y, obs, b_y, R_y, Qz, start=None):
     ny = len(y)
     H = [list(lin.Cx[i]) + list(lin.Cz[i]) + [lin.d[i]] for i in range(ny)]
     o = [jnp.where(obs[i], sub(y[i] - lin.yb[i], b_y[i]), 0.0) for i in range(ny)]
-    cov, o = barrier((cov, o), start)
-    post, C, L, alpha, _, S = _update_parts([0.0] * (n + 1), cov, H, o, R_y, obs, start)
+    cov, o = stage((cov, o))
+    post, C, L, alpha, _, S = _update_parts([0.0] * (n + 1), cov, H, o, R_y, obs)
     return post, C, o, gaussian_loglik(L, alpha, obs), S
 
 
-def joint_kalman_step(lin, P, w, y, obs, b_y, R_y, Qz, D, start=None):
+def joint_kalman_step(lin, P, w, y, obs, b_y, R_y, Qz, D):
     """The Kalman step of Gaussian particle states: the deviations xi = (x_{t-1} - x_hat,
     z_{t-1} - m) ~ N(0, P) of one particle whose offset draw w is taken as known, predicted
     through the model's Jacobians (x_t = lin.xb + g w and z_t = lin.zb + gz w are the predicted
@@ -167,8 +168,8 @@ def joint_kalman_step(lin, P, w, y, obs, b_y, R_y, Qz, D, start=None):
     H = [list(lin.Cx[i]) + list(lin.Cz[i]) for i in range(ny)]
     o = [jnp.where(obs[i], sub(sub(y[i] - lin.yb[i], mul(D[i], w)), b_y[i]), 0.0)
          for i in range(ny)]
-    Cp, o = barrier((Cp, o), start)
-    post, C = kalman_update([0.0] * n, Cp, H, o, R_y, obs, start)
+    Cp, o = stage((Cp, o))
+    post, C = kalman_update([0.0] * n, Cp, H, o, R_y, obs)
     return post, C, o
 
 
@@ -180,7 +181,7 @@ def joint_prediction(lin, w, P, Qz):
     :func:`joint_kalman_step`, before its update).
 
     Args:
-        lin: :class:`~vehjax.filters._mpf_linearise.Lin` of arrays at the particle's means and
+        lin: :class:`~.linearise.Lin` of arrays at the particle's means and
             u_t.
         w: scalar, the offset draw w_t.  P: (n, n) covariance at t - 1, n = n_x + n_z.
         Qz: (n_z, n_z) process noise of the linear states.

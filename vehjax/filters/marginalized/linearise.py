@@ -14,8 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import hoist
-from ..lib.entrywise import entries
+from ... import hoist
+from ...lib.entrywise import entries
 
 __all__ = ["Lin", "linearise", "lin_entries", "entry_kinds", "merge_entries"]
 

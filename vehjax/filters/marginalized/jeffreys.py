@@ -1,6 +1,6 @@
 """Jeffreys' prior over a grid of one variance parameter, from the covariance part of the
-expected Fisher information of a Gaussian predictive (``marginalized_pf(noise_means="kalman",
-input_std_prior="jeffreys")``, issue #33).
+expected Fisher information of a Gaussian predictive (``marginalized_pf_grid``'s default
+``InputStdGrid(input_std_prior="jeffreys")``, issue #33).
 
 Why. A variance that enters the data beside other noise (the steering noise sigma_w^2 seen
 through vy and r beside the sensors' noise) is a variance component: the predictive covariance
@@ -42,8 +42,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ..lib.entrywise import chol_masked, entries
-from ..lib.linalg import forward_entries
+from ...lib.entrywise import chol_masked, entries
+from ...lib.linalg import forward_entries
 
 __all__ = ["grid_derivative", "covariance_information", "log_prior"]
 

@@ -21,8 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
 
-from ..lib.entrywise import add, barrier, chol_masked, dot, is_zero, matmul, mul
-from ..lib.linalg import forward_entries
+from ...lib.entrywise import add, chol_masked, dot, is_zero, matmul, mul
+from ...lib.linalg import forward_entries
+from .staging import stage
 
 __all__ = [
     "niw_predict", "niw_update", "st_logpdf_whitened", "t_weight_and_proposal", "impute_missing",
@@ -47,7 +48,7 @@ def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, means_known=False
         eta: (d, ...) the datum minus mu.
         extra_e: (d - 1, d - 1, ...) added to Lambda_e, or None: the expected-statistic term for
             uncertain or missing sensor data (module docstring of the filter).
-        means_known: the noise's mean is known (zero; ``noise_means="kalman"``, where the
+        means_known: the noise's mean is known (zero; the grid filter's, where the
             offset and the biases are Kalman states): the NiW is an inverse-Wishart, gamma = 0
             (kappa = infinity), so the means stay and Lambda gains eta eta^T on both blocks.
 
@@ -148,7 +149,7 @@ GRID_Z = 3.5
 
 def static_prior_grid(lam_w, dof, n: int):
     """A grid of n variances over the inverse-Wishart prior's marginal Lambda_w / chi^2_dof and
-    their prior log weights: each particle's own static sigma_w^2 (``noise_means="kalman"``).
+    their prior log weights: each particle's own static sigma_w^2 (``marginalized_pf_grid``).
 
     The grid is uniform in log sigma^2 between the chi-square's Wilson-Hilferty quantiles at
     -+ :data:`GRID_Z` (Johnson, Kotz & Balakrishnan 1994, eq. 18.25; lower base floored at 1e-3
@@ -188,13 +189,13 @@ def noise_estimates(w, mu, lam_w, lam_e, nu, gamma, means_known=False, var_cov=N
         means_known: the noise's mean is known (gamma = 0, :func:`niw_update`): no
             within-particle covariance of the offset and the biases; ``lam_w`` is then each
             particle's sigma_w^2 itself (a static parameter of the particle, not a statistic:
-            ``noise_means="kalman"``), so sigma_w has no within-particle variance either.
+            ``marginalized_pf_grid``), so sigma_w has no within-particle variance either.
         var_cov: (d - 1, d - 1, N) or None: each particle's covariance of its sensor
             variances in place of the inverse-Wishart's (where finite; the scored variances of
-            :mod:`vehjax.filters._sensor_scoring`).
+            :mod:`vehjax.filters.marginalized.sensor_scoring`).
         input_var_extra: (N,) or None: a within-particle variance of sigma_w (its std) to add
             (with ``means_known``: the plug-in of the scored sensor variances,
-            :func:`vehjax.filters._sensor_scoring.plug_in_variance`).
+            :func:`vehjax.filters.marginalized.sensor_scoring.plug_in_variance`).
 
     Returns:
         (params (p,), params_cov (p, p)), p = 2 d, in the order offset mean, offset std,
@@ -257,7 +258,7 @@ def draw_offset(mu_w, shift, scale, dof, z1, z2):
 
 
 def t_predictive(lin, P, Qz, lam_w, lam_e, mu_w, b_y, gamma, nu, dim, known_var, sensor_pos,
-                 n_sampled, start=None):
+                 n_sampled):
     """The moment-matched Student-t predictive of y_t of one step (eq. 26-27), entries over
     the particles.
 
@@ -270,7 +271,7 @@ def t_predictive(lin, P, Qz, lam_w, lam_e, mu_w, b_y, gamma, nu, dim, known_var,
     matched by a t of the same dof and covariance: scale (df - 2) / df K.
 
     Args:
-        lin: :class:`~vehjax.filters._mpf_linearise.Lin` of entries, the used output rows.
+        lin: :class:`~vehjax.filters.marginalized.linearise.Lin` of entries, the used output rows.
         P: (n_k, n_k) entries, the particles' Kalman covariances.
         Qz: (n_z, n_z) entries, the linear states' process noise.
         lam_w, lam_e: Lambda_w (N,) and Lambda_e entries (n_s, n_s), predicted (eq. 20).
@@ -296,7 +297,7 @@ def t_predictive(lin, P, Qz, lam_w, lam_e, mu_w, b_y, gamma, nu, dim, known_var,
         M = [[add(dot(lin.Cx[i], [r[j] for r in lin.Fx]),
                   dot(lin.Cz[i], [r[j] for r in lin.Fzx])) for j in range(n_sampled)] + M[i]
              for i in range(nyu)]
-    D, M = barrier((D, M), start)
+    D, M = stage((D, M))
     MP = matmul(M, P)
     CQ = matmul(lin.Cz, Qz)
     mu_y = [add(add(lin.yb[i], mul(D[i], mu_w)), b_y[i]) for i in range(nyu)]
@@ -310,5 +311,5 @@ def t_predictive(lin, P, Qz, lam_w, lam_e, mu_w, b_y, gamma, nu, dim, known_var,
             if i in sensor_pos and j in sensor_pos:
                 v = add(v, c * lam_e[sensor_pos[i]][sensor_pos[j]])
             S[i][j] = S[j][i] = add(v, mul(mm, K)) if not is_zero(K) else v
-    S, mu_y, D = barrier((S, mu_y, D), start)
+    S, mu_y, D = stage((S, mu_y, D))
     return mu_y, S, D, sw, df

@@ -1,6 +1,6 @@
 """The sensor variances of the consistent marginalized PF by Fisher scoring of its innovations,
-weighted at the prior guess (``marginalized_pf(noise_means="kalman")``'s default,
-``sensor_variances="scored"``; issue #33).
+weighted at the prior guess (:func:`~vehjax.filters.marginalized.marginalized_pf_grid`'s
+default, ``sensor_variances="scored"``; issue #33).
 
 What was wrong with the expected statistics alone. Each particle's Kalman step with the sensor
 covariance R' (its estimate so far) gives the posterior of the sensor noise e_t given y_1:t,
@@ -69,8 +69,8 @@ kept the inverse-Wishart statistics' correlations beside the scored variances; t
 the same slowly forgetting statistics, the filter with them was suboptimal, and its gyro
 innovations exceeded its predictive covariance: the scored r and roll-rate stds ended 1.1-1.4 %
 above the oracle's (each run's sample std of its true noise, states and bias known; the
-script below prints it; at 5d3a251, before the change), also with the Kalman step's plug-in
-held at the truth (an experiment not kept). Numpy's exact Kalman filter on the same data,
+script below prints it), also with the Kalman step's plug-in held at the truth (an experiment
+not kept; benchmarks/results/notes_marginalized.md). Numpy's exact Kalman filter on the same data,
 every noise known, gives scores that average -0.3 % of r's variance (the script's last line,
 seed 0).
 
@@ -100,14 +100,8 @@ theoretical std and its coverage 0.92 (0.94-1.01 and 0.97-0.98 at seeds 0, 1, 3)
 Started at twice the truth (steering std known, seed 0; ``python
 benchmarks/mpf_k_sensor_variances.py guess 2 300 scored``): ay +2.0 % (the inverse-Wishart mean:
 +45 %), coverage 0.99 (0.00), the NEES in the band on 0.93 of the steps (0.83). Cost: about 1.7
-times the inverse-Wishart mean's time per step on paper 004's simulation, the paper's filter's
-(``python benchmarks/mpf_consistent_steering.py time 20 30``: 0.070 against 0.041 ms per
-run-step, 25 grid points; the paper's filter at N = 100 0.069; 0.084 against 0.050 and 0.070 in
-``vehjax reproduce noise-learning``'s 100 runs; on 2026-11-27's faster machine 0.029 against
-0.016 and 0.028, and 0.034 against 0.023 and 0.035 in that report). It was 0.110-0.127 until
-``vehjax.run`` balanced its blocks of runs: the scored state carries 3432 numbers a run against
-2757, the CPU's block of runs fell from 23 to 19, and 20 runs went as a block of 19 and one
-padded to 19.
+times the inverse-Wishart mean's time per step (``python benchmarks/mpf_consistent_steering.py
+time 20 30``; the dated timings: benchmarks/results/notes_marginalized.md).
 
 What it costs where the sensors are seen alone. On paper 004's simulation (sensors seen nearly
 alone, guesses twice the truth) each grid point's scored variances fit its own sigma_w: early
@@ -126,8 +120,9 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ..lib.entrywise import backward_entries, barrier, chol_masked, chol_sym
-from ..lib.linalg import forward_entries
+from ...lib.entrywise import backward_entries, chol_masked, chol_sym
+from ...lib.linalg import forward_entries
+from .staging import stage
 
 __all__ = ["innovation_score", "scoring_terms", "prior_terms", "scored_variances",
            "ridge_sensitivity", "plug_in_variance"]
@@ -148,7 +143,7 @@ def _inverse_rows(L, rows, ny):
     return [forward_entries(L, [1.0 if k == j else 0.0 for k in range(ny)]) for j in rows]
 
 
-def innovation_score(S, nu, obs, rows, start=None):
+def innovation_score(S, nu, obs, rows):
     """The score s and expected information W of the sensor variances from one Gaussian
     predictive N(0, S) of the innovation ``nu``, S_x held fixed: s_i = 0.5 (a_i^2 - G_ii),
     W_ij = 0.5 G_ij^2, a = G nu, G = S^-1 on the observed components; zero rows where a sensor
@@ -157,18 +152,17 @@ def innovation_score(S, nu, obs, rows, start=None):
     Args:
         S: (ny, ny) nested entries.  nu: (ny) entries.  obs: (ny) booleans.
         rows: the learnt sensors' rows in y (ns).
-        start: :func:`vehjax.lib.entrywise.barrier`'s.
 
     Returns:
         (s (ns) entries, W (ns, ns) nested entries).
     """
     ny = len(S)
-    L = barrier(chol_masked(S, obs), start)
+    L = stage(chol_masked(S, obs))
     a = backward_entries(L, forward_entries(L, [jnp.where(obs[k], nu[k], 0.0)
                                                 for k in range(ny)]))
     E = _inverse_rows(L, rows, ny)
-    G = barrier([[sum(E[p][k] * E[q][k] for k in range(ny)) for q in range(len(rows))]
-                 for p in range(len(rows))], start)
+    G = stage([[sum(E[p][k] * E[q][k] for k in range(ny)) for q in range(len(rows))]
+               for p in range(len(rows))])
     ob = [obs[i] for i in rows]
     s = [jnp.where(ob[p], 0.5 * (a[i] * a[i] - G[p][p]), 0.0) for p, i in enumerate(rows)]
     W = [[jnp.where(ob[p] & ob[q], 0.5 * G[p][q] * G[p][q], 0.0) for q in range(len(rows))]
@@ -176,7 +170,7 @@ def innovation_score(S, nu, obs, rows, start=None):
     return s, W
 
 
-def scoring_terms(S, R_y, nu, obs, rows, v_ref, start=None):
+def scoring_terms(S, R_y, nu, obs, rows, v_ref):
     """One step's terms of the scored estimate (module docstring): (W_bar, W_bar z, W_bar W^-1
     W_bar) over the learnt sensors, nested entries (ns, ns), (ns), (ns, ns).
 
@@ -185,18 +179,17 @@ def scoring_terms(S, R_y, nu, obs, rows, v_ref, start=None):
         R_y: (ny, ny) nested entries, the noise covariance the step used.
         nu: (ny) entries, the innovation.  obs: (ny) booleans.
         rows: the learnt sensors' rows in y (ns).  v_ref: (ns) the prior guess's variances.
-        start: :func:`vehjax.lib.entrywise.barrier`'s.
     """
     ns, ny = len(rows), len(S)
-    s, W = innovation_score(S, nu, obs, rows, start)
+    s, W = innovation_score(S, nu, obs, rows)
     pos = {i: p for p, i in enumerate(rows)}
     Sb = [[S[i][j] if (i not in pos or j not in pos) else
            S[i][j] - R_y[i][j] + (v_ref[pos[i]] if i == j else 0.0) for j in range(ny)]
           for i in range(ny)]
-    _, Wb = innovation_score(Sb, [0.0] * ny, obs, rows, start)
+    _, Wb = innovation_score(Sb, [0.0] * ny, obs, rows)
     ob = [obs[i] for i in rows]
-    Winv = barrier(_spd_inverse([[W[p][q] + (jnp.where(ob[p], 0.0, 1.0) if p == q else 0.0)
-                                  for q in range(ns)] for p in range(ns)]), start)
+    Winv = stage(_spd_inverse([[W[p][q] + (jnp.where(ob[p], 0.0, 1.0) if p == q else 0.0)
+                                  for q in range(ns)] for p in range(ns)]))
     A = [[sum(Wb[p][k] * Winv[k][q] for k in range(ns)) for q in range(ns)] for p in range(ns)]
     r = [R_y[i][i] for i in rows]
     Wz = [sum(Wb[p][q] * r[q] + A[p][q] * s[q] for q in range(ns)) for p in range(ns)]
@@ -213,11 +206,11 @@ def prior_terms(v_ref, count):
     return eye * j0[None], j0 * v_ref
 
 
-def scored_variances(J, h, H, start=None):
+def scored_variances(J, h, H):
     """v = J^-1 h and its covariance J^-1 H J^-1; arrays (ns, ns, ...), (ns, ...), (ns, ns,
     ...). Where v is not positive or not finite, NaN (the caller falls back)."""
     ns = h.shape[0]
-    Jinv = barrier(_spd_inverse([[J[i, j] for j in range(ns)] for i in range(ns)]), start)
+    Jinv = stage(_spd_inverse([[J[i, j] for j in range(ns)] for i in range(ns)]))
     v = jnp.stack([sum(Jinv[i][j] * h[j] for j in range(ns)) for i in range(ns)])
     JH = [[sum(Jinv[i][k] * H[k, j] for k in range(ns)) for j in range(ns)] for i in range(ns)]
     C = jnp.stack([jnp.stack([sum(JH[i][k] * Jinv[j][k] for k in range(ns)) for j in range(ns)])
@@ -246,7 +239,7 @@ def ridge_sensitivity(w, theta, v, J, cov=None):
         w: (N,) normalised weights.  theta: (N,) the grid.  v: (ns, N) each point's
             variances.  J: (ns, ns, N) their information (:func:`scoring_terms`' sums).
         cov: (ns,) or None: Cov(v, theta); None: :func:`weighted_covariance` (where the grid
-            does not resolve the posterior, :func:`vehjax.filters._grid.ridge_covariance`).
+            does not resolve the posterior, :func:`.grid.ridge_covariance`).
 
     Returns:
         (ns,) g.
