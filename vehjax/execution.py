@@ -86,8 +86,8 @@ import jax
 import jax.numpy as jnp
 
 __all__ = ["Strategy", "for_platform", "for_device", "current", "using", "resolve",
-           "compiler_options", "check_options", "block_size", "memory_limit", "check_fits", "resolve_devices",
-           "WORKLOADS"]
+           "compiler_options", "check_options", "block_size", "memory_limit", "check_fits",
+           "resolve_devices", "WORKLOADS"]
 
 #: What an estimator may declare its step to be (``Estimator.workload``).
 WORKLOADS = ("default", "small_dense", "particles")
