@@ -175,8 +175,10 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
             (the mean negative log-likelihood per step) with respect to the unconstrained
             coordinates is at most gtol (the parameterisation is unconstrained: this is the
             projected gradient), or when its line search finds no lower loss. For every
-            deterministic filter a Newton step on the Hessian then polishes the result, and
-            ``converged`` says whether the gradient there is at most gtol.
+            deterministic filter a Newton step on the Hessian then polishes the result (the
+            quantities on a bound held there), and ``converged`` says whether the gradient
+            there over the coordinates of the quantities not on a bound is at most gtol (the
+            projected gradient; :attr:`TuneResult.on_bound`).
         key: PRNG key, required for particle filters; run r uses ``jax.random.split(key, R)[r]``
             at every iteration.
         builder_kwargs: further keyword arguments of ``builder`` (``sqrt``, ``alpha``,
@@ -196,7 +198,9 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
 
     Returns:
         :class:`TuneResult`. A warning names the quantities the data do not determine
-        (:func:`vehjax.tune.uncertainty`), also in ``TuneResult.undetermined``.
+        (:func:`vehjax.tune.uncertainty`), also in ``TuneResult.undetermined``, and those on a
+        bound of their domain with the likelihood increasing beyond it
+        (:mod:`vehjax.tune.boundaries`), also in ``TuneResult.on_bound``.
 
     Raises:
         ValueError: naming the argument, before anything is traced: an unknown parameter name,

@@ -65,7 +65,8 @@ class TuneResult(NamedTuple):
             likelihood's maximum lies beyond the bound. Bounds: ``bounds=`` of a model
             parameter, 0 for a variance of a diagonal Q or R and for an input-noise std. A
             warning names them too.
-        gradient: max |d loss / dz| at the result (the loss per step, z unconstrained).
+        gradient: max |d loss / dz| at the result (the loss per step, z unconstrained; every
+            coordinate, those of quantities on a bound small as their map flattens there).
         input_noise: the fitted input noise as the builder takes it (stds by name or a
             covariance), or the given one, or None.
         evaluations: evaluations of the compiled loss-and-gradient program (optimiser, line
