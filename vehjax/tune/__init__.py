@@ -65,7 +65,23 @@ coordinates (differences of JAX's exact gradient, or ``hessian="jax"``), inverte
 directions the data determine and carried to the physical quantities by the delta method
 (:func:`uncertainty`). Directions with no or too little curvature are named
 (``TuneResult.undetermined`` and a warning): a parameter or noise entry the data cannot
-determine does not come back silently at its start value.
+determine does not come back silently at its start value. The standard errors of a fitted
+``x0`` come from the same curvature (its information from the first steps is always below the
+prior's 1 / P0; that is no reason to call it undetermined).
+
+On a bound (:mod:`vehjax.tune.boundaries`). Where the likelihood increases beyond a bound of a
+quantity's domain (``bounds=`` of a parameter, 0 for a variance of a diagonal Q or R or an
+input-noise std) the fit is the bound: the quantity is reported *on its bound*
+(``TuneResult.on_bound``: the side, the bound and the derivative of the log-likelihood there,
+pointing out of the box; the summary says "on its upper bound 0.6 (the likelihood increases
+beyond it: d logL/d a = 125)" and a warning too), not "not determined", and the other
+quantities' standard errors come from the curvature along the free directions, the bound ones
+held. ``converged`` is the projected gradient's test: the gradient over the free coordinates
+at most ``gtol``, the quantities on a bound with the likelihood increasing beyond them. The
+optimiser keeps a bounded quantity's coordinate within
+:data:`vehjax.tune.boundaries.LOG_RANGE` of its start and refuses points where more runs
+diverge than at the start, so a fit ends where its estimator can be built (a one-step fit
+too).
 
 Particle filter (:mod:`vehjax.tune.particle`). A particle filter
 (``builder=vehjax.filters.bootstrap_pf``) is differentiated with stop-gradient resampling, built
@@ -84,14 +100,15 @@ objective unsuitable for a line search.
 Modules: :mod:`~vehjax.tune.likelihood` (the objective), :mod:`~vehjax.tune.parameterisation`
 (the coordinates), :mod:`~vehjax.tune.program` (the compiled loss and scores),
 :mod:`~vehjax.tune.optimisers`, :mod:`~vehjax.tune.information` (observed information, standard
-errors), :mod:`~vehjax.tune.quantities` (names, units, scales), :mod:`~vehjax.tune.result`,
+errors), :mod:`~vehjax.tune.boundaries` (quantities on a bound),
+:mod:`~vehjax.tune.quantities` (names, units, scales), :mod:`~vehjax.tune.result`,
 :mod:`~vehjax.tune.driver` (:func:`fit`, :func:`fit_noise`). Measurements behind the defaults:
 ``benchmarks/results/notes_tune.md``.
 """
 
 from __future__ import annotations
 
-from . import driver, information, likelihood, optimisers, program, quantities
+from . import boundaries, driver, information, likelihood, optimisers, program, quantities
 from .driver import fit, fit_noise
 from .information import Uncertainty, hessian_from_gradients, uncertainty
 from .likelihood import Objective, objective, prepare

@@ -9,6 +9,7 @@ from __future__ import annotations
 import time
 
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -17,7 +18,8 @@ from .. import validation
 from ..progress import Progress
 from . import optimisers as opt
 from . import program
-from .information import difference_hessian, uncertainty
+from . import boundaries
+from .information import MAX_SCALED_STD, difference_hessian, uncertainty
 from .likelihood import NOISE, prepare
 from .optimisers import GTOL
 from .quantities import coordinates, fitted_quantities
@@ -83,28 +85,48 @@ def _hessian_fn(obj, setup, loss, hessian, scales):
     return lambda f: difference_hessian(loss, f, scales)
 
 
-def _standard_errors(obj, setup, model, loss, x, optimizer, hessian, gtol, scales, names):
-    """The Newton polish (deterministic filters) and the observed information at its end:
-    (x, aux, max |gradient|, polished to gtol, :class:`vehjax.tune.Uncertainty`)."""
-    hess = _hessian_fn(obj, setup, loss, hessian, scales)
-    polished = False
-    if setup["stochastic"]:  # no Newton step on a Monte-Carlo objective
-        _, aux, g = loss.vg(x)
-        grad_max, Hm = float(np.max(np.abs(g))), hess(x)
-    else:
-        for _ in range(3 if optimizer == "scoring" else 1):
-            x, aux, grad_max, Hm = opt.newton(loss, x, scales, gtol, hess)
-            if grad_max <= gtol:
-                break
-        polished = grad_max <= gtol
-
+def _bounds_at(obj, setup, model, loss, x, g, names):
+    """The quantities on a bound at x (:func:`vehjax.tune.boundaries.on_bounds`), the Jacobian
+    (m, n) of the quantities with respect to the coordinates, and the free-coordinates mask."""
     def values(f):
         return jnp.stack([jnp.asarray(q[2]) for q in fitted_quantities(
             setup, model, obj.unpack(loss.unravel(f)))])
 
-    unc = uncertainty(obj.n_steps * Hm, np.asarray(jax.jacfwd(values)(jnp.asarray(x))), scales,
-                      names)
-    return x, aux, grad_max, polished, unc
+    J = np.asarray(jax.jacfwd(values)(jnp.asarray(x)))
+    qs = fitted_quantities(setup, model, jax.tree.map(np.asarray, obj.unpack(
+        loss.unravel(jnp.asarray(x)))))
+    on = boundaries.on_bounds(setup["bounds"], names, {k: float(v) for k, _, v in qs}, g, J,
+                              [k for k, _, _ in qs], obj.n_steps)
+    return on, J, [k for k, _, _ in qs], np.array([n not in on for n in names], dtype=bool)
+
+
+def _free_gradient(g, free) -> float:
+    """max |g| over the free coordinates (0 when every coordinate is on a bound)."""
+    g = np.abs(np.asarray(g, dtype=float))[free]
+    return float(np.max(g)) if g.size else 0.0
+
+
+def _standard_errors(obj, setup, model, loss, x, optimizer, hessian, gtol, scales, names):
+    """The Newton polish (deterministic filters) and the observed information at its end over
+    the free coordinates, the quantities on a bound held there: (x, aux, max |gradient|,
+    polished to gtol over the free coordinates, :class:`vehjax.tune.Uncertainty`, the
+    quantities on a bound)."""
+    hess = _hessian_fn(obj, setup, loss, hessian, scales)
+    if setup["stochastic"]:  # no Newton step on a Monte-Carlo objective
+        _, aux, g = loss.vg(x)
+        Hm = hess(x)
+    else:  # polish the free coordinates, the quantities on a bound held there
+        free = _bounds_at(obj, setup, model, loss, x, loss.vg(x)[2], names)[3]
+        for _ in range(3 if optimizer == "scoring" else 1):
+            x, aux, g, Hm = opt.newton(loss, x, scales, gtol, hess, free)
+            if _free_gradient(g, free) <= gtol:
+                break
+    on, J, qnames, free = _bounds_at(obj, setup, model, loss, x, g, names)
+    polished = not setup["stochastic"] and _free_gradient(g, free) <= gtol
+    max_std = np.where([n.startswith("x0[") for n in names], np.inf, MAX_SCALED_STD)
+    unc = uncertainty(obj.n_steps * Hm, J, scales, names, max_std=max_std, fixed=~free,
+                      pinned=np.array([q in on for q in qnames], dtype=bool))
+    return x, aux, float(np.max(np.abs(g))), polished, unc, on
 
 
 def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(), bounds=None,
@@ -153,8 +175,10 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
             (the mean negative log-likelihood per step) with respect to the unconstrained
             coordinates is at most gtol (the parameterisation is unconstrained: this is the
             projected gradient), or when its line search finds no lower loss. For every
-            deterministic filter a Newton step on the Hessian then polishes the result, and
-            ``converged`` says whether the gradient there is at most gtol.
+            deterministic filter a Newton step on the Hessian then polishes the result (the
+            quantities on a bound held there), and ``converged`` says whether the gradient
+            there over the coordinates of the quantities not on a bound is at most gtol (the
+            projected gradient; :attr:`TuneResult.on_bound`).
         key: PRNG key, required for particle filters; run r uses ``jax.random.split(key, R)[r]``
             at every iteration.
         builder_kwargs: further keyword arguments of ``builder`` (``sqrt``, ``alpha``,
@@ -174,7 +198,9 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
 
     Returns:
         :class:`TuneResult`. A warning names the quantities the data do not determine
-        (:func:`vehjax.tune.uncertainty`), also in ``TuneResult.undetermined``.
+        (:func:`vehjax.tune.uncertainty`), also in ``TuneResult.undetermined``, and those on a
+        bound of their domain with the likelihood increasing beyond it
+        (:mod:`vehjax.tune.boundaries`), also in ``TuneResult.on_bound``.
 
     Raises:
         ValueError: naming the argument, before anything is traced: an unknown parameter name,
@@ -190,9 +216,13 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
         raise ValueError("optimizer: 'scoring' needs a deterministic filter (EKF, UKF, CKF); "
                          "use 'adam' for a particle filter")
     differences = not setup["stochastic"] and hessian in (None, "differences")
+    names, scales = coordinates(setup, model, obj.z0)
+    setup["bounds"] = boundaries.quantity_bounds(setup, model)
+    box = boundaries.coordinate_box(names, jax.flatten_util.ravel_pytree(obj.z0)[0],
+                                    setup["bounds"])
     loss = program.compiled_loss(obj, setup, batch_hessian=differences and obj.n_steps >=
                                  program.BATCH_HESSIAN_STEPS and (standard_errors or optimizer
-                                                                  in (None, "scoring")))
+                                                                  in (None, "scoring")), box=box)
     if optimizer is None:
         optimizer = ("adam" if setup["stochastic"] else
                      "scoring" if loss.vgo is not None else "lbfgs")
@@ -206,22 +236,28 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     patience = 50 if patience is None else patience
     first = None if line_search else opt.first_order_optimizer(optimizer, learning_rate, steps)
     report, bar = _progress(steps, progress, setup["name"])
-    names, scales = coordinates(setup, model, obj.z0)
     x, aux, history, iters, converged, skipped = _optimise(
         loss, optimizer, dict(steps=steps, gtol=gtol, tol=tol, patience=patience, first=first),
         report, scales)
     bar.close()
     unc, grad_max = None, float("nan")
-    if optimizer == "scoring" and not standard_errors:  # the Newton polish finishes scoring
-        x, aux, grad_max, _ = opt.newton(loss, x, scales, gtol,
-                                         lambda f: difference_hessian(loss, f, scales))
-        converged = converged or grad_max <= gtol
     if standard_errors:
-        x, aux, grad_max, polished, unc = _standard_errors(obj, setup, model, loss, x, optimizer,
-                                                           hessian, gtol, scales, names)
+        x, aux, grad_max, polished, unc, on = _standard_errors(
+            obj, setup, model, loss, x, optimizer, hessian, gtol, scales, names)
         converged = converged or polished
+    else:
+        if optimizer == "scoring":  # the Newton polish finishes scoring
+            free = _bounds_at(obj, setup, model, loss, x, loss.vg(x)[2], names)[3]
+            x, aux, g, _ = opt.newton(loss, x, scales, gtol,
+                                      lambda f: difference_hessian(loss, f, scales), free)
+        else:
+            g = loss.vg(x)[2]
+        on, _, _, free = _bounds_at(obj, setup, model, loss, x, g, names)
+        if optimizer == "scoring":
+            grad_max = float(np.max(np.abs(g)))
+            converged = converged or _free_gradient(g, free) <= gtol
     res = make_result(obj, setup, model, loss.unravel(jnp.asarray(x)), aux, history, iters,
-                      converged, skipped, unc, grad_max, t_start)
+                      converged, skipped, unc, grad_max, t_start, on)
     st = loss.stats
     return res._replace(evaluations=st["evaluations"], optimizer=str(optimizer)
                         if isinstance(optimizer, str) else "optax", derivatives=st["mode"],

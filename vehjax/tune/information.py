@@ -30,7 +30,8 @@ class Uncertainty(NamedTuple):
     Attributes:
         cov: (m, m) covariance of the fitted quantities in their units (delta method), with
             inf on the diagonal of a quantity an undetermined direction moves.
-        std_errors: (m,) standard errors, sqrt of its diagonal (inf: undetermined).
+        std_errors: (m,) standard errors, sqrt of its diagonal (inf: undetermined; NaN: on a
+            bound, ``pinned``).
         correlations: (m, m), NaN in the rows and columns of undetermined quantities.
         undetermined: names of the coordinates in the undetermined directions.
         eigenvalues: (n,) eigenvalues of the scaled observed information, ascending.
@@ -46,7 +47,7 @@ class Uncertainty(NamedTuple):
 
 
 def uncertainty(info_matrix, jac, scales, coord_names, rcond: float = RCOND,
-                max_std: float = MAX_SCALED_STD) -> Uncertainty:
+                max_std=MAX_SCALED_STD, fixed=None, pinned=None) -> Uncertainty:
     """Standard errors and correlations of fitted quantities from the observed information.
 
     With ``I`` (n, n) the observed information of the unconstrained coordinates z (the Hessian
@@ -58,10 +59,26 @@ def uncertainty(info_matrix, jac, scales, coord_names, rcond: float = RCOND,
     ``S V_d diag(1/lam_d) V_d^T S``, that of the quantities ``J cov_z J^T`` (delta method,
     ``jac`` = J = d quantities / dz, (m, n)). A coordinate is named undetermined when its
     component in an undetermined direction is at least 0.3 (the largest always).
+
+    ``max_std`` may be given per coordinate, (n,): a direction v is then undetermined by size
+    when ``lam < sum_i v_i^2 / max_std_i^2``; inf exempts a coordinate whose scale is not the
+    quantity's own size (x0: its scale is the prior's standard deviation, and the data's
+    information on x0 through the first steps is always below the prior's 1 / P0, so the rule
+    would name every fitted x0 undetermined).
+
+    ``fixed`` (n,) bool: coordinates held where they are, the quantities on a bound of their
+    domain (:mod:`vehjax.tune.boundaries`): the information is that of the free coordinates
+    (the curvature along the free directions, the fixed ones at their bounds); ``pinned`` (m,)
+    bool, the quantities on a bound: their standard errors and correlations are NaN.
+    ``eigenvalues`` and ``determined`` are then those of the free coordinates.
     """
     Iz = np.asarray(info_matrix, dtype=float)
     J = np.asarray(jac, dtype=float)
     scales = np.asarray(scales, dtype=float)
+    max_std = np.broadcast_to(np.asarray(max_std, dtype=float), scales.shape)
+    if fixed is not None and np.any(fixed):
+        return _with_fixed(Iz, J, scales, coord_names, rcond, max_std, np.asarray(fixed, bool),
+                           pinned)
     Is = 0.5 * (Iz + Iz.T) * np.outer(scales, scales)
     if not np.all(np.isfinite(Is)):
         n = len(scales)
@@ -70,7 +87,7 @@ def uncertainty(info_matrix, jac, scales, coord_names, rcond: float = RCOND,
                            np.full(n, np.nan), np.zeros(n, bool))
     lam, V = np.linalg.eigh(Is)
     top = max(float(lam.max()), np.finfo(float).tiny)
-    det = (lam > rcond * top) & (lam >= 1.0 / max_std**2)
+    det = (lam > rcond * top) & (lam >= (V**2).T @ (1.0 / max_std**2))
     Vd = V[:, det]
     cov_z = (scales[:, None] * Vd / lam[det]) @ (Vd.T * scales[None, :])
     cov = J @ cov_z @ J.T
@@ -89,6 +106,26 @@ def uncertainty(info_matrix, jac, scales, coord_names, rcond: float = RCOND,
     corr[:, moved] = np.nan
     names = tuple(n for n, b in zip(coord_names, bad_coords) if b)
     return Uncertainty(cov, se, corr, names, lam, det)
+
+
+def _with_fixed(Iz, J, scales, coord_names, rcond, max_std, fixed, pinned) -> Uncertainty:
+    """:func:`uncertainty` over the free coordinates, NaN for the ``pinned`` quantities."""
+    free = ~fixed
+    if not np.any(free):
+        m = J.shape[0]
+        return Uncertainty(np.full((m, m), np.nan), np.full(m, np.nan), np.full((m, m), np.nan),
+                           (), np.zeros(0), np.zeros(0, bool))
+    names = tuple(n for n, f in zip(coord_names, free) if f)
+    u = uncertainty(Iz[np.ix_(free, free)], J[:, free], scales[free], names, rcond,
+                    max_std[free])
+    pinned = np.zeros(J.shape[0], bool) if pinned is None else np.asarray(pinned, bool)
+    cov, se, corr = u.cov.copy(), u.std_errors.copy(), u.correlations.copy()
+    cov[pinned, :] = np.nan
+    cov[:, pinned] = np.nan
+    se[pinned] = np.nan
+    corr[pinned, :] = np.nan
+    corr[:, pinned] = np.nan
+    return u._replace(cov=cov, std_errors=se, correlations=corr)
 
 
 def hessian_from_gradients(vg, x, scales, rel: float = 1e-4, grads=None, g0=None):

@@ -155,25 +155,31 @@ def first_order(loss, opt, steps: int, tol: float, patience: int, report):
     return best_x, best_aux, history, i, converged, skipped
 
 
-def newton(loss, x, scales, gtol: float, hessian):
+def newton(loss, x, scales, gtol: float, hessian, free=None):
     """The curvature at x and one Newton step on its determined directions, kept when the loss
-    does not increase (the curvature is then recomputed where the step was large). Returns
-    (x, aux, max |gradient|, Hessian of the mean loss)."""
+    does not increase (the curvature is then recomputed where the step was large); ``free``
+    (n,) bool: step in these coordinates only (the others on a bound of their domain, held).
+    Returns (x, aux, gradient (n,), Hessian of the mean loss)."""
     f, aux, g = loss.vg(x)
     Hm = hessian(x)
     if not (np.all(np.isfinite(Hm)) and finite(g)):
-        return x, aux, float(np.max(np.abs(g))), Hm
-    lam, V = np.linalg.eigh(Hm * np.outer(scales, scales))
+        return x, aux, g, Hm
+    free = np.ones(len(g), bool) if free is None else np.asarray(free, bool)
+    s, gf = scales[free], g[free]
+    if not np.any(free):
+        return x, aux, g, Hm
+    lam, V = np.linalg.eigh(Hm[np.ix_(free, free)] * np.outer(s, s))
     keep = lam > RCOND * max(float(lam.max()), np.finfo(float).tiny)
-    if np.max(np.abs(g)) <= 1e-3 * gtol or not np.any(keep):
-        return x, aux, float(np.max(np.abs(g))), Hm
-    step = -scales * (V[:, keep] @ ((V[:, keep].T @ (scales * g)) / lam[keep]))
+    if np.max(np.abs(gf)) <= 1e-3 * gtol or not np.any(keep):
+        return x, aux, g, Hm
+    step = np.zeros(len(g))
+    step[free] = -s * (V[:, keep] @ ((V[:, keep].T @ (s * gf)) / lam[keep]))
     f_new, aux_new, g_new = loss.vg(x + step)
     if np.isfinite(f_new) and finite(g_new) and f_new <= f + 1e-14 * max(1.0, abs(f)):
         x, aux, g = x + step, aux_new, g_new
         if np.max(np.abs(step / scales)) > 1e-3:  # moved far: the curvature there
             Hm = hessian(x)
-    return x, aux, float(np.max(np.abs(g))), Hm
+    return x, aux, g, Hm
 
 
 #: the compiled losses of the L-BFGS fits running now, by handle: the line search's host callback

@@ -111,12 +111,20 @@ def _program(obj, setup, unravel, n: int, forward: bool):
     return program
 
 
-def compiled_loss(obj, setup=None, batch_hessian: bool = False) -> CompiledLoss:
+def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None) -> CompiledLoss:
     """The compiled loss of a fit (:class:`CompiledLoss`): forward mode for deterministic
     filters with at most :data:`FORWARD_MAX` coordinates, else ``jax.value_and_grad``;
     compiled ahead of time once, with the XLA options :mod:`vehjax.execution` gives the
     estimator's workload. ``batch_hessian`` (forward mode only): also give
-    ``CompiledLoss.grads`` (its program compiled at its first call)."""
+    ``CompiledLoss.grads`` (its program compiled at its first call).
+
+    The domain of a deterministic filter's fit: ``box`` = (low (n,), high (n,)) limits the
+    coordinates (:func:`vehjax.tune.boundaries.coordinate_box`), and a point where more runs
+    diverge than at the first point evaluated (the start) is outside too: there the loss is
+    +inf (the gradient that of the nearest point of the box), which every optimiser's line
+    search and the Newton polish reject. Without it a diverged run's log-likelihood, the sum of
+    the steps before (0 on a one-step run), could undercut the finite ones and the optimiser
+    would walk to values where the estimator cannot be built."""
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
     n = flat.shape[0]
     forward = setup is not None and not setup["stochastic"] and n <= FORWARD_MAX
@@ -132,14 +140,22 @@ def compiled_loss(obj, setup=None, batch_hessian: bool = False) -> CompiledLoss:
              "batch_compile_seconds": 0.0, "batch_evaluations": 0, "options": options}
     last = []  # (point, result) of the latest evaluation: the optimiser's last point is the
     # Newton polish's first
+    guard = setup is not None and not setup["stochastic"]
+    base = []  # the runs diverged at the first point evaluated
 
     def vgo(f):
         f = np.array(f, dtype=float)
         if last and np.array_equal(last[0], f):
             return last[1]
         stats["evaluations"] += 1
-        v, aux, g, B = compiled(jnp.asarray(f, dtype=flat.dtype), obj.data)
-        out = (float(v), aux, np.asarray(g, dtype=float),
+        inside = box is None or not guard or bool(np.all((f >= box[0]) & (f <= box[1])))
+        at = f if inside else np.clip(f, box[0], box[1])
+        v, aux, g, B = compiled(jnp.asarray(at, dtype=flat.dtype), obj.data)
+        n_div = int(np.sum(np.asarray(aux[1])))
+        if not base:
+            base.append(n_div)
+        v = float(v) if inside and (not guard or n_div <= base[0]) else np.inf
+        out = (v, aux, np.asarray(g, dtype=float),
                None if B is None else np.asarray(B, dtype=float))
         last[:] = [f, out]
         return out

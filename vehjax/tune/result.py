@@ -33,9 +33,12 @@ class TuneResult(NamedTuple):
         history: loss per iteration, (iterations,): ``-sum loglik / (R T)`` at the values that
             iteration started from.
         iterations: how many optimiser iterations ran.
-        converged: L-BFGS (and deterministic filters after the Newton polish): the gradient
-            reached ``gtol``; adam and custom optimisers: the loss stopped improving
-            (``patience``).
+        converged: deterministic filters (scoring, L-BFGS, then the Newton polish): the
+            projected gradient reached ``gtol``, i.e. every component of the gradient of the
+            loss with respect to the unconstrained coordinates of the quantities not on a bound
+            is at most ``gtol``, and each quantity on a bound (``on_bound``) has the likelihood
+            increasing beyond it (the bounded maximum's Karush-Kuhn-Tucker conditions); adam
+            and custom optimisers: the loss stopped improving (``patience``).
         diverged: how many runs diverged (``vehjax.filter``'s flag) at the fitted values.
         skipped: iterations whose gradient was not finite.
         values: every fitted quantity by name: ``"Q[x,x]"``, ``"R[y,y]"``, a parameter name,
@@ -45,13 +48,25 @@ class TuneResult(NamedTuple):
         std_errors: standard error of each entry of ``values`` in its units (same keys), from
             the observed information (the Hessian of the log-likelihood by JAX in the
             unconstrained coordinates, carried to the physical quantities by the delta method);
-            inf for a quantity the data do not determine; empty with
-            ``standard_errors=False``. For a particle filter a Monte-Carlo estimate.
+            inf for a quantity the data do not determine; NaN for a quantity on a bound (the
+            others' then come from the curvature along the free directions, the bound ones
+            held at their bounds); empty with ``standard_errors=False``. For a particle filter
+            a Monte-Carlo estimate.
         correlations: (m, m) correlations of the entries of ``values`` (in their order); NaN
             rows and columns for undetermined quantities.
         undetermined: names of the fitted quantities (coordinates) along directions of no or
             too little curvature (:func:`vehjax.tune.uncertainty`); a warning names them too.
-        gradient: max |d loss / dz| at the result (the loss per step, z unconstrained).
+            A quantity on a bound is not among them.
+        on_bound: ``{name: (side, bound, dlogL)}`` for each fitted quantity that ended on a
+            bound of its domain (:mod:`vehjax.tune.boundaries`): ``side`` "lower" or "upper",
+            ``bound`` its value in the quantity's units, ``dlogL`` the derivative of the
+            log-likelihood (summed over the runs) with respect to the quantity there, pointing
+            out of the box (negative on a lower bound, positive on an upper one): the
+            likelihood's maximum lies beyond the bound. Bounds: ``bounds=`` of a model
+            parameter, 0 for a variance of a diagonal Q or R and for an input-noise std. A
+            warning names them too.
+        gradient: max |d loss / dz| at the result (the loss per step, z unconstrained; every
+            coordinate, those of quantities on a bound small as their map flattens there).
         input_noise: the fitted input noise as the builder takes it (stds by name or a
             covariance), or the given one, or None.
         evaluations: evaluations of the compiled loss-and-gradient program (optimiser, line
@@ -100,6 +115,7 @@ class TuneResult(NamedTuple):
     hessian_batches: int = 0
     hessian_compile_seconds: float = 0.0
     compile_cpu_seconds: float = float("nan")
+    on_bound: dict = {}
 
     def summary(self) -> str:
         """A text table of the fitted values with their units and the log-likelihood."""
@@ -111,17 +127,25 @@ class TuneResult(NamedTuple):
         width = max((len(k) for k in self.values), default=0)
         for k, v in self.values.items():
             se = self.std_errors.get(k)
-            pm = "" if se is None else f" +- {se:.3g}"
-            lines.append(f"  {k:<{width}} = {v:.6g}{pm} [{self.units[k]}]")
+            pm = "" if se is None or k in self.on_bound else f" +- {se:.3g}"
+            lines.append(f"  {k:<{width}} = {v:.6g}{pm} [{self.units[k]}]" + (
+                f" {bound_text(k, *self.on_bound[k])}" if k in self.on_bound else ""))
         if self.undetermined:
             lines.append(f"  not determined by the data: {', '.join(self.undetermined)}")
         return "\n".join(lines)
 
 
+def bound_text(name: str, side: str, bound: float, dlogl: float) -> str:
+    """What the report says of a quantity on a bound: "on its upper bound 0.6 (the likelihood
+    increases beyond it: d logL/d a = 12.3)"."""
+    return (f"on its {side} bound {bound:.6g} (the likelihood increases beyond it: "
+            f"d logL/d {name} = {dlogl:.3g})")
+
+
 def make_result(obj, info, model, best_z, best_aux, history, iters, converged, skipped, unc,
-                grad_max, t_start) -> TuneResult:
-    """The :class:`TuneResult` at ``best_z``, with warnings for diverged runs and undetermined
-    quantities."""
+                grad_max, t_start, on_bound=None) -> TuneResult:
+    """The :class:`TuneResult` at ``best_z``, with warnings for diverged runs, quantities on a
+    bound and undetermined quantities."""
     ll, div = jax.jit(obj.loss)(best_z, obj.data)[1] if best_aux is None else best_aux
     v = jax.tree.map(np.asarray, obj.unpack(best_z))
     Q, R, theta, x0_fit = v["Q"], v["R"], v["theta"], v["x0"]
@@ -151,6 +175,11 @@ def make_result(obj, info, model, best_z, best_aux, history, iters, converged, s
                 f"vehjax.tune: the data do not determine {', '.join(undetermined)} (no or too "
                 f"little curvature of the log-likelihood; their standard errors are inf): "
                 f"fix them, or give data that excite them", stacklevel=3)
+    on_bound = dict(on_bound or {})
+    if on_bound:
+        warnings.warn("vehjax.tune: " + "; ".join(
+            f"{k} is {bound_text(k, *b)}" for k, b in on_bound.items()) + ": the fit is the "
+            "maximum within the bounds; widen them if the physics allows", stacklevel=3)
     return TuneResult(
         Q=Q, R=R, theta=np.asarray(theta),
         params={p: float(theta[model.param_names.index(p)]) for p in info["params"]},
@@ -159,5 +188,5 @@ def make_result(obj, info, model, best_z, best_aux, history, iters, converged, s
         history=np.asarray(history), iterations=iters, converged=converged, diverged=n_div,
         skipped=skipped, values=values, units=units, seconds=time.perf_counter() - t_start,
         std_errors=se, correlations=corr, undetermined=undetermined, gradient=grad_max,
-        input_noise=kw.get("input_noise"),
+        input_noise=kw.get("input_noise"), on_bound=on_bound,
     )
