@@ -277,4 +277,6 @@ def check_arguments(estimator, ys, us, x0, P0, theta0, P_theta0, key):
         validation.key(key, 1)  # a PRNG key (an int such as 0 is not), as run checks it
     if estimator.param_names:
         check_theta0(estimator, th0)
+    else:  # a state-only filter's theta0 is the model's parameters: the model's domains
+        validation.in_domain("theta0", th0, estimator.theta_domains)
     return ys, us, x0, P0, th0, Pth0

@@ -424,6 +424,8 @@ def _checked_data(estimator, measurements, inputs, x0, P0, theta0, P_theta0, key
         raise ValueError(f"theta0: expected the model's {estimator.n_theta} parameters, shape "
                          f"({estimator.n_theta},) or ({R}, {estimator.n_theta}), got "
                          f"{th0.shape}")
+    if not p:  # a state-only filter's theta0 is the model's parameters: the model's domains
+        validation.in_domain("theta0", th0, estimator.theta_domains)
 
     if estimator.needs_key and key is None:
         raise ValueError(

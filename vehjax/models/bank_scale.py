@@ -46,10 +46,12 @@ class VirtualScaleBank(SingleTrackBank):
     a sixth, constant state: x = (vy, r, phi, phi_dot, phi_ddot, eps); the output r_virt is
     :func:`virtual_yaw_reading` (affine in eps, so the marginalized PF can carry eps in each
     particle's Kalman filter beside the bank: learnt online, without forgetting). The rear
-    track is :data:`TRACK`. Everything else as SingleTrackBank."""
+    track is :data:`TRACK`. Everything else as SingleTrackBank (domains included); the state
+    envelope adds |eps| <= 1 (a radius mismatch of 100 %)."""
 
     STATE_NAMES = SingleTrackBank.STATE_NAMES + ("eps",)
     STATE_UNITS = SingleTrackBank.STATE_UNITS + ("-",)
+    STATE_ENVELOPE = {**SingleTrackBank.STATE_ENVELOPE, "eps": 1.0}
 
     def derivative(self, x, u, theta):
         return jnp.concatenate([super().derivative(x[:5], u, theta), 0.0 * x[5:]])
