@@ -13,7 +13,8 @@ and ``step(state, y, u) -> (state, StepOutput)``. One run is::
 parameters, the caller's, else the estimator's ``param_prior``, else NaN until the first step's
 estimate; for a state-only filter none (its ``theta0`` is the model's parameters, passed to
 ``init``). :func:`check_arguments` is the one check of a run's arguments (shapes, values,
-``theta0`` inside ``Estimator.bounds``) before anything is traced, by the rules of
+``theta0`` inside ``Estimator.bounds``, a state-only filter's inside the model's domains
+``Estimator.theta_domains``) before anything is traced, by the rules of
 :mod:`vehjax.validation`. A runs-last batch (:mod:`vehjax.filters.runs_last`) uses the same
 pieces with ``output_ok``'s ``pd``/``all_finite`` for that layout.
 

@@ -86,6 +86,11 @@ def _user_domains(domains, names: tuple[str, ...]) -> ParamDomains | None:
     ``domains`` for an unknown name or an entry that is no interval."""
     if domains is None:
         return None
+    if isinstance(domains, ParamDomains):  # a wrapped model's, kept as they are
+        if domains.names != names:
+            raise ValueError(f"domains: expected the domains of parameters {names}, got those "
+                             f"of {domains.names}")
+        return domains
     if not isinstance(domains, dict):
         raise ValueError(f"domains: expected a dict parameter name -> interval such as "
                          f"'(0, inf)', got {domains!r}")
@@ -313,7 +318,8 @@ class Model(BaseModel):
             both forms).
         domains: optional dict parameter name -> domain, each an
             :class:`~vehjax.models.domains.Interval` or its text (``"(0, inf)"``, ``"[0, 3]"``);
-            parameters it does not name are unbounded. Checked like a built-in model's
+            parameters it does not name are unbounded. Or a model's ``param_domains()`` (a
+            wrapper of a built-in model keeps its domains). Checked like a built-in model's
             (:class:`BaseModel`); None (default): no domains, nothing checked.
 
     Example::

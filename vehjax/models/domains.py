@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["Interval", "interval", "ParamDomains", "gather", "envelope"]
+__all__ = ["Interval", "interval", "ParamDomains", "gather", "envelope", "extended"]
 
 
 class Interval(NamedTuple):
@@ -128,6 +128,16 @@ def gather(declared: dict, names, owner: str) -> ParamDomains | None:
     if not declared:
         return None
     return ParamDomains(tuple(names), tuple(declared[n] for n in names), owner)
+
+
+def extended(domains: ParamDomains | None, names) -> ParamDomains | None:
+    """``domains`` (a wrapped model's) with the parameters ``names`` appended, unbounded; None
+    stays None."""
+    if domains is None:
+        return None
+    names = tuple(names)
+    return domains._replace(names=domains.names + names,
+                            intervals=domains.intervals + (Interval(-math.inf, math.inf),) * len(names))
 
 
 def envelope(declared: dict, names) -> np.ndarray | None:
