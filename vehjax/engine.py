@@ -13,7 +13,8 @@ and ``step(state, y, u) -> (state, StepOutput)``. One run is::
 parameters, the caller's, else the estimator's ``param_prior``, else NaN until the first step's
 estimate; for a state-only filter none (its ``theta0`` is the model's parameters, passed to
 ``init``). :func:`check_arguments` is the one check of a run's arguments (shapes, values,
-``theta0`` inside ``Estimator.bounds``) before anything is traced, by the rules of
+``theta0`` inside ``Estimator.bounds``, a state-only filter's inside the model's domains
+``Estimator.theta_domains``) before anything is traced, by the rules of
 :mod:`vehjax.validation`. A runs-last batch (:mod:`vehjax.filters.runs_last`) uses the same
 pieces with ``output_ok``'s ``pd``/``all_finite`` for that layout.
 
@@ -277,4 +278,6 @@ def check_arguments(estimator, ys, us, x0, P0, theta0, P_theta0, key):
         validation.key(key, 1)  # a PRNG key (an int such as 0 is not), as run checks it
     if estimator.param_names:
         check_theta0(estimator, th0)
+    else:  # a state-only filter's theta0 is the model's parameters: the model's domains
+        validation.in_domain("theta0", th0, estimator.theta_domains)
     return ys, us, x0, P0, th0, Pth0

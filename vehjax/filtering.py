@@ -51,7 +51,8 @@ def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_th
             point shares (:mod:`vehjax.validation`): shapes that do not fit and complex or
             non-numeric arrays (also under ``jit``); for concrete values also +-inf
             measurements, non-finite inputs, x0, P0, theta0, P_theta0, covariances that are
-            not symmetric positive definite, a theta0 outside ``estimator.bounds``; a missing
+            not symmetric positive definite, a theta0 outside ``estimator.bounds`` (a state-only
+            filter's outside the model's domains, ``estimator.theta_domains``); a missing
             key.
     """
     ys, us, x0, P0, th0, Pth0 = check_arguments(estimator, measurements, inputs, x0, P0,

@@ -399,6 +399,8 @@ def _checked_data(estimator, measurements, inputs, x0, P0, theta0, P_theta0, key
         raise ValueError(f"theta0: expected the model's {estimator.n_theta} parameters, shape "
                          f"({estimator.n_theta},) or ({R}, {estimator.n_theta}), got "
                          f"{th0.shape}")
+    # a state-only filter's theta0 is the model's parameters: inside the model's domains
+    validation.in_domain("theta0", None if p else th0, estimator.theta_domains)
 
     if estimator.needs_key and key is None:
         raise ValueError(
@@ -719,7 +721,8 @@ def run(
     Raises:
         ValueError: naming the argument, for wrong shapes, non-finite inputs/x0/P0, a P0 that is
             not symmetric positive definite, a missing key or theta0, a theta0 outside the
-            estimator's parameter domains (``Estimator.bounds``), compiler_options that are
+            estimator's parameter domains (``Estimator.bounds``) or, for a state-only
+            filter, the model's (``Estimator.theta_domains``), compiler_options that are
             not a dict of option names to values, an unknown strategy, a ``smooth`` the
             estimator has no smoother for, a study whose one run
             cannot fit the device's memory or whose results cannot fit the host's (with the

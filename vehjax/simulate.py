@@ -9,6 +9,23 @@ step; row t of the output holds the state after applying input u_t,
 with w_t ~ N(0, diag(process_std * process_scale[t])^2) and v_t ~ N(0, diag(meas_std *
 meas_scale[t])^2). The filter is given the *measured* inputs ``sim.inputs`` (without the steering
 offset), as a car's estimator would be.
+
+Parameters: ``theta`` (the model's, or the one given) must lie in the model's declared domains
+(:meth:`vehjax.models.BaseModel.param_domains`; ValueError naming ``theta`` and the parameter,
+before anything is traced); a model without domains is not checked. The per-run perturbation
+of ``param_std`` is drawn while tracing and is not checked: a run it pushes outside the domain
+shows as ``diverged`` if its states blow up.
+
+Divergence, with the meaning :func:`vehjax.run` gives it (:mod:`vehjax.engine`): a step whose
+new state is not finite, or leaves the model's state envelope (``model.state_envelope()``, the
+largest plausible magnitude of each state: e.g. 300 m/s for a velocity; finiteness only for a
+model without one), is bad, and so is every later step of that run. The run is ``diverged``
+(``diverged_at`` its first bad step, -1 for none) and, as ``run`` holds a diverged filter's
+outputs, its states, biases and measurements from that step on hold their last good values (the
+initial state and bias, and the noise-free measurement of the initial state, when the first
+step is bad): the simulation is frozen there, so that nothing non-finite reaches a filter run on
+it (a NaN measurement would pass for a missing one). ``Simulation.diverged`` says which runs to
+drop.
 """
 
 from __future__ import annotations
@@ -37,6 +54,10 @@ class Simulation(NamedTuple):
         x0: (R, nx) initial states.
         t: (T,) time [s] of each row.
         state_names, input_names, param_names, output_names: the model's names.
+        diverged: (R,) bool, the run's state became non-finite or left the model's state
+            envelope; its rows from ``diverged_at`` on hold the last good values (module
+            docstring).
+        diverged_at: (R,) int32, the first step it did, or -1.
     """
 
     states: jnp.ndarray
@@ -50,6 +71,8 @@ class Simulation(NamedTuple):
     input_names: tuple
     param_names: tuple
     output_names: tuple
+    diverged: jnp.ndarray | None = None
+    diverged_at: jnp.ndarray | None = None
 
     def to_dict(self) -> dict:
         """Named numpy arrays, e.g. for ``np.savez``; names are stored as string arrays."""
@@ -65,6 +88,8 @@ class Simulation(NamedTuple):
             "input_names": np.array(self.input_names),
             "param_names": np.array(self.param_names),
             "output_names": np.array(self.output_names),
+            "diverged": np.asarray(self.diverged),
+            "diverged_at": np.asarray(self.diverged_at),
         }
 
     def save(self, path) -> None:
@@ -184,6 +209,7 @@ def simulate(
     base_theta = validation.per_run("theta", np.asarray(model.theta) if theta is None else theta,
                                    (n_par,), runs, f"parameters {tuple(model.param_names)}")
     base_theta = np.asarray(base_theta, dtype=float)
+    validation.in_domain("theta", base_theta, _declared(model, "param_domains"))
     base_theta = np.broadcast_to(base_theta, (runs, n_par))
     keys = validation.key(jax.random.key(0) if key is None else key, runs)
 
@@ -199,8 +225,9 @@ def simulate(
         b_std=jnp.asarray(b_std, dtype),
         b0=jnp.asarray(b0, dtype),
         offset=jnp.asarray(offset, dtype),
+        envelope=jnp.asarray(_envelope(model, nx), dtype),
     )
-    states, meas, thetas, biases, x0s = _simulate_jit(model, keys, arrays)
+    states, meas, thetas, biases, x0s, bad_at = _simulate_jit(model, keys, arrays)
     return Simulation(
         states=states,
         measurements=meas,
@@ -213,7 +240,22 @@ def simulate(
         input_names=tuple(model.input_names),
         param_names=tuple(model.param_names),
         output_names=tuple(model.output_names),
+        diverged=bad_at >= 0,
+        diverged_at=bad_at,
     )
+
+
+def _declared(model, method: str):
+    """The model's ``param_domains()`` / ``state_envelope()``, or None for a model class of the
+    user's own that has no such method."""
+    fn = getattr(model, method, None)
+    return fn() if callable(fn) else None
+
+
+def _envelope(model, nx: int) -> np.ndarray:
+    """(nx,) largest plausible |state|: the model's envelope, +inf where it has none."""
+    env = _declared(model, "state_envelope")
+    return np.full(nx, np.inf) if env is None else np.asarray(env, dtype=float)
 
 
 def _bias0(bias0, ny: int) -> np.ndarray:
@@ -246,6 +288,11 @@ def _input_offset(model, steering_offset) -> np.ndarray:
     return offset
 
 
+def _inside(x, envelope):
+    """Whether a state is finite and within the envelope (|x_i| <= envelope_i)."""
+    return jnp.all(jnp.isfinite(x) & (jnp.abs(x) <= envelope))
+
+
 def _simulate_jit(model, keys, a):
     return _simulate_runs(model, keys, a)
 
@@ -262,15 +309,21 @@ def _simulate_runs(model, keys, a):
         eps = jax.random.normal(k_noise, (n_steps, nx + 2 * ny))
 
         def step(carry, xs):
-            x, bias = carry
+            x, bias, y_prev, bad = carry
             u, q, r, e = xs
             u_true = u + a["offset"]
             x_next = model.transition(x, u_true, theta) + q * e[:nx]
             bias_next = bias + a["b_std"] * e[nx + ny:]
             y = model.observe(x_next, u_true, theta) + bias_next + r * e[nx:nx + ny]
-            return (x_next, bias_next), (x_next, y, bias_next)
+            bad = bad | ~_inside(x_next, a["envelope"])
+            x_next, bias_next, y = (jnp.where(bad, old, new) for old, new in
+                                    ((x, x_next), (bias, bias_next), (y_prev, y)))
+            return (x_next, bias_next, y, bad), (x_next, y, bias_next, bad)
 
-        _, (xs, ys, bs) = jax.lax.scan(step, (x0, a["b0"]), (a["inputs"], a["q"], a["r"], eps))
-        return xs, ys, theta, bs, x0
+        y0 = model.observe(x0, a["inputs"][0] + a["offset"], theta) + a["b0"]
+        carry0 = (x0, a["b0"], y0.astype(x0.dtype), jnp.zeros((), bool))
+        _, (xs, ys, bs, bad) = jax.lax.scan(step, carry0, (a["inputs"], a["q"], a["r"], eps))
+        bad_at = jnp.where(jnp.any(bad), jnp.argmax(bad), -1).astype(jnp.int32)
+        return xs, ys, theta, bs, x0, bad_at
 
     return jax.vmap(one_run)(keys, a["theta"])

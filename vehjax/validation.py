@@ -449,3 +449,36 @@ def key(value, n: int):
         raise ValueError(
             f"key: expected a JAX PRNG key such as jax.random.key(0), got {value!r}"
         ) from None
+
+
+def in_domain(arg: str, theta, domains) -> None:
+    """ValueError naming ``arg``, the parameter, its value and its domain unless every value of
+    a concrete ``theta`` ((p,) or (R, p), one row per run) lies in its parameter's domain.
+
+    ``domains`` is a model's :class:`vehjax.models.domains.ParamDomains` (read by attribute:
+    ``names``, ``intervals``, ``owner``, ``inside``), or None (no domains declared: nothing is
+    checked). Traced values and a ``theta`` whose last axis is not p long (someone else's error)
+    are not checked. The message shows the first offending value (row-major), the interval in
+    mathematical notation ('(' open, '[' closed) and the interval's note, formatted with
+    ``name``, ``value`` and ``minus`` (its negative), e.g. how to convert a sign convention.
+    """
+    if domains is None or is_tracer(theta) or theta is None:
+        return
+    th = np.asarray(theta, dtype=float)
+    p = len(domains.names)
+    if th.ndim not in (1, 2) or th.shape[-1] != p:
+        return
+    ok = domains.inside(th)
+    if np.all(ok):
+        return
+    flat = np.argwhere(~ok.reshape(-1, p))[0]
+    row, j = int(flat[0]), int(flat[1])
+    value = float(th.reshape(-1, p)[row, j])
+    dom = domains.intervals[j]
+    where = f" (run {row})" if th.ndim == 2 else ""
+    name = domains.names[j]
+    note = dom.note.format(name=name, value=f"{value:g}", minus=f"{-value:g}") if dom.note else ""
+    raise ValueError(
+        f"{arg}: parameter {name!r} = {value:g}{where} is outside its domain "
+        f"{dom.text()} in {domains.owner}" + (f": {note}" if note else "")
+    )

@@ -52,9 +52,12 @@ def check_model(model):
 
 
 def model_dims(model) -> dict:
-    """The ``ny``/``nu``/``n_theta`` fields of an Estimator built on ``model``."""
+    """The ``ny``/``nu``/``n_theta``/``theta_domains`` fields of an Estimator built on
+    ``model`` (no domains for a model class of the user's own without ``param_domains``)."""
+    domains = getattr(model, "param_domains", None)
     return dict(ny=len(model.output_names), nu=len(model.input_names),
-                n_theta=len(model.param_names))
+                n_theta=len(model.param_names),
+                theta_domains=domains() if callable(domains) else None)
 
 
 def in_dtype(fn):

@@ -178,6 +178,9 @@ class Estimator(NamedTuple):
         n_theta: length of the model's parameter vector, which a state-only filter's
             ``theta0`` replaces (``vehjax.filter`` and ``vehjax.run`` check it before tracing);
             None: a state-only filter takes no theta0 in ``run``.
+        theta_domains: the model's :class:`vehjax.models.domains.ParamDomains` (its
+            ``param_domains()``), which a state-only filter's ``theta0`` must lie in
+            (``vehjax.filter`` and ``vehjax.run`` check it before tracing); None: not checked.
         smoother: :class:`GaussianSmoother`, the Gaussian filter's own prediction and
             measurement moments for :func:`vehjax.smooth` (set by the EKF, UKF, CKF, their
             square-root forms and the joint filters); None: no Gaussian smoother.
@@ -201,6 +204,7 @@ class Estimator(NamedTuple):
     particle_transition: ParticleTransition | None = None
     workload: str = "default"
     n_theta: int | None = None
+    theta_domains: Any = None
     smoother: GaussianSmoother | None = None
     rao_blackwell: Any = None
 

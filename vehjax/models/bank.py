@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import domains as dom
 from .base import VehicleModel
 
 #: Gravitational acceleration [m/s^2].
@@ -53,6 +54,12 @@ class SingleTrackBank(VehicleModel):
         gives no vehicle data; the nominal values (1500 kg, 2700 kg m^2, 1.2 m, 1.5 m,
         1.2e5 N/rad, 1.4e5 N/rad) are plausible for a mid-size sedan (iz ~ m lf lr, understeer
         gradient m (lr cr - lf cf) / (L cf cr) ~ 2.2e-3 rad/(m/s^2) ~ 1.2 deg/g), not measured.
+        Domains (``PARAM_DOMAINS``, :meth:`~vehjax.models.BaseModel.param_domains`): all six
+        in (0, inf): m, iz by necessity, lf, lr with the CoG between the axles, cf, cr in the
+        sign convention above (a positive slip angle gives a positive force; a stiffness in
+        the SAE convention, negative, converts by a change of sign).
+    State envelope: |vy| <= 300 m/s, |r|, |phi_dot| <= 20 rad/s, |phi| <= pi/2 (a road
+        banked beyond vertical is none), |phi_ddot| <= 1000 rad/s^2.
     Outputs y = (ay, r, roll_rate, phi, r_virt):
 
     * ay [m/s^2], the lateral accelerometer in the road plane. An accelerometer reads specific
@@ -82,6 +89,10 @@ class SingleTrackBank(VehicleModel):
     PARAM_NAMES = ("m", "iz", "lf", "lr", "cf", "cr")
     PARAM_UNITS = ("kg", "kg m^2", "m", "m", "N/rad", "N/rad")
     PARAM_NOMINAL = (1500.0, 2700.0, 1.2, 1.5, 1.2e5, 1.4e5)
+    PARAM_DOMAINS = {"m": dom.MASS, "iz": dom.INERTIA, "lf": dom.AXLE, "lr": dom.AXLE,
+                     "cf": dom.CORNERING, "cr": dom.CORNERING}
+    STATE_ENVELOPE = {"vy": dom.SPEED_LIMIT, "r": dom.RATE_LIMIT, "phi": np.pi / 2,
+                      "phi_dot": dom.RATE_LIMIT, "phi_ddot": 1000.0}
 
     output_names = property(lambda self: _OUTPUT_NAMES)
     output_units = property(lambda self: _OUTPUT_UNITS)

@@ -25,6 +25,7 @@ import numpy as np
 
 from .bank import SingleTrackBank
 from .base import Model
+from .domains import extended
 
 #: the RAV4's rear track l_T [m] (Comma2k19Drive.measurements' default)
 TRACK = 1.61
@@ -46,10 +47,12 @@ class VirtualScaleBank(SingleTrackBank):
     a sixth, constant state: x = (vy, r, phi, phi_dot, phi_ddot, eps); the output r_virt is
     :func:`virtual_yaw_reading` (affine in eps, so the marginalized PF can carry eps in each
     particle's Kalman filter beside the bank: learnt online, without forgetting). The rear
-    track is :data:`TRACK`. Everything else as SingleTrackBank."""
+    track is :data:`TRACK`. Everything else as SingleTrackBank (domains included); the state
+    envelope adds |eps| <= 1 (a radius mismatch of 100 %)."""
 
     STATE_NAMES = SingleTrackBank.STATE_NAMES + ("eps",)
     STATE_UNITS = SingleTrackBank.STATE_UNITS + ("-",)
+    STATE_ENVELOPE = {**SingleTrackBank.STATE_ENVELOPE, "eps": 1.0}
 
     def derivative(self, x, u, theta):
         return jnp.concatenate([super().derivative(x[:5], u, theta), 0.0 * x[5:]])
@@ -104,7 +107,8 @@ def augmented_model(model, bank=False):
     return Model(f, h, model.dt, names, param_names=model.param_names,
                  input_names=model.input_names,
                  output_names=("ay", "r", "r_virt") + (("roll_rate",) if bank else ()),
-                 theta=np.asarray(model.theta), units={k: units[k] for k in names})
+                 theta=np.asarray(model.theta), units={k: units[k] for k in names},
+                 domains=model.param_domains())
 
 
 def offset_scale_model(model):
@@ -115,7 +119,8 @@ def offset_scale_model(model):
     ``model.param_names`` + (delta_offset, eps), outputs (ay, r, r_virt) with r_virt by
     :func:`virtual_yaw_reading`; sensor biases enter through :func:`vehjax.calibrate.pmmh`'s
     ``bias:`` names. Linear in the states and inputs (given vx), so a Kalman filter's
-    likelihood is exact for it."""
+    likelihood is exact for it. Keeps the model's parameter domains (the two added ones
+    unbounded)."""
     n = len(model.param_names)
 
     def full(x):
@@ -131,4 +136,5 @@ def offset_scale_model(model):
     return Model(f, h, model.dt, ("vy", "r"), param_names=model.param_names + ("delta_offset", "eps"),
                  input_names=model.input_names, output_names=("ay", "r", "r_virt"),
                  theta=np.concatenate([np.asarray(model.theta), [0.0, 0.0]]),
-                 units={"vy": "m/s", "r": "rad/s"})
+                 units={"vy": "m/s", "r": "rad/s"},
+                 domains=extended(model.param_domains(), ("delta_offset", "eps")))

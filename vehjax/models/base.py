@@ -14,6 +14,11 @@ A user's own discrete-time model is wrapped by :class:`Model`.
 Models hold ``theta`` as an array, so ``jax.jit(model.transition)`` on the bound method fails
 (JAX would hash the model); jit a lambda, ``jax.jit(lambda x, u, th: model.transition(x, u, th))``,
 or use ``equinox.filter_jit``.
+
+Physical domains: every built-in model declares the interval each parameter must lie in
+(``PARAM_DOMAINS``, :mod:`vehjax.models.domains`) and the largest plausible magnitude of its
+states (``STATE_ENVELOPE``); ``model.param_domains()`` and ``model.state_envelope()`` read them
+(:class:`BaseModel`). A user's :class:`Model` has none unless given ``domains=``.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ import numpy as np
 
 from .. import validation
 from ..substitute import fast_elementary
+from .domains import Interval, ParamDomains, envelope, gather, interval
 
 INTEGRATORS = ("euler", "rk4")
 
@@ -73,6 +79,35 @@ def _check_theta(theta, param_names: tuple[str, ...]):
             f"got shape {np.shape(theta)}"
         )
     return jnp.asarray(theta)
+
+
+def _user_domains(domains, names: tuple[str, ...]) -> ParamDomains | None:
+    """:class:`Model`'s ``domains=`` as ParamDomains over ``names``; ValueError naming
+    ``domains`` for an unknown name or an entry that is no interval."""
+    if domains is None:
+        return None
+    if isinstance(domains, ParamDomains):  # a wrapped model's, kept as they are
+        if domains.names != names:
+            raise ValueError(f"domains: expected the domains of parameters {names}, got those "
+                             f"of {domains.names}")
+        return domains
+    if not isinstance(domains, dict):
+        raise ValueError(f"domains: expected a dict parameter name -> interval such as "
+                         f"'(0, inf)', got {domains!r}")
+    given = validation.keyed("domains", domains, names, "the model's parameters")
+    out = []
+    for n in names:
+        d = given.get(n, Interval(-np.inf, np.inf))
+        if isinstance(d, str):
+            try:
+                d = interval(d)
+            except ValueError as e:
+                raise ValueError(f"domains[{n!r}]: {e}") from None
+        if not isinstance(d, Interval):
+            raise ValueError(f"domains[{n!r}]: expected an interval such as '(0, inf)' or "
+                             f"vehjax.models.domains.Interval, got {d!r}")
+        out.append(d)
+    return ParamDomains(names, tuple(out), "Model")
 
 
 @runtime_checkable
@@ -126,6 +161,22 @@ class BaseModel(eqx.Module):
         theta: nominal ("true") parameter vector, shape (np,).
         state_names, input_names, param_names, output_names: tuples of names.
         state_units, input_units, param_units, output_units: tuples of unit strings, same lengths.
+
+    Physical domains (:mod:`vehjax.models.domains`):
+
+    * ``param_domains()``: the :class:`~vehjax.models.domains.ParamDomains` of the model's
+      parameters, in ``param_names`` order (``.bounds()`` gives the (low, high) arrays, -inf /
+      +inf for open ends; ``.intervals[j]`` says whether each end is closed and why the domain
+      is what it is; ``.describe()`` lists them), or None when the model declares none (a
+      :class:`Model` built without ``domains=``: nothing is checked). A built-in model declares
+      them in its class-level ``PARAM_DOMAINS`` (name -> Interval), and its docstring states the
+      sign convention they follow. They are checked (:func:`vehjax.validation.in_domain`,
+      ValueError naming the argument, the parameter, its value and its domain) where the model
+      is built (``theta=``), by :meth:`with_theta`, by :func:`vehjax.simulate` (``theta=``) and
+      by :func:`vehjax.filter` / :func:`vehjax.run` (``theta0`` of a state-only filter).
+    * ``state_envelope()``: (nx,) largest plausible magnitude per state (+inf where none), or
+      None (finiteness only); a built-in model declares it in ``STATE_ENVELOPE``.
+      :func:`vehjax.simulate` flags a run whose states leave it (``Simulation.diverged``).
     """
 
     dt: float = eqx.field(static=True)
@@ -133,6 +184,18 @@ class BaseModel(eqx.Module):
     #: its functions' shapes and dtypes were checked (:func:`vehjax.validation.model_shapes`):
     #: at construction for :class:`Model`, by the tests for the built-in models
     shapes_checked: ClassVar[bool] = True
+    #: parameter name -> :class:`~vehjax.models.domains.Interval` (empty: no domains declared)
+    PARAM_DOMAINS: ClassVar[dict] = {}
+    #: state name -> largest plausible magnitude in the state's unit (empty: finiteness only)
+    STATE_ENVELOPE: ClassVar[dict] = {}
+
+    def param_domains(self) -> ParamDomains | None:
+        """The domains of ``param_names`` (class docstring), or None when none are declared."""
+        return gather(self.PARAM_DOMAINS, self.param_names, type(self).__name__)
+
+    def state_envelope(self) -> np.ndarray | None:
+        """(nx,) largest plausible |state| (+inf where none), or None (finiteness only)."""
+        return envelope(self.STATE_ENVELOPE, self.state_names)
 
     @property
     def nx(self) -> int:
@@ -166,6 +229,7 @@ class BaseModel(eqx.Module):
         idx = self.param_index(tuple(values))
         theta = np.array(self.theta, dtype=float)
         theta[list(idx)] = [float(v) for v in values.values()]
+        validation.in_domain("with_theta", theta, self.param_domains())
         return eqx.tree_at(lambda m: m.theta, self, jnp.asarray(theta))
 
     def describe(self) -> str:
@@ -211,6 +275,7 @@ class VehicleModel(BaseModel):
         self.dt = _check_dt(dt)
         self.integrator = _check_integrator(integrator)
         self.theta = _check_theta(self.PARAM_NOMINAL if theta is None else theta, self.PARAM_NAMES)
+        validation.in_domain("theta", self.theta, self.param_domains())
 
     state_names = property(lambda self: self.STATE_NAMES)
     state_units = property(lambda self: self.STATE_UNITS)
@@ -251,6 +316,11 @@ class Model(BaseModel):
             step, vmapped over runs) call the functions as written (``written_fns``): on short
             vectors the substitutes cost more than they save (``vehjax bench all`` measures
             both forms).
+        domains: optional dict parameter name -> domain, each an
+            :class:`~vehjax.models.domains.Interval` or its text (``"(0, inf)"``, ``"[0, 3]"``);
+            parameters it does not name are unbounded. Or a model's ``param_domains()`` (a
+            wrapper of a built-in model keeps its domains). Checked like a built-in model's
+            (:class:`BaseModel`); None (default): no domains, nothing checked.
 
     Example::
 
@@ -267,6 +337,7 @@ class Model(BaseModel):
     param_names: tuple[str, ...] = eqx.field(static=True)
     output_names: tuple[str, ...] = eqx.field(static=True)
     units: tuple[tuple[str, str], ...] = eqx.field(static=True)
+    domains: ParamDomains | None = eqx.field(static=True)
 
     def __init__(
         self,
@@ -280,6 +351,7 @@ class Model(BaseModel):
         theta=None,
         units: dict | None = None,
         fast_math: bool = True,
+        domains: dict | None = None,
     ):
         if not callable(transition):
             raise ValueError(f"transition: expected a function f(x, u, theta), got {transition!r}")
@@ -302,7 +374,13 @@ class Model(BaseModel):
         theta = np.zeros(len(self.param_names)) if theta is None else theta
         self.theta = _check_theta(theta, self.param_names)
         self.units = tuple(sorted((units or {}).items()))
+        self.domains = _user_domains(domains, self.param_names)
+        validation.in_domain("theta", self.theta, self.domains)
         validation.model_shapes(self)  # transition -> (nx,), observe -> (ny,), or ValueError
+
+    def param_domains(self) -> ParamDomains | None:
+        """The ``domains=`` given, for every parameter (unnamed ones unbounded), or None."""
+        return self.domains
 
     def _probe_output(self):
         x = jnp.zeros(len(self.state_names))

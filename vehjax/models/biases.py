@@ -45,8 +45,8 @@ def with_output_biases(model, outputs) -> Model:
     Returns:
         A :class:`~vehjax.models.Model` with states ``model.state_names`` then
         ``<output>_bias`` per output (unit: the output's), the same inputs, parameters,
-        nominal ``theta``, outputs and ``dt``; ``transition`` keeps the biases, ``observe``
-        adds them. Initial state and covariance of a filter: the model's, then the biases'
+        nominal ``theta``, outputs and ``dt`` (and parameter domains); ``transition`` keeps
+        the biases, ``observe`` adds them. Initial state and covariance of a filter: the model's, then the biases'
         prior mean and variance. A model with ``bank_noise_gain()`` keeps it (zeros on the
         biases).
 
@@ -97,6 +97,7 @@ def _wrapped(model, transition, observe, names, suffix, units) -> Model:
         units={k: v for k, v in {**units, **{a: units[n] for a, n in zip(added, names)}}.items()
                if v != "-"},
         fast_math=False,  # the model's own functions are called as they are
+        domains=model.param_domains() if hasattr(model, "param_domains") else None,
     )
     if hasattr(model, "bank_noise_gain"):
         gain = np.r_[np.asarray(model.bank_noise_gain(), float), np.zeros(len(names))]

@@ -10,6 +10,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ..elementary import arctan, cos, sin
+from . import domains as dom
 from .base import VehicleModel
 from .tyres import linear_force
 
@@ -29,6 +30,12 @@ class Dynamic3DOF(VehicleModel):
         stiffness [N], [N/rad], CoG to axles [m], yaw inertia [kg m^2], air drag [N s^2/m^2].
         The yaw inertia is its own parameter (MATLAB ties it to m), so that m, cx, cy are
         identifiable from the states.
+    Domains (``PARAM_DOMAINS``, :meth:`~vehjax.models.BaseModel.param_domains`): m, iz in
+        (0, inf) (necessity); lf, lr in (0, inf) (the CoG between the axles); cx, cy in
+        (0, inf), the sign convention of ISO 8855 used throughout (a positive slip or slip angle
+        gives a positive force; stiffnesses in the SAE convention, negative, convert by a
+        change of sign); ca in [0, inf) (drag opposes the motion; zero allowed).
+    State envelope: |vx|, |vy| <= 300 m/s, |r| <= 20 rad/s.
     Outputs: ``outputs="states"`` gives (vx, vy, r), the paper's H = I; ``outputs="matlab"``
         gives (vx, ay, r) as in the MATLAB example, ay the lateral acceleration [m/s^2].
 
@@ -52,6 +59,9 @@ class Dynamic3DOF(VehicleModel):
     PARAM_NAMES = ("m", "cx", "cy", "lf", "lr", "iz", "ca")
     PARAM_UNITS = ("kg", "N", "N/rad", "m", "m", "kg m^2", "N s^2/m^2")
     PARAM_NOMINAL = (1700.0, 1.5e5, 4.0e4, 1.5, 1.5, 1700.0 * 1.5**2, 0.5)
+    PARAM_DOMAINS = {"m": dom.MASS, "cx": dom.SLIP_STIFFNESS, "cy": dom.CORNERING,
+                     "lf": dom.AXLE, "lr": dom.AXLE, "iz": dom.INERTIA, "ca": dom.DRAG}
+    STATE_ENVELOPE = {"vx": dom.SPEED_LIMIT, "vy": dom.SPEED_LIMIT, "r": dom.RATE_LIMIT}
 
     def __init__(self, dt: float = 0.01, integrator: str = "rk4", theta=None, outputs: str = "states"):
         super().__init__(dt=dt, integrator=integrator, theta=theta)

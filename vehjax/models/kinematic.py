@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from ..elementary import arctan, cos, sin, tan
+from . import domains as dom
 from .base import VehicleModel
 
 
@@ -15,6 +16,10 @@ class KinematicBicycle(VehicleModel):
     Inputs u = (a, delta): acceleration along the velocity [m/s^2], front steering angle [rad].
     Parameters theta = (lf, lr): CoG to front and rear axle [m], nominal 1.5 m each.
     Outputs: all four states (the paper's H_s = I).
+
+    Domains (``PARAM_DOMAINS``, :meth:`~vehjax.models.BaseModel.param_domains`): lf, lr in
+    (0, inf), the CoG between the axles (lr > 0 is a necessity: the yaw rate divides by it).
+    State envelope: |v| <= 300 m/s; the pose is unbounded.
 
     Eq. 1 of the transcription reads ``beta = tan^-1(lr / (lr + lf)) tan(delta)``; a bracket is
     misplaced, the slip angle at the CoG is ``beta = arctan(lr / (lf + lr) * tan(delta))``.
@@ -27,6 +32,8 @@ class KinematicBicycle(VehicleModel):
     PARAM_NAMES = ("lf", "lr")
     PARAM_UNITS = ("m", "m")
     PARAM_NOMINAL = (1.5, 1.5)
+    PARAM_DOMAINS = {"lf": dom.AXLE, "lr": dom.AXLE}
+    STATE_ENVELOPE = {"v": dom.SPEED_LIMIT}
 
     output_names = property(lambda self: self.STATE_NAMES)
     output_units = property(lambda self: self.STATE_UNITS)

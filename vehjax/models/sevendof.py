@@ -126,6 +126,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..elementary import arctan2, cos, sin
+from . import domains as dom
 from .base import VehicleModel
 from .tyres import pacejka89_lateral, pacejka89_longitudinal
 
@@ -239,6 +240,11 @@ class SevenDOF(VehicleModel):
         iw = 1.1 kg m^2 is our estimate for a wheel and tyre of this size (about 20 kg at a
         radius of gyration of 0.235 m). The tyre coefficients are constants of
         :mod:`vehjax.models.tyres`.
+    Domains (``PARAM_DOMAINS``, :meth:`~vehjax.models.BaseModel.param_domains`): all nine in
+        (0, inf): m, iz, iw by necessity (the equations divide by them), a, b with the CoG
+        between the axles (the static loads stay positive), tf, tr, h, re lengths of the car.
+        The tyres' signs are those of :mod:`vehjax.models.tyres` (fixed coefficients).
+    State envelope: |u|, |v| <= 300 m/s, |r| <= 20 rad/s, |omega_i| <= 3000 rad/s.
     Outputs: ``outputs="eq20"`` gives eq. 20's (r, ay, u); ``outputs="eq18"`` gives eq. 18's
         (u, v, ax, ay, r, beta, Gamma) with beta = arctan(v / u) [rad] and Gamma the yaw
         moment [N m].
@@ -262,6 +268,11 @@ class SevenDOF(VehicleModel):
     PARAM_NAMES = ("m", "iz", "a", "b", "tf", "tr", "h", "re", "iw")
     PARAM_UNITS = ("kg", "kg m^2", "m", "m", "m", "m", "m", "m", "kg m^2")
     PARAM_NOMINAL = (1685.0, 2580.0, 1.16, 1.36, 1.54, 1.59, 0.436, 0.36, 1.1)
+    PARAM_DOMAINS = {"m": dom.MASS, "iz": dom.INERTIA, "a": dom.AXLE, "b": dom.AXLE,
+                     "tf": dom.LENGTH, "tr": dom.LENGTH, "h": dom.LENGTH, "re": dom.LENGTH,
+                     "iw": dom.INERTIA}
+    STATE_ENVELOPE = {"u": dom.SPEED_LIMIT, "v": dom.SPEED_LIMIT, "r": dom.RATE_LIMIT,
+                      **{w: 3000.0 for w in ("omega_fl", "omega_fr", "omega_rl", "omega_rr")}}
 
     def __init__(self, dt: float = 0.01, integrator: str = "rk4", theta=None,
                  outputs: str = "eq20", substeps: int | None = None):

@@ -57,6 +57,7 @@ import jax.numpy as jnp
 from jax.numpy import arctan, cos, sin
 
 from .. import validation
+from . import domains as dom
 from .base import VehicleModel, _check_dt, _check_integrator, _check_theta, integrate
 
 #: Gravitational acceleration [m/s^2].
@@ -135,6 +136,24 @@ class SingleTrack(VehicleModel):
     Nominal values (plausible for a mid-size car, not measured): 1500 kg, 2700 kg m^2, 1.2 m,
     1.5 m, 1.2e5 and 1.4e5 N/rad (understeer gradient 2.2e-3 rad s^2/m), mu = 1, C = 1.3.
 
+    Domains (``PARAM_DOMAINS``, :meth:`~vehjax.models.BaseModel.param_domains`; checked at
+    construction, by ``with_theta``, ``simulate`` and ``filter``/``run``):
+
+    * m, iz in (0, inf): a physical necessity (the equations divide by them).
+    * lf, lr in (0, inf): the CoG between the axles, a necessity for positive static axle
+      loads (which the saturating tyres' peaks mu Fz use).
+    * cf, cr in (0, inf): the sign convention of the module docstring (ISO 8855: a positive
+      slip angle gives a positive force). Cornering stiffnesses in the SAE convention (y to the
+      right, negative stiffnesses) convert by a change of sign; the error says so.
+    * mu in (0, 3): positive by necessity; at most 3 by vehjax's convention (road tyres reach
+      0.9-1.3, racing slicks about 1.5-2; 3 leaves room for some downforce, which the static
+      loads do not model).
+    * shape_f, shape_r in (0, 2): C > 0 by necessity (B = c / (C D)); C < 2 keeps the force's
+      sign that of the slip angle at every slip (:func:`magic_formula_axle`).
+
+    State envelope (``STATE_ENVELOPE``, where :func:`vehjax.simulate` flags a run as
+    diverged): |vy| <= 300 m/s, |r| <= 20 rad/s.
+
     Args:
         dt: sampling period [s], > 0.
         integrator: ``"rk4"`` (default) or ``"euler"``, applied ``substeps`` times per step.
@@ -151,6 +170,10 @@ class SingleTrack(VehicleModel):
     INPUT_NAMES = ("delta", "vx")
     INPUT_UNITS = ("rad", "m/s")
     PARAM_NAMES, PARAM_UNITS, PARAM_NOMINAL = _PARAMS["linear"]  # per instance: ``param_names``
+    PARAM_DOMAINS = {"m": dom.MASS, "iz": dom.INERTIA, "lf": dom.AXLE, "lr": dom.AXLE,
+                     "cf": dom.CORNERING, "cr": dom.CORNERING, "mu": dom.FRICTION,
+                     "shape_f": dom.SHAPE, "shape_r": dom.SHAPE}
+    STATE_ENVELOPE = {"vy": dom.SPEED_LIMIT, "r": dom.RATE_LIMIT}
 
     def __init__(self, dt: float = 0.01, integrator: str = "rk4", theta=None,
                  tyres: str = "linear", substeps: int = 2):
@@ -160,6 +183,7 @@ class SingleTrack(VehicleModel):
         self.dt = _check_dt(dt)
         self.integrator = _check_integrator(integrator)
         self.theta = _check_theta(nominal if theta is None else theta, names)
+        validation.in_domain("theta", self.theta, self.param_domains())
 
     param_names = property(lambda self: _PARAMS[self.tyres][0])
     param_units = property(lambda self: _PARAMS[self.tyres][1])
