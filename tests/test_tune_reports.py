@@ -208,3 +208,23 @@ def test_uncertainty_holds_fixed_coordinates_and_exempts_per_coordinate():
     assert vt.uncertainty(small, J, np.ones(2), ("x0", "q")).undetermined == ("x0",)
     u2 = vt.uncertainty(small, J, np.ones(2), ("x0", "q"), max_std=np.array([np.inf, 1.0]))
     assert u2.undetermined == () and u2.std_errors[0] == pytest.approx(2.0)
+
+
+def test_fitted_parameters_stay_in_the_models_physical_domain_by_default():
+    """A built-in model's declared domains are tune.fit's default bounds (issue 47 item 1): the
+    friction coefficient of the brush tyres is fitted in its domain (0, 3), a user's bounds
+    narrow it, and bounds that leave no room inside it are refused naming ``bounds``."""
+    from vehjax.tune.parameterisation import param_transform
+
+    model = vj.models.SingleTrack(tyres="brush")
+    names, theta = tuple(model.param_names), np.asarray(model.theta)
+    dom = model.param_domains()
+    _, tr = param_transform(("mu", "cf"), None, theta, names, dom)
+    assert tr.bounds == ((0.0, 0.0), (3.0, np.inf))
+    _, tr = param_transform(("mu",), {"mu": (0.5, 5.0)}, theta, names, dom)
+    assert tr.bounds == ((0.5,), (3.0,))
+    with pytest.raises(ValueError, match="^bounds: mu's bounds .* outside its physical domain"):
+        param_transform(("mu",), {"mu": (4.0, 5.0)}, theta, names, dom)
+    # a user model without declared domains: as before (positive start: kept positive)
+    _, tr = param_transform(("mu",), None, theta, names, None)
+    assert tr.bounds == ((0.0,), (np.inf,))

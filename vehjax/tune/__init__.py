@@ -25,10 +25,12 @@ Parameterisations (unconstrained vector -> physical value), chosen from the star
   as diagonal: ``Q = diag(exp(2 d))`` (log standard deviations);
 * a full one as full, by its log-Cholesky factor: ``Q = L L^T``, ``L`` lower triangular with
   diagonal ``exp(d)`` and free entries below it. Both keep Q positive definite.
-* model parameters named in ``params``: ``bounds={name: (lo, hi)}`` gives a box
-  (``lo + (hi - lo) sigmoid(s)``), ``(lo, None)`` a lower bound (``lo + exp(s)``), ``(None, hi)`` an
-  upper bound, ``(None, None)`` none; a parameter not in ``bounds`` is kept positive
-  (``exp(s)``) when its starting value is positive, else left free. The starting values are
+* model parameters named in ``params``: each stays in the physical domain its model declares
+  (``model.param_domains()``, e.g. (0, 3) for a friction coefficient), narrowed by
+  ``bounds={name: (lo, hi)}`` where given. A box (``lo + (hi - lo) sigmoid(s)``), a lower
+  bound (``lo + exp(s)``), an upper bound or none; a parameter with neither a declared domain
+  nor ``bounds`` is kept positive (``exp(s)``) when its starting value is positive, else left
+  free. The starting values are
   ``model.theta`` (set them with ``model.with_theta(...)``). The maps are the parameter-domain
   transforms the filters use (unit scale; :mod:`vehjax.tune.parameterisation`).
 * ``x0`` (``fit_x0=True``): free, shared (nx,) or one per run (R, nx) as given.

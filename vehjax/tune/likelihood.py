@@ -79,7 +79,7 @@ def _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs) ->
                          "bounds={name: (lo, hi)}")
     params = validation.names("params", params, names, allow_empty=True)
     theta0 = np.asarray(model.theta, dtype=float)
-    idx, theta_map = param_transform(params, bounds, theta0, names)
+    idx, theta_map = param_transform(params, bounds, theta0, names, model.param_domains())
     if not isinstance(fit_x0, (bool, np.bool_)):
         raise ValueError(f"fit_x0: expected True or False, got {fit_x0!r}")
     if not noise and not params and not fit_x0:

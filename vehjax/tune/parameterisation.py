@@ -74,17 +74,27 @@ class InputNoise:
         return self.cov(z)
 
 
-def param_transform(params, bounds, theta0: np.ndarray, names: tuple):
+def param_transform(params, bounds, theta0: np.ndarray, names: tuple, domains=None):
     """(indices (q,) in ``names``, the parameter-domain ``Transform``) of the fitted parameters;
-    ValueError naming ``bounds``. A parameter not in ``bounds`` is kept positive when its
-    starting value is positive, else left free (module docstring of :mod:`vehjax.tune`)."""
+    ValueError naming ``bounds``. ``domains``: the model's declared physical domains
+    (``model.param_domains()``) or None. A fitted parameter's box is its domain, narrowed by
+    ``bounds`` where given; a parameter with neither is kept positive when its starting value
+    is positive, else left free (module docstring of :mod:`vehjax.tune`)."""
     bounds = validation.keyed("bounds", bounds, params, "the fitted params")
     idx = np.array([names.index(p) for p in params], dtype=int)
     low, high = np.empty(len(params)), np.empty(len(params))
+    dom_lo, dom_hi = ((np.full(len(names), -np.inf), np.full(len(names), np.inf))
+                      if domains is None else domains.bounds())
     for j, p in enumerate(params):
         v = float(theta0[idx[j]])
-        if p in bounds:
-            low[j], high[j] = bounds_maps.check_pair("bounds", p, bounds[p])
+        declared = np.isfinite(dom_lo[idx[j]]) or np.isfinite(dom_hi[idx[j]])
+        if p in bounds or declared:
+            low[j], high[j] = (bounds_maps.check_pair("bounds", p, bounds[p]) if p in bounds
+                               else (-np.inf, np.inf))
+            low[j], high[j] = max(low[j], dom_lo[idx[j]]), min(high[j], dom_hi[idx[j]])
+            if not low[j] < high[j]:
+                raise ValueError(f"bounds: {p}'s bounds {bounds[p]} lie outside its physical "
+                                 f"domain ({dom_lo[idx[j]]:g}, {dom_hi[idx[j]]:g})")
             if not low[j] < v < high[j]:
                 show = lambda b: None if np.isinf(b) else float(b)  # noqa: E731
                 raise ValueError(
