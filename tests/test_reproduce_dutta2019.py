@@ -48,7 +48,7 @@ def test_reduced_study_writes_tables_and_figures(tmp_path, capsys, monkeypatch):
         calls.append((args, kwargs, out))
         return out
 
-    monkeypatch.setattr(dutta2019, "tuned_settings", watched)
+    monkeypatch.setattr(dutta2019.study, "tuned_settings", watched)  # where the stages call it
     rc = cli.main([
         "reproduce", "dutta2019", "--runs", "3", "--particles", "64", "--settings", "tuned",
         "--filters", "Dual UKF,Particle+UKF",
