@@ -57,8 +57,7 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   steering std's mean 1.122 of the truth both); where the data pin the steering std more
   narrowly than the grid's spacing, its estimate and interval come from the Laplace
   approximation on the grid (:mod:`vehjax.filters.marginalized.grid`; not the case here).
-  At the defaults (100 runs x 180 s; the whole report 6:19 on 2026-11-27, a machine about 2.5
-  times faster than the 16:28 of 7caecb8) it learns the offset (RMS 0.001 deg), tracks the
+  At the defaults (100 runs x 180 s) it learns the offset (RMS 0.001 deg), tracks the
   biases, learns the sensor stds (within 0.3 %) and the steering std (+0.3 % over the last
   third; the paper's filter +68 %), and every learnt parameter's interval holds the truth in
   0.91-0.96 of the runs (the paper's filter: the steering std's in 0.22). The NEES of (vy, r)
@@ -83,11 +82,10 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   rows give the same 0.85-0.86, so it is not the guess twice the truth but the prior's decade
   either side that the first 20 s pay for; a narrower prior about the guess does not help
   (Jeffreys' over a third to three times the guess: 0.835; a fifth to five times: 0.875;
-  ``learn 100 180 25 jeffreys:3 1 known``). Time, ms per run-step, the report on 2026-11-27:
-  0.034 against the paper's filter's 0.034 (N = 100), 0.097 against 0.179 on the drive (N =
-  500); ``python benchmarks/mpf_consistent_steering.py time 20 30``, interleaved: 0.029
-  against 0.028 (earlier, on a slower machine, 0.070 against 0.069; in that day's report
-  0.084 against 0.070). On the drive its yaw rate is 0.103 deg/s from the pose's (0.66x the
+  ``learn 100 180 25 jeffreys:3 1 known``). Time per run-step: about the paper's filter's (N = 100) in
+  simulation and about half of it on the drive (N = 500); ``python
+  benchmarks/mpf_consistent_steering.py time 20 30`` measures it interleaved
+  (benchmarks/results/notes_noise_learning.md). On the drive its yaw rate is 0.103 deg/s from the pose's (0.66x the
   raw gyro's error; the paper's filter 0.121), the closest of all rows.
   These numbers: ``python benchmarks/mpf_consistent_steering.py`` (its docstring has the
   commands). First built as Storvik's filter (covariances drawn per particle from
@@ -99,7 +97,7 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   ``mean_std0``.
 * **MPF (inverse-Wishart)**: MPF (consistent) with ``sensor_variances="inverse-wishart"``
   (the sensor covariances the mean of expected inverse-Wishart statistics, as first built and
-  the default until 2026-11-27): here, where the sensors are seen nearly alone, it learns the
+  the former default): here, where the sensors are seen nearly alone, it learns the
   same (stds within 0.2 %, the steering std -0.9 % over the last third, coverage 0.91-0.95)
   and its NEES of (vy, r) is in the band on 0.86 of the steps (1.01 per dof): early on the
   scored variances of the grid points above the true steering std fit it and score ay's
@@ -107,8 +105,8 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   mpf_consistent_steering.py early 50``). But on the consistency study's data, where the
   steering noise reaches ay beside ay's own, its ay std's interval holds the truth in 0.84-0.89
   of the runs (scored: 0.97-1.00) and from a guess twice the truth it stays +45 % (``vehjax
-  reproduce consistency``'s MPF-K rows). Time: 0.023 ms per run-step in the 2026-11-27 report
-  (0.7 of MPF (consistent)'s), 0.072 on the drive; yaw rate 0.106 deg/s on the drive.
+  reproduce consistency``'s MPF-K rows). Time: about 0.7 of MPF (consistent)'s per run-step
+  (benchmarks/results/notes_noise_learning.md); yaw rate 0.106 deg/s on the drive.
 * **augmented EKF** (Remark 1, :func:`vehjax.models.bank_scale.augmented_model`): (vy, r, offset, ay bias,
   gyro bias) on (ay, r, r_virt), fixed Q and R (the MPF's initial guesses); no bank states and
   no roll gyro, as the remark's common approach.

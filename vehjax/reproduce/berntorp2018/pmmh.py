@@ -122,7 +122,7 @@ PMMH_PARTICLES = {"mpf": 256, "bootstrap": 64, "pg": 64, "cpm": 64}
 #: the correlated chain (cpm: :func:`vehjax.calibrate.pmmh` with ``correlation``): the
 #: Crank-Nicolson move's rho, and the bootstrap chain's particles and iterations (to compare
 #: the two at the same cost). With the 2-state model the particles are Hilbert-sorted
-#: (:mod:`vehjax._cpm`); the report gives the measured std of the log-likelihood difference the
+#: (:mod:`vehjax.calibrate.correlated`); the report gives the measured std of the log-likelihood difference the
 #: chain's acceptance ratio sees, beside the independent estimates'. It keeps 0.5-0.7 of two
 #: independent estimates' difference whatever rho and N (notes_berntorp2018.md), so the chain
 #: does not mix better than the independent one and is not in the default (``standard``)

@@ -216,7 +216,7 @@ def pmmh_check(pr, info, lik="bootstrap"):
                  + ("small enough for the acceptance ratio (about 1-2 nats)."
                     if d <= 2.0 else
                     "far above the 1-2 nats an efficient chain needs: with two states the "
-                    "sorted resampling keeps little of the correlation (module vehjax._cpm), "
+                    "sorted resampling keeps little of the correlation (module vehjax.calibrate.correlated), "
                     "so this chain sticks as the independent one does."))
         return text
     if "loglik_std" in info:
