@@ -375,3 +375,20 @@ def test_joint_ukf_smooths_parameters_as_constant_states():
     np.testing.assert_allclose(out.states[0], sm.states, atol=1e-12)
     np.testing.assert_allclose(out.params[0], sm.params, atol=1e-12)
     np.testing.assert_allclose(out.params_cov[0], sm.params_cov, atol=1e-12)
+
+
+def test_a_filter_without_smoother_is_named_whatever_the_options():
+    """The fixed-grid MPF has no smoother: asked with a particle smoother's option, the message
+    names the estimator, not the option (issue 46)."""
+    from vehjax.filters import NiW, marginalized_pf_grid
+
+    m = vj.models.Model(lambda x, u, th: jnp.stack([0.9 * x[0] + 0.1 * u[0],
+                                                    0.95 * x[1] + 0.05 * x[0]]),
+                        lambda x, u, th: jnp.stack([x[0], x[1]]), dt=0.1, state_names=("v", "w"),
+                        input_names=("u",), output_names=("y", "z"))
+    est = marginalized_pf_grid(m, 8, noisy_input="u", sensors=("y",), linear_states=("w",),
+                               known_std={"z": 0.2}, linear_noise_std=0.05,
+                               niw=NiW(std0={"u": 0.5, "y": 0.3}))
+    with pytest.raises(ValueError, match="^estimator: 'marginalized_pf_grid' has no smoother"):
+        vj.smooth(est, np.zeros((5, 2)), np.zeros((5, 1)), x0=np.zeros(2), P0=np.eye(2),
+                  key=jax.random.key(0), n_trajectories=4)

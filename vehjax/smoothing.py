@@ -293,8 +293,8 @@ def check_options(estimator: Estimator, method=None, tol=None, max_iter=None):
         raise ValueError(
             f"estimator: {estimator.name!r} has no smoother; vehjax.smooth smooths the EKF, "
             f"UKF, CKF (plain and square-root), the joint EKF/UKF, the bootstrap PF without "
-            f"input noise and the marginalized PF (dual filters do not form the joint "
-            f"state-parameter Gaussian a smoother needs)")
+            f"input noise and the paper's marginalized PF (marginalized_pf; dual filters and "
+            f"marginalized_pf_grid do not form the joint Gaussian or paths a smoother needs)")
     method = "rts" if method is None else validation.choice("method", method, METHODS)
     if method == "ieks" and not spec.taylor:
         raise ValueError(f"method: 'ieks' iterates Jacobian linearisations; {estimator.name!r} "
@@ -383,6 +383,8 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
         opts = dict(particle_options, method=method)
         return _marginalized.smooth(estimator, measurements, inputs, x0=x0, P0=P0, key=key,
                                     theta0=theta0, **opts)
+    if estimator.smoother is None:
+        check_options(estimator)  # no smoother at all: say so, whatever the options
     if particle_options:
         raise ValueError(f"particle_options: {sorted(particle_options)} apply to particle "
                          f"filters only")
