@@ -419,3 +419,18 @@ def test_wrong_argument_types_are_value_errors_naming_the_argument(call, arg):
     """Not a TypeError or an error from inside JAX: a ValueError naming the argument."""
     with pytest.raises(ValueError, match=rf"^{arg}:"):
         call()
+
+
+def test_importing_vehjax_starts_no_jax_backend():
+    """After ``import vehjax`` the JAX options that must precede any JAX operation (the CPU
+    device count, jax.distributed) can still be set: importing runs no JAX computation."""
+    import subprocess
+    import sys
+
+    code = ("import jax, vehjax, vehjax.cli\n"
+            "jax.config.update('jax_num_cpu_devices', 3)\n"
+            "assert len(jax.devices()) == 3, jax.devices()\n"
+            "print('ok')\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, env={**__import__("os").environ, "JAX_PLATFORMS": "cpu"})
+    assert res.returncode == 0 and "ok" in res.stdout, res.stderr[-2000:]

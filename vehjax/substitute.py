@@ -43,11 +43,18 @@ def _weak_convert(x, dtype):
     return lax.convert_element_type_p.bind(x, new_dtype=dtype, weak_type=True, sharding=None)
 
 
-try:  # restores a weak type after substitution; without it weakly typed operands are skipped
-    _weak_convert(np.zeros((), np.float32), np.dtype(np.float32))
-    _convert_weak = _weak_convert
-except TypeError:  # pragma: no cover - the primitive's parameters changed
-    _convert_weak = None
+@functools.cache
+def _weak_types_restorable() -> bool:
+    """Whether :func:`_weak_convert` works with this JAX (its primitive's parameters): probed
+    abstractly on first use, not at import (importing vehjax starts no JAX backend). Without
+    it weakly typed operands are not substituted."""
+    try:
+        jax.eval_shape(lambda a: _weak_convert(a, np.dtype(np.float32)),
+                       jax.ShapeDtypeStruct((), np.float32))
+        return True
+    except TypeError:  # pragma: no cover - the primitive's parameters changed
+        return False
+
 
 _SUBSTITUTES: dict[Any, Callable] = {
     lax.sin_p: elementary.sin,
@@ -77,7 +84,7 @@ def _substitutable(eqn) -> bool:
     avals = [v.aval for v in eqn.invars] + [v.aval for v in eqn.outvars]
     if not all(getattr(a, "dtype", None) in _FLOATS for a in avals):
         return False
-    return _convert_weak is not None or not any(getattr(a, "weak_type", False) for a in avals)
+    return _weak_types_restorable() or not any(getattr(a, "weak_type", False) for a in avals)
 
 
 def _has_work(jaxpr: Jaxpr, memo: dict) -> bool:
@@ -99,7 +106,7 @@ def _like(out, aval):
     if out.dtype != aval.dtype:
         out = lax.convert_element_type(out, aval.dtype)
     if getattr(aval, "weak_type", False) and not jax.typeof(out).weak_type:
-        out = _convert_weak(out, aval.dtype)
+        out = _weak_convert(out, aval.dtype)
     return out
 
 
