@@ -16,6 +16,7 @@ import pytest
 import scipy.optimize
 
 import vehjax as vj
+from _linear import fd_hessian as _fd_hessian, scalar_kalman_loglik
 import vehjax.tune as vt
 from vehjax.tune import boundaries
 
@@ -45,29 +46,12 @@ def simulate(seed, T=T, x0=0.0):
 
 def loglik(a, q, r, ys, us, x0=0.0):
     """Exact log p(y_1:T) of x' = a x + u + w (var q), y = x + v (var r), x_0 ~ N(x0, 1)."""
-    x, P, total = x0, P0[0, 0], 0.0
-    for t in range(len(ys)):
-        x, P = a * x + us[t, 0], a * a * P + q
-        S = P + r
-        e = ys[t, 0] - x
-        total += -0.5 * (e * e / S + np.log(2 * np.pi * S))
-        K = P / S
-        x, P = x + K * e, (1 - K) * P
-    return total
+    return scalar_kalman_loglik(a, q, r, ys, us, x0, P0[0, 0])
 
 
 def fd_hessian(fn, p, rel=1e-4):
-    """Central finite-difference Hessian of fn at p (numpy), steps rel * |p_i|."""
-    p = np.asarray(p, dtype=float)
-    h = rel * np.maximum(np.abs(p), 1e-2)
-    n = len(p)
-    H = np.zeros((n, n))
-    for i in range(n):
-        for j in range(n):
-            ei, ej = np.eye(n)[i] * h[i], np.eye(n)[j] * h[j]
-            H[i, j] = (fn(p + ei + ej) - fn(p + ei - ej) - fn(p - ei + ej)
-                       + fn(p - ei - ej)) / (4 * h[i] * h[j])
-    return 0.5 * (H + H.T)
+    """Central finite-difference Hessian of fn at p (numpy), steps rel * max(|p_i|, 1e-2)."""
+    return _fd_hessian(fn, p, rel, floor=1e-2)
 
 
 def fd_std_errors(fn, p):

@@ -14,6 +14,7 @@ import pytest
 import scipy.optimize
 
 import vehjax as vj
+from _linear import fd_hessian, scalar_kalman_loglik
 import vehjax.tune as vt
 
 A_TRUE, Q_TRUE, R_TRUE, SU_TRUE = 0.8, 0.3, 0.5, 0.6
@@ -49,31 +50,12 @@ def simulate(seed, q, T=T):
 
 def loglik(a, q, r, ys, us):
     """Exact log p(y_1:T) of x' = a x + u + w (var q), y = x + v (var r), numpy."""
-    x, P, total = X0[0], P0[0, 0], 0.0
-    for t in range(len(ys)):
-        x, P = a * x + us[t, 0], a * a * P + q
-        S = P + r
-        e = ys[t, 0] - x
-        total += -0.5 * (e * e / S + np.log(2 * np.pi * S))
-        K = P / S
-        x, P = x + K * e, (1 - K) * P
-    return total
+    return scalar_kalman_loglik(a, q, r, ys, us, X0[0], P0[0, 0])
 
 
 def hessian_fd(fn, p, rel=1e-4):
     """Central finite-difference Hessian of fn at p (steps rel * |p_i|)."""
-    n = len(p)
-    h = rel * np.abs(p)
-    H = np.zeros((n, n))
-    for i in range(n):
-        for j in range(n):
-            def at(si, sj):
-                q = p.copy()
-                q[i] += si * h[i]
-                q[j] += sj * h[j]
-                return fn(q)
-            H[i, j] = (at(1, 1) - at(1, -1) - at(-1, 1) + at(-1, -1)) / (4 * h[i] * h[j])
-    return 0.5 * (H + H.T)
+    return fd_hessian(fn, p, rel)
 
 
 def reference(fn, p0):
