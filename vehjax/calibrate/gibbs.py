@@ -171,7 +171,7 @@ def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, ke
         raise ValueError("priors: particle_gibbs does not calibrate input noise ('input:')")
     chains, samples, warmup, adapt_windows, acceptance_target = chain_options(
         chains, samples, warmup, adapt, adapt_windows, acceptance_target, len(prs))
-    n = validation.integer("n_particles", n_particles, 2)
+    n = smc.check_n_particles(n_particles)
     mh_steps = validation.integer("mh_steps", mh_steps, 1)
     ys, us = validation.data(measurements, inputs, model.ny, model.nu, "one")
     ys, us = jnp.asarray(ys, float), jnp.asarray(us, float)

@@ -572,7 +572,7 @@ def liu_west_ukf(
             squared per step (the paper's R_s).
         R: measurement-noise covariance, (ny, ny) or (ny,) variances, output units squared (the
             paper's Q).
-        n_particles: number of parameter particles M >= 1.
+        n_particles: number of parameter particles M >= 2.
         estimate: names of the estimated parameters, a subset of ``model.param_names`` (p of
             them); the others stay at ``model.theta``.
         theta_low, theta_high: (p,) bounds of the uniform prior, physical units, low < high.
@@ -630,7 +630,7 @@ def liu_west_ukf(
 
     Raises:
         ValueError: naming the argument, for a wrong model, Q or R of the wrong shape or not
-            positive definite, n_particles < 1, unknown or empty ``estimate``, theta_low /
+            positive definite, n_particles < 2, unknown or empty ``estimate``, theta_low /
             theta_high of the wrong length or not low < high, ``bounds`` naming other
             parameters, not pairs with low < high, or not containing the prior box, a outside
             (0, 1), gamma outside (0, 1], an unknown resampling scheme, likelihood or move,

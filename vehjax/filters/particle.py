@@ -447,7 +447,7 @@ def bootstrap_pf(
             outside [0, 1], a ``resample`` that is not callable.
     """
     nx, ny = check_model(model)
-    n = smc.check_n_particles(n_particles, low=2)
+    n = smc.check_n_particles(n_particles)
     scheme = _rs.check_scheme(resampling)
     thr = smc.check_ess_threshold(ess_threshold)
     resample = smc.check_resample(resample)

@@ -213,7 +213,7 @@ def configure(model, n_particles, noisy_input, sensors, known_std, linear_states
     """Every check of the arguments the two builders share (ValueError naming the argument)
     and the constants the filter is built from."""
     validation.model(model)
-    n = smc.check_n_particles(n_particles, low=2)
+    n = smc.check_n_particles(n_particles)
     niw = _niw(niw)
     state_names = tuple(model.state_names)
     input_names = tuple(model.input_names)
