@@ -176,13 +176,23 @@ def measure_entries(Pp, H, R):
     return C, S
 
 
-def masked_update_entries(xp, Pp, y, yh, S, C, H, N) -> UpdateResult:
-    """:func:`masked_update` in Joseph form, entry by entry: xp (nx,), yh (ny,) lists of
-    scalars, Pp (nx, nx), S (ny, ny), C (nx, ny), H (ny, nx), N (ny, ny) the noise part of S,
-    nested lists (Python-float entries allowed); y (ny,) an array, NaN where missing.
+def update_entries(xp, Pp, y, yh, S, C, joseph=None):
+    """The masked Kalman update entry by entry: the one entry form, for one run (scalar
+    entries, :func:`masked_update_entries`) and for all runs at once (entries (R,) arrays, runs
+    last: :mod:`vehjax.filters.runs_last`). :func:`masked_update` is its matrix form.
 
-    Returns :class:`UpdateResult` of arrays: x (nx,), P (nx, nx), loglik, nis, n_obs,
-    innovation (ny,)."""
+    Args:
+        xp (nx,), yh (ny,): lists of the predicted state and measurement entries.
+        Pp (nx, nx), S (ny, ny), C (nx, ny) = Cov(x, y): nested lists (Python-float entries
+            allowed).
+        y: (ny,) or (ny, R) array, NaN where a component is missing (not observed).
+        joseph: ``(H, N)`` nested lists (N the noise part of S) for the Joseph-form covariance
+            (I - K H) P- (I - K H)^T + K N K^T; None for P- - K S K^T.
+
+    Returns:
+        (x list (nx,), P nested lists (nx, nx), loglik, nis, n_obs, innovation list (ny,)),
+        the innovation zero on the missing components.
+    """
     nx, ny = len(xp), len(yh)
     dt = y.dtype
     obs = [jnp.isfinite(y[j]) for j in range(ny)]
@@ -192,11 +202,26 @@ def masked_update_entries(xp, Pp, y, yh, S, C, H, N) -> UpdateResult:
     w = forward_entries(Ls, e)
     W = [forward_entries(Ls, [C[i][j] * mf[j] for j in range(ny)]) for i in range(nx)]
     x = [xp[i] + dot(W[i], w) for i in range(nx)]
-    P = joseph_entries(Ls, W, H, N, Pp)
+    if joseph is None:
+        P = sym_entries(lambda i, j: Pp[i][j] - dot(W[i], W[j]), nx)
+    else:
+        P = joseph_entries(Ls, W, *joseph, Pp)
     nis = sum(v * v for v in w)
     n_obs = sum(o.astype(jnp.int32) for o in obs)
     logdet = 2.0 * sum(jnp.log(Ls[k][k]) for k in range(ny))
     loglik = -0.5 * (nis + logdet + n_obs.astype(dt) * LOG_2PI)
+    return x, P, loglik, nis, n_obs, e
+
+
+def masked_update_entries(xp, Pp, y, yh, S, C, H, N) -> UpdateResult:
+    """:func:`update_entries` in Joseph form for one run: xp (nx,), yh (ny,) lists of
+    scalars, Pp (nx, nx), S (ny, ny), C (nx, ny), H (ny, nx), N (ny, ny) the noise part of S,
+    nested lists (Python-float entries allowed); y (ny,) an array, NaN where missing.
+
+    Returns :class:`UpdateResult` of arrays: x (nx,), P (nx, nx), loglik, nis, n_obs,
+    innovation (ny,)."""
+    x, P, loglik, nis, n_obs, e = update_entries(xp, Pp, y, yh, S, C, joseph=(H, N))
+    dt = y.dtype
     stack = lambda v: jnp.broadcast_to(jnp.asarray(v, dt), jnp.shape(y[0]))  # noqa: E731
     return UpdateResult(jnp.stack([stack(v) for v in x]),
                         jnp.stack([jnp.stack([stack(v) for v in row]) for row in P]),

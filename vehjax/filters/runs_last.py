@@ -41,8 +41,9 @@ import numpy as np
 from .. import hoist
 from ..hoist import Split, split
 from .base import StepOutput
-from ..lib.entrywise import chol_sym, dot, joseph_entries, stack, sym_entries, wsum
-from ..lib.linalg import LOG_2PI, UNROLL_MAX, cholesky_succeeds, forward_entries, is_pd
+from .kalman import update_entries
+from ..lib.entrywise import chol_sym, dot, stack, sym_entries, wsum
+from ..lib.linalg import UNROLL_MAX, cholesky_succeeds, is_pd
 from .sigma import SigmaRule
 
 MAX_DIM = UNROLL_MAX  # nx and ny up to this use the runs-last step
@@ -276,32 +277,10 @@ def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int
 
 
 def _update(xp, Pp, y, yh, S, C, joseph=None):
-    """The masked Kalman update of :func:`vehjax.filters.kalman.masked_update`, entry by entry
-    (lists over components of (R,) arrays; S, C nested lists): NaN components of y (ny, R) are
-    not observed. ``joseph``: ``(H, N)`` nested lists (entries may be Python floats) for the
-    Joseph-form covariance (I - K H) P- (I - K H)^T + K N K^T; None for P- - K S K^T.
-
-    Returns x (nx, R), P (nx, nx, R), loglik, nis, n_obs (R,)."""
-    nx, ny = len(xp), len(yh)
-    dt = y.dtype
-    obs = [jnp.isfinite(y[j]) for j in range(ny)]
-    mf = [o.astype(dt) for o in obs]
-    e = [jnp.where(obs[j], y[j] - yh[j], 0.0) for j in range(ny)]
-    Sm = [[S[i][j] * (mf[i] * mf[j]) + ((1.0 - mf[i]) if i == j else 0.0) for j in range(ny)]
-          for i in range(ny)]
-    Ls = chol_sym(Sm)
-    w = forward_entries(Ls, e)
-    W = [forward_entries(Ls, [C[i][j] * mf[j] for j in range(ny)]) for i in range(nx)]
-    xn = [xp[i] + sum(W[i][k] * w[k] for k in range(ny)) for i in range(nx)]
-    if joseph is None:
-        Pn = sym_entries(lambda i, j: Pp[i][j] - sum(W[i][k] * W[j][k] for k in range(ny)), nx)
-    else:
-        Pn = joseph_entries(Ls, W, *joseph, Pp)
-    nis = sum(v * v for v in w)
-    n_obs = sum(o.astype(jnp.int32) for o in obs)
-    logdet = 2.0 * sum(jnp.log(Ls[k][k]) for k in range(ny))
-    loglik = -0.5 * (nis + logdet + n_obs.astype(dt) * LOG_2PI)
-    return jnp.stack(xn), jnp.stack([jnp.stack(row) for row in Pn]), loglik, nis, n_obs
+    """:func:`vehjax.filters.kalman.update_entries` on the runs-last entries ((R,) arrays; y
+    (ny, R)), stacked: x (nx, R), P (nx, nx, R), loglik, nis, n_obs (R,)."""
+    x, P, loglik, nis, n_obs, _ = update_entries(xp, Pp, y, yh, S, C, joseph)
+    return jnp.stack(x), jnp.stack([jnp.stack(row) for row in P]), loglik, nis, n_obs
 
 
 def _output(x, P, loglik, nis, n_obs) -> StepOutput:
