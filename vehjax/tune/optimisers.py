@@ -82,6 +82,14 @@ def scoring_direction(g, B, scales, damping: float = 0.0):
     return -scales * (V[:, keep] @ (gs / (lam[keep] + damping * top)))
 
 
+def _at_gradient_tolerance(history: list, i: int, f: float, g, gtol: float, report) -> bool:
+    """The head of a second-order iteration: record the loss, report progress, and whether the
+    gradient is within ``gtol`` (max |grad|), the convergence test of every optimiser here."""
+    history.append(f)
+    report(i, f, f)
+    return bool(np.max(np.abs(g)) <= gtol)
+
+
 def scoring(loss, steps: int, gtol: float, report, scales, c1: float = 1e-4):
     """BHHH (method of scoring with the outer product of the per-step scores,
     :func:`score_outer_product`) with Levenberg damping and a backtracking (Armijo) line search,
@@ -95,9 +103,7 @@ def scoring(loss, steps: int, gtol: float, report, scales, c1: float = 1e-4):
     check_start(f, g, B)
     history, converged, i, damping = [], False, 0, 0.0
     for i in range(1, steps + 1):
-        history.append(f)
-        report(i, f, f)
-        if np.max(np.abs(g)) <= gtol:
+        if _at_gradient_tolerance(history, i, f, g, gtol, report):
             converged = True
             break
         d = scoring_direction(g, B, scales, damping)
@@ -259,9 +265,7 @@ def lbfgs(loss, steps: int, gtol: float, report, memory: int = 10, linesearch_st
         state = opt.init(jnp.asarray(x))
         history, converged, i = [], False, 0
         for i in range(1, steps + 1):
-            history.append(f)
-            report(i, f, f)
-            if np.max(np.abs(g)) <= gtol:
+            if _at_gradient_tolerance(history, i, f, g, gtol, report):
                 converged = True
                 break
             z, state = step(jnp.asarray(x), state, jnp.asarray(handle, dtype=jnp.int32))
