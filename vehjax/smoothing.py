@@ -367,24 +367,23 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
             they do not apply (a particle filter; the plain RTS), and every shape error of
             :func:`vehjax.filter`.
     """
-    ys, us, x0, P0, th0, Pth0 = check_arguments(estimator, measurements, inputs, x0, P0, theta0,
-                                         P_theta0, key)
-    if estimator.smoother is None and (estimator.particle_transition is not None
-                                       or estimator.rao_blackwell is not None):
+    ys, us, x0, P0, th0, Pth0 = check_arguments(estimator, measurements, inputs, x0, P0,
+                                                 theta0, P_theta0, key)
+    if estimator.smoother is None:  # the particle smoothers, or none at all
+        if estimator.particle_transition is None and estimator.rao_blackwell is None:
+            check_options(estimator)  # no smoother: say so, whatever the options
         _refuse_gaussian_options(estimator, parallel, tol, max_iter, initial)
-    if estimator.smoother is None and estimator.particle_transition is not None:
-        opts = dict(particle_options)
-        if method is not None:
-            opts["method"] = method
-        if theta0 is not None:
-            opts["theta0"] = theta0
-        return _particle.smooth(estimator, measurements, inputs, x0=x0, P0=P0, key=key, **opts)
-    if estimator.smoother is None and estimator.rao_blackwell is not None:
+        if estimator.particle_transition is not None:
+            opts = dict(particle_options)
+            if method is not None:
+                opts["method"] = method
+            if theta0 is not None:
+                opts["theta0"] = theta0
+            return _particle.smooth(estimator, measurements, inputs, x0=x0, P0=P0, key=key,
+                                    **opts)
         opts = dict(particle_options, method=method)
         return _marginalized.smooth(estimator, measurements, inputs, x0=x0, P0=P0, key=key,
                                     theta0=theta0, **opts)
-    if estimator.smoother is None:
-        check_options(estimator)  # no smoother at all: say so, whatever the options
     if particle_options:
         raise ValueError(f"particle_options: {sorted(particle_options)} apply to particle "
                          f"filters only")
