@@ -410,13 +410,18 @@ def _checked_data(estimator, measurements, inputs, x0, P0, theta0, P_theta0, key
     return ys, us, x0, P0, th0, Pth0, keys
 
 
+def _check_progress(progress) -> None:
+    """ValueError naming ``progress`` unless it is None, True or False."""
+    if progress is not None and not isinstance(progress, (bool, np.bool_)):
+        raise ValueError(f"progress: expected None, True or False, got {progress!r}")
+
+
 def _check_options(return_covariances, progress, chunk_size) -> None:
     """ValueError naming the option unless ``return_covariances`` is a bool, ``progress`` None
     or a bool and ``chunk_size`` None or an integer >= 1."""
     if not isinstance(return_covariances, (bool, np.bool_)):
         raise ValueError(f"return_covariances: expected True or False, got {return_covariances!r}")
-    if progress is not None and not isinstance(progress, (bool, np.bool_)):
-        raise ValueError(f"progress: expected None, True or False, got {progress!r}")
+    _check_progress(progress)
     if chunk_size is not None and (
         isinstance(chunk_size, (bool, np.bool_))
         or not isinstance(chunk_size, (int, np.integer))
@@ -802,7 +807,7 @@ class CompiledRun:
                 "CompiledRun: a compiled study runs with the data it was compiled with and takes "
                 f"no positional arguments (got {len(args)}); for new measurements call "
                 "vehjax.compile_run(...) or vehjax.run(...) again; progress is keyword-only")
-        _check_options(False, progress, None)
+        _check_progress(progress)
         progress = self._plan.progress if progress is None else progress
         return _execute(self._plan, self._compiled, progress)
 
