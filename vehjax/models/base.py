@@ -193,6 +193,31 @@ class BaseModel(eqx.Module):
         """The domains of ``param_names`` (class docstring), or None when none are declared."""
         return gather(self.PARAM_DOMAINS, self.param_names, type(self).__name__)
 
+    def nested_model(self) -> "BaseModel | None":
+        """A simpler model nested in this one, or None (the default: none declared).
+
+        Nested: the same states, inputs and outputs; its parameters a subset of this model's
+        with the same names and meanings; this model approaches it in a limit of the others
+        (the saturating tyres of :class:`~vehjax.models.SingleTrack` at a large friction
+        coefficient give its linear tyres). :func:`vehjax.tune.fit` fits it first: its fitted
+        values start this model's fit, and its likelihood is the least this model's fit should
+        reach."""
+        return None
+
+    def data_floors(self, measurements, inputs) -> dict:
+        """``{parameter name: the least value the measured data allow}`` (default: none).
+
+        A built-in model declares a floor where its physics bounds what it can produce: e.g. a
+        saturating tyre model cannot produce a lateral acceleration above mu g, so mu is at
+        least the drive's peak |ay| / g. :func:`vehjax.tune.fit` starts such a parameter at
+        its floor and reports a fit that ends far below it.
+
+        Args:
+            measurements: (T, ny) or (R, T, ny) in ``output_names`` order, NaN missing.
+            inputs: (T, nu) or (R, T, nu), or None.
+        """
+        return {}
+
     def state_envelope(self) -> np.ndarray | None:
         """(nx,) largest plausible |state| (+inf where none), or None (finiteness only)."""
         return envelope(self.STATE_ENVELOPE, self.state_names)

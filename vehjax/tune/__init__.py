@@ -110,17 +110,19 @@ errors), :mod:`~vehjax.tune.boundaries` (quantities on a bound),
 
 from __future__ import annotations
 
-from . import boundaries, driver, information, likelihood, optimisers, program, quantities
-from .driver import fit, fit_noise
+from . import (boundaries, driver, information, likelihood, optimisers, program, quantities,
+               staged)
+from .driver import fit_from_theta, fit_noise
+from .staged import fit
 from .information import Uncertainty, hessian_from_gradients, uncertainty
 from .likelihood import Objective, objective, prepare
 from .optimisers import scoring_direction
 from .particle import stop_gradient, stop_gradient_pf
 from .program import forward_scores, score_outer_product
 from .quantities import fitted_quantities
-from .result import TuneResult
+from .result import Comparison, TuneResult
 
-__all__ = ["fit", "fit_noise", "objective", "Objective", "TuneResult", "stop_gradient_pf",
+__all__ = ["fit", "fit_from_theta", "fit_noise", "objective", "Objective", "TuneResult", "stop_gradient_pf",
            "forward_scores", "score_outer_product", "scoring_direction",
            "uncertainty", "Uncertainty", "fitted_quantities", "hessian_from_gradients",
-           "stop_gradient", "prepare"]
+           "stop_gradient", "prepare", "Comparison"]

@@ -1,5 +1,6 @@
-"""The drivers of a fit: :func:`fit` (noise, model parameters, x0) and :func:`fit_noise` (the
-noise only): the objective (:mod:`vehjax.tune.likelihood`) compiled once
+"""The drivers of a fit from one start: :func:`fit_from_theta` (noise, model parameters, x0,
+from the model's ``theta`` and the given noise as they are) and :func:`fit_noise` (the noise
+only): the objective (:mod:`vehjax.tune.likelihood`) compiled once
 (:mod:`vehjax.tune.program`), an optimiser (:mod:`vehjax.tune.optimisers`), the observed
 information and standard errors (:mod:`vehjax.tune.information`), the result
 (:mod:`vehjax.tune.result`). The method is described in :mod:`vehjax.tune`."""
@@ -25,7 +26,7 @@ from .optimisers import GTOL
 from .quantities import coordinates, fitted_quantities
 from .result import TuneResult, make_result
 
-__all__ = ["fit", "fit_noise"]
+__all__ = ["fit_from_theta", "fit_noise"]
 
 
 def _check_fit_options(learning_rate, tol, gtol, hessian, steps, patience, optimizer):
@@ -129,13 +130,15 @@ def _standard_errors(obj, setup, model, loss, x, optimizer, hessian, gtol, scale
     return x, aux, float(np.max(np.abs(g))), polished, unc, on
 
 
-def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(), bounds=None,
-        noise=NOISE, fit_x0: bool = False, optimizer=None, learning_rate=None,
-        steps: int | None = None, tol: float = 1e-7, patience: int | None = None,
-        gtol: float = GTOL, key=None, builder_kwargs=None, progress: bool = True,
-        standard_errors: bool = True, hessian: str | None = None) -> TuneResult:
+def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
+                   bounds=None, noise=NOISE, fit_x0: bool = False, optimizer=None,
+                   learning_rate=None, steps: int | None = None, tol: float = 1e-7,
+                   patience: int | None = None, gtol: float = GTOL, key=None,
+                   builder_kwargs=None, progress: bool = True, standard_errors: bool = True,
+                   hessian: str | None = None, floors=None) -> TuneResult:
     """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum likelihood,
-    with standard errors.
+    with standard errors, from one start: ``model.theta``, Q0, R0 and the given input noise as
+    they are (:func:`vehjax.tune.fit` chooses the start from the data first).
 
     Args:
         builder: a filter builder ``builder(model, Q, R, **builder_kwargs) -> Estimator``:
@@ -195,6 +198,9 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
             reverse), exact, one more program to compile (on a vehicle model that compile can
             take longer than the fit); the default for particle filters, whose resampling
             makes differences unreliable.
+        floors: ``{parameter name: least value the data allow}`` (``model.data_floors``), or
+            None: a parameter that ends far below its floor is reported
+            (``TuneResult.below_floor``), not called undetermined.
 
     Returns:
         :class:`TuneResult`. A warning names the quantities the data do not determine
@@ -257,7 +263,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
             grad_max = float(np.max(np.abs(g)))
             converged = converged or _free_gradient(g, free) <= gtol
     res = make_result(obj, setup, model, loss.unravel(jnp.asarray(x)), aux, history, iters,
-                      converged, skipped, unc, grad_max, t_start, on)
+                      converged, skipped, unc, grad_max, t_start, on, floors)
     st = loss.stats
     return res._replace(evaluations=st["evaluations"], optimizer=str(optimizer)
                         if isinstance(optimizer, str) else "optax", derivatives=st["mode"],
@@ -270,8 +276,9 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
 def fit_noise(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, noise=NOISE,
               **kwargs) -> TuneResult:
     """Fit the noise covariances Q and R (``noise``: both by default) by maximum likelihood:
-    :func:`fit` with no model parameters. Same arguments and result."""
+    :func:`fit_from_theta` with no model parameters. Same arguments and result."""
     if "params" in kwargs:
         raise ValueError("params: fit_noise fits Q and R only; use vehjax.tune.fit for model "
                          "parameters")
-    return fit(builder, model, Q0, R0, measurements, inputs, x0=x0, P0=P0, noise=noise, **kwargs)
+    return fit_from_theta(builder, model, Q0, R0, measurements, inputs, x0=x0, P0=P0, noise=noise,
+                          **kwargs)

@@ -22,7 +22,7 @@ from ..filters.particle import bootstrap_pf
 from .parameterisation import Cov, InputNoise, is_diag, param_transform
 from .particle import resample_keyword, stop_gradient_pf
 
-__all__ = ["Objective", "objective", "prepare", "NOISE", "NOISE_KINDS"]
+__all__ = ["Objective", "objective", "prepare", "check_data", "NOISE", "NOISE_KINDS"]
 
 NOISE = ("Q", "R")
 NOISE_KINDS = ("Q", "R", "input")
@@ -101,7 +101,7 @@ def _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs) ->
                 theta0=theta0, idx=idx, fit_x0=fit_x0, input=inp, theta_map=theta_map)
 
 
-def _check_data(model, measurements, inputs, x0, P0):
+def check_data(model, measurements, inputs, x0, P0):
     """(ys (R, T, ny), us or None, x0, P0) by the checks every entry point shares
     (:mod:`vehjax.validation`): shapes, values, the prior."""
     ny, nu = len(model.output_names), len(model.input_names)
@@ -208,7 +208,7 @@ def prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds
     builder = _check_builder(builder)
     validation.model(model)
     setup = _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs)
-    ys, us, x0a, P0a = _check_data(model, measurements, inputs, x0, P0)
+    ys, us, x0a, P0a = check_data(model, measurements, inputs, x0, P0)
     n_runs, T, _ = ys.shape
     est0, sg, keys = _start_estimator(builder, model, setup, key, n_runs)
     setup.update(x0=x0a, P0=P0a)

@@ -13,7 +13,28 @@ import numpy as np
 from ..filters.base import Estimator
 from .quantities import fitted_quantities
 
-__all__ = ["TuneResult", "make_result"]
+__all__ = ["TuneResult", "Comparison", "make_result", "below_floors", "FLOOR_FRACTION"]
+
+#: a parameter that ends below this fraction of its data floor (``model.data_floors``) is
+#: reported as below it: a floor is estimated from noisy peaks, so a fit a few per cent below
+#: it can be right, one 10 % below it cannot reproduce the data
+FLOOR_FRACTION = 0.9
+
+
+class Comparison(NamedTuple):
+    """The nested model's fit a fit is compared with (:func:`vehjax.tune.fit`).
+
+    Attributes:
+        model: the nested model, described (``model.describe()``'s first line).
+        loglik: its log-likelihood at its fitted values (the same data, noise and filter).
+        values: its fitted quantities by name (as :attr:`TuneResult.values`).
+        seconds: the wall-clock time of its fit.
+    """
+
+    model: str
+    loglik: float
+    values: dict
+    seconds: float
 
 
 class TuneResult(NamedTuple):
@@ -84,6 +105,18 @@ class TuneResult(NamedTuple):
         compile_cpu_seconds: CPU seconds (``time.process_time``, every thread of the process)
             of compiling the loss-and-gradient program: on a machine shared with other work
             the compile's wall-clock time says more about the load than about the compile.
+        below_floor: ``{name: (value, floor)}`` for each model parameter (fitted or not) that
+            ended below :data:`FLOOR_FRACTION` of the least value the data allow
+            (``model.data_floors``, e.g. a friction coefficient below the drive's peak |ay| / g):
+            the model cannot produce what was measured, and the fit explains it by noise. Such
+            a parameter is reported here, not among ``undetermined``; a warning says so too.
+        nested: the :class:`Comparison` with the nested model's fit (``model.nested_model()``),
+            or None when none was made.
+        below_nested: the log-likelihood is below the nested model's by more than
+            :data:`vehjax.tune.staged.BELOW_NESTED`: a worse optimum than the simpler model
+            reaches (a warning gives both values).
+        starts: ``((start values by name, log-likelihood reached), ...)``, one per start
+            :func:`vehjax.tune.fit` tried, in order; the result is the best of them.
     """
 
     Q: np.ndarray
@@ -116,6 +149,10 @@ class TuneResult(NamedTuple):
     hessian_compile_seconds: float = 0.0
     compile_cpu_seconds: float = float("nan")
     on_bound: dict = {}
+    below_floor: dict = {}
+    nested: Comparison | None = None
+    below_nested: bool = False
+    starts: tuple = ()
 
     def summary(self) -> str:
         """A text table of the fitted values with their units and the log-likelihood."""
@@ -132,6 +169,15 @@ class TuneResult(NamedTuple):
                 f" {bound_text(k, *self.on_bound[k])}" if k in self.on_bound else ""))
         if self.undetermined:
             lines.append(f"  not determined by the data: {', '.join(self.undetermined)}")
+        for k, (v, floor) in self.below_floor.items():
+            lines.append(f"  {floor_text(k, v, floor)}")
+        if self.nested is not None:
+            lines.append(f"  nested {self.nested.model}: log-likelihood {self.nested.loglik:.6g}"
+                         f" ({'above' if self.nested.loglik > self.loglik else 'below'} this "
+                         f"fit's by {abs(self.nested.loglik - self.loglik):.3g})")
+        if len(self.starts) > 1:
+            lines.append(f"  starts tried: {len(self.starts)}, log-likelihoods " + ", ".join(
+                f"{ll:.6g}" for _, ll in self.starts))
         return "\n".join(lines)
 
 
@@ -142,8 +188,25 @@ def bound_text(name: str, side: str, bound: float, dlogl: float) -> str:
             f"d logL/d {name} = {dlogl:.3g})")
 
 
+def floor_text(name: str, value: float, floor: float) -> str:
+    """What the report says of a parameter below its data floor."""
+    return (f"{name} = {value:.6g} is below {floor:.6g}, the least value the data allow: the "
+            f"model cannot produce what was measured, and the fit explains it by noise")
+
+
+def below_floors(model, theta, floors) -> dict:
+    """``{name: (value, floor)}`` of the parameters of ``theta`` (np,) below
+    :data:`FLOOR_FRACTION` of their ``floors`` ({name: floor})."""
+    out = {}
+    for k, floor in (floors or {}).items():
+        value = float(theta[model.param_names.index(k)])
+        if value < FLOOR_FRACTION * floor:
+            out[k] = (value, float(floor))
+    return out
+
+
 def make_result(obj, info, model, best_z, best_aux, history, iters, converged, skipped, unc,
-                grad_max, t_start, on_bound=None) -> TuneResult:
+                grad_max, t_start, on_bound=None, floors=None) -> TuneResult:
     """The :class:`TuneResult` at ``best_z``, with warnings for diverged runs, quantities on a
     bound and undetermined quantities."""
     ll, div = jax.jit(obj.loss)(best_z, obj.data)[1] if best_aux is None else best_aux
@@ -167,9 +230,14 @@ def make_result(obj, info, model, best_z, best_aux, history, iters, converged, s
     values = {k: float(x) for k, _, x in qs}
     units = {k: u for k, u, _ in qs}
     se, corr, undetermined = {}, np.full((len(qs),) * 2, np.nan), ()
+    below = below_floors(model, theta, floors)
+    if below:
+        warnings.warn("vehjax.tune: " + "; ".join(floor_text(k, *b) for k, b in below.items()),
+                      stacklevel=3)
     if unc is not None:
         se = {k: float(s) for (k, _, _), s in zip(qs, unc.std_errors)}
-        corr, undetermined = unc.correlations, unc.undetermined
+        corr = unc.correlations
+        undetermined = tuple(k for k in unc.undetermined if k not in below)
         if undetermined:
             warnings.warn(
                 f"vehjax.tune: the data do not determine {', '.join(undetermined)} (no or too "
@@ -188,5 +256,5 @@ def make_result(obj, info, model, best_z, best_aux, history, iters, converged, s
         history=np.asarray(history), iterations=iters, converged=converged, diverged=n_div,
         skipped=skipped, values=values, units=units, seconds=time.perf_counter() - t_start,
         std_errors=se, correlations=corr, undetermined=undetermined, gradient=grad_max,
-        input_noise=kw.get("input_noise"), on_bound=on_bound,
+        input_noise=kw.get("input_noise"), on_bound=on_bound, below_floor=below,
     )

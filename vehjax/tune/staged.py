@@ -1,0 +1,208 @@
+"""Where a fit starts and what it is measured against: :func:`fit`, the public entry point of
+:mod:`vehjax.tune`.
+
+Why. A saturating tyre model (``SingleTrack(tyres="brush" | "pacejka")``) fitted from its
+nominal values on a drive near the limit falls into a trap: with a friction coefficient near 1
+the model cannot produce the 1.2-1.5 g the car reached, the filter explains the difference by
+input and sensor noise, and the optimiser stops there, at a likelihood below that of the
+simpler linear model and sometimes with mu "not determined". The likelihood has a better
+optimum, which a start above the trap reaches.
+
+What :func:`fit` does, by default (``start="data"``, ``compare=True``), for a model that
+declares a nested model (:meth:`vehjax.models.BaseModel.nested_model`; the saturating tyres
+nest the linear ones):
+
+1. fit the nested model first: its parameters among ``params``, the same noise, filter and
+   options, no standard errors;
+2. start the model from the nested fit's values (its parameters, Q, R, the input noise, x0)
+   and each fitted parameter that has a floor the data imply
+   (:meth:`~vehjax.models.BaseModel.data_floors`; mu >= the drive's peak |ay| / g) at
+   :data:`FLOOR_MARGIN` times its floor; the other parameters at ``model.theta``;
+3. if that fit's log-likelihood is below the nested model's by more than
+   :data:`BELOW_NESTED`, a second start: the floored parameters at the geometric middle of the
+   first start and their domain's upper end (twice the first start where it has none); the
+   better of the two is the result (``TuneResult.starts`` lists both);
+4. report (``TuneResult.nested``, ``below_nested``, ``below_floor`` and a warning) a result
+   whose log-likelihood stays below the nested model's, or whose parameter ends far below its
+   floor.
+
+A model without a nested model is fitted from the data's floors alone (step 2 without the
+nested values). ``start="theta"`` fits from ``model.theta`` and the given noise as they are,
+still compared with the nested model's fit when ``compare=True``; ``compare=False`` with
+``start="data"`` skips the nested fit (floors only). A floor's parameter is reported whichever
+start was taken.
+
+Cost: the nested fit (cheaper per evaluation: for the single-track model a linear tyre curve,
+about half the time of the saturating fit on the same drive) plus the model's own fit, which
+from a start near the optimum takes fewer iterations; a second start only where the first
+stayed below the nested model. Measured on the benchmark drives:
+``benchmarks/bench_fit_limit.py``.
+
+The nested model is not exactly nested for the single-track model: its linear tyres use small
+slip angles and cos(delta) = 1, which the saturating ones do not, so on a drive that stays
+far from the limit the two likelihoods differ by a little either way; :data:`BELOW_NESTED`
+keeps that from being reported.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+
+import numpy as np
+
+from .. import validation
+from .driver import fit_from_theta
+from .likelihood import NOISE, check_data, objective
+from .result import Comparison, TuneResult
+
+__all__ = ["fit", "STARTS", "BELOW_NESTED", "FLOOR_MARGIN", "start_values"]
+
+STARTS = ("data", "theta")
+#: a fit whose log-likelihood is below the nested model's by more than this (natural log
+#: units, summed over the runs) is below it
+BELOW_NESTED = 1.0
+#: a parameter with a data floor starts this factor above it
+FLOOR_MARGIN = 1.05
+
+
+def _label(model) -> str:
+    """``"SingleTrack (m, iz, lf, lr, cf, cr)"``: the model's class and parameter names."""
+    return f"{type(model).__name__} ({', '.join(model.param_names)})"
+
+
+def _inside(value: float, lo: float, hi: float) -> float:
+    """``value`` moved at least 5 % of a finite domain's width inside it."""
+    if math.isfinite(lo) and math.isfinite(hi):
+        pad = 0.05 * (hi - lo)
+        return min(max(value, lo + pad), hi - pad)
+    return value
+
+
+def start_values(model, floors: dict, params, bounds=None, second: bool = False) -> dict:
+    """The starting values of the fitted parameters among ``floors`` ({name: floor}):
+    ``FLOOR_MARGIN * floor`` (the first start), or the geometric middle of that and the upper
+    end of the parameter's domain (narrowed by ``bounds``), twice it where there is none
+    (``second=True``); moved inside the domain. ``{name: value}``."""
+    domains = model.param_domains()
+    n = len(model.param_names)
+    lo, hi = domains.bounds() if domains is not None else (np.full(n, -np.inf), np.full(n, np.inf))
+    out = {}
+    for k, floor in floors.items():
+        if k not in params:
+            continue
+        j = model.param_names.index(k)
+        a, b = (bounds or {}).get(k, (None, None))
+        low = float(lo[j]) if a is None else max(float(lo[j]), float(a))
+        high = float(hi[j]) if b is None else min(float(hi[j]), float(b))
+        v = FLOOR_MARGIN * floor
+        if second:
+            v = math.sqrt(v * high) if math.isfinite(high) and v > 0 else 2.0 * v
+        out[k] = _inside(v, low, high)
+    return out
+
+
+def _nested_likelihood(builder, nested, Q0, R0, ys, us, x0, P0, key, builder_kwargs):
+    """The nested model's log-likelihood at its given values, when nothing of it is fitted."""
+    obj = objective(builder, nested, Q0, R0, ys, us, x0=x0, P0=P0, noise=("R",), key=key,
+                    builder_kwargs=builder_kwargs)
+    return -float(obj.loss(obj.z0, obj.data)[0]) * obj.n_steps
+
+
+def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, options: dict):
+    """(the nested model's :class:`~vehjax.tune.TuneResult` or None, its
+    :class:`~vehjax.tune.result.Comparison`)."""
+    t0 = time.perf_counter()
+    params = tuple(p for p in args["params"] if p in nested.param_names)
+    bounds = {k: v for k, v in (args["bounds"] or {}).items() if k in params}
+    if not (params or args["noise"] or args["fit_x0"]):
+        ll = _nested_likelihood(builder, nested, Q0, R0, ys, us, args["x0"], args["P0"],
+                                options.get("key"), args["builder_kwargs"])
+        return None, Comparison(_label(nested), ll, {}, time.perf_counter() - t0)
+    res = fit_from_theta(builder, nested, Q0, R0, ys, us, **dict(
+        args, params=params, bounds=bounds or None), **dict(options, standard_errors=False))
+    return res, Comparison(_label(nested), res.loglik, dict(res.values), res.seconds)
+
+
+def _from_nested(model, Q0, R0, args: dict, lin) -> tuple:
+    """(model, Q0, R0, args) with the nested fit's values as the start."""
+    if lin is None:
+        return model, Q0, R0, args
+    args = dict(args)
+    model = model.with_theta(**lin.params)
+    noise = args["noise"]
+    Q0 = lin.Q if "Q" in noise else Q0
+    R0 = lin.R if "R" in noise else R0
+    if "input" in noise:
+        args["builder_kwargs"] = dict(args["builder_kwargs"] or {}, input_noise=lin.input_noise)
+    if args["fit_x0"]:
+        args["x0"] = lin.x0
+    return model, Q0, R0, args
+
+
+def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(), bounds=None,
+        noise=NOISE, fit_x0: bool = False, start: str = "data", compare: bool = True,
+        builder_kwargs=None, **options) -> TuneResult:
+    """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum
+    likelihood, with standard errors, from a start the data give (module docstring).
+
+    Args:
+        builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds, noise, fit_x0,
+        builder_kwargs: as :func:`vehjax.tune.driver.fit_from_theta` (``model.theta`` the
+            starting parameter values where ``start="theta"``).
+        start: ``"data"`` (default): the nested model's fit and the data's floors give the
+            start (module docstring, steps 1-3); ``"theta"``: ``model.theta``, Q0, R0 and the
+            given input noise as they are.
+        compare: fit the nested model (``model.nested_model()``) and report a result below its
+            likelihood (default True; a model without one has nothing to compare).
+        **options: the optimiser's and the report's options of
+            :func:`~vehjax.tune.driver.fit_from_theta` (``optimizer``, ``steps``, ``gtol``,
+            ``key``, ``progress``, ``standard_errors``, ``hessian``, ...).
+
+    Returns:
+        :class:`~vehjax.tune.TuneResult`, the best start's, with ``nested``, ``below_nested``,
+        ``below_floor`` and ``starts``; ``seconds`` counts every stage.
+
+    Raises:
+        ValueError: naming the argument (``start``, ``compare``, and those of
+            :func:`~vehjax.tune.driver.fit_from_theta`), before anything is traced.
+    """
+    t0 = time.perf_counter()
+    validation.choice("start", start, STARTS)
+    if not isinstance(compare, (bool, np.bool_)):
+        raise ValueError(f"compare: expected True or False, got {compare!r}")
+    validation.model(model)
+    ys, us, _, _ = check_data(model, measurements, inputs, x0, P0)
+    all_floors = model.data_floors(ys, us)
+    args = dict(x0=x0, P0=P0, params=params, bounds=bounds, noise=noise, fit_x0=fit_x0,
+                builder_kwargs=builder_kwargs)
+    nested = model.nested_model() if compare or start == "data" else None
+    lin = cmp = None
+    if nested is not None:
+        lin, cmp = _fit_nested(builder, nested, Q0, R0, ys, us, args, options)
+    if start == "data":
+        model, Q0, R0, args = _from_nested(model, Q0, R0, args, lin)
+        model = model.with_theta(**start_values(model, all_floors, params, bounds))
+    def one(m):
+        res = fit_from_theta(builder, m, Q0, R0, ys, us, **args, **options, floors=all_floors)
+        starts.append(({k: float(m.theta[m.param_names.index(k)]) for k in params},
+                       res.loglik))
+        return res
+
+    starts = []
+    best = one(model)
+    if start == "data" and cmp is not None and best.loglik < cmp.loglik - BELOW_NESTED:
+        second = start_values(model, all_floors, params, bounds, second=True)
+        if second:
+            res = one(model.with_theta(**second))
+            best = res if res.loglik > best.loglik else best
+    below = cmp is not None and best.loglik < cmp.loglik - BELOW_NESTED
+    if below:
+        warnings.warn(
+            f"vehjax.tune: the fitted model's log-likelihood {best.loglik:.6g} is below the "
+            f"nested {cmp.model}'s {cmp.loglik:.6g} on the same data: the fit stopped at a "
+            f"worse optimum than the simpler model reaches; use the nested model, or start "
+            f"from the data (start='data')", stacklevel=2)
+    return best._replace(nested=cmp if compare else None, below_nested=below,
+                         starts=tuple(starts), seconds=time.perf_counter() - t0)
