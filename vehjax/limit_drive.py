@@ -14,48 +14,59 @@ axes (x forward, y left; wheels fl (lf, +tf/2), fr (lf, -tf/2), rl (-lr, +tr/2),
 with steer_i = delta at the front, 0 at the rear, and the lateral force of each wheel in its own
 frame from its exact slip angle alpha_i = steer_i - arctan((vy + x_i r) / (vx - y_i r)).
 
-Each tyre follows the magic formula with a curvature factor E != 0 (Pacejka, "Tyre and Vehicle
-Dynamics", 3rd ed., eq. 4.49; :func:`vehjax.models.tyres.magic_formula` with no shifts)::
+Each tyre follows the magic formula with a curvature factor E != 0 (Bakker, Pacejka & Lidner,
+SAE 890087; :func:`vehjax.models.tyres.magic_formula` with no shifts)::
 
     Fy_i = D_i sin(C arctan(B_i alpha - E (B_i alpha - arctan(B_i alpha)))),
     D_i = mu Fz_i,  B_i = c_i / (C D_i),  c_i = (c_axle / 2) (Fz_i / Fz_static_i)^p
 
 so every wheel's peak friction coefficient is exactly ``mu`` and the cornering stiffness falls
-with load (p < 1: the lateral load transfer lowers the axle's stiffness). The vertical loads are
-the static ones (m g lr / L, m g lf / L shared equally) plus the lateral load transfer m ay h / t
-split between the axles by the roll-stiffness distribution (front share q): dFz_f = m ay h q / tf,
-dFz_r = m ay h (1 - q) / tr (no roll dynamics, no roll centres, no longitudinal load transfer;
-each load floored at 1 % of its static value, which the drives never reach).
+with load (p = 0.8 < 1: the lateral load transfer lowers the axle's stiffness). The vertical
+loads are the static ones (m g lr / L, m g lf / L shared equally) plus the lateral load transfer
+m ay h / t split between the axles by the roll-stiffness distribution (front share q):
+dFz_f = m ay h q / tf, dFz_r = m ay h (1 - q) / tr (no roll dynamics, no roll centres, no
+longitudinal load transfer; each load floored at 1 % of its static value, which the drives never
+reach: their lightest wheel keeps about 800 N). None of vehjax's fitted models has these curves,
+the load transfer or the second track.
 
-Algebraic loop: the loads depend on ay, which depends on the forces. It is solved by
-``LOAD_PASSES`` fixed-point passes ay <- Fy(loads(ay)) / m from the static loads (ay = 0) in
-every evaluation of the derivative: the map contracts strongly (each wheel's force is nearly
-proportional to its load), and the residual |ay - Fy(loads(ay)) / m| after the passes is below
-1e-6 m/s^2 on the drives (tests/test_limit_drive.py).
+Algebraic loop: the loads depend on ay, which depends on the forces. It is solved by plain
+fixed-point passes ay <- Fy(loads(ay)) / m, which contract about 20-fold per pass at the limit
+(each wheel's force is nearly proportional to its load): :func:`derivative` and the drive's
+``ay`` take ``LOAD_PASSES`` = 6 passes from ay = 0 (residual below 1e-6 m/s^2, tested);
+:func:`rollout` starts each Runge-Kutta stage's loop from the previous stage's ay and takes
+``WARM_PASSES`` = 3 passes (ay moves little in half a sub-step).
 
 The truth's peak friction coefficient, :attr:`LimitDrive.mu`: the two wheels of an axle peak at
 slightly different slips when their loads differ, so the axle's peak force over its load falls a
 little below mu. ``mu`` is the smaller over the two axles of max over slip of (axle force /
-axle load), both wheels at one slip, at the load transfer of the drive's largest |ay|; it is
-within 1 % (in fact 0.3 %) of the wheels' mu (tested).
+axle load), both wheels at one slip, at the load transfer of the drive's largest |ay|; it lies
+within 1 % of the wheels' mu (0.2-0.4 % below it; tested).
 
 Integration: classical RK4 with ``substeps`` equal sub-steps per sample (default: steps of at most
 1 ms), the inputs interpolated linearly between samples (the truth's steering and speed are
-continuous; a sampled-input model sees them held, a difference of half a sample, 5 ms of steering
-rate, about 0.01 deg). Checked against scipy's DOP853 (tests).
+continuous; a model with sampled, held inputs sees them half a sample late, about 0.01 deg of
+steer). Against scipy's DOP853 (rtol 1e-11) on the converged loop, over 2 s at the drive's
+peak, the states agree to about 1e-7 (m/s, rad/s; tested to 1e-6).
 
 The drive: a lap of corners left and right at 15-35 m/s with straights between, written as a
 schedule of lateral-acceleration targets (fractions of mu g) and speeds joined by half-cosine
-ramps, repeated to the requested duration. The driver steers open loop by the truth's own
-steady-state inverse (:func:`steady_state`: the steer that holds the target ay at the current
-speed), plus small smooth corrections (measured); the road wheels also carry a small unmodelled
-disturbance (compliance, not measured). Both variants understeer at the limit (the front axle
-saturates first: more roll stiffness at the front and the steer's cos(delta)), so the car does
-not spin. The sensors add white Gaussian noise.
+ramps (:func:`lap_targets`), repeated to the requested duration. The driver steers open loop by
+the truth's own steady-state inverse (:func:`steady_state`: the steer that holds the target ay at
+the current speed), plus small smooth corrections (measured); the road wheels also carry a small
+unmodelled disturbance (compliance, not measured), so the measured steer differs from the
+truth's by about 0.18 deg (the input-noise std a fit would use). The sensors add white Gaussian
+noise (:data:`NOISE`).
+
+At the limit the car understeers (the front axle saturates first: the front's larger share of
+the roll stiffness, cos(delta), and the yaw moment of the front wheels' unequal forces through
+sin(delta)), so that it ploughs rather than spins. For the same reasons the two-track truth's
+steady-state limit lies below mu g: at 0.92 mu g at 15 m/s up to 0.97 mu g at 32 m/s. The lap's
+corner targets stay 2-5 % below it; the drives peak at about 1.39 g (A) and 1.27 g (B), with
+about 15 % of the time above 1 g.
 
 Limits: planar, no roll/pitch dynamics, no longitudinal forces (the speed is given), no aligning
-torque, no combined slip; the corner targets stay below 0.97 mu g, so the data approach but do not
-pass the tyres' peaks.
+torque, no combined slip; the data approach the tyres' peaks (front axle at 98 % of its peak
+force at the drive's largest |ay|) but do not pass them.
 """
 
 from __future__ import annotations
@@ -135,7 +146,8 @@ class LimitDrive(NamedTuple):
         sideslip: (T,) true sideslip arctan(vy / vx) [rad].
         ay: (T,) true lateral acceleration [m/s^2].
         true_inputs: (T, 2) the truth's (delta [rad] with its disturbance, vx [m/s]).
-        x0: (2,) state before the first row (zeros: the drive starts on a straight).
+        x0: (2,) the state at t[0] and before it, for a filter's ``x0`` (zeros: the drive
+            starts on a straight).
         mu: the truth's peak friction coefficient (module docstring) [-].
         axle_mu: (front, rear) peak (axle force / axle load) at the drive's largest |ay| [-].
         body: what a data sheet gives: {"m" [kg], "iz" [kg m^2], "lf" [m], "lr" [m]}.
@@ -255,10 +267,12 @@ def solve_ay(truth: Truth, x, u, ay0=0.0, passes: int = LOAD_PASSES):
 
 
 @partial(jax.jit, static_argnames="passes")
-def lateral_acceleration(truth: Truth, states, inputs, passes: int = LOAD_PASSES):
+def lateral_acceleration(truth: Truth, states, inputs, ay0=0.0, passes: int = LOAD_PASSES):
     """ay [m/s^2] (T,) at states (T, 2) and inputs (T, 2), the load loop by ``passes`` passes
-    from ay = 0."""
-    return jax.vmap(lambda x, u: solve_ay(truth, x, u, 0.0, passes)[0])(states, inputs)
+    from ``ay0`` (scalar or (T,)); the loop's residual at ay is
+    ``lateral_acceleration(truth, states, inputs, ay, passes=1) - ay``."""
+    ay0 = jnp.broadcast_to(ay0, states.shape[:1])
+    return jax.vmap(lambda x, u, a: solve_ay(truth, x, u, a, passes)[0])(states, inputs, ay0)
 
 
 def _derivative(truth: Truth, x, u, ay0, passes: int):
@@ -427,22 +441,24 @@ def limit_drive(variant: str = "A", duration: float = 200.0, dt: float = 0.01, s
                 substeps: int | None = None, noise: dict | None = None) -> LimitDrive:
     """Simulate a track drive at the friction limit (module docstring).
 
-    Variant "A" (for tuning): 1650 kg, mu 1.45, peaks near 1.4 g. Variant "B" (held back from any
-    tuning): 1420 kg, mu 1.30, other geometry, tyre shape, lap and speeds, peaks near 1.22 g.
+    Variant "A" (for tuning): 1650 kg, mu 1.45, peaks near 1.39 g. Variant "B" (held back from
+    any tuning): 1420 kg, mu 1.30, other geometry, tyre shape, lap and speeds, peaks near 1.27 g.
     Deterministic given (variant, seed): the noise, the driver's corrections and the steering
     disturbance come from numpy's generator seeded with (seed, variant); the lap is fixed.
 
     Args:
         variant: "A" or "B".
-        duration: length [s], > 0 (laps of about 60 s repeat).
+        duration: length [s], at least one sample (laps of 51-53 s repeat).
         dt: sampling period [s], in (0, 0.1].
         seed: int >= 0.
         substeps: RK4 steps per sample; None for steps of at most 1 ms.
-        noise: overrides of :data:`NOISE` (same keys and units); 0 for noise-free.
+        noise: overrides of :data:`NOISE` (same keys and units, each >= 0; 0 for none). The
+            random draws do not depend on it, so a noise-free drive has the same truth.
 
     Returns:
-        :class:`LimitDrive`. Generating the 200 s drive takes about a second after the first
-        call's compilation.
+        :class:`LimitDrive` of T = round(duration / dt) samples. Cost on 2 CPU cores: a few
+        seconds for the 200 s drive, after about 10 s of compilation in the first call (and
+        in the first call of each new T or substeps).
     """
     variant = validation.choice("variant", variant, tuple(VARIANTS))
     duration = validation.number("duration", duration, 0.0)
@@ -450,10 +466,12 @@ def limit_drive(variant: str = "A", duration: float = 200.0, dt: float = 0.01, s
     seed = validation.integer("seed", seed, 0)
     substeps = (int(np.ceil(dt / 1e-3 - 1e-9)) if substeps is None
                 else validation.integer("substeps", substeps, 1))
-    std = {**NOISE, **validation.keyed("noise", noise or {}, tuple(NOISE))}
+    std = {**NOISE, **{k: validation.number(f"noise[{k!r}]", v, 0.0, low_open=False)
+                       for k, v in validation.keyed("noise", noise, tuple(NOISE)).items()}}
     truth, _, offset = VARIANTS[variant]
     rng = np.random.default_rng([seed, offset])
-    t = np.arange(int(round(duration / dt)) + 1) * dt
+    n = validation.integer("duration / dt", int(round(duration / dt)), 1)
+    t = np.arange(n) * dt
     vx, ay_target = lap_targets(variant, t)
     command = np.asarray(steady_state(truth, jnp.asarray(ay_target), jnp.asarray(vx)))[:, 1]
     command = command + _smooth_noise(rng, t, _DRIVER_STD, 0.2, 1.5)
