@@ -32,7 +32,7 @@ the load transfer or the second track.
 Algebraic loop: the loads depend on ay, which depends on the forces. It is solved by plain
 fixed-point passes ay <- Fy(loads(ay)) / m, which contract about 20-fold per pass at the limit
 (each wheel's force is nearly proportional to its load): :func:`derivative` and the drive's
-``ay`` take ``LOAD_PASSES`` = 6 passes from ay = 0 (residual below 1e-6 m/s^2, tested);
+``ay`` take ``LOAD_PASSES`` = 7 passes from ay = 0 (residual below 1e-7 m/s^2, tested to 1e-6);
 :func:`rollout` starts each Runge-Kutta stage's loop from the previous stage's ay and takes
 ``WARM_PASSES`` = 3 passes (ay moves little in half a sub-step).
 
@@ -93,7 +93,7 @@ G = 9.81
 
 #: Fixed-point passes of the load loop from ay = 0 (:func:`solve_ay`, :func:`derivative`), and
 #: from the previous stage's ay in :func:`rollout` (module docstring).
-LOAD_PASSES = 6
+LOAD_PASSES = 7
 WARM_PASSES = 3
 
 #: Default sensor and disturbance standard deviations: ay [m/s^2], r [rad/s], measured steer
@@ -256,8 +256,8 @@ def body_forces(truth: Truth, forces, delta):
 def solve_ay(truth: Truth, x, u, ay0=0.0, passes: int = LOAD_PASSES):
     """(ay [m/s^2], wheel forces (4,) [N]) at x, u: the load loop by ``passes`` fixed-point
     passes from ``ay0``; the forces are those at the last pass's loads and ay their body force
-    over m. Each pass shrinks the error about 20-fold near the limit (5e-7 m/s^2 after the
-    default 6 passes from ay0 = 0 at 1.4 g)."""
+    over m. Each pass shrinks the error about 20-fold near the limit (3e-8 m/s^2 after the
+    default 7 passes from ay0 = 0 at 1.4 g)."""
     alpha = slip_angles(truth, x, u)
     ay = jnp.zeros_like(x[0]) + ay0
     for _ in range(passes):
