@@ -68,7 +68,7 @@ def _optimise(loss, optimizer, opts: dict, report, scales):
     skipped)."""
     steps, gtol = opts["steps"], opts["gtol"]
     if optimizer == "scoring":
-        return (*opt.scoring(loss, steps, gtol, report, scales), 0)
+        return (*opt.scoring(loss, steps, gtol, report, scales, opts["n_steps"]), 0)
     if optimizer == "lbfgs":
         return (*opt.lbfgs(loss, steps, gtol, report), 0)
     return opt.first_order(loss, opts["first"], steps, opts["tol"], opts["patience"], report)
@@ -82,8 +82,22 @@ def _hessian_fn(obj, setup, loss, hessian, scales):
     if hessian == "jax":
         hfn = jax.jit(jax.hessian(lambda f, data: obj.loss(loss.unravel(f), data)[0])).lower(
             jnp.asarray(loss.x0), obj.data).compile(compiler_options=loss.stats["options"])
-        return lambda f: np.asarray(hfn(jnp.asarray(f), obj.data))
-    return lambda f: difference_hessian(loss, f, scales)
+        return _at_last_point(lambda f: np.asarray(hfn(jnp.asarray(f), obj.data)))
+    return _at_last_point(lambda f: difference_hessian(loss, f, scales))
+
+
+def _at_last_point(hess):
+    """``hess`` remembering its last point: the Newton polish asks for the curvature where its
+    previous step ended, which that step computed already."""
+    last = []
+
+    def at(f):
+        f = np.array(f, dtype=float)
+        if not (last and np.array_equal(last[0], f)):
+            last[:] = [f, hess(f)]
+        return last[1]
+
+    return at
 
 
 def _bounds_at(obj, setup, model, loss, x, g, names):
@@ -243,7 +257,8 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
     first = None if line_search else opt.first_order_optimizer(optimizer, learning_rate, steps)
     report, bar = _progress(steps, progress, setup["name"])
     x, aux, history, iters, converged, skipped = _optimise(
-        loss, optimizer, dict(steps=steps, gtol=gtol, tol=tol, patience=patience, first=first),
+        loss, optimizer, dict(steps=steps, gtol=gtol, tol=tol, patience=patience, first=first,
+                              n_steps=obj.n_steps),
         report, scales)
     bar.close()
     unc, grad_max = None, float("nan")

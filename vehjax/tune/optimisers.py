@@ -90,18 +90,54 @@ def _at_gradient_tolerance(history: list, i: int, f: float, g, gtol: float, repo
     return bool(np.max(np.abs(g)) <= gtol)
 
 
-def scoring(loss, steps: int, gtol: float, report, scales, c1: float = 1e-4):
+#: BHHH hands over to the Newton polish when a step gains less than this (log-likelihood units,
+#: the loss times the run-steps) and more than TAIL_RATE of the step before: a linear tail
+#: (the outer product of the scores is not the Hessian where the model does not fit the data
+#: exactly) whose rest, about gain TAIL_RATE / (1 - TAIL_RATE), is below it too
+LINEAR_TAIL = 0.05
+TAIL_RATE = 0.3
+#: a full scoring step that gains more than this fraction of its first-order prediction -g.d
+#: is taken as too short (:func:`_expand`)
+EXPAND_RATIO = 0.8
+#: at most this many doublings of such a step
+EXPAND_MAX = 5
+
+
+def _expand(loss, x, d, dg: float, f: float, new):
+    """(t, the evaluation at x + t d) after a full step ``new`` of the direction d was accepted:
+    doubled while the step gains more than :data:`EXPAND_RATIO` of its first-order prediction
+    ``-t g.d`` and the loss keeps decreasing. Far from the optimum, where large scores make the
+    outer product of the scores much larger than the Hessian (a misfit explained by a small
+    noise variance), the scoring step is many times too short; a quadratic model whose
+    curvature is right gains half the prediction, so a gain near all of it says the curvature
+    was overestimated."""
+    t = 1.0
+    for _ in range(EXPAND_MAX):
+        if not f - new[0] > EXPAND_RATIO * t * -dg:
+            break
+        cand = loss.vgo(x + 2.0 * t * d)
+        if not (np.isfinite(cand[0]) and finite(cand[2], cand[3]) and cand[0] < new[0]):
+            break
+        t, new = 2.0 * t, cand
+    return t, new
+
+
+def scoring(loss, steps: int, gtol: float, report, scales, n_steps: int = 1,
+            c1: float = 1e-4):
     """BHHH (method of scoring with the outer product of the per-step scores,
-    :func:`score_outer_product`) with Levenberg damping and a backtracking (Armijo) line search,
+    :func:`score_outer_product`) with Levenberg damping and a backtracking (Armijo) line search
+    that doubles a full step while it gains nearly its first-order prediction (:func:`_expand`),
     every trial one evaluation of the forward-mode program (value, gradient and curvature
     together). Stops, converged, when max |grad| <= gtol; hands over (not converged) to the
     Newton polish when a step gains less than 1e-11 max(1, |loss|) or no step decreases the
     loss: BHHH converges linearly where the observed and the expected curvature differ, Newton
-    quadratically from there. Returns (x, aux, history, iterations, converged)."""
+    quadratically from there; also when the steps' gains fall slower than by :data:`TAIL_RATE`
+    per step while each is below :data:`LINEAR_TAIL` log-likelihood units (``n_steps``: the
+    run-steps the loss is averaged over). Returns (x, aux, history, iterations, converged)."""
     x = loss.x0
     f, aux, g, B = loss.vgo(x)
     check_start(f, g, B)
-    history, converged, i, damping = [], False, 0, 0.0
+    history, converged, i, damping, previous = [], False, 0, 0.0, np.inf
     for i in range(1, steps + 1):
         if _at_gradient_tolerance(history, i, f, g, gtol, report):
             converged = True
@@ -120,11 +156,15 @@ def scoring(loss, steps: int, gtol: float, report, scales, c1: float = 1e-4):
             t *= 0.25 if not np.isfinite(cand[0]) else 0.5
         if new is None:
             break
-        damping = damping / 10.0 if t == 1.0 else max(10.0 * damping, 1e-3)
+        if t == 1.0:
+            t, new = _expand(loss, x, d, dg, f, new)
+        damping = damping / 10.0 if t >= 1.0 else max(10.0 * damping, 1e-3)
         gain = f - new[0]
         x, (f, aux, g, B) = x + t * d, new
-        if gain < 1e-11 * max(1.0, abs(f)):
+        if gain < 1e-11 * max(1.0, abs(f)) or (
+                gain * n_steps < LINEAR_TAIL and gain > TAIL_RATE * previous):
             break
+        previous = gain
     return x, aux, history, i, converged
 
 
