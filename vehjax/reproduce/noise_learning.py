@@ -156,9 +156,6 @@ DEG = road.DEG
 SENSORS = road.SENSORS
 METHODS = ("Sage-Husa ACKF", "VB-R (CKF)", "VB-R (EKF)", "VB-PR (CKF)", "MPF (paper)",
            "MPF (consistent)", "MPF (inverse-Wishart)", "augmented EKF")
-BIAS_STD0 = {"ay": 0.5, "r": 0.5 * DEG, "roll_rate": 0.5 * DEG}
-OFFSET_STD0 = 0.5 * DEG
-P0_SIM = np.diag([0.1, 0.5 * DEG, 0.5 * DEG, 0.2 * DEG, 0.2 * DEG]) ** 2
 
 
 def parser():
@@ -233,28 +230,18 @@ def ackf_with_R(est, idx, names, R0):
 
 
 def _mpf_consistent(model, args, drive, variances=None):
-    """The MPF (paper)'s model in :func:`vehjax.filters.marginalized_pf_grid` (issue #33 item
-    2): the biases as Kalman states with the truth's random-walk stds (as the VB rows), the
-    statistics averaged over the offset's conditional, Gaussian particle states;
-    ``variances``, its ``sensor_variances``."""
-    from vehjax.filters.marginalized import MeanStates, NiW, marginalized_pf_grid
-
-    means = MeanStates(bias_walk={s: road.BIAS_WALK[s] for s in SENSORS},
-                       mean_std0={"delta": OFFSET_STD0, **BIAS_STD0})
-    common = dict(noisy_input="delta", sensors=SENSORS,
-                  known_std={"phi": road.PHI_STD, "r_virt": road.RVIRT_STD},
-                  linear_noise_std=road.BANK_JERK_STD, means=means, sensor_variances=variances)
+    """The MPF (paper)'s model in :func:`vehjax.filters.marginalized_pf_grid`
+    (:func:`vehjax.banked_road.build_consistent_filter`): the biases as Kalman states with the
+    truth's random-walk stds (as the VB rows), the statistics averaged over the offset's
+    conditional, Gaussian particle states; ``variances``, its ``sensor_variances``."""
     if drive:
-        scale = ("eps",) if "eps" in model.state_names else ()
-        niw = NiW(std0={**road.DRIVE_STD0, "roll_rate": road.DRIVE_STD0["r"]}, forgetting=0.999)
-        return marginalized_pf_grid(model, args.grid_points, niw=niw,
-                                    linear_states=("phi", "phi_dot", "phi_ddot") + scale,
-                                    **common)
+        std0 = {**road.DRIVE_STD0, "roll_rate": road.DRIVE_STD0["r"]}
+        return road.build_consistent_filter(model, args.grid_points, std0, 0.999,
+                                            sensor_variances=variances)
     steer0 = args.steer_factor * road.STEER_STD
-    niw = NiW(std0={"delta": steer0, **{s: 2 * road.SENSOR_STD[s] for s in SENSORS}},
-              forgetting=1.0)
-    return marginalized_pf_grid(model, args.grid_points, niw=niw,
-                                linear_states=("phi", "phi_dot", "phi_ddot"), **common)
+    std0 = {"delta": steer0, **{s: 2 * road.SENSOR_STD[s] for s in SENSORS}}
+    return road.build_consistent_filter(model, args.grid_points, std0, 1.0,
+                                        sensor_variances=variances)
 
 
 def build(method, model, args, drive=False):
@@ -270,7 +257,7 @@ def build(method, model, args, drive=False):
     Q = _q_bank(model)
     known = {"phi": road.PHI_STD, "r_virt": road.RVIRT_STD}
     all5 = [0, 1, 2, 3, 4]
-    P0 = P0_SIM
+    P0 = road.P0_SIM
     if method == "Sage-Husa ACKF":
         Rall = np.diag(np.r_[R0, road.PHI_STD ** 2, road.RVIRT_STD ** 2])
         est = filters.ackf(model, Q, Rall, forgetting=args.forgetting, adapt=("R",),
@@ -281,7 +268,8 @@ def build(method, model, args, drive=False):
                   iterations=args.iterations, sensors=SENSORS, known_std=known,
                   biases=SENSORS, input_offsets=("delta",),
                   bias_walk={s: road.BIAS_WALK[s] for s in SENSORS},
-                  bias_std0=BIAS_STD0, offset_std0=OFFSET_STD0, input_noise={"delta": steer0})
+                  bias_std0=road.BIAS_STD0, offset_std0=road.OFFSET_STD0,
+                  input_noise={"delta": steer0})
         if method.startswith("VB-R"):
             return filters.vbakf_r(model, Q, R0, dof0=10.0, **kw), all5, P0
         return filters.vbakf_pr(model, Q, R0, tau=3.0, **kw), all5, P0
@@ -301,8 +289,8 @@ def build(method, model, args, drive=False):
         # has it, the rolling-radius mismatch eps held at 0 (r_virt taken as unbiased)
         q = {"vy": 0.01, "r": 0.01 * DEG, "delta_offset": 1e-5 * DEG, "ay_bias": 1e-4,
              "r_bias": 1e-5 * DEG, "eps": 0.0}
-        p0 = {"vy": 0.1, "r": 0.5 * DEG, "delta_offset": OFFSET_STD0, "ay_bias": BIAS_STD0["ay"],
-              "r_bias": BIAS_STD0["r"], "eps": 1e-9}
+        p0 = {"vy": 0.1, "r": 0.5 * DEG, "delta_offset": road.OFFSET_STD0,
+              "ay_bias": road.BIAS_STD0["ay"], "r_bias": road.BIAS_STD0["r"], "eps": 1e-9}
         Qa = np.array([q[n] for n in am.state_names]) ** 2
         P0a = np.diag(np.array([p0[n] for n in am.state_names]) ** 2)
         Ra = np.array([std0["ay"], std0["r"], road.RVIRT_STD]) ** 2
