@@ -67,7 +67,7 @@ reported std at the end (1 = calibrated), ``"every"`` / ``"resampled"``: M = 100
 2.06, 2.64; M = 300 1.35, 1.04 / 1.41, 1.17; M = 1000 1.16, 0.98 / 1.19, 1.11. Use M >= 1000
 (the default).
 
-Bias (issue #17), and what removed it (the first two causes below were measured with the kernel
+Bias, and what removed it (the first two causes below were measured with the kernel
 at every step, ``move="every"``). Measured as the mean over runs of the final estimate
 (mean over the last 10 % of the steps) relative to the truth, in %, with its standard error:
 

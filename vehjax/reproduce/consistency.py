@@ -51,8 +51,8 @@ What "matched" means here (nothing below is tuned per filter):
   (covariances known; biases as Kalman states)" is not the paper's algorithm: the model gets a
   constant state per sensor added to its output (:func:`vehjax.models.with_output_biases`)
   that the per-particle Kalman filter estimates with the rest (prior: the other rows'). For
-  "MPF-K" is :func:`vehjax.filters.marginalized_pf_grid` (issue #33 item 2, not the paper's
-  algorithm; :mod:`vehjax.filters.marginalized.means`): learns everything like MPF-G, but the
+  "MPF-K" is :func:`vehjax.filters.marginalized_pf_grid` (not the paper's algorithm;
+  :mod:`vehjax.filters.marginalized.means`): learns everything like MPF-G, but the
   steering offset and the sensor biases are constant states of each particle's Kalman filter
   (Gaussian over all states), the steering std a fixed grid under Jeffreys' prior, and the
   sensor variances by Fisher scoring of the innovations (the builder's default,

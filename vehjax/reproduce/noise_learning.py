@@ -1,6 +1,6 @@
 """Online noise learning compared: Sage-Husa ACKF, the variational adaptive Kalman filters, the
 marginalized PF of paper 004 and Remark 1's augmented-state EKF, on paper 004's simulation
-study and on the shipped RAV4 drive (issue #33, item 3).
+study and on the shipped RAV4 drive.
 
     vehjax reproduce noise-learning [--runs 100] [--duration 180] [--particles 100]
                                     [--drive-executions 10] [--drive-particles 500]
@@ -36,8 +36,8 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   0.99, both in the band on 0.95 of the steps, every learnt parameter's coverage >= 0.90.
 * **MPF (paper)**: :mod:`vehjax.banked_road`'s ``build_sim_filter`` (N = ``--particles``, lambda = 0.995,
   initial stds twice the truth) and ``build_drive_filter`` (bank variant, lambda = 0.999).
-* **MPF (consistent)**: the same model in ``marginalized_pf_grid`` (issue #33 item 2,
-  not the paper's: :mod:`vehjax.filters.marginalized`): the steering offset and the biases as
+* **MPF (consistent)**: the same model in ``marginalized_pf_grid`` (not the
+  paper's: :mod:`vehjax.filters.marginalized`): the steering offset and the biases as
   Kalman states of every particle (the biases with the truth's random-walk stds, as the VB
   rows; their priors those of the VB rows, 0.5 deg, 0.5 m/s^2, 0.5 deg/s), the steering
   noise as process noise at each particle's own std, the particles a fixed grid
@@ -129,7 +129,7 @@ Verdicts are computed from the numbers (:func:`verdict`): "learns" the offset wh
 error is within 0.05 deg and its RMS within 0.1 deg; the biases when each RMS error is below a
 quarter of the sensor's noise std; the stds when each mean relative error is within 10 %;
 "honest" when the NEES share in the band is >= 0.9 and every learnt parameter's coverage is
->= 0.9 (the targets of issue #33); otherwise the NEES is called over-confident above 1.1 per
+>= 0.9; otherwise the NEES is called over-confident above 1.1 per
 dof, under-confident below 0.9, and between them only its share in the band is given.
 """
 
@@ -148,7 +148,7 @@ from vehjax import banked_road as road
 from vehjax.data import prepare_drive
 from vehjax.models.bank_scale import augmented_model
 
-PAPER = ("Online noise learning compared (issue #33): Sage-Husa ACKF, variational adaptive "
+PAPER = ("Online noise learning compared: Sage-Husa ACKF, variational adaptive "
          "Kalman filters (Särkkä & Nummenmaa 2009; Huang et al. 2017), the marginalized PF of "
          "Berntorp & Di Cairano 2018 (paper 004) and its Remark 1 augmented EKF")
 

@@ -29,7 +29,7 @@ What the paper specifies and how it is read here (section 4):
   slips, hence the tyre forces, from step to step. No filter can follow it, and it sets most
   of the ax error.
 
-Cases (``--cases``; issue #17). The paper's claim is that the adaptive filter wins when the
+Cases (``--cases``). The paper's claim is that the adaptive filter wins when the
 noise statistics are time-varying and the filters' noise guess is wrong. Eq. 31-32 scale Q(t)
 and R(t) by the same sin(pi t / 10); a fixed filter given the peak Q and R then has the true
 Q/R ratio at every instant, and since the Kalman gain is invariant to a common scale of Q and R

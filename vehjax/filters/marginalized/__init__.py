@@ -122,7 +122,7 @@ batch posterior (tests/filters/marginalized/test_paper.py checks it).
   taken to the stds by the delta method (d sigma = d Sigma / (2 sigma)), with nu - d - 3
   floored at 1 where that variance does not exist, plus the spread of the particles' values
   about the reported estimate.
-* The consistent filter, :func:`marginalized_pf_grid` (not the paper's; issue #33 item 2). The
+* The consistent filter, :func:`marginalized_pf_grid` (not the paper's). The
   paper's filter says it knows the noise statistics better than it does when it learns them
   (``vehjax reproduce consistency``, 100 runs: NEES in the band on 0.17 of the steps with
   ``kalman_states="all"``, the roll-rate bias's spread over runs twice its reported std;
