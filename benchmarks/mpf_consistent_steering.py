@@ -58,10 +58,8 @@ jax.config.update("jax_enable_x64", True)
 
 import vehjax as vj  # noqa: E402
 from vehjax import metrics  # noqa: E402
-from vehjax.filters.marginalized import (InputStdGrid, MeanStates, NiW,  # noqa: E402
-                                         marginalized_pf_grid)
+from vehjax.filters.marginalized import InputStdGrid  # noqa: E402
 from vehjax import banked_road as road  # noqa: E402
-from vehjax.reproduce import noise_learning as nl  # noqa: E402
 
 WINDOWS = ((0, 5), (5, 20), (20, 60), (60, 120), (120, 180))
 
@@ -92,13 +90,8 @@ def data(runs, seconds, steer_factor=1.0, seed=0):
 
 def build(model, points, std0, forgetting, nu0=None, std_range=None, prior=None,
           variances=None):
-    return marginalized_pf_grid(
-        model, points, noisy_input="delta", sensors=road.SENSORS,
-        known_std={"phi": road.PHI_STD, "r_virt": road.RVIRT_STD},
-        linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=road.BANK_JERK_STD,
-        sensor_variances=variances, niw=NiW(std0=std0, forgetting=forgetting, nu0=nu0),
-        means=MeanStates(bias_walk={s: road.BIAS_WALK[s] for s in road.SENSORS},
-                         mean_std0={"delta": nl.OFFSET_STD0, **nl.BIAS_STD0}),
+    return road.build_consistent_filter(
+        model, points, std0, forgetting, nu0=nu0, sensor_variances=variances,
         grid=InputStdGrid(input_std_range=std_range, input_std_prior=prior))
 
 
@@ -110,7 +103,7 @@ def profile(runs, seconds):
         sd = f * road.STEER_STD
         est = build(model, 2, {"delta": sd, **road.SENSOR_STD}, 1.0, nu0=1e7,
                     std_range=(sd, sd * (1 + 1e-9)), prior="log-uniform")
-        out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
+        out = vj.run(est, Y, U, x0=np.zeros(5), P0=road.P0_SIM, key=jax.random.key(1),
                      progress=False)
         total.append(float(np.sum(out.loglik)))
     ref = total[facs.index(1.0)]
@@ -123,14 +116,13 @@ def time_per_step(runs, seconds):
     import time
 
     model, _, Y, U = data(runs, seconds)
-    args = nl.parser().parse_args([])
-    paper, _, P0 = nl.build("MPF (paper)", model, args)
+    paper, P0 = road.build_sim_filter(model, 100), road.P0_SIM  # noise-learning's, N = 100
     std0 = {"delta": 2.0 * road.STEER_STD, **{s: 2.0 * road.SENSOR_STD[s] for s in road.SENSORS}}
     iw = build(model, 25, std0, 1.0, variances="inverse-wishart")
     scored = build(model, 25, std0, 1.0, variances="scored")
     ests = {"MPF (paper), N = 100": (paper, P0),
-            "consistent, inverse-Wishart": (iw, nl.P0_SIM),
-            "consistent, scored": (scored, nl.P0_SIM)}
+            "consistent, inverse-Wishart": (iw, road.P0_SIM),
+            "consistent, scored": (scored, road.P0_SIM)}
 
     def go(est, P):
         out = vj.run(est, Y, U, x0=np.zeros(5), P0=P, key=jax.random.key(1), progress=False)
@@ -160,7 +152,7 @@ def learn(runs, seconds, points, prior, forgetting, r_known=False, variances=Non
     est = build(model, points, {"delta": guess, **{s: sf * road.SENSOR_STD[s] for s in
                                                    road.SENSORS}}, forgetting, std_range=rng,
                 prior=kind, nu0=1e7 if r_known else None, variances=variances)
-    out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
+    out = vj.run(est, Y, U, x0=np.zeros(5), P0=road.P0_SIM, key=jax.random.key(1),
                  return_covariances=True, progress=False)
     j = est.param_names.index("delta_std")
     e = np.asarray(out.params[..., j]) / road.STEER_STD
@@ -187,7 +179,7 @@ def exact(runs, seconds):
     sd = road.STEER_STD
     est = build(model, 2, {"delta": sd, **road.SENSOR_STD}, 1.0, nu0=1e7,
                 std_range=(sd, sd * (1 + 1e-9)), prior="log-uniform")
-    out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
+    out = vj.run(est, Y, U, x0=np.zeros(5), P0=road.P0_SIM, key=jax.random.key(1),
                  return_covariances=True, progress=False)
     nees = _nees_vr(out, X)
     print(f"{runs} runs x {seconds:g} s, every noise known (the Kalman filter):")
@@ -206,7 +198,7 @@ def early(runs):
     print(f"{runs} runs, guesses twice the truth; mean estimate / truth:")
     for variances in ("inverse-wishart", "scored"):
         est = build(model, 25, std0, 1.0, variances=variances)
-        out = vj.run(est, Y, U, x0=np.zeros(5), P0=nl.P0_SIM, key=jax.random.key(1),
+        out = vj.run(est, Y, U, x0=np.zeros(5), P0=road.P0_SIM, key=jax.random.key(1),
                      return_covariances=True, progress=False)
         nees = _nees_vr(out, X)
         print(f"  sensor variances {variances}:")
@@ -232,7 +224,7 @@ def information(runs, seconds):
                     std_range=(sd / 2.0, sd * 2.0), prior="jeffreys")
 
         def one(y, u):
-            s0 = est.init(jnp.zeros(5), jnp.asarray(nl.P0_SIM), key=jax.random.key(1))
+            s0 = est.init(jnp.zeros(5), jnp.asarray(road.P0_SIM), key=jax.random.key(1))
             s, _ = jax.lax.scan(lambda c, yu: (est.step(c, *yu)[0], None), s0, (y, u))
             return s.base_log_weights, s.info
 

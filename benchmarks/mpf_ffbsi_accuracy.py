@@ -1,9 +1,9 @@
 """Accuracy of the marginalized PF's smoothers (vehjax.smoothers.marginalized, issue #29 item 2)
-against the exact RTS smoother, on the linear-Gaussian test model of tests/test_smoothing_mpf.py
-(_model_lin: the offset drives v, a and y2; noise statistics known; kalman_states="linear"),
-8 keys, T = 25, N = M: method "ffbsi" and "ancestor", smoothed means' error in units of the
-smoothed std, its z-RMS over the 8 keys' mean (about 1 when unbiased), the variance ratio to the
-RTS's averaged over time, the distinct particles at t = 0.
+against the exact RTS smoother, on the linear-Gaussian test model of
+tests/smoothers/test_smoothing_mpf.py (_model_lin: the offset drives v, a and y2; noise statistics
+known; kalman_states="linear"), 8 keys, T = 25, N = M: method "ffbsi" and "ancestor", smoothed
+means' error in units of the smoothed std, its z-RMS over the 8 keys' mean (about 1 when unbiased),
+the variance ratio to the RTS's averaged over time, the distinct particles at t = 0.
 
     python benchmarks/mpf_ffbsi_accuracy.py 400 0.1     # N = M = 400, A_bar = 0.1
     python benchmarks/mpf_ffbsi_accuracy.py 50 0.0      # A_bar = 0: the exact RB filter

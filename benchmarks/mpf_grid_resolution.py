@@ -1,5 +1,6 @@
 """The consistent MPF's steering std where its grid does not resolve the posterior: the numbers
-behind vehjax/filters/marginalized/grid.py's docstring and tests/test_mpf_consistent.py's user-model test.
+behind vehjax/filters/marginalized/grid.py's docstring and
+tests/filters/marginalized/test_grid_filter.py's user-model test.
 
     python benchmarks/mpf_grid_resolution.py RUNS SEED POINTS [known] [weighted]
 

@@ -115,8 +115,8 @@ def simulate_linear_bank(th, dt, U, runs, offset, sig_w, bank_std, bias, std, se
 
 
 def user_bank_case(runs, seed, points, known=False, steps=400):
-    """The user-written model's study (tests/test_mpf_consistent.py's user-model test,
-    benchmarks/mpf_grid_resolution.py): :func:`user_linear_bank` at the consistency study's
+    """The user-written model's study (tests/filters/marginalized/test_grid_filter.py's user-model
+    test, benchmarks/mpf_grid_resolution.py): :func:`user_linear_bank` at the consistency study's
     inputs, data by :func:`simulate_linear_bank` at other values than that study's (steering
     offset 0.4 deg and noise 0.25 deg, biases ay -0.15 m/s^2, r 0.3 deg/s, roll rate -0.2
     deg/s, sensor stds 0.3 m/s^2, 0.9 deg/s, 0.9 deg/s), ``runs`` x ``steps``, ``seed``, and

@@ -26,7 +26,7 @@ if not _DEFAULTS and "--xla_backend_optimization_level" not in os.environ.get("X
     # few run-heavy tests feel it) and the last bits of floating-point results can differ from
     # level 3 (e.g. which multiply-adds are contracted), so a test comparing across processes
     # gives its workers the same flag (tests/test_distributed.py).
-    # LLVM's expensive passes off as well: test_sevendof.py 165 -> 149 s of CPU (loaded
+    # LLVM's expensive passes off as well: tests/models/test_sevendof.py 165 -> 149 s of CPU (loaded
     # machine, one process each)
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                                + " --xla_backend_optimization_level=0"

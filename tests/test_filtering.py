@@ -59,7 +59,8 @@ BUILDERS = {
 
 
 @pytest.mark.parametrize("name", [
-    # Liu-West: the slowest compile here; its run/filter agreement also in test_liu_west.py
+    # Liu-West: the slowest compile here; its run/filter agreement also in
+    # tests/filters/test_liu_west.py
     pytest.param(n, marks=pytest.mark.slow) if n == "liu_west_ukf" else n for n in BUILDERS])
 def test_filter_and_run_agree_for_every_builder(name):
     est = BUILDERS[name]()

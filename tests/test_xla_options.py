@@ -21,21 +21,22 @@ import pytest
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 CHECKS = [
-    "tests/test_gaussian.py::test_many_runs_form_equals_the_step_run_by_run",
-    "tests/test_gaussian.py::test_many_runs_form_with_each_runs_theta0",
-    "tests/test_particle.py::test_many_runs_form_equals_the_step_run_by_run",
-    "tests/test_marginalized.py::test_many_runs_form_equals_the_step_run_by_run",
-    "tests/test_runs_last.py::test_runs_last_equals_vmapped_step",
-    "tests/test_runs_last.py::test_runs_last_chunked_equals_one_chunk",
+    "tests/filters/test_gaussian.py::test_many_runs_form_equals_the_step_run_by_run",
+    "tests/filters/test_gaussian.py::test_many_runs_form_with_each_runs_theta0",
+    "tests/filters/test_particle.py::test_many_runs_form_equals_the_step_run_by_run",
+    "tests/filters/marginalized/test_paper.py::test_many_runs_form_equals_the_step_run_by_run",
+    "tests/filters/test_runs_last.py::test_runs_last_equals_vmapped_step",
+    "tests/filters/test_runs_last.py::test_runs_last_chunked_equals_one_chunk",
     "tests/test_run.py::test_matches_numpy_kalman_filter_run_by_run",
     "tests/test_run.py::test_chunked_equals_unchunked_and_progress",
     "tests/test_run.py::test_runs_in_blocks_equal_runs_side_by_side",
     "tests/test_run.py::test_keys_are_split_per_run_independent_of_chunking",
     "tests/test_smoothing.py::test_rts_equals_numpy_textbook_rts",
     "tests/test_smoothing.py::test_parallel_rts_equals_numpy_textbook_rts",
-    "tests/test_smoothing_parallel.py::"
+    "tests/smoothers/test_smoothing_parallel.py::"
     "test_parallel_and_sequential_kalman_equal_numpy_with_missing_components",
-    "tests/test_smoothing_mpf.py::test_linear_one_path_of_the_filter_is_the_exact_conditional",
+    "tests/smoothers/test_smoothing_mpf.py::"
+    "test_linear_one_path_of_the_filter_is_the_exact_conditional",
 ]
 
 # (LLVM optimisation level, CPU fusion emitters): the suite's own is (0, off)
@@ -57,9 +58,10 @@ def test_exactness_checks_hold_under_other_xla_options(name):
         env["VEHJAX_TEST_XLA_DEFAULTS"] = "1"
     else:
         env["XLA_FLAGS"] = OPTIONS[name]
-    # the project's addopts (two workers, "not slow") replaced: one process, every check
+    # the project's addopts (two workers, "not slow") replaced: one process, every check; the
+    # tests imported by their path as the suite does (pyproject.toml)
     cmd = [sys.executable, "-m", "pytest", "-o", "addopts=", "-q", "-p", "no:cacheprovider",
-           "-m", "slow or not slow", *CHECKS]
+           "--import-mode=importlib", "-m", "slow or not slow", *CHECKS]
     res = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1200)
     assert res.returncode == 0, f"under {name}:\n{res.stdout[-4000:]}\n{res.stderr[-2000:]}"
     last = res.stdout.strip().splitlines()[-1]

@@ -31,7 +31,11 @@ The filters (:func:`~vehjax.filters.marginalized.marginalized_pf`): :func:`build
 jerk std :data:`BANK_JERK_STD` = 2 deg/s^3; it models the biases as constant means with
 forgetting, not as random walks, the robustness check the paper intends) and
 :func:`build_drive_filter` (sec. 5 and Remark 2: lambda = 0.999, initial guesses
-:data:`DRIVE_STD0`).
+:data:`DRIVE_STD0`); and, not the paper's, the consistent filter
+(:func:`~vehjax.filters.marginalized.marginalized_pf_grid`) on the same problem,
+:func:`build_consistent_filter` (the offset and the biases as Kalman states, prior stds
+:data:`OFFSET_STD0`, :data:`BIAS_STD0`), which ``vehjax reproduce noise-learning`` and the
+consistent filter's benchmarks share with :data:`P0_SIM`, the simulation's state prior.
 
 Limits: the bank path is the same in every run; the truth's steering noise is white.
 """
@@ -44,11 +48,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .filters.marginalized import NiW, marginalized_pf
+from .filters.marginalized import (InputStdGrid, MeanStates, NiW, marginalized_pf,
+                                   marginalized_pf_grid)
 
 __all__ = ["DEG", "OFFSET", "STEER_STD", "SENSORS", "SENSOR_STD", "SENSOR_UNIT", "BIAS_WALK",
-           "PHI_STD", "RVIRT_STD", "BANK_JERK_STD", "BANK_DEG", "DRIVE_STD0", "looped_inputs",
-           "bank_profile", "simulate_truth", "build_sim_filter", "build_drive_filter"]
+           "PHI_STD", "RVIRT_STD", "BANK_JERK_STD", "BANK_DEG", "DRIVE_STD0", "OFFSET_STD0",
+           "BIAS_STD0", "P0_SIM", "looped_inputs", "bank_profile", "simulate_truth",
+           "build_sim_filter", "build_drive_filter", "build_consistent_filter"]
 
 DEG = math.pi / 180.0
 OFFSET = 0.28 * DEG  # rad, road wheel
@@ -64,6 +70,12 @@ BANK_JERK_STD = 2.0 * DEG
 BANK_DEG = 6.0
 #: the drive filter's initial std guesses (steering, ay, yaw gyro; the roll gyro as the yaw's)
 DRIVE_STD0 = {"delta": 0.2 * DEG, "ay": 0.4, "r": 0.5 * DEG}
+#: prior stds of the steering offset and of the sensor biases where a filter holds them as
+#: Gaussian states (the consistent filter's ``MeanStates.mean_std0``, the VB filters')
+OFFSET_STD0 = 0.5 * DEG
+BIAS_STD0 = {"ay": 0.5, "r": 0.5 * DEG, "roll_rate": 0.5 * DEG}
+#: the simulation's state prior covariance P0 of (vy, r, phi, phi_dot, phi_ddot)
+P0_SIM = np.diag([0.1, 0.5 * DEG, 0.5 * DEG, 0.2 * DEG, 0.2 * DEG]) ** 2
 
 
 def looped_inputs(U: np.ndarray, n_steps: int) -> np.ndarray:
@@ -160,3 +172,24 @@ def build_drive_filter(model, n_particles, forgetting=0.999, variant="bank",
                            linear_noise_std=0.0 if scale else None,
                            niw=NiW(std0=DRIVE_STD0, forgetting=forgetting),
                            kalman_states=kalman_states)
+
+
+def build_consistent_filter(model, points, std0, forgetting=1.0, nu0=None, grid=None,
+                            sensor_variances=None):
+    """The consistent marginalized PF (:func:`~vehjax.filters.marginalized.marginalized_pf_grid`,
+    not the paper's) on this problem: ``points`` grid points of the steering std, the offset and
+    the biases as Kalman states (prior stds :data:`OFFSET_STD0`, :data:`BIAS_STD0`; the biases'
+    random walks :data:`BIAS_WALK`, the truth's), phi and r_virt known, the bank chain (and the
+    rolling-radius mismatch eps where the model has it) in each particle's Kalman filter.
+    ``std0``, ``forgetting``, ``nu0``: its :class:`~vehjax.filters.marginalized.NiW`; ``grid``
+    (an :class:`~vehjax.filters.marginalized.InputStdGrid` or None) and ``sensor_variances`` as
+    in ``marginalized_pf_grid``."""
+    scale = ("eps",) if "eps" in model.state_names else ()
+    return marginalized_pf_grid(
+        model, points, noisy_input="delta", sensors=SENSORS,
+        known_std={"phi": PHI_STD, "r_virt": RVIRT_STD},
+        linear_states=("phi", "phi_dot", "phi_ddot") + scale, linear_noise_std=BANK_JERK_STD,
+        niw=NiW(std0=std0, forgetting=forgetting, nu0=nu0),
+        means=MeanStates(bias_walk={s: BIAS_WALK[s] for s in SENSORS},
+                         mean_std0={"delta": OFFSET_STD0, **BIAS_STD0}),
+        grid=InputStdGrid() if grid is None else grid, sensor_variances=sensor_variances)

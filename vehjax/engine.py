@@ -12,10 +12,11 @@ and ``step(state, y, u) -> (state, StepOutput)``. One run is::
 (:func:`one_run`). :func:`start` gives ``theta0`` its meaning once: for a filter that estimates
 parameters, the caller's, else the estimator's ``param_prior``, else NaN until the first step's
 estimate; for a state-only filter none (its ``theta0`` is the model's parameters, passed to
-``init``). :func:`check_arguments` is the one check of a run's arguments (shapes, values,
-``theta0`` inside ``Estimator.bounds``, a state-only filter's inside the model's domains
-``Estimator.theta_domains``) before anything is traced, by the rules of
-:mod:`vehjax.validation`. A runs-last batch (:mod:`vehjax.filters.runs_last`) uses the same
+``init``). :func:`check_arguments` is the one check of a run's arguments (shapes, values)
+before anything is traced, by the rules of :mod:`vehjax.validation`; :func:`initial_parameters`
+is the one check of ``theta0`` and ``P_theta0`` (``theta0`` inside ``Estimator.bounds``, a
+state-only filter's inside the model's domains ``Estimator.theta_domains``), for a run and for
+a study (:func:`vehjax.run`). A runs-last batch (:mod:`vehjax.filters.runs_last`) uses the same
 pieces with ``output_ok``'s ``pd``/``all_finite`` for that layout.
 
 Time convention (the papers' order): ``x0``/``P0`` describe the state before the first step;
@@ -56,7 +57,8 @@ from .filters.base import Estimator, StepOutput
 
 __all__ = [
     "FilterResult", "AT_BOUND_RTOL", "AT_BOUND_FRACTION", "check_step_output", "start",
-    "all_finite", "output_ok", "scan_body", "on_bound", "check_theta0", "finish", "one_run",
+    "all_finite", "output_ok", "scan_body", "on_bound", "initial_parameters", "finish",
+    "one_run",
     "check_arguments",
 ]
 
@@ -205,13 +207,39 @@ def on_bound(params, theta0, bounds):
     return jnp.any(jnp.mean(near, axis=0) > AT_BOUND_FRACTION)
 
 
-def check_theta0(estimator: Estimator, theta0) -> None:
-    """ValueError naming ``theta0`` when a concrete theta0 ((p,) or (R, p)) is not strictly
-    inside the domains ``estimator.bounds``; traced or absent values are not checked."""
-    if theta0 is None or estimator.bounds is None or np.shape(theta0)[-1:] != (
-            len(estimator.param_names),):
-        return  # absent, no domains, or a wrong shape (someone else's error)
-    check_inside("theta0", theta0, *estimator.bounds, tuple(estimator.param_names))
+def initial_parameters(estimator: Estimator, theta0, P_theta0, runs=None):
+    """``theta0`` and ``P_theta0`` of one run (``runs`` None: :func:`vehjax.filter`,
+    :func:`vehjax.smooth`) or of a study of ``runs`` runs (:func:`vehjax.run`), checked once
+    for every entry point before anything is traced. Returns (th0, Pth0) as arrays or None.
+
+    Their meaning. For a filter that estimates parameters (``Estimator.param_names``): the
+    initial estimate (p,) and its covariance (p, p) or (p,) variances (or one per run), theta0
+    strictly inside ``Estimator.bounds``; absent, the filter starts from its own prior
+    (``Estimator.param_prior``, which :func:`start` then reports) or from the model's nominal
+    values. For a state-only filter: theta0 replaces the model's parameters, inside the model's
+    domains (``Estimator.theta_domains``), and P_theta0 is None. A study's state-only filter
+    takes theta0 only where the estimator says its model's parameter count (``n_theta``), whose
+    length is checked here, as tracing the runs would find it too late; one run's is checked by
+    the filter's ``init``. The rules and messages are :mod:`vehjax.validation`'s."""
+    names = tuple(estimator.param_names)
+    th0, Pth0 = validation.initial_params(
+        names, theta0, P_theta0, runs=runs, has_prior=estimator.param_prior is not None,
+        label=f"estimator {estimator.name!r}",
+        model_theta=runs is None or estimator.n_theta is not None)
+    if names:
+        # a concrete theta0 of the right shape strictly inside the domains (a wrong shape is
+        # validation's error; traced values are not checked)
+        if th0 is not None and estimator.bounds is not None and np.shape(th0)[-1:] == (
+                len(names),):
+            check_inside("theta0", th0, *estimator.bounds, names)
+        return th0, Pth0
+    if runs is not None and th0 is not None and th0.shape[-1] != estimator.n_theta:
+        raise ValueError(f"theta0: expected the model's {estimator.n_theta} parameters, shape "
+                         f"({estimator.n_theta},) or ({runs}, {estimator.n_theta}), got "
+                         f"{th0.shape}")
+    # a state-only filter's theta0 is the model's parameters: inside the model's domains
+    validation.in_domain("theta0", th0, estimator.theta_domains)
+    return th0, Pth0
 
 
 def finish(per_step, held0, bounds=None) -> FilterResult:
@@ -267,17 +295,11 @@ def check_arguments(estimator, ys, us, x0, P0, theta0, P_theta0, key):
         )
     ys, us = validation.data(ys, us, estimator.ny, estimator.nu, "one")
     x0, P0 = validation.prior(estimator.nx, x0, P0)
-    th0, Pth0 = validation.initial_params(
-        tuple(estimator.param_names), theta0, P_theta0,
-        has_prior=estimator.param_prior is not None, label=f"estimator {estimator.name!r}")
+    th0, Pth0 = initial_parameters(estimator, theta0, P_theta0)
     if estimator.needs_key and key is None:
         raise ValueError(
             f"key: estimator {estimator.name!r} draws random numbers; pass key=jax.random.key(...)"
         )
     if key is not None:
         validation.key(key, 1)  # a PRNG key (an int such as 0 is not), as run checks it
-    if estimator.param_names:
-        check_theta0(estimator, th0)
-    else:  # a state-only filter's theta0 is the model's parameters: the model's domains
-        validation.in_domain("theta0", th0, estimator.theta_domains)
     return ys, us, x0, P0, th0, Pth0

@@ -49,7 +49,7 @@ CPU:
   prepared inputs reach it through the scan's carry where the filter asks (``prefetch_inputs``),
   which helps the EKF further.
 
-GPU (measured on one H100, float64, through the public API, issue #28):
+GPU (measured on one H100, float64, through the public API):
 
 * **No blocking**: ``lax.map`` over blocks serialises the runs on a GPU, many times slower
   than one vmapped block (the bootstrap and the marginalized PF alike).

@@ -380,7 +380,7 @@ def _checked_data(estimator, measurements, inputs, x0, P0, theta0, P_theta0, key
         raise ValueError(
             f"estimator: expected a vehjax.filters.Estimator, got {type(estimator).__name__}"
         )
-    nx, p = int(estimator.nx), len(estimator.param_names)
+    nx = int(estimator.nx)
     if nx < 1:
         raise ValueError(f"estimator: nx must be >= 1, got {estimator.nx}")
 
@@ -389,18 +389,7 @@ def _checked_data(estimator, measurements, inputs, x0, P0, theta0, P_theta0, key
     ys, us = validation.data(measurements, inputs, estimator.ny, estimator.nu, "many")
     R = ys.shape[0]
     x0, P0 = validation.prior(nx, x0, P0, runs=R)
-    th0, Pth0 = validation.initial_params(
-        tuple(estimator.param_names), theta0, P_theta0, runs=R,
-        has_prior=estimator.param_prior is not None, label=f"estimator {estimator.name!r}",
-        model_theta=estimator.n_theta is not None)
-    if p and th0 is not None:
-        engine.check_theta0(estimator, th0)
-    if not p and th0 is not None and th0.shape[-1] != estimator.n_theta:
-        raise ValueError(f"theta0: expected the model's {estimator.n_theta} parameters, shape "
-                         f"({estimator.n_theta},) or ({R}, {estimator.n_theta}), got "
-                         f"{th0.shape}")
-    # a state-only filter's theta0 is the model's parameters: inside the model's domains
-    validation.in_domain("theta0", None if p else th0, estimator.theta_domains)
+    th0, Pth0 = engine.initial_parameters(estimator, theta0, P_theta0, runs=R)
 
     if estimator.needs_key and key is None:
         raise ValueError(

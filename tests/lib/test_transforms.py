@@ -1,6 +1,6 @@
 """Parameter transforms (vehjax.lib.transforms): round trips, Jacobians against finite
 differences, the covariance floor near a bound, extreme coordinates (moved from
-tests/test_bounds.py, issue #17), and the log-Jacobian the calibrate priors use."""
+tests/filters/test_bounds.py, issue #17), and the log-Jacobian the calibrate priors use."""
 
 import jax
 import jax.numpy as jnp

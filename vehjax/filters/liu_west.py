@@ -56,8 +56,8 @@ Gaussian (mode-like) approximation of the skewed posterior. Moved only after res
 grows rarer as the posterior settles, the weights carry the likelihood's shape.
 
 On a scalar model whose posterior is skewed (x' = 0.9 x + u / g; the bench's "skewed" piece,
-200 runs x 300 steps; ``tests/test_liu_west.py`` has a smaller one), both agree with the exact
-posterior mean to about 0.05 posterior standard deviations (``"every"`` +0.02 (se 0.02) and
+200 runs x 300 steps; ``tests/filters/test_liu_west.py`` has a smaller one), both agree with the
+exact posterior mean to about 0.05 posterior standard deviations (``"every"`` +0.02 (se 0.02) and
 -0.01 (0.01) for M = 500 and 2000, ``"resampled"`` -0.06 (0.01) and -0.05 (0.01)), and
 ``"resampled"`` scatters less around it per run (0.16 and 0.13 against 0.30 and 0.20 standard
 deviations). The price: with few particles the parameter covariance is over-confident, more so
@@ -67,7 +67,7 @@ reported std at the end (1 = calibrated), ``"every"`` / ``"resampled"``: M = 100
 2.06, 2.64; M = 300 1.35, 1.04 / 1.41, 1.17; M = 1000 1.16, 0.98 / 1.19, 1.11. Use M >= 1000
 (the default).
 
-Bias (issue #17), and what removed it (the first two causes below were measured with the kernel
+Bias, and what removed it (the first two causes below were measured with the kernel
 at every step, ``move="every"``). Measured as the mean over runs of the final estimate
 (mean over the last 10 % of the steps) relative to the truth, in %, with its standard error:
 

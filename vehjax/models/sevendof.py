@@ -58,9 +58,9 @@ per 10 ms (see ``_ros2_step``): it is implicit only in the wheel spins, whose Ja
 per wheel, so the "implicit solve" is four scalar divisions. Same equations, same fixed point of
 the load loop; over a 10 s double lane change at 80 km/h it stays within 0.005 m/s (u),
 0.0015 m/s (v), 3e-4 rad/s (r) and 0.02 m/s^2 (ay) of RK4 with 0.25 ms steps (measured: 0.0032,
-0.0007, 1.3e-4, 0.008; tests/test_sevendof.py), at 1/14 to 1/20 of the cost of the default RK4
-per transition and 1/12 to 1/17 per Jacobian (measured on a shared 2-core CPU). It is the cheap model for filters, which
-propagate it thousands of times per step; keep RK4 for the truth.
+0.0007, 1.3e-4, 0.008; tests/models/test_sevendof.py), at 1/14 to 1/20 of the cost of the default
+RK4 per transition and 1/12 to 1/17 per Jacobian (measured on a shared 2-core CPU). It is the cheap
+model for filters, which propagate it thousands of times per step; keep RK4 for the truth.
 
 ``integrator="etdrk4"`` takes ``substeps`` steps (default 3 per 10 ms, of 1.67, 3.33 and 5 ms:
 lengths in the ratio 1 : 2 : 3 ..., short first, where the wheel-spin transient that each new
@@ -84,15 +84,16 @@ of M. Hochbruck and A. Ostermann ("Explicit exponential Runge-Kutta methods for 
 parabolic problems", SIAM J. Numer. Anal. 43(3), 1069-1090, 2005) it meets those of orders 1-3
 exactly for any L: sum b_i = phi_1, sum b_i c_i = phi_2, sum b_i c_i^2 / 2 = phi_3 and
 sum b_i J psi_i = 0 for every J, psi_i = sum_j a_ij c_j - c_i^2 phi_2(c_i h L), since b_2 = b_3,
-psi_2 = -psi_3 and psi_4 = 0; the order-4 ones only at L = 0 (tests/test_sevendof.py checks
+psi_2 = -psi_3 and psi_4 = 0; the order-4 ones only at L = 0 (tests/models/test_sevendof.py checks
 these conditions and the reduction to RK4). Cost: 12 evaluations of the derivative per 10 ms
 (one with the wheel rows) against RK4's 40; the stage loop traces the derivative once, the
 linearisation once more.
 
 Measured over the 10 s double lane change at 80 km/h (|ay| up to 5.9 m/s^2), largest errors
-against RK4 with 160 sub-steps per 10 ms (benchmarks/bench_sevendof.py; tests/test_sevendof.py
-checks the bounds), and cost per call for 1000 states on a shared 2-core CPU (jit, vmap, float64,
-best of 9 interleaved, compile apart; time of RK4-10 over the row's):
+against RK4 with 160 sub-steps per 10 ms (benchmarks/bench_sevendof.py;
+tests/models/test_sevendof.py checks the bounds), and cost per call for 1000 states on a shared
+2-core CPU (jit, vmap, float64, best of 9 interleaved, compile apart; time of RK4-10 over the
+row's):
 
     integrator    u [m/s]  v [m/s]  r [rad/s]  wheels [rad/s]  ay [m/s^2]  transition  jacfwd
     rk4, 10       2.8e-9   7.2e-11  3.4e-11    5.2e-7          1.3e-9      1           1

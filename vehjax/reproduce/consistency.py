@@ -51,8 +51,8 @@ What "matched" means here (nothing below is tuned per filter):
   (covariances known; biases as Kalman states)" is not the paper's algorithm: the model gets a
   constant state per sensor added to its output (:func:`vehjax.models.with_output_biases`)
   that the per-particle Kalman filter estimates with the rest (prior: the other rows'). For
-  "MPF-K" is :func:`vehjax.filters.marginalized_pf_grid` (issue #33 item 2, not the paper's
-  algorithm; :mod:`vehjax.filters.marginalized.means`): learns everything like MPF-G, but the
+  "MPF-K" is :func:`vehjax.filters.marginalized_pf_grid` (not the paper's algorithm;
+  :mod:`vehjax.filters.marginalized.means`): learns everything like MPF-G, but the
   steering offset and the sensor biases are constant states of each particle's Kalman filter
   (Gaussian over all states), the steering std a fixed grid under Jeffreys' prior, and the
   sensor variances by Fisher scoring of the innovations (the builder's default,
@@ -356,7 +356,8 @@ _WHY = {
                          "the bank's Kalman mean (eq. 6 with z_hat: x_t = f + A_bar z_hat + g "
                          "w), so the bank's uncertainty A_bar P A_bar^T never reaches the "
                          "particles. Against the exact Kalman filter of this linear-Gaussian "
-                         "model on the same data (measured ad hoc; tests/test_marginalized.py "
+                         "model on the same data (measured ad hoc; "
+                         "tests/filters/marginalized/test_paper.py "
                          "checks it at a small size): the errors are the exact filter's within "
                          "1 % rms, but the reported vy variance is 0.92 of the exact one (vy's "
                          "NEES per state 1.08; the exact filter is in the band on 0.943 of the "

@@ -1,6 +1,6 @@
 """Online noise learning compared: Sage-Husa ACKF, the variational adaptive Kalman filters, the
 marginalized PF of paper 004 and Remark 1's augmented-state EKF, on paper 004's simulation
-study and on the shipped RAV4 drive (issue #33, item 3).
+study and on the shipped RAV4 drive.
 
     vehjax reproduce noise-learning [--runs 100] [--duration 180] [--particles 100]
                                     [--drive-executions 10] [--drive-particles 500]
@@ -36,8 +36,8 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   0.99, both in the band on 0.95 of the steps, every learnt parameter's coverage >= 0.90.
 * **MPF (paper)**: :mod:`vehjax.banked_road`'s ``build_sim_filter`` (N = ``--particles``, lambda = 0.995,
   initial stds twice the truth) and ``build_drive_filter`` (bank variant, lambda = 0.999).
-* **MPF (consistent)**: the same model in ``marginalized_pf_grid`` (issue #33 item 2,
-  not the paper's: :mod:`vehjax.filters.marginalized`): the steering offset and the biases as
+* **MPF (consistent)**: the same model in ``marginalized_pf_grid`` (not the
+  paper's: :mod:`vehjax.filters.marginalized`): the steering offset and the biases as
   Kalman states of every particle (the biases with the truth's random-walk stds, as the VB
   rows; their priors those of the VB rows, 0.5 deg, 0.5 m/s^2, 0.5 deg/s), the steering
   noise as process noise at each particle's own std, the particles a fixed grid
@@ -129,7 +129,7 @@ Verdicts are computed from the numbers (:func:`verdict`): "learns" the offset wh
 error is within 0.05 deg and its RMS within 0.1 deg; the biases when each RMS error is below a
 quarter of the sensor's noise std; the stds when each mean relative error is within 10 %;
 "honest" when the NEES share in the band is >= 0.9 and every learnt parameter's coverage is
->= 0.9 (the targets of issue #33); otherwise the NEES is called over-confident above 1.1 per
+>= 0.9; otherwise the NEES is called over-confident above 1.1 per
 dof, under-confident below 0.9, and between them only its share in the band is given.
 """
 
@@ -148,7 +148,7 @@ from vehjax import banked_road as road
 from vehjax.data import prepare_drive
 from vehjax.models.bank_scale import augmented_model
 
-PAPER = ("Online noise learning compared (issue #33): Sage-Husa ACKF, variational adaptive "
+PAPER = ("Online noise learning compared: Sage-Husa ACKF, variational adaptive "
          "Kalman filters (Särkkä & Nummenmaa 2009; Huang et al. 2017), the marginalized PF of "
          "Berntorp & Di Cairano 2018 (paper 004) and its Remark 1 augmented EKF")
 
@@ -156,9 +156,6 @@ DEG = road.DEG
 SENSORS = road.SENSORS
 METHODS = ("Sage-Husa ACKF", "VB-R (CKF)", "VB-R (EKF)", "VB-PR (CKF)", "MPF (paper)",
            "MPF (consistent)", "MPF (inverse-Wishart)", "augmented EKF")
-BIAS_STD0 = {"ay": 0.5, "r": 0.5 * DEG, "roll_rate": 0.5 * DEG}
-OFFSET_STD0 = 0.5 * DEG
-P0_SIM = np.diag([0.1, 0.5 * DEG, 0.5 * DEG, 0.2 * DEG, 0.2 * DEG]) ** 2
 
 
 def parser():
@@ -233,28 +230,18 @@ def ackf_with_R(est, idx, names, R0):
 
 
 def _mpf_consistent(model, args, drive, variances=None):
-    """The MPF (paper)'s model in :func:`vehjax.filters.marginalized_pf_grid` (issue #33 item
-    2): the biases as Kalman states with the truth's random-walk stds (as the VB rows), the
-    statistics averaged over the offset's conditional, Gaussian particle states;
-    ``variances``, its ``sensor_variances``."""
-    from vehjax.filters.marginalized import MeanStates, NiW, marginalized_pf_grid
-
-    means = MeanStates(bias_walk={s: road.BIAS_WALK[s] for s in SENSORS},
-                       mean_std0={"delta": OFFSET_STD0, **BIAS_STD0})
-    common = dict(noisy_input="delta", sensors=SENSORS,
-                  known_std={"phi": road.PHI_STD, "r_virt": road.RVIRT_STD},
-                  linear_noise_std=road.BANK_JERK_STD, means=means, sensor_variances=variances)
+    """The MPF (paper)'s model in :func:`vehjax.filters.marginalized_pf_grid`
+    (:func:`vehjax.banked_road.build_consistent_filter`): the biases as Kalman states with the
+    truth's random-walk stds (as the VB rows), the statistics averaged over the offset's
+    conditional, Gaussian particle states; ``variances``, its ``sensor_variances``."""
     if drive:
-        scale = ("eps",) if "eps" in model.state_names else ()
-        niw = NiW(std0={**road.DRIVE_STD0, "roll_rate": road.DRIVE_STD0["r"]}, forgetting=0.999)
-        return marginalized_pf_grid(model, args.grid_points, niw=niw,
-                                    linear_states=("phi", "phi_dot", "phi_ddot") + scale,
-                                    **common)
+        std0 = {**road.DRIVE_STD0, "roll_rate": road.DRIVE_STD0["r"]}
+        return road.build_consistent_filter(model, args.grid_points, std0, 0.999,
+                                            sensor_variances=variances)
     steer0 = args.steer_factor * road.STEER_STD
-    niw = NiW(std0={"delta": steer0, **{s: 2 * road.SENSOR_STD[s] for s in SENSORS}},
-              forgetting=1.0)
-    return marginalized_pf_grid(model, args.grid_points, niw=niw,
-                                linear_states=("phi", "phi_dot", "phi_ddot"), **common)
+    std0 = {"delta": steer0, **{s: 2 * road.SENSOR_STD[s] for s in SENSORS}}
+    return road.build_consistent_filter(model, args.grid_points, std0, 1.0,
+                                        sensor_variances=variances)
 
 
 def build(method, model, args, drive=False):
@@ -270,7 +257,7 @@ def build(method, model, args, drive=False):
     Q = _q_bank(model)
     known = {"phi": road.PHI_STD, "r_virt": road.RVIRT_STD}
     all5 = [0, 1, 2, 3, 4]
-    P0 = P0_SIM
+    P0 = road.P0_SIM
     if method == "Sage-Husa ACKF":
         Rall = np.diag(np.r_[R0, road.PHI_STD ** 2, road.RVIRT_STD ** 2])
         est = filters.ackf(model, Q, Rall, forgetting=args.forgetting, adapt=("R",),
@@ -281,7 +268,8 @@ def build(method, model, args, drive=False):
                   iterations=args.iterations, sensors=SENSORS, known_std=known,
                   biases=SENSORS, input_offsets=("delta",),
                   bias_walk={s: road.BIAS_WALK[s] for s in SENSORS},
-                  bias_std0=BIAS_STD0, offset_std0=OFFSET_STD0, input_noise={"delta": steer0})
+                  bias_std0=road.BIAS_STD0, offset_std0=road.OFFSET_STD0,
+                  input_noise={"delta": steer0})
         if method.startswith("VB-R"):
             return filters.vbakf_r(model, Q, R0, dof0=10.0, **kw), all5, P0
         return filters.vbakf_pr(model, Q, R0, tau=3.0, **kw), all5, P0
@@ -301,8 +289,8 @@ def build(method, model, args, drive=False):
         # has it, the rolling-radius mismatch eps held at 0 (r_virt taken as unbiased)
         q = {"vy": 0.01, "r": 0.01 * DEG, "delta_offset": 1e-5 * DEG, "ay_bias": 1e-4,
              "r_bias": 1e-5 * DEG, "eps": 0.0}
-        p0 = {"vy": 0.1, "r": 0.5 * DEG, "delta_offset": OFFSET_STD0, "ay_bias": BIAS_STD0["ay"],
-              "r_bias": BIAS_STD0["r"], "eps": 1e-9}
+        p0 = {"vy": 0.1, "r": 0.5 * DEG, "delta_offset": road.OFFSET_STD0,
+              "ay_bias": road.BIAS_STD0["ay"], "r_bias": road.BIAS_STD0["r"], "eps": 1e-9}
         Qa = np.array([q[n] for n in am.state_names]) ** 2
         P0a = np.diag(np.array([p0[n] for n in am.state_names]) ** 2)
         Ra = np.array([std0["ay"], std0["r"], road.RVIRT_STD]) ** 2

@@ -23,13 +23,13 @@ What the paper specifies and how it is read here (section 4):
 * Truth: RK4 with 1 ms sub-steps (the model's reference integrator). Filters: the same model
   integrated by ROS2 with one 10 ms step (``integrator="ros2"``), far cheaper (``vehjax bench
   sevendof`` measures each integrator's cost per step), whose own error over this drive is at
-  most 0.008 m/s^2 in ay and 0.003 m/s in u (see tests/test_sevendof.py), far below the
+  most 0.008 m/s^2 in ay and 0.003 m/s in u (see tests/models/test_sevendof.py), far below the
   measurement noise.
 * The truth's ax carries white noise: eq. 31's process noise on the wheel speeds moves the
   slips, hence the tyre forces, from step to step. No filter can follow it, and it sets most
   of the ax error.
 
-Cases (``--cases``; issue #17). The paper's claim is that the adaptive filter wins when the
+Cases (``--cases``). The paper's claim is that the adaptive filter wins when the
 noise statistics are time-varying and the filters' noise guess is wrong. Eq. 31-32 scale Q(t)
 and R(t) by the same sin(pi t / 10); a fixed filter given the peak Q and R then has the true
 Q/R ratio at every instant, and since the Kalman gain is invariant to a common scale of Q and R

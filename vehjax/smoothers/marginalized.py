@@ -71,15 +71,15 @@ a. **Trajectories.** The last index of each of the M trajectories is drawn from 
    The measurement y_t+1 must be in it: it depends on the pair (x_t^j, x_t+1^m) through the
    offset w_t+1 (d w in eq. 8, and through z_t+1) — with x_t+1 alone, the weights of
    Särkkä, Bunch & Godsill's model class, the smoothed means on the test model of
-   tests/test_smoothing_mpf.py (y2 reads the offset directly) were off by 0.56 of the smoothed
-   std at N = M = 400, against 0.13 for ancestor tracing. The trajectory's x_t is particle
+   tests/smoothers/test_smoothing_mpf.py (y2 reads the offset directly) were off by 0.56 of the
+   smoothed std at N = M = 400, against 0.13 for ancestor tracing. The trajectory's x_t is particle
    j's.
 b. **Linear states and statistics, given a trajectory.** Its Kalman filter of the linear states
    and its NiW statistics are re-run forward along it (:func:`linear_path_forward`:
    :func:`linear_path_step`, the filter's steps 4-5 for a particle at x_t-1 moved to x_t,
    the offset datum w_t = g^+ (x_t - xb)), from the filtered moments and statistics of its
    particle at t = 0; along an ancestral path this is the filter's own recursion (to rounding;
-   tests/test_smoothing_mpf.py). Its linear states are then smoothed by
+   tests/smoothers/test_smoothing_mpf.py). Its linear states are then smoothed by
    :func:`linear_path_rts` as for an ancestral path, and the moments mixed as in step 3.
 c. **Noise statistics.** At each t, eq. 23's estimates over the M re-run statistics at t (equal
    weights): with ``forgetting=1`` the last row is the NiW posterior given each trajectory and
@@ -111,8 +111,8 @@ states at t + 1 depend on the whole past of a trajectory's offsets, so what the 
 about them is what ties a trajectory together. Tried with the same one-step weights
 W_t^j p(w_t+1^m, y_t+1 | particle j) and the particles' Gaussians re-run along the stitched
 offsets (which along ancestral paths reproduced the filter to rounding): on the known-noise
-test model of tests/test_smoothing_mpf.py the smoothed variances came out 1.7-2.4 times the
-RTS's on average over time at N = M = 400 (means off by 0.21 of the smoothed std, z-RMS 7.5),
+test model of tests/smoothers/test_smoothing_mpf.py the smoothed variances came out 1.7-2.4 times
+the RTS's on average over time at N = M = 400 (means off by 0.21 of the smoothed std, z-RMS 7.5),
 so it was not kept; the backward information filter below would be needed.
 
 What is exact and what is approximate
@@ -131,8 +131,8 @@ What is exact and what is approximate
   p(x_0:T-1 | y_0:T-1) even as N grows. Where the linear states do not feed the sampled ones
   (A_bar = 0) and the noise is known, the filter is the exact Rao-Blackwellised filter and the
   smoothed means and lag-one covariances are within Monte-Carlo error of the exact RTS at
-  N = M = 50 and 400 (tests/test_smoothing_mpf.py). Where they do (A_bar = 0.1 on the same test
-  model, as the bank feeds vy; benchmarks/mpf_ffbsi_accuracy.py 400 0.1), the dropped term
+  N = M = 50 and 400 (tests/smoothers/test_smoothing_mpf.py). Where they do (A_bar = 0.1 on the same
+  test model, as the bank feeds vy; benchmarks/mpf_ffbsi_accuracy.py 400 0.1), the dropped term
   shows: FFBSi's smoothed means were off the exact RTS by 0.165 of the smoothed std (z-RMS 4.9
   over 8 keys: beyond its Monte-Carlo error) and its variance of the sampled state 1.08 times
   the RTS's, against 0.191 (z-RMS 2.0) and 1.01 for ancestor tracing, whose filter is itself
@@ -145,7 +145,8 @@ What is exact and what is approximate
   holds for the linear states given the path's sampled states x_0:T, for a model affine in the
   linear states and the noisy input, with the plug-in noise of each step (whatever the
   statistics do: the conditional model is the one the path's Kalman filter ran;
-  tests/test_smoothing_mpf.py checks one path against batch Gaussian conditioning to 1e-9).
+  tests/smoothers/test_smoothing_mpf.py checks one path against batch Gaussian conditioning to
+  1e-9).
 * ``kalman_states="linear"``, approximate beyond the path: only the component of x_t - f along
   g enters the bank filter (the filter's sec. 3.4; the rest of A_bar z_t-1 has no noise in the
   model and is dropped, as the filter drops it), and a particle's x_t is built from the bank's
@@ -153,7 +154,7 @@ What is exact and what is approximate
   p(x_0:T | y) (the filter's module docstring: vy's variance about 8 % small on
   SingleTrackBank). Where the linear states do not enter the sampled ones (A_bar = 0) the
   filter with known noise is the exact Rao-Blackwellised filter and the smoothed means
-  converge to the exact RTS smoother (tests/test_smoothing_mpf.py, two particle counts).
+  converge to the exact RTS smoother (tests/smoothers/test_smoothing_mpf.py, two particle counts).
   For a model not affine in the sampled states the linearisation is the filter's, at the
   path's point and Kalman mean (an extended step per path); nothing is iterated.
 * Consistent, with Monte-Carlo error: the paths. Ancestor tracing draws them from the filter's
@@ -162,7 +163,7 @@ What is exact and what is approximate
   (``n_unique``), and the early smoothed moments rest on those, whatever M (``"ffbsi"``
   re-draws each trajectory's past from all particles, with the approximate weights above).
   With these two, the smoothed states converge to the exact RTS smoother of
-  the linear-Gaussian system as N grows (tests/test_smoothing_mpf.py checks it within
+  the linear-Gaussian system as N grows (tests/smoothers/test_smoothing_mpf.py checks it within
   Monte-Carlo error at two particle counts).
 * Approximate: with unknown noise statistics each particle's Kalman filter runs with its own
   point estimates (R_hat, b_hat) at each step, so the per-path RTS is conditional on those

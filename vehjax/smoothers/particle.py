@@ -33,7 +33,7 @@ Methods, each giving M trajectories x_{0:T-1}^m, m = 1..M:
     cloud about N(m, P) and a model with Jacobian A the acceptance probability is at most
     about sqrt(det Q / det(Q + A P A^T)): small when the process noise is small against the
     filter's spread, and then most trajectories fall back (measured: 60 % of them after 4
-    tries on the linear model of tests/test_particle_smoothing.py).
+    tries on the linear model of tests/smoothers/test_particle_smoothing.py).
 
 ``"ancestor"``  ancestor tracing: draw M of the filter's final particles by their weights and
     follow each one's genealogy back (``PFState.ancestors``). The cheapest (no transition

@@ -34,7 +34,7 @@ Conventions. NiW(gamma, mu_hat, Lambda, nu) is Murphy's NiW(mu_0, kappa, Lambda,
 gamma = 1 / kappa: mu | Sigma ~ N(mu_hat, gamma Sigma), Sigma ~ IW(Lambda, nu) in dimension d.
 Then eq. 18 is exactly Murphy's one-datum update (kappa + 1 = 1 / gamma_{k|k}, the weight
 kappa / (kappa + 1) = 1 / (1 + gamma) on eta eta^T), so repeated with lambda = 1 it equals the
-batch posterior (tests/test_marginalized.py checks it).
+batch posterior (tests/filters/marginalized/test_paper.py checks it).
 
 * Dependence structure, eq. 9 and 21. Write v = [w; e] (the offset and the sensor noise, which
   the model takes independent) and w_bar = [w; e_bar] = T v with e_bar = d w + e, T = [[1, 0],
@@ -122,7 +122,7 @@ batch posterior (tests/test_marginalized.py checks it).
   taken to the stds by the delta method (d sigma = d Sigma / (2 sigma)), with nu - d - 3
   floored at 1 where that variance does not exist, plus the spread of the particles' values
   about the reported estimate.
-* The consistent filter, :func:`marginalized_pf_grid` (not the paper's; issue #33 item 2). The
+* The consistent filter, :func:`marginalized_pf_grid` (not the paper's). The
   paper's filter says it knows the noise statistics better than it does when it learns them
   (``vehjax reproduce consistency``, 100 runs: NEES in the band on 0.17 of the steps with
   ``kalman_states="all"``, the roll-rate bias's spread over runs twice its reported std;
@@ -182,7 +182,7 @@ batch posterior (tests/test_marginalized.py checks it).
   experiments: benchmarks/results/notes_marginalized.md).
   Exact, given the sensor covariances, for models affine in the states and the noisy input:
   with R known the weights are the exact posterior over the grid
-  (tests/test_mpf_consistent.py, against numpy Kalman likelihoods), and with
+  (tests/filters/marginalized/test_grid_filter.py, against numpy Kalman likelihoods), and with
   every covariance known it is the Kalman filter of the augmented model. Approximate: R's
   scored variances (filtered, not the whole data's likelihood; or the inverse-Wishart
   statistics, a variational-Bayes style update) and their forgetting, the grid's

@@ -1,6 +1,6 @@
 """The posterior of a static parameter on a fixed grid uniform in t, reported whether or not the
 grid resolves it: the steering variance of the consistent marginalized PF (t = log sigma_w^2,
-``marginalized_pf_grid``, issue #33), each particle a Kalman filter at its own
+``marginalized_pf_grid``), each particle a Kalman filter at its own
 grid value, never resampled, so the log weights are the log posterior at the grid points (exact
 given the sensor covariances).
 

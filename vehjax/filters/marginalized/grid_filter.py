@@ -1,4 +1,4 @@
-"""The fixed-grid consistent marginalized PF (not the paper's; issue #33 item 2) as an
+"""The fixed-grid consistent marginalized PF (not the paper's) as an
 :class:`~vehjax.filters.base.Estimator`: each particle a Kalman filter of the model with the
 steering offset and the sensor biases as constant states, at its own steering-noise variance on a
 fixed grid that is never resampled, so the weights are the posterior over the grid (a

@@ -1,6 +1,6 @@
 """Jeffreys' prior over a grid of one variance parameter, from the covariance part of the
 expected Fisher information of a Gaussian predictive (``marginalized_pf_grid``'s default
-``InputStdGrid(input_std_prior="jeffreys")``, issue #33).
+``InputStdGrid(input_std_prior="jeffreys")``).
 
 Why. A variance that enters the data beside other noise (the steering noise sigma_w^2 seen
 through vy and r beside the sensors' noise) is a variance component: the predictive covariance

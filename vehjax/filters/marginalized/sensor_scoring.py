@@ -1,6 +1,6 @@
 """The sensor variances of the consistent marginalized PF by Fisher scoring of its innovations,
 weighted at the prior guess (:func:`~vehjax.filters.marginalized.marginalized_pf_grid`'s
-default, ``sensor_variances="scored"``; issue #33).
+default, ``sensor_variances="scored"``).
 
 What was wrong with the expected statistics alone. Each particle's Kalman step with the sensor
 covariance R' (its estimate so far) gives the posterior of the sensor noise e_t given y_1:t,

@@ -57,7 +57,7 @@ Drive (sec. 5, ``--drive``):
   marginalized PF's and the exact Kalman likelihood, correlated PMMH, particle Gibbs with
   ancestor sampling; ``--pmmh-likelihood``); the report states for each sampler whether split
   R-hat < ``RHAT_MAX`` and ESS >= ``ESS_MIN`` for every quantity (:func:`.report.pmmh_check`).
-* Smoothing (#29): ``vehjax.smooth`` (extended RTS) of the augmented EKF gives the offset,
+* Smoothing: ``vehjax.smooth`` (extended RTS) of the augmented EKF gives the offset,
   biases, eps and (variant ``bank``) the bank over the drive given the whole drive. Beside
   it the MPF's own smoother (:mod:`vehjax.smoothers.marginalized`; ``--mpf-smooth-paths`` M,
   default 100, 0 skips it; ``--mpf-smoother``): one more execution of the drive's filter (its

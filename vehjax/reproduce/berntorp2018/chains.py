@@ -1,4 +1,4 @@
-"""Particle-likelihood PMMH chains on the RAV4 drive's first 20 s (issue #30): the bootstrap
+"""Particle-likelihood PMMH chains on the RAV4 drive's first 20 s: the bootstrap
 PF's independent estimates ("bootstrap") against correlated pseudo-marginal PMMH ("cpm"), through
 :func:`.pmmh.run_pmmh` with the same N, iterations, key (8), 4 chains, each started at (and its
 likelihood spread measured at) the exact Kalman chain's posterior mean (:data:`AT`, from

@@ -133,7 +133,7 @@ def run_ekf(args, d, log=print):
 
 
 def run_mpf_smoother(args, d, est, P0, N, log=print):
-    """The MPF's own smoother (#29): one more execution of the same filter, M trajectories
+    """The MPF's own smoother: one more execution of the same filter, M trajectories
     (``--mpf-smooth-paths``, at most N; 0: skipped, None returned), each trajectory's bank
     (and eps) by an RTS given it (:mod:`vehjax.smoothers.marginalized`)."""
     M = min(N, getattr(args, "mpf_smooth_paths", MPF_SMOOTH_PATHS))

@@ -59,7 +59,7 @@ def drive_tables(res):
         rows_mpf.append(("bank angle - pose roll [deg]", f"RMS {_rms(e):.3f}",
                          f"max {np.max(np.abs(e)):.3f}; pose roll RMS "
                          f"{_rms(res['ref_roll'][after]) / DEG:.3f}", "-"))
-    k15 = slice(res["k15"], res["T"])  # the yardstick: after 15 s
+    k15 = slice(res["k15"], res["T"])  # the yardstick: after 15 s
     ref = res["ref_r"][k15]
     cm, ce, raw = res["corr_mpf"][:, k15], res["corr_ekf"][k15], res["raw_err"][k15]
     em = (res["r_mpf"][:, k15] - ref[None]) / DEG
@@ -446,7 +446,7 @@ def _drive_verdict(res, yaw_rows):
         f"{np.mean(res['Es'][:, 4]) / DEG:+.3f} deg/s. The raw virtual yaw rate read "
         f"{res['rvirt_raw_off'] / DEG:+.3f} deg/s off the pose (rolling radii "
         f"{abs(res['eps_pose']) * 100:.3f} % apart by the pose); taken as unbiased, the gyro "
-        "bias estimates inherit that offset with the opposite sign (the issue's 0.246 deg/s "
+        "bias estimates inherit that offset with the opposite sign (0.246 deg/s "
         f"against the raw gyro's 0.152, 10 executions, N = 300). Here (`--rvirt-scale "
         f"{res['mode']}`) r_virt minus the MPF's eps vx / l_T read "
         f"{res['rvirt_off'] / DEG:+.3f} deg/s off the pose on average.",
@@ -458,7 +458,7 @@ def _drive_verdict(res, yaw_rows):
         f"({yaw_rows[4][1] / yaw_rows[0][1]:.2f}x)"
         + "".join(f", the {r[0]} {r[1]:.3f} ({r[1] / yaw_rows[0][1]:.2f}x)"
                   for r in yaw_rows[6:] if "smoothed yaw rate" in r[0])
-        + ". Target of #30 item 5, at most 0.8x the raw gyro ("
+        + ". Target: at most 0.8x the raw gyro ("
         f"{0.8 * yaw_rows[0][1]:.3f} deg/s): "
         + ", ".join(f"{r[0]} {'meets it' if r[1] <= 0.8 * yaw_rows[0][1] else 'does NOT'}"
                     for r in yaw_rows[1:])
@@ -627,7 +627,7 @@ def drive_report(args, res, tables):
         f"Transient: the first {res['t'][res['k_tr']]:.0f} s are left out of every number.\n",
         "## Offset, biases, stds\n", tables["md1"], "",
         "## Virtual yaw rate's scale\n", _scale_paragraph(args, res), tables["scale"], "",
-        "## Smoothed offset, biases and bank over the drive (#29)\n",
+        "## Smoothed offset, biases and bank over the drive\n",
         "`vehjax.smooth` (extended RTS) of the augmented EKF, whose offset, biases and eps are "
         "random-walk states: the estimate of each at every time given the whole drive.\n",
         tables["smooth"], "",

@@ -54,7 +54,7 @@ SMOOTHED_NOTE = ("Rows \"RTS-smoothed (vehjax, offline)\": the same filter's own
 
 
 def table_consistency(stage: Stage) -> str:
-    """Markdown table: is each filter's reported uncertainty right (issue 17, item 4)?
+    """Markdown table: is each filter's reported uncertainty right?
 
     Per filter: the share of steps at which the run-averaged NEES of the states (truth from the
     simulation, nx degrees of freedom) and the NIS (``n_obs`` degrees of freedom) lie in their

@@ -55,7 +55,7 @@ How the paper is read (it leaves these open; each choice is ours and printed wit
   of yaw rate), rear slips zero. Half these amplitudes leave m, cx, cy off by about 7 % after
   60 s even for the joint EKF.
 * ``--excitation chirp``: a second dynamic excitation with other true values, for checking
-  the filters on data they were not tuned to (#17 item 3): a linear steering chirp from 0.1 to
+  the filters on data they were not tuned to: a linear steering chirp from 0.1 to
   1.5 Hz over the stage (0.03 rad), 15 m/s with the speed swinging by about +-0.8 m/s^2 of
   acceleration at a 12 s period, and the true m, cx, cy at 1.10, 0.92 and 1.06 times the
   nominal values; the box (the initial guesses and the Particle+UKF's prior) stays +-30 %

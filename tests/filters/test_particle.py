@@ -137,8 +137,8 @@ def test_loglik_estimate_is_unbiased():
 
 @pytest.mark.parametrize(
     "scheme, threshold",
-    # each scheme is checked against references in test_resampling.py; two of them through the
-    # whole filter here by default, the other two with `pytest -m slow`
+    # each scheme is checked against references in tests/filters/test_resampling.py; two of them
+    # through the whole filter here by default, the other two with `pytest -m slow`
     [("systematic", 0.5), pytest.param("stratified", 1.0, marks=pytest.mark.slow),
      pytest.param("multinomial", 0.5, marks=pytest.mark.slow), ("residual", 0.5)],
 )

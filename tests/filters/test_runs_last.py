@@ -40,7 +40,8 @@ def study():
 
 
 # the cubature filter shares the unscented one's sigma-point path: `pytest -m slow`
-# (the EKF's runs-last form against its step also in test_gaussian.py's many-runs test)
+# (the EKF's runs-last form against its step also in tests/filters/test_gaussian.py's many-runs
+# test)
 @pytest.mark.parametrize("build", [ukf, pytest.param(ckf, marks=pytest.mark.slow),
                                    pytest.param(ekf, marks=pytest.mark.slow)],
                          ids=["ukf", "ckf", "ekf"])

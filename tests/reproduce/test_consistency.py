@@ -81,8 +81,8 @@ def test_matched_filters_are_consistent_and_the_paper_ackf_is_not(tmp_path, monk
 def test_mpf_with_known_statistics_is_consistent(tmp_path):
     """The MPF with each particle a Gaussian over all states (MPF-G) and its noise statistics as
     good as known, on data from its own noise model (paper 004 eq. 3-10): the exact filter of
-    that linear-Gaussian model (tests/test_marginalized.py compares their estimates), so its
-    NEES in the band as often as that filter's on the same data, and the NIS in the band."""
+    that linear-Gaussian model (tests/filters/marginalized/test_paper.py compares their estimates),
+    so its NEES in the band as often as that filter's on the same data, and the NIS in the band."""
     rows, report = _study(tmp_path, "SingleTrackBank", "MPF-G (known noise)", 300)
     # the yardstick: the exact Kalman filter on the study's data (seed 0). Over this 1 s its
     # NEES is in the band on fewer steps than over the study's 3 s (100 runs of errors

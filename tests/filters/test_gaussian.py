@@ -509,6 +509,6 @@ def test_many_runs_form_with_each_runs_theta0():
     us = _nonlin_data()[1][:steps][None] * np.linspace(0.9, 1.1, runs)[:, None, None]
     theta0 = np.asarray(NONLIN.theta) * np.linspace(0.9, 1.1, runs)[:, None]
     x0 = np.tile(X0_NL, (runs, 1))
-    est = ukf(NONLIN, Q_NL, R_NL)  # the EKF's per-run theta: tests/test_runs_last.py
+    est = ukf(NONLIN, Q_NL, R_NL)  # the EKF's per-run theta: tests/filters/test_runs_last.py
     form = assert_batch_equals_step(est, ys, us, x0, P0_NL, theta0=theta0)
     assert form == ("batch" if est.batch is not None else "vmap")
