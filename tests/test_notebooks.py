@@ -2,7 +2,7 @@
 stored without outputs. A failing cell fails the test with the cell's error.
 
 Executing a notebook is a small study (a kernel, the imports, a dozen compiles: 15-55 s each on
-2 cores): the quick-start runs in the default suite, the other five are marked ``slow`` (``pytest -m slow``). Every notebook's code is checked in the default run
+2 cores): the quick-start runs in the default suite, the others are marked ``slow`` (``pytest -m slow``). Every notebook's code is checked in the default run
 without executing it: it parses, and every ``vj.<name>...`` / ``b18.<name>`` it refers to exists,
 so a renamed or removed public name fails here and not first in a user's hands."""
 
@@ -23,7 +23,8 @@ NAMES = sorted(p.name for p in NOTEBOOKS.glob("*.ipynb"))
 
 def test_the_walk_throughs_are_there():
     assert NAMES == ["01_quickstart.ipynb", "02_dutta2019.ipynb", "03_wang2016.ipynb",
-                     "04_berntorp2018.ipynb", "05_tuning.ipynb", "06_drive.ipynb"]
+                     "04_berntorp2018.ipynb", "05_tuning.ipynb", "06_drive.ipynb",
+                     "07_limit.ipynb"]
 
 
 @pytest.mark.parametrize("name", NAMES)

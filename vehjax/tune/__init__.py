@@ -19,6 +19,16 @@ inside the differentiated function. The optimiser minimises the loss
 ``-sum loglik / (R T)``, the negative mean log-likelihood per step, which is what
 ``history`` records.
 
+Where a fit starts (:mod:`vehjax.tune.staged`). By default (``start="data"``) a model that
+nests a simpler one (``model.nested_model()``: the saturating tyres of
+``SingleTrack(tyres="brush" | "pacejka")`` nest the linear ones) is fitted after it: the nested
+model's fit gives the start, a parameter whose least value the data imply
+(``model.data_floors``: mu >= the drive's peak |ay| / g) starts just above that floor, a second
+start follows where the first stays below the nested model's likelihood, and the result says
+so where it still does (``TuneResult.nested``, ``below_nested``, ``below_floor``).
+``start="theta"`` fits from ``model.theta`` and the given noise as they are
+(:func:`fit_from_theta`, still compared with the nested model unless ``compare=False``).
+
 Parameterisations (unconstrained vector -> physical value), chosen from the starting values:
 
 * a diagonal ``Q0``/``R0`` ((n,) variances, or a matrix with zero off-diagonal entries) is fitted
@@ -44,7 +54,9 @@ derivatives by forward mode (:func:`forward_scores`: each step's score with n ta
 through the filter, several times cheaper than reverse mode through a long scan), BHHH steps
 on the outer product of the per-step scores (:func:`score_outer_product`,
 :func:`scoring_direction`; a Gauss-Newton-type curvature from the same evaluation) with a
-backtracking line search, then Newton steps on the Hessian by differences of the gradient,
+backtracking line search (a full step that gains nearly its first-order prediction is doubled:
+far from the optimum the outer product overestimates the curvature), handing a slow linear
+tail (where the model does not fit the data exactly) to Newton steps on the Hessian by differences of the gradient,
 which the standard errors need anyway. ``"lbfgs"``, the default with more coordinates:
 ``optax.lbfgs`` with its zoom line search (strong Wolfe conditions), stopping when every
 component of the gradient of the loss with respect to the unconstrained coordinates is at most
@@ -104,7 +116,9 @@ Modules: :mod:`~vehjax.tune.likelihood` (the objective), :mod:`~vehjax.tune.para
 :mod:`~vehjax.tune.optimisers`, :mod:`~vehjax.tune.information` (observed information, standard
 errors), :mod:`~vehjax.tune.boundaries` (quantities on a bound),
 :mod:`~vehjax.tune.quantities` (names, units, scales), :mod:`~vehjax.tune.result`,
-:mod:`~vehjax.tune.driver` (:func:`fit`, :func:`fit_noise`). Measurements behind the defaults:
+:mod:`~vehjax.tune.driver` (:func:`fit_from_theta`, :func:`fit_noise`),
+:mod:`~vehjax.tune.staged` (:func:`fit`: the start and the comparison). Measurements behind the
+defaults:
 ``benchmarks/results/notes_tune.md``.
 """
 

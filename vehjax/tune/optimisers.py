@@ -94,7 +94,7 @@ def _at_gradient_tolerance(history: list, i: int, f: float, g, gtol: float, repo
 #: the loss times the run-steps) and more than TAIL_RATE of the step before: a linear tail
 #: (the outer product of the scores is not the Hessian where the model does not fit the data
 #: exactly) whose rest, about gain TAIL_RATE / (1 - TAIL_RATE), is below it too
-LINEAR_TAIL = 0.05
+LINEAR_TAIL = 1.0
 TAIL_RATE = 0.3
 #: a full scoring step that gains more than this fraction of its first-order prediction -g.d
 #: is taken as too short (:func:`_expand`)
