@@ -53,8 +53,7 @@ import jax
 import jax.numpy as jnp
 
 from ..filters import resampling as _rs
-from ..filters import smc
-from ..lib.entrywise import cholesky_observed
+from ..filters.particle import measurement_logliks
 
 __all__ = ["Aux", "draw_aux", "crank_nicolson", "sort_direction", "hilbert_index", "sort_order",
            "systematic_ancestors", "log_likelihood"]
@@ -182,12 +181,6 @@ def systematic_ancestors(w, uniform):
     return _rs.indices_from_uniforms("systematic", w, uniform, w.shape[0])
 
 
-def _measurement_logliks(e, obs, R):
-    """log N(e_i; 0, R) over the observed components: e (N, ny) zero where missing, obs (ny,)
-    bool, R (ny, ny). Returns (N,)."""
-    return smc.gaussian_logliks(e.T, obs, L=cholesky_observed(R, obs))
-
-
 def log_likelihood(f, h, ys, us, theta, x0, L0, LQ, R, bias, aux: Aux, Lu=None,
                    sort: str = "hilbert"):
     """log of the bootstrap PF's likelihood estimate of y_1:T with random numbers ``aux``.
@@ -218,7 +211,7 @@ def log_likelihood(f, h, ys, us, theta, x0, L0, LQ, R, bias, aux: Aux, Lu=None,
         X = fv(X, uu, theta) + z[:, :nx] @ LQ.T
         obs = jnp.isfinite(y)
         e = jnp.where(obs, y - hv(X, u, theta) - bias, 0.0)
-        ll = _measurement_logliks(e, obs, R)
+        ll = measurement_logliks(e.T, obs, R)  # the bootstrap PF's, particles in columns
         ll = jnp.where(jnp.all(jnp.isfinite(X), axis=1) & jnp.isfinite(ll), ll, -jnp.inf)
         inc = jax.scipy.special.logsumexp(ll) - log_n
         w = jnp.exp(ll - jnp.max(ll))

@@ -24,11 +24,11 @@ import numpy as np
 
 from .. import validation
 from ..lib import transforms
+from ..lib.gaussian import log_density
 
 __all__ = ["Normal", "LogNormal", "Uniform", "PRIORS", "log_prior_unconstrained",
            "to_physical", "check_priors", "starting_values"]
 
-_LOG_2PI = math.log(2.0 * math.pi)
 _INF = float("inf")
 
 
@@ -64,7 +64,7 @@ class Normal(_Mapped):
         return "none", -_INF, _INF, 1.0
 
     def log_density(self, x):
-        return -0.5 * ((x - self.mean) / self.std) ** 2 - math.log(self.std) - 0.5 * _LOG_2PI
+        return log_density(((x - self.mean) / self.std) ** 2, 2.0 * math.log(self.std), 1)
 
     center = property(lambda self: self.mean)
     scale = property(lambda self: self.std)  # in unconstrained units
@@ -86,8 +86,8 @@ class LogNormal(_Mapped):
 
     def log_density(self, x):
         lx = jnp.log(x)
-        return (-0.5 * ((lx - math.log(self.median)) / self.sigma) ** 2 - math.log(self.sigma)
-                - 0.5 * _LOG_2PI - lx)
+        return log_density(((lx - math.log(self.median)) / self.sigma) ** 2,
+                           2.0 * math.log(self.sigma), 1) - lx
 
     center = property(lambda self: self.median)
     scale = property(lambda self: self.sigma)

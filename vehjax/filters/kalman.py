@@ -18,8 +18,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lib.entrywise import add, chol_masked, dot, joseph_entries, sym_entries
-from ..lib.linalg import LOG_2PI, cholesky, forward_entries, logdet_from_chol, solve_lower, sym
+from ..lib.entrywise import (add, chol_masked, dot, is_const, is_zero, joseph_entries, sub,
+                              sym_entries)
+from ..lib.gaussian import log_density, log_density_entries
+from ..lib.linalg import cholesky, forward_entries, logdet_from_chol, solve_lower, sym
 
 
 class UpdateResult(NamedTuple):
@@ -61,9 +63,10 @@ def observed(y):
 
 def gaussian_loglik(w, L, n_obs):
     """log N(e; 0, L L^T) from the whitened innovation ``w = L^-1 e`` over ``n_obs`` observed
-    components (the masked ones contribute 0 to ``w @ w`` and to the log-determinant)."""
+    components (the masked ones contribute 0 to ``w @ w`` and to the log-determinant): the
+    matrix form of :func:`vehjax.lib.gaussian.log_density`. Returns (loglik, nis = w @ w)."""
     nis = w @ w
-    return -0.5 * (nis + logdet_from_chol(L) + n_obs.astype(w.dtype) * LOG_2PI), nis
+    return log_density(nis, logdet_from_chol(L), n_obs), nis
 
 
 def masked_update(x_pred, P_pred, y, y_hat, S, C, joseph=None) -> UpdateResult:
@@ -176,40 +179,77 @@ def measure_entries(Pp, H, R):
     return C, S
 
 
+def _observed_part(c, o):
+    """``c`` on an observed component, 0 on a missing one (a structural zero stays one)."""
+    return 0.0 if is_zero(c) else jnp.where(o, c, 0.0)
+
+
+def _sym_pair(a, b):
+    """(a + b) / 2 of a covariance's entries (i, j) and (j, i); ``a`` itself when they are one
+    entry (symmetric by construction, known at trace time)."""
+    return a if (a is b or (is_const(a) and is_const(b) and a == b)) else 0.5 * add(a, b)
+
+
+def condition_entries(xp, Pp, e, S, C, obs, joseph=None):
+    """The masked Kalman update entry by entry, from the innovation's moments: N(xp, Pp)
+    conditioned on the observed components of a measurement whose innovation is ``e``.
+
+    Args:
+        xp (nx,): list of the predicted state's entries.
+        Pp (nx, nx), S (ny, ny), C (nx, ny) = Cov(x, y): nested lists (Python-float entries
+            allowed: a structural zero of C costs nothing). Pp's and S's symmetric parts are
+            used.
+        e (ny,): the innovation y - y^, zero on the missing components.
+        obs (ny,): booleans (scalars or arrays), the observed components.
+        joseph: ``(H, N)`` nested lists (N the noise part of S) for the Joseph-form covariance
+            (I - K H) P- (I - K H)^T + K N K^T; None for P- - K S K^T.
+
+    Everything goes through the Cholesky factor Ls of S on the observed components (identity
+    rows elsewhere): w = Ls^-1 e, W[i] = Ls^-1 (C M)[i] (M the observation mask), so that
+    x = xp + W w and P = Pp - W W^T.
+
+    Returns:
+        (x list (nx,), P nested lists (nx, nx) symmetric, w the whitened innovation list (ny,),
+        Ls nested lists (ny, ny)).
+    """
+    nx, ny = len(xp), len(e)
+    Ls = chol_masked(S, obs)
+    w = forward_entries(Ls, e)
+    W = [forward_entries(Ls, [_observed_part(C[i][j], obs[j]) for j in range(ny)])
+         for i in range(nx)]
+    x = [add(xp[i], dot(W[i], w)) for i in range(nx)]
+    if joseph is None:
+        P = sym_entries(lambda i, j: sub(_sym_pair(Pp[i][j], Pp[j][i]), dot(W[i], W[j])), nx)
+    else:
+        P = joseph_entries(Ls, W, *joseph, Pp)
+    return x, P, w, Ls
+
+
 def update_entries(xp, Pp, y, yh, S, C, joseph=None):
-    """The masked Kalman update entry by entry: the one entry form, for one run (scalar
-    entries, :func:`masked_update_entries`) and for all runs at once (entries (R,) arrays, runs
-    last: :mod:`vehjax.filters.runs_last`). :func:`masked_update` is its matrix form.
+    """The masked Kalman update entry by entry for a measurement ``y`` (NaN where missing):
+    :func:`condition_entries` with the innovation and the log-likelihood. The one entry form, for
+    one run (scalar entries, :func:`masked_update_entries`), for all runs at once (entries (R,)
+    arrays, runs last: :mod:`vehjax.filters.runs_last`) and for the particles of the marginalized
+    PF (:mod:`vehjax.filters.marginalized.kalman`, through :func:`condition_entries`).
+    :func:`masked_update` is its matrix form.
 
     Args:
         xp (nx,), yh (ny,): lists of the predicted state and measurement entries.
         Pp (nx, nx), S (ny, ny), C (nx, ny) = Cov(x, y): nested lists (Python-float entries
             allowed).
         y: (ny,) or (ny, R) array, NaN where a component is missing (not observed).
-        joseph: ``(H, N)`` nested lists (N the noise part of S) for the Joseph-form covariance
-            (I - K H) P- (I - K H)^T + K N K^T; None for P- - K S K^T.
+        joseph: as in :func:`condition_entries`.
 
     Returns:
         (x list (nx,), P nested lists (nx, nx), loglik, nis, n_obs, innovation list (ny,)),
         the innovation zero on the missing components.
     """
-    nx, ny = len(xp), len(yh)
-    dt = y.dtype
+    ny = len(yh)
     obs = [jnp.isfinite(y[j]) for j in range(ny)]
-    mf = [o.astype(dt) for o in obs]
     e = [jnp.where(obs[j], y[j] - yh[j], 0.0) for j in range(ny)]
-    Ls = chol_masked(S, obs)
-    w = forward_entries(Ls, e)
-    W = [forward_entries(Ls, [C[i][j] * mf[j] for j in range(ny)]) for i in range(nx)]
-    x = [xp[i] + dot(W[i], w) for i in range(nx)]
-    if joseph is None:
-        P = sym_entries(lambda i, j: Pp[i][j] - dot(W[i], W[j]), nx)
-    else:
-        P = joseph_entries(Ls, W, *joseph, Pp)
-    nis = sum(v * v for v in w)
+    x, P, w, Ls = condition_entries(xp, Pp, e, S, C, obs, joseph)
     n_obs = sum(o.astype(jnp.int32) for o in obs)
-    logdet = 2.0 * sum(jnp.log(Ls[k][k]) for k in range(ny))
-    loglik = -0.5 * (nis + logdet + n_obs.astype(dt) * LOG_2PI)
+    loglik, nis = log_density_entries(w, Ls, n_obs)
     return x, P, loglik, nis, n_obs, e
 
 

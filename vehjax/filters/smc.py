@@ -38,7 +38,8 @@ import numpy as np
 
 from .. import prng, validation
 from . import resampling as _rs
-from ..lib.linalg import LOG_2PI, cholesky, solve_lower
+from ..lib.gaussian import log_density
+from ..lib.linalg import cholesky, logdet_from_chol, solve_lower
 
 __all__ = [
     "Reweighted", "reweight", "ess", "resample", "resample_stop_gradient", "check_resample",
@@ -101,16 +102,18 @@ def reweight(log_w_prior, log_lik) -> Reweighted:
 
 def gaussian_logliks(e, obs, L=None, var=None):
     """Per-particle log N(e_i; 0, S) over the observed components: e (ny, N) residuals with zeros
-    on the missing ones, ``obs`` (ny,) bool; S given by ``L = cholesky_observed(S, obs)`` (:func:`vehjax.lib.entrywise.cholesky_observed`) or, for a
-    diagonal S, by its variances ``var`` (ny,) (cheaper). Returns (N,)."""
-    n_obs = jnp.sum(obs).astype(e.dtype)
+    on the missing ones, ``obs`` (ny,) bool; S given by ``L = cholesky_observed(S, obs)``
+    (:func:`vehjax.lib.entrywise.cholesky_observed`) or, for a diagonal S, by its variances
+    ``var`` (ny,) (cheaper). :func:`vehjax.lib.gaussian.log_density` with the particles in
+    columns. Returns (N,)."""
+    n_obs = jnp.sum(obs)
     if var is not None:
         q = jnp.sum(e * e * (1.0 / var)[:, None], axis=0)
-        half_logdet = 0.5 * jnp.sum(jnp.where(obs, jnp.log(var), 0.0))
+        logdet = jnp.sum(jnp.where(obs, jnp.log(var), 0.0))
     else:
         q = jnp.sum(solve_lower(L, e) ** 2, axis=0)
-        half_logdet = jnp.sum(jnp.log(jnp.diagonal(L)))
-    return -0.5 * q - (0.5 * LOG_2PI * n_obs + half_logdet)
+        logdet = logdet_from_chol(L)
+    return log_density(q, logdet, n_obs)
 
 
 def step_loglik(r: Reweighted):

@@ -8,4 +8,5 @@ Modules:
     transforms: maps between bounded parameters and unconstrained coordinates (the ``bounds=``
         of tune, dual and Liu-West, and the priors of calibrate).
     square_root: a square root L L^T = A of a constant or traced covariance.
+    gaussian: the Gaussian log-density of a residual's observed components, once.
 """

@@ -14,13 +14,8 @@ arrays of any one shape, so the same code serves matrices with the batch axes fi
 
 from __future__ import annotations
 
-import math
-
 import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular
-
-#: log(2 pi), for Gaussian log-densities.
-LOG_2PI = math.log(2.0 * math.pi)
 
 #: Largest dimension for which the kernels are unrolled (n^3 / 6 scalar ops at trace time).
 UNROLL_MAX = 8

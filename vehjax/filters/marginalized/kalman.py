@@ -4,19 +4,20 @@ over the particles (:mod:`vehjax.lib.entrywise`): every argument is a list or ne
 of (N,) arrays or structural constants, ``lin`` a :class:`~.linearise.Lin`
 of entries. Sequential conditioning of joint Gaussians, Cholesky factors and forward
 substitutions throughout (no inverses). The derivations are in
-:mod:`vehjax.filters.marginalized`.
+:mod:`vehjax.filters.marginalized`. The update itself is the one entry-form masked Kalman update,
+:func:`vehjax.filters.kalman.condition_entries`, and the particles' log-likelihood the one Gaussian
+log-density, :func:`vehjax.lib.gaussian.log_density_entries`.
 
 Intermediate results are materialised by :func:`~vehjax.filters.marginalized.staging.stage`.
 """
 
 from __future__ import annotations
 
-import math
-
 import jax.numpy as jnp
 
-from ...lib.entrywise import add, chol_masked, div, dot, is_zero, matmul, matvec, mul, sub
-from ...lib.linalg import forward_entries
+from ...lib.entrywise import add, div, dot, matmul, matvec, mul, sub, transpose
+from ...lib.gaussian import log_density_entries
+from ..kalman import condition_entries
 from .staging import stage
 
 __all__ = ["bank_kalman_step", "kalman_update", "joint_kalman_step", "joint_prediction",
@@ -73,27 +74,19 @@ def bank_kalman_step(lin, P, dx, y, obs, mu_w, b_y, sig_w2, R_y, Qz):
 
 
 def _update_parts(mean, cov, H, r, R_y, obs):
-    """The Kalman update's pieces (entries): the posterior mean and covariance (symmetrised),
-    the Cholesky factor L of the innovation covariance S on the observed components (identity
-    rows elsewhere), the whitened innovation alpha = L^-1 (r - H mean), B[k] = L^-1 (H cov)[:, k]
-    and S itself."""
-    n, ny = len(mean), len(r)
+    """N(mean, cov) conditioned on the observed components of r = H s + noise(R_y), entries:
+    the moments S = H cov H^T + R_y and Cov(s, r) = (H cov)^T staged, then
+    :func:`vehjax.filters.kalman.condition_entries` (structural zeros of H cov cost nothing).
+    Returns the posterior mean and covariance (symmetric), the whitened innovation alpha =
+    L^-1 (r - H mean), the Cholesky factor L of S on the observed components (identity rows
+    elsewhere) and S itself."""
+    ny = len(r)
     HS = matmul(H, cov)  # (ny, n)
     S2 = [[add(dot(HS[i], H[j]), R_y[i][j]) for j in range(ny)] for i in range(ny)]
     HS, S2 = stage((HS, S2))
-    L = chol_masked(S2, obs)
-    alpha = forward_entries(L, [jnp.where(obs[i], sub(r[i], dot(H[i], mean)), 0.0)
-                                for i in range(ny)])
-    B = [forward_entries(L, [0.0 if is_zero(HS[i][k]) else jnp.where(obs[i], HS[i][k], 0.0)
-                             for i in range(ny)])
-         for k in range(n)]  # B[k] = L^-1 (H cov)[:, k]
-    post = [add(mean[k], dot(B[k], alpha)) for k in range(n)]
-    C = [[None] * n for _ in range(n)]
-    for k in range(n):
-        for j in range(k + 1):
-            C[k][j] = sub(0.5 * add(cov[k][j], cov[j][k]), dot(B[k], B[j]))
-            C[j][k] = C[k][j]
-    return post, C, L, alpha, B, S2
+    e = [jnp.where(obs[i], sub(r[i], dot(H[i], mean)), 0.0) for i in range(ny)]
+    post, C, alpha, L = condition_entries(mean, cov, e, S2, transpose(HS), obs)
+    return post, C, alpha, L, S2
 
 
 def kalman_update(mean, cov, H, r, R_y, obs):
@@ -103,11 +96,10 @@ def kalman_update(mean, cov, H, r, R_y, obs):
 
 
 def gaussian_loglik(L, alpha, obs):
-    """log N(r; H mean, S) of the observed components from :func:`_update_parts`' L and alpha:
-    -|alpha|^2 / 2 - log det L - n_obs / 2 log(2 pi) (L's identity rows add nothing)."""
-    n_obs = sum(jnp.asarray(o, jnp.result_type(float)) for o in obs)
-    return (-0.5 * dot(alpha, alpha) - sum(jnp.log(L[i][i]) for i in range(len(L)))
-            - 0.5 * math.log(2.0 * math.pi) * n_obs)
+    """log N(r; H mean, S) of the observed components from :func:`_update_parts`' L and alpha
+    (:func:`vehjax.lib.gaussian.log_density_entries`; L's identity rows add nothing)."""
+    n_obs = sum(jnp.asarray(o).astype(jnp.int32) for o in obs)
+    return log_density_entries(alpha, L, n_obs)[0]
 
 
 def input_noise_kalman_step(lin, P, sig_w2, y, obs, b_y, R_y, Qz):
@@ -141,7 +133,7 @@ def input_noise_kalman_step(lin, P, sig_w2, y, obs, b_y, R_y, Qz):
     H = [list(lin.Cx[i]) + list(lin.Cz[i]) + [lin.d[i]] for i in range(ny)]
     o = [jnp.where(obs[i], sub(y[i] - lin.yb[i], b_y[i]), 0.0) for i in range(ny)]
     cov, o = stage((cov, o))
-    post, C, L, alpha, _, S = _update_parts([0.0] * (n + 1), cov, H, o, R_y, obs)
+    post, C, alpha, L, S = _update_parts([0.0] * (n + 1), cov, H, o, R_y, obs)
     return post, C, o, gaussian_loglik(L, alpha, obs), S
 
 
