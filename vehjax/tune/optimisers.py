@@ -91,9 +91,9 @@ def _at_gradient_tolerance(history: list, i: int, f: float, g, gtol: float, repo
 
 
 #: BHHH hands over to the Newton polish when a step gains less than this (log-likelihood units,
-#: the loss times the run-steps) and more than TAIL_RATE of the step before: a linear tail
-#: (the outer product of the scores is not the Hessian where the model does not fit the data
-#: exactly) whose rest, about gain TAIL_RATE / (1 - TAIL_RATE), is below it too
+#: the loss times the run-steps), more than TAIL_RATE of the step before and less than
+#: TAIL_RATE of its first-order prediction: a slow tail of steps that overshoot (the outer
+#: product of the scores is not the Hessian where the model does not fit the data exactly)
 LINEAR_TAIL = 1.0
 TAIL_RATE = 0.3
 #: a full scoring step that gains more than this fraction of its first-order prediction -g.d
@@ -132,8 +132,9 @@ def scoring(loss, steps: int, gtol: float, report, scales, n_steps: int = 1,
     Newton polish when a step gains less than 1e-11 max(1, |loss|) or no step decreases the
     loss: BHHH converges linearly where the observed and the expected curvature differ, Newton
     quadratically from there; also when the steps' gains fall slower than by :data:`TAIL_RATE`
-    per step while each is below :data:`LINEAR_TAIL` log-likelihood units (``n_steps``: the
-    run-steps the loss is averaged over). Returns (x, aux, history, iterations, converged)."""
+    per step while each is below :data:`LINEAR_TAIL` log-likelihood units and below
+    :data:`TAIL_RATE` of its first-order prediction (``n_steps``: the run-steps the loss is
+    averaged over). Returns (x, aux, history, iterations, converged)."""
     x = loss.x0
     f, aux, g, B = loss.vgo(x)
     check_start(f, g, B)
@@ -162,7 +163,8 @@ def scoring(loss, steps: int, gtol: float, report, scales, n_steps: int = 1,
         gain = f - new[0]
         x, (f, aux, g, B) = x + t * d, new
         if gain < 1e-11 * max(1.0, abs(f)) or (
-                gain * n_steps < LINEAR_TAIL and gain > TAIL_RATE * previous):
+                gain * n_steps < LINEAR_TAIL and gain > TAIL_RATE * previous
+                and gain < TAIL_RATE * t * -dg):
             break
         previous = gain
     return x, aux, history, i, converged
