@@ -54,9 +54,10 @@ derivatives by forward mode (:func:`forward_scores`: each step's score with n ta
 through the filter, several times cheaper than reverse mode through a long scan), BHHH steps
 on the outer product of the per-step scores (:func:`score_outer_product`,
 :func:`scoring_direction`; a Gauss-Newton-type curvature from the same evaluation) with a
-backtracking line search (a full step that gains nearly its first-order prediction is doubled:
-far from the optimum the outer product overestimates the curvature), handing a slow linear
-tail (where the model does not fit the data exactly) to Newton steps on the Hessian by differences of the gradient,
+backtracking line search (a full step that gains nearly its first-order prediction is
+lengthened once: far from the optimum the outer product overestimates the curvature), handing
+a slow tail (where the model does not fit the data exactly) or a step that gains less than
+0.01 log-likelihood units to Newton steps on the Hessian by differences of the gradient,
 which the standard errors need anyway. ``"lbfgs"``, the default with more coordinates:
 ``optax.lbfgs`` with its zoom line search (strong Wolfe conditions), stopping when every
 component of the gradient of the loss with respect to the unconstrained coordinates is at most

@@ -270,7 +270,8 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
         if optimizer == "scoring":  # the Newton polish finishes scoring
             free = _bounds_at(obj, setup, model, loss, x, loss.vg(x)[2], names)[3]
             x, aux, g, _ = opt.newton(loss, x, scales, gtol,
-                                      lambda f: difference_hessian(loss, f, scales), free)
+                                      lambda f: difference_hessian(loss, f, scales), free,
+                                      curvature_after=False)
         else:
             g = loss.vg(x)[2]
         on, _, _, free = _bounds_at(obj, setup, model, loss, x, g, names)

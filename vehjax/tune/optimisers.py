@@ -96,37 +96,41 @@ def _at_gradient_tolerance(history: list, i: int, f: float, g, gtol: float, repo
 #: product of the scores is not the Hessian where the model does not fit the data exactly)
 LINEAR_TAIL = 1.0
 TAIL_RATE = 0.3
+#: ... and whenever a step gains less than this (log-likelihood units) and less than 1e-6 of
+#: the loss (a long fit): what is left is a Newton step away, and the Newton polish forms the
+#: curvature the standard errors need anyway
+SMALL_GAIN = 0.01
 #: a full scoring step that gains more than this fraction of its first-order prediction -g.d
 #: is taken as too short (:func:`_expand`)
 EXPAND_RATIO = 0.8
-#: at most this many doublings of such a step
+#: such a step is lengthened at most 2**EXPAND_MAX times
 EXPAND_MAX = 5
 
 
 def _expand(loss, x, d, dg: float, f: float, new):
-    """(t, the evaluation at x + t d) after a full step ``new`` of the direction d was accepted:
-    doubled while the step gains more than :data:`EXPAND_RATIO` of its first-order prediction
-    ``-t g.d`` and the loss keeps decreasing. Far from the optimum, where large scores make the
-    outer product of the scores much larger than the Hessian (a misfit explained by a small
-    noise variance), the scoring step is many times too short; a quadratic model whose
-    curvature is right gains half the prediction, so a gain near all of it says the curvature
-    was overestimated."""
-    t = 1.0
-    for _ in range(EXPAND_MAX):
-        if not f - new[0] > EXPAND_RATIO * t * -dg:
-            break
-        cand = loss.vgo(x + 2.0 * t * d)
-        if not (np.isfinite(cand[0]) and finite(cand[2], cand[3]) and cand[0] < new[0]):
-            break
-        t, new = 2.0 * t, cand
-    return t, new
+    """(t, the evaluation at x + t d) after a full step ``new`` of the direction d was accepted
+    that gained more than :data:`EXPAND_RATIO` of its first-order prediction ``-g.d``: one
+    longer step, to the minimum of the parabola through the loss at 0 and 1 with slope g.d at
+    0 (between 2 and ``2**EXPAND_MAX``), kept where it lowers the loss further. Far from the
+    optimum, where large scores make the outer product of the scores much larger than the
+    Hessian (a misfit explained by a small noise variance), the scoring step is many times too
+    short; a quadratic model whose curvature is right gains half the prediction, so a gain near
+    all of it says the curvature was overestimated, and by how much."""
+    if not f - new[0] > EXPAND_RATIO * -dg:
+        return 1.0, new
+    bend = new[0] - f - dg  # the parabola's quadratic coefficient, times 1
+    t = float(np.clip(-dg / (2.0 * bend), 2.0, 2.0**EXPAND_MAX)) if bend > 0 else 2.0**EXPAND_MAX
+    cand = loss.vgo(x + t * d)
+    if np.isfinite(cand[0]) and finite(cand[2], cand[3]) and cand[0] < new[0]:
+        return t, cand
+    return 1.0, new
 
 
 def scoring(loss, steps: int, gtol: float, report, scales, n_steps: int = 1,
             c1: float = 1e-4):
     """BHHH (method of scoring with the outer product of the per-step scores,
     :func:`score_outer_product`) with Levenberg damping and a backtracking (Armijo) line search
-    that doubles a full step while it gains nearly its first-order prediction (:func:`_expand`),
+    that lengthens a full step that gains nearly its first-order prediction (:func:`_expand`),
     every trial one evaluation of the forward-mode program (value, gradient and curvature
     together). Stops, converged, when max |grad| <= gtol; hands over (not converged) to the
     Newton polish when a step gains less than 1e-11 max(1, |loss|) or no step decreases the
@@ -163,6 +167,7 @@ def scoring(loss, steps: int, gtol: float, report, scales, n_steps: int = 1,
         gain = f - new[0]
         x, (f, aux, g, B) = x + t * d, new
         if gain < 1e-11 * max(1.0, abs(f)) or (
+                gain * n_steps < SMALL_GAIN and gain < 1e-6 * max(1.0, abs(f))) or (
                 gain * n_steps < LINEAR_TAIL and gain > TAIL_RATE * previous
                 and gain < TAIL_RATE * t * -dg):
             break
@@ -203,10 +208,11 @@ def first_order(loss, opt, steps: int, tol: float, patience: int, report):
     return best_x, best_aux, history, i, converged, skipped
 
 
-def newton(loss, x, scales, gtol: float, hessian, free=None):
+def newton(loss, x, scales, gtol: float, hessian, free=None, curvature_after: bool = True):
     """The curvature at x and one Newton step on its determined directions, kept when the loss
-    does not increase (the curvature is then recomputed where the step was large); ``free``
-    (n,) bool: step in these coordinates only (the others on a bound of their domain, held).
+    does not increase (the curvature is then recomputed where the step was large, unless
+    ``curvature_after`` is False: the caller does not use it); ``free`` (n,) bool: step in
+    these coordinates only (the others on a bound of their domain, held).
     Returns (x, aux, gradient (n,), Hessian of the mean loss)."""
     f, aux, g = loss.vg(x)
     Hm = hessian(x)
@@ -225,7 +231,7 @@ def newton(loss, x, scales, gtol: float, hessian, free=None):
     f_new, aux_new, g_new = loss.vg(x + step)
     if np.isfinite(f_new) and finite(g_new) and f_new <= f + 1e-14 * max(1.0, abs(f)):
         x, aux, g = x + step, aux_new, g_new
-        if np.max(np.abs(step / scales)) > 1e-3:  # moved far: the curvature there
+        if curvature_after and np.max(np.abs(step / scales)) > 1e-3:  # moved far: curvature there
             Hm = hessian(x)
     return x, aux, g, Hm
 
