@@ -5,8 +5,8 @@
 Liu and West's) on three pieces of work, each chosen with ``--parts``:
 
 ``3dof``
-    Dynamic3DOF, m, cx, cy estimated, matched noise (``dutta2019.matched_settings``), true lf,
-    lr. Two excitations: "dutta2019" (``dutta2019.dynamic_scenario``, truth at nominal, prior
+    Dynamic3DOF, m, cx, cy estimated, matched noise
+    (``vehjax.dual_settings.matched_settings``), true lf, lr. Two excitations: "dutta2019" (``vehjax.scenarios.slip_and_steer``, truth at nominal, prior
     box +-30 % around it) and "second" (chirp steering 0.1-1.5 Hz, 15 m/s with a +-0.8 m/s^2
     speed swing of 12 s period, truth 1.10, 0.92, 1.06 x nominal, the box still +-30 % of
     nominal, so not centred on the truth). Per filter: the mean over runs of the final estimate
@@ -86,14 +86,14 @@ def _second_excitation(dyn, duration):
 
 def _case(name, duration):
     """(model with the true parameters, scenario, truth (3,), box (3, 2))."""
+    from vehjax import scenarios
     from vehjax.models import Dynamic3DOF
-    from vehjax.reproduce import dutta2019 as d
 
     dyn = Dynamic3DOF(dt=0.02)
     nominal = np.asarray(dyn.theta)[list(dyn.param_index(("m", "cx", "cy")))]
     box = np.stack([0.7 * nominal, 1.3 * nominal], 1)
     if name == "dutta2019":
-        return dyn, d.dynamic_scenario(dyn, duration), nominal, box
+        return dyn, scenarios.slip_and_steer(dyn, duration=duration), nominal, box
     scn = _second_excitation(dyn, duration)
     truth = nominal * np.array([1.10, 0.92, 1.06])
     return dyn.with_theta(m=truth[0], cx=truth[1], cy=truth[2]), scn, truth, box
@@ -132,13 +132,13 @@ def _grid_reference(est, dyn, sim, x0, P0, start):
 
 def _three_dof(args):
     import vehjax as vj
+    from vehjax.dual_settings import DYNAMIC_SETTINGS, matched_settings, simulate_runs
     from vehjax.filters.gaussian import ukf
-    from vehjax.reproduce import dutta2019 as d
 
     for name in ("dutta2019", "second"):
         dyn, scn, truth, box = _case(name, args.duration)
-        s = d.matched_settings(d.DYNAMIC_SETTINGS, dyn, truth, box)
-        sim = d._simulate(dyn, scn, args.runs, jax.random.key(args.seed))
+        s = matched_settings(DYNAMIC_SETTINGS, dyn, truth, box)
+        sim = simulate_runs(dyn, scn, args.runs, jax.random.key(args.seed))
         R, T = sim.measurements.shape[:2]
         print(f"\n3dof, {name} excitation: {R} runs x {T} steps, M = {args.particles}, truth "
               f"m, cx, cy = {truth[0]:.0f} kg, {truth[1]:.0f} N, {truth[2]:.0f} N/rad")

@@ -29,26 +29,27 @@ jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, "tests")
 
 import vehjax as vj  # noqa: E402
-from vehjax.reproduce import consistency as c  # noqa: E402
+from vehjax.banked_road import MATCHED, matched_setup, matched_truth, simulate_matched  # noqa: E402,E501
 
 from _bank_ref import exact_kalman  # noqa: E402
 
 
 def main(seed, points, prior="jeffreys", steer_factor=1.0, variances="scored"):
-    c._DELTA_STD = c._DELTA_STD * float(steer_factor)  # the study's module constant
+    noise = MATCHED._replace(steer_std=MATCHED.steer_std * float(steer_factor))
+    sd0 = noise.steer_std
     model = vj.models.SingleTrackBank(dt=0.01)
-    X, Y, U = c.simulate_mpf(model, 100, 300, seed)
+    X, Y, U = simulate_matched(model, 100, 300, seed, noise)
     extra = {"jeffreys": {}, "inverse-wishart": dict(input_std_prior="inverse-wishart"),
              "known": dict(input_std_prior="log-uniform",
-                           input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))),
+                           input_std_range=(sd0, sd0 * (1 + 1e-9))),
              "log-uniform": dict(input_std_prior="log-uniform",
-                                 input_std_range=(c._DELTA_STD / 10, c._DELTA_STD * 10))}[prior]
-    c._MPFS["MPF-K"] = dict(c._MPFS["MPF-K"], **extra, sensor_variances=variances)
+                                 input_std_range=(sd0 / 10, sd0 * 10))}[prior]
+    options = dict(builder="grid", **extra, sensor_variances=variances)  # the study's MPF-K
     P0 = np.full(len(model.state_names), 1e-12)
-    est, x0, P0_f, _ = c.mpf_setup(model, points, "MPF-K", P0)
+    est, x0, P0_f, _ = matched_setup(model, points, options, P0, noise)
     out = vj.run(est, Y, U, x0=x0, P0=P0_f, key=jax.random.key(seed * 101 + 99),
                  return_covariances=True, progress=False)
-    th = c.mpf_truth(est.param_names)
+    th = matched_truth(est.param_names, noise)
     print(f"MPF-K, seed {seed}, {points} points, steering-std prior {prior}, steering std "
           f"{steer_factor} x the study's, sensor variances {variances}:")
     for k in (99, 199, 299):
@@ -62,23 +63,24 @@ def main(seed, points, prior="jeffreys", steer_factor=1.0, variances="scored"):
                       f"{e[:, i].mean() / th[i]:+.4f}  sd/truth {sd[:, i].mean() / th[i]:.4f}  "
                       f"coverage {np.mean(np.abs(e[:, i]) <= 1.96 * sd[:, i]):.2f}")
     T = Y.shape[1]
-    u0 = jnp.asarray([c._VX, 0.0])
+    u0 = jnp.asarray([noise.speed, 0.0])
     ddelta = jax.jacfwd(lambda u: model.observe(jnp.zeros(len(model.state_names)), u,
                                                 model.theta))(u0)[:, 1]
     clean = np.asarray(jax.vmap(jax.vmap(lambda x: model.observe(x, u0, model.theta)))(
         jnp.asarray(X)))
     print(f"  oracle (the true noise's sample std per run, {T} steps):")
     for j, n in enumerate(model.output_names):
-        if n not in c._STD or float(ddelta[j]) != 0.0:
+        if n not in noise.sensor_std or float(ddelta[j]) != 0.0:
             continue
-        rel = np.sqrt(np.mean((Y[..., j] - clean[..., j] - c._BIAS[n]) ** 2, axis=1)) / c._STD[n]
+        rel = (np.sqrt(np.mean((Y[..., j] - clean[..., j] - noise.bias[n]) ** 2, axis=1))
+               / noise.sensor_std[n])
         half = 1.0 / np.sqrt(2 * T)
         print(f"    {n + '_std':14s} rel. bias {rel.mean() - 1.0:+.4f}  spread/sd "
               f"{rel.std() / half:.2f}  coverage {np.mean(np.abs(rel - 1.0) <= 1.96 * half):.2f}")
-    exact_scores(model, Y, U)
+    exact_scores(model, Y, U, noise)
 
 
-def exact_scores(model, Y, U):
+def exact_scores(model, Y, U, noise=MATCHED):
     """The scores of the sensor variances under numpy's exact Kalman filter
     (tests/_bank_ref.py's ``exact_kalman``: the linear SingleTrackBank at the study's speed,
     every noise, the offset and the biases known), as the scored filter's pseudo-observations
@@ -86,10 +88,10 @@ def exact_scores(model, Y, U):
     G_ii^2, a = G nu, G = S^-1) relative to the true variance. Zero up to Monte-Carlo error
     when the filter's predictive covariance S is right."""
     names = model.output_names
-    bias = np.array([c._BIAS.get(n, 0.0) for n in names])
-    std = np.array([c._STD.get(n, c._KNOWN.get(n, 0.0)) for n in names])
-    _, _, nus, Ss = exact_kalman(model.theta, c._VX, model.dt, Y, U[:, 1], c._OFFSET,
-                                 c._DELTA_STD, c._SIGMA_PHI, bias, std, np.zeros(5),
+    bias = np.array([noise.bias.get(n, 0.0) for n in names])
+    std = np.array([noise.sensor_std.get(n, noise.known_std.get(n, 0.0)) for n in names])
+    _, _, nus, Ss = exact_kalman(model.theta, noise.speed, model.dt, Y, U[:, 1], noise.offset,
+                                 noise.steer_std, noise.bank_jerk_std, bias, std, np.zeros(5),
                                  np.diag(np.full(5, 1e-12)), model.bank_noise_gain(),
                                  innovations=True)
     G = np.linalg.solve(Ss, np.broadcast_to(np.eye(len(names)), Ss.shape))  # S^-1, (T, 5, 5)
@@ -99,7 +101,7 @@ def exact_scores(model, Y, U):
     var = std ** 2
     print("  exact Kalman filter (numpy, every noise known): mean s_i / W_ii / variance:")
     print("    " + "  ".join(f"{n} {v:+.4f}" for n, v in zip(names, ratio.mean(0) / var)
-                             if n in c._STD))
+                             if n in noise.sensor_std))
 
 
 if __name__ == "__main__":

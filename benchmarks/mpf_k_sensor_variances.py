@@ -36,7 +36,7 @@ jax.config.update("jax_enable_x64", True)
 import vehjax as vj  # noqa: E402
 from vehjax import metrics  # noqa: E402
 from vehjax.filters import InputStdGrid, NiW, marginalized_pf_grid  # noqa: E402
-from vehjax.reproduce import consistency as c  # noqa: E402
+from vehjax.banked_road import MATCHED as N, SENSORS, matched_truth, simulate_matched  # noqa: E402,E501
 
 MODEL = vj.models.SingleTrackBank(dt=0.01)
 NX = len(MODEL.state_names)
@@ -44,20 +44,20 @@ NX = len(MODEL.state_names)
 
 def _filter(points, std0, nu0=None, variances=None):
     """MPF-K as the study builds it, the steering std known (a grid of the true std)."""
-    return marginalized_pf_grid(MODEL, points, sensors=c._SENSORS, known_std=c._KNOWN,
-                                linear_noise_std=c._SIGMA_PHI,
+    return marginalized_pf_grid(MODEL, points, sensors=SENSORS, known_std=N.known_std,
+                                linear_noise_std=N.bank_jerk_std,
                                 linear_states=("phi", "phi_dot", "phi_ddot"),
                                 sensor_variances=variances,
-                                niw=NiW(std0={"delta": c._DELTA_STD, **std0},
-                                        mean0={"delta": c._OFFSET, **c._BIAS}, forgetting=1.0,
+                                niw=NiW(std0={"delta": N.steer_std, **std0},
+                                        mean0={"delta": N.offset, **N.bias}, forgetting=1.0,
                                         nu0=nu0),
                                 grid=InputStdGrid(input_std_prior="log-uniform",
-                                                  input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))))
+                                                  input_std_range=(N.steer_std, N.steer_std * (1 + 1e-9))))
 
 
 def statistic(runs, steps, nu0=1e7):
-    _, Y, U = c.simulate_mpf(MODEL, runs, steps, 0)
-    est = _filter(3, c._STD, nu0, variances="inverse-wishart")
+    _, Y, U = simulate_matched(MODEL, runs, steps, 0)
+    est = _filter(3, N.sensor_std, nu0, variances="inverse-wishart")
 
     def one(y, key):
         st = est.init(jnp.zeros(NX), jnp.diag(jnp.full(NX, 1e-12)), key=key)
@@ -70,9 +70,9 @@ def statistic(runs, steps, nu0=1e7):
 
     inc = np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(Y),
                                             jax.random.split(jax.random.key(0), runs)))
-    d = inc / np.array([c._STD[s] ** 2 for s in c._SENSORS])
+    d = inc / np.array([N.sensor_std[s] ** 2 for s in SENSORS])
     print(f"{runs} runs x {steps} steps, nu0 {nu0:g}: the statistic's increment / the true "
-          f"variance ({', '.join(c._SENSORS)})")
+          f"variance ({', '.join(SENSORS)})")
     for a, b in ((0, 10), (10, 50), (50, 100), (100, steps)):
         if a < steps:
             print(f"  steps {a}-{b}: {np.round(d[:, a:b].mean((0, 1)), 4)}")
@@ -81,11 +81,11 @@ def statistic(runs, steps, nu0=1e7):
 
 
 def guess(factor, steps, variances):
-    X, Y, U = c.simulate_mpf(MODEL, 100, steps, 0)
-    est = _filter(3, {k: factor * v for k, v in c._STD.items()}, variances=variances)
+    X, Y, U = simulate_matched(MODEL, 100, steps, 0)
+    est = _filter(3, {k: factor * v for k, v in N.sensor_std.items()}, variances=variances)
     out = vj.run(est, Y, U, x0=np.zeros(NX), P0=np.full(NX, 1e-12), key=jax.random.key(0),
                  return_covariances=True, progress=False)
-    th = c.mpf_truth(est.param_names)
+    th = matched_truth(est.param_names)
     print(f"100 runs, guesses {factor:g} x the truth, sensor variances {variances}:")
     for k in sorted({steps // 3 - 1, 2 * steps // 3 - 1, steps - 1}):
         e = np.asarray(out.params[:, k]) - th
@@ -101,11 +101,11 @@ def guess(factor, steps, variances):
 
 
 def profile(steps):
-    _, Y, U = c.simulate_mpf(MODEL, 100, steps, 0)
+    _, Y, U = simulate_matched(MODEL, 100, steps, 0)
     facs = (0.7, 0.85, 1.0, 1.15, 1.3, 1.6)
     ll = []
     for f in facs:
-        est = _filter(2, {**c._STD, "ay": f * c._STD["ay"]}, nu0=1e9)
+        est = _filter(2, {**N.sensor_std, "ay": f * N.sensor_std["ay"]}, nu0=1e9)
         out = vj.run(est, Y, U, x0=np.zeros(NX), P0=np.full(NX, 1e-12),
                      key=jax.random.key(0), progress=False)
         ll.append(float(np.mean(out.loglik)))

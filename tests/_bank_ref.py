@@ -129,7 +129,7 @@ def user_bank_case(runs, seed, points, known=False, steps=400):
 
     from vehjax.filters.marginalized import MeanStates, NiW, marginalized_pf_grid
     from vehjax.models.bank import SingleTrackBank
-    from vehjax.reproduce.consistency import mpf_inputs
+    from vehjax.banked_road import matched_inputs
 
     dt, deg = 0.01, math.radians(1.0)
     model = SingleTrackBank(dt=dt)
@@ -139,7 +139,7 @@ def user_bank_case(runs, seed, points, known=False, steps=400):
     bias = dict(zip(sensors, (-0.15, 0.3 * deg, -0.2 * deg)))
     std = dict(zip(sensors, (0.3, 0.9 * deg, 0.9 * deg)))
     names = model.output_names
-    U = mpf_inputs(steps)
+    U = matched_inputs(steps)
     X, Y = simulate_linear_bank(model.theta, dt, U, runs, offset, sig_w, bank_std,
                                 np.array([bias.get(n, 0.0) for n in names]),
                                 np.array([{**std, **known_std}[n] for n in names]), seed)

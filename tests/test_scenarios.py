@@ -1,5 +1,6 @@
 """Manoeuvres: shapes, the ISO 3888-1 course followed, open-loop steering profiles, bad input."""
 
+import jax
 import numpy as np
 import pytest
 
@@ -71,3 +72,13 @@ def test_from_inputs_feeds_simulate():
     scn = scenarios.from_inputs(user, np.ones((30, 1)), [0.0])
     sim = vj.simulate(user, scn, runs=2)
     np.testing.assert_allclose(sim.states[0, -1, 0], (1 - 0.9**30) / 0.1, rtol=1e-12)
+
+
+def test_slip_and_steer_is_of_the_vehicledata_kind():
+    dyn = vj.models.Dynamic3DOF(dt=0.02)
+    scn = scenarios.slip_and_steer(dyn, duration=40.0)
+    sim = vj.simulate(dyn, scn, runs=1, key=jax.random.key(0))
+    vx, vy, r = np.asarray(sim.states)[0].T
+    assert 12.0 < vx.min() < 17.0 and 21.0 < vx.max() < 25.0  # speed swinging around 20 m/s
+    assert 0.2 < np.abs(vy).max() < 2.0 and 0.2 < np.abs(r).max() < 0.6  # lateral excitation
+    assert np.all(np.asarray(scn.inputs)[:, 2:4] == 0.0)  # front-wheel drive

@@ -37,12 +37,23 @@ forgetting, not as random walks, the robustness check the paper intends) and
 :data:`OFFSET_STD0`, :data:`BIAS_STD0`), which ``vehjax reproduce noise-learning`` and the
 consistent filter's benchmarks share with :data:`P0_SIM`, the simulation's state prior.
 
+The consistency study's banked road (``vehjax reproduce consistency``'s MPF rows, not the
+paper's scenario): the data follow the filter's own noise model (paper 004 eq. 3-10), the true
+steering the measured one plus white N(offset, steer_std^2), a white bank jerk, constant sensor
+biases and white sensor noises of fixed stds (:class:`MatchedNoise`, the study's values its
+defaults), two steering sines at 20 m/s (:func:`matched_inputs`); :func:`simulate_matched`
+draws it, :func:`matched_truth` gives the filters' true parameters and
+:func:`build_matched_filter` / :func:`matched_setup` the study's filters, given the true
+statistics as their prior. The steering std (or any other noise) is an argument, so a study of
+another steering noise needs no module state changed.
+
 Limits: the bank path is the same in every run; the truth's steering noise is white.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -50,11 +61,14 @@ import numpy as np
 
 from .filters.marginalized import (InputStdGrid, MeanStates, NiW, marginalized_pf,
                                    marginalized_pf_grid)
+from .models import with_output_biases
 
 __all__ = ["DEG", "OFFSET", "STEER_STD", "SENSORS", "SENSOR_STD", "SENSOR_UNIT", "BIAS_WALK",
            "PHI_STD", "RVIRT_STD", "BANK_JERK_STD", "BANK_DEG", "DRIVE_STD0", "OFFSET_STD0",
            "BIAS_STD0", "P0_SIM", "looped_inputs", "bank_profile", "simulate_truth",
-           "build_sim_filter", "build_drive_filter", "build_consistent_filter"]
+           "build_sim_filter", "build_drive_filter", "build_consistent_filter",
+           "MatchedNoise", "MATCHED", "matched_inputs", "simulate_matched", "matched_truth",
+           "build_matched_filter", "matched_setup"]
 
 DEG = math.pi / 180.0
 OFFSET = 0.28 * DEG  # rad, road wheel
@@ -193,3 +207,114 @@ def build_consistent_filter(model, points, std0, forgetting=1.0, nu0=None, grid=
         means=MeanStates(bias_walk={s: BIAS_WALK[s] for s in SENSORS},
                          mean_std0={"delta": OFFSET_STD0, **BIAS_STD0}),
         grid=InputStdGrid() if grid is None else grid, sensor_variances=sensor_variances)
+
+
+# ---------------------------------------------------------------------------------------------
+# the consistency study's banked road (module docstring)
+
+
+class MatchedNoise(NamedTuple):
+    """The noise of the consistency study's banked road, which the filters are given as their
+    prior: speed vx [m/s]; the steering offset and std [rad]; the bank jerk's std
+    [rad/s^3] (through ``bank_noise_gain``, eq. 3); the sensors' constant biases and white
+    noises' stds (:data:`SENSORS`); the known stds of phi and the virtual yaw rate."""
+
+    speed: float = 20.0
+    offset: float = math.radians(0.28)
+    steer_std: float = math.radians(0.3)
+    bank_jerk_std: float = 0.05
+    bias: dict = {"ay": 0.1, "r": math.radians(0.3), "roll_rate": math.radians(-0.2)}
+    sensor_std: dict = {"ay": 0.2, "r": math.radians(0.6), "roll_rate": math.radians(0.6)}
+    known_std: dict = {"phi": math.radians(0.5), "r_virt": math.radians(0.3)}
+
+
+#: the consistency study's noise
+MATCHED = MatchedNoise()
+
+
+def matched_inputs(T, noise=MATCHED):
+    """(T, 2) inputs (vx, delta) at 100 Hz: two steering sines (0.02 rad at 0.4 Hz, 0.015 rad
+    at 0.11 Hz), vx = ``noise.speed``."""
+    t = np.arange(T) * 0.01
+    delta = 0.02 * np.sin(2 * np.pi * 0.4 * t) + 0.015 * np.sin(2 * np.pi * 0.11 * t + 1.0)
+    return np.stack([np.full(T, noise.speed), delta], 1)
+
+
+def simulate_matched(model, runs, T, seed, noise=MATCHED):
+    """Truth (R, T, 5), measurements (R, T, 5) and inputs (T, 2) of ``runs`` runs of
+    :func:`matched_inputs` on ``model`` (SingleTrackBank) with ``noise``, drawn from numpy's
+    generator seeded ``[seed, 2018]``; the observation at step t sees the same steering error
+    as the transition into it, as in eq. 9."""
+    U = matched_inputs(T, noise)
+    rng = np.random.default_rng([seed, 2018])
+    W = noise.offset + noise.steer_std * rng.standard_normal((T, runs))
+    J = noise.bank_jerk_std * rng.standard_normal((T, runs))
+    B = model.bank_noise_gain()
+    th = model.theta
+
+    def body(X, k):
+        delta, w, jerk = k
+        uu = jnp.stack([jnp.full(runs, noise.speed), delta + w], 1)
+        Xn = jax.vmap(lambda x, u: model.transition(x, u, th))(X, uu) + jerk[:, None] * B
+        Y = jax.vmap(lambda x, u: model.observe(x, u, th))(Xn, uu)
+        return Xn, (Xn, Y)
+
+    X0 = jnp.zeros((runs, len(model.state_names)))
+    _, (Xs, Ys) = jax.jit(lambda X0, xs: jax.lax.scan(body, X0, xs))(
+        X0, (jnp.asarray(U[:, 1]), jnp.asarray(W), jnp.asarray(J)))
+    Xs, Ys = np.moveaxis(np.asarray(Xs), 0, 1), np.moveaxis(np.asarray(Ys), 0, 1)
+    names = model.output_names
+    bias = np.array([noise.bias.get(n, 0.0) for n in names])
+    std = np.array([noise.sensor_std.get(n, noise.known_std.get(n, 0.0)) for n in names])
+    return Xs, Ys + bias + std * rng.standard_normal(Ys.shape), U
+
+
+def matched_truth(param_names, noise=MATCHED):
+    """The true values of a marginalized PF's parameters (its ``param_names``) under
+    ``noise``: the steering offset and std, then the sensors' biases and stds."""
+    value = {"delta_offset": noise.offset, "delta_std": noise.steer_std}
+    for s in SENSORS:
+        value[f"{s}_bias"], value[f"{s}_std"] = noise.bias[s], noise.sensor_std[s]
+    return np.array([value[n] for n in param_names])
+
+
+def build_matched_filter(model, n_particles, options=None, noise=MATCHED):
+    """A marginalized PF with ``noise``'s true statistics as its prior (NiW gamma0 = 1,
+    forgetting 1; the bank chain in each particle's Kalman filter). ``options``:
+    ``marginalized_pf``'s keywords, with ``builder="grid"`` for ``marginalized_pf_grid``'s
+    (then ``input_std_range``, ``input_std_prior`` go into its ``InputStdGrid``); ``nu0``,
+    ``gamma0`` go into the ``NiW``; ``bias_states=True``: ``model`` has a bias state per
+    sensor (:func:`matched_setup`) that the Kalman filters estimate, and the NiW's bias means
+    are not given (with gamma0 = 1e-9 they are pinned at zero, and the steering offset at its
+    prior mean too: the NiW has one gamma for both)."""
+    opts = dict(options or {})
+    kalman = opts.pop("bias_states", False)
+    grid = opts.pop("builder", None) == "grid"
+    niw = NiW(std0={"delta": noise.steer_std, **noise.sensor_std},
+              mean0={"delta": noise.offset} if kalman else {"delta": noise.offset, **noise.bias},
+              forgetting=1.0, **{k: opts.pop(k) for k in ("nu0", "gamma0") if k in opts})
+    common = dict(sensors=SENSORS, known_std=noise.known_std,
+                  linear_noise_std=noise.bank_jerk_std, niw=niw,
+                  linear_states=("phi", "phi_dot", "phi_ddot")
+                  + (tuple(f"{s}_bias" for s in SENSORS) if kalman else ()))
+    if grid:
+        std_grid = InputStdGrid(**{k: opts.pop(k) for k in ("input_std_range", "input_std_prior")
+                                   if k in opts})
+        return marginalized_pf_grid(model, n_particles, grid=std_grid, **common, **opts)
+    return marginalized_pf(model, n_particles, **common, **opts)
+
+
+def matched_setup(model, n_particles, options, P0, noise=MATCHED):
+    """(estimator, x0, P0, state_params) of :func:`build_matched_filter` with ``options``,
+    ``P0`` the truth's. With ``bias_states`` the filter runs on the model with bias states
+    (:func:`vehjax.models.with_output_biases`), starting them from the bias prior of the other
+    filters (mean the truth, variance gamma0 = 1 times the noise's); ``state_params`` maps each
+    bias parameter to the state that estimates it (None without)."""
+    x0 = np.zeros(len(model.state_names))
+    if not (options or {}).get("bias_states", False):
+        return build_matched_filter(model, n_particles, options, noise), x0, P0, None
+    nx = len(x0)
+    est = build_matched_filter(with_output_biases(model, SENSORS), n_particles, options, noise)
+    return (est, np.r_[x0, [noise.bias[s] for s in SENSORS]],
+            np.r_[P0, [noise.sensor_std[s] ** 2 for s in SENSORS]],
+            {f"{s}_bias": nx + j for j, s in enumerate(SENSORS)})

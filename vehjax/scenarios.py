@@ -31,6 +31,7 @@ __all__ = [
     "step_steer",
     "chirp",
     "sine_with_dwell",
+    "slip_and_steer",
     "from_inputs",
     "iso3888_centreline",
     "REGISTRY",
@@ -247,6 +248,28 @@ def sine_with_dwell(model, speed: float = 22.0, amplitude: float = 0.08, frequen
         return jnp.where(active, amplitude * jnp.sin(2.0 * jnp.pi * frequency * phase), 0.0)
 
     return _drive(model, "sine_with_dwell", speed, duration, steer)
+
+
+def slip_and_steer(model, speed: float = 20.0, duration: float = 60.0):
+    """Open-loop wheel-slip and steering inputs (s_fl, s_fr, s_rl, s_rr, delta) for
+    :class:`~vehjax.models.Dynamic3DOF` (or a model with its parameters m, cx, ca and inputs),
+    in the style of MATLAB's recorded ``vehicledata``, which cannot ship: front slips that
+    balance air drag at ``speed`` [m/s] and swing the speed between about 14 and 23 m/s at 20 m/s
+    (+-0.6 m/s^2 of longitudinal acceleration, 20 s period), a two-tone steering signal (0.04 rad
+    at 0.25 Hz plus 0.02 rad at 0.9 Hz, up to about 0.45 rad/s of yaw rate), rear slips zero.
+    The excitation of Dutta et al. (2019)'s dynamic stage as ``vehjax reproduce dutta2019``
+    reads it. Open loop: the inputs are not driven through the model."""
+    speed = _check_positive("speed", speed)
+    duration = _check_positive("duration", duration)
+    m, cx, ca = (float(model.theta[model.param_index(n)[0]]) for n in ("m", "cx", "ca"))
+    t = np.arange(int(round(duration / model.dt))) * model.dt
+    hold = ca * speed**2 / (2 * cx)  # slip per front wheel that balances drag
+    swing = 0.6 * m / (2 * cx)  # +-0.6 m/s^2 of longitudinal acceleration
+    slip = hold + swing * np.sin(2 * np.pi * t / 20.0)
+    delta = 0.04 * np.sin(2 * np.pi * 0.25 * t) + 0.02 * np.sin(2 * np.pi * 0.9 * t + 1.0)
+    zero = np.zeros_like(t)
+    return from_inputs(model, np.stack([slip, slip, zero, zero, delta], 1), [speed, 0.0, 0.0],
+                       name="slip_and_steer")
 
 
 def from_inputs(model, inputs, x0, name: str = "custom"):

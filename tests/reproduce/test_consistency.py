@@ -10,6 +10,7 @@ import pytest
 
 import vehjax as vj
 from vehjax import metrics
+from vehjax.banked_road import MATCHED, simulate_matched
 from vehjax.reproduce import consistency, load
 
 from _bank_ref import exact_kalman
@@ -88,12 +89,12 @@ def test_mpf_with_known_statistics_is_consistent(tmp_path):
     # NEES is in the band on fewer steps than over the study's 3 s (100 runs of errors
     # correlated in time; the truth starts on x0 while P0 is 1e-12: 0.56 here, 0.943 over 3 s)
     model = vj.models.SingleTrackBank(dt=0.01)
-    X, Y, U = consistency.simulate_mpf(model, 100, 100, 0)
+    X, Y, U = simulate_matched(model, 100, 100, 0)
     names = model.output_names
-    km, kc = exact_kalman(model.theta, consistency._VX, 0.01, Y, U[:, 1], consistency._OFFSET,
-                          consistency._DELTA_STD, consistency._SIGMA_PHI,
-                          [consistency._BIAS.get(k, 0.0) for k in names],
-                          [{**consistency._STD, **consistency._KNOWN}[k] for k in names],
+    km, kc = exact_kalman(model.theta, MATCHED.speed, 0.01, Y, U[:, 1], MATCHED.offset,
+                          MATCHED.steer_std, MATCHED.bank_jerk_std,
+                          [MATCHED.bias.get(k, 0.0) for k in names],
+                          [{**MATCHED.sensor_std, **MATCHED.known_std}[k] for k in names],
                           np.zeros(5), np.full(5, 1e-12), model.bank_noise_gain())
     e = km - X
     ref = metrics.consistency(np.einsum("rti,tij,rtj->rt", e, np.linalg.inv(kc), e), 5)

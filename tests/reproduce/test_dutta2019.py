@@ -199,26 +199,6 @@ def test_parameter_figure_has_units_and_runs(tmp_path):
     assert plots.label("cx", "N", 1e4) == "cx [1e4 N]" and plots.label("s", "-") == "s [-]"
 
 
-def test_matched_settings_are_the_simulation_noise():
-    kin = vj.models.KinematicBicycle(dt=0.02)
-    cfg = dutta2019.matched_settings(dutta2019.KINEMATIC_SETTINGS, kin, np.array([1.5, 1.5]),
-                                     [(0.5, 2.5), (0.5, 2.5)])
-    np.testing.assert_allclose(cfg["Q"], 0.1**2 * 0.02)  # 0.1 per sqrt(s), per step of 0.02 s
-    np.testing.assert_allclose(cfg["R"], 0.1**2)
-    np.testing.assert_allclose(cfg["P_theta0"], 2.0**2 / 12)  # variance of U(0.5, 2.5)
-    np.testing.assert_allclose(cfg["Q_theta"], (1.5e-3) ** 2)
-
-
-def test_dynamic_excitation_is_of_the_vehicledata_kind():
-    dyn = vj.models.Dynamic3DOF(dt=0.02)
-    scn = dutta2019.dynamic_scenario(dyn, duration=40.0)
-    sim = vj.simulate(dyn, scn, runs=1, key=jax.random.key(0))
-    vx, vy, r = np.asarray(sim.states)[0].T
-    assert 12.0 < vx.min() < 17.0 and 21.0 < vx.max() < 25.0  # speed swinging around 20 m/s
-    assert 0.2 < np.abs(vy).max() < 2.0 and 0.2 < np.abs(r).max() < 0.6  # lateral excitation
-    assert np.all(np.asarray(scn.inputs)[:, 2:4] == 0.0)  # front-wheel drive
-
-
 def test_chirp_excitation_sweeps_up_around_15_m_s():
     """--excitation chirp's scenario (#17 item 3's second excitation): the speed swings around
     15 m/s and the steering sweeps up in frequency."""

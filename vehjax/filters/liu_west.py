@@ -30,7 +30,8 @@ defaults plus ``--reference dutta2019``) measures both against an
 exact reference nobody tuned: the posterior mean of the parameters under the same
 per-parameter UKF likelihood and the uniform prior, per run on a grid (11^3 points over +-5
 posterior standard deviations, refined twice, one UKF per point over the whole run). Dynamic3DOF
-at nominal, ``dutta2019.dynamic_scenario`` 60 s, matched noise, true lf, lr, 100 runs, M = 1000.
+at nominal, ``vehjax.scenarios.slip_and_steer`` 60 s, matched noise, true lf, lr, 100 runs,
+M = 1000.
 The exact posterior mean ends +0.5, +0.3, +0.7 % (se 0.3, 0.5, 0.3) from the true m, cx, cy
 (the posterior is skewed, its mean above its mode). Liu-West minus the reference, mean over runs
 in % (se), the per-run scatter of the difference, and the share of runs whose truth lies in the
@@ -77,7 +78,7 @@ at every step, ``move="every"``). Measured as the mean over runs of the final es
   lr -0.8 (0.5), mean |err| 3.3, 3.8 (M = 500: -0.5 (0.5), -1.4 (0.5)); the joint EKF's mean
   |err| is 3.0, 3.2 on the same data.
 * Dynamic3DOF with m, cx, cy at 1.10, 0.92, 1.06 times nominal (box +-30 % of nominal,
-  ``dutta2019.dynamic_scenario``), M = 500: before, 20 runs: +4.3 (1.4), +4.1 (1.4),
+  ``vehjax.scenarios.slip_and_steer``), M = 500: before, 20 runs: +4.3 (1.4), +4.1 (1.4),
   +5.0 (1.4); after, 100 runs, M = 1000: -0.7 (0.3), -1.1 (0.4), -0.8 (0.3), mean |err| 2.5,
   3.6, 2.5 (M = 500: -0.8, -1.0, -0.9); with ``likelihood="measurement"`` -0.4, -0.8, -0.5.
 * The dutta2019 dynamic stage's model at its true (nominal) parameters, box centred on them,

@@ -62,7 +62,10 @@ What "matched" means here (nothing below is tuned per filter):
   every MPF row the report also gives the parameter coverage: the fraction of runs whose final
   95 % interval (estimate +- 1.96 reported std) holds the true value, and the spread of the
   final estimates over runs divided by their mean reported std (1 = honest, > 1 over-confident).
-  Steering: two sines (0.02 rad at 0.4 Hz, 0.015 rad at 0.11 Hz), vx = 20 m/s.
+  Steering: two sines (0.02 rad at 0.4 Hz, 0.015 rad at 0.11 Hz), vx = 20 m/s. The data, the
+  truth and the filters: :func:`vehjax.banked_road.simulate_matched`,
+  :func:`~vehjax.banked_road.matched_truth`, :func:`~vehjax.banked_road.matched_setup` with
+  :data:`~vehjax.banked_road.MATCHED`, each row's options in ``_MPFS``.
 
 The parameter-estimating filters (dual and joint EKF/UKF, Liu-West PF + UKF) are checked with
 matched noise in ``vehjax reproduce dutta2019`` ("Consistency" tables, kinematic bicycle and
@@ -78,6 +81,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..banked_road import matched_setup, matched_truth, simulate_matched
 from . import reporting
 
 PAPER = ("NEES / NIS consistency (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4) of every state "
@@ -88,8 +92,10 @@ FILTERS = ("EKF", "UKF", "CKF", "SR-UKF", "SR-CKF", "ACKF", "ACKF (paper)", "boo
            "MPF (known noise)", "MPF-G", "MPF-G (known noise)", "MPF-G (biases known)",
            "MPF-G (covariances known)", "MPF-G (covariances known; biases as Kalman states)",
            "MPF-K", "MPF-K (inverse-Wishart)")
-#: the MPF rows: ``marginalized_pf``'s keywords (``builder="grid"``: ``marginalized_pf_grid``'s;
-#: nu0, gamma0 go into its ``NiW``, input_std_range, input_std_prior into its ``InputStdGrid``). What each makes as good as known (gamma0 for
+#: the MPF rows: :func:`vehjax.banked_road.build_matched_filter`'s options (``marginalized_pf``'s
+#: keywords; ``builder="grid"``: ``marginalized_pf_grid``'s; nu0, gamma0 go into its ``NiW``,
+#: input_std_range, input_std_prior into its ``InputStdGrid``; bias_states: the biases as Kalman
+#: states). What each makes as good as known (gamma0 for
 #: the offset and the biases, nu0 for the covariances; the rows without it learn all), and
 #: MPF-G: each particle a Gaussian over all states (``kalman_states="all"``)
 _KNOWN_NOISE, _BIASES_KNOWN, _COVS_KNOWN = (dict(nu0=1e7, gamma0=1e-9), dict(gamma0=1e-9),
@@ -99,7 +105,7 @@ _MPFS = {"MPF": {}, "MPF (known noise)": _KNOWN_NOISE, "MPF-G": dict(kalman_stat
          "MPF-G (known noise)": dict(_KNOWN_NOISE, kalman_states="all"),
          "MPF-G (biases known)": dict(_BIASES_KNOWN, kalman_states="all"),
          "MPF-G (covariances known)": dict(_COVS_KNOWN, kalman_states="all"),
-         _KALMAN_BIASES: dict(_KNOWN_NOISE, kalman_states="all"),
+         _KALMAN_BIASES: dict(_KNOWN_NOISE, kalman_states="all", bias_states=True),
          "MPF-K": dict(builder="grid"),
          "MPF-K (inverse-Wishart)": dict(builder="grid", sensor_variances="inverse-wishart")}
 TARGET = 0.90
@@ -124,16 +130,6 @@ DEFAULT_PARTICLES = 1000
 _PROCESS_FRACTION = 0.002
 _MEAS_FRACTION = 0.02
 _X0_FACTOR = 5.0
-
-# the MPF's study (SingleTrackBank, paper 004's noise model)
-_VX = 20.0
-_OFFSET = math.radians(0.28)
-_DELTA_STD = math.radians(0.3)
-_SIGMA_PHI = 0.05
-_SENSORS = ("ay", "r", "roll_rate")
-_BIAS = {"ay": 0.1, "r": math.radians(0.3), "roll_rate": math.radians(-0.2)}
-_STD = {"ay": 0.2, "r": math.radians(0.6), "roll_rate": math.radians(0.6)}
-_KNOWN = {"phi": math.radians(0.5), "r_virt": math.radians(0.3)}
 
 
 def parser():
@@ -204,92 +200,6 @@ def gaussian_filters(model, Q, R, n_particles):
         "ACKF (paper)": lambda: ackf(model, Q, R),
         "bootstrap PF": lambda: bootstrap_pf(model, Q, R, n_particles=n_particles),
     }
-
-
-def mpf_inputs(T):
-    """(T, 2) inputs (vx, delta) of the MPF's study."""
-    t = np.arange(T) * 0.01
-    delta = 0.02 * np.sin(2 * np.pi * 0.4 * t) + 0.015 * np.sin(2 * np.pi * 0.11 * t + 1.0)
-    return np.stack([np.full(T, _VX), delta], 1)
-
-
-def simulate_mpf(model, runs, T, seed):
-    """Truth (R, T, 5), measurements (R, T, 5) and inputs (T, 2) from the MPF's own noise model
-    (module docstring); the observation at step t sees the same steering error as the
-    transition into it, as in eq. 9."""
-    U = mpf_inputs(T)
-    rng = np.random.default_rng([seed, 2018])
-    W = _OFFSET + _DELTA_STD * rng.standard_normal((T, runs))
-    J = _SIGMA_PHI * rng.standard_normal((T, runs))
-    B = model.bank_noise_gain()
-    th = model.theta
-
-    def body(X, k):
-        delta, w, jerk = k
-        uu = jnp.stack([jnp.full(runs, _VX), delta + w], 1)
-        Xn = jax.vmap(lambda x, u: model.transition(x, u, th))(X, uu) + jerk[:, None] * B
-        Y = jax.vmap(lambda x, u: model.observe(x, u, th))(Xn, uu)
-        return Xn, (Xn, Y)
-
-    X0 = jnp.zeros((runs, len(model.state_names)))
-    _, (Xs, Ys) = jax.jit(lambda X0, xs: jax.lax.scan(body, X0, xs))(
-        X0, (jnp.asarray(U[:, 1]), jnp.asarray(W), jnp.asarray(J)))
-    Xs, Ys = np.moveaxis(np.asarray(Xs), 0, 1), np.moveaxis(np.asarray(Ys), 0, 1)
-    names = model.output_names
-    bias = np.array([_BIAS.get(n, 0.0) for n in names])
-    std = np.array([_STD.get(n, _KNOWN.get(n, 0.0)) for n in names])
-    return Xs, Ys + bias + std * rng.standard_normal(Ys.shape), U
-
-
-def mpf_truth(param_names):
-    """The true values of the MPF's parameters (``marginalized_pf``'s ``param_names``): the
-    steering offset and std, then the sensors' biases and stds."""
-    value = {"delta_offset": _OFFSET, "delta_std": _DELTA_STD}
-    for s in _SENSORS:
-        value[f"{s}_bias"], value[f"{s}_std"] = _BIAS[s], _STD[s]
-    return np.array([value[n] for n in param_names])
-
-
-def mpf_filter(model, n_particles, row="MPF"):
-    """The MPF of the study's row ``row`` (a key of ``_MPFS``): the true noise statistics as
-    its prior (module docstring), some made as good as known. For the row with the biases as
-    Kalman states ``model`` must have the bias states (:func:`mpf_setup`) and the NiW's bias
-    means are pinned at zero (gamma0 = 1e-9, which pins the steering offset at its prior mean
-    too: the NiW has one gamma for both)."""
-    from ..filters import InputStdGrid, NiW, marginalized_pf, marginalized_pf_grid
-
-    kalman = row == _KALMAN_BIASES
-    opts = dict(_MPFS[row])
-    grid = opts.pop("builder", None) == "grid"
-    niw = NiW(std0={"delta": _DELTA_STD, **_STD},
-              mean0={"delta": _OFFSET} if kalman else {"delta": _OFFSET, **_BIAS}, forgetting=1.0,
-              **{k: opts.pop(k) for k in ("nu0", "gamma0") if k in opts})
-    common = dict(sensors=_SENSORS, known_std=_KNOWN, linear_noise_std=_SIGMA_PHI, niw=niw,
-                  linear_states=("phi", "phi_dot", "phi_ddot")
-                  + (tuple(f"{s}_bias" for s in _SENSORS) if kalman else ()))
-    if grid:
-        std_grid = InputStdGrid(**{k: opts.pop(k) for k in ("input_std_range", "input_std_prior")
-                                   if k in opts})
-        return marginalized_pf_grid(model, n_particles, grid=std_grid, **common, **opts)
-    return marginalized_pf(model, n_particles, **common, **opts)
-
-
-def mpf_setup(model, n_particles, row, P0):
-    """(estimator, x0, P0, state_params) of the MPF row ``row``, ``P0`` the truth's. The row
-    with the biases as Kalman states runs on the model with bias states
-    (:func:`vehjax.models.with_output_biases`), starting them from the other rows' bias prior
-    (mean the truth, variance gamma0 = 1 times the noise's), and reads its bias estimates from
-    those states (``check``'s ``state_params``)."""
-    from ..models import with_output_biases
-
-    x0 = np.zeros(len(model.state_names))
-    if row != _KALMAN_BIASES:
-        return mpf_filter(model, n_particles, row), x0, P0, None
-    nx = len(x0)
-    est = mpf_filter(with_output_biases(model, _SENSORS), n_particles, row)
-    return (est, np.r_[x0, [_BIAS[s] for s in _SENSORS]],
-            np.r_[P0, [_STD[s] ** 2 for s in _SENSORS]],
-            {f"{s}_bias": nx + j for j, s in enumerate(_SENSORS)})
 
 
 # ---------------------------------------------------------------------------------------------
@@ -474,14 +384,14 @@ def study(models, filters, runs, duration, n_particles, seed, log=print):
                 log(f"{row['seconds']:.1f} s")
         mpfs = [f for f in filters if f in _MPFS] if name == "SingleTrackBank" else []
         if mpfs:
-            X, Y, U = simulate_mpf(model, runs, T, seed)
+            X, Y, U = simulate_matched(model, runs, T, seed)
             P0 = np.full(len(model.state_names), 1e-12)
         for f in mpfs:
             log(f"  {name}, {f}: {runs} runs x {T} steps ...", end=" ", flush=True)
             n_mpf = n_particles or DEFAULT_PARTICLES
-            est, x0, P0_f, by_state = mpf_setup(model, n_mpf, f, P0)
+            est, x0, P0_f, by_state = matched_setup(model, n_mpf, _MPFS[f], P0)
             row = check(est, Y, U, X, x0, P0_f, jax.random.key(seed * 101 + 99),
-                        theta=mpf_truth(est.param_names), state_params=by_state)
+                        theta=matched_truth(est.param_names), state_params=by_state)
             rows.append(dict(model=name, filter=f, runs=runs, steps=T, particles=n_mpf, **row))
             log(f"{row['seconds']:.1f} s")
     return rows

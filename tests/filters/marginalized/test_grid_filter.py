@@ -14,6 +14,7 @@ import pytest
 
 import vehjax as vj
 from vehjax.filters.marginalized.means import augment_prior, map_estimates, with_noise_means
+from vehjax.banked_road import MATCHED, matched_inputs, simulate_matched
 from vehjax.models import with_input_offset
 from vehjax.filters.marginalized import (InputStdGrid, MeanStates, NiW, marginalized_pf,
                                          marginalized_pf_grid)
@@ -167,9 +168,7 @@ def _simulate(R, T, offset, bias, sig_phi, seed, sig_w=0.0):
     """Data of the linear SingleTrackBank at the study's inputs: steering with a constant
     offset and white noise of std ``sig_w``, white bank jerk, constant sensor biases, white
     noise of the stds STD0 / KNOWN. Returns (truth (R, T, 5), Y (R, T, 5), U (T, 2))."""
-    from vehjax.reproduce.consistency import mpf_inputs
-
-    U = mpf_inputs(T)
+    U = matched_inputs(T)
     F, B, H, D = _matrices(float(U[0, 0]))
     gain = np.r_[np.asarray(MODEL.bank_noise_gain()), np.zeros(3)]
     std = np.array([STD0.get(n, KNOWN.get(n)) for n in MODEL.output_names])
@@ -314,9 +313,7 @@ def test_input_std_grid_is_the_exact_posterior_of_the_steering_std(prior, varian
     T, R, N = 150, 2, 12 if prior == "jeffreys" else 6
     offset, sig_w = math.radians(0.28), math.radians(0.3)
     bank_std = np.array([1e-5, 1e-4, 0.002])
-    from vehjax.reproduce.consistency import mpf_inputs
-
-    U = mpf_inputs(T)
+    U = matched_inputs(T)
     std = np.array([STD0.get(n, KNOWN.get(n)) for n in MODEL.output_names])
     _, Y = simulate_linear_bank(MODEL.theta, DT, U, R, offset, sig_w, bank_std, np.zeros(5),
                                 std, 4)
@@ -649,25 +646,24 @@ def test_a_sensor_seen_beside_the_input_noise_is_learnt_from_a_wrong_guess():
     the truth on average and its 95 % interval holds the truth in at least 0.8 of the runs.
     The inverse-Wishart mean alone (``sensor_variances="inverse-wishart"``) stayed at +45 %
     with no interval holding the truth (100 runs, seed 0)."""
-    from vehjax.reproduce import consistency as c
-
-    X, Y, U = c.simulate_mpf(MODEL, 20, 300, 7)
-    std0 = {"delta": c._DELTA_STD, **{k: 2.0 * v for k, v in c._STD.items()}}
-    est = marginalized_pf_grid(MODEL, 3, sensors=SENSORS, known_std=c._KNOWN,
-                               linear_noise_std=c._SIGMA_PHI,
-                               niw=NiW(std0=std0, mean0={"delta": c._OFFSET, **c._BIAS},
+    X, Y, U = simulate_matched(MODEL, 20, 300, 7)
+    std0 = {"delta": MATCHED.steer_std, **{k: 2.0 * v for k, v in MATCHED.sensor_std.items()}}
+    est = marginalized_pf_grid(MODEL, 3, sensors=SENSORS, known_std=MATCHED.known_std,
+                               linear_noise_std=MATCHED.bank_jerk_std,
+                               niw=NiW(std0=std0, mean0={"delta": MATCHED.offset, **MATCHED.bias},
                                        forgetting=1.0),
                                grid=InputStdGrid(input_std_prior="log-uniform",
-                                                 input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))))
+                                                 input_std_range=(MATCHED.steer_std,
+                                                                  MATCHED.steer_std * (1 + 1e-9))))
     out = vj.run(est, Y, U, x0=np.zeros(5), P0=np.full(5, 1e-12), key=jax.random.key(0),
                  return_covariances=True)
     assert not out.diverged.any()
     i = est.param_names.index("ay_std")
     est_ay = np.asarray(out.params[:, -1, i])
     sd = np.sqrt(np.asarray(out.params_cov[:, -1, i, i]))
-    rel = est_ay.mean() / c._STD["ay"] - 1.0
+    rel = est_ay.mean() / MATCHED.sensor_std["ay"] - 1.0
     assert abs(rel) < 0.15, rel
-    assert np.mean(np.abs(est_ay - c._STD["ay"]) <= 1.96 * sd) >= 0.8
+    assert np.mean(np.abs(est_ay - MATCHED.sensor_std["ay"]) <= 1.96 * sd) >= 0.8
 
 
 def test_the_gyros_scored_variances_match_the_oracle():
@@ -678,22 +674,22 @@ def test_the_gyros_scored_variances_match_the_oracle():
     sample std of its true noise (states and biases known). With the inverse-Wishart
     statistics' correlations kept beside the scored variances they ended 1.1-1.4 % above it
     (100 runs, seeds 0-3; ``benchmarks/mpf_k_param_bias.py``)."""
-    from vehjax.reproduce import consistency as c
-
-    X, Y, U = c.simulate_mpf(MODEL, 20, 300, 11)
-    est = marginalized_pf_grid(MODEL, 3, sensors=SENSORS, known_std=c._KNOWN,
-                               linear_noise_std=c._SIGMA_PHI, sensor_variances="scored",
-                               niw=NiW(std0={"delta": c._DELTA_STD, **c._STD},
-                                       mean0={"delta": c._OFFSET, **c._BIAS}, forgetting=1.0),
+    X, Y, U = simulate_matched(MODEL, 20, 300, 11)
+    est = marginalized_pf_grid(MODEL, 3, sensors=SENSORS, known_std=MATCHED.known_std,
+                               linear_noise_std=MATCHED.bank_jerk_std, sensor_variances="scored",
+                               niw=NiW(std0={"delta": MATCHED.steer_std, **MATCHED.sensor_std},
+                                       mean0={"delta": MATCHED.offset, **MATCHED.bias},
+                                       forgetting=1.0),
                                grid=InputStdGrid(input_std_prior="log-uniform",
-                                                 input_std_range=(c._DELTA_STD, c._DELTA_STD * (1 + 1e-9))))
+                                                 input_std_range=(MATCHED.steer_std,
+                                                                  MATCHED.steer_std * (1 + 1e-9))))
     out = vj.run(est, Y, U, x0=np.zeros(5), P0=np.full(5, 1e-12), key=jax.random.key(0))
     assert not out.diverged.any()
-    u0 = jnp.asarray([c._VX, 0.0])
+    u0 = jnp.asarray([MATCHED.speed, 0.0])
     clean = np.asarray(jax.vmap(jax.vmap(lambda x: MODEL.observe(x, u0, MODEL.theta)))(X))
     for s in ("r", "roll_rate"):
         j = MODEL.output_names.index(s)
-        oracle = np.sqrt(np.mean((Y[..., j] - clean[..., j] - c._BIAS[s]) ** 2, axis=1))
+        oracle = np.sqrt(np.mean((Y[..., j] - clean[..., j] - MATCHED.bias[s]) ** 2, axis=1))
         got = np.asarray(out.params[:, -1, est.param_names.index(f"{s}_std")])
         assert abs(got.mean() / oracle.mean() - 1.0) < 0.006, (s, got.mean() / oracle.mean())
 

@@ -13,9 +13,9 @@ from .report import *  # noqa: F401,F403  (the presentation and the command line
 from .report import _check_args, _report_settings  # noqa: F401
 from .study import *  # noqa: F401,F403  (the study)
 from .study import (  # noqa: F401
-    _DECAY, _DYN_REL_BOX, _FILTERS, _FREQUENCIES, _KIN_BOX, _Q_THETA_REL, _SETTINGS, _SIM_STD,
+    _DECAY, _DYN_REL_BOX, _FILTERS, _FREQUENCIES, _KIN_BOX, _SETTINGS,
     _TRAINING_STREAM, _TUNE_DURATION, _TUNE_LR, _TUNE_PATIENCE, _TUNE_RUNS, _TUNE_STEPS,
-    _builders, _config, _final, _ok, _simulate, _stage, _training_keys, _tuned, _window,
+    _builders, _config, _final, _ok, _stage, _training_keys, _tuned, _window,
     _with_axle_inputs,
 )
 

@@ -23,7 +23,6 @@ from .study import (
     _FILTERS,
     _FREQUENCIES,
     _SETTINGS,
-    _SIM_STD,
     _TUNE_DURATION,
     _TUNE_RUNS,
     BOX_PRIOR,
@@ -34,6 +33,7 @@ from .study import (
     PAPER_TABLE1,
     PAPER_TABLE2,
     PAPER_TABLE3,
+    SIM_STD,
     SMOOTHED,
     Stage,
     Tuning,
@@ -435,7 +435,7 @@ def table_noise(tuning: Tuning, paper: dict, model) -> str:
     fit = tuning.fit
     lines = ["| covariance | paper | tuned | simulation (matched) | tuned / simulation |",
              "|---|---|---|---|---|"]
-    sim_var = {"Q": _SIM_STD**2 * model.dt, "R": _SIM_STD**2}
+    sim_var = {"Q": SIM_STD**2 * model.dt, "R": SIM_STD**2}
     for which, names in (("Q", model.state_names), ("R", model.output_names)):
         for i, n in enumerate(names):
             key = f"{which}[{n},{n}]"

@@ -62,6 +62,8 @@ How the paper is read (it leaves these open; each choice is ours and printed wit
   around the nominal values, so it is not centred on the truth. The kinematic stage is
   unchanged.
 
+The paper's settings, the matched ones and the simulation noise are
+:mod:`vehjax.dual_settings`'s, the dynamic excitation :func:`vehjax.scenarios.slip_and_steer`.
 This module is the study: the paper's settings and ours, the excitations, the simulated runs,
 the "tuned" fit, the filters and the two stages (:func:`kinematic_study`,
 :func:`dynamic_study`). How its results are read and shown (tables, the written summaries,
@@ -76,28 +78,14 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
+from ... import scenarios
+from ...dual_settings import (DYNAMIC_SETTINGS, KINEMATIC_SETTINGS, SIM_STD,  # noqa: F401
+                              matched_settings, simulate_runs)
 from .. import reporting
 
 PAPER = "Dutta, Singh, Alam (2019), Dual state and parameter estimation of a four wheel vehicle"
 
 _DECAY = 0.99
-_SIM_STD = 0.1
-
-# Section III, in vehjax's naming (Q process, R measurement); diagonals.
-KINEMATIC_SETTINGS = dict(
-    P0=(1.0, 1.0, 0.2, 2.0),
-    P_theta0=(3.0, 3.0),
-    Q=(0.5**2, 0.5**2, 0.2**2, 1.0**2),
-    Q_theta=(1.25**2, 1.25**2),
-    R=(1.0**2, 1.0**2, 1.5**2, 0.1**2),
-)
-DYNAMIC_SETTINGS = dict(
-    P0=(1.0, 1.0, 0.2),
-    P_theta0=(200.0, 2.0e4, 1.5e4),
-    Q=(1.2**2, 1.2**2, 0.45**2),
-    Q_theta=(20.0**2, 175.0**2, 150.0**2),
-    R=(0.2**2, 0.2**2, 0.15**2),
-)
 
 #: The paper's numbers: Table I (lf, lr m), II (RMS error vx, vy m/s, r rad/s), III (m, cx, cy).
 PAPER_TABLE1 = {"Dual EKF": (1.56, 1.43), "Dual UKF": (1.58, 1.39), "Particle+UKF": (1.67, 1.36)}
@@ -108,7 +96,6 @@ _KIN_BOX = ((0.5, 2.5), (0.5, 2.5))
 _DYN_REL_BOX = 0.3
 _FILTERS = ("Dual EKF", "Dual UKF", "Particle+UKF", "Joint EKF", "Joint UKF")
 _SETTINGS = ("paper", "matched", "tuned")
-_Q_THETA_REL = 1e-3  # matched settings: parameter random-walk std per step, relative to truth
 # tuned settings: training runs and the fit (vehjax.tune.fit, adam on log standard deviations)
 _TUNE_RUNS = 3  # training runs per stage
 _TUNE_DURATION = 20.0  # s, longest training run (the stage's duration when shorter)
@@ -183,21 +170,10 @@ def kinematic_scenario(model, duration: float = 60.0, frequency: float = 0.5,
                                  name=f"sine {frequency:g} Hz")
 
 
-def dynamic_scenario(model, duration: float = 60.0, speed: float = 20.0):
-    """Open-loop inputs (s_fl, s_fr, s_rl, s_rr, delta) for Dynamic3DOF, in the style of MATLAB's
-    vehicledata: front slips that balance air drag at ``speed`` and swing the speed between
-    about 14 and 23 m/s, two-tone steering, rear slips zero."""
-    from ... import scenarios
-
-    m, cx, ca = (float(model.theta[model.param_index(n)[0]]) for n in ("m", "cx", "ca"))
-    t = np.arange(int(round(duration / model.dt))) * model.dt
-    hold = ca * speed**2 / (2 * cx)  # slip per front wheel that balances drag
-    swing = 0.6 * m / (2 * cx)  # +-0.6 m/s^2 of longitudinal acceleration
-    slip = hold + swing * np.sin(2 * np.pi * t / 20.0)
-    delta = 0.04 * np.sin(2 * np.pi * 0.25 * t) + 0.02 * np.sin(2 * np.pi * 0.9 * t + 1.0)
-    zero = np.zeros_like(t)
-    return scenarios.from_inputs(model, np.stack([slip, slip, zero, zero, delta], 1),
-                                 [speed, 0.0, 0.0], name="dynamic excitation")
+def _slip_and_steer(model, duration):
+    """The dynamic stage's excitation (module docstring): :func:`vehjax.scenarios.slip_and_steer`
+    at 20 m/s."""
+    return scenarios.slip_and_steer(model, duration=duration)
 
 
 #: ``--excitation chirp``: true m, cx, cy relative to the nominal values
@@ -245,29 +221,6 @@ def _with_axle_inputs(dyn):
     )
 
 
-def matched_settings(paper: dict, model, truth, box) -> dict:
-    """The "matched" settings: Q, R of the simulation, small Q_theta, P_theta0 of the box."""
-    nx, ny, dt = len(model.state_names), len(model.output_names), model.dt
-    width = np.diff(np.asarray(box, float), axis=1)[:, 0]
-    return dict(
-        P0=paper["P0"],
-        P_theta0=tuple(width**2 / 12.0),
-        Q=(_SIM_STD**2 * dt,) * nx,
-        Q_theta=tuple((_Q_THETA_REL * np.abs(truth)) ** 2),
-        R=(_SIM_STD**2,) * ny,
-    )
-
-
-def _simulate(model, scn, runs: int, key):
-    """``runs`` noisy runs of ``scn`` on ``model`` (its ``theta`` is the truth): process noise of
-    ``_SIM_STD`` per square-root second and measurement noise of std ``_SIM_STD`` on every
-    component."""
-    from ... import simulate
-
-    return simulate(model, scn, runs=runs, key=key, process_std=_SIM_STD * np.sqrt(model.dt),
-                    meas_std=_SIM_STD)
-
-
 def study_runs(model, scn, runs: int, key):
     """The study's runs of a stage, on which the filters of every setting are evaluated.
 
@@ -287,7 +240,7 @@ def study_runs(model, scn, runs: int, key):
     vehjax.Simulation
         (R, T, nx) states, (R, T, ny) measurements.
     """
-    return _simulate(model, scn, runs, jax.random.split(key, 3)[0])
+    return simulate_runs(model, scn, runs, jax.random.split(key, 3)[0])
 
 
 def _training_keys(key):
@@ -313,7 +266,7 @@ def training_runs(model, scn, runs: int, key):
     vehjax.Simulation
         (R, T, nx) states, (R, T, ny) measurements.
     """
-    return _simulate(model, scn, runs, _training_keys(key)[0])
+    return simulate_runs(model, scn, runs, _training_keys(key)[0])
 
 
 class Tuning(NamedTuple):
@@ -564,7 +517,7 @@ def dynamic_study(filters, setting: str, key, kinematic: Stage, *, runs: int, pa
 
     dyn = Dynamic3DOF(dt=dt)
     nominal = np.asarray(dyn.theta)[list(dyn.param_index(("m", "cx", "cy")))]
-    excite = dynamic_scenario
+    excite = _slip_and_steer
     if excitation == "chirp":  # other true values; the box stays around the nominal ones
         th = np.asarray(dyn.theta, float).copy()
         th[list(dyn.param_index(("m", "cx", "cy")))] = nominal * np.asarray(CHIRP_TRUTH)
