@@ -28,9 +28,10 @@ nest the linear ones):
 
 A model without a nested model is fitted from the data's floors alone (step 2 without the
 nested values). ``start="theta"`` fits from ``model.theta`` and the given noise as they are,
-still compared with the nested model's fit when ``compare=True``; ``compare=False`` with
-``start="data"`` skips the nested fit (floors only). A floor's parameter is reported whichever
-start was taken.
+still compared with the nested model's fit when ``compare=True``; ``start="theta",
+compare=False`` fits no nested model at all. With ``start="data"`` the nested model is always
+fitted (it gives the start); ``compare=False`` then only leaves ``TuneResult.nested`` empty and
+reports nothing against it. A floor's parameter is reported whichever start was taken.
 
 Cost: the nested fit (cheaper per evaluation: for the single-track model a linear tyre curve,
 about half the time of the saturating fit on the same drive) plus the model's own fit, which
