@@ -198,7 +198,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
         if second:
             res = one(model.with_theta(**second))
             best = res if res.loglik > best.loglik else best
-    below = cmp is not None and best.loglik < cmp.loglik - BELOW_NESTED
+    below = compare and cmp is not None and best.loglik < cmp.loglik - BELOW_NESTED
     if below:
         warnings.warn(
             f"vehjax.tune: the fitted model's log-likelihood {best.loglik:.6g} is below the "
