@@ -2,6 +2,7 @@
 CPU giving the CPU strategy's results for every family, no platform rule outside the seam, the
 memory guards, compile_run's own copy, and `vehjax bench device --quick`."""
 
+import os
 import re
 import sys
 from pathlib import Path
@@ -97,8 +98,9 @@ def test_each_platform_has_its_rules():
         "xla_cpu_use_fusion_emitters": False}
     assert execution.compiler_options(cpu, FAMILIES["bootstrap_pf"][0].workload) is None
     ys, us = _data()
+    assert cpu.side_by_side == (os.cpu_count() or 1) and gpu.side_by_side == 1
     for bad in ("fpga", 3, cpu._replace(block_numbers=0), cpu._replace(runs_last="yes"),
-                cpu._replace(chunk_bytes=-1.0)):
+                cpu._replace(chunk_bytes=-1.0), cpu._replace(side_by_side=0)):
         with pytest.raises(ValueError, match="strategy"):
             vj.run(FAMILIES["ekf"][0], ys, us, x0=X0, P0=P0, strategy=bad)
 

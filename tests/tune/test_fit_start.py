@@ -129,6 +129,31 @@ def test_the_fit_lands_at_scipys_bounded_optimum_on_a_short_drive(drives):
     assert res.loglik >= -ref.fun - 1e-6
 
 
+@pytest.mark.slow
+def test_work_side_by_side_changes_the_time_not_the_result(drives):
+    """The default path on two host threads (the saturating model's program compiled while the
+    nested model is fitted, the Hessian's gradients evaluated side by side) and on one reach
+    the same result: the same program evaluated at the same points (measured: equal bits)."""
+    d = drives["A"]
+    model = SingleTrack(tyres="brush", theta=tuple(d.body.values()) + (1.2e5, 1.4e5, 1.0))
+    out = {}
+    for side in (1, 2):
+        with vehjax.execution.using(vehjax.execution.current()._replace(side_by_side=side)), \
+                warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out[side] = vehjax.tune.fit(
+                vehjax.filters.ekf, model, np.zeros((2, 2)), np.array([0.1, 1e-4]),
+                d.measurements[1500:3000], d.inputs[1500:3000], x0=np.zeros(2),
+                P0=np.array([0.1, 0.01]), params=("cf", "cr", "mu"), noise=("R", "input"),
+                builder_kwargs={"input_noise": {"delta": 0.002}}, progress=False)
+    one, two = out[1], out[2]
+    assert one.evaluations == two.evaluations and one.nested.loglik == two.nested.loglik
+    np.testing.assert_allclose(two.loglik, one.loglik, rtol=1e-12)
+    for k in one.values:
+        np.testing.assert_allclose(two.values[k], one.values[k], rtol=1e-10)
+        np.testing.assert_allclose(two.std_errors[k], one.std_errors[k], rtol=1e-8)
+
+
 def test_a_fit_held_in_the_trap_is_reported_with_both_likelihoods(drives):
     """The trap, deliberately: the brush tyres with mu held at most 1.0 (a user's bounds) on a
     drive that reached 1.35 g. The model cannot produce what was measured: the report says mu

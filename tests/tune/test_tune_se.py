@@ -305,6 +305,16 @@ def test_hessian_from_gradients_batched_equals_one_by_one_and_the_analytic_hessi
     assert len(points) == 3 and not any(np.array_equal(p, x) for p in points)
     np.testing.assert_allclose(fwd, want, rtol=1e-5)
     assert np.max(np.abs(fwd - want)) > 1e-12  # really one-sided: not the central result
+    # the same points handed over at once (CompiledLoss.many: evaluated side by side)
+    handed = []
+
+    def many(fs):
+        handed.append(len(fs))
+        return [vg(f) for f in fs]
+
+    assert np.array_equal(vt.hessian_from_gradients(
+        vg, x, scales, rel=vt.information.FORWARD_REL, g0=grad(x), many=many), fwd)
+    assert handed == [3]
 
 
 def test_fit_with_the_batched_hessian_matches_the_inverse_information(monkeypatch):

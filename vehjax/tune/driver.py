@@ -26,7 +26,7 @@ from .optimisers import GTOL
 from .quantities import coordinates, fitted_quantities
 from .result import TuneResult, make_result
 
-__all__ = ["fit_from_theta", "fit_noise"]
+__all__ = ["fit_from_theta", "fit_noise", "compile_objective", "check_options", "OPTIONS"]
 
 
 def _check_fit_options(learning_rate, tol, gtol, hessian, steps, patience, optimizer):
@@ -48,6 +48,22 @@ def _check_fit_options(learning_rate, tol, gtol, hessian, steps, patience, optim
                              f"optax.GradientTransformation, got {optimizer!r}")
         validation.choice("optimizer", optimizer, opt.OPTIMIZERS)
     return learning_rate, tol, gtol
+
+
+#: the optimiser's and the report's options of :func:`fit_from_theta`
+OPTIONS = ("optimizer", "learning_rate", "steps", "tol", "patience", "gtol", "key",
+           "progress", "standard_errors", "hessian")
+
+
+def check_options(options: dict) -> None:
+    """``**options`` of :func:`vehjax.tune.fit` checked before anything is traced: TypeError
+    for a name :func:`fit_from_theta` does not take, ValueError naming a bad value."""
+    for k in options:
+        if k not in OPTIONS:
+            raise TypeError(f"fit() got an unexpected keyword argument {k!r}")
+    _check_fit_options(options.get("learning_rate"), options.get("tol", 0.0),
+                       options.get("gtol", GTOL), options.get("hessian"), options.get("steps"),
+                       options.get("patience"), options.get("optimizer"))
 
 
 def _progress(steps: int, enabled, name: str):
@@ -100,19 +116,35 @@ def _at_last_point(hess):
     return at
 
 
-def _bounds_at(obj, setup, model, loss, x, g, names):
-    """The quantities on a bound at x (:func:`vehjax.tune.boundaries.on_bounds`), the Jacobian
-    (m, n) of the quantities with respect to the coordinates, and the free-coordinates mask."""
-    def values(f):
-        return jnp.stack([jnp.asarray(q[2]) for q in fitted_quantities(
-            setup, model, obj.unpack(loss.unravel(f)))])
+def _quantity_map(obj, setup, model, unravel):
+    """``at(x) -> (names, values (m,), d values / d coordinates (m, n))`` of the fitted
+    quantities (:func:`vehjax.tune.quantities.fitted_quantities`) at the coordinates x, compiled
+    once per fit: evaluated eagerly, their Jacobian compiled each small operation on its own
+    (seconds on a vehicle model's fit)."""
+    names = []
 
-    J = np.asarray(jax.jacfwd(values)(jnp.asarray(x)))
-    qs = fitted_quantities(setup, model, jax.tree.map(np.asarray, obj.unpack(
-        loss.unravel(jnp.asarray(x)))))
-    on = boundaries.on_bounds(setup["bounds"], names, {k: float(v) for k, _, v in qs}, g, J,
-                              [k for k, _, _ in qs], obj.n_steps)
-    return on, J, [k for k, _, _ in qs], np.array([n not in on for n in names], dtype=bool)
+    def values(f):
+        qs = fitted_quantities(setup, model, obj.unpack(unravel(f)))
+        names[:] = [k for k, _, _ in qs]
+        return jnp.stack([jnp.asarray(q[2]) for q in qs])
+
+    program_ = jax.jit(lambda f: (values(f), jax.jacfwd(values)(f)))
+
+    def at(x):
+        v, J = program_(jnp.asarray(x))
+        return list(names), np.asarray(v, dtype=float), np.asarray(J, dtype=float)
+
+    return at
+
+
+def _bounds_at(obj, setup, quantities, x, g, names):
+    """The quantities on a bound at x (:func:`vehjax.tune.boundaries.on_bounds`), the Jacobian
+    (m, n) of the quantities with respect to the coordinates, and the free-coordinates mask;
+    ``quantities`` from :func:`_quantity_map`."""
+    qnames, vals, J = quantities(x)
+    on = boundaries.on_bounds(setup["bounds"], names, dict(zip(qnames, vals.tolist())), g, J,
+                              qnames, obj.n_steps)
+    return on, J, qnames, np.array([n not in on for n in names], dtype=bool)
 
 
 def _free_gradient(g, free) -> float:
@@ -121,7 +153,7 @@ def _free_gradient(g, free) -> float:
     return float(np.max(g)) if g.size else 0.0
 
 
-def _standard_errors(obj, setup, model, loss, x, optimizer, hessian, gtol, scales, names):
+def _standard_errors(obj, setup, quantities, loss, x, optimizer, hessian, gtol, scales, names):
     """The Newton polish (deterministic filters) and the observed information at its end over
     the free coordinates, the quantities on a bound held there: (x, aux, max |gradient|,
     polished to gtol over the free coordinates, :class:`vehjax.tune.Uncertainty`, the
@@ -131,12 +163,12 @@ def _standard_errors(obj, setup, model, loss, x, optimizer, hessian, gtol, scale
         _, aux, g = loss.vg(x)
         Hm = hess(x)
     else:  # polish the free coordinates, the quantities on a bound held there
-        free = _bounds_at(obj, setup, model, loss, x, loss.vg(x)[2], names)[3]
+        free = _bounds_at(obj, setup, quantities, x, loss.vg(x)[2], names)[3]
         for _ in range(3 if optimizer == "scoring" else 1):
             x, aux, g, Hm = opt.newton(loss, x, scales, gtol, hess, free)
             if _free_gradient(g, free) <= gtol:
                 break
-    on, J, qnames, free = _bounds_at(obj, setup, model, loss, x, g, names)
+    on, J, qnames, free = _bounds_at(obj, setup, quantities, x, g, names)
     polished = not setup["stochastic"] and _free_gradient(g, free) <= gtol
     max_std = np.where([n.startswith("x0[") for n in names], np.inf, MAX_SCALED_STD)
     unc = uncertainty(obj.n_steps * Hm, J, scales, names, max_std=max_std, fixed=~free,
@@ -149,7 +181,8 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
                    learning_rate=None, steps: int | None = None, tol: float = 1e-7,
                    patience: int | None = None, gtol: float = GTOL, key=None,
                    builder_kwargs=None, progress: bool = True, standard_errors: bool = True,
-                   hessian: str | None = None, floors=None) -> TuneResult:
+                   hessian: str | None = None, floors=None,
+                   compiled: program.Program | None = None) -> TuneResult:
     """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum likelihood,
     with standard errors, from one start: ``model.theta``, Q0, R0 and the given input noise as
     they are (:func:`vehjax.tune.fit` chooses the start from the data first).
@@ -215,6 +248,10 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
         floors: ``{parameter name: least value the data allow}`` (``model.data_floors``), or
             None: a parameter that ends far below its floor is reported
             (``TuneResult.below_floor``), not called undetermined.
+        compiled: the program of this fit's objective compiled for another start, differing
+            only in the fitted values (:func:`compile_objective`; :func:`vehjax.tune.fit`
+            compiles the next stage's while it fits the nested model); None (default):
+            compiled here.
 
     Returns:
         :class:`TuneResult`. A warning names the quantities the data do not determine
@@ -242,7 +279,8 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
                                     setup["bounds"])
     loss = program.compiled_loss(obj, setup, batch_hessian=differences and obj.n_steps >=
                                  program.BATCH_HESSIAN_STEPS and (standard_errors or optimizer
-                                                                  in (None, "scoring")), box=box)
+                                                                  in (None, "scoring")), box=box,
+                                 compiled=compiled)
     if optimizer is None:
         optimizer = ("adam" if setup["stochastic"] else
                      "scoring" if loss.vgo is not None else "lbfgs")
@@ -262,19 +300,20 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
         report, scales)
     bar.close()
     unc, grad_max = None, float("nan")
+    quantities = _quantity_map(obj, setup, model, loss.unravel)
     if standard_errors:
         x, aux, grad_max, polished, unc, on = _standard_errors(
-            obj, setup, model, loss, x, optimizer, hessian, gtol, scales, names)
+            obj, setup, quantities, loss, x, optimizer, hessian, gtol, scales, names)
         converged = converged or polished
     else:
         if optimizer == "scoring":  # the Newton polish finishes scoring
-            free = _bounds_at(obj, setup, model, loss, x, loss.vg(x)[2], names)[3]
+            free = _bounds_at(obj, setup, quantities, x, loss.vg(x)[2], names)[3]
             x, aux, g, _ = opt.newton(loss, x, scales, gtol,
                                       lambda f: difference_hessian(loss, f, scales), free,
                                       curvature_after=False)
         else:
             g = loss.vg(x)[2]
-        on, _, _, free = _bounds_at(obj, setup, model, loss, x, g, names)
+        on, _, _, free = _bounds_at(obj, setup, quantities, x, g, names)
         if optimizer == "scoring":
             grad_max = float(np.max(np.abs(g)))
             converged = converged or _free_gradient(g, free) <= gtol
@@ -287,6 +326,18 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
                         hessian_batches=st["batch_evaluations"],
                         hessian_compile_seconds=st["batch_compile_seconds"],
                         compile_cpu_seconds=st["compile_cpu_seconds"])
+
+
+def compile_objective(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
+                      bounds=None, noise=NOISE, fit_x0: bool = False, key=None,
+                      builder_kwargs=None) -> program.Program:
+    """The program :func:`fit_from_theta` compiles for these arguments, to hand to fits of the
+    same objective from other starts (``compiled=``): the fitted values are the program's
+    argument, everything else (the data, the model's other parameters, the noise not fitted)
+    its constants."""
+    obj, setup = prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
+                         noise, fit_x0, key, builder_kwargs)
+    return program.compile_program(obj, setup)
 
 
 def fit_noise(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, noise=NOISE,

@@ -128,7 +128,7 @@ def _with_fixed(Iz, J, scales, coord_names, rcond, max_std, fixed, pinned) -> Un
     return u._replace(cov=cov, std_errors=se, correlations=corr)
 
 
-def hessian_from_gradients(vg, x, scales, rel: float = 1e-4, grads=None, g0=None):
+def hessian_from_gradients(vg, x, scales, rel: float = 1e-4, grads=None, g0=None, many=None):
     """The Hessian (n, n) of the loss at x by differences of its exact (JAX) gradient, column i
     from steps of rel * scales[i] (the coordinate's natural size,
     :func:`vehjax.tune.quantities.coordinates`), symmetrised.
@@ -138,21 +138,23 @@ def hessian_from_gradients(vg, x, scales, rel: float = 1e-4, grads=None, g0=None
     -> (2 n, n)`` (``CompiledLoss.grads``), the same 2 n points in one call. Forward differences
     when ``g0`` (n,), the gradient at x, is given: ``(g(x + h e_i) - g0) / h``, n evaluations,
     truncation error O(rel) relative, rounding O(1e-14 / rel) (:func:`vehjax.tune.fit` takes
-    rel = :data:`FORWARD_REL`)."""
+    rel = :data:`FORWARD_REL`). ``many(points) -> [vg(p) for p in points]``
+    (``CompiledLoss.many``: side by side) evaluates the difference points where given."""
     n = len(x)
     x = np.asarray(x, dtype=float)
     h = rel * np.asarray(scales, dtype=float)
     E = np.diag(h)
-    if g0 is not None:
-        g0 = np.asarray(g0, dtype=float)
-        H = np.stack([(vg(x + E[i])[2] - g0) / h[i] for i in range(n)], axis=1)
-    elif grads is not None:
+    if grads is not None and g0 is None:
         G = grads(np.concatenate([x + E, x - E]))
-        H = ((G[:n] - G[n:]) / (2 * h)[:, None]).T
     else:
-        H = np.zeros((n, n))
-        for i in range(n):
-            H[:, i] = (vg(x + E[i])[2] - vg(x - E[i])[2]) / (2 * h[i])
+        points = [x + E[i] for i in range(n)] + ([] if g0 is not None else
+                                                  [x - E[i] for i in range(n)])
+        G = np.stack([r[2] for r in (many(points) if many is not None else map(vg, points))])
+        G = np.asarray(G, dtype=float)
+    if g0 is not None:
+        H = ((G - np.asarray(g0, dtype=float)) / h[:, None]).T
+    else:
+        H = ((G[:n] - G[n:]) / (2 * h)[:, None]).T
     return 0.5 * (H + H.T)
 
 
@@ -161,8 +163,9 @@ def difference_hessian(loss, x, scales):
     (:func:`hessian_from_gradients`) on its compiled loss: the 2 n central-difference points
     in one call of ``loss.grads`` where the fit has that batched
     program, else forward differences from the gradient at x (n evaluations of the compiled
-    loss; the one at x is the latest evaluation, not repeated) with steps :data:`FORWARD_REL`
-    of each coordinate's scale."""
+    loss, side by side: ``CompiledLoss.many``; the one at x is the latest evaluation, not
+    repeated) with steps :data:`FORWARD_REL` of each coordinate's scale."""
     if loss.grads is not None:
         return hessian_from_gradients(loss.vg, x, scales, grads=loss.grads)
-    return hessian_from_gradients(loss.vg, x, scales, rel=FORWARD_REL, g0=loss.vg(x)[2])
+    return hessian_from_gradients(loss.vg, x, scales, rel=FORWARD_REL, g0=loss.vg(x)[2],
+                                  many=loss.many)

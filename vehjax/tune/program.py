@@ -12,6 +12,7 @@ beyond, and for particle filters. Measurements: ``benchmarks/results/notes_tune.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, NamedTuple
 
 import jax
@@ -21,8 +22,8 @@ import numpy as np
 
 from .. import execution
 
-__all__ = ["CompiledLoss", "forward_scores", "score_outer_product", "compiled_loss",
-           "FORWARD_MAX", "BATCH_HESSIAN_STEPS"]
+__all__ = ["CompiledLoss", "Program", "forward_scores", "score_outer_product",
+           "compile_program", "compiled_loss", "FORWARD_MAX", "BATCH_HESSIAN_STEPS"]
 
 #: forward-mode derivatives (:func:`forward_scores`) for at most this many coordinates; reverse
 #: mode beyond (its cost does not grow with the number of coordinates)
@@ -44,7 +45,9 @@ class CompiledLoss(NamedTuple):
     scores (:func:`score_outer_product`) from the same evaluation. ``grads(F) -> (k, n)``: the
     gradients at the k = 2 n points F (k, n) of the Hessian's central differences
     (:func:`vehjax.tune.hessian_from_gradients`) in one vmapped forward-mode program, or None
-    (:data:`BATCH_HESSIAN_STEPS`). ``stats``: ``mode`` ("forward" or "reverse"),
+    (:data:`BATCH_HESSIAN_STEPS`). ``many(points) -> [vg(p) for p in points]``, the points
+    evaluated side by side on :mod:`vehjax.execution`'s ``side_by_side`` host threads (one
+    evaluation of a filter's scan keeps about one CPU core busy). ``stats``: ``mode`` ("forward" or "reverse"),
     ``compile_seconds``, ``evaluations`` (of vg/vgo; a repeated point is not evaluated again),
     ``batch_compile_seconds`` and ``batch_evaluations`` (of grads)."""
 
@@ -54,6 +57,7 @@ class CompiledLoss(NamedTuple):
     vgo: Callable | None = None
     stats: dict | None = None
     grads: Callable | None = None
+    many: Callable | None = None
 
 
 def forward_scores(per_step, f, data):
@@ -111,20 +115,22 @@ def _program(obj, setup, unravel, n: int, forward: bool):
     return program
 
 
-def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None) -> CompiledLoss:
-    """The compiled loss of a fit (:class:`CompiledLoss`): forward mode for deterministic
-    filters with at most :data:`FORWARD_MAX` coordinates, else ``jax.value_and_grad``;
-    compiled ahead of time once, with the XLA options :mod:`vehjax.execution` gives the
-    estimator's workload. ``batch_hessian`` (forward mode only): also give
-    ``CompiledLoss.grads`` (its program compiled at its first call).
+class Program(NamedTuple):
+    """A fit's program compiled (:func:`compile_program`): ``compiled(f, data) -> (loss, aux,
+    grad, BHHH matrix or None)`` on the flat coordinates f. The fitted values are its argument,
+    so one program serves every start of the same objective (:func:`vehjax.tune.fit` compiles
+    the next stage's program while the nested model is fitted); ``stats`` the compile's."""
 
-    The domain of a deterministic filter's fit: ``box`` = (low (n,), high (n,)) limits the
-    coordinates (:func:`vehjax.tune.boundaries.coordinate_box`), and a point where more runs
-    diverge than at the first point evaluated (the start) is outside too: there the loss is
-    +inf (the gradient that of the nearest point of the box), which every optimiser's line
-    search and the Newton polish reject. Without it a diverged run's log-likelihood, the sum of
-    the steps before (0 on a one-step run), could undercut the finite ones and the optimiser
-    would walk to values where the estimator cannot be built."""
+    compiled: Callable
+    forward: bool
+    options: dict | None
+    stats: dict
+
+
+def compile_program(obj, setup=None) -> Program:
+    """Compile the program of ``obj``'s fit: forward mode for deterministic filters with at
+    most :data:`FORWARD_MAX` coordinates, else ``jax.value_and_grad``; compiled ahead of time,
+    with the XLA options :mod:`vehjax.execution` gives the estimator's workload."""
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
     n = flat.shape[0]
     forward = setup is not None and not setup["stochastic"] and n <= FORWARD_MAX
@@ -134,46 +140,79 @@ def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None) -> Com
     t0, c0 = time.perf_counter(), time.process_time()
     compiled = jax.jit(_program(obj, setup, unravel, n, forward)).lower(
         jnp.asarray(flat), obj.data).compile(compiler_options=options)
-    stats = {"mode": "forward" if forward else "reverse",
-             "compile_seconds": time.perf_counter() - t0,
-             "compile_cpu_seconds": time.process_time() - c0, "evaluations": 0,
+    return Program(compiled, forward, options, {
+        "compile_seconds": time.perf_counter() - t0,
+        "compile_cpu_seconds": time.process_time() - c0})
+
+
+def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None,
+                  compiled: Program | None = None) -> CompiledLoss:
+    """The compiled loss of a fit (:class:`CompiledLoss`) on its program
+    (:func:`compile_program`, or ``compiled``: the same objective's program compiled for
+    another start). ``batch_hessian`` (forward mode only): also give ``CompiledLoss.grads``
+    (its program compiled at its first call).
+
+    The domain of a deterministic filter's fit: ``box`` = (low (n,), high (n,)) limits the
+    coordinates (:func:`vehjax.tune.boundaries.coordinate_box`), and a point where more runs
+    diverge than at the first point evaluated (the start) is outside too: there the loss is
+    +inf (the gradient that of the nearest point of the box), which every optimiser's line
+    search and the Newton polish reject. Without it a diverged run's log-likelihood, the sum of
+    the steps before (0 on a one-step run), could undercut the finite ones and the optimiser
+    would walk to values where the estimator cannot be built."""
+    flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
+    prog = compile_program(obj, setup) if compiled is None else compiled
+    forward, options, compiled = prog.forward, prog.options, prog.compiled
+    stats = {"mode": "forward" if forward else "reverse", **prog.stats, "evaluations": 0,
              "batch_compile_seconds": 0.0, "batch_evaluations": 0, "options": options}
     last = []  # (point, result) of the latest evaluation: the optimiser's last point is the
     # Newton polish's first
     guard = setup is not None and not setup["stochastic"]
     base = []  # the runs diverged at the first point evaluated
 
+    def run(f):  # the compiled program at f (clipped into the box); no shared state touched
+        inside = box is None or not guard or bool(np.all((f >= box[0]) & (f <= box[1])))
+        at = f if inside else np.clip(f, box[0], box[1])
+        v, aux, g, B = compiled(jnp.asarray(at, dtype=flat.dtype), obj.data)
+        return (inside, float(v), aux, np.asarray(g, dtype=float),
+                None if B is None else np.asarray(B, dtype=float), int(np.sum(np.asarray(aux[1]))))
+
+    def judged(f, r):  # counted, judged against the start's divergences, remembered
+        inside, v, aux, g, B, n_div = r
+        stats["evaluations"] += 1
+        if not base:
+            base.append(n_div)
+        v = v if inside and (not guard or n_div <= base[0]) else np.inf
+        out = (v, aux, g, B)
+        last[:] = [f, out]
+        return out
+
     def vgo(f):
         f = np.array(f, dtype=float)
         if last and np.array_equal(last[0], f):
             return last[1]
-        stats["evaluations"] += 1
-        inside = box is None or not guard or bool(np.all((f >= box[0]) & (f <= box[1])))
-        at = f if inside else np.clip(f, box[0], box[1])
-        v, aux, g, B = compiled(jnp.asarray(at, dtype=flat.dtype), obj.data)
-        n_div = int(np.sum(np.asarray(aux[1])))
-        if not base:
-            base.append(n_div)
-        v = float(v) if inside and (not guard or n_div <= base[0]) else np.inf
-        out = (v, aux, np.asarray(g, dtype=float),
-               None if B is None else np.asarray(B, dtype=float))
-        last[:] = [f, out]
-        return out
+        return judged(f, run(f))
 
     def vg(f):
         return vgo(f)[:3]
 
+    def many(points):
+        points = [np.array(p, dtype=float) for p in points]
+        workers = min(len(points), execution.current().side_by_side)
+        if workers <= 1:
+            return [vg(p) for p in points]
+        with ThreadPoolExecutor(workers) as pool:
+            results = list(pool.map(run, points))
+        return [judged(p, r)[:3] for p, r in zip(points, results)]
+
     grads = _batched_gradients(setup["per_step"], unravel, obj, flat, options, stats) \
         if forward and batch_hessian else None
     return CompiledLoss(vg, unravel, np.asarray(flat, dtype=float), vgo if forward else None,
-                        stats, grads)
+                        stats, grads, many)
 
 
 def _batched_gradients(per_step, unravel, obj, flat, options, stats):
     """``CompiledLoss.grads``: the gradient of the loss at 2 n points at once (forward mode,
-    vmapped over the points), compiled at its first call (the first Hessian of the fit), in
-    the caller's thread: XLA:CPU already runs an evaluation on every core, and a compile in a
-    background thread slows the iterations as much as it hides."""
+    vmapped over the points), compiled at its first call (the first Hessian of the fit)."""
     n = flat.shape[0]
 
     def program(F, data):

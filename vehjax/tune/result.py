@@ -210,7 +210,7 @@ def make_result(obj, info, model, best_z, best_aux, history, iters, converged, s
     """The :class:`TuneResult` at ``best_z``, with warnings for diverged runs, quantities on a
     bound and undetermined quantities."""
     ll, div = jax.jit(obj.loss)(best_z, obj.data)[1] if best_aux is None else best_aux
-    v = jax.tree.map(np.asarray, obj.unpack(best_z))
+    v = jax.tree.map(np.asarray, jax.jit(obj.unpack)(best_z))  # one compile, not one an operation
     Q, R, theta, x0_fit = v["Q"], v["R"], v["theta"], v["x0"]
     Q, R = 0.5 * (Q + Q.T), 0.5 * (R + R.T)
     fitted_model = model

@@ -47,14 +47,16 @@ keeps that from being reported.
 
 from __future__ import annotations
 
+import contextvars
 import math
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from .. import validation
-from .driver import fit_from_theta
+from .. import execution, validation
+from .driver import check_options, compile_objective, fit_from_theta
 from .likelihood import NOISE, check_data, objective
 from .result import Comparison, TuneResult
 
@@ -126,6 +128,33 @@ def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, options: dict):
     return res, Comparison(_label(nested), res.loglik, dict(res.values), res.seconds)
 
 
+def _compile_ahead(builder, model, Q0, R0, ys, us, args: dict, options: dict):
+    """The model's program (:func:`~vehjax.tune.driver.compile_objective`) compiled in a second
+    host thread while this one fits the nested model: a future, or None where the platform
+    does one thing at a time (``side_by_side`` of :mod:`vehjax.execution`). ``model`` is at a
+    start that differs from the fit's only in fitted values (steps 2-3 move nothing else), so
+    the program serves every start. The thread runs in a copy of this one's context (the
+    execution strategy in force)."""
+    if execution.current().side_by_side < 2:
+        return None
+    pool = ThreadPoolExecutor(1)
+    future = pool.submit(contextvars.copy_context().run, compile_objective, builder, model, Q0,
+                         R0, ys, us, key=options.get("key"), **args)
+    pool.shutdown(wait=False)  # the thread ends with its compile
+    return future
+
+
+def _compiled(future):
+    """The program compiled ahead, or None: not compiled ahead, or its compile failed (the fit
+    then compiles its own, and raises what is wrong)."""
+    if future is None:
+        return None
+    try:
+        return future.result()
+    except Exception:  # noqa: BLE001 - the fit's own compile reports it
+        return None
+
+
 def _from_nested(model, Q0, R0, args: dict, lin) -> tuple:
     """(model, Q0, R0, args) with the nested fit's values as the start."""
     if lin is None:
@@ -173,20 +202,30 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     validation.choice("start", start, STARTS)
     if not isinstance(compare, (bool, np.bool_)):
         raise ValueError(f"compare: expected True or False, got {compare!r}")
+    check_options(options)
     validation.model(model)
     ys, us, _, _ = check_data(model, measurements, inputs, x0, P0)
     all_floors = model.data_floors(ys, us)
     args = dict(x0=x0, P0=P0, params=params, bounds=bounds, noise=noise, fit_x0=fit_x0,
                 builder_kwargs=builder_kwargs)
     nested = model.nested_model() if compare or start == "data" else None
-    lin = cmp = None
+    lin = cmp = ahead = None
     if nested is not None:
+        ahead = _compile_ahead(builder, model.with_theta(**start_values(
+            model, all_floors, params, bounds)) if start == "data" else model, Q0, R0, ys, us,
+                               args, options)
         lin, cmp = _fit_nested(builder, nested, Q0, R0, ys, us, args, options)
     if start == "data":
         model, Q0, R0, args = _from_nested(model, Q0, R0, args, lin)
         model = model.with_theta(**start_values(model, all_floors, params, bounds))
+    compiled = _compiled(ahead)
+    if compiled is None and cmp is not None:  # one compile for a second start too
+        compiled = compile_objective(builder, model, Q0, R0, ys, us, key=options.get("key"),
+                                     **args)
+
     def one(m):
-        res = fit_from_theta(builder, m, Q0, R0, ys, us, **args, **options, floors=all_floors)
+        res = fit_from_theta(builder, m, Q0, R0, ys, us, **args, **options, floors=all_floors,
+                             compiled=compiled)
         starts.append(({k: float(m.theta[m.param_names.index(k)]) for k in params},
                        res.loglik))
         return res
