@@ -98,22 +98,27 @@ def _hessian_fn(obj, setup, loss, hessian, scales):
     if hessian == "jax":
         hfn = jax.jit(jax.hessian(lambda f, data: obj.loss(loss.unravel(f), data)[0])).lower(
             jnp.asarray(loss.x0), obj.data).compile(compiler_options=loss.stats["options"])
-        return _at_last_point(lambda f: np.asarray(hfn(jnp.asarray(f), obj.data)))
-    return _at_last_point(lambda f: difference_hessian(loss, f, scales))
+        return _AtLastPoint(lambda f: np.asarray(hfn(jnp.asarray(f), obj.data)))
+    return _AtLastPoint(lambda f: difference_hessian(loss, f, scales))
 
 
-def _at_last_point(hess):
+class _AtLastPoint:
     """``hess`` remembering its last point: the Newton polish asks for the curvature where its
-    previous step ended, which that step computed already."""
-    last = []
+    previous step ended, which that step computed already, or kept from where it started when
+    the step was short (:func:`vehjax.tune.optimisers.newton`: :meth:`remember`)."""
 
-    def at(f):
+    def __init__(self, hess):
+        self.hess, self.last = hess, None
+
+    def __call__(self, f):
         f = np.array(f, dtype=float)
-        if not (last and np.array_equal(last[0], f)):
-            last[:] = [f, hess(f)]
-        return last[1]
+        if self.last is None or not np.array_equal(self.last[0], f):
+            self.last = (f, self.hess(f))
+        return self.last[1]
 
-    return at
+    def remember(self, f, H) -> None:
+        """Take H as the curvature at f."""
+        self.last = (np.array(f, dtype=float), H)
 
 
 def _quantity_map(obj, setup, model, unravel):
@@ -166,6 +171,7 @@ def _standard_errors(obj, setup, quantities, loss, x, optimizer, hessian, gtol, 
         free = _bounds_at(obj, setup, quantities, x, loss.vg(x)[2], names)[3]
         for _ in range(3 if optimizer == "scoring" else 1):
             x, aux, g, Hm = opt.newton(loss, x, scales, gtol, hess, free)
+            hess.remember(x, Hm)  # the curvature newton gives for where it ended
             if _free_gradient(g, free) <= gtol:
                 break
     on, J, qnames, free = _bounds_at(obj, setup, quantities, x, g, names)

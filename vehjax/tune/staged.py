@@ -36,7 +36,9 @@ reports nothing against it. A floor's parameter is reported whichever start was 
 Cost: the nested fit (cheaper per evaluation: for the single-track model a linear tyre curve,
 about half the time of the saturating fit on the same drive) plus the model's own fit, which
 from a start near the optimum takes fewer iterations; a second start only where the first
-stayed below the nested model. Measured on the benchmark drives:
+stayed below the nested model, on the same compiled program. Where the host has a core to
+spare (``side_by_side`` of :mod:`vehjax.execution`) the model's program is compiled in a second
+thread while the nested model is fitted. Measured on the benchmark drives:
 ``benchmarks/bench_fit_limit.py``.
 
 The nested model is not exactly nested for the single-track model: its linear tyres use small
@@ -113,19 +115,31 @@ def _nested_likelihood(builder, nested, Q0, R0, ys, us, x0, P0, key, builder_kwa
     return -float(obj.loss(obj.z0, obj.data)[0]) * obj.n_steps
 
 
-def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, options: dict):
-    """(the nested model's :class:`~vehjax.tune.TuneResult` or None, its
-    :class:`~vehjax.tune.result.Comparison`)."""
-    t0 = time.perf_counter()
+def _nested_args(nested, args: dict):
+    """The nested fit's arguments: its parameters among ``params`` and their bounds, the rest
+    as given; None when nothing of it is fitted."""
     params = tuple(p for p in args["params"] if p in nested.param_names)
-    bounds = {k: v for k, v in (args["bounds"] or {}).items() if k in params}
     if not (params or args["noise"] or args["fit_x0"]):
+        return None
+    bounds = {k: v for k, v in (args["bounds"] or {}).items() if k in params}
+    return dict(args, params=params, bounds=bounds or None)
+
+
+def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, nargs, options: dict,
+                compiled=None):
+    """(the nested model's :class:`~vehjax.tune.TuneResult` or None, its
+    :class:`~vehjax.tune.result.Comparison`); ``nargs`` from :func:`_nested_args`, ``compiled``
+    its program or None."""
+    t0 = time.perf_counter()
+    if nargs is None:
         ll = _nested_likelihood(builder, nested, Q0, R0, ys, us, args["x0"], args["P0"],
                                 options.get("key"), args["builder_kwargs"])
         return None, Comparison(_label(nested), ll, {}, time.perf_counter() - t0)
-    res = fit_from_theta(builder, nested, Q0, R0, ys, us, **dict(
-        args, params=params, bounds=bounds or None), **dict(options, standard_errors=False))
-    return res, Comparison(_label(nested), res.loglik, dict(res.values), res.seconds)
+    res = fit_from_theta(builder, nested, Q0, R0, ys, us, **nargs,
+                         **dict(options, standard_errors=False), compiled=compiled)
+    return res, Comparison(_label(nested), res.loglik, dict(res.values),
+                           res.seconds + (0.0 if compiled is None else
+                                          compiled.stats["compile_seconds"]))
 
 
 def _compile_ahead(builder, model, Q0, R0, ys, us, args: dict, options: dict):
@@ -210,11 +224,14 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
                 builder_kwargs=builder_kwargs)
     nested = model.nested_model() if compare or start == "data" else None
     lin = cmp = ahead = None
-    if nested is not None:
+    if nested is not None:  # its program first, then the model's beside its fit
+        nargs = _nested_args(nested, args)
+        nprog = None if nargs is None else compile_objective(
+            builder, nested, Q0, R0, ys, us, key=options.get("key"), **nargs)
         ahead = _compile_ahead(builder, model.with_theta(**start_values(
             model, all_floors, params, bounds)) if start == "data" else model, Q0, R0, ys, us,
                                args, options)
-        lin, cmp = _fit_nested(builder, nested, Q0, R0, ys, us, args, options)
+        lin, cmp = _fit_nested(builder, nested, Q0, R0, ys, us, args, nargs, options, nprog)
     if start == "data":
         model, Q0, R0, args = _from_nested(model, Q0, R0, args, lin)
         model = model.with_theta(**start_values(model, all_floors, params, bounds))
