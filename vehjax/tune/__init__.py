@@ -71,7 +71,8 @@ are returned. Every part of a fit (iterations, line search, curvature) evaluates
 program, the loss and its gradient (:mod:`vehjax.tune.program`); a long fit
 (:data:`vehjax.tune.program.BATCH_HESSIAN_STEPS` run-steps or more, forward mode) also
 compiles the gradient at the Hessian's 2 n central-difference points side by side, which costs
-about 2 evaluations; a shorter one forms the Hessian by forward differences, n evaluations.
+about 2 evaluations; a shorter one forms the Hessian by forward differences, n evaluations
+evaluated at once on the host's cores (``side_by_side`` of :mod:`vehjax.execution`).
 
 How sure (:mod:`vehjax.tune.information`). Every fit reports the standard error of each fitted
 quantity in its units and their correlations (``TuneResult.std_errors``, ``correlations``),
