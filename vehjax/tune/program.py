@@ -47,9 +47,10 @@ class CompiledLoss(NamedTuple):
     (:func:`vehjax.tune.hessian_from_gradients`) in one vmapped forward-mode program, or None
     (:data:`BATCH_HESSIAN_STEPS`). ``many(points) -> [vg(p) for p in points]``, the points
     evaluated side by side on :mod:`vehjax.execution`'s ``side_by_side`` host threads (one
-    evaluation of a filter's scan keeps about one CPU core busy). ``stats``: ``mode`` ("forward" or "reverse"),
-    ``compile_seconds``, ``evaluations`` (of vg/vgo; a repeated point is not evaluated again),
-    ``batch_compile_seconds`` and ``batch_evaluations`` (of grads)."""
+    evaluation of a filter's scan keeps about one CPU core busy). ``stats``: ``mode``
+    ("forward" or "reverse"), ``compile_seconds``, ``evaluations`` (of vg/vgo; a repeated
+    point is not evaluated again), ``batch_compile_seconds`` and ``batch_evaluations`` (of
+    grads)."""
 
     vg: Callable
     unravel: Callable
@@ -161,7 +162,7 @@ def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None,
     would walk to values where the estimator cannot be built."""
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
     prog = compile_program(obj, setup) if compiled is None else compiled
-    forward, options, compiled = prog.forward, prog.options, prog.compiled
+    forward, options, executable = prog.forward, prog.options, prog.compiled
     stats = {"mode": "forward" if forward else "reverse", **prog.stats, "evaluations": 0,
              "batch_compile_seconds": 0.0, "batch_evaluations": 0, "options": options}
     last = []  # (point, result) of the latest evaluation: the optimiser's last point is the
@@ -172,7 +173,7 @@ def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None,
     def run(f):  # the compiled program at f (clipped into the box); no shared state touched
         inside = box is None or not guard or bool(np.all((f >= box[0]) & (f <= box[1])))
         at = f if inside else np.clip(f, box[0], box[1])
-        v, aux, g, B = compiled(jnp.asarray(at, dtype=flat.dtype), obj.data)
+        v, aux, g, B = executable(jnp.asarray(at, dtype=flat.dtype), obj.data)
         return (inside, float(v), aux, np.asarray(g, dtype=float),
                 None if B is None else np.asarray(B, dtype=float), int(np.sum(np.asarray(aux[1]))))
 
