@@ -1,5 +1,6 @@
 """The vehjax command."""
 
+import importlib.metadata
 import subprocess
 import sys
 
@@ -12,6 +13,13 @@ from vehjax import cli
 def test_help_runs_as_a_program():
     out = subprocess.run([sys.executable, "-m", "vehjax.cli", "--help"], capture_output=True, text=True)
     assert out.returncode == 0 and "simulate" in out.stdout and "models" in out.stdout
+
+
+def test_version_prints_the_installed_version():
+    out = subprocess.run([sys.executable, "-m", "vehjax.cli", "--version"], capture_output=True,
+                         text=True)
+    assert out.returncode == 0
+    assert out.stdout.strip() == f"vehjax {importlib.metadata.version('vehjax')}"
 
 
 def test_models_lists_every_model(capsys):

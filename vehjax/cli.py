@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import importlib.util
 import math
 import sys
@@ -216,12 +217,22 @@ def _bench_studies():
             for which in BENCHMARKS]
 
 
+def _version() -> str:
+    """The installed distribution's version (the package metadata, read without importing
+    vehjax's modules), or "unknown" when vehjax runs from a source tree that is not installed."""
+    try:
+        return importlib.metadata.version("vehjax")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import models, scenarios
 
     parser = ArgumentParser(
         prog="vehjax", description="Batched, jitted state and parameter estimation for road vehicles."
     )
+    parser.add_argument("--version", action="version", version=f"vehjax {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("models", help="list every model with its states, inputs, parameters, outputs")

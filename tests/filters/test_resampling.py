@@ -158,9 +158,11 @@ def test_degenerate_weights_stay_in_range():
 
 def test_bad_input_raises_value_error_naming_it():
     lw = jnp.zeros(4)
-    valid = "resampling.*systematic.*stratified.*multinomial.*residual.*bogus"
-    with pytest.raises(ValueError, match=valid):
+    valid = "systematic.*stratified.*multinomial.*residual.*bogus"
+    with pytest.raises(ValueError, match="^scheme: expected.*" + valid):  # its own argument's name
         rs.resample(jax.random.key(0), lw, "bogus")
+    with pytest.raises(ValueError, match="^scheme: "):
+        rs.uniforms_needed("sorted", 4)
     with pytest.raises(ValueError, match="n:"):
         rs.systematic(jax.random.key(0), lw, 0)
     with pytest.raises(ValueError, match="n:"):

@@ -31,10 +31,12 @@ from jax.scipy.special import logsumexp
 SCHEMES = ("systematic", "stratified", "multinomial", "residual")
 
 
-def check_scheme(scheme) -> str:
-    """``scheme`` if it names a resampling scheme, else ValueError listing the valid names."""
+def check_scheme(scheme, arg: str = "resampling") -> str:
+    """``scheme`` if it names a resampling scheme, else ValueError naming ``arg`` (the caller's
+    argument: ``resampling`` of the filter builders, ``scheme`` of :func:`resample`) and listing
+    the valid names."""
     if not isinstance(scheme, str) or scheme not in SCHEMES:
-        raise ValueError(f"resampling: expected one of {SCHEMES}, got {scheme!r}")
+        raise ValueError(f"{arg}: expected one of {SCHEMES}, got {scheme!r}")
     return scheme
 
 
@@ -214,12 +216,12 @@ def resample(key, log_weights, scheme: str = "systematic", n: int | None = None)
         scheme: one of ``SCHEMES``: "systematic", "stratified", "multinomial", "residual".
         n: number of indices to draw; N when omitted.
     """
-    return _PUBLIC[check_scheme(scheme)](key, log_weights, n)
+    return _PUBLIC[check_scheme(scheme, "scheme")](key, log_weights, n)
 
 
 def uniforms_needed(scheme: str, n: int) -> int:
     """How many uniforms a scheme's core consumes for n indices (1 for systematic, else n)."""
-    return 1 if check_scheme(scheme) == "systematic" else n
+    return 1 if check_scheme(scheme, "scheme") == "systematic" else n
 
 
 def indices_from_uniforms(scheme: str, w, u, n: int):
@@ -228,7 +230,7 @@ def indices_from_uniforms(scheme: str, w, u, n: int):
     ``u`` has shape (uniforms_needed(scheme, n),); a scalar is accepted for systematic. This is
     the core the particle filter calls with uniforms it draws together with its process noise.
     """
-    scheme = check_scheme(scheme)
+    scheme = check_scheme(scheme, "scheme")
     if scheme == "residual":
         return _residual_from_weights(w, u, n)
     cdf = cdf_from_weights(w)
