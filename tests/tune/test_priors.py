@@ -73,7 +73,7 @@ def scipy_log_prior(p, priors):
 
 def tune_fit(priors, params=("d",), **kw):
     ys, us = data()
-    return vt.fit(vj.filters.ekf, model(), Q, R, ys, us, x0=X0, P0=P0, params=params,
+    return vt.fit(vj.filters.ekf, model(), [Q], [R], ys, us, x0=X0, P0=P0, params=params,
                   noise=(), priors=priors, progress=False, **kw)
 
 
@@ -145,8 +145,8 @@ def test_contradicting_prior_warns():
 def test_uniform_is_a_box():
     ys, us = data()
     kw = dict(x0=X0, P0=P0, noise=(), progress=False)
-    box = vt.fit(vj.filters.ekf, model(), Q, R, ys, us, priors={"b": Uniform(0.0, 2.0)}, **kw)
-    ref = vt.fit(vj.filters.ekf, model(), Q, R, ys, us, params=("b",), bounds={"b": (0, 2)},
+    box = vt.fit(vj.filters.ekf, model(), [Q], [R], ys, us, priors={"b": Uniform(0.0, 2.0)}, **kw)
+    ref = vt.fit(vj.filters.ekf, model(), [Q], [R], ys, us, params=("b",), bounds={"b": (0, 2)},
                  **kw)
     np.testing.assert_allclose(box.values["b"], ref.values["b"], rtol=1e-9)
     assert box.pulls == {} and "(prior uniform on (0, 2))" in box.summary()
@@ -174,14 +174,14 @@ def test_bad_priors(priors, match):
     m = model(domains={"b": "(0, inf)"})
     for fn in (vt.fit, vt.fit_from_theta):
         with pytest.raises(ValueError, match=match):
-            fn(vj.filters.ekf, m, Q, R, ys, us, x0=X0, P0=P0, noise=(), priors=priors,
+            fn(vj.filters.ekf, m, [Q], [R], ys, us, x0=X0, P0=P0, noise=(), priors=priors,
                progress=False)
 
 
 def test_uniform_beside_other_bounds_refused():
     ys, us = data(n=20)
     with pytest.raises(ValueError, match=r"priors: 'b' has a Uniform prior and bounds"):
-        vt.fit(vj.filters.ekf, model(), Q, R, ys, us, x0=X0, P0=P0, noise=(),
+        vt.fit(vj.filters.ekf, model(), [Q], [R], ys, us, x0=X0, P0=P0, noise=(),
                priors={"b": Uniform(0.0, 2.0)}, bounds={"b": (0.1, 3.0)}, progress=False)
 
 

@@ -20,6 +20,7 @@ from ..progress import Progress
 from . import optimisers as opt
 from . import program
 from . import boundaries
+from . import priors as tune_priors
 from .information import MAX_SCALED_STD, difference_hessian, uncertainty
 from .likelihood import NOISE, prepare
 from .optimisers import GTOL
@@ -292,9 +293,12 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
                          "use 'adam' for a particle filter")
     differences = not setup["stochastic"] and hessian in (None, "differences")
     names, scales = coordinates(setup, model, obj.z0)
+    flat0, unravel0 = jax.flatten_util.ravel_pytree(obj.z0)
+    if setup["log_prior"] is not None:  # a narrow prior: the coordinate's size is its width
+        scales = tune_priors.prior_scales(scales, np.diagonal(np.asarray(program.prior_terms(
+            setup["log_prior"], unravel0, flat0, 1)[2])))
     setup["bounds"] = boundaries.quantity_bounds(setup, model)
-    box = boundaries.coordinate_box(names, jax.flatten_util.ravel_pytree(obj.z0)[0],
-                                    setup["bounds"])
+    box = boundaries.coordinate_box(names, flat0, setup["bounds"])
     loss = program.compiled_loss(obj, setup, batch_hessian=differences and obj.n_steps >=
                                  program.BATCH_HESSIAN_STEPS and (standard_errors or optimizer
                                                                   in (None, "scoring")), box=box,

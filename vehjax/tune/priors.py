@@ -44,7 +44,7 @@ import numpy as np
 from ..filters import bounds as bounds_maps
 from ..lib import priors as lp
 
-__all__ = ["check", "fitted_params", "log_prior_fn", "prior_curvature", "report",
+__all__ = ["check", "fitted_params", "log_prior_fn", "prior_curvature", "prior_scales", "report",
            "prior_text", "pull_warning", "PULL_WARN"]
 
 #: a parameter whose estimate lies more than this many prior standard deviations from its
@@ -97,7 +97,7 @@ def check(priors, model, bounds=None) -> tuple[dict, dict | None]:
     if priors is None or (isinstance(priors, Mapping) and not priors):
         return {}, bounds
     names, values = lp.check_priors(priors)  # the dict and its values, as calibrate checks them
-    out = dict(bounds or {}) if isinstance(bounds, Mapping) else bounds
+    out = dict(bounds or {}) if bounds is None or isinstance(bounds, Mapping) else bounds
     for name, prior in zip(names, values):
         if name not in model.param_names:
             raise ValueError(f"priors: unknown parameter {name!r}; expected model parameters "
@@ -135,6 +135,21 @@ def prior_curvature(hessian):
     floored at 0 so that the BHHH matrix it is added to stays positive semi-definite (a Normal
     prior read through a log coordinate is concave there only above half its mean)."""
     return jnp.diag(jnp.maximum(-jnp.diagonal(hessian), 0.0))
+
+
+def prior_scales(scales, curvature):
+    """The coordinates' natural sizes ``scales`` (n,) narrowed to twice the prior's standard
+    deviation in the coordinate, ``2 / sqrt(c)`` with c (n,) the diagonal of the prior's
+    curvature there (:func:`prior_curvature`, 0 where no prior reads the coordinate). A prior
+    much narrower than the natural size would otherwise make the scaled information
+    ill-conditioned (the other coordinates named undetermined beside it) and the Hessian's
+    difference steps too long; twice its width keeps a parameter the prior alone determines
+    above the size rule of :func:`vehjax.tune.uncertainty`."""
+    scales = np.asarray(scales, dtype=float)
+    c = np.asarray(curvature, dtype=float)
+    with np.errstate(divide="ignore"):
+        return np.where(c > 0, np.minimum(scales, 2.0 / np.sqrt(np.where(c > 0, c, 1.0))),
+                        scales)
 
 
 def report(priors: dict, model, theta) -> tuple[dict, float]:
