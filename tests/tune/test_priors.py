@@ -11,6 +11,7 @@ import math
 import warnings
 
 import jax
+import jax.flatten_util
 import numpy as np
 import pytest
 import scipy.optimize
@@ -190,3 +191,37 @@ def test_lognormal_within():
     assert p == LogNormal(2763.0, 0.3)
     with pytest.raises(ValueError, match="LogNormal.sigma"):
         LogNormal.within(2763.0, 0.0)
+
+
+def test_objective_and_programs_carry_the_penalty():
+    """The loss of vehjax.tune.objective (reverse mode) and the compiled forward-mode program,
+    its BHHH matrix and its batched gradients all see the prior."""
+    ys, us = data(n=100)
+    args = (vj.filters.ekf, model(), [Q], [R], ys, us, X0, P0, ("d",), None, (), False, None,
+            None, PRIORS)
+    obj, setup = vt.prepare(*args)
+    p0 = [0.8, 0.6, 0.2]
+    ref = -(kalman_loglik(p0, ys, us) + scipy_log_prior(p0, PRIORS)) / len(ys)
+    np.testing.assert_allclose(float(obj.loss(obj.z0, obj.data)[0]), ref, rtol=1e-10)
+    loss = vt.program.compiled_loss(obj, setup, batch_hessian=True)
+    v, _, g, B = loss.vgo(loss.x0)
+    np.testing.assert_allclose(v, ref, rtol=1e-10)
+    g_rev = jax.flatten_util.ravel_pytree(jax.grad(lambda z: obj.loss(z, obj.data)[0])(
+        obj.z0))[0]
+    np.testing.assert_allclose(g, np.asarray(g_rev), rtol=1e-8)
+    np.testing.assert_allclose(loss.grads(np.stack([loss.x0] * 6))[0], g, rtol=1e-8)
+    plain_obj, plain_setup = vt.prepare(*args[:8], ("d", "a", "b"), *args[9:-1], None)
+    assert plain_setup["log_prior"] is None and setup["params"] == ("d", "a", "b")
+    # the coordinates: theta = log d, log a, log b (the prior'd parameters after params); the
+    # prior's curvature in log a is (a^2 + (a - mean) a) / std^2 and in log b 1 / sigma^2
+    # (per step), none in d
+    Bp = vt.program.compiled_loss(plain_obj, plain_setup).vgo(loss.x0)[3]
+    a = 0.8
+    expect = np.diag([0.0, (a * a + (a - 0.85) * a) / 0.05**2, 1 / 0.3**2]) / len(ys)
+    np.testing.assert_allclose(B - Bp, expect, rtol=1e-8, atol=1e-12)
+
+
+def test_jax_hessian_gives_the_same_standard_errors(map_fit):
+    res = tune_fit(PRIORS, hessian="jax")
+    for k in ("a", "b", "d"):
+        np.testing.assert_allclose(res.std_errors[k], map_fit.std_errors[k], rtol=1e-4)
