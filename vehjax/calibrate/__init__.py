@@ -19,7 +19,9 @@ What is calibrated (``priors``, a dict name -> prior):
 
 The package, one concern a module:
 
-* :mod:`~vehjax.calibrate.priors`: :class:`Normal`, :class:`LogNormal`, :class:`Uniform`, each
+* :mod:`~vehjax.calibrate.priors` (:mod:`vehjax.lib.priors`, shared with
+  :func:`vehjax.tune.fit`'s ``priors=``: the same dict works in both): :class:`Normal`,
+  :class:`LogNormal`, :class:`Uniform`, each
   with its bijection to the real line (the shared parameter transforms,
   :mod:`vehjax.lib.transforms`); the chain moves in that unconstrained space, and the target
   there is the posterior times the Jacobian of the map back: log p(y | x(z)) + log p(x(z)) +

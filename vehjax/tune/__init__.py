@@ -19,6 +19,18 @@ inside the differentiated function. The optimiser minimises the loss
 ``-sum loglik / (R T)``, the negative mean log-likelihood per step, which is what
 ``history`` records.
 
+Priors (:mod:`vehjax.tune.priors`). ``priors={"iz": LogNormal(2763.0, 0.3), "m":
+Normal(1500.0, 75.0)}`` (the objects of :mod:`vehjax.lib.priors`, the same dict
+:func:`vehjax.calibrate.pmmh` takes; ``LogNormal.within(2763.0, 0.3)`` for "known to 30 %")
+fits each named parameter (added to ``params``) by penalised likelihood: the loss becomes
+``-(sum loglik + sum_j log p_j(theta_j)) / (R T)`` in the physical parameters (the MAP estimate
+in physical coordinates, no Jacobian term), in every part of the fit (loss, gradient, the
+scoring curvature, the Newton polish, the standard errors: the posterior's curvature). A
+Uniform prior is a box (``bounds``). Fixed (``model.theta``) and free (``params=``) are the
+two ends of a prior, very narrow and very wide. ``TuneResult.loglik`` stays the plain
+log-likelihood; ``priors``, ``pulls`` (the estimate's distance from the prior's centre in its
+standard deviations; a warning beyond 3) and ``log_prior`` report the rest.
+
 Where a fit starts (:mod:`vehjax.tune.staged`). By default (``start="data"``) a model that
 nests a simpler one (``model.nested_model()``: the saturating tyres of
 ``SingleTrack(tyres="brush" | "pacejka")`` nest the linear ones) is fitted after it: the nested
@@ -114,7 +126,8 @@ consistent (bias O(1/N)), with a Monte-Carlo error; each run uses the key
 objective unsuitable for a line search.
 
 Modules: :mod:`~vehjax.tune.likelihood` (the objective), :mod:`~vehjax.tune.parameterisation`
-(the coordinates), :mod:`~vehjax.tune.program` (the compiled loss and scores),
+(the coordinates), :mod:`~vehjax.tune.priors` (penalised likelihood),
+:mod:`~vehjax.tune.program` (the compiled loss and scores),
 :mod:`~vehjax.tune.optimisers`, :mod:`~vehjax.tune.information` (observed information, standard
 errors), :mod:`~vehjax.tune.boundaries` (quantities on a bound),
 :mod:`~vehjax.tune.quantities` (names, units, scales), :mod:`~vehjax.tune.result`,
@@ -126,8 +139,8 @@ defaults:
 
 from __future__ import annotations
 
-from . import (boundaries, driver, information, likelihood, optimisers, program, quantities,
-               staged)
+from . import (boundaries, driver, information, likelihood, optimisers, priors, program,
+               quantities, staged)
 from .driver import fit_from_theta, fit_noise
 from .staged import fit
 from .information import Uncertainty, hessian_from_gradients, uncertainty

@@ -20,6 +20,7 @@ from ..progress import Progress
 from . import optimisers as opt
 from . import program
 from . import boundaries
+from . import priors as tune_priors
 from .information import MAX_SCALED_STD, difference_hessian, uncertainty
 from .likelihood import NOISE, prepare
 from .optimisers import GTOL
@@ -188,7 +189,7 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
                    patience: int | None = None, gtol: float = GTOL, key=None,
                    builder_kwargs=None, progress: bool = True, standard_errors: bool = True,
                    hessian: str | None = None, floors=None,
-                   compiled: program.Program | None = None) -> TuneResult:
+                   compiled: program.Program | None = None, priors=None) -> TuneResult:
     """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum likelihood,
     with standard errors, from one start: ``model.theta``, Q0, R0 and the given input noise as
     they are (:func:`vehjax.tune.fit` chooses the start from the data first).
@@ -254,6 +255,16 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
         floors: ``{parameter name: least value the data allow}`` (``model.data_floors``), or
             None: a parameter that ends far below its floor is reported
             (``TuneResult.below_floor``), not called undetermined.
+        priors: ``{parameter name: prior}`` with the prior objects of
+            :mod:`vehjax.lib.priors` (``Normal(mean, std)``, ``LogNormal(median, sigma)``,
+            ``LogNormal.within(value, 0.3)`` for "known to 30 %", ``Uniform(low, high)``; the
+            dict :func:`vehjax.calibrate.pmmh` takes): each named parameter is fitted (added
+            to ``params``) by penalised likelihood, log L + log prior in the physical
+            parameters (the MAP estimate in physical coordinates, no Jacobian term), the
+            penalty in the loss, its gradient, the scoring curvature, the Newton polish and the
+            standard errors (the posterior's curvature); a Uniform is a box (its ``bounds``).
+            ``TuneResult.loglik`` stays the plain log-likelihood; ``priors``, ``pulls`` and
+            ``log_prior`` report the rest (:mod:`vehjax.tune.priors`).
         compiled: the program of this fit's objective compiled for another start, differing
             only in the fitted values (:func:`compile_objective`; :func:`vehjax.tune.fit`
             compiles the next stage's while it fits the nested model); None (default):
@@ -268,21 +279,26 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
     Raises:
         ValueError: naming the argument, before anything is traced: an unknown parameter name,
             wrong shapes, a Q0/R0/P0 that is not positive definite, learning_rate <= 0,
-            steps < 1, an unknown optimizer, a missing key, nothing to fit.
+            steps < 1, an unknown optimizer, a missing key, nothing to fit; ``priors``
+            naming the parameter: an unknown name, no prior object, a prior outside the
+            parameter's domain (:func:`vehjax.tune.priors.check`).
     """
     t_start = time.perf_counter()
     learning_rate, tol, gtol = _check_fit_options(learning_rate, tol, gtol, hessian, steps,
                                                   patience, optimizer)
     obj, setup = prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
-                         noise, fit_x0, key, builder_kwargs)
+                         noise, fit_x0, key, builder_kwargs, priors)
     if optimizer == "scoring" and setup["stochastic"]:
         raise ValueError("optimizer: 'scoring' needs a deterministic filter (EKF, UKF, CKF); "
                          "use 'adam' for a particle filter")
     differences = not setup["stochastic"] and hessian in (None, "differences")
     names, scales = coordinates(setup, model, obj.z0)
+    flat0, unravel0 = jax.flatten_util.ravel_pytree(obj.z0)
+    if setup["log_prior"] is not None:  # a narrow prior: the coordinate's size is its width
+        scales = tune_priors.prior_scales(scales, np.diagonal(np.asarray(program.prior_terms(
+            setup["log_prior"], unravel0, flat0, 1)[2])))
     setup["bounds"] = boundaries.quantity_bounds(setup, model)
-    box = boundaries.coordinate_box(names, jax.flatten_util.ravel_pytree(obj.z0)[0],
-                                    setup["bounds"])
+    box = boundaries.coordinate_box(names, flat0, setup["bounds"])
     loss = program.compiled_loss(obj, setup, batch_hessian=differences and obj.n_steps >=
                                  program.BATCH_HESSIAN_STEPS and (standard_errors or optimizer
                                                                   in (None, "scoring")), box=box,
@@ -336,13 +352,13 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
 
 def compile_objective(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
                       bounds=None, noise=NOISE, fit_x0: bool = False, key=None,
-                      builder_kwargs=None) -> program.Program:
+                      builder_kwargs=None, priors=None) -> program.Program:
     """The program :func:`fit_from_theta` compiles for these arguments, to hand to fits of the
     same objective from other starts (``compiled=``): the fitted values are the program's
     argument, everything else (the data, the model's other parameters, the noise not fitted)
     its constants."""
     obj, setup = prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
-                         noise, fit_x0, key, builder_kwargs)
+                         noise, fit_x0, key, builder_kwargs, priors)
     return program.compile_program(obj, setup)
 
 

@@ -21,6 +21,7 @@ from ..filters.base import Estimator
 from ..filters.particle import bootstrap_pf
 from .parameterisation import Cov, InputNoise, is_diag, param_transform
 from .particle import resample_keyword, stop_gradient_pf
+from . import priors as tune_priors
 
 __all__ = ["Objective", "objective", "prepare", "check_data", "NOISE", "NOISE_KINDS"]
 
@@ -66,8 +67,11 @@ def _check_builder(builder):
     return builder
 
 
-def _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs) -> dict:
-    """The fitted quantities and their starting values checked: a dict of the set-up."""
+def _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs,
+                priors=None) -> dict:
+    """The fitted quantities and their starting values checked: a dict of the set-up (the
+    prior'd parameters added to ``params``, a Uniform prior's box to ``bounds``:
+    :mod:`vehjax.tune.priors`)."""
     nx, ny = len(model.state_names), len(model.output_names)
     noise = validation.names("noise", noise, NOISE_KINDS, allow_empty=True)
     # a Q0 that is not fitted may be singular (zero with the noise through the inputs)
@@ -78,6 +82,8 @@ def _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs) ->
         raise ValueError("params: expected a sequence of parameter names; give their bounds in "
                          "bounds={name: (lo, hi)}")
     params = validation.names("params", params, names, allow_empty=True)
+    priors, bounds = tune_priors.check(priors, model, bounds)
+    params = tune_priors.fitted_params(params, priors)
     theta0 = np.asarray(model.theta, dtype=float)
     idx, theta_map = param_transform(params, bounds, theta0, names, model.param_domains())
     if not isinstance(fit_x0, (bool, np.bool_)):
@@ -98,7 +104,8 @@ def _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs) ->
         inp = InputNoise(builder_kwargs["input_noise"], model)
     return dict(builder_kwargs=builder_kwargs, params=params, noise=noise, Qa=Qa, Ra=Ra,
                 diagQ=np.ndim(Q0) == 1 or is_diag(Qa), diagR=np.ndim(R0) == 1 or is_diag(Ra),
-                theta0=theta0, idx=idx, fit_x0=fit_x0, input=inp, theta_map=theta_map)
+                theta0=theta0, idx=idx, fit_x0=fit_x0, input=inp, theta_map=theta_map,
+                priors=priors, prior_fn=tune_priors.log_prior_fn(priors, names))
 
 
 def check_data(model, measurements, inputs, x0, P0):
@@ -200,39 +207,54 @@ def _per_step(builder, model, setup: dict, unpack, sg: dict):
     return per_step
 
 
+def _log_prior(setup: dict, unpack):
+    """``log_prior(z) -> ()``: the priors' log density at the physical parameters of z
+    (:func:`vehjax.tune.priors.log_prior_fn`), or None without a penalising prior."""
+    fn = setup["prior_fn"]
+    if fn is None or "theta" not in setup["z0"]:
+        return None
+    return lambda z: fn(unpack(z)["theta"])
+
+
 def prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds, noise,
-            fit_x0, key, builder_kwargs):
+            fit_x0, key, builder_kwargs, priors=None):
     """Everything checked before tracing (ValueError naming the argument): the
     :class:`Objective` and a dict of the fit's set-up (the builder, the starting values, the
-    parameterisations, ``per_step``, ``stochastic``, ...) for the optimisers and the report."""
+    parameterisations, ``per_step``, ``log_prior``, ``stochastic``, ...) for the optimisers
+    and the report. With ``priors`` (:mod:`vehjax.tune.priors`) the loss is the penalised one,
+    ``-(sum loglik + log prior) / (R T)``; its aux stays the plain log-likelihood per run."""
     builder = _check_builder(builder)
     validation.model(model)
-    setup = _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs)
+    setup = _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs, priors)
     ys, us, x0a, P0a = check_data(model, measurements, inputs, x0, P0)
     n_runs, T, _ = ys.shape
     est0, sg, keys = _start_estimator(builder, model, setup, key, n_runs)
     setup.update(x0=x0a, P0=P0a)
     z0, unpack = _coordinates(setup)
     per_step = _per_step(builder, model, setup, unpack, sg)
+    setup["z0"] = z0
+    log_prior = _log_prior(setup, unpack)
 
     def loss(z, data):
         lls, div = per_step(z, data)
         ll = jnp.sum(lls, axis=-1)
-        return -jnp.sum(ll) / (n_runs * T), (ll, div)
+        total = jnp.sum(ll) if log_prior is None else jnp.sum(ll) + log_prior(z)
+        return -total / (n_runs * T), (ll, div)
 
     data = (jnp.asarray(ys), None if us is None else jnp.asarray(us), jnp.asarray(x0a),
             jnp.asarray(P0a), keys)
     setup.update(name=est0.name, builder=builder, stochastic=bool(est0.needs_key),
-                 per_step=per_step, workload=est0.workload)
+                 per_step=per_step, workload=est0.workload, log_prior=log_prior,
+                 log_prior0=0.0 if log_prior is None else float(log_prior(z0)))
     return Objective(loss, z0, data, unpack, n_runs * T), setup
 
 
 def objective(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
               bounds=None, noise=NOISE, fit_x0: bool = False, key=None,
-              builder_kwargs=None) -> Objective:
+              builder_kwargs=None, priors=None) -> Objective:
     """The objective of :func:`vehjax.tune.fit` (same arguments), to evaluate, differentiate
     or optimise with tools of one's own: ``obj.loss(obj.z0, obj.data)``,
     ``obj.unpack(z)["Q"]``."""
     obj, _ = prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
-                     noise, fit_x0, key, builder_kwargs)
+                     noise, fit_x0, key, builder_kwargs, priors)
     return obj

@@ -21,9 +21,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import execution
+from . import priors as tune_priors
 
 __all__ = ["CompiledLoss", "Program", "forward_scores", "score_outer_product",
-           "compile_program", "compiled_loss", "FORWARD_MAX", "BATCH_HESSIAN_STEPS"]
+           "compile_program", "compiled_loss", "prior_terms", "FORWARD_MAX",
+           "BATCH_HESSIAN_STEPS"]
 
 #: forward-mode derivatives (:func:`forward_scores`) for at most this many coordinates; reverse
 #: mode beyond (its cost does not grow with the number of coordinates)
@@ -95,17 +97,35 @@ def score_outer_product(scores, n_steps: int):
     return (s @ s.T) / n_steps
 
 
+def prior_terms(log_prior, unravel, f, n_steps: int, curvature: bool = True):
+    """(value, gradient (n,), curvature (n, n) or None) of the prior's penalty on the loss at
+    the flat coordinates f: minus the log prior (``log_prior(z)``, :mod:`vehjax.tune.priors`)
+    over ``n_steps``, its gradient (reverse mode: a few scalar operations, nothing of the
+    filter) and its Hessian floored to a positive semi-definite diagonal
+    (:func:`vehjax.tune.priors.prior_curvature`), the term the BHHH matrix of the penalised
+    loss gets; zeros when ``log_prior`` is None."""
+    if log_prior is None:
+        return 0.0, jnp.zeros_like(f), (jnp.zeros((f.shape[0],) * 2, f.dtype) if curvature
+                                          else None)
+    fn = lambda g: log_prior(unravel(g))  # noqa: E731
+    v, g = jax.value_and_grad(fn)(f)
+    H = tune_priors.prior_curvature(jax.hessian(fn)(f)) / n_steps if curvature else None
+    return -v / n_steps, -g / n_steps, H
+
+
 def _program(obj, setup, unravel, n: int, forward: bool):
-    """The function compiled: ``(f, data) -> (loss, aux, grad, BHHH matrix or None)``."""
+    """The function compiled: ``(f, data) -> (loss, aux, grad, BHHH matrix or None)``; with
+    priors the loss, gradient and BHHH matrix of the penalised loss (:func:`prior_terms`)."""
     if forward:
-        per_step = setup["per_step"]
+        per_step, log_prior = setup["per_step"], setup.get("log_prior")
 
         def program(f, data):
             ll, dll, lls_div = forward_scores(lambda g, d: per_step(unravel(g), d), f, data)
-            loss = -jnp.sum(ll) / obj.n_steps
-            grad = -jnp.sum(dll.reshape(n, -1), axis=1) / obj.n_steps
-            return loss, (jnp.sum(ll, axis=-1), lls_div), grad, score_outer_product(dll,
-                                                                                     obj.n_steps)
+            pv, pg, pH = prior_terms(log_prior, unravel, f, obj.n_steps)
+            loss = -jnp.sum(ll) / obj.n_steps + pv
+            grad = -jnp.sum(dll.reshape(n, -1), axis=1) / obj.n_steps + pg
+            return (loss, (jnp.sum(ll, axis=-1), lls_div), grad,
+                    score_outer_product(dll, obj.n_steps) + pH)
         return program
     vgf = jax.value_and_grad(lambda f, data: obj.loss(unravel(f), data), has_aux=True)
 
@@ -205,21 +225,24 @@ def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None,
             results = list(pool.map(run, points))
         return [judged(p, r)[:3] for p, r in zip(points, results)]
 
-    grads = _batched_gradients(setup["per_step"], unravel, obj, flat, options, stats) \
+    grads = _batched_gradients(setup, unravel, obj, flat, options, stats) \
         if forward and batch_hessian else None
     return CompiledLoss(vg, unravel, np.asarray(flat, dtype=float), vgo if forward else None,
                         stats, grads, many)
 
 
-def _batched_gradients(per_step, unravel, obj, flat, options, stats):
-    """``CompiledLoss.grads``: the gradient of the loss at 2 n points at once (forward mode,
-    vmapped over the points), compiled at its first call (the first Hessian of the fit)."""
+def _batched_gradients(setup, unravel, obj, flat, options, stats):
+    """``CompiledLoss.grads``: the gradient of the (penalised) loss at 2 n points at once
+    (forward mode, vmapped over the points), compiled at its first call (the first Hessian of
+    the fit)."""
     n = flat.shape[0]
+    per_step, log_prior = setup["per_step"], setup.get("log_prior")
 
     def program(F, data):
         def one(f):
             _, dll, _ = forward_scores(lambda g, d: per_step(unravel(g), d), f, data)
-            return -jnp.sum(dll.reshape(n, -1), axis=1) / obj.n_steps
+            pg = prior_terms(log_prior, unravel, f, obj.n_steps, curvature=False)[1]
+            return -jnp.sum(dll.reshape(n, -1), axis=1) / obj.n_steps + pg
 
         return jax.vmap(one)(F)
 

@@ -11,6 +11,7 @@ import jax
 import numpy as np
 
 from ..filters.base import Estimator
+from . import priors as tune_priors
 from .quantities import fitted_quantities
 
 __all__ = ["TuneResult", "Comparison", "make_result", "below_floors", "FLOOR_FRACTION"]
@@ -117,6 +118,16 @@ class TuneResult(NamedTuple):
             reaches (a warning gives both values).
         starts: ``((start values by name, log-likelihood reached), ...)``, one per start
             :func:`vehjax.tune.fit` tried, in order; the result is the best of them.
+        priors: ``{name: prior}`` as given (``priors=``, :mod:`vehjax.tune.priors`); {} for a
+            plain maximum-likelihood fit. ``loglik`` (and ``loglik0``) stay the plain
+            log-likelihood, without the prior; ``history`` records the penalised loss.
+        pulls: ``{name: pull}`` of each Normal / LogNormal prior: the estimate's distance from
+            the prior's centre in the prior's standard deviations, in its own coordinate
+            (``(x - mean) / std``, ``(log x - log median) / sigma``; signed). Beyond
+            :data:`vehjax.tune.priors.PULL_WARN` a warning says the data contradict the stated
+            value.
+        log_prior: the sum of the priors' log densities at the estimate (0.0 without priors);
+            ``loglik + log_prior`` is what the fit maximised.
     """
 
     Q: np.ndarray
@@ -153,6 +164,10 @@ class TuneResult(NamedTuple):
     nested: Comparison | None = None
     below_nested: bool = False
     starts: tuple = ()
+    # priors
+    priors: dict = {}
+    pulls: dict = {}
+    log_prior: float = 0.0
 
     def summary(self) -> str:
         """A text table of the fitted values with their units and the log-likelihood."""
@@ -166,7 +181,9 @@ class TuneResult(NamedTuple):
             se = self.std_errors.get(k)
             pm = "" if se is None or k in self.on_bound else f" +- {se:.3g}"
             lines.append(f"  {k:<{width}} = {v:.6g}{pm} [{self.units[k]}]" + (
-                f" {bound_text(k, *self.on_bound[k])}" if k in self.on_bound else ""))
+                f" {bound_text(k, *self.on_bound[k])}" if k in self.on_bound else "") + (
+                f" {tune_priors.prior_text(self.priors[k], self.pulls.get(k))}" if k in self.priors
+                else ""))
         if self.undetermined:
             lines.append(f"  not determined by the data: {', '.join(self.undetermined)}")
         for k, (v, floor) in self.below_floor.items():
@@ -243,6 +260,11 @@ def make_result(obj, info, model, best_z, best_aux, history, iters, converged, s
                 f"vehjax.tune: the data do not determine {', '.join(undetermined)} (no or too "
                 f"little curvature of the log-likelihood; their standard errors are inf): "
                 f"fix them, or give data that excite them", stacklevel=3)
+    priors = dict(info.get("priors") or {})
+    pulls, log_prior = tune_priors.report(priors, model, theta)
+    message = tune_priors.pull_warning(priors, pulls, values)
+    if message:
+        warnings.warn(message, stacklevel=3)
     on_bound = dict(on_bound or {})
     if on_bound:
         warnings.warn("vehjax.tune: " + "; ".join(
@@ -252,9 +274,11 @@ def make_result(obj, info, model, best_z, best_aux, history, iters, converged, s
         Q=Q, R=R, theta=np.asarray(theta),
         params={p: float(theta[model.param_names.index(p)]) for p in info["params"]},
         x0=x0_fit, model=fitted_model, estimator=estimator,
-        loglik=float(np.sum(np.asarray(ll))), loglik0=-history[0] * obj.n_steps,
+        loglik=float(np.sum(np.asarray(ll))),
+        loglik0=-history[0] * obj.n_steps - info.get("log_prior0", 0.0),
         history=np.asarray(history), iterations=iters, converged=converged, diverged=n_div,
         skipped=skipped, values=values, units=units, seconds=time.perf_counter() - t_start,
         std_errors=se, correlations=corr, undetermined=undetermined, gradient=grad_max,
         input_noise=kw.get("input_noise"), on_bound=on_bound, below_floor=below,
+        priors=priors, pulls=pulls, log_prior=log_prior,
     )

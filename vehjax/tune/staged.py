@@ -59,6 +59,7 @@ import numpy as np
 
 from .. import execution, validation
 from .driver import check_options, compile_objective, fit_from_theta
+from . import priors as tune_priors
 from .likelihood import NOISE, check_data, objective
 from .result import Comparison, TuneResult
 
@@ -122,7 +123,8 @@ def _nested_args(nested, args: dict):
     if not (params or args["noise"] or args["fit_x0"]):
         return None
     bounds = {k: v for k, v in (args["bounds"] or {}).items() if k in params}
-    return dict(args, params=params, bounds=bounds or None)
+    priors = {k: v for k, v in args["priors"].items() if k in params}
+    return dict(args, params=params, bounds=bounds or None, priors=priors)
 
 
 def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, nargs, options: dict,
@@ -187,14 +189,17 @@ def _from_nested(model, Q0, R0, args: dict, lin) -> tuple:
 
 def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(), bounds=None,
         noise=NOISE, fit_x0: bool = False, start: str = "data", compare: bool = True,
-        builder_kwargs=None, **options) -> TuneResult:
+        builder_kwargs=None, priors=None, **options) -> TuneResult:
     """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum
     likelihood, with standard errors, from a start the data give (module docstring).
 
     Args:
         builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds, noise, fit_x0,
-        builder_kwargs: as :func:`vehjax.tune.driver.fit_from_theta` (``model.theta`` the
-            starting parameter values where ``start="theta"``).
+        builder_kwargs, priors: as :func:`vehjax.tune.driver.fit_from_theta`
+            (``model.theta`` the starting parameter values where ``start="theta"``; a
+            parameter in ``priors`` is fitted, by penalised likelihood:
+            :mod:`vehjax.tune.priors`; the nested model's fit takes the priors of its
+            parameters, and of two starts the higher penalised likelihood is kept).
         start: ``"data"`` (default): the nested model's fit and the data's floors give the
             start (module docstring, steps 1-3); ``"theta"``: ``model.theta``, Q0, R0 and the
             given input noise as they are.
@@ -220,8 +225,12 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     validation.model(model)
     ys, us, _, _ = check_data(model, measurements, inputs, x0, P0)
     all_floors = model.data_floors(ys, us)
+    priors, bounds = tune_priors.check(priors, model, bounds)
+    if priors:  # the prior'd parameters fitted; the names checked here, before the nested fit
+        params = tune_priors.fitted_params(
+            validation.names("params", params, model.param_names, allow_empty=True), priors)
     args = dict(x0=x0, P0=P0, params=params, bounds=bounds, noise=noise, fit_x0=fit_x0,
-                builder_kwargs=builder_kwargs)
+                builder_kwargs=builder_kwargs, priors=priors)
     nested = model.nested_model() if compare or start == "data" else None
     lin = cmp = ahead = None
     if nested is not None:  # its program first, then the model's beside its fit
@@ -253,7 +262,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
         second = start_values(model, all_floors, params, bounds, second=True)
         if second:
             res = one(model.with_theta(**second))
-            best = res if res.loglik > best.loglik else best
+            best = res if res.loglik + res.log_prior > best.loglik + best.log_prior else best
     below = compare and cmp is not None and best.loglik < cmp.loglik - BELOW_NESTED
     if below:
         warnings.warn(
