@@ -408,3 +408,20 @@ def test_nan_reference_column_is_skipped_by_the_filter(cls):
     c = vehjax.filter(vehjax.filters.ekf(ref, Q, np.diag([0.09, 2.5e-5, 0.01, 1e-4])), ys_ok,
                       u, x0, P0)
     assert abs(float(np.sum(c.loglik)) - float(np.sum(a.loglik))) > 1.0
+
+
+@pytest.mark.slow
+def test_fit_of_a_lagged_reference_model_goes_through_the_nested_start():
+    # vehjax.tune.fit's staged start fits the nested (lagged linear, same states and outputs)
+    # model first with the same Q0 and R0 (a minute on 2 cores)
+    m = SingleTrackLag(tyres="brush", references=("vy",))
+    scn = vehjax.scenarios.double_lane_change(m, speed=20.0)
+    sim = vehjax.simulate(m, scn, runs=1, key=jax.random.key(0), meas_std=[0.3, 0.005, 0.05])
+    us = np.asarray(sim.inputs)
+    res = vehjax.tune.fit(vehjax.filters.ekf, m.with_theta(cf=1.0e5),
+                          np.diag([1e-4, 1e-5, 1e4, 1e4]), np.diag([0.09, 2.5e-5, 0.0025]),
+                          np.asarray(sim.measurements[0]), us[0] if us.ndim == 3 else us,
+                          x0=np.zeros(4), P0=np.diag([1e-2, 1e-3, 1e6, 1e6]), params=("cf",))
+    assert res.nested is not None and "cf" in res.nested.values
+    assert res.values["cf"] == pytest.approx(1.2e5, rel=0.02)
+    assert res.values["R[vy,vy]"] == pytest.approx(0.05**2, rel=0.2)
