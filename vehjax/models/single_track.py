@@ -47,6 +47,13 @@ or larger dt. The elementary functions are jax.numpy's (they compile in a fracti
 :mod:`vehjax.elementary`'s vectorisable ones, which pay off only in large particle filters).
 tests/models/test_single_track.py checks the rollout against scipy's ``solve_ivp`` of
 these equations.
+
+Options (:mod:`vehjax.models.sensors`; off by default, which is the model above): ``lever_arm``
+puts the accelerometer at (xa, ya) [m] in the body frame (two parameters appended to theta; it
+reads ay + xa r' - ya r^2), ``references`` appends reference outputs (vy [m/s], beta [rad]) for
+a calibration drive with an INS or an optical sensor. The tyre-lag variant, whose axle forces
+are states that relax to the curve over a relaxation length, is
+:class:`~vehjax.models.SingleTrackLag` (:mod:`vehjax.models.tyre_lag`).
 """
 
 from __future__ import annotations
