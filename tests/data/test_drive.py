@@ -199,3 +199,34 @@ def test_errors(tmp_path):
         Drive.from_csv(tmp_path / "d.csv")
     with pytest.raises(ValueError, match="path"):
         Drive.from_csv(tmp_path / "nothing.csv")
+
+
+# -- reference channels onto reference outputs -------------------------------------------------
+def test_reference_channel_feeds_a_reference_output(rav4):
+    model = SingleTrack(dt=0.01, references=("vy",))
+    u, y = rav4.for_model(model, names={"ref_vy": "vy"})
+    u0, y0 = rav4.for_model(SingleTrack(dt=0.01))
+    np.testing.assert_array_equal(u, u0)
+    np.testing.assert_array_equal(y[:, :2], y0)
+    np.testing.assert_array_equal(y[:, 2], rav4.reference["ref_vy"])
+    assert np.isfinite(y[:, 2]).mean() > 0.9
+    # a drive without it: the column is NaN when asked, else an error naming the option
+    _, y_missing = rav4.for_model(model, missing_outputs=("vy",))
+    np.testing.assert_array_equal(y_missing[:, :2], y0)
+    assert np.all(np.isnan(y_missing[:, 2]))
+    with pytest.raises(ValueError, match="output 'vy' has no signal.*missing_outputs"):
+        rav4.for_model(model)
+    # never by its name alone, never onto an input
+    d = Drive.from_arrays(rav4.t, {"delta": rav4.signals["delta"], "vx": rav4.signals["vx"],
+                                   "ay": rav4.signals["ay"], "r": rav4.signals["r"],
+                                   "vy": rav4.reference["ref_vy"]},
+                          {"delta": "rad", "vx": "m/s", "ay": "m/s^2", "r": "rad/s",
+                           "vy": "m/s"}, reference=("vy",))
+    with pytest.raises(ValueError, match="reference channels, for outputs: \\['vy'\\]"):
+        d.for_model(model)
+    np.testing.assert_array_equal(d.for_model(model, names={"vy": "vy"})[1][:, 2],
+                                  rav4.reference["ref_vy"])
+    with pytest.raises(ValueError, match="reference channel 'ref_vy' can feed a model output"):
+        rav4.for_model(model, names={"ref_vy": "vx"})
+    with pytest.raises(ValueError, match="units: signal 'ref_yaw_rate' is in 'rad/s'"):
+        rav4.for_model(model, names={"ref_yaw_rate": "vy"})

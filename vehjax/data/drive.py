@@ -347,10 +347,17 @@ class Drive:
         Missing samples of the measurements stay NaN (a filter skips them); inputs must be
         complete.
 
+        A :attr:`reference` channel feeds a model output only when ``names`` maps it there
+        (``names={"ref_vy": "vy"}`` for a model with a reference output, e.g.
+        ``SingleTrack(references=("vy",))``), never by its name alone and never an input. A drive
+        without the reference runs such a model with ``missing_outputs=("vy",)``: that column
+        is NaN, which filters skip.
+
         Args:
             model: any vehjax model (``dt``, ``input_names``/``output_names``, optionally
                 ``input_units``/``output_units``, or a Model's ``units=``).
-            names: column name -> model input/output name.
+            names: column name (a signal, or a reference channel for an output) -> model
+                input/output name.
             missing_outputs: model outputs with no column in this drive, returned as NaN
                 (e.g. a bank angle that was not measured); any other absent one is an error.
             max_gap: passed to :meth:`resample`.
@@ -362,9 +369,14 @@ class Drive:
         """
         names = dict(names or {})
         for col, target in names.items():
+            if col in self.reference and col not in self.signals:
+                if target not in model.output_names:
+                    raise ValueError(f"names: the reference channel {col!r} can feed a model "
+                                     f"output only ({model.output_names}), not {target!r}")
+                continue
             if col not in self.signals:
                 raise ValueError(f"names: no signal {col!r} in this drive; signals: "
-                                 f"{sorted(self.signals)}")
+                                 f"{sorted(self.signals)}, reference: {sorted(self.reference)}")
             if target not in (*model.input_names, *model.output_names):
                 raise ValueError(f"names: {target!r} is not an input or output of the model "
                                  f"({model.input_names}, {model.output_names})")
@@ -393,21 +405,25 @@ class Drive:
             if target in absent:
                 cols.append(np.full(len(self.t), np.nan))
                 continue
-            if col not in self.signals:
+            mapped_reference = target in source and col in self.reference
+            if col not in self.signals and not mapped_reference:
                 raise ValueError(
                     f"names: the model's {kind} {target!r} has no signal; map a column onto it "
                     f"with names={{'<column>': {target!r}}}"
                     + (" or list it in missing_outputs" if kind == "output" else "")
-                    + f" (signals: {sorted(self.signals)})")
+                    + f" (signals: {sorted(self.signals)}"
+                    + (f"; reference channels, for outputs: {sorted(self.reference)}"
+                       if kind == "output" and self.reference else "") + ")")
+            values = self.reference[col] if mapped_reference else self.signals[col]
             if unit is None:                      # the model declares no unit: no check
-                cols.append(self.signals[col])
+                cols.append(values)
                 continue
             if UNITS[unit][0] != self.units[col]:
                 raise ValueError(
                     f"units: signal {col!r} is in {self.units[col]!r} but the model's {kind} "
                     f"{target!r} is in {unit!r}; map a column in {UNITS[unit][0]!r} onto it"
                     + (hint(target, self.units[col]) if hint else ""))
-            cols.append(self.signals[col] / UNITS[unit][1])
+            cols.append(values / UNITS[unit][1])
         return np.stack(cols, axis=1)
 
     def __repr__(self) -> str:

@@ -9,9 +9,10 @@ from .dynamic import Dynamic3DOF
 from .kinematic import KinematicBicycle
 from .sevendof import SevenDOF
 from .single_track import SingleTrack
+from .tyre_lag import SingleTrackLag
 
 __all__ = ["BaseModel", "Model", "VehicleModel", "integrate", "KinematicBicycle", "Dynamic3DOF",
-           "SingleTrackBank", "SevenDOF", "SingleTrack", "virtual_yaw_rate",
+           "SingleTrackBank", "SevenDOF", "SingleTrack", "SingleTrackLag", "virtual_yaw_rate",
            "VirtualScaleBank", "virtual_yaw_reading", "with_output_biases",
            "with_input_offset", "Interval", "ParamDomains"]
 
@@ -22,4 +23,5 @@ REGISTRY = {
     "SevenDOF": SevenDOF,
     "SingleTrackBank": SingleTrackBank,
     "SingleTrack": SingleTrack,
+    "SingleTrackLag": SingleTrackLag,
 }

@@ -193,3 +193,15 @@ SPEED_LIMIT = 300.0
 #: a yaw, roll or wheel-free rate [rad/s] far beyond a car's (a car spinning at 20 rad/s turns
 #: three times a second)
 RATE_LIMIT = 20.0
+#: a lateral axle force [N] beyond any road vehicle's (mu = 3 on a 34 t axle load)
+FORCE_LIMIT = 1.0e6
+
+#: a tyre's relaxation length [m]
+RELAXATION = interval(
+    "(0.01, 10)", "a relaxation length is positive (a physical necessity: the force's time "
+    "constant sigma / vx divides by it). The bounds are vehjax's convention: car tyres have "
+    "0.3-1.5 m and truck tyres up to about 2 m (of the order of the contact patch's length "
+    "to a tyre's radius); 10 m leaves room for a lag that also takes up the steering's and "
+    "the suspension's compliance. Below 0.01 m the time constant (0.5 ms at 20 m/s) is far "
+    "below any sampling period: the lag is then neither identifiable nor worth its stiffness "
+    "(use SingleTrack, the limit sigma -> 0)")

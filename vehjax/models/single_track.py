@@ -47,9 +47,18 @@ or larger dt. The elementary functions are jax.numpy's (they compile in a fracti
 :mod:`vehjax.elementary`'s vectorisable ones, which pay off only in large particle filters).
 tests/models/test_single_track.py checks the rollout against scipy's ``solve_ivp`` of
 these equations.
+
+Options (:mod:`vehjax.models.sensors`; off by default, which is the model above): ``lever_arm``
+puts the accelerometer at (xa, ya) [m] in the body frame (two parameters appended to theta; it
+reads ay + xa r' - ya r^2), ``references`` appends reference outputs (vy [m/s], beta [rad]) for
+a calibration drive with an INS or an optical sensor. The tyre-lag variant, whose axle forces
+are states that relax to the curve over a relaxation length, is
+:class:`~vehjax.models.SingleTrackLag` (:mod:`vehjax.models.tyre_lag`).
 """
 
 from __future__ import annotations
+
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -60,6 +69,8 @@ from jax.numpy import arctan, cos, sin
 from .. import validation
 from . import domains as dom
 from .base import VehicleModel, _check_dt, _check_integrator, _check_theta, integrate
+from .sensors import (LEVER, accelerometer_reading, check_references, lever_arm_table,
+                      reference_units, reference_values)
 
 #: Gravitational acceleration [m/s^2].
 G = 9.81
@@ -77,6 +88,26 @@ _PARAMS = {
                 _BODY_NOMINAL + (1.0, 1.3, 1.3)),
     "brush": (_BODY + ("mu",), _BODY_UNITS + ("-",), _BODY_NOMINAL + (1.0,)),
 }
+
+#: the relaxation lengths :class:`~vehjax.models.SingleTrackLag` appends: names, units, nominal
+_LAG = (("sigma_f", "sigma_r"), ("m", "m"), (0.5, 0.5))
+
+
+def param_table(tyres: str, lag: bool = False, lever_arm: bool = False) -> tuple:
+    """(names, units, nominal values) of a single-track model's theta: the body's and the tyre
+    curve's parameters, then the relaxation lengths (``lag``), then the accelerometer's lever
+    arm (xa, ya) [m] (``lever_arm``)."""
+    parts = (_PARAMS[tyres], _LAG if lag else ((), (), ()), lever_arm_table(lever_arm))
+    return tuple(sum((p[i] for p in parts), ()) for i in range(3))
+
+
+def body_forces(ff, fr, delta, lf, lr, small_angle: bool):
+    """(Fy [N], Mz [N m]): lateral force and yaw moment at the CoG of the axle forces ``ff``,
+    ``fr`` [N] (each in its wheel's frame); the front one enters as ff cos(delta) unless
+    ``small_angle`` (the linear tyres' cos(delta) = 1)."""
+    if not small_angle:
+        ff = ff * cos(delta)
+    return ff + fr, lf * ff - lr * fr
 
 
 def axle_loads(m, lf, lr):
@@ -130,13 +161,16 @@ class SingleTrack(VehicleModel):
     States x = (vy, r): lateral velocity of the CoG [m/s] and yaw rate [rad/s].
     Inputs u = (delta, vx): road-wheel steering angle [rad] (> 0 left) and longitudinal speed
         [m/s] (> 0).
-    Outputs y = (ay, r): lateral acceleration (specific force) at the CoG [m/s^2] and yaw rate
-        [rad/s].
+    Outputs y = (ay, r, *references): lateral acceleration (specific force) at the CoG, or at the
+        accelerometer's position with ``lever_arm`` [m/s^2], and yaw rate [rad/s]; then the
+        reference outputs asked for (``references``: vy [m/s], beta = arctan(vy / vx) [rad]).
     Parameters theta, by ``tyres``:
 
     * ``"linear"``: (m, iz, lf, lr, cf, cr) [kg, kg m^2, m, m, N/rad, N/rad];
     * ``"pacejka"``: those and (mu, shape_f, shape_r) [-];
-    * ``"brush"``: those and (mu,) [-].
+    * ``"brush"``: those and (mu,) [-];
+    * then, with ``lever_arm``, the accelerometer's position (xa, ya) [m] in the body frame
+      (nominal 0, 0: at the CoG), and ay reads ay + xa r' - ya r^2 (:mod:`vehjax.models.sensors`).
 
     Nominal values (plausible for a mid-size car, not measured): 1500 kg, 2700 kg m^2, 1.2 m,
     1.5 m, 1.2e5 and 1.4e5 N/rad (understeer gradient 2.2e-3 rad s^2/m), mu = 1, C = 1.3.
@@ -155,6 +189,7 @@ class SingleTrack(VehicleModel):
       loads do not model).
     * shape_f, shape_r in (0, 2): C > 0 by necessity (B = c / (C D)); C < 2 keeps the force's
       sign that of the slip angle at every slip (:func:`magic_formula_axle`).
+    * xa, ya in (-5, 5) m: the accelerometer within the car (:data:`vehjax.models.sensors.LEVER`).
 
     State envelope (``STATE_ENVELOPE``, where :func:`vehjax.simulate` flags a run as
     diverged): |vy| <= 300 m/s, |r| <= 20 rad/s.
@@ -165,10 +200,19 @@ class SingleTrack(VehicleModel):
         theta: parameter vector in the order above; None for the nominal values.
         tyres: ``"linear"``, ``"pacejka"`` or ``"brush"``.
         substeps: integration steps per sampling period (int >= 1, default 2).
+        lever_arm: the accelerometer away from the CoG at (xa, ya), two parameters appended to
+            theta (default False: at the CoG).
+        references: reference outputs appended to (ay, r), names among ("vy", "beta") (default
+            none). A drive without the reference feeds the column as NaN
+            (:meth:`vehjax.data.Drive.for_model`'s ``missing_outputs``), which filters skip.
     """
 
     tyres: str = eqx.field(static=True)
     substeps: int = eqx.field(static=True)
+    lever_arm: bool = eqx.field(static=True)
+    references: tuple = eqx.field(static=True)
+    #: whether the axle forces are lagged states (:class:`~vehjax.models.SingleTrackLag`)
+    LAG: ClassVar[bool] = False
 
     STATE_NAMES = ("vy", "r")
     STATE_UNITS = ("m/s", "rad/s")
@@ -177,23 +221,28 @@ class SingleTrack(VehicleModel):
     PARAM_NAMES, PARAM_UNITS, PARAM_NOMINAL = _PARAMS["linear"]  # per instance: ``param_names``
     PARAM_DOMAINS = {"m": dom.MASS, "iz": dom.INERTIA, "lf": dom.AXLE, "lr": dom.AXLE,
                      "cf": dom.CORNERING, "cr": dom.CORNERING, "mu": dom.FRICTION,
-                     "shape_f": dom.SHAPE, "shape_r": dom.SHAPE}
+                     "shape_f": dom.SHAPE, "shape_r": dom.SHAPE, "xa": LEVER, "ya": LEVER}
     STATE_ENVELOPE = {"vy": dom.SPEED_LIMIT, "r": dom.RATE_LIMIT}
 
     def __init__(self, dt: float = 0.01, integrator: str = "rk4", theta=None,
-                 tyres: str = "linear", substeps: int = 2):
+                 tyres: str = "linear", substeps: int = 2, lever_arm: bool = False,
+                 references=()):
         self.tyres = validation.choice("tyres", tyres, TYRES)
         self.substeps = validation.integer("substeps", substeps, 1)
-        names, _, nominal = _PARAMS[self.tyres]
+        if not isinstance(lever_arm, bool):
+            raise ValueError(f"lever_arm: expected True or False, got {lever_arm!r}")
+        self.lever_arm = lever_arm
+        self.references = check_references(references)
+        names, _, nominal = param_table(self.tyres, self.LAG, lever_arm)
         self.dt = _check_dt(dt)
         self.integrator = _check_integrator(integrator)
         self.theta = _check_theta(nominal if theta is None else theta, names)
         validation.in_domain("theta", self.theta, self.param_domains())
 
-    param_names = property(lambda self: _PARAMS[self.tyres][0])
-    param_units = property(lambda self: _PARAMS[self.tyres][1])
-    output_names = property(lambda self: ("ay", "r"))
-    output_units = property(lambda self: ("m/s^2", "rad/s"))
+    param_names = property(lambda self: param_table(self.tyres, self.LAG, self.lever_arm)[0])
+    param_units = property(lambda self: param_table(self.tyres, self.LAG, self.lever_arm)[1])
+    output_names = property(lambda self: ("ay", "r") + self.references)
+    output_units = property(lambda self: ("m/s^2", "rad/s") + reference_units(self.references))
 
     def axle_forces(self, x, u, theta):
         """(Ff, Fr): front and rear axle lateral forces [N], each in its wheel's frame."""
@@ -214,16 +263,14 @@ class SingleTrack(VehicleModel):
         return (brush_force((td - qf) / (1.0 + qf * td), cf, mu, fzf),
                 brush_force(-qr, cr, mu, fzr))
 
-    def _body_forces(self, x, u, theta):
-        """(Fy [N], Mz [N m]): lateral force and yaw moment at the CoG."""
+    def body_forces(self, x, u, theta):
+        """(Fy [N], Mz [N m]): lateral force and yaw moment at the CoG (:func:`body_forces`)."""
         ff, fr = self.axle_forces(x, u, theta)
-        if self.tyres != "linear":
-            ff = ff * cos(u[0])
-        return ff + fr, theta[2] * ff - theta[3] * fr
+        return body_forces(ff, fr, u[0], theta[2], theta[3], self.tyres == "linear")
 
     def derivative(self, x, u, theta):
         """(vy', r') [m/s^2, rad/s^2], shape (2,)."""
-        fy, mz = self._body_forces(x, u, theta)
+        fy, mz = self.body_forces(x, u, theta)
         return jnp.stack([fy / theta[0] - u[1] * x[1], mz / theta[1]])
 
     def transition(self, x, u, theta):
@@ -234,22 +281,30 @@ class SingleTrack(VehicleModel):
         return x
 
     def lateral_acceleration(self, x, u, theta):
-        """ay = Fy / m = vy' + vx r [m/s^2]."""
-        return self._body_forces(x, u, theta)[0] / theta[0]
+        """ay = Fy / m = vy' + vx r [m/s^2] at the CoG."""
+        return self.body_forces(x, u, theta)[0] / theta[0]
 
     def observe(self, x, u, theta):
-        """(ay [m/s^2], r [rad/s]), shape (2,)."""
-        return jnp.stack([self.lateral_acceleration(x, u, theta), x[1]])
+        """(ay [m/s^2], r [rad/s], *references), shape (ny,): ay at the accelerometer (at the
+        CoG unless ``lever_arm``), the references in ``references`` order."""
+        fy, mz = self.body_forces(x, u, theta)
+        ay = fy / theta[0]
+        if self.lever_arm:
+            ay = accelerometer_reading(ay, x[1], mz / theta[1], theta[-2], theta[-1])
+        return jnp.stack([ay, x[1], *reference_values(x[0], u[1], self.references)])
 
     def nested_model(self):
-        """The linear-tyre model with this one's (m, iz, lf, lr, cf, cr), dt and integrator;
-        None for the linear tyres. The saturating curves' slope at zero slip is (cf, cr), so at
-        a large mu they approach it (exactly so but for the small-angle slip angles and
-        cos(delta) = 1 of the linear form)."""
+        """The linear-tyre model with this one's (m, iz, lf, lr, cf, cr) (and lever arm), dt,
+        integrator, substeps and outputs; None for the linear tyres. The saturating curves'
+        slope at zero slip is (cf, cr), so at a large mu they approach it (exactly so but for
+        the small-angle slip angles and cos(delta) = 1 of the linear form)."""
         if self.tyres == "linear":
             return None
-        return SingleTrack(dt=self.dt, integrator=self.integrator, theta=self.theta[:6],
-                           tyres="linear", substeps=self.substeps)
+        names = param_table("linear", self.LAG, self.lever_arm)[0]
+        theta = self.theta[np.array([self.param_names.index(n) for n in names])]
+        return type(self)(dt=self.dt, integrator=self.integrator, theta=theta, tyres="linear",
+                          substeps=self.substeps, lever_arm=self.lever_arm,
+                          references=self.references)
 
     def data_floors(self, measurements, inputs) -> dict:
         """``{"mu": peak |ay| / g}`` for the saturating tyres (empty for the linear ones).
