@@ -204,6 +204,17 @@ class BaseModel(eqx.Module):
         reach."""
         return None
 
+    def spec_priors(self) -> dict:
+        """``{parameter name: prior}``: how well a data sheet gives each parameter, centred at
+        this model's ``theta`` (default: none declared).
+
+        A built-in model declares them for the values a user takes from a data sheet rather
+        than from the drive (a car's mass, yaw inertia, centre of gravity): where the data
+        reject such a value held fixed (its score test, :mod:`vehjax.tune.diagnostics`),
+        :func:`vehjax.tune.fit` fits it under this prior (:mod:`vehjax.tune.release`). The
+        priors are :mod:`vehjax.lib.priors` objects."""
+        return {}
+
     def data_floors(self, measurements, inputs) -> dict:
         """``{parameter name: the least value the measured data allow}`` (default: none).
 

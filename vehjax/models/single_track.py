@@ -67,10 +67,11 @@ import numpy as np
 from jax.numpy import arctan, cos, sin
 
 from .. import validation
+from ..lib.priors import LogNormal, Normal
 from . import domains as dom
 from .base import VehicleModel, _check_dt, _check_integrator, _check_theta, integrate
-from .sensors import (LEVER, accelerometer_reading, check_references, lever_arm_table,
-                      reference_units, reference_values)
+from .sensors import (LEVER, LEVER_ARM, accelerometer_reading, check_references,
+                      lever_arm_table, reference_units, reference_values)
 
 #: Gravitational acceleration [m/s^2].
 G = 9.81
@@ -88,6 +89,18 @@ _PARAMS = {
                 _BODY_NOMINAL + (1.0, 1.3, 1.3)),
     "brush": (_BODY + ("mu",), _BODY_UNITS + ("-",), _BODY_NOMINAL + (1.0,)),
 }
+
+#: how well a data sheet gives a parameter: the sigma of a log-normal prior around the given
+#: value (``SingleTrack.spec_priors``). The mass: the data sheet's kerb mass against the test
+#: mass with driver, fuel and instruments, 5-10 %. The yaw inertia: rarely measured, usually from
+#: an empirical formula in m, the wheelbase and the axle loads, whose error for a given car is
+#: tens of per cent. The centre of gravity (lf, lr): from the data sheet's weight distribution,
+#: which the load changes by a few per cent of the wheelbase. The relaxation lengths: a
+#: factor of two between tyres and loads.
+SPEC_UNCERTAINTY = {"m": 0.1, "iz": 0.3, "lf": 0.1, "lr": 0.1, "sigma_f": 0.7, "sigma_r": 0.7}
+#: the std [m] of a normal prior around a given accelerometer position (xa, ya): a mounting
+#: position read off a drawing or a tape measure, rarely exact to a decimetre
+LEVER_UNCERTAINTY = 0.3
 
 #: the relaxation lengths :class:`~vehjax.models.SingleTrackLag` appends: names, units, nominal
 _LAG = (("sigma_f", "sigma_r"), ("m", "m"), (0.5, 0.5))
@@ -318,6 +331,21 @@ class SingleTrack(VehicleModel):
             return {}
         ay = np.asarray(measurements, dtype=float)[..., self.output_names.index("ay")]
         return {"mu": peak_lateral_acceleration(ay, self.dt) / G}
+
+    def spec_priors(self) -> dict:
+        """``{name: prior}`` for the parameters a user takes from a data sheet (the mass, the
+        yaw inertia, the centre of gravity; the relaxation lengths and the accelerometer's
+        position where the model has them), centred at this model's values: log-normal with
+        the relative stds of :data:`SPEC_UNCERTAINTY` (iz to 30 %, m to 10 %), normal with
+        :data:`LEVER_UNCERTAINTY` [m] for (xa, ya). The tyre parameters have none: they are
+        what a fit is for. See :meth:`vehjax.models.BaseModel.spec_priors`."""
+        out = {}
+        for j, name in enumerate(self.param_names):
+            if name in SPEC_UNCERTAINTY:
+                out[name] = LogNormal(float(self.theta[j]), SPEC_UNCERTAINTY[name])
+            elif name in LEVER_ARM[0]:
+                out[name] = Normal(float(self.theta[j]), LEVER_UNCERTAINTY)
+        return out
 
     def understeer_gradient(self, theta=None):
         """K = m (lr cr - lf cf) / (L cf cr) [rad s^2/m] of the linear tyres (or the saturating
