@@ -67,7 +67,7 @@ from . import limit_drive as ld
 from . import validation
 
 __all__ = ["G", "NOISE", "RUNS", "SPEC_IZ_RATIO", "CORNERING_COEFFICIENT", "VIBRATION_BAND",
-           "Truth", "SecondCarRun", "TRUTH", "planar", "spec_sheet", "wheel_loads",
+           "Truth", "SecondCarRun", "TRUTH", "planar", "spec_sheet", "textbook_stiffness", "wheel_loads",
            "derivative", "lateral_acceleration", "rollout", "vibration", "schedule",
            "second_car"]
 
@@ -196,10 +196,17 @@ def spec_sheet(truth: Truth = TRUTH) -> dict:
     """What the data sheet gives {"m" [kg], "iz" [kg m^2], "lf", "lr" [m], "cf", "cr" [N/rad]}:
     the truth's m, lf, lr; its iz over :data:`SPEC_IZ_RATIO`; textbook stiffnesses
     :data:`CORNERING_COEFFICIENT` times the static axle loads m g lr / L, m g lf / L."""
-    wheelbase = truth.lf + truth.lr
-    fzf, fzr = truth.m * G * truth.lr / wheelbase, truth.m * G * truth.lf / wheelbase
+    cf, cr = textbook_stiffness(truth.m, truth.lf, truth.lr)
     return {"m": truth.m, "iz": truth.iz / SPEC_IZ_RATIO, "lf": truth.lf, "lr": truth.lr,
-            "cf": CORNERING_COEFFICIENT[0] * fzf, "cr": CORNERING_COEFFICIENT[1] * fzr}
+            "cf": cf, "cr": cr}
+
+
+def textbook_stiffness(m: float, lf: float, lr: float, coefficient=CORNERING_COEFFICIENT):
+    """(cf, cr) [N/rad] of a data sheet: the cornering coefficients (front, rear) [1/rad] times
+    the static axle loads m g lr / L, m g lf / L [N] of mass ``m`` [kg], CoG ``lf``, ``lr`` [m]
+    behind the front and ahead of the rear axle."""
+    wheelbase = lf + lr
+    return (coefficient[0] * m * G * lr / wheelbase, coefficient[1] * m * G * lf / wheelbase)
 
 
 def wheel_loads(truth: Truth, phi, p, ay):
