@@ -96,7 +96,7 @@ def row(label, held, values=("-", "-", "-"), seconds=None):
 
 def second_car_table(duration: float):
     runs = {k: sc.second_car(k, duration=duration) for k in (1, 2, 3)}
-    truth = sc.TRUTH
+    truth = sc.TRUTH.body
     print(f"# truth: m {truth.m}, iz {truth.iz}, lf {truth.lf}, lr {truth.lr}, cf {truth.cf:.4g}, "
           f"cr {truth.cr:.4g} (static loads; the load transfer and the lag lower them); spec "
           + ", ".join(f"{k} {v:.5g}" for k, v in runs[1].spec.items()))

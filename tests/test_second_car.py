@@ -55,8 +55,9 @@ def test_rollout_matches_dop853(short):
 def test_steady_state_loads_equal_the_planar_truth():
     """With phi at its steady value and p = 0 the dynamic loads are limit_drive's (planar)."""
     ay = 9.0
-    hs = sc.TRUTH.h - sc.TRUTH.roll_height
-    phi = sc.TRUTH.m * hs * ay / (sc.TRUTH.roll_stiffness - sc.TRUTH.m * G * hs)
+    b = sc.TRUTH.body
+    hs = b.h - sc.TRUTH.roll_height
+    phi = b.m * hs * ay / (sc.TRUTH.roll_stiffness - b.m * G * hs)
     np.testing.assert_allclose(sc.wheel_loads(sc.TRUTH, phi, 0.0, ay),
                                vehjax.limit_drive.wheel_loads(sc.planar(sc.TRUTH), ay),
                                rtol=1e-12)
@@ -82,8 +83,8 @@ def test_vibration_negative_lag_one_and_in_band(runs):
 
 def test_spec_sheet_and_runs(runs):
     spec = runs[1].spec
-    assert spec["iz"] * 2.5 == pytest.approx(sc.TRUTH.iz)
-    assert sc.TRUTH.iz > 6000.0 and 1500.0 <= spec["m"] <= 1700.0
+    assert spec["iz"] * 2.5 == pytest.approx(sc.TRUTH.body.iz)
+    assert sc.TRUTH.body.iz > 6000.0 and 1500.0 <= spec["m"] <= 1700.0
     assert 2.6 < spec["lf"] + spec["lr"] < 2.8 and spec["lf"] < spec["lr"]  # front-heavy (FWD)
     for d in runs.values():
         assert d.t.size == 17600 and d.dt == 0.005
@@ -122,7 +123,7 @@ def test_textbook_observer_matches_vehjax_ekf(short):
     np.testing.assert_allclose(out.loglik, np.asarray(ref.loglik), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(out.nis, np.asarray(ref.nis), rtol=1e-8, atol=1e-10)
     # and it is not trivially equal: another iz gives another estimate
-    other = tob.textbook_observer(d.measurements, d.inputs, {**spec, "iz": sc.TRUTH.iz}, d.dt)
+    other = tob.textbook_observer(d.measurements, d.inputs, {**spec, "iz": sc.TRUTH.body.iz}, d.dt)
     assert np.max(np.abs(other.states[:, 0] - out.states[:, 0])) > 1e-3
 
 

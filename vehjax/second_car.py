@@ -95,34 +95,21 @@ class Truth(NamedTuple):
     """Parameters of the second car's truth (module docstring).
 
     Attributes:
-        m [kg], iz [kg m^2], lf, lr [m]: mass, yaw inertia, CoG to the axles.
-        h: CoG height [m]; roll_height: roll axis height [m], < h.
-        track_f, track_r: track widths [m].
+        body: the planar two-track car (:class:`vehjax.limit_drive.Truth`): m [kg], iz
+            [kg m^2], lf, lr [m], h the CoG height [m], track widths [m], roll_front the front
+            share q of the roll stiffness and damping [-], the tyres (cf, cr at the static loads
+            [N/rad], load exponent, mu, shape C, curvature E).
+        roll_height: roll axis height [m], < body.h.
         roll_stiffness [N m/rad], roll_damping [N m s/rad], roll_inertia [kg m^2] (about the
-            roll axis); roll_front: front share q of the roll stiffness and damping [-].
-        cf, cr: axle cornering stiffness at the static loads [N/rad]; load_exponent: p of
-            c_i ~ Fz_i^p [-]; mu: peak friction coefficient [-]; shape: C; curvature: E.
+            roll axis).
         relax_f, relax_r: relaxation lengths [m].
     """
 
-    m: float
-    iz: float
-    lf: float
-    lr: float
-    h: float
+    body: ld.Truth
     roll_height: float
-    track_f: float
-    track_r: float
     roll_stiffness: float
     roll_damping: float
     roll_inertia: float
-    roll_front: float
-    cf: float
-    cr: float
-    load_exponent: float
-    mu: float
-    shape: float
-    curvature: float
     relax_f: float
     relax_r: float
 
@@ -130,10 +117,12 @@ class Truth(NamedTuple):
 #: The second car: a front-wheel-drive mid-size saloon (61 % of its weight on the front axle,
 #: wheelbase 2.7 m) with a large real yaw inertia; roll gradient about 4.6 deg/g, roll
 #: frequency about 2 Hz, damping ratio about 0.4.
-TRUTH = Truth(m=1600.0, iz=6900.0, lf=1.05, lr=1.65, h=0.55, roll_height=0.10, track_f=1.56,
-              track_r=1.54, roll_stiffness=1.1e5, roll_damping=6.0e3, roll_inertia=550.0,
-              roll_front=0.62, cf=1.45e5, cr=1.30e5, load_exponent=0.8, mu=1.40, shape=1.40,
-              curvature=-0.5, relax_f=0.6, relax_r=0.8)
+TRUTH = Truth(
+    body=ld.Truth(m=1600.0, iz=6900.0, lf=1.05, lr=1.65, h=0.55, track_f=1.56, track_r=1.54,
+                  roll_front=0.62, cf=1.45e5, cr=1.30e5, load_exponent=0.8, mu=1.40,
+                  shape=1.40, curvature=-0.5),
+    roll_height=0.10, roll_stiffness=1.1e5, roll_damping=6.0e3, roll_inertia=550.0,
+    relax_f=0.6, relax_r=0.8)
 
 
 class SecondCarRun(NamedTuple):
@@ -173,32 +162,29 @@ class SecondCarRun(NamedTuple):
 
 def _roll_gain(truth: Truth) -> float:
     """k / (k - m g hs) [-]: the suspension's steady roll moment over m ay hs."""
-    hs = truth.h - truth.roll_height
-    return truth.roll_stiffness / (truth.roll_stiffness - truth.m * G * hs)
+    hs = truth.body.h - truth.roll_height
+    return truth.roll_stiffness / (truth.roll_stiffness - truth.body.m * G * hs)
 
 
 def planar(truth: Truth) -> ld.Truth:
-    """The :class:`vehjax.limit_drive.Truth` with this car's steady-state loads: equivalent
-    CoG height h_eq = hs k / (k - m g hs) + roll_height and front share
+    """The :class:`vehjax.limit_drive.Truth` with this car's steady-state loads: its body with
+    the equivalent CoG height h_eq = hs k / (k - m g hs) + roll_height and front share
     q_eq = (q hs k / (k - m g hs) + roll_height lr / L) / h_eq, so that limit_drive's
     dFz_f = m ay h_eq q_eq / track_f is this car's steady front transfer (the rear alike)."""
-    wheelbase = truth.lf + truth.lr
-    susp = (truth.h - truth.roll_height) * _roll_gain(truth)
+    b = truth.body
+    susp = (b.h - truth.roll_height) * _roll_gain(truth)
     h_eq = susp + truth.roll_height
-    q_eq = (truth.roll_front * susp + truth.roll_height * truth.lr / wheelbase) / h_eq
-    return ld.Truth(m=truth.m, iz=truth.iz, lf=truth.lf, lr=truth.lr, h=h_eq,
-                    track_f=truth.track_f, track_r=truth.track_r, roll_front=q_eq, cf=truth.cf,
-                    cr=truth.cr, load_exponent=truth.load_exponent, mu=truth.mu,
-                    shape=truth.shape, curvature=truth.curvature)
+    q_eq = (b.roll_front * susp + truth.roll_height * b.lr / (b.lf + b.lr)) / h_eq
+    return b._replace(h=h_eq, roll_front=q_eq)
 
 
 def spec_sheet(truth: Truth = TRUTH) -> dict:
     """What the data sheet gives {"m" [kg], "iz" [kg m^2], "lf", "lr" [m], "cf", "cr" [N/rad]}:
     the truth's m, lf, lr; its iz over :data:`SPEC_IZ_RATIO`; textbook stiffnesses
     :data:`CORNERING_COEFFICIENT` times the static axle loads m g lr / L, m g lf / L."""
-    cf, cr = textbook_stiffness(truth.m, truth.lf, truth.lr)
-    return {"m": truth.m, "iz": truth.iz / SPEC_IZ_RATIO, "lf": truth.lf, "lr": truth.lr,
-            "cf": cf, "cr": cr}
+    b = truth.body
+    cf, cr = textbook_stiffness(b.m, b.lf, b.lr)
+    return {"m": b.m, "iz": b.iz / SPEC_IZ_RATIO, "lf": b.lf, "lr": b.lr, "cf": cf, "cr": cr}
 
 
 def textbook_stiffness(m: float, lf: float, lr: float, coefficient=CORNERING_COEFFICIENT):
@@ -213,36 +199,33 @@ def wheel_loads(truth: Truth, phi, p, ay):
     """Vertical loads (fl, fr, rl, rr) [N], (4,), at roll angle ``phi`` [rad], roll rate ``p``
     [rad/s] and lateral acceleration ``ay`` [m/s^2]: static plus the dynamic transfer (module
     docstring), each floored at 1 % of its static value."""
-    wheelbase = truth.lf + truth.lr
-    fzf = truth.m * G * truth.lr / wheelbase / 2.0
-    fzr = truth.m * G * truth.lf / wheelbase / 2.0
+    b = truth.body
+    static = ld.wheel_loads(b, 0.0)
     moment = truth.roll_stiffness * phi + truth.roll_damping * p
-    dzf = (truth.roll_front * moment + truth.m * ay * truth.lr / wheelbase * truth.roll_height
-           ) / truth.track_f
-    dzr = ((1.0 - truth.roll_front) * moment
-           + truth.m * ay * truth.lf / wheelbase * truth.roll_height) / truth.track_r
-    static = jnp.stack([fzf, fzf, fzr, fzr])
+    centre = b.m * ay * truth.roll_height / (b.lf + b.lr)
+    dzf = (b.roll_front * moment + centre * b.lr) / b.track_f
+    dzr = ((1.0 - b.roll_front) * moment + centre * b.lf) / b.track_r
     return jnp.maximum(static + jnp.stack([-dzf, dzf, -dzr, dzr]), 0.01 * static)
 
 
 def lateral_acceleration(truth: Truth, x, u):
     """ay [m/s^2] of state x (8,) (its lagged forces) at input u = (delta, vx)."""
-    return ld.body_forces(planar(truth), x[4:], u[0])[0] / truth.m
+    return ld.body_forces(truth.body, x[4:], u[0])[0] / truth.body.m
 
 
 def derivative(truth: Truth, x, u):
     """x' (8,) of state x (8,) at input u = (delta [rad], vx [m/s]) (module docstring)."""
-    flat = planar(truth)
-    fy, mz = ld.body_forces(flat, x[4:], u[0])
-    ay = fy / truth.m
-    hs = truth.h - truth.roll_height
-    roll_acc = (truth.m * hs * (ay + G * x[2]) - truth.roll_stiffness * x[2]
+    b = truth.body
+    fy, mz = ld.body_forces(b, x[4:], u[0])
+    ay = fy / b.m
+    hs = b.h - truth.roll_height
+    roll_acc = (b.m * hs * (ay + G * x[2]) - truth.roll_stiffness * x[2]
                 - truth.roll_damping * x[3]) / truth.roll_inertia
     fz = wheel_loads(truth, x[2], x[3], ay)
-    steady = ld.wheel_force(ld.slip_angles(flat, x[:2], u), ld.wheel_stiffness(flat, fz),
-                            truth.mu, fz, truth.shape, truth.curvature)
+    steady = ld.wheel_force(ld.slip_angles(b, x[:2], u), ld.wheel_stiffness(b, fz), b.mu, fz,
+                            b.shape, b.curvature)
     relax = jnp.stack([truth.relax_f, truth.relax_f, truth.relax_r, truth.relax_r])
-    return jnp.concatenate([jnp.stack([ay - u[1] * x[1], mz / truth.iz, x[3], roll_acc]),
+    return jnp.concatenate([jnp.stack([ay - u[1] * x[1], mz / b.iz, x[3], roll_acc]),
                             u[1] / relax * (steady - x[4:])])
 
 

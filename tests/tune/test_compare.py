@@ -62,12 +62,17 @@ def scalar_kf_loglik(ys, c, q, r):
     return ll
 
 
+def compare_under(action: str, fits, ys, us, **kw):
+    """vehjax.tune.compare with warnings ``action``-ed ("ignore" or "error")."""
+    with warnings.catch_warnings():
+        warnings.simplefilter(action)
+        return vehjax.tune.compare(fits, ys, us, P0=P0, state="h", **kw)
+
+
 def test_criteria_by_hand(data, fits):
     ys, us = data
     two = {k: fits[k] for k in ("c=2", "c=1")}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        cmp = vehjax.tune.compare(two, ys, us, P0=P0, state="h")
+    cmp = compare_under("ignore", two, ys, us)
     assert cmp.n == T - MISSING
     for name, c in (("c=2", 2.0), ("c=1", 1.0)):
         res = two[name]
@@ -97,9 +102,7 @@ def test_warns_where_structures_fit_alike_but_disagree(data, fits):
 def test_quiet_where_structures_agree(data, fits):
     ys, us = data
     same = {k: fits[k] for k in ("c=1", "c=1 again")}
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        cmp = vehjax.tune.compare(same, ys, us, P0=P0, state="h")
+    cmp = compare_under("error", same, ys, us)
     assert cmp.undecided == () and cmp.warnings == ()
     assert cmp.rms_difference[("c=1", "c=1 again")] < 0.1 * cmp.mean_std["c=1"]
 
