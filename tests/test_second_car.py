@@ -96,11 +96,17 @@ def test_spec_sheet_and_runs(runs):
     s1, s2 = runs[1].inputs[:, 0], runs[2].inputs[:, 0]
     assert abs(np.corrcoef(s1, s2)[0, 1]) < 0.5
     assert np.std(runs[1].sideslip) > np.deg2rad(0.3)   # the sideslip is worth estimating
+    # the body rolls: about 3.9 deg/g at the peak (the docstring's steady roll gradient)
+    d = runs[1]
+    gradient = np.degrees(np.abs(d.full_states[:, 2]).max()) / (np.abs(d.ay).max() / G)
+    assert 3.5 < gradient < 4.3
 
 
 def test_bad_run_names_argument():
     with pytest.raises(ValueError, match="run"):
         sc.second_car(4)
+    with pytest.raises(ValueError, match="run"):
+        sc.second_car(True)
     with pytest.raises(ValueError, match="duration"):
         sc.second_car(1, duration=-1.0)
 
