@@ -344,7 +344,7 @@ def second_car(run: int = 1, duration: float = 88.0, dt: float = 0.005, seed: in
 
     Returns:
         :class:`SecondCarRun` of T = round(duration / dt) samples. Cost on 2 CPU cores: a few
-        seconds, plus about 10 s of compilation per new T or substeps.
+        seconds for the 88 s drive, compilation (once per new T or substeps) included.
     """
     if isinstance(run, (bool, np.bool_)) or run not in RUNS:
         raise ValueError(f"run: expected one of {tuple(RUNS)}, got {run!r}")
