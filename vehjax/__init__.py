@@ -8,7 +8,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from . import filters, limit_drive, models, scenarios  # noqa: E402
+from . import filters, limit_drive, models, scenarios, second_car  # noqa: E402
 from . import data, execution, math, metrics, tune  # noqa: E402
 from . import calibrate  # noqa: E402
 from .filtering import FilterResult, filter  # noqa: E402
@@ -19,7 +19,7 @@ from .simulate import Simulation, simulate  # noqa: E402
 __version__ = "0.1.0"
 
 __all__ = [
-    "filters", "models", "scenarios", "limit_drive", "metrics", "data", "math", "tune", "calibrate",
+    "filters", "models", "scenarios", "limit_drive", "second_car", "metrics", "data", "math", "tune", "calibrate",
     "execution", "simulate",
     "Simulation",
     "filter", "FilterResult", "smooth", "SmoothResult", "run", "compile_run", "RunResult", "CompiledRun",

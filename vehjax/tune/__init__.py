@@ -132,7 +132,8 @@ Modules: :mod:`~vehjax.tune.likelihood` (the objective), :mod:`~vehjax.tune.para
 errors), :mod:`~vehjax.tune.boundaries` (quantities on a bound),
 :mod:`~vehjax.tune.quantities` (names, units, scales), :mod:`~vehjax.tune.result`,
 :mod:`~vehjax.tune.driver` (:func:`fit_from_theta`, :func:`fit_noise`),
-:mod:`~vehjax.tune.staged` (:func:`fit`: the start and the comparison). Measurements behind the
+:mod:`~vehjax.tune.staged` (:func:`fit`: the start and the comparison),
+:mod:`~vehjax.tune.compare` (:func:`compare`: candidate structures side by side). Measurements behind the
 defaults:
 ``benchmarks/results/notes_tune.md``.
 """
@@ -143,6 +144,7 @@ from . import (boundaries, driver, information, likelihood, optimisers, priors, 
                quantities, staged)
 from .driver import fit_from_theta, fit_noise
 from .staged import fit
+from .compare import StructureComparison, compare
 from .information import Uncertainty, hessian_from_gradients, uncertainty
 from .likelihood import Objective, objective, prepare
 from .optimisers import scoring_direction
@@ -154,4 +156,4 @@ from .result import Comparison, TuneResult
 __all__ = ["fit", "fit_from_theta", "fit_noise", "objective", "Objective", "TuneResult", "stop_gradient_pf",
            "forward_scores", "score_outer_product", "scoring_direction",
            "uncertainty", "Uncertainty", "fitted_quantities", "hessian_from_gradients",
-           "stop_gradient", "prepare", "Comparison"]
+           "stop_gradient", "prepare", "Comparison", "compare", "StructureComparison"]
