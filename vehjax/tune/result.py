@@ -11,6 +11,7 @@ import jax
 import numpy as np
 
 from ..filters.base import Estimator
+from .diagnostics import diagnostics_text
 from .quantities import fitted_quantities
 
 __all__ = ["TuneResult", "Comparison", "make_result", "below_floors", "FLOOR_FRACTION"]
@@ -117,6 +118,15 @@ class TuneResult(NamedTuple):
             reaches (a warning gives both values).
         starts: ``((start values by name, log-likelihood reached), ...)``, one per start
             :func:`vehjax.tune.fit` tried, in order; the result is the best of them.
+        score_tests: ``{name: ScoreTest}`` for each model parameter held fixed: the score
+            (Lagrange-multiplier) test of its value at the fit's optimum, the log-likelihood
+            freeing it would gain and where one Newton step would take it
+            (:mod:`vehjax.tune.diagnostics`); the summary and a warning name the values the
+            data contradict. Deterministic filters with ``standard_errors``; else empty.
+        innovations: ``{output: InnovationCheck}``: each measured output's mean NIS, lag-1
+            autocorrelation and Ljung-Box test of the fitted filter's innovations
+            (:mod:`vehjax.tune.innovations`); the summary names the coloured ones. As
+            ``score_tests``, else empty.
     """
 
     Q: np.ndarray
@@ -153,6 +163,9 @@ class TuneResult(NamedTuple):
     nested: Comparison | None = None
     below_nested: bool = False
     starts: tuple = ()
+    # diagnostics (score tests, innovations)
+    score_tests: dict = {}
+    innovations: dict = {}
 
     def summary(self) -> str:
         """A text table of the fitted values with their units and the log-likelihood."""
@@ -175,6 +188,7 @@ class TuneResult(NamedTuple):
             lines.append(f"  nested {self.nested.model}: log-likelihood {self.nested.loglik:.6g}"
                          f" ({'above' if self.nested.loglik > self.loglik else 'below'} this "
                          f"fit's by {abs(self.nested.loglik - self.loglik):.3g})")
+        lines += [f"  {t}" for t in diagnostics_text(self.score_tests, self.innovations)]
         if len(self.starts) > 1:
             lines.append(f"  starts tried: {len(self.starts)}, log-likelihoods " + ", ".join(
                 f"{ll:.6g}" for _, ll in self.starts))

@@ -1,0 +1,230 @@
+"""Whether the model and the data disagree, at a fit's optimum and without a refit: score
+(Lagrange-multiplier) tests of the model parameters held fixed, and per-output innovation checks
+(:mod:`vehjax.tune.innovations`).
+
+A parameter held at a wrong value (a spec-sheet yaw inertia the car does not have) is not
+visible in the fitted parameters' standard errors, which are conditional on it, nor in a NIS
+that the fitted noise has absorbed. The score test (Rao 1948; Silvey 1959, "The Lagrangian
+multiplier test"; Engle 1984, "Wald, likelihood ratio and Lagrange multiplier tests in
+econometrics", sec. 4) asks whether the likelihood would rise if the parameter were freed, from
+its derivatives at the fit alone: with ``s_j = d logL / d theta_j`` at the optimum (the fitted
+coordinates' score is zero there) and ``I`` the observed information (minus the Hessian of
+logL) over the block (fitted coordinates, theta_j)::
+
+    LM_j = s_j^2 [I^-1]_jj,    gain_j ~ LM_j / 2,    p_j = P(chi2_1 > LM_j) = erfc(sqrt(LM_j / 2))
+
+``gain_j`` is the log-likelihood a Newton step of the block (the fitted quantities and theta_j
+together) predicts, ``one_step`` where that step takes theta_j (physical units). Under the
+hypothesis that the held value is right LM_j is about chi-square with one degree of freedom;
+the test is invariant to the reparameterisation at a point where the fitted coordinates' score
+is zero, so it is computed in the fit's unconstrained coordinates (:mod:`vehjax.tune`). Far
+from the held value the quadratic model of the likelihood is rough: the gain and the one-step
+value are then indications of direction and size, the rejection itself stays valid.
+
+Cost (:func:`score_tests`): the fit's objective with the held parameters added to ``params``
+(:func:`vehjax.tune.likelihood.prepare`) compiled once more, then its gradient at the optimum
+and at the n + k points of the Hessian's forward differences
+(:func:`vehjax.tune.information.difference_hessian`, side by side on the host's cores; one
+batched call on a long fit), n fitted coordinates and k held parameters.
+
+A held parameter whose value the transform cannot take (on or outside its declared domain) or
+whose block information is not positive definite gets NaN, not an error.
+
+The report (:func:`rejected`, :func:`score_text`): a held value is called contradicted when
+p < :data:`REJECT_P` and the gain exceeds :data:`REJECT_GAIN` log-likelihood units.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..filtering import filter as run_filter
+from ..filters import input_noise as inoise
+from ..lib import whiteness
+from . import innovations as inn
+from . import program
+from .information import difference_hessian
+from .likelihood import prepare
+from .parameterisation import param_transform
+from .quantities import coordinates
+
+__all__ = ["ScoreTest", "lm_statistic", "score_p_value", "score_tests", "fit_innovations",
+           "fit_diagnostics", "rejected", "score_text", "diagnostics_text", "REJECT_P",
+           "REJECT_GAIN"]
+
+#: a held value is contradicted when its score test's p-value is below this ...
+REJECT_P = 1e-3
+#: ... and freeing it would gain more than this many log-likelihood units (with 10^4 samples a
+#: p below 1e-3 is reached by a parameter off by a fraction of a per cent; a gain of 5 units, a
+#: likelihood ratio of e^5 ~ 150, is one the fit's other numbers would notice too)
+REJECT_GAIN = 5.0
+
+
+class ScoreTest(NamedTuple):
+    """The score test of one model parameter held fixed (module docstring).
+
+    Attributes:
+        value: the held value (physical units).
+        score: d logL / d theta_j there (logL summed over runs; per unit of the parameter).
+        statistic: LM_j = s_j^2 [I^-1]_jj.
+        gain: LM_j / 2, the log-likelihood one Newton step of the block predicts.
+        p_value: P(chi2_1 > LM_j).
+        one_step: theta_j after that Newton step (physical units).
+        unit: the parameter's unit ("-" unknown).
+    """
+
+    value: float
+    score: float
+    statistic: float
+    gain: float
+    p_value: float
+    one_step: float
+    unit: str = "-"
+
+
+def lm_statistic(score: float, info) -> tuple[float, float]:
+    """(LM, Newton step of the tested coordinate) from the score of the tested coordinate and
+    the observed information ``info`` (m, m) of the block whose last coordinate it is, the
+    others' scores zero: ``x = I^-1 e_m s``, ``LM = s x_m``, step ``x_m``. By a Cholesky factor
+    of the Jacobi-scaled block; (NaN, NaN) where it is not finite or not positive definite."""
+    info = np.asarray(info, dtype=float)
+    nan = (float("nan"), float("nan"))
+    d = np.diagonal(info)
+    if not (np.isfinite(score) and np.all(np.isfinite(info)) and np.all(d > 0)):
+        return nan
+    D = 1.0 / np.sqrt(d)
+    try:
+        L = np.linalg.cholesky(0.5 * (info + info.T) * np.outer(D, D))
+    except np.linalg.LinAlgError:
+        return nan
+    rhs = np.zeros(len(d))
+    rhs[-1] = D[-1] * score
+    x = D * np.linalg.solve(L.T, np.linalg.solve(L, rhs))
+    return float(score * x[-1]), float(x[-1])
+
+
+def score_p_value(statistic: float) -> float:
+    """P(chi2_1 > LM) = erfc(sqrt(LM / 2)) (:func:`vehjax.lib.whiteness.chi2_sf_1`)."""
+    return whiteness.chi2_sf_1(statistic)
+
+
+def _testable(model, held) -> tuple[list, list]:
+    """(the held parameters the transform can take at their values, the others)."""
+    names, theta = tuple(model.param_names), np.asarray(model.theta, dtype=float)
+    ok, bad = [], []
+    for p in held:
+        try:
+            param_transform((p,), None, theta, names, model.param_domains())
+            ok.append(p)
+        except ValueError:
+            bad.append(p)
+    return ok, bad
+
+
+def _augmented(res, setup, data, bounds, extra):
+    """The fit's objective at its optimum with ``extra`` parameters fitted too: (obj, setup)."""
+    ys, us, _, P0, _ = data
+    kw = dict(setup["builder_kwargs"])
+    if res.input_noise is not None:
+        kw["input_noise"] = res.input_noise
+    return prepare(setup["builder"], res.model, res.Q, res.R, np.asarray(ys),
+                   None if us is None else np.asarray(us), np.asarray(res.x0), np.asarray(P0),
+                   tuple(setup["params"]) + tuple(extra), bounds, setup["noise"],
+                   setup["fit_x0"], None, kw)
+
+
+def score_tests(res, setup, data, bounds=None, held_coordinates=()) -> dict:
+    """``{name: ScoreTest}`` for every model parameter not among the fit's ``params``
+    (module docstring), at the fit's optimum ``res`` (:class:`vehjax.tune.TuneResult`).
+
+    Args:
+        res: the fit's result (``model``, ``Q``, ``R``, ``input_noise``, ``x0`` at the optimum).
+        setup: the fit's set-up (:func:`vehjax.tune.likelihood.prepare`).
+        data: the fit's ``Objective.data``.
+        bounds: the fit's ``bounds=``.
+        held_coordinates: names of fitted coordinates held out of the block (on a bound).
+    """
+    model = res.model
+    held = [p for p in model.param_names if p not in setup["params"]]
+    ok, bad = _testable(model, held)
+    units = dict(zip(model.param_names, getattr(model, "param_units",
+                                                ("-",) * len(model.param_names))))
+    nan = float("nan")
+    out = {p: ScoreTest(float(model.theta[model.param_names.index(p)]), nan, nan, nan, nan,
+                        nan, units[p]) for p in bad}
+    if not ok:
+        return {p: out[p] for p in held}
+    obj, aug = _augmented(res, setup, data, bounds, ok)
+    names, scales = coordinates(aug, model, obj.z0)
+    loss = program.compiled_loss(obj, aug, batch_hessian=obj.n_steps >=
+                                 program.BATCH_HESSIAN_STEPS)
+    x = loss.x0
+    g = loss.vg(x)[2]
+    info = obj.n_steps * difference_hessian(loss, x, scales)
+    score = -obj.n_steps * np.asarray(g, dtype=float)
+    block = [i for i, n in enumerate(names) if n not in ok and n not in held_coordinates]
+    tmap, z_theta = aug["theta_map"], jnp.asarray(obj.z0["theta"])
+    dtheta = np.asarray(jax.jvp(tmap.to_physical, (z_theta,), (jnp.ones_like(z_theta),))[1])
+    pos = list(aug["params"])
+    for p in ok:
+        j = names.index(p)
+        lm, step = lm_statistic(score[j], info[np.ix_(block + [j], block + [j])])
+        k = pos.index(p)
+        one = (float(tmap.to_physical(z_theta.at[k].add(step))[k]) if np.isfinite(step)
+               else nan)
+        s_phys = score[j] / dtheta[k] if dtheta[k] != 0 else nan
+        out[p] = ScoreTest(float(model.theta[model.param_names.index(p)]), float(s_phys), lm,
+                           0.5 * lm, score_p_value(lm), one, units[p])
+    return {p: out[p] for p in held}
+
+
+def fit_innovations(res, data, lags=None) -> dict:
+    """``{output: InnovationCheck}`` of the fitted estimator on the fit's data
+    (:mod:`vehjax.tune.innovations`): the filter run once more with its covariances."""
+    ys, us, _, P0, _ = data
+    model = res.model
+    x0 = jnp.asarray(res.x0)
+    axes = (0, None if us is None or us.ndim == 2 else 0, 0 if x0.ndim == 2 else None,
+            0 if P0.ndim == 3 else None)
+    out = jax.jit(jax.vmap(lambda y, u, a, B: run_filter(res.estimator, y, u, a, B),
+                           in_axes=axes))(ys, us, x0, P0)
+    Lu = inoise.input_factor(res.input_noise, model.input_names)
+    e, S = inn.innovations(model, res.Q, res.R, np.asarray(ys),
+                           None if us is None else np.asarray(us), np.asarray(out.states),
+                           np.asarray(out.covariances), np.asarray(x0), np.asarray(P0), Lu)
+    return inn.output_checks(e, S, model.output_names, lags)
+
+
+def rejected(test: ScoreTest) -> bool:
+    """Whether a held value is contradicted by the data (module docstring)."""
+    return bool(test.p_value < REJECT_P and test.gain > REJECT_GAIN)
+
+
+def score_text(name: str, test: ScoreTest) -> str:
+    """What the report says of a contradicted held value."""
+    return (f"{name} = {test.value:.4g} [{test.unit}] (held fixed): the data reject it: "
+            f"freeing it would gain about {test.gain:.3g} log-likelihood units "
+            f"({inn.p_text(test.p_value)}; one step to {test.one_step:.4g})")
+
+
+def diagnostics_text(score: dict, checks: dict) -> list:
+    """The report's lines: the contradicted held values, then the coloured outputs."""
+    lines = [score_text(k, t) for k, t in score.items() if rejected(t)]
+    return lines + [inn.coloured_text(k, c) for k, c in checks.items() if inn.coloured(c)]
+
+
+def fit_diagnostics(res, setup, data, bounds=None, held_coordinates=()) -> dict:
+    """``{"score_tests": ..., "innovations": ...}`` of a deterministic filter's fit
+    (:func:`score_tests`, :func:`fit_innovations`), with a warning naming the contradicted
+    held values."""
+    tests = score_tests(res, setup, data, bounds, held_coordinates)
+    bad = [score_text(k, t) for k, t in tests.items() if rejected(t)]
+    if bad:
+        warnings.warn("vehjax.tune: " + "; ".join(bad) + ": fit it too, or correct it",
+                      stacklevel=3)
+    return {"score_tests": tests, "innovations": fit_innovations(res, data)}
