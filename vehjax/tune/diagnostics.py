@@ -15,11 +15,18 @@ logL) over the block (fitted coordinates, theta_j)::
 
 ``gain_j`` is the log-likelihood a Newton step of the block (the fitted quantities and theta_j
 together) predicts, ``one_step`` where that step takes theta_j (physical units). Under the
-hypothesis that the held value is right LM_j is about chi-square with one degree of freedom;
-the test is invariant to the reparameterisation at a point where the fitted coordinates' score
-is zero, so it is computed in the fit's unconstrained coordinates (:mod:`vehjax.tune`). Far
-from the held value the quadratic model of the likelihood is rough: the gain and the one-step
-value are then indications of direction and size, the rejection itself stays valid.
+hypothesis that the held value is right LM_j is about chi-square with one degree of freedom.
+Coordinates: the fitted quantities in the fit's unconstrained ones (:mod:`vehjax.tune`), the
+tested parameter in its physical one (:func:`physical_block`). At the optimum (the fitted
+coordinates' score zero) the statistic does not depend on the fitted quantities'
+parameterisation, but a map theta_j = g(z_j) adds ``-s_j g''`` to the observed information's
+(j, j) entry: in log theta a large positive score could make the block indefinite where it is
+not in theta itself. Where the observed block is still not positive definite (the likelihood
+is not concave along theta_j there) the outer product of the per-step scores
+(:func:`vehjax.tune.score_outer_product`, the BHHH form of the information, positive
+semi-definite) takes its place. Far from the held value the quadratic model of the likelihood
+is rough: the gain and the one-step value are then indications of direction and size, the
+rejection itself stays valid.
 
 Cost (:func:`score_tests`): the fit's objective with the held parameters added to ``params``
 (:func:`vehjax.tune.likelihood.prepare`) compiled once more, then its gradient at the optimum
@@ -28,7 +35,7 @@ and at the n + k points of the Hessian's forward differences
 batched call on a long fit), n fitted coordinates and k held parameters.
 
 A held parameter whose value the transform cannot take (on or outside its declared domain) or
-whose block information is not positive definite gets NaN, not an error.
+whose block has no positive-definite information (neither form) gets NaN, not an error.
 
 The report (:func:`rejected`, :func:`score_text`): a held value is called contradicted when
 p < :data:`REJECT_P` and the gain exceeds :data:`REJECT_GAIN` log-likelihood units.
@@ -53,7 +60,8 @@ from .likelihood import prepare
 from .parameterisation import param_transform
 from .quantities import coordinates
 
-__all__ = ["ScoreTest", "lm_statistic", "score_p_value", "score_tests", "fit_innovations",
+__all__ = ["ScoreTest", "lm_statistic", "score_p_value", "score_tests", "augmented_information",
+           "physical_block", "fit_innovations",
            "fit_diagnostics", "rejected", "score_text", "diagnostics_text", "REJECT_P",
            "REJECT_GAIN"]
 
@@ -138,12 +146,70 @@ def _augmented(res, setup, data, bounds, extra):
                    setup["fit_x0"], None, kw)
 
 
+def augmented_information(res, setup, data, bounds, extra):
+    """The score and curvature at the fit's optimum ``res`` of its objective with the
+    parameters ``extra`` fitted too (:func:`vehjax.tune.likelihood.prepare` at the fitted
+    values, compiled once; the Hessian by :func:`vehjax.tune.information.difference_hessian`).
+
+    Returns:
+        (coordinate names (n,), score d logL / dz (n,), observed information -d2 logL / dz2
+        (n, n), the outer product of the per-step scores (n, n) or None (reverse mode), the
+        augmented set-up, z its starting coordinates); logL summed over the runs, z the
+        unconstrained coordinates (:func:`vehjax.tune.quantities.coordinates` order).
+    """
+    obj, aug = _augmented(res, setup, data, bounds, extra)
+    names, scales = coordinates(aug, res.model, obj.z0)
+    loss = program.compiled_loss(obj, aug, batch_hessian=obj.n_steps >=
+                                 program.BATCH_HESSIAN_STEPS)
+    if loss.vgo is not None:
+        _, _, g, opg = loss.vgo(loss.x0)
+        opg = obj.n_steps * opg
+    else:
+        (_, _, g), opg = loss.vg(loss.x0), None
+    info = obj.n_steps * difference_hessian(loss, loss.x0, scales)
+    return names, -obj.n_steps * np.asarray(g, dtype=float), info, opg, aug, obj.z0
+
+
+def physical_block(score_z: float, info, d1: float, d2: float):
+    """(score, information) of a block whose last coordinate z is carried to the physical
+    theta = g(z) (g' = ``d1``, g'' = ``d2``), the others' scores zero: ``s = s_z / g'``, the
+    last row and column divided by g', its diagonal entry corrected by the curvature of the
+    map, ``I_tt = (I_zz + s_z g'' / g') / g'^2``. NaN where g' = 0."""
+    info = np.array(info, dtype=float)
+    if not (np.isfinite(d1) and d1 != 0):
+        return float("nan"), np.full_like(info, np.nan)
+    info[-1, -1] += score_z * d2 / d1
+    info[-1, :] /= d1
+    info[:, -1] /= d1
+    return score_z / d1, info
+
+
+def _map_derivatives(tmap, z):
+    """(g'(z), g''(z)) of the parameter map, entry by entry, (p,) each."""
+    ones = jnp.ones_like(z)
+    d1 = lambda v: jax.jvp(tmap.to_physical, (v,), (ones,))[1]  # noqa: E731
+    return np.asarray(d1(z)), np.asarray(jax.jvp(d1, (z,), (ones,))[1])
+
+
+def _one_test(value, score_z, info, opg, d1, d2, unit):
+    """The :class:`ScoreTest` of one held parameter from its block (last coordinate), in its
+    physical coordinate; the outer product of the scores where the observed information is not
+    positive definite there."""
+    s, I = physical_block(score_z, info, d1, d2)
+    lm, step = lm_statistic(s, I)
+    if not np.isfinite(lm) and opg is not None:
+        s, I = physical_block(score_z, opg, d1, 0.0)
+        lm, step = lm_statistic(s, I)
+    return ScoreTest(value, float(s), lm, 0.5 * lm, score_p_value(lm), value + step, unit)
+
+
 def score_tests(res, setup, data, bounds=None, held_coordinates=()) -> dict:
     """``{name: ScoreTest}`` for every model parameter not among the fit's ``params``
-    (module docstring), at the fit's optimum ``res`` (:class:`vehjax.tune.TuneResult`).
+    (module docstring), at the fit's optimum.
 
     Args:
-        res: the fit's result (``model``, ``Q``, ``R``, ``input_noise``, ``x0`` at the optimum).
+        res: the fit's :class:`vehjax.tune.TuneResult` (``model``, ``Q``, ``R``,
+            ``input_noise``, ``x0`` at the optimum).
         setup: the fit's set-up (:func:`vehjax.tune.likelihood.prepare`).
         data: the fit's ``Objective.data``.
         bounds: the fit's ``bounds=``.
@@ -154,32 +220,19 @@ def score_tests(res, setup, data, bounds=None, held_coordinates=()) -> dict:
     ok, bad = _testable(model, held)
     units = dict(zip(model.param_names, getattr(model, "param_units",
                                                 ("-",) * len(model.param_names))))
+    value = {p: float(model.theta[model.param_names.index(p)]) for p in held}
     nan = float("nan")
-    out = {p: ScoreTest(float(model.theta[model.param_names.index(p)]), nan, nan, nan, nan,
-                        nan, units[p]) for p in bad}
-    if not ok:
-        return {p: out[p] for p in held}
-    obj, aug = _augmented(res, setup, data, bounds, ok)
-    names, scales = coordinates(aug, model, obj.z0)
-    loss = program.compiled_loss(obj, aug, batch_hessian=obj.n_steps >=
-                                 program.BATCH_HESSIAN_STEPS)
-    x = loss.x0
-    g = loss.vg(x)[2]
-    info = obj.n_steps * difference_hessian(loss, x, scales)
-    score = -obj.n_steps * np.asarray(g, dtype=float)
-    block = [i for i, n in enumerate(names) if n not in ok and n not in held_coordinates]
-    tmap, z_theta = aug["theta_map"], jnp.asarray(obj.z0["theta"])
-    dtheta = np.asarray(jax.jvp(tmap.to_physical, (z_theta,), (jnp.ones_like(z_theta),))[1])
-    pos = list(aug["params"])
-    for p in ok:
-        j = names.index(p)
-        lm, step = lm_statistic(score[j], info[np.ix_(block + [j], block + [j])])
-        k = pos.index(p)
-        one = (float(tmap.to_physical(z_theta.at[k].add(step))[k]) if np.isfinite(step)
-               else nan)
-        s_phys = score[j] / dtheta[k] if dtheta[k] != 0 else nan
-        out[p] = ScoreTest(float(model.theta[model.param_names.index(p)]), float(s_phys), lm,
-                           0.5 * lm, score_p_value(lm), one, units[p])
+    out = {p: ScoreTest(value[p], nan, nan, nan, nan, nan, units[p]) for p in bad}
+    if ok:
+        names, score, info, opg, aug, z0 = augmented_information(res, setup, data, bounds, ok)
+        block = [i for i, n in enumerate(names) if n not in ok and n not in held_coordinates]
+        d1, d2 = _map_derivatives(aug["theta_map"], jnp.asarray(z0["theta"]))
+        pos = list(aug["params"])
+        for p in ok:
+            j, k = names.index(p), pos.index(p)
+            ix = np.ix_(block + [j], block + [j])
+            out[p] = _one_test(value[p], score[j], info[ix], None if opg is None else opg[ix],
+                               d1[k], d2[k], units[p])
     return {p: out[p] for p in held}
 
 
