@@ -161,6 +161,14 @@ def test_true_value_is_not_rejected():
     assert min(ps) > 1e-3, ps
 
 
+@pytest.mark.slow
+def test_true_value_p_values_are_roughly_uniform():
+    """Monte Carlo: at the true b the score test's p-value is about uniform (LM ~ chi2_1)."""
+    ps = np.array([_scalar_fit(B, seed)[0].score_tests["b"].p_value for seed in range(10, 50)])
+    assert 0.02 <= np.mean(ps < 0.1) <= 0.25
+    assert 0.3 <= np.mean(ps < 0.5) <= 0.7
+
+
 def test_lm_statistic_is_nan_for_singular_information():
     assert all(math.isnan(v) for v in diagnostics.lm_statistic(2.0, np.zeros((2, 2))))
     assert all(math.isnan(v) for v in diagnostics.lm_statistic(

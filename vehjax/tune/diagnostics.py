@@ -55,7 +55,7 @@ from ..filters import input_noise as inoise
 from ..lib import whiteness
 from . import innovations as inn
 from . import program
-from .information import difference_hessian
+from .information import RCOND, difference_hessian
 from .likelihood import prepare
 from .parameterisation import param_transform
 from .quantities import coordinates
@@ -99,17 +99,20 @@ def lm_statistic(score: float, info) -> tuple[float, float]:
     """(LM, Newton step of the tested coordinate) from the score of the tested coordinate and
     the observed information ``info`` (m, m) of the block whose last coordinate it is, the
     others' scores zero: ``x = I^-1 e_m s``, ``LM = s x_m``, step ``x_m``. By a Cholesky factor
-    of the Jacobi-scaled block; (NaN, NaN) where it is not finite or not positive definite."""
+    of the Jacobi-scaled block; (NaN, NaN) where it is not finite or not positive definite, or
+    its eigenvalues span more than 1 / :data:`vehjax.tune.information.RCOND` (the rule by which
+    the fit calls a direction undetermined)."""
     info = np.asarray(info, dtype=float)
     nan = (float("nan"), float("nan"))
     d = np.diagonal(info)
     if not (np.isfinite(score) and np.all(np.isfinite(info)) and np.all(d > 0)):
         return nan
     D = 1.0 / np.sqrt(d)
-    try:
-        L = np.linalg.cholesky(0.5 * (info + info.T) * np.outer(D, D))
-    except np.linalg.LinAlgError:
+    Is = 0.5 * (info + info.T) * np.outer(D, D)
+    lam = np.linalg.eigvalsh(Is)
+    if not lam[0] > RCOND * lam[-1]:  # singular to the fit's own tolerance
         return nan
+    L = np.linalg.cholesky(Is)
     rhs = np.zeros(len(d))
     rhs[-1] = D[-1] * score
     x = D * np.linalg.solve(L.T, np.linalg.solve(L, rhs))

@@ -268,7 +268,9 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
         :class:`TuneResult`. A warning names the quantities the data do not determine
         (:func:`vehjax.tune.uncertainty`), also in ``TuneResult.undetermined``, and those on a
         bound of their domain with the likelihood increasing beyond it
-        (:mod:`vehjax.tune.boundaries`), also in ``TuneResult.on_bound``.
+        (:mod:`vehjax.tune.boundaries`), also in ``TuneResult.on_bound``, and the model
+        parameters held fixed whose values the data contradict (``TuneResult.score_tests``,
+        :mod:`vehjax.tune.diagnostics`).
 
     Raises:
         ValueError: naming the argument, before anything is traced: an unknown parameter name,
