@@ -50,7 +50,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..filtering import filter as run_filter
 from ..filters import input_noise as inoise
 from ..lib import whiteness
 from . import innovations as inn
@@ -244,15 +243,9 @@ def fit_innovations(res, data, lags=None) -> dict:
     (:mod:`vehjax.tune.innovations`): the filter run once more with its covariances."""
     ys, us, _, P0, _ = data
     model = res.model
-    x0 = jnp.asarray(res.x0)
-    axes = (0, None if us is None or us.ndim == 2 else 0, 0 if x0.ndim == 2 else None,
-            0 if P0.ndim == 3 else None)
-    out = jax.jit(jax.vmap(lambda y, u, a, B: run_filter(res.estimator, y, u, a, B),
-                           in_axes=axes))(ys, us, x0, P0)
     Lu = inoise.input_factor(res.input_noise, model.input_names)
-    e, S = inn.innovations(model, res.Q, res.R, np.asarray(ys),
-                           None if us is None else np.asarray(us), np.asarray(out.states),
-                           np.asarray(out.covariances), np.asarray(x0), np.asarray(P0), Lu)
+    e, S = inn.filtered_innovations(res.estimator, model, res.Q, res.R, ys, us,
+                                    jnp.asarray(res.x0), P0, Lu)
     return inn.output_checks(e, S, model.output_names, lags)
 
 

@@ -38,6 +38,7 @@ import numpy as np
 
 from .. import validation
 from ..engine import FilterResult
+from ..filtering import filter as run_filter
 from ..filters import input_noise as inoise
 from ..filters.kalman import linearized_measure, linearized_predict
 from ..lib import whiteness
@@ -45,6 +46,7 @@ from ..result import RunResult
 from .likelihood import check_data, float_array
 
 __all__ = ["InnovationCheck", "check_innovations", "one_step_predictions", "output_checks",
+           "innovations", "filtered_innovations",
            "coloured", "coloured_text", "COLOURED_P", "COLOURED_LAG1"]
 
 #: Ljung-Box p-value below which an output's innovations may be called coloured
@@ -225,4 +227,23 @@ def innovations(model, Q, R, ys, us, xs, Ps, x0, P0, Lu=None):
     run = jax.jit(jax.vmap(lambda y, u, x, P, a, B: one_step_predictions(
         model, Q, R, y, u, x, P, a, B, Lu), in_axes=axes))
     e, S = run(ys, us, xs, Ps, x0, P0)
+    return np.asarray(e), np.asarray(S)
+
+
+def filtered_innovations(estimator, model, Q, R, ys, us, x0, P0, Lu=None):
+    """``estimator`` run on every run (:func:`vehjax.filter`) and its innovations recomputed
+    (:func:`one_step_predictions`), one compiled program: arguments as :func:`innovations`
+    without the estimates. Returns numpy (e (R, T, ny), S (R, T, ny, ny))."""
+    T = ys.shape[1]
+    P0 = np.diag(P0) if P0.ndim == 1 else P0
+    per_run_u = us is not None and us.ndim == 3
+    axes = (0, 0 if per_run_u else None, 0 if x0.ndim == 2 else None,
+            0 if P0.ndim == 3 else None)
+
+    def one(y, u, a, B):
+        out = run_filter(estimator, y, u, a, B)
+        uu = jnp.zeros((T, 0), y.dtype) if u is None else u
+        return one_step_predictions(model, Q, R, y, uu, out.states, out.covariances, a, B, Lu)
+
+    e, S = jax.jit(jax.vmap(one, in_axes=axes))(ys, us, x0, P0)
     return np.asarray(e), np.asarray(S)
