@@ -9,4 +9,6 @@ Modules:
         of tune, dual and Liu-West, and the priors of calibrate).
     square_root: a square root L L^T = A of a constant or traced covariance.
     gaussian: the Gaussian log-density of a residual's observed components, once.
+    whiteness: autocorrelations with missing samples, the Ljung-Box statistic, chi-square
+        survival (innovation checks of :mod:`vehjax.tune.innovations`).
 """

@@ -111,6 +111,16 @@ optimiser keeps a bounded quantity's coordinate within
 diverge than at the start, so a fit ends where its estimator can be built (a one-step fit
 too).
 
+Where the model and the data disagree (:mod:`vehjax.tune.diagnostics`). A fit with standard
+errors of a deterministic filter also tests each model parameter it held fixed: the score
+(Lagrange-multiplier) test at the optimum, without a refit, says how much log-likelihood
+freeing it would gain and where one Newton step would take it (``TuneResult.score_tests``);
+and it checks each output's innovations for whiteness (``TuneResult.innovations``,
+:func:`check_innovations` for a filter run of one's own). The summary and a warning name a
+held value the data contradict, e.g. ``iz = 2700 [kg m^2] (held fixed): the data reject it:
+freeing it would gain about 203 log-likelihood units (p < 1e-16; one step to 6900)``: fitted
+values conditional on a wrong held one can be far off with small standard errors.
+
 Particle filter (:mod:`vehjax.tune.particle`). A particle filter
 (``builder=vehjax.filters.bootstrap_pf``) is differentiated with stop-gradient resampling, built
 with ``resample=vehjax.filters.smc.resample_stop_gradient`` (:func:`stop_gradient_pf`; Scibior &
@@ -133,18 +143,22 @@ errors), :mod:`~vehjax.tune.boundaries` (quantities on a bound),
 :mod:`~vehjax.tune.quantities` (names, units, scales), :mod:`~vehjax.tune.result`,
 :mod:`~vehjax.tune.driver` (:func:`fit_from_theta`, :func:`fit_noise`),
 :mod:`~vehjax.tune.staged` (:func:`fit`: the start and the comparison),
-:mod:`~vehjax.tune.compare` (:func:`compare`: candidate structures side by side). Measurements behind the
+:mod:`~vehjax.tune.compare` (:func:`compare`: candidate structures side by side),
+:mod:`~vehjax.tune.diagnostics` (score tests of the parameters held fixed) and
+:mod:`~vehjax.tune.innovations` (:func:`check_innovations`: per-output whiteness). Measurements behind the
 defaults:
 ``benchmarks/results/notes_tune.md``.
 """
 
 from __future__ import annotations
 
-from . import (boundaries, driver, information, likelihood, optimisers, priors, program,
-               quantities, staged)
+from . import (boundaries, diagnostics, driver, information, innovations, likelihood,
+               optimisers, priors, program, quantities, staged)
 from .driver import fit_from_theta, fit_noise
 from .staged import fit
 from .compare import StructureComparison, compare
+from .diagnostics import ScoreTest
+from .innovations import InnovationCheck, check_innovations
 from .information import Uncertainty, hessian_from_gradients, uncertainty
 from .likelihood import Objective, objective, prepare
 from .optimisers import scoring_direction
@@ -156,4 +170,5 @@ from .result import Comparison, TuneResult
 __all__ = ["fit", "fit_from_theta", "fit_noise", "objective", "Objective", "TuneResult", "stop_gradient_pf",
            "forward_scores", "score_outer_product", "scoring_direction",
            "uncertainty", "Uncertainty", "fitted_quantities", "hessian_from_gradients",
-           "stop_gradient", "prepare", "Comparison", "compare", "StructureComparison"]
+           "stop_gradient", "prepare", "Comparison", "compare", "StructureComparison",
+           "check_innovations", "InnovationCheck", "ScoreTest"]

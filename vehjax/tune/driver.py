@@ -19,7 +19,7 @@ from .. import validation
 from ..progress import Progress
 from . import optimisers as opt
 from . import program
-from . import boundaries
+from . import boundaries, diagnostics
 from . import priors as tune_priors
 from .information import MAX_SCALED_STD, difference_hessian, uncertainty
 from .likelihood import NOISE, prepare
@@ -242,7 +242,12 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
             ``n_particles``, ``input_noise``, ...).
         progress: show a progress bar (tqdm.auto when installed, else a line on stderr).
         standard_errors: compute the observed information (the Hessian of the log-likelihood),
-            standard errors, correlations and the undetermined directions (default).
+            standard errors, correlations and the undetermined directions (default); for
+            deterministic filters also the diagnostics (``TuneResult.score_tests`` of the
+            parameters held fixed, ``TuneResult.innovations`` per output;
+            :mod:`vehjax.tune.diagnostics`), at the cost of one more compile of the objective
+            with the held parameters added, n + k gradient evaluations (side by side) and one
+            filter run with covariances.
         hessian: how the Hessian is formed from JAX's exact gradient: "differences" (the
             default for deterministic filters) by forward differences of the gradient, steps
             1e-6 of each coordinate's natural size, with the one compiled gradient program
@@ -274,7 +279,9 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
         :class:`TuneResult`. A warning names the quantities the data do not determine
         (:func:`vehjax.tune.uncertainty`), also in ``TuneResult.undetermined``, and those on a
         bound of their domain with the likelihood increasing beyond it
-        (:mod:`vehjax.tune.boundaries`), also in ``TuneResult.on_bound``.
+        (:mod:`vehjax.tune.boundaries`), also in ``TuneResult.on_bound``, and the model
+        parameters held fixed whose values the data contradict (``TuneResult.score_tests``,
+        :mod:`vehjax.tune.diagnostics`).
 
     Raises:
         ValueError: naming the argument, before anything is traced: an unknown parameter name,
@@ -341,8 +348,10 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
             converged = converged or _free_gradient(g, free) <= gtol
     res = make_result(obj, setup, model, loss.unravel(jnp.asarray(x)), aux, history, iters,
                       converged, skipped, unc, grad_max, t_start, on, floors)
+    if standard_errors and not setup["stochastic"]:  # the nested fit of fit() pays nothing
+        res = res._replace(**diagnostics.fit_diagnostics(res, setup, obj.data, bounds, tuple(on)))
     st = loss.stats
-    return res._replace(evaluations=st["evaluations"], optimizer=str(optimizer)
+    return res._replace(seconds=time.perf_counter() - t_start, evaluations=st["evaluations"], optimizer=str(optimizer)
                         if isinstance(optimizer, str) else "optax", derivatives=st["mode"],
                         compile_seconds=st["compile_seconds"],
                         hessian_batches=st["batch_evaluations"],

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..filters.base import Estimator
 from . import priors as tune_priors
+from .diagnostics import diagnostics_text
 from .quantities import fitted_quantities
 
 __all__ = ["TuneResult", "Comparison", "make_result", "below_floors", "FLOOR_FRACTION"]
@@ -128,6 +129,15 @@ class TuneResult(NamedTuple):
             value.
         log_prior: the sum of the priors' log densities at the estimate (0.0 without priors);
             ``loglik + log_prior`` is what the fit maximised.
+        score_tests: ``{name: ScoreTest}`` for each model parameter held fixed: the score
+            (Lagrange-multiplier) test of its value at the fit's optimum, the log-likelihood
+            freeing it would gain and where one Newton step would take it
+            (:mod:`vehjax.tune.diagnostics`); the summary and a warning name the values the
+            data contradict. Deterministic filters with ``standard_errors``; else empty.
+        innovations: ``{output: InnovationCheck}``: each measured output's mean NIS, lag-1
+            autocorrelation and Ljung-Box test of the fitted filter's innovations
+            (:mod:`vehjax.tune.innovations`); the summary names the coloured ones. As
+            ``score_tests``, else empty.
     """
 
     Q: np.ndarray
@@ -168,6 +178,9 @@ class TuneResult(NamedTuple):
     priors: dict = {}
     pulls: dict = {}
     log_prior: float = 0.0
+    # diagnostics (score tests, innovations)
+    score_tests: dict = {}
+    innovations: dict = {}
 
     def summary(self) -> str:
         """A text table of the fitted values with their units and the log-likelihood."""
@@ -192,6 +205,7 @@ class TuneResult(NamedTuple):
             lines.append(f"  nested {self.nested.model}: log-likelihood {self.nested.loglik:.6g}"
                          f" ({'above' if self.nested.loglik > self.loglik else 'below'} this "
                          f"fit's by {abs(self.nested.loglik - self.loglik):.3g})")
+        lines += [f"  {t}" for t in diagnostics_text(self.score_tests, self.innovations)]
         if len(self.starts) > 1:
             lines.append(f"  starts tried: {len(self.starts)}, log-likelihoods " + ", ".join(
                 f"{ll:.6g}" for _, ll in self.starts))
