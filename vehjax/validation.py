@@ -57,6 +57,14 @@ def integer(name: str, value, low: int = 1, high: int | None = None) -> int:
     return int(n)
 
 
+def flag(name: str, value) -> bool:
+    """``value`` as a bool if it is one (Python's or numpy's), else ValueError naming ``name``:
+    a string such as ``"no"`` is truthy in Python, so it is refused rather than read as True."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name}: expected True or False, got {value!r}")
+    return bool(value)
+
+
 def choice(name: str, value, options) -> str:
     if not isinstance(value, str) or value not in options:
         raise ValueError(f"{name}: expected one of {tuple(options)}, got {value!r}")

@@ -255,19 +255,19 @@ def car_drive():
     return _drive(SingleTrack().with_theta(iz=2.5 * 2700.0), T=1000, q=(1e-3, 1e-4))
 
 
-def _car_fit(drive, iz_held):
+def _car_fit(drive, iz_held, release=False):
     ys, us = drive
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         res = vehjax.tune.fit(vehjax.filters.ekf, SingleTrack().with_theta(iz=iz_held),
                               np.diag([1e-6, 1e-8]), np.diag([0.05, 1e-5]), ys, us,
                               x0=np.zeros(2), P0=np.eye(2) * 0.1, params=("cf", "cr"),
-                              noise=("R",), progress=False)
+                              noise=("R",), progress=False, release=release)
     return res, [str(w.message) for w in caught]
 
 
 def test_single_track_names_the_wrong_yaw_inertia(car_drive):
-    res, caught = _car_fit(car_drive, 2700.0)
+    res, caught = _car_fit(car_drive, 2700.0)  # held as given (release=False)
     assert res.params["cf"] < 0.5 * 1.2e5  # the fitted stiffnesses absorb the wrong iz
     assert "iz = 2700 [kg m^2] (held fixed): the data reject it" in res.summary()
     assert any("iz = 2700" in m for m in caught)
@@ -286,3 +286,19 @@ def test_single_track_at_the_true_yaw_inertia_is_not_contradicted(car_drive):
     assert res.params["cf"] == pytest.approx(1.2e5, rel=0.05)
     assert not any(diagnostics.rejected(t) for t in res.score_tests.values())
     assert "data reject" not in res.summary() and "coloured" not in res.summary()
+
+
+def test_fit_releases_the_wrong_yaw_inertia_under_its_data_sheet_prior(car_drive):
+    """The default fit (release=True) fits the rejected iz under SingleTrack's 30 % prior: the
+    stiffnesses come back to the truth, and the report says what was released."""
+    res, caught = _car_fit(car_drive, 2700.0, release=True)
+    assert set(res.released) == {"iz"} and res.released["iz"].value == 2700.0
+    assert res.priors["iz"] == SingleTrack().with_theta(iz=2700.0).spec_priors()["iz"]
+    assert res.params["iz"] == pytest.approx(6750.0, rel=0.1)
+    assert res.params["cf"] == pytest.approx(1.2e5, rel=0.1)
+    assert res.pulls["iz"] == pytest.approx(np.log(res.params["iz"] / 2700.0) / 0.3)
+    text = "iz = 2700 [kg m^2] was given, and the data reject it"
+    assert text in res.summary() and any(text in m for m in caught)
+    # the superseded first fit's warnings are not raised ("fit it too, or correct it")
+    assert not any("iz = 2700 [kg m^2] (held fixed)" in m for m in caught)
+    assert "iz" not in res.score_tests  # fitted now

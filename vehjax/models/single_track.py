@@ -90,14 +90,16 @@ _PARAMS = {
     "brush": (_BODY + ("mu",), _BODY_UNITS + ("-",), _BODY_NOMINAL + (1.0,)),
 }
 
-#: how well a data sheet gives a parameter: the sigma of a log-normal prior around the given
-#: value (``SingleTrack.spec_priors``). The mass: the data sheet's kerb mass against the test
-#: mass with driver, fuel and instruments, 5-10 %. The yaw inertia: rarely measured, usually from
-#: an empirical formula in m, the wheelbase and the axle loads, whose error for a given car is
-#: tens of per cent. The centre of gravity (lf, lr): from the data sheet's weight distribution,
-#: which the load changes by a few per cent of the wheelbase. The relaxation lengths: a
-#: factor of two between tyres and loads.
-SPEC_UNCERTAINTY = {"m": 0.1, "iz": 0.3, "lf": 0.1, "lr": 0.1, "sigma_f": 0.7, "sigma_r": 0.7}
+#: how well a data sheet gives a parameter that a user cannot weigh: the sigma of a log-normal
+#: prior around the given value (``SingleTrack.spec_priors``). The yaw inertia is rarely
+#: measured (it needs a swing or a rig); a data sheet's comes from an empirical formula in the
+#: mass and the wheelbase whose error for a given car is tens of per cent (a car 2.5 times its
+#: sheet's is not unknown). The relaxation lengths: a factor of two between tyres and loads. The
+#: mass and the centre of gravity (lf, lr) are not here: wheel-load scales measure them to a per
+#: cent or two, and a fit that moves them stands in for a physics the model lacks (a tyre lag
+#: or a roll mode moves lr by tens of per cent on a test drive; the sideslip, which the rear
+#: slip angle ties to lr, follows it): they are reported when the data reject them, not refitted.
+SPEC_UNCERTAINTY = {"iz": 0.3, "sigma_f": 0.7, "sigma_r": 0.7}
 #: the std [m] of a normal prior around a given accelerometer position (xa, ya): a mounting
 #: position read off a drawing or a tape measure, rarely exact to a decimetre
 LEVER_UNCERTAINTY = 0.3
@@ -333,12 +335,13 @@ class SingleTrack(VehicleModel):
         return {"mu": peak_lateral_acceleration(ay, self.dt) / G}
 
     def spec_priors(self) -> dict:
-        """``{name: prior}`` for the parameters a user takes from a data sheet (the mass, the
-        yaw inertia, the centre of gravity; the relaxation lengths and the accelerometer's
-        position where the model has them), centred at this model's values: log-normal with
-        the relative stds of :data:`SPEC_UNCERTAINTY` (iz to 30 %, m to 10 %), normal with
-        :data:`LEVER_UNCERTAINTY` [m] for (xa, ya). The tyre parameters have none: they are
-        what a fit is for. See :meth:`vehjax.models.BaseModel.spec_priors`."""
+        """``{name: prior}`` for the parameters a user takes from a data sheet and cannot weigh
+        (the yaw inertia; the relaxation lengths and the accelerometer's position where the
+        model has them), centred at this model's values: log-normal with the relative stds of
+        :data:`SPEC_UNCERTAINTY` (iz to 30 %), normal with :data:`LEVER_UNCERTAINTY` [m] for
+        (xa, ya). The mass and the centre of gravity have none (scales measure them; see
+        :data:`SPEC_UNCERTAINTY`), nor the tyre parameters (what a fit is for). See
+        :meth:`vehjax.models.BaseModel.spec_priors`."""
         out = {}
         for j, name in enumerate(self.param_names):
             if name in SPEC_UNCERTAINTY:

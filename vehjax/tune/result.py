@@ -13,6 +13,7 @@ import numpy as np
 from ..filters.base import Estimator
 from . import priors as tune_priors
 from .diagnostics import diagnostics_text
+from .release import release_text
 from .quantities import fitted_quantities
 
 __all__ = ["TuneResult", "Comparison", "make_result", "below_floors", "FLOOR_FRACTION"]
@@ -134,6 +135,11 @@ class TuneResult(NamedTuple):
             freeing it would gain and where one Newton step would take it
             (:mod:`vehjax.tune.diagnostics`); the summary and a warning name the values the
             data contradict. Deterministic filters with ``standard_errors``; else empty.
+        released: ``{name: ScoreTest}`` of each held parameter that :func:`vehjax.tune.fit`
+            released (:mod:`vehjax.tune.release`): the data rejected its given value (the
+            score test, at the given value, that released it), and it was fitted under the
+            model's data-sheet prior (in ``priors``, its pull in ``pulls``); the summary and a
+            warning say so.
         innovations: ``{output: InnovationCheck}``: each measured output's mean NIS, lag-1
             autocorrelation and Ljung-Box test of the fitted filter's innovations
             (:mod:`vehjax.tune.innovations`); the summary names the coloured ones. As
@@ -181,6 +187,8 @@ class TuneResult(NamedTuple):
     # diagnostics (score tests, innovations)
     score_tests: dict = {}
     innovations: dict = {}
+    # held values the data rejected, fitted under their data-sheet priors
+    released: dict = {}
 
     def summary(self) -> str:
         """A text table of the fitted values with their units and the log-likelihood."""
@@ -205,11 +213,18 @@ class TuneResult(NamedTuple):
             lines.append(f"  nested {self.nested.model}: log-likelihood {self.nested.loglik:.6g}"
                          f" ({'above' if self.nested.loglik > self.loglik else 'below'} this "
                          f"fit's by {abs(self.nested.loglik - self.loglik):.3g})")
+        lines += [f"  {t}" for t in self.release_lines(self.released)]
         lines += [f"  {t}" for t in diagnostics_text(self.score_tests, self.innovations)]
         if len(self.starts) > 1:
             lines.append(f"  starts tried: {len(self.starts)}, log-likelihoods " + ", ".join(
                 f"{ll:.6g}" for _, ll in self.starts))
         return "\n".join(lines)
+
+
+    def release_lines(self, released: dict) -> list:
+        """What the report says of each parameter in ``released`` ({name: ScoreTest}), at
+        this result's values (:func:`vehjax.tune.release.release_text`)."""
+        return [release_text(k, t, self.priors[k], self.params[k]) for k, t in released.items()]
 
 
 def bound_text(name: str, side: str, bound: float, dlogl: float) -> str:

@@ -61,6 +61,7 @@ from .. import execution, validation
 from .driver import check_options, compile_objective, fit_from_theta
 from . import priors as tune_priors
 from .likelihood import NOISE, check_data, objective
+from .release import release_priors, start_value, to_release
 from .result import Comparison, TuneResult
 
 __all__ = ["fit", "STARTS", "BELOW_NESTED", "FLOOR_MARGIN", "start_values"]
@@ -128,20 +129,54 @@ def _nested_args(nested, args: dict):
 
 
 def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, nargs, options: dict,
-                compiled=None):
+                compiled=None, diagnose: bool = False):
     """(the nested model's :class:`~vehjax.tune.TuneResult` or None, its
-    :class:`~vehjax.tune.result.Comparison`); ``nargs`` from :func:`_nested_args`, ``compiled``
-    its program or None."""
+    :class:`~vehjax.tune.result.Comparison`, its warnings held back); ``nargs`` from
+    :func:`_nested_args`, ``compiled`` its program or None; ``diagnose``: with standard errors
+    and the score tests (:mod:`vehjax.tune.release`), else without."""
     t0 = time.perf_counter()
     if nargs is None:
         ll = _nested_likelihood(builder, nested, Q0, R0, ys, us, args["x0"], args["P0"],
                                 options.get("key"), args["builder_kwargs"])
-        return None, Comparison(_label(nested), ll, {}, time.perf_counter() - t0)
-    res = fit_from_theta(builder, nested, Q0, R0, ys, us, **nargs,
-                         **dict(options, standard_errors=False), compiled=compiled)
+        return None, Comparison(_label(nested), ll, {}, time.perf_counter() - t0), []
+    res, caught = _quietly(fit_from_theta, builder, nested, Q0, R0, ys, us, **nargs,
+                           **dict(options, standard_errors=diagnose), compiled=compiled)
     return res, Comparison(_label(nested), res.loglik, dict(res.values),
                            res.seconds + (0.0 if compiled is None else
-                                          compiled.stats["compile_seconds"]))
+                                          compiled.stats["compile_seconds"])), caught
+
+
+def _quietly(fn, *args, **kwargs):
+    """(``fn(*args, **kwargs)``, the warnings it raised), the warnings held back: a fit that a
+    later stage supersedes does not speak for the result."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = fn(*args, **kwargs)
+    return res, list(caught)
+
+
+def _reissue(caught, label: str | None = None) -> None:
+    """Raise the warnings held back (:func:`_quietly`) for the caller of :func:`fit`; those of
+    the nested model's fit say so (``label``: its description)."""
+    for w in caught:
+        text = str(w.message)
+        if label is not None:
+            text = text.replace("vehjax.tune:", f"vehjax.tune (the nested {label}'s fit):", 1)
+        warnings.warn(text, w.category, stacklevel=3)
+
+
+def _widened(args: dict, model, names) -> dict:
+    """``args`` with the released ``names`` fitted, under ``model``'s data-sheet priors."""
+    return dict(args, params=tuple(args["params"]) + tuple(names),
+                priors={**args["priors"], **release_priors(model, names)})
+
+
+def _released_start(model, Q0, R0, args: dict, res, released: dict) -> tuple:
+    """(model, Q0, R0, args) of a fit made again from ``res``'s values, each released
+    parameter at its :func:`~vehjax.tune.release.start_value`."""
+    model, Q0, R0, args = _from_nested(model, Q0, R0, args, res)
+    return model.with_theta(**{k: start_value(t, args["priors"][k])
+                               for k, t in released.items()}), Q0, R0, args
 
 
 def _compile_ahead(builder, model, Q0, R0, ys, us, args: dict, options: dict):
@@ -189,7 +224,7 @@ def _from_nested(model, Q0, R0, args: dict, lin) -> tuple:
 
 def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(), bounds=None,
         noise=NOISE, fit_x0: bool = False, start: str = "data", compare: bool = True,
-        builder_kwargs=None, priors=None, **options) -> TuneResult:
+        builder_kwargs=None, priors=None, release: bool = True, **options) -> TuneResult:
     """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum
     likelihood, with standard errors, from a start the data give (module docstring).
 
@@ -205,22 +240,28 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
             given input noise as they are.
         compare: fit the nested model (``model.nested_model()``) and report a result below its
             likelihood (default True; a model without one has nothing to compare).
+        release: fit a held parameter the data reject under the model's data-sheet prior
+            (``model.spec_priors()``; :mod:`vehjax.tune.release`) and say so
+            (``TuneResult.released``), default True; False holds every given value as given
+            (the score tests still name those the data reject). Needs the standard errors.
         **options: the optimiser's and the report's options of
             :func:`~vehjax.tune.driver.fit_from_theta` (``optimizer``, ``steps``, ``gtol``,
             ``key``, ``progress``, ``standard_errors``, ``hessian``, ...).
 
     Returns:
         :class:`~vehjax.tune.TuneResult`, the best start's, with ``nested``, ``below_nested``,
-        ``below_floor`` and ``starts``; ``seconds`` counts every stage.
+        ``below_floor``, ``starts`` and ``released``; ``seconds`` counts every stage. The
+        warnings of a stage that a later one supersedes (a fit made again with released
+        parameters) are not raised; those of the nested model's fit name it.
 
     Raises:
-        ValueError: naming the argument (``start``, ``compare``, and those of
+        ValueError: naming the argument (``start``, ``compare``, ``release``, and those of
             :func:`~vehjax.tune.driver.fit_from_theta`), before anything is traced.
     """
     t0 = time.perf_counter()
     validation.choice("start", start, STARTS)
-    if not isinstance(compare, (bool, np.bool_)):
-        raise ValueError(f"compare: expected True or False, got {compare!r}")
+    validation.flag("compare", compare)
+    release = validation.flag("release", release)
     check_options(options)
     validation.model(model)
     ys, us, _, _ = check_data(model, measurements, inputs, x0, P0)
@@ -231,6 +272,9 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
             validation.names("params", params, model.param_names, allow_empty=True), priors)
     args = dict(x0=x0, P0=P0, params=params, bounds=bounds, noise=noise, fit_x0=fit_x0,
                 builder_kwargs=builder_kwargs, priors=priors)
+    diagnose = release and validation.flag("standard_errors",
+                                           options.get("standard_errors", True))
+    given, released, held = model, {}, []  # the user's model, what was released, warnings
     nested = model.nested_model() if compare or start == "data" else None
     lin = cmp = ahead = None
     if nested is not None:  # its program first, then the model's beside its fit
@@ -240,7 +284,16 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
         ahead = _compile_ahead(builder, model.with_theta(**start_values(
             model, all_floors, params, bounds)) if start == "data" else model, Q0, R0, ys, us,
                                args, options)
-        lin, cmp = _fit_nested(builder, nested, Q0, R0, ys, us, args, nargs, options, nprog)
+        first = diagnose and start == "data"
+        lin, cmp, held = _fit_nested(builder, nested, Q0, R0, ys, us, args, nargs, options,
+                                     nprog, diagnose=first)
+        released = to_release(lin, given, args["params"]) if first and lin else {}
+        if released:  # the nested model again with them; the model's program compiled anew
+            nargs = _widened(nargs, given, released)
+            m, Qn, Rn, nargs = _released_start(nested, Q0, R0, nargs, lin, released)
+            lin, cmp, held = _fit_nested(builder, m, Qn, Rn, ys, us, args, nargs, options)
+            args, ahead = _widened(args, given, released), None
+        _reissue(held, cmp.model)
     if start == "data":
         model, Q0, R0, args = _from_nested(model, Q0, R0, args, lin)
         model = model.with_theta(**start_values(model, all_floors, params, bounds))
@@ -250,19 +303,28 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
                                      **args)
 
     def one(m):
-        res = fit_from_theta(builder, m, Q0, R0, ys, us, **args, **options, floors=all_floors,
-                             compiled=compiled)
-        starts.append(({k: float(m.theta[m.param_names.index(k)]) for k in params},
+        res, caught = _quietly(fit_from_theta, builder, m, Q0, R0, ys, us, **args, **options,
+                               floors=all_floors, compiled=compiled)
+        starts.append(({k: float(m.theta[m.param_names.index(k)]) for k in args["params"]},
                        res.loglik))
-        return res
+        return res, caught
 
     starts = []
-    best = one(model)
+    best, held = one(model)
     if start == "data" and cmp is not None and best.loglik < cmp.loglik - BELOW_NESTED:
         second = start_values(model, all_floors, params, bounds, second=True)
         if second:
-            res = one(model.with_theta(**second))
-            best = res if res.loglik + res.log_prior > best.loglik + best.log_prior else best
+            res, caught = one(model.with_theta(**second))
+            if res.loglik + res.log_prior > best.loglik + best.log_prior:
+                best, held = res, caught
+    more = to_release(best, given, args["params"]) if diagnose else {}
+    if more:  # released by the model's own fit: made again from its values
+        args = _widened(args, given, more)
+        m, Q0, R0, args = _released_start(model, Q0, R0, args, best, more)
+        best, held = _quietly(fit_from_theta, builder, m, Q0, R0, ys, us, **args, **options,
+                              floors=all_floors)
+        released = {**released, **more}
+    _reissue(held)
     below = compare and cmp is not None and best.loglik < cmp.loglik - BELOW_NESTED
     if below:
         warnings.warn(
@@ -270,5 +332,9 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
             f"nested {cmp.model}'s {cmp.loglik:.6g} on the same data: the fit stopped at a "
             f"worse optimum than the simpler model reaches; use the nested model, or start "
             f"from the data (start='data')", stacklevel=2)
+    if released:
+        warnings.warn("vehjax.tune: " + "; ".join(best.release_lines(released)),
+                      stacklevel=2)
     return best._replace(nested=cmp if compare else None, below_nested=below,
-                         starts=tuple(starts), seconds=time.perf_counter() - t0)
+                         starts=tuple(starts), seconds=time.perf_counter() - t0,
+                         released=released)
