@@ -14,6 +14,11 @@ Rows:
 * ``as given``: the same with ``release=False``: every data-sheet value held as given (what the
   documented path did before :mod:`vehjax.tune.release`);
 * ``iz freed``: the same with ``params=("cf", "cr", "iz")``;
+* ``reference``: calibrated with a reference sensor on run 1 (``SingleTrack(references=("vy",))``
+  observing the true vy with :data:`REFERENCE_STD` of noise), run on runs 2 and 3 without it
+  (the column missing);
+* ``brush``: the documented path with ``SingleTrack(tyres="brush")`` and mu fitted too
+  (``start="data"``: the nested linear fit first, where the release happens);
 * ``textbook``: benchmarks/textbook_observer.py (the linear single-track KF with the spec
   values and untuned noise; Leanza, Reina & Blanco-Claraco, Sensors 2021);
 * ``zero``: sideslip 0.
@@ -54,11 +59,34 @@ def sideslip(x, u):
     return jnp.arctan(x[0] / u[1])
 
 
-def fit(drive, params, **options):
-    """The documented fit on ``drive`` with ``params`` free: (TuneResult, wall s)."""
-    model = SingleTrack(dt=drive.dt, theta=tuple(drive.spec[k] for k in NAMES))
+#: the reference sensor of the calibration drive: lateral velocity with this noise std [m/s]
+#: (an optical speed sensor or a dual-antenna GNSS/INS: a few cm/s)
+REFERENCE_STD = 0.03
+
+
+def with_reference(drive, seed: int = 7) -> np.ndarray:
+    """(T, 3) measurements (ay, r, vy): the drive's, and its true vy with
+    :data:`REFERENCE_STD` of white noise (what a reference sensor reads)."""
+    noise = np.random.default_rng(seed).normal(0.0, REFERENCE_STD, drive.t.size)
+    return np.column_stack([drive.measurements, drive.states[:, 0] + noise])
+
+
+def without_reference(drive) -> np.ndarray:
+    """(T, 3) measurements with the reference column missing (NaN): a drive without it."""
+    return np.column_stack([drive.measurements, np.full(drive.t.size, np.nan)])
+
+
+def fit(drive, params, references=(), tyres="linear", **options):
+    """The documented fit on ``drive`` with ``params`` free: (TuneResult, wall s); with
+    ``references=("vy",)`` the model observes the reference too (:func:`with_reference`);
+    saturating ``tyres`` start at the model's nominal mu (and shape factors)."""
+    nominal = tuple(np.asarray(SingleTrack(tyres=tyres).theta)[6:])
+    model = SingleTrack(dt=drive.dt, theta=tuple(drive.spec[k] for k in NAMES) + nominal,
+                        references=references, tyres=tyres)
+    ys = with_reference(drive) if references else drive.measurements
+    r0 = np.append(R0, REFERENCE_STD ** 2) if references else R0
     t0 = time.perf_counter()
-    res = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)), R0, drive.measurements,
+    res = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)), r0, ys,
                           drive.inputs, x0=X0, P0=P0, params=params, noise=("R", "input"),
                           builder_kwargs={"input_noise": INPUT0}, progress=False, **options)
     return res, time.perf_counter() - t0
@@ -71,8 +99,10 @@ def rms_deg(beta, ref, vx) -> float:
 
 
 def judge_fit(res, drive):
-    """(sideslip RMS deg, mean NIS) of the fitted filter on ``drive``."""
-    out = vehjax.filter(res.estimator, drive.measurements, drive.inputs, x0=X0, P0=P0)
+    """(sideslip RMS deg, mean NIS) of the fitted filter on ``drive`` (without a reference
+    sensor: a model that observes one gets its column missing)."""
+    ys = without_reference(drive) if res.model.references else drive.measurements
+    out = vehjax.filter(res.estimator, ys, drive.inputs, x0=X0, P0=P0)
     beta = np.arctan(np.asarray(out.states)[:, 0] / drive.inputs[:, 1])
     return rms_deg(beta, drive.sideslip, drive.inputs[:, 1]), float(np.nanmean(out.nis))
 
@@ -113,7 +143,9 @@ def second_car_table(duration: float):
     fits = {}
     for label, params, options in (("documented", ("cf", "cr"), {}),
                                    ("as given", ("cf", "cr"), {"release": False}),
-                                   ("iz freed", ("cf", "cr", "iz"), {})):
+                                   ("iz freed", ("cf", "cr", "iz"), {}),
+                                   ("reference", ("cf", "cr"), {"references": ("vy",)}),
+                                   ("brush", ("cf", "cr", "mu"), {"tyres": "brush"})):
         res, wall = fit(runs[1], params, **options)
         fits[label] = res
         row(label, [judge_fit(res, runs[k]) for k in (2, 3)],
@@ -124,6 +156,7 @@ def second_car_table(duration: float):
     for label, res in fits.items():
         print(f"# {label}: {res.summary()}")
     held = runs[2]
+    fits.pop("reference")  # other measurements: not comparable by likelihood
     cmp = vehjax.tune.compare(fits, runs[1].measurements, runs[1].inputs, P0=P0,
                               held_out=(held.measurements, held.inputs), state=sideslip)
     print(cmp.summary())
