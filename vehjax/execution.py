@@ -85,6 +85,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import os
+from concurrent.futures import Future, ThreadPoolExecutor
 from functools import lru_cache
 from typing import NamedTuple
 
@@ -93,7 +94,7 @@ import jax.numpy as jnp
 
 __all__ = ["Strategy", "for_platform", "for_device", "current", "using", "resolve",
            "compiler_options", "check_options", "block_size", "memory_limit", "check_fits",
-           "resolve_devices", "WORKLOADS"]
+           "resolve_devices", "WORKLOADS", "in_thread"]
 
 #: What an estimator may declare its step to be (``Estimator.workload``).
 WORKLOADS = ("default", "small_dense", "particles")
@@ -357,3 +358,14 @@ def _xla_knows(name: str, value) -> bool:
     except jax.errors.JaxRuntimeError:
         return False
     return True
+
+
+def in_thread(fn, *args, **kwargs) -> Future:
+    """``fn(*args, **kwargs)`` started in a second host thread, in a copy of this one's context
+    (the strategy in force, :func:`using`): a future. The work that ``side_by_side`` lets run
+    beside the caller's (a fit's next program compiled while it fits); the thread ends with
+    its work."""
+    pool = ThreadPoolExecutor(1)
+    future = pool.submit(contextvars.copy_context().run, fn, *args, **kwargs)
+    pool.shutdown(wait=False)
+    return future

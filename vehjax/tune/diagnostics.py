@@ -50,6 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import execution
 from ..filters import input_noise as inoise
 from ..lib import whiteness
 from . import innovations as inn
@@ -136,23 +137,53 @@ def _testable(model, held) -> tuple[list, list]:
     return ok, bad
 
 
-def _augmented(res, setup, data, bounds, extra):
-    """The fit's objective at its optimum with ``extra`` parameters fitted too: (obj, setup);
-    penalised by the fit's priors, if any (the optimum's free gradient is that objective's)."""
+def _augmented(fit, setup, data, bounds, extra):
+    """The fit's objective at ``fit``'s values (its ``model``, ``Q``, ``R``, ``input_noise``,
+    ``x0``: the optimum's, or the start's for :func:`compile_augmented`) with ``extra``
+    parameters fitted too: (obj, setup); penalised by the fit's priors, if any (the optimum's
+    free gradient is that objective's)."""
     ys, us, _, P0, _ = data
     kw = dict(setup["builder_kwargs"])
-    if res.input_noise is not None:
-        kw["input_noise"] = res.input_noise
-    return prepare(setup["builder"], res.model, res.Q, res.R, np.asarray(ys),
-                   None if us is None else np.asarray(us), np.asarray(res.x0), np.asarray(P0),
+    if fit.input_noise is not None:
+        kw["input_noise"] = fit.input_noise
+    return prepare(setup["builder"], fit.model, fit.Q, fit.R, np.asarray(ys),
+                   None if us is None else np.asarray(us), np.asarray(fit.x0), np.asarray(P0),
                    tuple(setup["params"]) + tuple(extra), bounds, setup["noise"],
                    setup["fit_x0"], None, kw, setup.get("priors"))
 
 
-def augmented_information(res, setup, data, bounds, extra):
+class Start(NamedTuple):
+    """A fit's starting values, as :func:`_augmented` reads them from a result."""
+
+    model: object
+    Q: object
+    R: object
+    input_noise: object
+    x0: object
+
+
+def testable(model, params) -> list:
+    """The held parameters of ``model`` (not among ``params``) that a score test can take."""
+    return _testable(model, [p for p in model.param_names if p not in params])[0]
+
+
+def compile_augmented(start: Start, setup, data, bounds=None):
+    """The program of the augmented objective (:func:`augmented_information`), compiled from
+    the fit's start (:class:`Start`): its held values are the optimum's and its fitted values
+    are the program's argument, so it serves the optimum (:func:`vehjax.tune.fit_from_theta`
+    compiles it in a second thread while it fits); None when nothing is held."""
+    extra = testable(start.model, setup["params"])
+    if not extra:
+        return None
+    obj, aug = _augmented(start, setup, data, bounds, extra)
+    return program.compile_program(obj, aug)
+
+
+def augmented_information(res, setup, data, bounds, extra, compiled=None):
     """The score and curvature at the fit's optimum ``res`` of its objective with the
     parameters ``extra`` fitted too (:func:`vehjax.tune.likelihood.prepare` at the fitted
-    values, compiled once; the Hessian by :func:`vehjax.tune.information.difference_hessian`).
+    values, compiled once or ``compiled`` by :func:`compile_augmented`; the Hessian by
+    :func:`vehjax.tune.information.difference_hessian`).
 
     Returns:
         (coordinate names (n,), score d logL / dz (n,), observed information -d2 logL / dz2
@@ -163,7 +194,7 @@ def augmented_information(res, setup, data, bounds, extra):
     obj, aug = _augmented(res, setup, data, bounds, extra)
     names, scales = coordinates(aug, res.model, obj.z0)
     loss = program.compiled_loss(obj, aug, batch_hessian=obj.n_steps >=
-                                 program.BATCH_HESSIAN_STEPS)
+                                 program.BATCH_HESSIAN_STEPS, compiled=compiled)
     if loss.vgo is not None:
         _, _, g, opg = loss.vgo(loss.x0)
         opg = obj.n_steps * opg
@@ -206,7 +237,7 @@ def _one_test(value, score_z, info, opg, d1, d2, unit):
     return ScoreTest(value, float(s), lm, 0.5 * lm, score_p_value(lm), value + step, unit)
 
 
-def score_tests(res, setup, data, bounds=None, held_coordinates=()) -> dict:
+def score_tests(res, setup, data, bounds=None, held_coordinates=(), compiled=None) -> dict:
     """``{name: ScoreTest}`` for every model parameter not among the fit's ``params``
     (module docstring), at the fit's optimum.
 
@@ -217,6 +248,8 @@ def score_tests(res, setup, data, bounds=None, held_coordinates=()) -> dict:
         data: the fit's ``Objective.data``.
         bounds: the fit's ``bounds=``.
         held_coordinates: names of fitted coordinates held out of the block (on a bound).
+        compiled: the augmented program from :func:`compile_augmented`, or None (compiled
+            here).
     """
     model = res.model
     held = [p for p in model.param_names if p not in setup["params"]]
@@ -227,7 +260,8 @@ def score_tests(res, setup, data, bounds=None, held_coordinates=()) -> dict:
     nan = float("nan")
     out = {p: ScoreTest(value[p], nan, nan, nan, nan, nan, units[p]) for p in bad}
     if ok:
-        names, score, info, opg, aug, z0 = augmented_information(res, setup, data, bounds, ok)
+        names, score, info, opg, aug, z0 = augmented_information(res, setup, data, bounds, ok,
+                                                                 compiled)
         block = [i for i, n in enumerate(names) if n not in ok and n not in held_coordinates]
         d1, d2 = _map_derivatives(aug["theta_map"], jnp.asarray(z0["theta"]))
         pos = list(aug["params"])
@@ -268,13 +302,20 @@ def diagnostics_text(score: dict, checks: dict) -> list:
     return lines + [inn.coloured_text(k, c) for k, c in checks.items() if inn.coloured(c)]
 
 
-def fit_diagnostics(res, setup, data, bounds=None, held_coordinates=()) -> dict:
+def fit_diagnostics(res, setup, data, bounds=None, held_coordinates=(), compiled=None,
+                    innovations: bool = True) -> dict:
     """``{"score_tests": ..., "innovations": ...}`` of a deterministic filter's fit
-    (:func:`score_tests`, :func:`fit_innovations`), with a warning naming the contradicted
-    held values."""
-    tests = score_tests(res, setup, data, bounds, held_coordinates)
+    (:func:`score_tests`, on the program ``compiled`` ahead where given; :func:`fit_innovations`
+    unless ``innovations`` is False, in a second host thread beside the score tests where the
+    platform has a core to spare: ``side_by_side`` of :mod:`vehjax.execution`), with a warning
+    naming the contradicted held values."""
+    beside = innovations and execution.current().side_by_side >= 2
+    future = execution.in_thread(fit_innovations, res, data) if beside else None
+    tests = score_tests(res, setup, data, bounds, held_coordinates, compiled)
+    checks = future.result() if beside else fit_innovations(res, data) if innovations else {}
     bad = [score_text(k, t) for k, t in tests.items() if rejected(t)]
     if bad:
         warnings.warn("vehjax.tune: " + "; ".join(bad) + ": fit it too, or correct it",
                       stacklevel=3)
-    return {"score_tests": tests, "innovations": fit_innovations(res, data)}
+    return {"score_tests": tests, "innovations": checks}
+

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .. import validation
+from .. import execution, validation
 from ..progress import Progress
 from . import optimisers as opt
 from . import program
@@ -183,13 +183,35 @@ def _standard_errors(obj, setup, quantities, loss, x, optimizer, hessian, gtol, 
     return x, aux, float(np.max(np.abs(g))), polished, unc, on
 
 
+def _augmented_ahead(setup, data, model, Q0, R0, x0, builder_kwargs, bounds, standard_errors):
+    """The score tests' program (:func:`vehjax.tune.diagnostics.compile_augmented`) compiled
+    from the start in a second host thread while the fit runs: a future, or None (no standard
+    errors, a particle filter, or a platform that does one thing at a time)."""
+    if not standard_errors or setup["stochastic"] or execution.current().side_by_side < 2:
+        return None
+    start = diagnostics.Start(model, Q0, R0, (builder_kwargs or {}).get("input_noise"), x0)
+    return execution.in_thread(diagnostics.compile_augmented, start, setup, data, bounds)
+
+
+def _compiled_ahead(future):
+    """The program a future compiled, or None (none, or its compile failed: the score tests
+    then compile their own and raise what is wrong)."""
+    if future is None:
+        return None
+    try:
+        return future.result()
+    except Exception:  # noqa: BLE001 - the score tests' own compile reports it
+        return None
+
+
 def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
                    bounds=None, noise=NOISE, fit_x0: bool = False, optimizer=None,
                    learning_rate=None, steps: int | None = None, tol: float = 1e-7,
                    patience: int | None = None, gtol: float = GTOL, key=None,
                    builder_kwargs=None, progress: bool = True, standard_errors: bool = True,
                    hessian: str | None = None, floors=None,
-                   compiled: program.Program | None = None, priors=None) -> TuneResult:
+                   compiled: program.Program | None = None, priors=None,
+                   innovations: bool = True) -> TuneResult:
     """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum likelihood,
     with standard errors, from one start: ``model.theta``, Q0, R0 and the given input noise as
     they are (:func:`vehjax.tune.fit` chooses the start from the data first).
@@ -246,8 +268,10 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
             deterministic filters also the diagnostics (``TuneResult.score_tests`` of the
             parameters held fixed, ``TuneResult.innovations`` per output;
             :mod:`vehjax.tune.diagnostics`), at the cost of one more compile of the objective
-            with the held parameters added, n + k gradient evaluations (side by side) and one
-            filter run with covariances.
+            with the held parameters added (in a second host thread while the fit runs, where
+            the platform has a core to spare: ``side_by_side`` of :mod:`vehjax.execution`),
+            n + k gradient evaluations (side by side) and one filter run with covariances
+            (beside them).
         hessian: how the Hessian is formed from JAX's exact gradient: "differences" (the
             default for deterministic filters) by forward differences of the gradient, steps
             1e-6 of each coordinate's natural size, with the one compiled gradient program
@@ -274,6 +298,8 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
             only in the fitted values (:func:`compile_objective`; :func:`vehjax.tune.fit`
             compiles the next stage's while it fits the nested model); None (default):
             compiled here.
+        innovations: with the standard errors, also the innovation checks (default True;
+            :func:`vehjax.tune.fit`'s nested stage needs only the score tests).
 
     Returns:
         :class:`TuneResult`. A warning names the quantities the data do not determine
@@ -299,6 +325,8 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
         raise ValueError("optimizer: 'scoring' needs a deterministic filter (EKF, UKF, CKF); "
                          "use 'adam' for a particle filter")
     differences = not setup["stochastic"] and hessian in (None, "differences")
+    augmented = _augmented_ahead(setup, obj.data, model, Q0, R0, x0, builder_kwargs, bounds,
+                                 standard_errors)
     names, scales = coordinates(setup, model, obj.z0)
     flat0, unravel0 = jax.flatten_util.ravel_pytree(obj.z0)
     if setup["log_prior"] is not None:  # a narrow prior: the coordinate's size is its width
@@ -349,7 +377,9 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
     res = make_result(obj, setup, model, loss.unravel(jnp.asarray(x)), aux, history, iters,
                       converged, skipped, unc, grad_max, t_start, on, floors)
     if standard_errors and not setup["stochastic"]:  # the nested fit of fit() pays nothing
-        res = res._replace(**diagnostics.fit_diagnostics(res, setup, obj.data, bounds, tuple(on)))
+        res = res._replace(**diagnostics.fit_diagnostics(
+            res, setup, obj.data, bounds, tuple(on), _compiled_ahead(augmented),
+            validation.flag("innovations", innovations)))
     st = loss.stats
     return res._replace(seconds=time.perf_counter() - t_start, evaluations=st["evaluations"], optimizer=str(optimizer)
                         if isinstance(optimizer, str) else "optax", derivatives=st["mode"],

@@ -49,11 +49,9 @@ keeps that from being reported.
 
 from __future__ import annotations
 
-import contextvars
 import math
 import time
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -140,7 +138,8 @@ def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, nargs, options: dic
                                 options.get("key"), args["builder_kwargs"])
         return None, Comparison(_label(nested), ll, {}, time.perf_counter() - t0), []
     res, caught = _quietly(fit_from_theta, builder, nested, Q0, R0, ys, us, **nargs,
-                           **dict(options, standard_errors=diagnose), compiled=compiled)
+                           **dict(options, standard_errors=diagnose), compiled=compiled,
+                           innovations=False)
     return res, Comparison(_label(nested), res.loglik, dict(res.values),
                            res.seconds + (0.0 if compiled is None else
                                           compiled.stats["compile_seconds"])), caught
@@ -188,11 +187,8 @@ def _compile_ahead(builder, model, Q0, R0, ys, us, args: dict, options: dict):
     execution strategy in force)."""
     if execution.current().side_by_side < 2:
         return None
-    pool = ThreadPoolExecutor(1)
-    future = pool.submit(contextvars.copy_context().run, compile_objective, builder, model, Q0,
-                         R0, ys, us, key=options.get("key"), **args)
-    pool.shutdown(wait=False)  # the thread ends with its compile
-    return future
+    return execution.in_thread(compile_objective, builder, model, Q0, R0, ys, us,
+                               key=options.get("key"), **args)
 
 
 def _compiled(future):
