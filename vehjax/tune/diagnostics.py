@@ -55,12 +55,12 @@ from ..filters import input_noise as inoise
 from ..lib import whiteness
 from . import innovations as inn
 from . import program
-from .information import RCOND, difference_hessian
+from .information import FORWARD_REL, RCOND, difference_hessian
 from .likelihood import prepare
 from .parameterisation import param_transform
 from .quantities import coordinates
 
-__all__ = ["ScoreTest", "lm_statistic", "score_p_value", "score_tests", "augmented_information",
+__all__ = ["ScoreTest", "Checks", "Start", "compile_augmented", "testable", "lm_statistic", "score_p_value", "score_tests", "augmented_information",
            "physical_block", "fit_innovations",
            "fit_diagnostics", "rejected", "score_text", "diagnostics_text", "REJECT_P",
            "REJECT_GAIN"]
@@ -162,28 +162,64 @@ class Start(NamedTuple):
     x0: object
 
 
-def testable(model, params) -> list:
-    """The held parameters of ``model`` (not among ``params``) that a score test can take."""
-    return _testable(model, [p for p in model.param_names if p not in params])[0]
+class Checks(NamedTuple):
+    """Which diagnostics a fit makes (:func:`fit_diagnostics`): the score tests of the held
+    parameters among ``held`` (None: every one) and, with ``innovations``, the innovation
+    checks. :func:`vehjax.tune.fit`'s nested stage tests only what it may release."""
+
+    held: tuple | None = None
+    innovations: bool = True
 
 
-def compile_augmented(start: Start, setup, data, bounds=None):
+def held_parameters(model, params, only=None) -> list:
+    """The parameters of ``model`` not among ``params`` (and among ``only`` unless None)."""
+    return [p for p in model.param_names if p not in params and (only is None or p in only)]
+
+
+def testable(model, params, only=None) -> list:
+    """The held parameters of ``model`` (:func:`held_parameters`) that a score test can take."""
+    return _testable(model, held_parameters(model, params, only))[0]
+
+
+def compile_augmented(start: Start, setup, data, bounds=None, only=None):
     """The program of the augmented objective (:func:`augmented_information`), compiled from
     the fit's start (:class:`Start`): its held values are the optimum's and its fitted values
     are the program's argument, so it serves the optimum (:func:`vehjax.tune.fit_from_theta`
-    compiles it in a second thread while it fits); None when nothing is held."""
-    extra = testable(start.model, setup["params"])
+    compiles it in a second thread while it fits); None when nothing is held (among
+    ``only``, unless None)."""
+    extra = testable(start.model, setup["params"], only)
     if not extra:
         return None
     obj, aug = _augmented(start, setup, data, bounds, extra)
     return program.compile_program(obj, aug)
 
 
-def augmented_information(res, setup, data, bounds, extra, compiled=None):
+def _held_columns(loss, x, scales, held, free_hessian, names):
+    """The observed information of the mean loss (n, n) at x from the fit's Hessian over its
+    own coordinates (``free_hessian`` = (their names, (m, m))) and forward differences of the
+    gradient along the ``held`` coordinates only (k evaluations, side by side), symmetrised."""
+    fit_names, H_fit = free_hessian
+    n = len(x)
+    free = [names.index(q) for q in fit_names]
+    h = FORWARD_REL * np.asarray(scales, dtype=float)[held]
+    points = [x + h[i] * np.eye(n)[j] for i, j in enumerate(held)]
+    g0 = np.asarray(loss.vg(x)[2], dtype=float)
+    cols = (np.stack([np.asarray(r[2], dtype=float) for r in loss.many(points)]) - g0) / h[:, None]
+    H = np.zeros((n, n))
+    H[np.ix_(free, free)] = H_fit
+    H[held, :] = cols
+    H[:, held] = cols.T
+    H[np.ix_(held, held)] = 0.5 * (cols[:, held] + cols[:, held].T)
+    return H
+
+
+def augmented_information(res, setup, data, bounds, extra, compiled=None, free_hessian=None):
     """The score and curvature at the fit's optimum ``res`` of its objective with the
     parameters ``extra`` fitted too (:func:`vehjax.tune.likelihood.prepare` at the fitted
     values, compiled once or ``compiled`` by :func:`compile_augmented`; the Hessian by
-    :func:`vehjax.tune.information.difference_hessian`).
+    :func:`vehjax.tune.information.difference_hessian`, or, given the fit's own Hessian
+    ``free_hessian`` = (its coordinate names, the Hessian of the mean loss over them), that
+    and differences along the held coordinates only, :func:`_held_columns`).
 
     Returns:
         (coordinate names (n,), score d logL / dz (n,), observed information -d2 logL / dz2
@@ -200,7 +236,12 @@ def augmented_information(res, setup, data, bounds, extra, compiled=None):
         opg = obj.n_steps * opg
     else:
         (_, _, g), opg = loss.vg(loss.x0), None
-    info = obj.n_steps * difference_hessian(loss, loss.x0, scales)
+    held = [i for i, q in enumerate(names) if free_hessian is None or q not in free_hessian[0]]
+    if free_hessian is None or not held or len(held) + len(free_hessian[0]) != len(names):
+        info = obj.n_steps * difference_hessian(loss, loss.x0, scales)
+    else:
+        info = obj.n_steps * _held_columns(loss, np.asarray(loss.x0, dtype=float), scales,
+                                           held, free_hessian, list(names))
     return names, -obj.n_steps * np.asarray(g, dtype=float), info, opg, aug, obj.z0
 
 
@@ -237,7 +278,8 @@ def _one_test(value, score_z, info, opg, d1, d2, unit):
     return ScoreTest(value, float(s), lm, 0.5 * lm, score_p_value(lm), value + step, unit)
 
 
-def score_tests(res, setup, data, bounds=None, held_coordinates=(), compiled=None) -> dict:
+def score_tests(res, setup, data, bounds=None, held_coordinates=(), compiled=None,
+                only=None, free_hessian=None) -> dict:
     """``{name: ScoreTest}`` for every model parameter not among the fit's ``params``
     (module docstring), at the fit's optimum.
 
@@ -250,9 +292,12 @@ def score_tests(res, setup, data, bounds=None, held_coordinates=(), compiled=Non
         held_coordinates: names of fitted coordinates held out of the block (on a bound).
         compiled: the augmented program from :func:`compile_augmented`, or None (compiled
             here).
+        only: test only the held parameters among these names (None: every one).
+        free_hessian: (the fit's coordinate names, the Hessian of its mean loss over them at
+            the optimum), reused for that block (:func:`augmented_information`), or None.
     """
     model = res.model
-    held = [p for p in model.param_names if p not in setup["params"]]
+    held = held_parameters(model, setup["params"], only)
     ok, bad = _testable(model, held)
     units = dict(zip(model.param_names, getattr(model, "param_units",
                                                 ("-",) * len(model.param_names))))
@@ -261,7 +306,7 @@ def score_tests(res, setup, data, bounds=None, held_coordinates=(), compiled=Non
     out = {p: ScoreTest(value[p], nan, nan, nan, nan, nan, units[p]) for p in bad}
     if ok:
         names, score, info, opg, aug, z0 = augmented_information(res, setup, data, bounds, ok,
-                                                                 compiled)
+                                                                 compiled, free_hessian)
         block = [i for i, n in enumerate(names) if n not in ok and n not in held_coordinates]
         d1, d2 = _map_derivatives(aug["theta_map"], jnp.asarray(z0["theta"]))
         pos = list(aug["params"])
@@ -303,16 +348,18 @@ def diagnostics_text(score: dict, checks: dict) -> list:
 
 
 def fit_diagnostics(res, setup, data, bounds=None, held_coordinates=(), compiled=None,
-                    innovations: bool = True) -> dict:
-    """``{"score_tests": ..., "innovations": ...}`` of a deterministic filter's fit
-    (:func:`score_tests`, on the program ``compiled`` ahead where given; :func:`fit_innovations`
-    unless ``innovations`` is False, in a second host thread beside the score tests where the
-    platform has a core to spare: ``side_by_side`` of :mod:`vehjax.execution`), with a warning
-    naming the contradicted held values."""
-    beside = innovations and execution.current().side_by_side >= 2
+                    checks: Checks = Checks(), free_hessian=None) -> dict:
+    """``{"score_tests": ..., "innovations": ...}`` of a deterministic filter's fit, as
+    ``checks`` asks (:class:`Checks`): :func:`score_tests`, on the program ``compiled`` ahead
+    where given; :func:`fit_innovations`, in a second host thread beside the score tests where
+    the platform has a core to spare (``side_by_side`` of :mod:`vehjax.execution`); with a
+    warning naming the contradicted held values; ``free_hessian`` as :func:`score_tests`."""
+    want = checks.innovations
+    beside = want and execution.current().side_by_side >= 2
     future = execution.in_thread(fit_innovations, res, data) if beside else None
-    tests = score_tests(res, setup, data, bounds, held_coordinates, compiled)
-    checks = future.result() if beside else fit_innovations(res, data) if innovations else {}
+    tests = score_tests(res, setup, data, bounds, held_coordinates, compiled, checks.held,
+                        free_hessian)
+    checks = future.result() if beside else fit_innovations(res, data) if want else {}
     bad = [score_text(k, t) for k, t in tests.items() if rejected(t)]
     if bad:
         warnings.warn("vehjax.tune: " + "; ".join(bad) + ": fit it too, or correct it",

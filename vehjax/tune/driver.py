@@ -163,7 +163,7 @@ def _standard_errors(obj, setup, quantities, loss, x, optimizer, hessian, gtol, 
     """The Newton polish (deterministic filters) and the observed information at its end over
     the free coordinates, the quantities on a bound held there: (x, aux, max |gradient|,
     polished to gtol over the free coordinates, :class:`vehjax.tune.Uncertainty`, the
-    quantities on a bound)."""
+    quantities on a bound, the Hessian of the mean loss there (n, n))."""
     hess = _hessian_fn(obj, setup, loss, hessian, scales)
     if setup["stochastic"]:  # no Newton step on a Monte-Carlo objective
         _, aux, g = loss.vg(x)
@@ -180,17 +180,19 @@ def _standard_errors(obj, setup, quantities, loss, x, optimizer, hessian, gtol, 
     max_std = np.where([n.startswith("x0[") for n in names], np.inf, MAX_SCALED_STD)
     unc = uncertainty(obj.n_steps * Hm, J, scales, names, max_std=max_std, fixed=~free,
                       pinned=np.array([q in on for q in qnames], dtype=bool))
-    return x, aux, float(np.max(np.abs(g))), polished, unc, on
+    return x, aux, float(np.max(np.abs(g))), polished, unc, on, Hm
 
 
-def _augmented_ahead(setup, data, model, Q0, R0, x0, builder_kwargs, bounds, standard_errors):
+def _augmented_ahead(setup, data, model, Q0, R0, x0, builder_kwargs, bounds, standard_errors,
+                     only=None):
     """The score tests' program (:func:`vehjax.tune.diagnostics.compile_augmented`) compiled
     from the start in a second host thread while the fit runs: a future, or None (no standard
     errors, a particle filter, or a platform that does one thing at a time)."""
     if not standard_errors or setup["stochastic"] or execution.current().side_by_side < 2:
         return None
     start = diagnostics.Start(model, Q0, R0, (builder_kwargs or {}).get("input_noise"), x0)
-    return execution.in_thread(diagnostics.compile_augmented, start, setup, data, bounds)
+    return execution.in_thread(diagnostics.compile_augmented, start, setup, data, bounds,
+                               only)
 
 
 def _compiled_ahead(future):
@@ -211,7 +213,7 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
                    builder_kwargs=None, progress: bool = True, standard_errors: bool = True,
                    hessian: str | None = None, floors=None,
                    compiled: program.Program | None = None, priors=None,
-                   innovations: bool = True) -> TuneResult:
+                   checks: diagnostics.Checks | None = None) -> TuneResult:
     """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum likelihood,
     with standard errors, from one start: ``model.theta``, Q0, R0 and the given input noise as
     they are (:func:`vehjax.tune.fit` chooses the start from the data first).
@@ -298,8 +300,10 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
             only in the fitted values (:func:`compile_objective`; :func:`vehjax.tune.fit`
             compiles the next stage's while it fits the nested model); None (default):
             compiled here.
-        innovations: with the standard errors, also the innovation checks (default True;
-            :func:`vehjax.tune.fit`'s nested stage needs only the score tests).
+        checks: which diagnostics the standard errors come with
+            (:class:`vehjax.tune.diagnostics.Checks`); None (default): the score tests of every
+            held parameter and the innovation checks (:func:`vehjax.tune.fit`'s nested stage
+            asks for the score tests of what it may release only).
 
     Returns:
         :class:`TuneResult`. A warning names the quantities the data do not determine
@@ -325,8 +329,9 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
         raise ValueError("optimizer: 'scoring' needs a deterministic filter (EKF, UKF, CKF); "
                          "use 'adam' for a particle filter")
     differences = not setup["stochastic"] and hessian in (None, "differences")
+    checks = diagnostics.Checks() if checks is None else checks
     augmented = _augmented_ahead(setup, obj.data, model, Q0, R0, x0, builder_kwargs, bounds,
-                                 standard_errors)
+                                 standard_errors, checks.held)
     names, scales = coordinates(setup, model, obj.z0)
     flat0, unravel0 = jax.flatten_util.ravel_pytree(obj.z0)
     if setup["log_prior"] is not None:  # a narrow prior: the coordinate's size is its width
@@ -359,7 +364,7 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
     unc, grad_max = None, float("nan")
     quantities = _quantity_map(obj, setup, model, loss.unravel)
     if standard_errors:
-        x, aux, grad_max, polished, unc, on = _standard_errors(
+        x, aux, grad_max, polished, unc, on, Hm = _standard_errors(
             obj, setup, quantities, loss, x, optimizer, hessian, gtol, scales, names)
         converged = converged or polished
     else:
@@ -378,8 +383,8 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
                       converged, skipped, unc, grad_max, t_start, on, floors)
     if standard_errors and not setup["stochastic"]:  # the nested fit of fit() pays nothing
         res = res._replace(**diagnostics.fit_diagnostics(
-            res, setup, obj.data, bounds, tuple(on), _compiled_ahead(augmented),
-            validation.flag("innovations", innovations)))
+            res, setup, obj.data, bounds, tuple(on), _compiled_ahead(augmented), checks,
+            (tuple(names), np.asarray(Hm, dtype=float))))
     st = loss.stats
     return res._replace(seconds=time.perf_counter() - t_start, evaluations=st["evaluations"], optimizer=str(optimizer)
                         if isinstance(optimizer, str) else "optax", derivatives=st["mode"],

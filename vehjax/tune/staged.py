@@ -56,6 +56,7 @@ import warnings
 import numpy as np
 
 from .. import execution, validation
+from .diagnostics import Checks
 from .driver import check_options, compile_objective, fit_from_theta
 from . import priors as tune_priors
 from .likelihood import NOISE, check_data, objective
@@ -137,9 +138,10 @@ def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, nargs, options: dic
         ll = _nested_likelihood(builder, nested, Q0, R0, ys, us, args["x0"], args["P0"],
                                 options.get("key"), args["builder_kwargs"])
         return None, Comparison(_label(nested), ll, {}, time.perf_counter() - t0), []
+    held = tuple(k for k in nested.spec_priors() if k not in nargs["params"])
     res, caught = _quietly(fit_from_theta, builder, nested, Q0, R0, ys, us, **nargs,
-                           **dict(options, standard_errors=diagnose), compiled=compiled,
-                           innovations=False)
+                           **dict(options, standard_errors=diagnose and bool(held)),
+                           compiled=compiled, checks=Checks(held, innovations=False))
     return res, Comparison(_label(nested), res.loglik, dict(res.values),
                            res.seconds + (0.0 if compiled is None else
                                           compiled.stats["compile_seconds"])), caught
