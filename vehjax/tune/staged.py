@@ -147,6 +147,30 @@ def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, nargs, options: dic
                                           compiled.stats["compile_seconds"])), caught
 
 
+def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: dict,
+                  diagnose: bool):
+    """The nested model's fit (:func:`_fit_nested`; its program first, then ``model``'s, at
+    its start, compiled beside it: :func:`_compile_ahead`), and made again where the data
+    reject a held value that ``model`` may release (``diagnose``; :mod:`vehjax.tune.release`).
+    Returns (the nested fit or None, its Comparison, the model's program's future or None,
+    the model's fit's arguments, the released ``{name: ScoreTest}``); its warnings raised,
+    naming it."""
+    nargs = _nested_args(nested, args)
+    nprog = None if nargs is None else compile_objective(
+        builder, nested, Q0, R0, ys, us, key=options.get("key"), **nargs)
+    ahead = _compile_ahead(builder, model, Q0, R0, ys, us, args, options)
+    lin, cmp, held = _fit_nested(builder, nested, Q0, R0, ys, us, args, nargs, options, nprog,
+                                 diagnose=diagnose)
+    released = to_release(lin, model, args["params"]) if diagnose and lin else {}
+    if released:  # the nested model again with them; the model's program compiled anew
+        nargs = _widened(nargs, model, released)
+        m, Qn, Rn, nargs = _released_start(nested, Q0, R0, nargs, lin, released)
+        lin, cmp, held = _fit_nested(builder, m, Qn, Rn, ys, us, args, nargs, options)
+        args, ahead = _widened(args, model, released), None
+    _reissue(held, cmp.model)
+    return lin, cmp, ahead, args, released
+
+
 def _quietly(fn, *args, **kwargs):
     """(``fn(*args, **kwargs)``, the warnings it raised), the warnings held back: a fit that a
     later stage supersedes does not speak for the result."""
@@ -272,26 +296,16 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
                 builder_kwargs=builder_kwargs, priors=priors)
     diagnose = release and validation.flag("standard_errors",
                                            options.get("standard_errors", True))
-    given, released, held = model, {}, []  # the user's model, what was released, warnings
+    given = model  # the user's model: its held values and their data-sheet priors
     nested = model.nested_model() if compare or start == "data" else None
     lin = cmp = ahead = None
-    if nested is not None:  # its program first, then the model's beside its fit
-        nargs = _nested_args(nested, args)
-        nprog = None if nargs is None else compile_objective(
-            builder, nested, Q0, R0, ys, us, key=options.get("key"), **nargs)
-        ahead = _compile_ahead(builder, model.with_theta(**start_values(
-            model, all_floors, params, bounds)) if start == "data" else model, Q0, R0, ys, us,
-                               args, options)
-        first = diagnose and start == "data"
-        lin, cmp, held = _fit_nested(builder, nested, Q0, R0, ys, us, args, nargs, options,
-                                     nprog, diagnose=first)
-        released = to_release(lin, given, args["params"]) if first and lin else {}
-        if released:  # the nested model again with them; the model's program compiled anew
-            nargs = _widened(nargs, given, released)
-            m, Qn, Rn, nargs = _released_start(nested, Q0, R0, nargs, lin, released)
-            lin, cmp, held = _fit_nested(builder, m, Qn, Rn, ys, us, args, nargs, options)
-            args, ahead = _widened(args, given, released), None
-        _reissue(held, cmp.model)
+    released = {}
+    if nested is not None:
+        ahead_model = model.with_theta(**start_values(model, all_floors, params, bounds)) \
+            if start == "data" else model
+        lin, cmp, ahead, args, released = _nested_stage(
+            builder, nested, ahead_model, Q0, R0, ys, us, args, options,
+            diagnose and start == "data")
     if start == "data":
         model, Q0, R0, args = _from_nested(model, Q0, R0, args, lin)
         model = model.with_theta(**start_values(model, all_floors, params, bounds))
