@@ -30,11 +30,18 @@ from .result import TuneResult, make_result
 __all__ = ["fit_from_theta", "fit_noise", "compile_objective", "check_options", "OPTIONS"]
 
 
-def _check_fit_options(learning_rate, tol, gtol, hessian, steps, patience, optimizer):
-    """:func:`fit`'s optimiser options checked (ValueError naming the first bad one):
-    (learning_rate, tol, gtol) as numbers."""
+def _check_fit_options(learning_rate, tol, gtol, hessian, steps, patience, optimizer,
+                       progress=True, standard_errors=True):
+    """:func:`fit`'s optimiser and report options checked (ValueError naming the first bad
+    one; the flags by :func:`vehjax.validation.flag`: ``progress="no"`` is refused, not read
+    as True): (learning_rate, tol, gtol) as numbers."""
+    validation.flag("progress", progress)
+    validation.flag("standard_errors", standard_errors)
     if learning_rate is not None:
         learning_rate = validation.number("learning_rate", learning_rate, 0.0)
+        if optimizer in ("lbfgs", "scoring"):
+            raise ValueError(f"learning_rate: {optimizer} takes its steps by a line search; "
+                             f"leave it None")
     tol = validation.number("tol", tol, 0.0, low_open=False)
     gtol = validation.number("gtol", gtol, 0.0)
     if hessian is not None:
@@ -64,7 +71,8 @@ def check_options(options: dict) -> None:
             raise TypeError(f"fit() got an unexpected keyword argument {k!r}")
     _check_fit_options(options.get("learning_rate"), options.get("tol", 0.0),
                        options.get("gtol", GTOL), options.get("hessian"), options.get("steps"),
-                       options.get("patience"), options.get("optimizer"))
+                       options.get("patience"), options.get("optimizer"),
+                       options.get("progress", True), options.get("standard_errors", True))
 
 
 def _progress(steps: int, enabled, name: str):
@@ -322,7 +330,8 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
     """
     t_start = time.perf_counter()
     learning_rate, tol, gtol = _check_fit_options(learning_rate, tol, gtol, hessian, steps,
-                                                  patience, optimizer)
+                                                  patience, optimizer, progress,
+                                                  standard_errors)
     obj, setup = prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
                          noise, fit_x0, key, builder_kwargs, priors)
     if optimizer == "scoring" and setup["stochastic"]:
