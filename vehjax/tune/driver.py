@@ -221,7 +221,7 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
                    builder_kwargs=None, progress: bool = True, standard_errors: bool = True,
                    hessian: str | None = None, floors=None,
                    compiled: program.Program | None = None, priors=None,
-                   checks: diagnostics.Checks | None = None) -> TuneResult:
+                   checks: diagnostics.Checks = diagnostics.Checks()) -> TuneResult:
     """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum likelihood,
     with standard errors, from one start: ``model.theta``, Q0, R0 and the given input noise as
     they are (:func:`vehjax.tune.fit` chooses the start from the data first).
@@ -309,7 +309,7 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
             compiles the next stage's while it fits the nested model); None (default):
             compiled here.
         checks: which diagnostics the standard errors come with
-            (:class:`vehjax.tune.diagnostics.Checks`); None (default): the score tests of every
+            (:class:`vehjax.tune.diagnostics.Checks`); by default the score tests of every
             held parameter and the innovation checks (:func:`vehjax.tune.fit`'s nested stage
             asks for the score tests of what it may release only).
 
@@ -338,7 +338,6 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
         raise ValueError("optimizer: 'scoring' needs a deterministic filter (EKF, UKF, CKF); "
                          "use 'adam' for a particle filter")
     differences = not setup["stochastic"] and hessian in (None, "differences")
-    checks = diagnostics.Checks() if checks is None else checks
     augmented = _augmented_ahead(setup, obj.data, model, Q0, R0, x0, builder_kwargs, bounds,
                                  standard_errors, checks.held)
     names, scales = coordinates(setup, model, obj.z0)
