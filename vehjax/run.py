@@ -408,8 +408,7 @@ def _check_progress(progress) -> None:
 def _check_options(return_covariances, progress, chunk_size) -> None:
     """ValueError naming the option unless ``return_covariances`` is a bool, ``progress`` None
     or a bool and ``chunk_size`` None or an integer >= 1."""
-    if not isinstance(return_covariances, (bool, np.bool_)):
-        raise ValueError(f"return_covariances: expected True or False, got {return_covariances!r}")
+    validation.flag("return_covariances", return_covariances)
     _check_progress(progress)
     if chunk_size is not None and (
         isinstance(chunk_size, (bool, np.bool_))

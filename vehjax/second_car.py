@@ -1,6 +1,6 @@
 """A simulated second car: a front-wheel-drive saloon whose truth is richer than any fitted model.
 
-Why (issue 53): on a second real car (200 Hz, up to 1.2 g, an accelerometer with heavy 40-100 Hz
+Why: on a second real car (200 Hz, up to 1.2 g, an accelerometer with heavy 40-100 Hz
 vibration) the documented fit of ``vehjax.models.SingleTrack`` with the data sheet's yaw
 inertia, 2.5 times too small, gave sideslip errors several times those of an untuned textbook
 linear Kalman filter. :func:`second_car` simulates such a car, so that the documented path, its

@@ -244,9 +244,7 @@ class SingleTrack(VehicleModel):
                  references=()):
         self.tyres = validation.choice("tyres", tyres, TYRES)
         self.substeps = validation.integer("substeps", substeps, 1)
-        if not isinstance(lever_arm, bool):
-            raise ValueError(f"lever_arm: expected True or False, got {lever_arm!r}")
-        self.lever_arm = lever_arm
+        self.lever_arm = validation.flag("lever_arm", lever_arm)
         self.references = check_references(references)
         names, _, nominal = param_table(self.tyres, self.LAG, lever_arm)
         self.dt = _check_dt(dt)

@@ -1,6 +1,6 @@
 """Compare candidate model structures fitted on one drive: :func:`compare`.
 
-Why (issue 53): two structures can fit a drive about equally well (the same log-likelihood to
+Why: two structures can fit a drive about equally well (the same log-likelihood to
 a few units, e.g. a single-track model with the data sheet's yaw inertia and one with it
 fitted) and still disagree about the state nobody measured (the sideslip). A likelihood alone
 does not show that; :func:`compare` puts the information criteria, the held-out likelihood and

@@ -86,8 +86,7 @@ def _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs,
     params = tune_priors.fitted_params(params, priors)
     theta0 = np.asarray(model.theta, dtype=float)
     idx, theta_map = param_transform(params, bounds, theta0, names, model.param_domains())
-    if not isinstance(fit_x0, (bool, np.bool_)):
-        raise ValueError(f"fit_x0: expected True or False, got {fit_x0!r}")
+    validation.flag("fit_x0", fit_x0)
     if not noise and not params and not fit_x0:
         raise ValueError("noise: nothing to fit: noise=(), params=() and fit_x0=False")
     if builder_kwargs is None:

@@ -53,8 +53,8 @@ import numpy as np
 from ..lib.priors import LogNormal, describe
 from .diagnostics import ScoreTest, rejected
 
-__all__ = ["RELEASE_GAIN", "RELEASE_SIGMAS", "to_release", "prior_distance", "release_priors",
-           "start_value", "release_text"]
+__all__ = ["RELEASE_GAIN", "RELEASE_SIGMAS", "to_release", "step_offset", "prior_distance",
+           "release_priors", "start_value", "release_text"]
 
 #: a held value is released when freeing it would gain at least this many log-likelihood
 #: units: well beyond what an information criterion charges for one parameter (1 unit for
@@ -73,19 +73,26 @@ RELEASE_SIGMAS = 1.0
 START_SIGMAS = 3.0
 
 
-def prior_distance(test: ScoreTest, prior) -> float:
-    """How far the score test's one Newton step moves the held value, in the prior's standard
-    deviations and its own coordinate (log for a log-normal prior); inf where the step leaves
-    the prior's support (a log-normal's step to 0 or below: far beyond any linear step), 0.0
-    where it is not finite (nothing known)."""
+def step_offset(test: ScoreTest, prior) -> float:
+    """The score test's one Newton step from the held value in the prior's own coordinate (log
+    for a log-normal prior, the value itself for a normal one): NaN where the step is not
+    finite (nothing known), -inf where it leaves a log-normal's support (0 or below)."""
     step = test.one_step
     if not math.isfinite(step):
-        return 0.0
+        return math.nan
     if isinstance(prior, LogNormal):
         if step <= 0.0 or test.value <= 0.0:
-            return math.inf
-        return abs(math.log(step / test.value)) / prior.scale
-    return abs(step - test.value) / prior.scale
+            return -math.inf
+        return math.log(step / test.value)
+    return step - test.value
+
+
+def prior_distance(test: ScoreTest, prior) -> float:
+    """How far the score test's one Newton step moves the held value, in the prior's standard
+    deviations (:func:`step_offset`); inf where the step leaves the prior's support (far
+    beyond any linear step), 0.0 where it is not finite."""
+    offset = step_offset(test, prior)
+    return 0.0 if math.isnan(offset) else abs(offset) / prior.scale
 
 
 def to_release(res, model, fitted) -> dict:
@@ -108,17 +115,15 @@ def release_priors(model, names) -> dict:
 
 def start_value(test: ScoreTest, prior) -> float:
     """Where a released parameter starts: its score test's one Newton step, within
-    :data:`START_SIGMAS` prior standard deviations of the held value (in the prior's
-    coordinate: log for a log-normal prior); the held value where the step is not finite."""
-    step = test.one_step
-    if not math.isfinite(step):
+    :data:`START_SIGMAS` prior standard deviations of the held value (:func:`step_offset`:
+    in the prior's coordinate); the held value where the step is not finite or leaves the
+    prior's support."""
+    offset = step_offset(test, prior)
+    if not math.isfinite(offset):
         return test.value
     width = START_SIGMAS * prior.scale
-    if isinstance(prior, LogNormal):  # a relative width
-        if step <= 0.0:
-            return test.value
-        return float(test.value * np.exp(np.clip(np.log(step / test.value), -width, width)))
-    return float(np.clip(step, test.value - width, test.value + width))
+    clipped = float(np.clip(offset, -width, width))
+    return test.value * math.exp(clipped) if isinstance(prior, LogNormal) else test.value + clipped
 
 
 def release_text(name: str, test: ScoreTest, prior, fitted: float) -> str:
