@@ -60,7 +60,8 @@ from .likelihood import prepare
 from .parameterisation import param_transform
 from .quantities import coordinates
 
-__all__ = ["ScoreTest", "Checks", "Start", "compile_augmented", "testable", "lm_statistic", "score_p_value", "score_tests", "augmented_information",
+__all__ = ["ScoreTest", "Checks", "Start", "Ahead", "compile_augmented", "compile_innovations",
+           "compile_ahead", "testable", "lm_statistic", "score_p_value", "score_tests", "augmented_information",
            "physical_block", "fit_innovations",
            "fit_diagnostics", "rejected", "score_text", "diagnostics_text", "REJECT_P",
            "REJECT_GAIN"]
@@ -194,6 +195,33 @@ def compile_augmented(start: Start, setup, data, bounds=None, only=None):
     return program.compile_program(obj, aug)
 
 
+def compile_innovations(setup, data):
+    """The innovation checks' program (:func:`vehjax.tune.innovations.fitted_innovations`)
+    compiled at the fit's start ``setup["z0"]``: its fitted values are the argument, so it
+    serves the optimum (:func:`fit_innovations`)."""
+    options = execution.compiler_options(execution.current(), setup["workload"])
+    return jax.jit(inn.fitted_innovations(setup)).lower(setup["z0"], data).compile(
+        compiler_options=options)
+
+
+class Ahead(NamedTuple):
+    """The diagnostics' programs compiled ahead (:func:`compile_ahead`), each None where not
+    (:func:`fit_diagnostics` then compiles its own)."""
+
+    augmented: object = None
+    innovations: object = None
+
+
+def compile_ahead(start: Start, setup, data, bounds=None, checks: Checks = Checks()) -> Ahead:
+    """The programs :func:`fit_diagnostics` runs at the optimum, compiled from the fit's start
+    one after the other: the score tests' (:func:`compile_augmented`, for the held parameters
+    among ``checks.held``) and, with ``checks.innovations``, the innovation checks'
+    (:func:`compile_innovations`). :func:`vehjax.tune.fit_from_theta` runs this in a second
+    host thread while it fits."""
+    aug = compile_augmented(start, setup, data, bounds, checks.held)
+    return Ahead(aug, compile_innovations(setup, data) if checks.innovations else None)
+
+
 def _held_columns(loss, x, scales, held, free_hessian, names):
     """The observed information of the mean loss (n, n) at x from the fit's Hessian over its
     own coordinates (``free_hessian`` = (their names, (m, m))) and forward differences of the
@@ -318,15 +346,14 @@ def score_tests(res, setup, data, bounds=None, held_coordinates=(), compiled=Non
     return {p: out[p] for p in held}
 
 
-def fit_innovations(res, data, lags=None) -> dict:
+def fit_innovations(setup, data, z, names, compiled=None, lags=None) -> dict:
     """``{output: InnovationCheck}`` of the fitted estimator on the fit's data
-    (:mod:`vehjax.tune.innovations`): the filter run once more with its covariances."""
-    ys, us, _, P0, _ = data
-    model = res.model
-    Lu = inoise.input_factor(res.input_noise, model.input_names)
-    e, S = inn.filtered_innovations(res.estimator, model, res.Q, res.R, ys, us,
-                                    jnp.asarray(res.x0), P0, Lu)
-    return inn.output_checks(e, S, model.output_names, lags)
+    (:mod:`vehjax.tune.innovations`): the filter at the fit's coordinates ``z`` run once more
+    with its covariances, on the program ``compiled`` ahead (:func:`compile_innovations`) or
+    one compiled here; ``names`` the model's outputs."""
+    run = jax.jit(inn.fitted_innovations(setup)) if compiled is None else compiled
+    e, S = run(z, data)
+    return inn.output_checks(np.asarray(e), np.asarray(S), names, lags)
 
 
 def rejected(test: ScoreTest) -> bool:
@@ -347,22 +374,26 @@ def diagnostics_text(score: dict, checks: dict) -> list:
     return lines + [inn.coloured_text(k, c) for k, c in checks.items() if inn.coloured(c)]
 
 
-def fit_diagnostics(res, setup, data, bounds=None, held_coordinates=(), compiled=None,
+def fit_diagnostics(res, setup, data, z, bounds=None, held_coordinates=(), ahead=Ahead(),
                     checks: Checks = Checks(), free_hessian=None) -> dict:
-    """``{"score_tests": ..., "innovations": ...}`` of a deterministic filter's fit, as
-    ``checks`` asks (:class:`Checks`): :func:`score_tests`, on the program ``compiled`` ahead
-    where given; :func:`fit_innovations`, in a second host thread beside the score tests where
-    the platform has a core to spare (``side_by_side`` of :mod:`vehjax.execution`); with a
-    warning naming the contradicted held values; ``free_hessian`` as :func:`score_tests`."""
+    """``{"score_tests": ..., "innovations": ...}`` of a deterministic filter's fit at its
+    optimum (``res``, its coordinates ``z``), as ``checks`` asks (:class:`Checks`):
+    :func:`score_tests`; :func:`fit_innovations`, in a second host thread beside the score
+    tests where the platform has a core to spare (``side_by_side`` of
+    :mod:`vehjax.execution`); each on its program compiled ahead (:class:`Ahead`) where
+    given; with a warning naming the contradicted held values; ``free_hessian`` as
+    :func:`score_tests`."""
     want = checks.innovations
+    names = res.model.output_names
     beside = want and execution.current().side_by_side >= 2
-    future = execution.in_thread(fit_innovations, res, data) if beside else None
-    tests = score_tests(res, setup, data, bounds, held_coordinates, compiled, checks.held,
-                        free_hessian)
-    checks = future.result() if beside else fit_innovations(res, data) if want else {}
+    future = execution.in_thread(fit_innovations, setup, data, z, names,
+                                 ahead.innovations) if beside else None
+    tests = score_tests(res, setup, data, bounds, held_coordinates, ahead.augmented,
+                        checks.held, free_hessian)
+    checks = future.result() if beside else \
+        fit_innovations(setup, data, z, names, ahead.innovations) if want else {}
     bad = [score_text(k, t) for k, t in tests.items() if rejected(t)]
     if bad:
         warnings.warn("vehjax.tune: " + "; ".join(bad) + ": fit it too, or correct it",
                       stacklevel=3)
     return {"score_tests": tests, "innovations": checks}
-

@@ -191,27 +191,26 @@ def _standard_errors(obj, setup, quantities, loss, x, optimizer, hessian, gtol, 
     return x, aux, float(np.max(np.abs(g))), polished, unc, on, Hm
 
 
-def _augmented_ahead(setup, data, model, Q0, R0, x0, builder_kwargs, bounds, standard_errors,
-                     only=None):
-    """The score tests' program (:func:`vehjax.tune.diagnostics.compile_augmented`) compiled
-    from the start in a second host thread while the fit runs: a future, or None (no standard
+def _diagnostics_ahead(setup, data, model, Q0, R0, x0, builder_kwargs, bounds, standard_errors,
+                       checks):
+    """The diagnostics' programs (:func:`vehjax.tune.diagnostics.compile_ahead`) compiled from
+    the start in a second host thread while the fit runs: a future, or None (no standard
     errors, a particle filter, or a platform that does one thing at a time)."""
     if not standard_errors or setup["stochastic"] or execution.current().side_by_side < 2:
         return None
     start = diagnostics.Start(model, Q0, R0, (builder_kwargs or {}).get("input_noise"), x0)
-    return execution.in_thread(diagnostics.compile_augmented, start, setup, data, bounds,
-                               only)
+    return execution.in_thread(diagnostics.compile_ahead, start, setup, data, bounds, checks)
 
 
-def _compiled_ahead(future):
-    """The program a future compiled, or None (none, or its compile failed: the score tests
-    then compile their own and raise what is wrong)."""
+def _compiled_ahead(future) -> diagnostics.Ahead:
+    """The programs a future compiled, or none (no future, or a compile failed: the
+    diagnostics then compile their own and raise what is wrong)."""
     if future is None:
-        return None
+        return diagnostics.Ahead()
     try:
         return future.result()
-    except Exception:  # noqa: BLE001 - the score tests' own compile reports it
-        return None
+    except Exception:  # noqa: BLE001 - the diagnostics' own compile reports it
+        return diagnostics.Ahead()
 
 
 def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
@@ -277,11 +276,11 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
             standard errors, correlations and the undetermined directions (default); for
             deterministic filters also the diagnostics (``TuneResult.score_tests`` of the
             parameters held fixed, ``TuneResult.innovations`` per output;
-            :mod:`vehjax.tune.diagnostics`), at the cost of one more compile of the objective
-            with the held parameters added (in a second host thread while the fit runs, where
-            the platform has a core to spare: ``side_by_side`` of :mod:`vehjax.execution`),
-            n + k gradient evaluations (side by side) and one filter run with covariances
-            (beside them).
+            :mod:`vehjax.tune.diagnostics`), at the cost of two more compiles, of the
+            objective with the held parameters added and of the filter run with covariances
+            (in a second host thread while the fit runs, where the platform has a core to
+            spare: ``side_by_side`` of :mod:`vehjax.execution`), k + 1 gradient evaluations
+            (side by side) and one filter run (beside them).
         hessian: how the Hessian is formed from JAX's exact gradient: "differences" (the
             default for deterministic filters) by forward differences of the gradient, steps
             1e-6 of each coordinate's natural size, with the one compiled gradient program
@@ -338,8 +337,8 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
         raise ValueError("optimizer: 'scoring' needs a deterministic filter (EKF, UKF, CKF); "
                          "use 'adam' for a particle filter")
     differences = not setup["stochastic"] and hessian in (None, "differences")
-    augmented = _augmented_ahead(setup, obj.data, model, Q0, R0, x0, builder_kwargs, bounds,
-                                 standard_errors, checks.held)
+    ahead = _diagnostics_ahead(setup, obj.data, model, Q0, R0, x0, builder_kwargs, bounds,
+                               standard_errors, checks)
     names, scales = coordinates(setup, model, obj.z0)
     flat0, unravel0 = jax.flatten_util.ravel_pytree(obj.z0)
     if setup["log_prior"] is not None:  # a narrow prior: the coordinate's size is its width
@@ -387,11 +386,12 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
         if optimizer == "scoring":
             grad_max = float(np.max(np.abs(g)))
             converged = converged or _free_gradient(g, free) <= gtol
-    res = make_result(obj, setup, model, loss.unravel(jnp.asarray(x)), aux, history, iters,
+    z = loss.unravel(jnp.asarray(x))
+    res = make_result(obj, setup, model, z, aux, history, iters,
                       converged, skipped, unc, grad_max, t_start, on, floors)
     if standard_errors and not setup["stochastic"]:  # the nested fit of fit() pays nothing
         res = res._replace(**diagnostics.fit_diagnostics(
-            res, setup, obj.data, bounds, tuple(on), _compiled_ahead(augmented), checks,
+            res, setup, obj.data, z, bounds, tuple(on), _compiled_ahead(ahead), checks,
             (tuple(names), np.asarray(Hm, dtype=float))))
     st = loss.stats
     return res._replace(seconds=time.perf_counter() - t_start, evaluations=st["evaluations"], optimizer=str(optimizer)

@@ -46,7 +46,7 @@ from ..result import RunResult
 from .likelihood import check_data, float_array
 
 __all__ = ["InnovationCheck", "check_innovations", "one_step_predictions", "output_checks",
-           "innovations", "filtered_innovations",
+           "innovations", "fitted_innovations",
            "coloured", "coloured_text", "COLOURED_P", "COLOURED_LAG1"]
 
 #: Ljung-Box p-value below which an output's innovations may be called coloured
@@ -230,20 +230,29 @@ def innovations(model, Q, R, ys, us, xs, Ps, x0, P0, Lu=None):
     return np.asarray(e), np.asarray(S)
 
 
-def filtered_innovations(estimator, model, Q, R, ys, us, x0, P0, Lu=None):
-    """``estimator`` run on every run (:func:`vehjax.filter`) and its innovations recomputed
-    (:func:`one_step_predictions`), one compiled program: arguments as :func:`innovations`
-    without the estimates. Returns numpy (e (R, T, ny), S (R, T, ny, ny))."""
-    T = ys.shape[1]
-    P0 = np.diag(P0) if P0.ndim == 1 else P0
-    per_run_u = us is not None and us.ndim == 3
-    axes = (0, 0 if per_run_u else None, 0 if x0.ndim == 2 else None,
-            0 if P0.ndim == 3 else None)
+def fitted_innovations(setup):
+    """``fn(z, data) -> (e (R, T, ny), S (R, T, ny, ny))``: the filter of a fit's set-up
+    (:func:`vehjax.tune.likelihood.prepare`) at its coordinates z run on every run of the fit's
+    ``data`` (:func:`vehjax.filter`) and its innovations recomputed
+    (:func:`one_step_predictions`); traceable, one program for ``jax.jit``. The fitted values
+    are its argument, so a program compiled at a fit's start serves its optimum."""
+    at = setup["at"]
 
-    def one(y, u, a, B):
-        out = run_filter(estimator, y, u, a, B)
-        uu = jnp.zeros((T, 0), y.dtype) if u is None else u
-        return one_step_predictions(model, Q, R, y, uu, out.states, out.covariances, a, B, Lu)
+    def fn(z, data):
+        ys, us, _, P0, _ = data
+        est, model, Q, R, noise, x0 = at(z, data)
+        Lu = inoise.input_factor(noise, model.input_names)
+        T = ys.shape[1]
+        P0 = jnp.diag(P0) if P0.ndim == 1 else P0
 
-    e, S = jax.jit(jax.vmap(one, in_axes=axes))(ys, us, x0, P0)
-    return np.asarray(e), np.asarray(S)
+        def one(y, u, a, B):
+            out = run_filter(est, y, u, a, B)
+            uu = jnp.zeros((T, 0), y.dtype) if u is None else u
+            return one_step_predictions(model, Q, R, y, uu, out.states, out.covariances, a, B,
+                                        Lu)
+
+        axes = (0, None if us is None or us.ndim == 2 else 0, 0 if x0.ndim == 2 else None,
+                0 if P0.ndim == 3 else None)
+        return jax.vmap(one, in_axes=axes)(ys, us, x0, P0)
+
+    return fn

@@ -181,19 +181,30 @@ def _coordinates(setup: dict):
     return z0, unpack
 
 
-def _per_step(builder, model, setup: dict, unpack, sg: dict):
-    """``per_step(z, data) -> (log p(y_t | y_1:t-1) per run and step (R, T), diverged (R,))``."""
+def _estimator_at(builder, model, setup: dict, unpack, sg: dict):
+    """``at(z, data) -> (estimator, model, Q, R, input noise or None, x0)``: the fit's filter
+    built at the coordinates z (traceable), the values not fitted as given."""
     Qa, Ra, builder_kwargs = setup["Qa"], setup["Ra"], setup["builder_kwargs"]
 
-    def per_step(z, data):
-        ys_, us_, x0_, P0_, keys_ = data
+    def at(z, data):
         v = unpack(z)
         Q = v["Q"] if "Q" in z else Qa  # constants stay numpy: the builder may specialise
         R = v["R"] if "R" in z else Ra
         mdl = eqx.tree_at(lambda m: m.theta, model, v["theta"]) if "theta" in z else model
         kw = builder_kwargs if "input" not in z else {**builder_kwargs, "input_noise": v["input"]}
         est = builder(mdl, Q, R, **kw, **sg)
-        x0v = v["x0"] if "x0" in z else x0_
+        return est, mdl, Q, R, kw.get("input_noise"), v["x0"] if "x0" in z else data[2]
+
+    return at
+
+
+def _per_step(at):
+    """``per_step(z, data) -> (log p(y_t | y_1:t-1) per run and step (R, T), diverged (R,))``
+    of the filter ``at`` builds (:func:`_estimator_at`)."""
+
+    def per_step(z, data):
+        ys_, us_, _, P0_, keys_ = data
+        est, _, _, _, _, x0v = at(z, data)
 
         def one(y, u, xi, Pi, k):
             res = _filter(est, y, u, xi, Pi, key=k, return_covariances=False)
@@ -219,7 +230,7 @@ def prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds
             fit_x0, key, builder_kwargs, priors=None):
     """Everything checked before tracing (ValueError naming the argument): the
     :class:`Objective` and a dict of the fit's set-up (the builder, the starting values, the
-    parameterisations, ``per_step``, ``log_prior``, ``stochastic``, ...) for the optimisers
+    parameterisations, ``per_step``, ``at`` (the filter at given coordinates), ``log_prior``, ``stochastic``, ...) for the optimisers
     and the report. With ``priors`` (:mod:`vehjax.tune.priors`) the loss is the penalised one,
     ``-(sum loglik + log prior) / (R T)``; its aux stays the plain log-likelihood per run."""
     builder = _check_builder(builder)
@@ -230,7 +241,8 @@ def prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds
     est0, sg, keys = _start_estimator(builder, model, setup, key, n_runs)
     setup.update(x0=x0a, P0=P0a)
     z0, unpack = _coordinates(setup)
-    per_step = _per_step(builder, model, setup, unpack, sg)
+    at = _estimator_at(builder, model, setup, unpack, sg)
+    per_step = _per_step(at)
     setup["z0"] = z0
     log_prior = _log_prior(setup, unpack)
 
@@ -243,7 +255,7 @@ def prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds
     data = (jnp.asarray(ys), None if us is None else jnp.asarray(us), jnp.asarray(x0a),
             jnp.asarray(P0a), keys)
     setup.update(name=est0.name, builder=builder, stochastic=bool(est0.needs_key),
-                 per_step=per_step, workload=est0.workload, log_prior=log_prior,
+                 per_step=per_step, at=at, workload=est0.workload, log_prior=log_prior,
                  log_prior0=0.0 if log_prior is None else float(log_prior(z0)))
     return Objective(loss, z0, data, unpack, n_runs * T), setup
 

@@ -149,16 +149,16 @@ def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, nargs, options: dic
 
 def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: dict,
                   diagnose: bool):
-    """The nested model's fit (:func:`_fit_nested`; its program first, then ``model``'s, at
-    its start, compiled beside it: :func:`_compile_ahead`), and made again where the data
+    """The nested model's fit (:func:`_fit_nested`; ``model``'s program, at its start,
+    compiled beside its compile and its fit: :func:`_compile_ahead`), and made again where the data
     reject a held value that ``model`` may release (``diagnose``; :mod:`vehjax.tune.release`).
     Returns (the nested fit or None, its Comparison, the model's program's future or None,
     the model's fit's arguments, the released ``{name: ScoreTest}``); its warnings raised,
     naming it."""
     nargs = _nested_args(nested, args)
+    ahead = _compile_ahead(builder, model, Q0, R0, ys, us, args, options)
     nprog = None if nargs is None else compile_objective(
         builder, nested, Q0, R0, ys, us, key=options.get("key"), **nargs)
-    ahead = _compile_ahead(builder, model, Q0, R0, ys, us, args, options)
     lin, cmp, held = _fit_nested(builder, nested, Q0, R0, ys, us, args, nargs, options, nprog,
                                  diagnose=diagnose)
     released = to_release(lin, model, args["params"]) if diagnose and lin else {}
