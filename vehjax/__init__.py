@@ -53,7 +53,8 @@ def __getattr__(name: str):
     """A name of ``__all__`` or a submodule, imported on first use (PEP 562) and kept."""
     if name in _DEFINED_IN:
         value = getattr(importlib.import_module(f"{__name__}.{_DEFINED_IN[name]}"), name)
-    elif not name.startswith("__") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
+    elif name.isidentifier() and not name.startswith("__") \
+            and importlib.util.find_spec(f"{__name__}.{name}") is not None:
         value = importlib.import_module(f"{__name__}.{name}")
     else:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
