@@ -10,8 +10,15 @@ import sys
 import textwrap
 from pathlib import Path
 
+from . import reproduce  # light: its registry names the study modules, loaded when run
+
 BENCHMARKS = ("gaussian", "particle", "marginalized", "sevendof", "scale", "all", "liu_west_bias",
               "device", "smooth", "fit")
+#: the keys of vehjax.models.REGISTRY and vehjax.scenarios.REGISTRY (tests/test_import.py checks
+#: that they agree), written out so that building the parser (``vehjax --help``) imports no JAX
+MODELS = ("Dynamic3DOF", "KinematicBicycle", "SevenDOF", "SingleTrack", "SingleTrackBank",
+          "SingleTrackLag")
+SCENARIOS = ("chirp", "double_lane_change", "sine_steer", "sine_with_dwell", "step_steer")
 
 
 class UsageError(ValueError):
@@ -206,8 +213,6 @@ class _HelpWithStudies(argparse.Action):
 
 
 def _reproduce_studies():
-    from . import reproduce
-
     return [(f"vehjax reproduce {name} [options]", reproduce.load(name).parser)
             for name in sorted(reproduce.REGISTRY)]
 
@@ -227,8 +232,6 @@ def _version() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import models, scenarios
-
     parser = ArgumentParser(
         prog="vehjax", description="Batched, jitted state and parameter estimation for road vehicles."
     )
@@ -243,8 +246,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Simulate R noisy runs of a manoeuvre; writes the arrays (.npz) and a figure "
                     "of the true states, the measurements and the inputs (.png). `vehjax models` "
                     "lists each model's states and outputs with their units.")
-    p.add_argument("model", choices=sorted(models.REGISTRY))
-    p.add_argument("scenario", choices=sorted(scenarios.REGISTRY))
+    p.add_argument("model", choices=MODELS)
+    p.add_argument("scenario", choices=SCENARIOS)
     p.add_argument("--runs", type=count, default=10, help="Monte-Carlo runs (default 10)")
     p.add_argument("--speed", type=positive, default=20.0, help="speed in m/s (default 20)")
     p.add_argument("--dt", type=positive, default=0.01, help="sampling period in s (default 0.01)")
@@ -259,8 +262,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=integer, default=0, help="random seed (default 0)")
     p.add_argument("--out", type=out_folder, default="out", help="output folder (default ./out)")
     p.set_defaults(func=_cmd_simulate)
-
-    from . import reproduce
 
     p = sub.add_parser(
         "reproduce", help="reproduce a paper's study: tables and figures", add_help=False,

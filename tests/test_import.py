@@ -1,0 +1,116 @@
+"""``import vehjax`` and ``vehjax --help`` import no JAX: the package's names load on first use
+(vehjax/__init__.py), and float64 is on whenever vehjax code runs, whichever was imported first.
+
+Each check runs in a fresh interpreter (what is imported is a property of the process). The
+environment of these interpreters has no JAX_ENABLE_X64 (the test session's own ``import
+vehjax`` set it): float64 must come from vehjax itself. No wall times are asserted; they are
+measured in benchmarks/results.
+"""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+import vehjax
+from vehjax import cli
+
+#: what ``import vehjax`` and ``vehjax --help`` must not import
+HEAVY = ("jax", "jaxlib", "numpy", "scipy", "matplotlib", "tqdm", "equinox", "optax")
+
+
+def _python(code: str, x64: str | None = None) -> dict:
+    """Run ``code`` in a fresh interpreter (JAX_ENABLE_X64 unset, or set to ``x64``); its last
+    line of stdout, JSON, is returned."""
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    if x64 is not None:
+        env["JAX_ENABLE_X64"] = x64
+    out = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True,
+                         text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+_LOADED = f"""
+import json, sys
+print(json.dumps(sorted(m for m in {HEAVY!r} if m in sys.modules)))
+"""
+
+
+def test_import_vehjax_imports_no_jax_numpy_or_matplotlib():
+    assert _python("import vehjax" + _LOADED) == []
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["--version"], ["simulate", "--help"],
+                                  ["models", "--help"], ["simulate", "NoSuchModel", "x"]])
+def test_the_command_line_parser_imports_no_jax(argv):
+    # as ``python -m vehjax.cli`` and as the ``vehjax`` entry point (vehjax.cli:main) run it
+    for run in ("import runpy; runpy.run_module('vehjax.cli', run_name='__main__')",
+                "from vehjax.cli import main; sys.exit(main())"):
+        code = f"""
+        import contextlib, io, sys
+        sys.argv = ["vehjax", *{argv!r}]
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            try:
+                {run}
+            except SystemExit:
+                pass
+        """
+        assert _python(textwrap.dedent(code) + _LOADED) == [], (argv, run)
+
+
+def test_the_parsers_names_are_the_registries():
+    assert cli.MODELS == tuple(sorted(vehjax.models.REGISTRY))
+    assert cli.SCENARIOS == tuple(sorted(vehjax.scenarios.REGISTRY))
+
+
+_DTYPE = """
+import json, jax, jax.numpy as jnp
+print(json.dumps([str(jnp.zeros(()).dtype), jax.config.jax_enable_x64]))
+"""
+
+
+@pytest.mark.parametrize("first, x64", [
+    ("import vehjax\nvehjax.filter", None),  # vehjax first, JAX on first use
+    ("import vehjax\nvehjax.filter", "0"),  # as before: importing vehjax switches JAX to float64
+    ("from vehjax.filters import ekf", None),  # a submodule first: runs vehjax/__init__ first
+    ("import jax, vehjax\nassert jax.config.jax_enable_x64", None),  # JAX first
+    ("import jax, vehjax\nassert jax.config.jax_enable_x64", "0"),
+])
+def test_float64_is_on_whichever_is_imported_first(first, x64):
+    assert _python(first + _DTYPE, x64) == ["float64", True]
+
+
+def test_the_lazy_names_are_the_eager_ones():
+    code = """
+    import json, types, vehjax
+    from vehjax.run import RunResult  # the submodules run and simulate load before the names
+    import vehjax.dual_settings  # imports vehjax.simulate
+    out = {"run": type(vehjax.run).__name__, "simulate": type(vehjax.simulate).__name__,
+           "all": vehjax.__all__, "dir": all(n in dir(vehjax) for n in vehjax.__all__)}
+    ns = {}
+    exec("from vehjax import *", ns)
+    out["star"] = sorted(n for n in ns if not n.startswith("__"))
+    out["kinds"] = {n: isinstance(getattr(vehjax, n), types.ModuleType) for n in vehjax.__all__}
+    out["same"] = (vehjax.run is sys.modules["vehjax.run"].run
+                   and vehjax.RunResult is RunResult and vehjax.filters.ekf is not None
+                   and vehjax.tune.fit is sys.modules["vehjax.tune"].fit
+                   and vehjax.engine is sys.modules["vehjax.engine"])
+    try:
+        vehjax.no_such_name
+        out["missing"] = "no error"
+    except AttributeError as err:
+        out["missing"] = str(err)
+    print(json.dumps(out))
+    """
+    out = _python("import sys\n" + textwrap.dedent(code))
+    assert out["run"] == out["simulate"] == "function"
+    assert out["all"] == vehjax.__all__ and out["dir"] and out["same"]
+    assert out["star"] == sorted(vehjax.__all__)
+    modules = {"filters", "models", "scenarios", "limit_drive", "second_car", "metrics", "data",
+               "math", "tune", "calibrate", "execution"}
+    assert out["kinds"] == {n: n in modules for n in vehjax.__all__}
+    assert out["missing"] == "module 'vehjax' has no attribute 'no_such_name'"
