@@ -1,0 +1,45 @@
+"""benchmarks/bench_floor.py (``vehjax bench floor``): its scalar C EKF, written independently
+of vehjax's filters, gives vehjax.filter's log-likelihood on the same drive (so the floor times
+the same work), and the benchmark runs on a short drive."""
+
+import shutil
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import vehjax
+from vehjax import cli
+
+bench = cli.load_benchmark("floor")
+needs_cc = pytest.mark.skipif(shutil.which("gcc") is None and shutil.which("cc") is None,
+                              reason="no C compiler on the PATH")
+
+
+@needs_cc
+@pytest.mark.parametrize("cf_scale", [1.0, 0.6])
+def test_c_floor_equals_vehjax_filter(cf_scale):
+    """Another car (the stiffness scaled), a held-out realisation of the drive: the C EKF's
+    log-likelihood equals vehjax.filter's to 1e-10 relative, and differs from it with
+    another R (the comparison can fail)."""
+    drive = vehjax.limit_drive.limit_drive("B", duration=10.0, seed=3)
+    ys, us = np.asarray(drive.measurements), np.asarray(drive.inputs)
+    th = np.array(tuple(drive.body.values()) + tuple(np.asarray(vehjax.models.SingleTrack().theta)[4:]))
+    th[4] *= cf_scale
+    model = vehjax.models.SingleTrack(tyres="linear", theta=tuple(th))
+    floor = bench.c_floor()
+    ll = float(jnp.sum(vehjax.filter(vehjax.filters.ekf(model, bench.Q, bench.R), ys, us,
+                                     x0=bench.X0, P0=bench.P0).loglik))
+    other = float(jnp.sum(vehjax.filter(vehjax.filters.ekf(model, bench.Q, 2 * bench.R), ys, us,
+                                        x0=bench.X0, P0=bench.P0).loglik))
+    c = floor(model, ys, us)
+    assert abs(c - ll) <= 1e-10 * abs(ll)
+    assert abs(c - other) > 1e-3 * abs(ll)
+
+
+@needs_cc
+def test_bench_floor_runs(capsys):
+    assert bench.main(["--duration", "2", "--repeat", "1"]) == 0
+    out = capsys.readouterr().out
+    for row in ("C floor", "filter EKF", "loss+grad fwd"):
+        assert row in out
