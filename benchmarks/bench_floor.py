@@ -154,20 +154,19 @@ def contenders(model, ys, us):
     compiled = vehjax.compile_run(vehjax.filters.ekf(model, Q, R), ys[None], us, x0=X0, P0=P0,
                                   progress=False)
     out["run EKF"] = (lambda: compiled().states, ())
-    obj = vehjax.tune.objective(vehjax.filters.ekf, model, Q, R, ys, us, x0=X0, P0=P0,
-                                params=("cf", "cr"), noise=("R",))
+    obj, setup = vehjax.tune.likelihood.prepare(
+        vehjax.filters.ekf, model, Q, R, ys, us, X0, P0, ("cf", "cr"), None, ("R",), False,
+        None, None)  # the objective of vehjax.tune.objective(..., params=("cf", "cr"),
+    # noise=("R",)) and its per-step form, which the fit's forward-mode program differentiates
     out["loss"] = (jax.jit(lambda z, d: obj.loss(z, d)[0]), (obj.z0, obj.data))
     out["loss+grad"] = (jax.jit(jax.value_and_grad(lambda z, d: obj.loss(z, d)[0])),
                         (obj.z0, obj.data))
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
 
     def fwd(f, d):
-        ll, dll, _ = program.forward_scores(lambda g, dd: obj_per_step(unravel(g), dd), f, d)
+        ll, dll, _ = program.forward_scores(lambda g, dd: setup["per_step"](unravel(g), dd), f, d)
         return -jnp.sum(ll) / obj.n_steps, -jnp.sum(dll.reshape(f.shape[0], -1), 1) / obj.n_steps
 
-    obj_per_step = vehjax.tune.likelihood.prepare(
-        vehjax.filters.ekf, model, Q, R, ys, us, X0, P0, ("cf", "cr"), None, ("R",), False,
-        None, None)[1]["per_step"]
     out["loss+grad fwd"] = (jax.jit(fwd), (flat, obj.data))
     return out
 

@@ -349,9 +349,9 @@ def score_tests(res, setup, data, bounds=None, held_coordinates=(), compiled=Non
 def fit_innovations(setup, data, z, names, compiled=None, lags=None) -> dict:
     """``{output: InnovationCheck}`` of the fitted estimator on the fit's data
     (:mod:`vehjax.tune.innovations`): the filter at the fit's coordinates ``z`` run once more
-    with its covariances, on the program ``compiled`` ahead (:func:`compile_innovations`) or
-    one compiled here; ``names`` the model's outputs."""
-    run = jax.jit(inn.fitted_innovations(setup)) if compiled is None else compiled
+    with its covariances, on the program ``compiled`` ahead or one compiled here (both
+    :func:`compile_innovations`); ``names`` the model's outputs."""
+    run = compile_innovations(setup, data) if compiled is None else compiled
     e, S = run(z, data)
     return inn.output_checks(np.asarray(e), np.asarray(S), names, lags)
 
