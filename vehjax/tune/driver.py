@@ -387,8 +387,8 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
             grad_max = float(np.max(np.abs(g)))
             converged = converged or _free_gradient(g, free) <= gtol
     z = loss.unravel(jnp.asarray(x))
-    res = make_result(obj, setup, model, z, aux, history, iters,
-                      converged, skipped, unc, grad_max, t_start, on, floors)
+    res = make_result(obj, setup, model, z, aux, history, iters, converged, skipped, unc,
+                      grad_max, t_start, on, floors)
     if standard_errors and not setup["stochastic"]:  # the nested fit of fit() pays nothing
         res = res._replace(**diagnostics.fit_diagnostics(
             res, setup, obj.data, z, bounds, tuple(on), _compiled_ahead(ahead), checks,
@@ -396,8 +396,7 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
     st = loss.stats
     return res._replace(seconds=time.perf_counter() - t_start, evaluations=st["evaluations"], optimizer=str(optimizer)
                         if isinstance(optimizer, str) else "optax", derivatives=st["mode"],
-                        compile_seconds=st["compile_seconds"],
-                        hessian_batches=st["batch_evaluations"],
+                        compile_seconds=st["compile_seconds"], hessian_batches=st["batch_evaluations"],
                         hessian_compile_seconds=st["batch_compile_seconds"],
                         compile_cpu_seconds=st["compile_cpu_seconds"])
 
