@@ -224,3 +224,27 @@ def test_bench_device_quick_runs(capsys):
     out = capsys.readouterr().out
     assert "Device benchmark on" in out and "particle-steps per second" in out
     assert re.search(r"EKF\s+[\d.]+\s+[\d.]+", out) and "targets" in out
+
+
+def test_one_run_goes_by_the_per_run_step(monkeypatch):
+    """A chunk of one run takes the per-run step (the one vehjax.filter runs), a chunk of more
+    the runs-last step, under the CPU's strategy (execution.runs_last_for)."""
+    import importlib
+
+    run_module = importlib.import_module("vehjax.run")  # the module (vehjax.run is the function)
+
+    cpu = execution.for_platform("cpu")
+    assert not execution.runs_last_for(cpu, 1) and execution.runs_last_for(cpu, 2)
+    assert not execution.runs_last_for(cpu._replace(runs_last=False), 5)
+    taken = []
+    real = run_module._runs_last_study
+    monkeypatch.setattr(run_module, "_runs_last_study",
+                        lambda *a, **k: taken.append(a[3][0]) or real(*a, **k))
+    est = FAMILIES["ekf"][0]
+    ys, us = _data(runs=2, steps=7, seed=5)  # shapes no other test traces (no cached study)
+    one = vj.run(est, ys[:1], us, x0=X0, P0=P0, strategy=cpu)
+    assert taken == []
+    ref = vj.filter(est, ys[0], us, X0, P0)
+    np.testing.assert_allclose(one.states[0], ref.states, rtol=1e-12, atol=1e-12)
+    vj.run(est, ys[:2], us, x0=X0, P0=P0, strategy=cpu)
+    assert taken == [True]

@@ -52,7 +52,10 @@ CPU:
 * **Runs-last step** (``runs_last``): a filter's batched step with the runs axis last
   (:mod:`vehjax.filters.runs_last`) vectorises across runs, faster than vmapping. Its
   prepared inputs reach it through the scan's carry where the filter asks (``prefetch_inputs``),
-  which helps the EKF further.
+  which helps the EKF further. Not for a chunk of one run (:func:`runs_last_for`): there the
+  per-run step, the one :func:`vehjax.filter` runs, was faster in every case measured (EKF on
+  the linear and brush single-track and the 3-DOF model, UKF on the 3-DOF model: 1.2-2.6x;
+  ``benchmarks/results/notes_run_one.md``).
 
 GPU (measured on one H100, float64, through the public API):
 
@@ -313,6 +316,13 @@ def block_size(strategy: Strategy, numbers: int) -> int | None:
     if strategy.block_numbers is None:
         return None
     return max(_MIN_BLOCK, int(strategy.block_numbers) // max(int(numbers), 1))
+
+
+def runs_last_for(strategy: Strategy, runs: int) -> bool:
+    """Whether a chunk of ``runs`` runs takes an estimator's runs-last step under ``strategy``:
+    where the strategy says so and the chunk holds more than one run (one run goes by the
+    per-run step, as :func:`vehjax.filter`)."""
+    return bool(strategy.runs_last) and int(runs) > 1
 
 
 def chunk_runs(strategy: Strategy, per_run_bytes: int, steps: int, numbers: int) -> int:

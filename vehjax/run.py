@@ -261,8 +261,8 @@ def _smoothed_study(estimator, method, return_cov, per_run, block, strategy, *ar
                             sm.diverged, div_at.astype(f.diverged_at.dtype), f.at_bound), \
             (sm.cross_covariances if return_cov else None)
 
-    if (method == "rts" and strategy.runs_last and estimator.batch is not None
-            and not estimator.smoother.sqrt):
+    if (method == "rts" and execution.runs_last_for(strategy, args[0].shape[0])
+            and estimator.batch is not None and not estimator.smoother.sqrt):
         filt, state0, means, covs, pred = _runs_last_study(
             estimator, True, strategy.prefetch_inputs, per_run, *args, predictions=True)
         return as_result(smoothing._smooth_runs_last(estimator, filt, state0, means, covs, pred))
@@ -303,7 +303,7 @@ def _study_traced(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh, 
         if smooth is not None:
             res, cross = _smoothed_study(estimator, smooth, return_cov, per_run, block,
                                          strategy, *args)
-        elif strategy.runs_last and estimator.batch is not None:
+        elif execution.runs_last_for(strategy, args[0].shape[0]) and estimator.batch is not None:
             res = _runs_last_study(estimator, return_cov, strategy.prefetch_inputs, per_run,
                                    *args)
         else:
