@@ -138,6 +138,14 @@ class Drive:
         reference: name -> (T,) array: signals for validation only (default none).
         dt: the grid step [s] when ``t`` is uniform (to 1e-6 relative), else None; filled in
             when not given.
+        intervals: name -> that signal's own median sample interval [s] (default none). A
+            drive read from a log (:func:`vehjax.data.read_drive`) holds signals recorded at
+            different rates on one time axis, the union of all their time stamps, each signal
+            NaN at the stamps where it has no sample; its intervals tell :meth:`resample` how
+            far apart that signal's samples are meant to be, so that a 10 Hz signal is
+            interpolated between its own samples and NaN only across its own gaps (longer than
+            2.5 of its intervals). A signal without one uses ``t``'s median step, as a drive
+            from arrays or a CSV does.
 
     Make one with :meth:`from_arrays` or :meth:`from_csv` (they convert units); the
     constructor takes arrays already in SI units.
@@ -148,6 +156,7 @@ class Drive:
     units: Mapping[str, str]
     reference: Mapping[str, np.ndarray] = field(default_factory=dict)
     dt: float | None = None
+    intervals: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
         t = check_time(self.t)
@@ -172,7 +181,9 @@ class Drive:
         step = _uniform_step(t)
         if self.dt is not None and (step is None or abs(float(self.dt) - step) > 1e-6 * step):
             raise ValueError(f"dt: {self.dt!r} s does not match the time stamps' step {step}")
+        intervals = _intervals(self.intervals, {**groups["signals"], **groups["reference"]})
         t.setflags(write=False)
+        object.__setattr__(self, "intervals", intervals)
         object.__setattr__(self, "t", t)
         object.__setattr__(self, "signals", groups["signals"])
         object.__setattr__(self, "reference", groups["reference"])
@@ -290,13 +301,15 @@ class Drive:
         Every signal is interpolated linearly from its own finite samples
         (:func:`interpolate_with_gaps`); grid points inside a gap longer than ``max_gap`` [s]
         (default 2.5 median sample intervals of ``t``, so one dropped sample is bridged, two
-        are not) or outside the signal's recorded span are NaN. No anti-alias filtering: to
-        downsample noisy signals by a large factor, average them first.
+        are not; for a signal in :attr:`intervals`, 2.5 of its own interval) or outside the
+        signal's recorded span are NaN. No anti-alias filtering: to downsample noisy signals by
+        a large factor, average them first. The result has no :attr:`intervals` (every signal
+        is on the grid).
 
         Args:
             dt: grid step [s], > 0.
             start, stop: grid ends [s], inside [t[0], t[-1]] (default those).
-            max_gap: longest gap [s] interpolated across, > 0.
+            max_gap: longest gap [s] interpolated across, > 0, for every signal.
         """
         dt = _positive("dt", dt)
         lo, hi = float(self.t[0]), float(self.t[-1])
@@ -304,15 +317,20 @@ class Drive:
         t1 = hi if stop is None else _within("stop", stop, lo, hi)
         if not t1 > t0:
             raise ValueError(f"stop: {t1} s is not after start = {t0} s")
-        gap = 2.5 * float(np.median(np.diff(self.t))) if max_gap is None else _positive(
-            "max_gap", max_gap)
+        step = 2.5 * float(np.median(np.diff(self.t)))
+        given = None if max_gap is None else _positive("max_gap", max_gap)
         n = int(math.floor((t1 - t0) / dt * (1.0 + 1e-12))) + 1
         if n < 2:
             raise ValueError(f"dt: {dt} s gives fewer than 2 samples between {t0} and {t1} s")
         grid = t0 + dt * np.arange(n)
 
         def on_grid(group):
-            return {k: interpolate_with_gaps(grid, self.t, v, gap) for k, v in group.items()}
+            return {k: interpolate_with_gaps(grid, self.t, v, gap(k)) for k, v in group.items()}
+
+        def gap(k):
+            if given is not None:
+                return given
+            return 2.5 * self.intervals[k] if k in self.intervals else step
 
         return Drive(t=grid, signals=on_grid(self.signals), reference=on_grid(self.reference),
                      units=dict(self.units), dt=dt)
@@ -328,7 +346,7 @@ class Drive:
             raise ValueError(f"start, stop: fewer than 2 samples in [{start}, {stop}] s")
         return Drive(t=self.t[keep], signals={k: v[keep] for k, v in self.signals.items()},
                      reference={k: v[keep] for k, v in self.reference.items()},
-                     units=dict(self.units))
+                     units=dict(self.units), intervals=dict(self.intervals))
 
     # -- a model's arrays -------------------------------------------------------------------
     def for_model(self, model, names: Mapping | None = None, *, missing_outputs=(),
@@ -561,6 +579,18 @@ def _column(arg, name, value, n):
                          f"{k + 1} (index {k}) (use NaN for missing samples)")
     a.setflags(write=False)
     return a
+
+
+def _intervals(intervals, names) -> dict:
+    """``intervals`` checked: a mapping of signal or reference names to positive seconds."""
+    if not isinstance(intervals, Mapping):
+        raise ValueError(f"intervals: expected a mapping name -> seconds, got {intervals!r}")
+    out = {}
+    for k, v in intervals.items():
+        if k not in names:
+            raise ValueError(f"intervals: {k!r} is not a signal or reference of this drive")
+        out[k] = _positive(f"intervals[{k!r}]", v)
+    return out
 
 
 def _names(arg, value, known):
