@@ -110,12 +110,15 @@ def _decode(frames, wanted, channel, path):
         by_id.setdefault((msg.frame_id, bool(msg.is_extended_frame)), (msg, []))[1].append(
             (name, sig.name))
     got = {name: ([], []) for name in wanted}
-    seen = {}
+    seen, kind = {}, {}
     for k, f in enumerate(frames):
         if f.is_error_frame or f.is_remote_frame or (channel is not None and f.channel != channel):
             continue
         hit = by_id.get((f.arbitration_id, bool(f.is_extended_id)))
         if hit is None:
+            other = by_id.get((f.arbitration_id, not f.is_extended_id))
+            if other is not None:
+                kind[other[0].name] = "extended" if f.is_extended_id else "standard"
             continue
         msg, names = hit
         seen.setdefault(msg.name, set()).add(f.channel)
@@ -140,8 +143,10 @@ def _decode(frames, wanted, channel, path):
                              f"{sorted(chans, key=str)} of {str(path)!r}; pick one with channel=")
     for name, (msg, sig) in wanted.items():
         if not got[name][0]:
+            other = (f" (frames of its id {msg.frame_id:#x} are there with a {kind[msg.name]} "
+                     f"id, the DBC's is not)" if msg.name in kind else "")
             raise ValueError(f"signals: no frame of {msg.name!r} carries {sig.name!r} in "
                              f"{str(path)!r}" + ("" if channel is None else
-                                                 f" on channel {channel!r}"))
+                                                 f" on channel {channel!r}") + other)
     return {name: (np.array(t, dtype=float), np.array(v, dtype=float))
             for name, (t, v) in got.items()}

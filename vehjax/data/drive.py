@@ -96,10 +96,17 @@ def check_time(t, what: str = "t") -> np.ndarray:
 
 
 def _uniform_step(t: np.ndarray) -> float | None:
-    """The common step of ``t`` [s] if every step equals it to 1e-6 relative, else None."""
+    """The common step of ``t`` [s] if every step equals it to 1e-6 relative (or to the
+    rounding of float64 stamps as large as ``t``'s, for stamps since the epoch), else None."""
     d = np.diff(t)
     step = (t[-1] - t[0]) / (len(t) - 1)
-    return float(step) if np.all(np.abs(d - step) <= 1e-6 * step) else None
+    return float(step) if np.all(np.abs(d - step) <= _step_tolerance(t, step)) else None
+
+
+def _step_tolerance(t: np.ndarray, step: float) -> float:
+    """1e-6 of ``step``, or 8 float64 roundings of the largest stamp if that is more (a
+    uniform grid at t ~ 1.7e9 s, the epoch, is uniform to about 2e-7 s only)."""
+    return max(1e-6 * step, 8.0 * np.finfo(float).eps * float(np.max(np.abs(t))))
 
 
 def interpolate_with_gaps(t_new, t, y, max_gap: float) -> np.ndarray:
@@ -136,8 +143,8 @@ class Drive:
         signals: name -> (T,) array in SI units.
         units: name -> SI unit string, for every key of ``signals`` and ``reference``.
         reference: name -> (T,) array: signals for validation only (default none).
-        dt: the grid step [s] when ``t`` is uniform (to 1e-6 relative), else None; filled in
-            when not given.
+        dt: the grid step [s] when ``t`` is uniform (to 1e-6 relative, or to float64's
+            rounding of stamps that large), else None; filled in when not given.
         intervals: name -> that signal's own median sample interval [s] (default none). A
             drive read from a log (:func:`vehjax.data.read_drive`) holds signals recorded at
             different rates on one time axis, the union of all their time stamps, each signal
@@ -179,7 +186,7 @@ class Drive:
                 raise ValueError(f"units: {name!r} has {units[name]!r}, not an SI unit of "
                                  f"UNITS (use from_arrays / from_csv to convert)")
         step = _uniform_step(t)
-        if self.dt is not None and (step is None or abs(float(self.dt) - step) > 1e-6 * step):
+        if self.dt is not None and (step is None or abs(float(self.dt) - step) > _step_tolerance(t, step)):
             raise ValueError(f"dt: {self.dt!r} s does not match the time stamps' step {step}")
         intervals = _intervals(self.intervals, {**groups["signals"], **groups["reference"]})
         t.setflags(write=False)

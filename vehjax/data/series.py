@@ -71,10 +71,10 @@ def stamped(name: str, source: str, t, values, unit: str, units: Mapping) -> tup
     try:
         v = np.asarray(values, dtype=float)
     except (TypeError, ValueError):
-        raise ValueError(f"{name}: {source} is not numeric (dtype "
+        raise ValueError(f"{name!r}: {source} is not numeric (dtype "
                          f"{np.asarray(values).dtype})") from None
     if v.shape != t.shape:
-        raise ValueError(f"{name}: {source} has samples of shape {v.shape[1:]} (one number per "
+        raise ValueError(f"{name!r}: {source} has samples of shape {v.shape[1:]} (one number per "
                          f"time stamp is read; pick one element)")
     given = units.get(name, unit)
     if not isinstance(given, str) or given.strip() not in UNITS:
@@ -85,10 +85,10 @@ def stamped(name: str, source: str, t, values, unit: str, units: Mapping) -> tup
                          f"{', '.join(sorted(UNITS))})")
     if not np.all(np.isfinite(t)):
         k = int(np.flatnonzero(~np.isfinite(t))[0])
-        raise ValueError(f"{name}: {source} has a non-finite time stamp at sample {k}")
+        raise ValueError(f"{name!r}: {source} has a non-finite time stamp at sample {k}")
     t, v = _drop_repeats(name, source, t, v)
     if t.size < 2:
-        raise ValueError(f"{name}: {source} has {t.size} sample(s); at least 2 are needed")
+        raise ValueError(f"{name!r}: {source} has {t.size} sample(s); at least 2 are needed")
     v, si = to_si(name, v, given)
     return t, v, si
 
@@ -98,8 +98,8 @@ def _drop_repeats(name, source, t, v):
     back = np.flatnonzero(d < 0.0)
     if back.size:
         k = int(back[0])
-        raise ValueError(f"{name}: the time stamps of {source} go back {back.size} time(s), the "
-                         f"first at sample {k + 1}: {t[k]!r} -> {t[k + 1]!r} s (read the file "
+        raise ValueError(f"{name!r}: the time stamps of {source} go back {back.size} time(s), "
+                         f"the first at sample {k + 1}: {float(t[k])!r} -> {float(t[k + 1])!r} s (read the file "
                          f"in parts, or fix its clock; vehjax does not reorder samples)")
     same = np.flatnonzero(d == 0.0)
     if same.size == 0:
@@ -107,8 +107,9 @@ def _drop_repeats(name, source, t, v):
     equal = (v[same] == v[same + 1]) | (np.isnan(v[same]) & np.isnan(v[same + 1]))
     if not np.all(equal):
         k = int(same[~equal][0])
-        raise ValueError(f"{name}: {source} has two samples at t = {t[k]!r} s (samples {k} and "
-                         f"{k + 1}) with different values {v[k]!r} and {v[k + 1]!r}")
+        raise ValueError(f"{name!r}: {source} has two samples at t = {float(t[k])!r} s (samples "
+                         f"{k} and {k + 1}) with different values {float(v[k])!r} and "
+                         f"{float(v[k + 1])!r}")
     keep = np.ones(t.size, bool)
     keep[same + 1] = False
     return t[keep], v[keep]
