@@ -15,7 +15,7 @@ import pytest
 
 import vehjax  # noqa: F401  (float64)
 from vehjax.data import Drive, load_comma2k19, read_can, read_drive, read_mdf, read_ros2
-from vehjax.models import SingleTrackBank
+from vehjax.models import SingleTrack, SingleTrackBank
 
 DEG = math.pi / 180.0
 KMH = 1.0 / 3.6
@@ -64,6 +64,9 @@ def test_mdf_two_groups_at_their_own_rates(tmp_path, version, suffix):
     np.testing.assert_allclose(r.signals["vx"], np.interp(r.t, t_slow, speed * KMH), rtol=1e-12)
     np.testing.assert_allclose(r.signals["delta"], np.interp(r.t, t_fast, steer * DEG),
                                rtol=1e-12, atol=1e-15)
+    u, y = r.for_model(SingleTrack(dt=0.01), missing_outputs=("ay", "r"))   # (delta, vx)
+    np.testing.assert_array_equal(u, np.stack([r.signals["delta"], r.signals["vx"]], axis=1))
+    assert np.isnan(y).all() and len(r.t) == 190
     with pytest.raises(ValueError, match=r"'tq' \(channel 'Torque' \(group 1\)\) is in 'lbf ft'"):
         read_mdf(path, {"tq": "Torque"})
     tq = read_mdf(path, {"tq": "Torque"}, units={"tq": "N m"})
@@ -89,6 +92,20 @@ def test_mdf_errors_name_the_channel(tmp_path):                                 
     with pytest.raises(ValueError, match="cut.mf4"):
         read_mdf(cut, {"delta": "SteerAngle"})
     gc.collect()                                  # asammdf's half-opened file, here
+
+
+def test_mdf_invalid_samples_are_nan_at_their_stamps(tmp_path):
+    asammdf = pytest.importorskip("asammdf")
+    t = 0.1 * np.arange(6)
+    bits = np.array([0, 1, 0, 0, 1, 0], bool)
+    mdf = asammdf.MDF(version="4.10")
+    mdf.append([asammdf.Signal(np.arange(6.0), t, name="A", unit="mm", invalidation_bits=bits)])
+    mdf.save(str(tmp_path / "inv.mf4"), overwrite=True)
+    mdf.close()
+    d = read_mdf(tmp_path / "inv.mf4", {"a": "A"})
+    np.testing.assert_array_equal(d.t, t)
+    np.testing.assert_array_equal(d.signals["a"], np.where(bits, np.nan, np.arange(6.0) * 1e-3))
+    assert d.intervals["a"] == pytest.approx(0.1)
 
 
 def test_mdf_stamps_that_go_back_or_repeat(tmp_path):
@@ -216,6 +233,65 @@ def test_ros2_errors_name_the_topic_and_field(imu_bag):
         read_ros2(path, {"r": "imu"})
 
 
+def _odometry(store, ns, x, vx, wz):
+    ty = store.types
+    v3, point = ty["geometry_msgs/msg/Vector3"], ty["geometry_msgs/msg/Point"]
+    pose = ty["geometry_msgs/msg/Pose"](position=point(x=x, y=0.0, z=0.0),
+                                        orientation=ty["geometry_msgs/msg/Quaternion"](
+                                            x=0.0, y=0.0, z=0.0, w=1.0))
+    twist = ty["geometry_msgs/msg/Twist"](linear=v3(x=vx, y=0.0, z=0.0),
+                                          angular=v3(x=0.0, y=0.0, z=wz))
+    return ty["nav_msgs/msg/Odometry"](
+        header=_stamp(store, ns), child_frame_id="base_link",
+        pose=ty["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+        twist=ty["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)))
+
+
+def _fix(store, ns, lat, lon, alt):
+    ty = store.types
+    return ty["sensor_msgs/msg/NavSatFix"](
+        header=_stamp(store, ns), status=ty["sensor_msgs/msg/NavSatStatus"](status=0, service=1),
+        latitude=lat, longitude=lon, altitude=alt, position_covariance=np.zeros(9),
+        position_covariance_type=0)
+
+
+def test_ros2_odometry_and_navsatfix_in_rep103_units(tmp_path):
+    store = _typestore()
+    odo_ns, fix_ns = 10**9 + 2 * 10**7 * np.arange(10), 10**9 + 2 * 10**8 * np.arange(3)
+    x, vx, wz = np.arange(10.0), 5.0 + np.arange(10.0), 0.1 * np.arange(10)
+    lat, lon, alt = 48.1 + 1e-5 * np.arange(3), 11.5 + 2e-5 * np.arange(3), 500.0 + np.arange(3)
+    _bag(tmp_path / "bag", "mcap", {
+        "/odom": ("nav_msgs/msg/Odometry", [(int(n), _odometry(store, int(n), *v))
+                                            for n, *v in zip(odo_ns, x, vx, wz)]),
+        "/fix": ("sensor_msgs/msg/NavSatFix", [(int(n), _fix(store, int(n), *v))
+                                               for n, *v in zip(fix_ns, lat, lon, alt)])})
+    d = read_ros2(tmp_path / "bag", {
+        "x": "/odom.pose.pose.position.x", "vx": "/odom.twist.twist.linear.x",
+        "r": "/odom.twist.twist.angular.z", "qw": "/odom.pose.pose.orientation.w",
+        "lat": "/fix.latitude", "lon": "/fix.longitude", "alt": "/fix.altitude"},
+        reference=("lat", "lon", "alt"))
+    assert d.units == {"x": "m", "vx": "m/s", "r": "rad/s", "qw": "-", "lat": "rad",
+                       "lon": "rad", "alt": "m"}
+    t_odo, t_fix = odo_ns / 1e9, fix_ns / 1e9
+    for name, want in (("x", x), ("vx", vx), ("r", wz), ("qw", np.ones(10))):
+        np.testing.assert_array_equal(_at(d, name, t_odo), want)
+    np.testing.assert_allclose(_at(d, "lat", t_fix), lat * DEG, rtol=1e-15)
+    np.testing.assert_allclose(_at(d, "lon", t_fix), lon * DEG, rtol=1e-15)
+    np.testing.assert_array_equal(_at(d, "alt", t_fix), alt)
+    assert sorted(d.reference) == ["alt", "lat", "lon"]
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_ros2_a_bag_cut_short(tmp_path, storage):
+    store = _typestore()
+    _bag(tmp_path / "bag", storage, {"/imu": ("sensor_msgs/msg/Imu", [
+        (n, _imu(store, n, 0.0, 0.0)) for n in range(1, 200)])})
+    data = next(p for p in (tmp_path / "bag").iterdir() if p.suffix in (".db3", ".mcap"))
+    data.write_bytes(data.read_bytes()[: data.stat().st_size * 2 // 3])
+    with pytest.raises(ValueError, match=r"path: '.*bag' is not a readable ROS 2 bag"):
+        read_ros2(tmp_path / "bag", {"r": "/imu.angular_velocity.z"})
+
+
 def test_ros2_header_stamps_that_go_back(tmp_path):
     store = _typestore()
     ns = [10**9, 2 * 10**9, 15 * 10**8]
@@ -282,7 +358,7 @@ def _log(can, path, frames):
     return path
 
 
-@pytest.mark.parametrize("suffix", [".asc", ".blf", ".log"])
+@pytest.mark.parametrize("suffix", [".asc", ".blf", ".log", ".trc"])
 def test_can_log_decoded_by_the_dbc(tmp_path, can_frames, suffix):
     can, dbc, frames, t, speed, yaw, steer, wheel = can_frames
     path = _log(can, tmp_path / f"drive{suffix}", frames)
@@ -427,6 +503,15 @@ def test_a_missing_library_names_its_extra(tmp_path, monkeypatch):
                         (lambda: read_can(tmp_path / "a.asc", "a.dbc", {"x": "A.B"}), "can")):
         with pytest.raises(ImportError, match=rf'pip install "vehjax\[{extra}\]"'):
             call()
+
+
+def test_a_uniform_grid_at_epoch_stamps_is_uniform():
+    t = 1.7e9 + 0.01 * np.arange(500)                     # steps uniform to float64's 2.4e-7 s
+    assert np.ptp(np.diff(t)) > 1e-8                      # more than 1e-6 of the step
+    d = Drive(t=t, signals={"a": np.ones(500)}, units={"a": "m"})
+    assert d.dt == pytest.approx(0.01, rel=1e-6)
+    r = d.resample(0.02)
+    assert r.dt == pytest.approx(0.02, rel=1e-4) and np.all(r.signals["a"] == 1.0)
 
 
 def test_drive_intervals_set_each_signals_gap():

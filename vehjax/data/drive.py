@@ -343,7 +343,11 @@ class Drive:
                      units=dict(self.units), dt=dt)
 
     def between(self, start=None, stop=None) -> "Drive":
-        """The samples with start <= t <= stop [s] (no resampling), at least 2."""
+        """The samples with start <= t <= stop [s] (no resampling), at least 2.
+
+        A slow signal of a multi-rate drive (:attr:`intervals`) loses its samples outside too,
+        so it may start after ``start``: to cut a window onto a grid, use
+        ``resample(dt, start=, stop=)``, which interpolates from the samples around the ends."""
         keep = np.ones(len(self.t), bool)
         if start is not None:
             keep &= self.t >= float(start)

@@ -10,8 +10,9 @@ Typical use::
 Each channel is read with its own master (time) channel, so channel groups recorded at
 different rates keep their own stamps; their physical values (the file's conversion applied)
 and their unit from the file are converted to SI (:data:`vehjax.data.UNITS`). Samples the file
-marks invalid (invalidation bits) are NaN. How stamps that go back or repeat are handled, and
-how the rates meet on one time axis: :mod:`vehjax.data.series`.
+marks invalid (invalidation bits) are NaN at their stamps (asammdf's default would drop them).
+How stamps that go back or repeat are handled, and how the rates meet on one time axis:
+:mod:`vehjax.data.series`.
 
 Limits: numeric scalar channels only (a text, byte-array or structure channel is refused);
 a channel name found in several groups must be given as ``(name, group index)``; the time
@@ -82,7 +83,7 @@ def _channel(mdf, path, name, source, units):
     group = groups[0] if group is None else group
     index = next(i for g, i in found if g == group)
     try:
-        sig = mdf.get(channel, group=group, index=index)
+        sig = mdf.get(channel, group=group, index=index, ignore_invalidation_bits=True)
     except Exception as exc:
         raise ValueError(f"channels: {channel!r} (group {group}) of {where} cannot be read "
                          f"({exc}); is the file cut short?") from None
