@@ -50,8 +50,9 @@ def test_mdf_two_groups_at_their_own_rates(tmp_path, version, suffix):
     steer = 30.0 * np.sin(t_fast)
     speed = 50.0 + 2.0 * np.arange(20.0)
     torque = asammdf.Signal(np.ones(20), t_slow, name="Torque", unit="lbf ft")
+    yaw = asammdf.Signal(np.arange(20.0), t_slow, name="YawRate", unit="°/s")
     path = tmp_path / f"run{suffix}"
-    _write_mdf(asammdf, path, version, t_fast, steer, t_slow, speed, extra=[torque])
+    _write_mdf(asammdf, path, version, t_fast, steer, t_slow, speed, extra=[torque, yaw])
     d = read_drive(path, channels={"delta": "SteerAngle", "vx": "VehSpeed"})
     np.testing.assert_array_equal(d.t, np.union1d(t_fast, t_slow))
     np.testing.assert_allclose(_at(d, "delta", t_fast), steer * DEG, rtol=1e-15)
@@ -69,8 +70,10 @@ def test_mdf_two_groups_at_their_own_rates(tmp_path, version, suffix):
     assert np.isnan(y).all() and len(r.t) == 190
     with pytest.raises(ValueError, match=r"'tq' \(channel 'Torque' \(group 1\)\) is in 'lbf ft'"):
         read_mdf(path, {"tq": "Torque"})
-    tq = read_mdf(path, {"tq": "Torque"}, units={"tq": "N m"})
+    tq = read_mdf(path, {"tq": "Torque", "r": "YawRate"}, units={"tq": "N m"})
     np.testing.assert_array_equal(tq.signals["tq"], np.ones(20))
+    np.testing.assert_allclose(tq.signals["r"], np.arange(20.0) * DEG, rtol=1e-15)
+    assert tq.units == {"tq": "N m", "r": "rad/s"}
 
 
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")   # asammdf's
@@ -112,7 +115,8 @@ def test_mdf_stamps_that_go_back_or_repeat(tmp_path):
     asammdf = pytest.importorskip("asammdf")
     t = np.array([0.0, 0.1, 0.2, 0.2, 0.3])
     path = tmp_path / "dup.mf4"
-    _write_mdf(asammdf, path, "4.10", t, np.array([1.0, 2, 3, 3, 4]), t, np.array([1.0, 2, 3, 9, 4]))
+    steer, speed = np.array([1.0, 2, 3, 3, 4]), np.array([1.0, 2, 3, 9, 4])
+    _write_mdf(asammdf, path, "4.10", t, steer, t, speed)
     d = read_mdf(path, {"delta": "SteerAngle"})            # a sample written twice: dropped
     np.testing.assert_array_equal(d.t, [0.0, 0.1, 0.2, 0.3])
     np.testing.assert_allclose(d.signals["delta"], np.array([1.0, 2, 3, 4]) * DEG)
@@ -298,7 +302,8 @@ def test_ros2_header_stamps_that_go_back(tmp_path):
     _bag(tmp_path / "bag", "sqlite3", {"/imu": ("sensor_msgs/msg/Imu", [
         (k, _imu(store, n, 0.0, 0.0)) for k, n in zip((1, 2, 3), ns)])})
     with pytest.raises(ValueError, match=r"'r': the time stamps of field '/imu.angular_velocity"
-                                         r".z' go back 1 time.*2.0 -> 1.5"):
+                                         r".z' \(header stamps; stamps='record' reads the "
+                                         r"record times\) go back 1 time.*2.0 -> 1.5"):
         read_ros2(tmp_path / "bag", {"r": "/imu.angular_velocity.z"})
 
 
@@ -337,17 +342,18 @@ def can_frames(tmp_path):
     db = cantools.database.load_file(str(dbc))
     dyn, wheels = db.get_message_by_name("VehicleDynamics"), db.get_message_by_name("WheelSpeeds")
     t = 1_700_000_000.0 + 0.02 * np.arange(20)
-    speed, yaw, steer = 50.0 + 0.25 * np.arange(20), -3.5 + 0.5 * np.arange(20), 12.3 - np.arange(20)
-    wheel = 40.0 + 0.5 * np.arange(20)
+    n = np.arange(20)
+    speed, yaw, steer, wheel = 50.0 + 0.25 * n, -3.5 + 0.5 * n, 12.3 - n, 40.0 + 0.5 * n
     frames = []
     for k in range(20):
         frames.append(can.Message(timestamp=t[k], arbitration_id=dyn.frame_id, channel=0,
                                   is_extended_id=False,
                                   data=dyn.encode({"VehicleSpeed": speed[k], "YawRate": yaw[k],
                                                    "SteerAngle": steer[k], "Counter": k})))
+        which = ("FrontLeft", "RearLeft")[k % 2]
         frames.append(can.Message(timestamp=t[k] + 0.01, arbitration_id=wheels.frame_id,
-                                  is_extended_id=True, channel=0, data=wheels.encode(
-                                      {"Index": k % 2, ("FrontLeft", "RearLeft")[k % 2]: wheel[k]})))
+                                  is_extended_id=True, channel=0,
+                                  data=wheels.encode({"Index": k % 2, which: wheel[k]})))
     return can, dbc, frames, t, speed, yaw, steer, wheel
 
 
@@ -421,7 +427,8 @@ def test_can_errors(tmp_path, can_frames):
     both = _log(can, tmp_path / "two.blf", two)
     with pytest.raises(ValueError, match=r"'VehicleDynamics' is on channels \[0, 1\].*channel="):
         read_can(both, dbc, {"vx": SIGNALS["vx"]})
-    assert np.isfinite(read_can(both, dbc, {"vx": SIGNALS["vx"]}, channel=1).signals["vx"]).sum() == 10
+    one = read_can(both, dbc, {"vx": SIGNALS["vx"]}, channel=1)
+    assert np.isfinite(one.signals["vx"]).sum() == 10
 
 
 # -- the shipped drive through MDF4 and a ROS 2 bag ------------------------------------------
@@ -444,7 +451,8 @@ def test_rav4_through_mdf4(tmp_path, rav4):
     asammdf = pytest.importorskip("asammdf")
     mdf = asammdf.MDF(version="4.10")
     for group in (rav4.signals, rav4.reference):
-        mdf.append([asammdf.Signal(v, rav4.t, name=k, unit=rav4.units[k]) for k, v in group.items()])
+        mdf.append([asammdf.Signal(v, rav4.t, name=k, unit=rav4.units[k])
+                    for k, v in group.items()])
     mdf.save(str(tmp_path / "rav4.mf4"), overwrite=True)
     mdf.close()
     names = [*rav4.signals, *rav4.reference]
@@ -466,7 +474,8 @@ def test_rav4_through_a_ros2_bag(tmp_path, rav4):
                                 **{k: float(cols[k][i]) for k in names}))
             for i, n in enumerate(ns)]
     rosbag2 = pytest.importorskip("rosbags.rosbag2")
-    with rosbag2.Writer(tmp_path / "bag", version=9, storage_plugin=rosbag2.StoragePlugin.MCAP) as w:
+    mcap = rosbag2.StoragePlugin.MCAP
+    with rosbag2.Writer(tmp_path / "bag", version=9, storage_plugin=mcap) as w:
         conn = w.add_connection("/drive", "vehjax_test_msgs/msg/Drive", typestore=store)
         for n, m in msgs:
             w.write(conn, n, store.serialize_cdr(m, conn.msgtype))

@@ -56,6 +56,11 @@ UNITS = {
     "rad/s^2": ("rad/s^2", 1.0), "deg/s^2": ("rad/s^2", math.pi / 180.0),
     "N": ("N", 1.0), "kN": ("N", 1e3), "N m": ("N m", 1.0), "Nm": ("N m", 1.0),
     "kg": ("kg", 1.0), "-": ("-", 1.0), "1": ("-", 1.0), "%": ("-", 1e-2),
+    # spellings that measurement files (MDF) and DBCs use for the same units
+    "°": ("rad", math.pi / 180.0), "°/s": ("rad/s", math.pi / 180.0),
+    "°/s^2": ("rad/s^2", math.pi / 180.0), "°/s²": ("rad/s^2", math.pi / 180.0),
+    "deg/s²": ("rad/s^2", math.pi / 180.0), "rad/s²": ("rad/s^2", 1.0),
+    "m/s²": ("m/s^2", 1.0), "m/s2": ("m/s^2", 1.0), "1/min": ("rad/s", 2.0 * math.pi / 60.0),
 }
 
 #: "name [unit]": the unit is the last bracketed group, so a name may hold brackets ("a[1] [m]")
@@ -186,7 +191,8 @@ class Drive:
                 raise ValueError(f"units: {name!r} has {units[name]!r}, not an SI unit of "
                                  f"UNITS (use from_arrays / from_csv to convert)")
         step = _uniform_step(t)
-        if self.dt is not None and (step is None or abs(float(self.dt) - step) > _step_tolerance(t, step)):
+        if self.dt is not None and (step is None or abs(float(self.dt) - step)
+                                    > _step_tolerance(t, step)):
             raise ValueError(f"dt: {self.dt!r} s does not match the time stamps' step {step}")
         intervals = _intervals(self.intervals, {**groups["signals"], **groups["reference"]})
         t.setflags(write=False)

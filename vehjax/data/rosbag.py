@@ -91,8 +91,10 @@ def read_ros2(path, fields: Mapping[str, str], *, reference=(), stamps: str = "h
         samples = _read(reader, path, wanted, stamps)
     finally:
         reader.close()
-    series = {name: stamped(name, f"field {fields[name]!r}", t, v, unit, units)
-              for name, (t, v, unit) in samples.items()}
+    hint = " (header stamps; stamps='record' reads the record times)"
+    series = {name: stamped(name, f"field {fields[name]!r}", t, v, unit, units,
+                            clock=hint if header else "")
+              for name, (t, v, unit, header) in samples.items()}
     return to_drive(series, reference, units, "fields")
 
 
@@ -105,14 +107,15 @@ def _split(name, spec):
 
 
 def _read(reader, path, wanted, stamps):
-    """name -> (t [s], values, unit from FIELD_UNITS or '') from one pass over the bag."""
+    """name -> (t [s], values, unit from FIELD_UNITS or '', whether the stamps are header
+    stamps) from one pass over the bag."""
     topics = {c.topic for c in reader.connections}
     for name, (topic, _) in wanted.items():
         if topic not in topics:
             raise unknown("fields", topic, topics, f"the bag {str(path)!r} (topics)")
     conns = [c for c in reader.connections if c.topic in {t for t, _ in wanted.values()}]
     got = {name: ([], []) for name in wanted}
-    unit = {}
+    unit, header = {}, {}
     for conn, record, raw in reader.messages(connections=conns):
         try:
             msg = reader.deserialize(raw, conn.msgtype)
@@ -120,27 +123,29 @@ def _read(reader, path, wanted, stamps):
             raise ValueError(f"fields: a message on {conn.topic!r} recorded at {record} ns "
                              f"cannot be decoded as {conn.msgtype} ({exc}); is the bag cut "
                              f"short?") from None
-        t = _stamp(msg, record, stamps)
+        t, from_header = _stamp(msg, record, stamps)
         for name, (topic, field) in wanted.items():
             if topic != conn.topic:
                 continue
             value, found = _field(name, msg, field, conn)
             unit.setdefault(name, found)
+            header[name] = from_header
             got[name][0].append(t)
             got[name][1].append(value)
     for name, (topic, _) in wanted.items():
         if not got[name][0]:
             raise ValueError(f"fields: the topic {topic!r} of {name!r} has no messages in "
                              f"{str(path)!r}")
-    return {name: (np.array(ts), np.array(vs, dtype=float), unit[name])
+    return {name: (np.array(ts), np.array(vs, dtype=float), unit[name], header[name])
             for name, (ts, vs) in got.items()}
 
 
-def _stamp(msg, record, stamps) -> float:
+def _stamp(msg, record, stamps) -> tuple:
+    """(the message's time [s], whether it is its header stamp)."""
     header = getattr(msg, "header", None)
     if stamps == "header" and header is not None and hasattr(header, "stamp"):
-        return (int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)) / 1e9
-    return int(record) / 1e9
+        return (int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)) / 1e9, True
+    return int(record) / 1e9, False
 
 
 def _field(name, msg, field, conn):

@@ -65,8 +65,10 @@ def unknown(what: str, name: str, available, where: str) -> ValueError:
     return ValueError(f"{what}: no {name!r} in {where}; {label}: {shown}{more}")
 
 
-def stamped(name: str, source: str, t, values, unit: str, units: Mapping) -> tuple:
-    """(t [s], values in SI, SI unit) of one signal, its stamps checked (see the module)."""
+def stamped(name: str, source: str, t, values, unit: str, units: Mapping,
+            clock: str = "") -> tuple:
+    """(t [s], values in SI, SI unit) of one signal, its stamps checked (see the module);
+    ``clock`` follows ``source`` in the messages about its stamps (which clock they are)."""
     t = np.asarray(t, dtype=float).ravel()
     try:
         v = np.asarray(values, dtype=float)
@@ -86,7 +88,7 @@ def stamped(name: str, source: str, t, values, unit: str, units: Mapping) -> tup
     if not np.all(np.isfinite(t)):
         k = int(np.flatnonzero(~np.isfinite(t))[0])
         raise ValueError(f"{name!r}: {source} has a non-finite time stamp at sample {k}")
-    t, v = _drop_repeats(name, source, t, v)
+    t, v = _drop_repeats(name, source + clock, t, v)
     if t.size < 2:
         raise ValueError(f"{name!r}: {source} has {t.size} sample(s); at least 2 are needed")
     v, si = to_si(name, v, given)
@@ -99,8 +101,9 @@ def _drop_repeats(name, source, t, v):
     if back.size:
         k = int(back[0])
         raise ValueError(f"{name!r}: the time stamps of {source} go back {back.size} time(s), "
-                         f"the first at sample {k + 1}: {float(t[k])!r} -> {float(t[k + 1])!r} s (read the file "
-                         f"in parts, or fix its clock; vehjax does not reorder samples)")
+                         f"the first at sample {k + 1}: {float(t[k])!r} -> {float(t[k + 1])!r} s "
+                         f"(read the file in parts, or fix its clock; vehjax does not reorder "
+                         f"samples)")
     same = np.flatnonzero(d == 0.0)
     if same.size == 0:
         return t, v
