@@ -416,6 +416,10 @@ def test_can_errors(tmp_path, can_frames):
     with pytest.raises(ValueError, match=r"frame 39 \('WheelSpeeds' at t = .*\) has 6 data bytes"
                                          r", the DBC's message 8 \(the log's last frame"):
         read_can(cut, dbc, SIGNALS)
+    junk = tmp_path / "junk.blf"
+    junk.write_bytes(b"not a binary log" * 8)
+    with pytest.raises(ValueError, match=r"junk.blf' is not a readable CAN log"):
+        read_can(junk, dbc, SIGNALS)
     # frames out of order, and one message on two channels
     swapped = frames[:4] + [frames[6], frames[5], frames[4]] + frames[7:]
     with pytest.raises(ValueError, match=r"'vx': the time stamps of signal 'VehicleDynamics."

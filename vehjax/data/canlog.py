@@ -66,16 +66,26 @@ def read_can(path, dbc, signals: Mapping[str, str], *, reference=(), channel=Non
         raise ValueError(f"path: {str(path)!r} is not a file")
     db = _database(cantools, dbc)
     wanted = {name: _signal(db, name, spec) for name, spec in signals.items()}
+    frames = _frames(can, path, dict(reader_options or {}))
+    samples = _decode(frames, wanted, channel, path)
+    series = {name: stamped(name, f"signal {signals[name]!r}", t, v, wanted[name][1].unit or "",
+                            units) for name, (t, v) in samples.items()}
+    return to_drive(series, reference, units, "signals")
+
+
+def _frames(can, path, options):
+    """(index, frame, whether it is the log's last) from python-can's reader, one at a time;
+    a reader's error as a ValueError naming the file."""
     try:
-        frames = list(can.LogReader(str(path), **dict(reader_options or {})))
+        with can.LogReader(str(path), **options) as reader:
+            frames = iter(reader)
+            frame, k = next(frames, None), 0
+            while frame is not None:
+                after = next(frames, None)
+                yield k, frame, after is None
+                frame, k = after, k + 1
     except Exception as exc:                       # python-can raises many kinds
         raise ValueError(f"path: {str(path)!r} is not a readable CAN log ({exc})") from None
-    samples = _decode(frames, wanted, channel, path)
-    series = {}
-    for name, (t, v) in samples.items():
-        message, sig = wanted[name]
-        series[name] = stamped(name, f"signal {signals[name]!r}", t, v, sig.unit or "", units)
-    return to_drive(series, reference, units, "signals")
 
 
 def _database(cantools, dbc):
@@ -104,14 +114,14 @@ def _signal(db, name, spec):
 
 
 def _decode(frames, wanted, channel, path):
-    """name -> (t [s], physical values) from one pass over the frames."""
+    """name -> (t [s], physical values) from one pass over ``frames`` (from :func:`_frames`)."""
     by_id = {}
     for name, (msg, sig) in wanted.items():
         by_id.setdefault((msg.frame_id, bool(msg.is_extended_frame)), (msg, []))[1].append(
             (name, sig.name))
     got = {name: ([], []) for name in wanted}
     seen, kind = {}, {}
-    for k, f in enumerate(frames):
+    for k, f, last in frames:
         if f.is_error_frame or f.is_remote_frame or (channel is not None and f.channel != channel):
             continue
         hit = by_id.get((f.arbitration_id, bool(f.is_extended_id)))
@@ -124,10 +134,9 @@ def _decode(frames, wanted, channel, path):
         seen.setdefault(msg.name, set()).add(f.channel)
         data = bytes(f.data)
         if len(data) < msg.length:
-            last = " (the log's last frame: written partly?)" if k == len(frames) - 1 else ""
             raise ValueError(f"path: {str(path)!r}: frame {k} ({msg.name!r} at t = {f.timestamp!r}"
                              f" s) has {len(data)} data bytes, the DBC's message {msg.length}"
-                             f"{last}")
+                             + (" (the log's last frame: written partly?)" if last else ""))
         try:
             values = msg.decode(data, decode_choices=False, scaling=True)
         except Exception as exc:
@@ -137,6 +146,13 @@ def _decode(frames, wanted, channel, path):
             if sig in values:
                 got[name][0].append(f.timestamp)
                 got[name][1].append(float(values[sig]))
+    _check_found(got, seen, kind, wanted, channel, path)
+    return {name: (np.array(t, dtype=float), np.array(v, dtype=float))
+            for name, (t, v) in got.items()}
+
+
+def _check_found(got, seen, kind, wanted, channel, path):
+    """Every signal found, every message on one channel; ValueError naming them otherwise."""
     for msg_name, chans in seen.items():
         if len(chans) > 1:
             raise ValueError(f"channel: the message {msg_name!r} is on channels "
@@ -148,5 +164,3 @@ def _decode(frames, wanted, channel, path):
             raise ValueError(f"signals: no frame of {msg.name!r} carries {sig.name!r} in "
                              f"{str(path)!r}" + ("" if channel is None else
                                                  f" on channel {channel!r}") + other)
-    return {name: (np.array(t, dtype=float), np.array(v, dtype=float))
-            for name, (t, v) in got.items()}

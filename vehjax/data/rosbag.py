@@ -116,13 +116,13 @@ def _read(reader, path, wanted, stamps):
     conns = [c for c in reader.connections if c.topic in {t for t, _ in wanted.values()}]
     got = {name: ([], []) for name in wanted}
     unit, header = {}, {}
-    for conn, record, raw in reader.messages(connections=conns):
+    for conn, record, raw in _messages(reader, conns, path):
         try:
             msg = reader.deserialize(raw, conn.msgtype)
         except Exception as exc:
             raise ValueError(f"fields: a message on {conn.topic!r} recorded at {record} ns "
-                             f"cannot be decoded as {conn.msgtype} ({exc}); is the bag cut "
-                             f"short?") from None
+                             f"cannot be decoded as {conn.msgtype} ({exc}); is its definition "
+                             f"missing from the bag, or the bag cut short?") from None
         t, from_header = _stamp(msg, record, stamps)
         for name, (topic, field) in wanted.items():
             if topic != conn.topic:
@@ -138,6 +138,16 @@ def _read(reader, path, wanted, stamps):
                              f"{str(path)!r}")
     return {name: (np.array(ts), np.array(vs, dtype=float), unit[name], header[name])
             for name, (ts, vs) in got.items()}
+
+
+def _messages(reader, conns, path):
+    """The bag's (connection, record time [ns], raw message) of ``conns``; a storage error
+    (a file cut short, a corrupt chunk) as a ValueError naming the bag."""
+    try:
+        yield from reader.messages(connections=conns)
+    except Exception as exc:                      # rosbags raises its own kinds
+        raise ValueError(f"path: {str(path)!r}: the bag cannot be read to its end ({exc}); is "
+                         f"it cut short?") from None
 
 
 def _stamp(msg, record, stamps) -> tuple:
