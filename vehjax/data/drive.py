@@ -17,7 +17,9 @@ Typical use::
 ``for_model`` resamples onto the model's ``dt`` (:meth:`Drive.resample`: linear interpolation,
 NaN across gaps longer than ``max_gap`` and outside a signal's recorded span) and returns the
 inputs (T, nu) and the measurements (T, ny) in the model's order. :func:`vehjax.data.load_comma2k19`
-is one producer of a Drive (``load_comma2k19().to_drive()`` gives one with model-named columns).
+is one producer of a Drive (``load_comma2k19().to_drive()`` gives one with model-named columns);
+:func:`vehjax.data.read_drive` reads MDF4/MDF3 files, ROS 2 bags and CAN logs into one, each
+signal at its own rate (:attr:`Drive.intervals`).
 
 Files are read as spreadsheets, loggers and pandas write them (:mod:`vehjax.data.table`: a
 byte-order mark, CRLF, quoted headers, blank lines, separators at the end of every line, the
@@ -295,7 +297,10 @@ class Drive:
 
     def to_csv(self, path) -> None:
         """Write ``t`` and every signal and reference column, headers ``"name [unit]"``, missing
-        samples as empty fields, UTF-8; :meth:`from_csv` reads it back (pass ``reference=``)."""
+        samples as empty fields, UTF-8; :meth:`from_csv` reads it back (pass ``reference=``).
+
+        :attr:`intervals` are not written: a multi-rate drive read back resamples every signal
+        with ``t``'s median step as its gap unless ``max_gap=`` is given."""
         names = [*self.signals, *self.reference]
         if "t" in names:
             raise ValueError("path: to_csv writes the time column as 't [s]', and a signal is "
