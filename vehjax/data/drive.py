@@ -17,7 +17,9 @@ Typical use::
 ``for_model`` resamples onto the model's ``dt`` (:meth:`Drive.resample`: linear interpolation,
 NaN across gaps longer than ``max_gap`` and outside a signal's recorded span) and returns the
 inputs (T, nu) and the measurements (T, ny) in the model's order. :func:`vehjax.data.load_comma2k19`
-is one producer of a Drive (``load_comma2k19().to_drive()`` gives one with model-named columns).
+is one producer of a Drive (``load_comma2k19().to_drive()`` gives one with model-named columns);
+:func:`vehjax.data.read_drive` reads MDF4/MDF3 files, ROS 2 bags and CAN logs into one, each
+signal at its own rate (:attr:`Drive.intervals`).
 
 Files are read as spreadsheets, loggers and pandas write them (:mod:`vehjax.data.table`: a
 byte-order mark, CRLF, quoted headers, blank lines, separators at the end of every line, the
@@ -56,6 +58,11 @@ UNITS = {
     "rad/s^2": ("rad/s^2", 1.0), "deg/s^2": ("rad/s^2", math.pi / 180.0),
     "N": ("N", 1.0), "kN": ("N", 1e3), "N m": ("N m", 1.0), "Nm": ("N m", 1.0),
     "kg": ("kg", 1.0), "-": ("-", 1.0), "1": ("-", 1.0), "%": ("-", 1e-2),
+    # spellings that measurement files (MDF) and DBCs use for the same units
+    "°": ("rad", math.pi / 180.0), "°/s": ("rad/s", math.pi / 180.0),
+    "°/s^2": ("rad/s^2", math.pi / 180.0), "°/s²": ("rad/s^2", math.pi / 180.0),
+    "deg/s²": ("rad/s^2", math.pi / 180.0), "rad/s²": ("rad/s^2", 1.0),
+    "m/s²": ("m/s^2", 1.0), "m/s2": ("m/s^2", 1.0), "1/min": ("rad/s", 2.0 * math.pi / 60.0),
 }
 
 #: "name [unit]": the unit is the last bracketed group, so a name may hold brackets ("a[1] [m]")
@@ -96,10 +103,17 @@ def check_time(t, what: str = "t") -> np.ndarray:
 
 
 def _uniform_step(t: np.ndarray) -> float | None:
-    """The common step of ``t`` [s] if every step equals it to 1e-6 relative, else None."""
+    """The common step of ``t`` [s] if every step equals it to 1e-6 relative (or to the
+    rounding of float64 stamps as large as ``t``'s, for stamps since the epoch), else None."""
     d = np.diff(t)
     step = (t[-1] - t[0]) / (len(t) - 1)
-    return float(step) if np.all(np.abs(d - step) <= 1e-6 * step) else None
+    return float(step) if np.all(np.abs(d - step) <= _step_tolerance(t, step)) else None
+
+
+def _step_tolerance(t: np.ndarray, step: float) -> float:
+    """1e-6 of ``step``, or 8 float64 roundings of the largest stamp if that is more (a
+    uniform grid at t ~ 1.7e9 s, the epoch, is uniform to about 2e-7 s only)."""
+    return max(1e-6 * step, 8.0 * np.finfo(float).eps * float(np.max(np.abs(t))))
 
 
 def interpolate_with_gaps(t_new, t, y, max_gap: float) -> np.ndarray:
@@ -136,8 +150,16 @@ class Drive:
         signals: name -> (T,) array in SI units.
         units: name -> SI unit string, for every key of ``signals`` and ``reference``.
         reference: name -> (T,) array: signals for validation only (default none).
-        dt: the grid step [s] when ``t`` is uniform (to 1e-6 relative), else None; filled in
-            when not given.
+        dt: the grid step [s] when ``t`` is uniform (to 1e-6 relative, or to float64's
+            rounding of stamps that large), else None; filled in when not given.
+        intervals: name -> that signal's own median sample interval [s] (default none). A
+            drive read from a log (:func:`vehjax.data.read_drive`) holds signals recorded at
+            different rates on one time axis, the union of all their time stamps, each signal
+            NaN at the stamps where it has no sample; its intervals tell :meth:`resample` how
+            far apart that signal's samples are meant to be, so that a 10 Hz signal is
+            interpolated between its own samples and NaN only across its own gaps (longer than
+            2.5 of its intervals). A signal without one uses ``t``'s median step, as a drive
+            from arrays or a CSV does.
 
     Make one with :meth:`from_arrays` or :meth:`from_csv` (they convert units); the
     constructor takes arrays already in SI units.
@@ -148,6 +170,7 @@ class Drive:
     units: Mapping[str, str]
     reference: Mapping[str, np.ndarray] = field(default_factory=dict)
     dt: float | None = None
+    intervals: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
         t = check_time(self.t)
@@ -170,9 +193,12 @@ class Drive:
                 raise ValueError(f"units: {name!r} has {units[name]!r}, not an SI unit of "
                                  f"UNITS (use from_arrays / from_csv to convert)")
         step = _uniform_step(t)
-        if self.dt is not None and (step is None or abs(float(self.dt) - step) > 1e-6 * step):
+        if self.dt is not None and (step is None or abs(float(self.dt) - step)
+                                    > _step_tolerance(t, step)):
             raise ValueError(f"dt: {self.dt!r} s does not match the time stamps' step {step}")
+        intervals = _intervals(self.intervals, {**groups["signals"], **groups["reference"]})
         t.setflags(write=False)
+        object.__setattr__(self, "intervals", intervals)
         object.__setattr__(self, "t", t)
         object.__setattr__(self, "signals", groups["signals"])
         object.__setattr__(self, "reference", groups["reference"])
@@ -271,7 +297,10 @@ class Drive:
 
     def to_csv(self, path) -> None:
         """Write ``t`` and every signal and reference column, headers ``"name [unit]"``, missing
-        samples as empty fields, UTF-8; :meth:`from_csv` reads it back (pass ``reference=``)."""
+        samples as empty fields, UTF-8; :meth:`from_csv` reads it back (pass ``reference=``).
+
+        :attr:`intervals` are not written: a multi-rate drive read back resamples every signal
+        with ``t``'s median step as its gap unless ``max_gap=`` is given."""
         names = [*self.signals, *self.reference]
         if "t" in names:
             raise ValueError("path: to_csv writes the time column as 't [s]', and a signal is "
@@ -290,13 +319,15 @@ class Drive:
         Every signal is interpolated linearly from its own finite samples
         (:func:`interpolate_with_gaps`); grid points inside a gap longer than ``max_gap`` [s]
         (default 2.5 median sample intervals of ``t``, so one dropped sample is bridged, two
-        are not) or outside the signal's recorded span are NaN. No anti-alias filtering: to
-        downsample noisy signals by a large factor, average them first.
+        are not; for a signal in :attr:`intervals`, 2.5 of its own interval) or outside the
+        signal's recorded span are NaN. No anti-alias filtering: to downsample noisy signals by
+        a large factor, average them first. The result has no :attr:`intervals` (every signal
+        is on the grid).
 
         Args:
             dt: grid step [s], > 0.
             start, stop: grid ends [s], inside [t[0], t[-1]] (default those).
-            max_gap: longest gap [s] interpolated across, > 0.
+            max_gap: longest gap [s] interpolated across, > 0, for every signal.
         """
         dt = _positive("dt", dt)
         lo, hi = float(self.t[0]), float(self.t[-1])
@@ -304,21 +335,30 @@ class Drive:
         t1 = hi if stop is None else _within("stop", stop, lo, hi)
         if not t1 > t0:
             raise ValueError(f"stop: {t1} s is not after start = {t0} s")
-        gap = 2.5 * float(np.median(np.diff(self.t))) if max_gap is None else _positive(
-            "max_gap", max_gap)
+        step = 2.5 * float(np.median(np.diff(self.t)))
+        given = None if max_gap is None else _positive("max_gap", max_gap)
         n = int(math.floor((t1 - t0) / dt * (1.0 + 1e-12))) + 1
         if n < 2:
             raise ValueError(f"dt: {dt} s gives fewer than 2 samples between {t0} and {t1} s")
         grid = t0 + dt * np.arange(n)
 
         def on_grid(group):
-            return {k: interpolate_with_gaps(grid, self.t, v, gap) for k, v in group.items()}
+            return {k: interpolate_with_gaps(grid, self.t, v, gap(k)) for k, v in group.items()}
+
+        def gap(k):
+            if given is not None:
+                return given
+            return 2.5 * self.intervals[k] if k in self.intervals else step
 
         return Drive(t=grid, signals=on_grid(self.signals), reference=on_grid(self.reference),
                      units=dict(self.units), dt=dt)
 
     def between(self, start=None, stop=None) -> "Drive":
-        """The samples with start <= t <= stop [s] (no resampling), at least 2."""
+        """The samples with start <= t <= stop [s] (no resampling), at least 2.
+
+        A slow signal of a multi-rate drive (:attr:`intervals`) loses its samples outside too,
+        so it may start after ``start``: to cut a window onto a grid, use
+        ``resample(dt, start=, stop=)``, which interpolates from the samples around the ends."""
         keep = np.ones(len(self.t), bool)
         if start is not None:
             keep &= self.t >= float(start)
@@ -328,7 +368,7 @@ class Drive:
             raise ValueError(f"start, stop: fewer than 2 samples in [{start}, {stop}] s")
         return Drive(t=self.t[keep], signals={k: v[keep] for k, v in self.signals.items()},
                      reference={k: v[keep] for k, v in self.reference.items()},
-                     units=dict(self.units))
+                     units=dict(self.units), intervals=dict(self.intervals))
 
     # -- a model's arrays -------------------------------------------------------------------
     def for_model(self, model, names: Mapping | None = None, *, missing_outputs=(),
@@ -561,6 +601,18 @@ def _column(arg, name, value, n):
                          f"{k + 1} (index {k}) (use NaN for missing samples)")
     a.setflags(write=False)
     return a
+
+
+def _intervals(intervals, names) -> dict:
+    """``intervals`` checked: a mapping of signal or reference names to positive seconds."""
+    if not isinstance(intervals, Mapping):
+        raise ValueError(f"intervals: expected a mapping name -> seconds, got {intervals!r}")
+    out = {}
+    for k, v in intervals.items():
+        if k not in names:
+            raise ValueError(f"intervals: {k!r} is not a signal or reference of this drive")
+        out[k] = _positive(f"intervals[{k!r}]", v)
+    return out
 
 
 def _names(arg, value, known):
