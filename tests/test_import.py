@@ -22,10 +22,13 @@ from vehjax import cli
 HEAVY = ("jax", "jaxlib", "numpy", "scipy", "matplotlib", "tqdm", "equinox", "optax")
 
 
-def _python(code: str, x64: str | None = None) -> dict:
-    """Run ``code`` in a fresh interpreter (JAX_ENABLE_X64 unset, or set to ``x64``); its last
-    line of stdout, JSON, is returned."""
-    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+def _python(code: str, x64: str | None = None, env: dict | None = None) -> dict:
+    """Run ``code`` in a fresh interpreter (JAX_ENABLE_X64 unset, or set to ``x64``; the
+    variables of ``env`` set, those mapped to None unset); its last line of stdout, JSON, is
+    returned."""
+    changes = dict(env or {})
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64" and k not in changes}
+    env.update({k: v for k, v in changes.items() if v is not None})
     if x64 is not None:
         env["JAX_ENABLE_X64"] = x64
     out = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True,
@@ -114,3 +117,39 @@ def test_the_lazy_names_are_the_eager_ones():
                "math", "tune", "calibrate", "execution"}
     assert out["kinds"] == {n: n in modules for n in vehjax.__all__}
     assert out["missing"] == "module 'vehjax' has no attribute 'no_such_name'"
+
+
+_CACHE = """
+import json, jax, jax.numpy as jnp
+f = jax.jit(lambda a: jnp.cumsum(jnp.sin(a) @ a.T, axis=0))
+f(jnp.ones((64, 64))).block_until_ready()
+print(json.dumps(jax.config.jax_compilation_cache_dir))
+"""
+_NO_CACHE = {"JAX_COMPILATION_CACHE_DIR": None, "VEHJAX_CACHE_DIR": None,
+             "VEHJAX_COMPILATION_CACHE": None, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+
+
+@pytest.mark.parametrize("first", ["import vehjax\nvehjax.filter", "import jax, vehjax"])
+def test_compiled_programs_are_kept_in_vehjax_cache_folder(tmp_path, first):
+    """Whichever is imported first, a program compiled in one process is written to the cache
+    folder (VEHJAX_CACHE_DIR here; ~/.cache/vehjax/xla by default) and read back by the next
+    process, which writes nothing new."""
+    env = {**_NO_CACHE, "VEHJAX_CACHE_DIR": str(tmp_path / "xla")}
+    assert _python(first + _CACHE, env=env) == str(tmp_path / "xla")
+    entries = sorted(p.name for p in (tmp_path / "xla").iterdir())
+    assert entries  # the program, written
+    assert _python(first + _CACHE, env=env) == str(tmp_path / "xla")
+    assert sorted(p.name for p in (tmp_path / "xla").iterdir()) == entries  # read, not redone
+
+
+def test_the_cache_defaults_to_the_user_cache_folder_and_can_be_turned_off(tmp_path):
+    home = {**_NO_CACHE, "XDG_CACHE_HOME": str(tmp_path)}
+    assert _python("import vehjax" + _CACHE, env=home) == str(tmp_path / "vehjax" / "xla")
+    for off in ("off", "0", "False"):
+        assert _python("import vehjax" + _CACHE,
+                       env={**home, "VEHJAX_COMPILATION_CACHE": off}) is None
+    mine = str(tmp_path / "mine")  # a cache the user set is left alone
+    assert _python("import vehjax" + _CACHE,
+                   env={**home, "JAX_COMPILATION_CACHE_DIR": mine}) == mine
+    assert _python(f"import jax\njax.config.update('jax_compilation_cache_dir', {mine!r})\n"
+                   "import vehjax" + _CACHE, env=home) == mine

@@ -10,6 +10,13 @@ before any vehjax module runs: when JAX is not imported yet, importing vehjax se
 ``JAX_ENABLE_X64=1`` in the environment, which JAX reads when it is imported (child processes
 inherit it); when JAX was imported first, importing vehjax calls
 ``jax.config.update("jax_enable_x64", True)``.
+
+Compiled programs are kept on disk between processes (JAX's persistent compilation cache, in
+``~/.cache/vehjax/xla``; ``VEHJAX_CACHE_DIR`` names another folder): the second fit or study of
+the same structure, in a new process, skips most of its compile (a 3,000-step brush fit:
+90 -> 47 s of CPU). Entries are small (a few MB for a fit's programs) and are never evicted:
+delete the folder to clear it. ``VEHJAX_COMPILATION_CACHE=off`` turns it off; a cache already
+set (``JAX_COMPILATION_CACHE_DIR``, or ``jax.config`` before importing vehjax) is left alone.
 """
 
 import importlib
@@ -19,10 +26,43 @@ import sys
 import types
 from typing import TYPE_CHECKING
 
-if "jax" in sys.modules:
-    sys.modules["jax"].config.update("jax_enable_x64", True)
-else:
-    os.environ["JAX_ENABLE_X64"] = "1"
+
+
+def _cache_dir() -> str | None:
+    """The folder of the persistent compilation cache vehjax asks JAX for: ``VEHJAX_CACHE_DIR``,
+    else ``$XDG_CACHE_HOME/vehjax/xla`` (``~/.cache/vehjax/xla``); None when
+    ``VEHJAX_COMPILATION_CACHE`` is ``0``/``off``/``false``/``no``, or when a cache is set
+    already (``JAX_COMPILATION_CACHE_DIR``, or ``jax.config`` of an imported JAX)."""
+    if os.environ.get("VEHJAX_COMPILATION_CACHE", "").strip().lower() in ("0", "off", "false",
+                                                                          "no"):
+        return None
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return None
+    if "jax" in sys.modules and sys.modules["jax"].config.jax_compilation_cache_dir:
+        return None
+    if os.environ.get("VEHJAX_CACHE_DIR"):
+        return os.environ["VEHJAX_CACHE_DIR"]
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "vehjax", "xla")
+
+
+def _configure_jax() -> None:
+    """float64 on, and the persistent compilation cache (:func:`_cache_dir`), through the
+    environment when JAX is not imported yet (it reads it when imported; child processes
+    inherit it), through ``jax.config`` when it is."""
+    cache = _cache_dir()
+    if "jax" in sys.modules:
+        config = sys.modules["jax"].config
+        config.update("jax_enable_x64", True)
+        if cache is not None:
+            config.update("jax_compilation_cache_dir", cache)
+    else:
+        os.environ["JAX_ENABLE_X64"] = "1"
+        if cache is not None:
+            os.environ["JAX_COMPILATION_CACHE_DIR"] = cache
+
+
+_configure_jax()
 
 if TYPE_CHECKING:  # what static analysers and IDEs see; at run time each loads on first use
     from . import calibrate, data, execution, filters, limit_drive, math, metrics, models, scenarios
