@@ -43,7 +43,7 @@ and the scenarios' longitudinal slips stay below about 1 %. Loads are floored at
 lift).
 
 Wheel spin: Iw omega_i' = T_i - re Fx_i (no rolling resistance, no drag: the paper has none).
-The wheel-spin modes are stiff (eigenvalues near -re^2 C_s / (Iw u_w), about -1200 1/s at
+The wheel-spin modes are stiff (eigenvalues near -re^2 C_s / (Iw u_w), -1100 to -1300 1/s at
 20 m/s), so ``transition`` integrates with RK4 in ``substeps`` equal sub-steps (default: at most
 1 ms each, 10 for dt = 0.01 s), stable down to about 10 m/s; use more sub-steps for slower
 driving, fewer only above about 25 m/s.
