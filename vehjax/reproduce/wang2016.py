@@ -73,12 +73,9 @@ NEES (7 states, against the true states) and NIS (3 measurements) lie in the two
 chi-square band (:func:`vehjax.metrics.consistency`), and the shares above (over-confident:
 covariance too small) and below (under-confident).
 
-Limits (20 runs x 10 s): the paper's ordering ACKF < UKF < EKF does not appear with a margin on
-this model (UKF and CKF agree to 0.1 %, the EKF within 2 %); the ACKF wins only in cases a and b,
-on the measured quantities; no filter is consistent on 90 % of the steps.
-
-See docs/wang2016.md for why the literal study cannot favour adaptation, and the reading of the
-results case by case (margins per quantity, consistency shares).
+Limits: the paper's ordering ACKF < UKF < EKF does not appear with a margin on this model; the
+ACKF wins only in cases a and b. See docs/wang2016.md for why the literal study cannot favour
+adaptation, and the results case by case (margins per quantity, consistency shares).
 """
 
 from __future__ import annotations
