@@ -494,7 +494,7 @@ class SevenDOF(VehicleModel):
 
     def _etdrk4_transition(self, x, u, theta):
         """``substeps`` steps of Krogstad's ETDRK4 over ``dt``, sub-step lengths in the ratio
-        1 : 2 : 3 ..., the linear part L formed once, at x (see the module docstring)."""
+        1 : 2 : 3 ..., the linear part L formed once, at x (see docs/sevendof.md, ETDRK4)."""
         dtype = x.dtype
         first, cols, pick, hs = (jnp.asarray(a) for a in _etd_schedule(self.dt, self.substeps))
         cols, pick, hs = cols.astype(dtype), pick.astype(dtype), hs.astype(dtype)
