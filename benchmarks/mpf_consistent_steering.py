@@ -1,6 +1,6 @@
 """How well paper 004's simulation pins the steering-noise std, and how the consistent MPF
 (``marginalized_pf_grid``, issue #33) learns it: the numbers behind the MPF
-(consistent) paragraph of vehjax/reproduce/noise_learning.py's docstring. The data are
+(consistent) row of docs/noise_learning.md (noise_learning.py's docstring in short). The data are
 ``vehjax reproduce noise-learning``'s (vehjax.banked_road's simulate_truth, seed 0).
 
     python benchmarks/mpf_consistent_steering.py profile RUNS SECONDS

@@ -1,7 +1,8 @@
 """How the consistent MPF (``marginalized_pf_grid``) learns the sensor
 variances on the consistency study's data (``vehjax reproduce consistency``, where the
 steering noise reaches ay directly beside ay's own noise): the numbers behind
-vehjax/filters/marginalized/sensor_scoring.py's docstring and the "MPF-K" remarks of consistency.py.
+docs/sensor_scoring.md (sensor_scoring.py's docstring in short) and the "MPF-K" remarks of
+consistency.py.
 
     python benchmarks/mpf_k_sensor_variances.py statistic RUNS STEPS [NU0]
         the inverse-Wishart statistic's increments per step (the expected second moment of

@@ -234,7 +234,7 @@ def _student_t_ppf(q, nu):
 
 def _bucketed(fn, q, p, pad_p: float) -> np.ndarray:
     """``fn(q, p)`` elementwise on broadcast arrays, padded to a power-of-two length so that a
-    session compiles ``fn`` for a few sizes only."""
+    Python process compiles ``fn`` for a few sizes only."""
     q, p = np.broadcast_arrays(np.asarray(q, float), np.asarray(p, float))
     n = q.size
     size = max(16, 1 << (n - 1).bit_length())

@@ -23,84 +23,41 @@ Frames and conventions
   pose (the pose is that of the device's camera).
 * Vehicle frame V = x forward, y left, z up (ISO 8855, as in ``vehjax.models``).
 * Pose quaternion: **w first**, Hamilton, and the rotation matrix it gives maps device vectors to
-  ECEF (``v_ecef = R(q) v_device``). The comma2k19 README words it as the rotation "from ECEF to
-  the local camera frame", which is the same rotation read as a change of axes (openpilot's
-  ``rot_from_quat`` is ``ecef_from_local``). Checked on the shipped segment, all four readings
-  (w first or last, matrix or its transpose) tried: only this one puts the velocity along the
-  device's forward axis (mean (16.83, 0.24, -1.11) m/s in D; the others leave 7.6 to 15.5 m/s
-  sideways or backwards) and the local up along -down (cosine 0.998). The body rates from
-  successive quaternions, log(R_k^T R_k+1) / dt, match the gyro interpolated at the interval
-  mid-points axis by axis (correlation 0.93, 0.91, 0.83 at the pose's 20 Hz, unsmoothed),
-  and the pose's yaw rate about the local vertical matches the gyro's yaw rate (the gyro in V)
-  up to a constant offset of +0.033 deg/s, with correlation 0.89 at 20 Hz (gyro averaged over
-  each pose interval), and on the 100 Hz grid 0.82 raw, 0.94 after a 0.1 s and 0.98 after a
-  0.5 s moving average (the yaw rate here is small, std 0.24 deg/s, against the gyro's noise);
-  the best lag is 0.00 to 0.01 s, so no time shift is applied. The course rate of the pose
-  velocity (no quaternions involved) agrees with it too (correlation 0.84 at 1 s, mean
-  difference -0.008 deg/s).
-* Local vertical: WGS84 geodetic up at the pose's ECEF position (lat 37.72 deg here; the
-  geocentric direction differs from it by 0.19 deg).
+  ECEF (``v_ecef = R(q) v_device``; openpilot's ``rot_from_quat`` is ``ecef_from_local``). Of the
+  four readings (w first or last, matrix or its transpose) only this one puts the shipped
+  segment's velocity along the device's forward axis and the local up along -down; the pose's
+  body rates then match the gyro, with no time shift.
+* Local vertical: WGS84 geodetic up at the pose's ECEF position.
 
 IMU mounting (``Drive.mount``)
 ------------------------------
 The device is not aligned with the car. Its attitude in V is ``R_VF = Rz(yaw) Ry(pitch)
 Rx(roll)`` applied to the device's axes turned to forward-left-up (``F = diag(1, -1, -1)``), so a
 device vector goes to V as ``R_VF F v_D``. Estimated from the pose (unless ``mount`` is given):
-
-* the car's x axis is the direction of the summed pose velocity expressed in D (frames faster
-  than 1 m/s; the car's velocity lies along its x axis, up to its small mean side slip and the
-  camera's lever arm times the mean yaw rate): this fixes yaw and pitch;
-* its z axis is the pose's local vertical expressed in D, averaged over the same frames and made
-  orthogonal to x: this fixes roll, assuming the car's mean roll over the segment is zero. The
-  mean road cross-fall (typically 1 to 2 %, up to ~1 deg) cannot be told apart from the
-  mounting roll by anything in the log and ends up in it.
+the car's x axis is the direction of the summed pose velocity in D (frames faster than 1 m/s;
+yaw and pitch), its z axis the pose's local vertical in D made orthogonal to x (roll, assuming
+the car's mean roll over the segment is zero: the mean road cross-fall ends up in it). The roll
+is taken from the pose, not from gravity, so that an accelerometer offset stays visible in
+``ay`` for a filter to learn. Found on the shipped segment: roll = +1.25 deg, pitch = +3.77 deg,
+yaw = +0.90 deg.
 
 Either way the loader checks the result against gravity: the accelerometer's mean specific force
 over the file must read 9.81 m/s^2 in size and on the car's up axis (``GRAVITY``,
 ``GRAVITY_TOLERANCE`` = 1.5 m/s^2); a ``mount`` given in degrees where radians are due, or an
 accelerometer in g, is refused saying so.
 
-Found on the shipped segment: roll = +1.25 deg (device's left side up relative to the car),
-pitch = +3.77 deg (nose down about the car's y-left axis; the device's forward axis points 3.8
-deg below the car's), yaw = +0.90 deg (device points to the left of the car's x axis). The same
-construction with the mean accelerometer (gravity) direction instead of the pose's up gives
-roll +0.80 deg (pitch and yaw come from the velocity either way). The 0.46 deg difference is
-0.08 m/s^2 of lateral specific force, an accelerometer offset (the mean centripetal
-acceleration, -0.0014 m/s^2, is far too small to explain it): with the pose's roll, the
-rotated ``accel_y`` averages -0.077 m/s^2 against vx r = -0.0014 m/s^2. The roll is taken from
-the pose so that this offset stays visible in ``ay`` for a filter to learn instead of being
-hidden in the rotation. With it, ``accel_y`` follows the model's specific force
-vx r + g sin(roll) with correlation 0.93 (1 s averages; 0.77 without the roll term, 0.35 with
-its sign flipped, which confirms the roll sign).
-
-References (``Drive.reference``, for validation only)
------------------------------------------------------
-From ``global_pose``, i.e. the camera's pose from comma's INS/GNSS/vision optimiser: the yaw rate
-about the local vertical (rate relative to ECEF: Earth's rotation, Omega sin(lat) = 4.5e-5 rad/s
-= 0.0026 deg/s, is not in it but is in the gyro), the velocity of the camera in V (vx, vy, vz;
-at the camera, not the centre of gravity), the speed |v| and the car's roll relative to the
-local level frame (ZYX Euler roll of V in east-north-up; > 0 left side up, the sign of the
-model's bank angle phi). With the estimated mount, vy, vz and roll have zero mean over the
-segment by construction; their variation is the check (std 0.03 m/s, 0.07 m/s, 0.23 deg).
-
-``processed_log/IMU/gyro_bias``
--------------------------------
-It holds one constant vector (-0.00978, -0.03511, +0.06836) rad/s = (-0.56, -2.01, +3.92) deg/s
-on the gyro's own 6256 time stamps (the same ``t`` array as ``gyro``, the value repeated). It is
-Android's bias estimate for the *uncalibrated* gyro, and it has already been subtracted: the
-upstream comma2k19 repository also ships ``gyro_uncalibrated`` for this segment, and
-``gyro_uncalibrated - gyro`` equals ``gyro_bias`` exactly on every sample and axis (checked
-against commaai/comma2k19 at commit 4c7f1a6; the README describes ``gyro`` as "with android bias
-correction"). So it is not the offset of ``gyro``: its yaw component is -3.9 deg/s
-(yaw = -z), while ``gyro`` in V differs from the pose's yaw rate by only
-+0.033 deg/s on average (``Drive.gyro_offset_vs_reference``; +0.0026 deg/s of it is Earth's
-rotation). Subtracting it again would put a -3.9 deg/s bias on the yaw rate. The loader does not
-read it.
+References (``Drive.reference``, for validation only): from ``global_pose``, the yaw rate about
+the local vertical (relative to ECEF: Earth's rotation is not in it but is in the gyro), the
+camera's velocity in V, the speed and the car's roll relative to the local level frame (> 0 left
+side up, the sign of the model's bank angle phi). ``processed_log/IMU/gyro_bias`` is not read:
+it is Android's bias of the uncalibrated gyro, already subtracted from ``gyro``.
 
 Vehicle figures used by default (openpilot's values for this car, per PROVENANCE.md): steer ratio
-16.88; rear track 1.61 m (a plausible RAV4 value, not in the log; a regression of the rear
-wheel-speed difference on the pose yaw rate gives 1.56 m with 0.5 s and 1.64 m with 1 s
-averages).
+16.88; rear track 1.61 m (a plausible RAV4 value, not in the log).
+
+See docs/comma2k19.md for the checks behind each convention on the shipped segment (the four
+quaternion readings, the rate correlations and lags), the mount's derivation and the gravity-
+based alternative, the references' spread, the gyro_bias investigation and the track regression.
 """
 
 from __future__ import annotations

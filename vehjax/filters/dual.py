@@ -31,28 +31,11 @@ UKF differentiates its whole state step with ``jax.jacfwd`` and propagates its p
 points from x_{t-1} + D (th_i - th-)). ``recurrent=False`` is Algorithm 1/2 as printed, which
 treats x_{t-1} as fixed: the parameter then only explains the one-step part of the innovation,
 whereas a parameter error mostly shows as a slowly built-up state error that the state filter
-has already absorbed, so the parameter learns late and ends biased. Measured (mean over runs;
-``vehjax.reproduce.dutta2019`` kinematic stage, matched settings, 100 runs of 60 s, lf, lr
-truth 1.5 m, guesses uniform in [0.5, 2.5] m; final = mean of the last 50 steps):
-
-    ====================  ===================  ===================  ===============
-    filter                final bias lf, lr m  final mean |err| m   mean |err| 10 s
-    ====================  ===================  ===================  ===============
-    dual EKF, printed     +0.020, +0.008       0.073, 0.071         0.18, 0.23
-    dual EKF, recurrent   +0.007, -0.001       0.045, 0.048         0.11, 0.12
-    dual UKF, printed     +0.022, +0.010       0.074, 0.072         0.18, 0.23
-    dual UKF, recurrent   +0.007, -0.001       0.045, 0.048         0.11, 0.12
-    joint EKF             +0.007, -0.001       0.044, 0.048         0.11, 0.12
-    ====================  ===================  ===================  ===============
-
-and on ``x' = a x + u + w``, ``y = x + v`` (a = 0.9, q = 0.05, r = 0.2, 100 runs, a0 uniform in
-[0.5, 1.1]) the steps until |a - 0.9| stays below 0.01 (median over runs): joint EKF 18, dual EKF
-recurrent 32, printed 51; final error after 400 steps 0.0012, 0.0013, 0.0019. What remains,
-inherent to dual estimation, is the first steps (32 against 18 above): the two filters do not
-share the state-parameter cross-covariance, so the parameter update does not account for the
-state's own uncertainty about the parameter until D has built up (the measurement sees the
-parameter through x only after a few steps); once it has, the dual and joint filters agree to
-within the Monte-Carlo error.
+has already absorbed, so the parameter learns late and ends biased. Measured on
+the dutta2019 kinematic stage, the recurrent dual filters end with the joint EKF's bias and
+error (the printed ones' lf bias 3 times theirs); what remains, inherent to dual estimation,
+is a slower start: the two filters do not share the state-parameter cross-covariance until D
+has built up (docs/dual.md has the table and a scalar example).
 
 Reading of the transcription, where it is garbled or loose:
 
@@ -85,10 +68,8 @@ filter, in physical units:
   current estimate (the parameter prediction step), so its physical size is what was asked for
   near the estimate;
 * the output: ``params = g(s)``, ``params_cov = J P_s J^T`` with J at s. For the UKFs too the
-  estimate is the map of the mean, not the weighted mean of the mapped sigma points: g(s) is the
-  median of theta under N(s, P_s) and always inside the domain, whereas the unscented mean has a
-  negative centre weight for alpha < 1 and can then leave it; the two differ by O(P_s), second
-  order, like the delta method's covariance.
+  estimate is the map of the mean (inside the domain; docs/dual.md says why not the mean of the
+  mapped sigma points).
 
 With no finite bound (``bounds={}``, or a parameter whose nominal value is not positive) the map
 is ``theta = c s`` and the filters are exactly those above. Parameters of vehicle models differ

@@ -22,86 +22,14 @@ state from the last step and W_i the carried weights::
 
 (theta_bar' the estimate the UKF ran with at the last step, D = 0 with ``recurrent=False``.)
 
-When the kernel moves the particles (``move``). Liu and West (2001) move them at every step, and
-so does Dutta et al.'s Algorithm 3; vehjax moves them only at the steps that resample (default
-``move="resampled"``), where the kernel has duplicates to spread; ``move="every"`` is the
-original. Why: ``vehjax bench liu_west_bias`` (benchmarks/bench_liu_west_bias.py, its
-defaults plus ``--reference dutta2019``) measures both against an
-exact reference nobody tuned: the posterior mean of the parameters under the same
-per-parameter UKF likelihood and the uniform prior, per run on a grid (11^3 points over +-5
-posterior standard deviations, refined twice, one UKF per point over the whole run). Dynamic3DOF
-at nominal, ``vehjax.scenarios.slip_and_steer`` 60 s, matched noise, true lf, lr, 100 runs,
-M = 1000.
-The exact posterior mean ends +0.5, +0.3, +0.7 % (se 0.3, 0.5, 0.3) from the true m, cx, cy
-(the posterior is skewed, its mean above its mode). Liu-West minus the reference, mean over runs
-in % (se), the per-run scatter of the difference, and the share of runs whose truth lies in the
-final 95 % interval:
-
-* ``move="every"``: -0.3 (0.20), -0.3 (0.27), -0.3 (0.19); scatter 1.9-2.7 %; 0.81, 0.78, 0.83.
-* ``move="resampled"``: -0.1 (0.12), -0.2 (0.15), 0.0 (0.12); scatter 1.2-1.5 %; 0.93, 0.89,
-  0.93.
-
-On a second excitation (chirp steering 0.1-1.5 Hz, 15 m/s with a +-0.8 m/s^2 speed swing of
-12 s period, truth 1.10, 0.92, 1.06 x nominal, box +-30 % of nominal so not centred on it,
-same sizes) the final estimate relative to the truth: ``"every"`` -1.0, -0.6, -1.0 % (se
-0.4-0.5; -3.0, -2.1, -3.0 after 6 s), truth in the 95 % interval 0.85, 0.80, 0.88;
-``"resampled"`` -0.2, +0.1, 0.0 (after 6 s -0.4, -0.4, -0.3), 0.95, 0.92, 0.93. Diagnosis
-*(ad hoc scripts, not in the repository, on the same 3-DOF data with another filter key, where
-``"every"`` ended -0.6, -0.8, -0.6 from the reference)*: one UKF per particle instead of the
-recurrent derivative, kernel at every step (20 runs): -1.2, -1.4, -1.1 (se 0.4-0.6), so not the
-first-order state; a per-particle innovation covariance S (first order in theta, d P / d theta
-carried like D): no change. Each kernel move pulls the cloud towards the Gaussian with its mean
-and covariance (of s); at every one of 3000 steps, each adding about 1/3000 of the run's
-information, that pull shapes the cloud more than the data do, and the estimate settles near a
-Gaussian (mode-like) approximation of the skewed posterior. Moved only after resampling, which
-grows rarer as the posterior settles, the weights carry the likelihood's shape.
-
-On a scalar model whose posterior is skewed (x' = 0.9 x + u / g; the bench's "skewed" piece,
-200 runs x 300 steps; ``tests/filters/test_liu_west.py`` has a smaller one), both agree with the
-exact posterior mean to about 0.05 posterior standard deviations (``"every"`` +0.02 (se 0.02) and
--0.01 (0.01) for M = 500 and 2000, ``"resampled"`` -0.06 (0.01) and -0.05 (0.01)), and
-``"resampled"`` scatters less around it per run (0.16 and 0.13 against 0.30 and 0.20 standard
-deviations). The price: with few particles the parameter covariance is over-confident, more so
-when moved after resampling only (the cloud is spread less often). The bench's "few" piece
-(KinematicBicycle, sine steering, lf and lr, 40 runs): root-mean-square of (estimate - truth) /
-reported std at the end (1 = calibrated), ``"every"`` / ``"resampled"``: M = 100 2.19, 1.73 /
-2.06, 2.64; M = 300 1.35, 1.04 / 1.41, 1.17; M = 1000 1.16, 0.98 / 1.19, 1.11. Use M >= 1000
-(the default).
-
-Bias, and what removed it (the first two causes below were measured with the kernel
-at every step, ``move="every"``). Measured as the mean over runs of the final estimate
-(mean over the last 10 % of the steps) relative to the truth, in %, with its standard error:
-
-* ``vehjax.reproduce.dutta2019`` kinematic stage, matched settings, lf = lr = 1.5 m in the box
-  [0.5, 2.5]: before (box domain, no recurrent derivative), 20 runs, M = 500: lf +4.2 (2.3),
-  lr +2.7 (2.0), mean |err| 9.1, 6.8; after, 100 runs, M = 1000 (the study's): lf 0.0 (0.4),
-  lr -0.8 (0.5), mean |err| 3.3, 3.8 (M = 500: -0.5 (0.5), -1.4 (0.5)); the joint EKF's mean
-  |err| is 3.0, 3.2 on the same data.
-* Dynamic3DOF with m, cx, cy at 1.10, 0.92, 1.06 times nominal (box +-30 % of nominal,
-  ``vehjax.scenarios.slip_and_steer``), M = 500: before, 20 runs: +4.3 (1.4), +4.1 (1.4),
-  +5.0 (1.4); after, 100 runs, M = 1000: -0.7 (0.3), -1.1 (0.4), -0.8 (0.3), mean |err| 2.5,
-  3.6, 2.5 (M = 500: -0.8, -1.0, -0.9); with ``likelihood="measurement"`` -0.4, -0.8, -0.5.
-* The dutta2019 dynamic stage's model at its true (nominal) parameters, box centred on them,
-  true lf, lr, 100 runs, M = 1000, after: m -0.5 (0.3), cx -1.1 (0.4), cy -0.6 (0.3).
-
-What was left with the kernel at every step (cx about 1 % low on both 3-DOF cases) was the
-kernel's timing: see "When the kernel moves the particles" above. With ``move="resampled"``
-the dutta2019 study (``vehjax reproduce dutta2019 --settings matched --filters Particle+UKF``,
-100 runs, M = 1000, each dynamic run with its own kinematic lf, lr estimate) ends lf +0.1, lr
-+0.4, m +0.4, cx +0.6, cy -0.1 % from the truth (drawn with ``jax.random``; with the particle
-core's counter-based draws used since: +0.1, +0.3, +0.1, +0.3, -0.3 %).
-
-Two causes, each measured alone on the 3-DOF data (20 runs, M = 500, mean error %): the logit
-coordinate of the box domain (box -> (0, inf): +4.3, +4.1, +5.0 -> +0.4, +1.0, +0.7 without
-the recurrent derivative), and the one-step prediction from a filtered state mu computed with
-theta_bar instead of theta_i (recurrent derivative alone: -> +2.5, +2.3, +2.5; both: +0.2,
-+0.8, +0.5). The logit map has a steep Jacobian near the box's ends; the kernel's shrinkage and
-jitter preserve the weighted mean and covariance of s, not of theta, and repeated over
-thousands of steps through a map so curved they move the theta cloud. The log map is nearly
-linear over a box of +-30 %. The other suspects, varied one at a time on the old filter, did
-not remove it: the likelihood covariance S = R (``likelihood="measurement"``) +3.5, +4.5, +4.1;
-shrinkage a = 0.995 +2.1, +2.7, +2.2 and a = 0.9 +2.2, +1.7, +2.6 (se 1-2.6); gamma was not
-varied (it is 1, plain Liu-West, by default).
+When the kernel moves the particles (``move``): Liu and West (2001) and Dutta et al.'s
+Algorithm 3 move them at every step (``move="every"``); vehjax moves them only at the steps that
+resample (``move="resampled"``, the default), where the kernel has duplicates to spread. Against
+the exact posterior mean of the same likelihood (``vehjax bench liu_west_bias``) moving at every
+step pulls the cloud towards a Gaussian and the estimate settles near the mode of a skewed
+posterior (about 0.3-1 % low on Dynamic3DOF); moved after resampling only, the weights carry the
+likelihood's shape. The parameters are carried in the log coordinate of (0, inf), not the logit
+of the box, which biased them by about 4-5 % (the kernel keeps the moments of s, not of theta).
 
 The kernel keeps the weighted mean and covariance of the cloud of s_i: E[sum W_i m_i] = mean and
 the mixture covariance is a^2 V + h^2 V = V (Liu & West 2001), so it restores diversity without
@@ -111,33 +39,21 @@ can). The reported estimate is in physical units: ``params`` the weighted mean o
 particles g(s_i), ``params_cov`` their weighted covariance (both inside the domain's convex
 hull; no delta method is needed for a particle cloud).
 
-Choices where the transcription of Algorithm 3 is unclear:
+Where the transcription of Algorithm 3 is unclear: the likelihood covariance S is the UKF's
+innovation covariance of the one-step prediction (``likelihood="predictive"``, the default;
+``"measurement"`` is the paper's S = R); gamma is read as W_i <- gamma W_i + (1 - gamma) / M
+(gamma = 1 is Liu and West's filter); V is the particles' weighted covariance plus
+1e3 * eps * w^2 on its diagonal (w the prior box's width, in s for the kernel); a particle whose
+prediction is not finite gets weight zero; the prior is the box (``run`` and ``filter`` report its
+centre and covariance diag((high - low)^2 / 12) for a run that diverges at its first step).
 
-* Likelihood covariance S. The paper weighs with the measurement noise only (its Q, vehjax's
-  ``R``): S = R. Every particle is predicted from the same filtered state mu, whose error is
-  common to all of them; with S = R a filter whose state error exceeds the measurement noise
-  weighs particles by how well they explain that common error. ``likelihood="predictive"``
-  (the default) uses instead the UKF's innovation covariance S = Cov[h(f(x))] + R of the
-  one-step prediction from (mu, P) at the last parameter mean, the covariance of y_t given the
-  past and theta; ``likelihood="measurement"`` is the paper's S = R.
-* gamma, "the residual weight factor". The algorithm's last line ``w_t = gamma w_t`` multiplies
-  every weight by the same number, which the next step's normalisation undoes. The text says a
-  fraction gamma of each particle's weight is carried to later steps so that good particles that
-  happen to perform poorly are not eliminated; we read the remaining fraction 1 - gamma as
-  spread evenly: W_i <- gamma W_i + (1 - gamma) / M after the estimate is formed. Every particle
-  then keeps at least (1 - gamma) / M of the weight going into the next step (and the ESS at
-  least ~1 / gamma^2); gamma = 1 is Liu and West's filter.
-* V is the weighted covariance of the particles (the transcription's formula for V is garbled).
-  To keep it positive definite when the cloud collapses, 1e3 * eps * w^2 is added to its
-  diagonal (eps the dtype's machine epsilon: a standard deviation of 5e-7 of w in float64), with
-  w the width of the prior box: theta_high - theta_low in ``params_cov``, and in the kernel the
-  same width in s, (theta_high - theta_low) / |dg/ds| at the box's centre (equal to it for an
-  unbounded parameter).
-* A particle whose prediction is not finite (e.g. a model that fails inside its nominal
-  domain) gets weight zero.
-* The parameter prior is the box: ``theta0``/``P_theta0`` are not needed. ``run`` and ``filter``
-  report the box's centre and covariance diag((high - low)^2 / 12) as the estimate of a run
-  that diverges at its first step (``Estimator.param_prior``).
+Limits: with few particles the parameter covariance is over-confident, more so with
+``move="resampled"``; use M >= 1000 (the default).
+
+See docs/liu_west.md for the measurements behind ``move`` (the exact reference, two excitations,
+a skewed scalar model, the few-particle calibration, the diagnosis), the bias of the first
+build and the two causes that removed it with their before/after figures, and each reading of
+the transcription in full.
 
 Weights, ESS, resampling and moments are the shared particle core :mod:`vehjax.filters.smc`
 (particles (p, M), particle axis last); the state UKF and the predictive S are the shared

@@ -57,41 +57,23 @@ E[Sigma^-1] = nu Psi^-1)::
       P^- = T / (t - n - 1),  R^ = U / (u - m - 1)           (= E[.^-1]^-1 as written)
       x^(i+1), P^(i+1) = Kalman update of (x-, P^-) with y and R^
 
-  The paper's algorithm takes E[P_{k|k-1}^-1] = (t - n - 1) T^-1 and E[R^-1] = (u - m - 1)
-  U^-1, i.e. the plug-ins are the IW means (the exact expectation of the inverse of an IW matrix
-  would be nu Psi^-1); implemented as the paper writes it (:func:`iw_plugin`). With this choice
-  the first iteration's plug-in is exactly the nominal P~- when x^(0) = x-, P^(0) = P~-.
-  For the EKF form the update uses the Jacobian of h at x-, the expectation B linearises at
-  x^(i); for the UKF/CKF forms the update draws fresh sigma points of (x-, P^-) (the moments of
-  :func:`vehjax.filters.sigma.measure`) and B uses the points of N(x^(i), P^(i)). The paper's
-  initial statistics: u_0 = ``dof0`` (> m + 1), U_0 = (u_0 - m - 1) R0, so the prior mean of R
-  is R0; tau >= 0 (the paper recommends 2 <= tau <= 6) weighs the nominal P~-.
+  The plug-ins are the IW means, as the paper writes it (:func:`iw_plugin`); u_0 = ``dof0``
+  (> m + 1), U_0 = (u_0 - m - 1) R0, so the prior mean of R is R0; tau >= 0 (the paper
+  recommends 2 <= tau <= 6) weighs the nominal P~-.
 
-**Variants and choices made here.**
+**Variants and choices made here.** ``sensors``: the outputs whose noise is learnt (Huang's IW
+covers their block of R, full); ``known_std``: outputs of known std; outputs in neither are not
+used. ``biases`` and ``input_offsets`` add bias and offset states to the Kalman state (y = h(x)
++ b, the model driven by u + offset; priors ``bias_std0``/``offset_std0``, walk ``bias_walk``).
+Missing measurements (NaN) are skipped by the Kalman update; in VB-AKF their alpha_j, beta_j keep
+their prediction, in VBAKF-PR a step with some sensor missing leaves q(R) at its prediction.
+``out.params`` (SI units of the model): ``<input>_offset``, ``<sensor>_bias`` (Kalman means),
+``<sensor>_std`` = sqrt(R^_jj); ``params_cov`` the Kalman block and, per std, std^2 psi1(a) / 4
+(the delta method; cross-covariances between biases and stds 0). VBAKF-PR learns P_{k|k-1},
+not Q: the state keeps the plug-in ``P_pred``.
 
-* ``sensors``: the outputs whose noise is learnt; ``known_std``: outputs of known std (their R
-  entries are fixed and no statistics are kept for them); outputs in neither are not used
-  (read as missing). Huang's IW covers the sensors' block of R (full, cross-covariances
-  included); the known outputs add their fixed diagonal.
-* Unknown measurement biases: ``biases`` (sensor names) adds a bias state per output to the
-  Kalman state, y = h(x) + b, random walk of std ``bias_walk`` per step (0: constant); unknown
-  input offsets: ``input_offsets`` adds an offset state per input, the model is driven by
-  u + offset (paper 004's steering offset, as Remark 1's augmented EKF). They are reported as
-  parameters with the Kalman covariance, and their priors are ``bias_std0``/``offset_std0``
-  (mean 0). Biases as Kalman states is the structure the VB factorisation allows without
-  approximation beyond the Gaussian (a normal-inverse-gamma bias would couple q(b) and q(R)).
-* Missing measurements (NaN): the Kalman update skips them (:func:`masked_update`); in VB-AKF
-  their alpha_j, beta_j keep their prediction; in VBAKF-PR a step with some sensor missing
-  leaves q(R) at its prediction (the IW's dof increment is for the whole block).
-* Reported parameters (``out.params``, SI units of the model): ``<input>_offset`` then
-  ``<sensor>_bias`` (Kalman means) then ``<sensor>_std`` = sqrt(R^_jj), the plug-in std the
-  filter uses. ``params_cov``: the bias/offset block of the Kalman covariance, and for each std
-  the delta-method variance std^2 psi1(a) / 4, psi1 the trigamma function and a the shape of the
-  variance's IG marginal (alpha_j for VB-AKF, (u - m + 1) / 2 for VBAKF-PR): exactly
-  Var[log sigma_j] = psi1(a) / 4, so it is finite from the first step. Cross-covariances between
-  biases and stds are 0 (the factorisation).
-* Q in VBAKF-PR: the paper learns P_{k|k-1}, not Q; the state keeps the plug-in ``P_pred``
-  (T / (t - n - 1)) whose excess over the propagated covariance is the implied process noise.
+See docs/vb.md for VBAKF-PR's plug-ins and update in full and each of these choices with its
+reason.
 
 Every filter here is a plain :class:`~vehjax.filters.base.Estimator` (vmapped by
 :func:`vehjax.run`; no runs-last form). Divergence (NaN/inf in the mean, an indefinite P) is

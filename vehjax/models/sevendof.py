@@ -27,14 +27,10 @@ How the transcription is read:
 * Eq. 2 and 4 define ax and ay as the force sums over m (what an accelerometer at the CoG
   reads); u' = ax + v r and v' = ay - u r (eq. 1, 3).
 
-Algebraic loop: the loads (eq. 7-8) depend on ax, ay, which depend on the tyre forces, which
-depend on the loads. z = (ax, ay) is the fixed point of z -> (force sums at the loads fz(z)) / m.
-It is solved in a fixed number of steps, so the model stays a plain differentiable function: one
-plain pass from the static loads, then two Newton steps (the loads are affine in z and each
-tyre's forces depend on its own load only, so one forward-mode pass gives the 2x2 Jacobian).
-Plain passes contract by only 0.2-0.5 near the friction limit; this scheme leaves residuals of
-about 1e-5 m/s^2 in (ax, ay) and 0.01 N in the loads at up to 0.9 g, against 1e-3 relative
-after five plain passes.
+Algebraic loop: the loads (eq. 7-8) depend on ax, ay through the tyre forces; z = (ax, ay) is
+solved as a fixed point in a fixed number of steps (one plain pass from the static loads, then two
+Newton steps), so the model stays a plain differentiable function; residuals about 1e-5 m/s^2 in
+(ax, ay) at up to 0.9 g.
 
 Tyres: Pacejka '89 pure-slip forces of :mod:`vehjax.models.tyres` per wheel, slip angle in
 degrees, slip in percent, load in kN. Right-hand tyres use the coefficient sets as given
@@ -47,73 +43,23 @@ and the scenarios' longitudinal slips stay below about 1 %. Loads are floored at
 lift).
 
 Wheel spin: Iw omega_i' = T_i - re Fx_i (no rolling resistance, no drag: the paper has none).
-The wheel-spin modes are stiff, with eigenvalues near -re^2 C_s / (Iw u_w), C_s ~ 1.4-2.2e5 N
-the slip stiffness per unit slip: -1100 to -1300 1/s at 20 m/s, growing as 1/u. RK4 is stable
-for |lambda h| < 2.8, so ``transition`` integrates in ``substeps`` equal sub-steps (default:
-sub-steps of at most 1 ms, i.e. 10 for dt = 0.01 s), which holds down to about 10 m/s; use more
-sub-steps for slower driving, fewer only above about 25 m/s.
+The wheel-spin modes are stiff (eigenvalues near -re^2 C_s / (Iw u_w), -1100 to -1300 1/s at
+20 m/s), so ``transition`` integrates with RK4 in ``substeps`` equal sub-steps (default: at most
+1 ms each, 10 for dt = 0.01 s), stable down to about 10 m/s; use more sub-steps for slower
+driving, fewer only above about 25 m/s.
 
-``integrator="ros2"`` instead takes one step of the linearly implicit Rosenbrock W-method ROS2
-per 10 ms (see ``_ros2_step``): it is implicit only in the wheel spins, whose Jacobian rows are
-per wheel, so the "implicit solve" is four scalar divisions. Same equations, same fixed point of
-the load loop; over a 10 s double lane change at 80 km/h it stays within 0.005 m/s (u),
-0.0015 m/s (v), 3e-4 rad/s (r) and 0.02 m/s^2 (ay) of RK4 with 0.25 ms steps (measured: 0.0032,
-0.0007, 1.3e-4, 0.008; tests/models/test_sevendof.py), at 1/14 to 1/20 of the cost of the default
-RK4 per transition and 1/12 to 1/17 per Jacobian (measured on a shared 2-core CPU). It is the cheap
-model for filters, which propagate it thousands of times per step; keep RK4 for the truth.
+Integrators: ``integrator="ros2"`` takes one step of the linearly implicit Rosenbrock W-method
+ROS2 per 10 ms, implicit only in the wheel spins (four scalar divisions): the cheap model for
+filters (within 0.005 m/s, 3e-4 rad/s and 0.02 m/s^2 of fine RK4 over a double lane change, at
+1/14 to 1/20 of RK4's cost); keep RK4 for the truth. ``integrator="etdrk4"`` takes ``substeps``
+graded steps (default 3 per 10 ms) of Krogstad's fourth-order exponential Runge-Kutta method
+with the wheel rows as its linear part (Krogstad 2005; Cox & Matthews 2002): classical order 4,
+stiff order 3 (Hochbruck & Ostermann 2005), but it does not reach RK4-10's accuracy at a third
+of its cost.
 
-``integrator="etdrk4"`` takes ``substeps`` steps (default 3 per 10 ms, of 1.67, 3.33 and 5 ms:
-lengths in the ratio 1 : 2 : 3 ..., short first, where the wheel-spin transient that each new
-input sample starts is fastest) of Krogstad's fourth-order exponential Runge-Kutta method
-(S. Krogstad, "Generalized integrating factor methods for stiff PDEs", J. Comput. Phys. 203(1),
-72-88, 2005; exponential time differencing: S. M. Cox and P. C. Matthews, J. Comput. Phys.
-176(2), 430-455, 2002). Each 10 ms, x' = f(x) is split as L x + (f(x) - L x) with L formed once,
-at the step's start, from the wheel rows of ROS2 (loads frozen): in slip-aligned coordinates
-w_i = omega_i - q_i (u, v, r), q_i = d(omega_i)/d(u, v, r) at constant slip, L = [[0, B],
-[0, diag(j)]] with j_i = d(omega_i')/d(omega_i) and B = d(u', v', r')/d(omega). The matrix
-functions phi_k(h L) then need only the scalars phi_k(h j_i) (``_phi_functions``), so the stiff
-linear wheel-spin part and its pull on the body are integrated exactly and the rest by the
-method's quadrature. With D_j = f(Y_j) - f(x) - L (Y_j - x) and phi_k at h L unless marked:
-
-    Y_2 = x + h/2 phi_1(h L/2) f(x),            Y_3 = Y_2 + h phi_2(h L/2) D_2,
-    Y_4 = x + h phi_1 f(x) + 2 h phi_2 D_3,
-    x'  = x + h (phi_1 f(x) + (2 phi_2 - 4 phi_3) (D_2 + D_3) + (4 phi_3 - phi_2) D_4).
-
-It is classical RK4 at L = 0 and of classical order 4 for any L. Of the stiff order conditions
-of M. Hochbruck and A. Ostermann ("Explicit exponential Runge-Kutta methods for semilinear
-parabolic problems", SIAM J. Numer. Anal. 43(3), 1069-1090, 2005) it meets those of orders 1-3
-exactly for any L: sum b_i = phi_1, sum b_i c_i = phi_2, sum b_i c_i^2 / 2 = phi_3 and
-sum b_i J psi_i = 0 for every J, psi_i = sum_j a_ij c_j - c_i^2 phi_2(c_i h L), since b_2 = b_3,
-psi_2 = -psi_3 and psi_4 = 0; the order-4 ones only at L = 0 (tests/models/test_sevendof.py checks
-these conditions and the reduction to RK4). Cost: 12 evaluations of the derivative per 10 ms
-(one with the wheel rows) against RK4's 40; the stage loop traces the derivative once, the
-linearisation once more.
-
-Measured over the 10 s double lane change at 80 km/h (|ay| up to 5.9 m/s^2), largest errors
-against RK4 with 160 sub-steps per 10 ms (benchmarks/bench_sevendof.py;
-tests/models/test_sevendof.py checks the bounds), and cost per call for 1000 states on a shared
-2-core CPU (jit, vmap, float64, best of 9 interleaved, compile apart; time of RK4-10 over the
-row's):
-
-    integrator    u [m/s]  v [m/s]  r [rad/s]  wheels [rad/s]  ay [m/s^2]  transition  jacfwd
-    rk4, 10       2.8e-9   7.2e-11  3.4e-11    5.2e-7          1.3e-9      1           1
-    etdrk4, 3     9.8e-8   3.2e-7   1.4e-7     4.0e-7          3.0e-6      3.0         2.8
-    etdrk4, 2     4.9e-7   1.9e-6   8.1e-7     2.2e-6          1.8e-5      4.5         4.1
-    ros2, 1       3.2e-3   7.4e-4   1.3e-4     1.0e-2          8.2e-3      21          18
-
-So ETDRK4 does not reach RK4-10's accuracy at a third of its cost. It is 900 (r) to 33000 (u)
-times closer to the reference than ROS2, but 35 times further off than RK4-10 in u and
-2000-4400 times in v, r and ay; only in the wheel speeds is it closer (RK4-10's wheel error
-is its handling of the initial free-rolling transient). RK4 with 7 sub-steps, the fewest it stays
-stable with (0.7 of RK4-10's cost), errs 4.0e-8, 1.5e-9, 1.5e-8, 2.1e-5 and 2.7e-6; at 6
-(|j h| up to 2.8, its stability limit) the wheel spins ring. Halving ETDRK4's sub-steps cuts
-its errors by 12-17 (between its stiff order 3 and classical order 4), so matching RK4-10 would
-take some 30 sub-steps. What limits it is L: each input sample kicks the wheel spins off their
-quasi-steady slip by about 1e-3 rad/s, a transient with a time constant near 1 ms whose pull on
-the body must be integrated to 1e-4 relative or better, and L leaves out the load transfer's
-coupling of the wheels (up to 2.5 % of j) and the body's own Jacobian. With the full 7 x 7
-Jacobian as L (matrix exponentials, far too dear here) three graded sub-steps reach 7e-10 in v,
-still 10 times RK4-10's error.
+See docs/sevendof.md for the load loop's convergence, the wheel spins' eigenvalues and RK4's
+stability limit, ROS2 and ETDRK4 in full (ETDRK4's stages and order conditions), and the table of
+each integrator's errors and cost over the double lane change.
 """
 
 from __future__ import annotations
@@ -548,7 +494,7 @@ class SevenDOF(VehicleModel):
 
     def _etdrk4_transition(self, x, u, theta):
         """``substeps`` steps of Krogstad's ETDRK4 over ``dt``, sub-step lengths in the ratio
-        1 : 2 : 3 ..., the linear part L formed once, at x (see the module docstring)."""
+        1 : 2 : 3 ..., the linear part L formed once, at x (see docs/sevendof.md, ETDRK4)."""
         dtype = x.dtype
         first, cols, pick, hs = (jnp.asarray(a) for a in _etd_schedule(self.dt, self.substeps))
         cols, pick, hs = cols.astype(dtype), pick.astype(dtype), hs.astype(dtype)

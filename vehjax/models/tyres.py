@@ -25,7 +25,8 @@ Coefficient sets (module constants, not estimated parameters):
   so the longitudinal law is built to give the same B, C, D, E, Sh, Sv at 3.16 kN: C, D, E, Sh
   and Sv follow the lateral laws (camber terms folded in at 0.5 deg), and the slip stiffness
   BCD = (b3 Fz^2 + b4 Fz) exp(-b5 Fz) keeps the load dependence of the published longitudinal
-  example (130, 276, 0.0886) scaled by 0.8592122658 so that it equals the lateral BCD at 3.16 kN.
+  example (130, 276, 0.0886) scaled by 0.8592122658 so that it equals the lateral BCD for
+  Fz = 3.16 kN.
   Sv = b11 Fz + b12 is the '94-style vertical shift ('89 has Sv = 0 for Fx).
 """
 

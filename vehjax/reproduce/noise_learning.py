@@ -17,99 +17,25 @@ biases or stds; the pose gives the yaw rate, vy and the gyro's offset from it).
 
 The methods (one row each; nothing tuned per method beyond what is written here):
 
-* **Sage-Husa ACKF** (:func:`vehjax.filters.ackf`): R adapted alone (forgetting b, the prior
-  counted as 200 steps), every output in R; Q: the bank jerk (2 deg/s^3 through
-  ``bank_noise_gain``) and the steering noise as input noise at the MPF's initial guess
-  (0.04 deg, ``--steer-factor`` times the truth's 0.02 deg). It has no offset or bias states:
-  its R absorbs them. Its "std" is sqrt(diag R^)
-  of ay, r, roll rate; it reports no uncertainty of it (no coverage).
-* **VB-R (CKF)**, **VB-R (EKF)**: :func:`vehjax.filters.vbakf_r` (Särkkä & Nummenmaa 2009,
-  nonlinear form), **VB-PR (CKF)**: :func:`vehjax.filters.vbakf_pr` (Huang et al. 2017,
-  tau = 3): the same Q as the ACKF, the three sensors' variances learnt from twice the true
-  stds (dof0 10 for VB-R, u0 = m + 11 for VB-PR), phi and r_virt with their known stds, the
-  steering offset and the three biases as Kalman states (prior std 0.5 deg, 0.5 m/s^2,
-  0.5 deg/s; the biases' random-walk stds given as the truth's, the offset constant),
-  forgetting rho = b, ``--iterations`` fixed-point iterations.
-  They do not learn the steering noise: with it fixed at twice the truth (the default) they are
-  under-confident (20 runs x 90 s: NEES of (vy, r) 0.56 per dof, in the band on 0.29 of the
-  steps); at the truth (``--steer-factor 1``) VB-R (CKF) has NEES 1.00 per dof and VB-PR (CKF)
-  0.99, both in the band on 0.95 of the steps, every learnt parameter's coverage >= 0.90.
-* **MPF (paper)**: :mod:`vehjax.banked_road`'s ``build_sim_filter`` (N = ``--particles``, lambda = 0.995,
-  initial stds twice the truth) and ``build_drive_filter`` (bank variant, lambda = 0.999).
-* **MPF (consistent)**: the same model in ``marginalized_pf_grid`` (not the
-  paper's: :mod:`vehjax.filters.marginalized`): the steering offset and the biases as
-  Kalman states of every particle (the biases with the truth's random-walk stds, as the VB
-  rows; their priors those of the VB rows, 0.5 deg, 0.5 m/s^2, 0.5 deg/s), the steering
-  noise as process noise at each particle's own std, the particles a fixed grid
-  (``--grid-points``, default 25) over a decade either side of the guess (``--steer-factor``
-  times the truth, default 2, the paper's guess) under Jeffreys' prior (the filter's default,
-  ``input_std_prior="jeffreys"``: each point weighted by the square root of the Fisher
-  information the data so far carry about the std there), never resampled, so the weights
-  are the posterior over the steering std; the sensor variances by Fisher scoring of the
-  innovations weighted at the guesses (twice the truth), with a sandwich covariance, the
-  sensors' noises uncorrelated (the filter's default, ``sensor_variances="scored"``:
-  :mod:`vehjax.filters.marginalized.sensor_scoring`). No forgetting in simulation (the covariances are
-  constant and the biases have their walk states; with the paper's 0.995 the inverse-Wishart
-  statistics' own noise pushed the steering std up, +22 % against +12 % at 1 under the
-  inverse-Wishart grid, 10 runs x 180 s); 0.999 on the drive, as the paper's drive filter. It
-  draws no random numbers: one execution on the drive. 25 grid points give the same numbers
-  as 100 (inverse-Wishart grid and variances, 20 runs x 180 s: NEES 0.817 per dof both, the
-  steering std's mean 1.122 of the truth both); where the data pin the steering std more
-  narrowly than the grid's spacing, its estimate and interval come from the Laplace
-  approximation on the grid (:mod:`vehjax.filters.marginalized.grid`; not the case here).
-  At the defaults (100 runs x 180 s) it learns the offset (RMS 0.001 deg), tracks the
-  biases, learns the sensor stds (within 0.3 %) and the steering std (+0.3 % over the last
-  third; the paper's filter +68 %), and every learnt parameter's interval holds the truth in
-  0.91-0.96 of the runs (the paper's filter: the steering std's in 0.22). The NEES of (vy, r)
-  is 0.98 per dof and in the band on 0.85 of the steps (the band of a 100-run average is
-  narrow, 0.81-1.21 per dof): 0.92 after 60 s, 0.88 from 20 to 60 s, but 0.16 in the first 5
-  s and 0.42 from 5 to 20 s, where the steering std's posterior is still wide and above the
-  truth (1.92x at 5 s, 1.21x at 20 s, 1.06x at 60 s; NEES 0.74 and 0.80 per dof there;
-  ``python benchmarks/mpf_consistent_steering.py learn 100 180 25 jeffreys 1``). Why
-  Jeffreys' prior: the steering noise is the only process noise of vy and r, so their
-  covariance scales with sigma_w^2, and the likelihood of sigma_w is flat below the truth
-  (the sensors' noise hides it) and steep above it. With the inverse-Wishart prior of the
-  guess (``input_std_prior="inverse-wishart"``, the previous default; inverse-Wishart sensor
-  variances) the posterior stays above the truth (1.5x at 5 s, 1.12x at 180 s): NEES 0.83 per
-  dof, in the band on 0.54 of the steps. With equal weights over a tenth to ten times the
-  guess it ends 11-12 % below (posterior std 0.24 of it) and the NEES is 1.31-1.33 per dof
-  (20 runs); that holds with the sensor noise known too (1.23), so the prior, not the learning
-  of R, sets it. The NEES share is close to what the exact posterior gives under this prior:
-  with every other noise known (the filter is then the exact mixture of Kalman filters over
-  the grid), it is in the band on 0.875 of the steps (25 points; 0.876 with 97; ``learn 100
-  180 25 jeffreys 1 known``), against 0.948 for the Kalman filter at the true steering std
-  (``exact 100 180``); with the steering std's guess at the truth (``--steer-factor 1``) the
-  rows give the same 0.85-0.86, so it is not the guess twice the truth but the prior's decade
-  either side that the first 20 s pay for; a narrower prior about the guess does not help
-  (Jeffreys' over a third to three times the guess: 0.835; a fifth to five times: 0.875;
-  ``learn 100 180 25 jeffreys:3 1 known``). Time per run-step: about the paper's filter's (N = 100) in
-  simulation and about half of it on the drive (N = 500); ``python
-  benchmarks/mpf_consistent_steering.py time 20 30`` measures it interleaved
-  (benchmarks/results/notes_noise_learning.md). On the drive its yaw rate is 0.103 deg/s from the pose's (0.66x the
-  raw gyro's error; the paper's filter 0.121), the closest of all rows.
-  These numbers: ``python benchmarks/mpf_consistent_steering.py`` (its docstring has the
-  commands). First built as Storvik's filter (covariances drawn per particle from
-  expected statistics of w_t): the steering std ended at 3.8 times the truth, because the
-  filtered statistic of w_t sees only the direct d w_t term in ay and not the dynamics that
-  tell sigma_w apart. With the offset's prior tied to the
-  steering std as in the paper's NiW (0 +- 0.04 deg against the truth's 0.28 deg) the offset
-  state stays several stds off for long and the filter is over-confident, hence
-  ``mean_std0``.
-* **MPF (inverse-Wishart)**: MPF (consistent) with ``sensor_variances="inverse-wishart"``
-  (the sensor covariances the mean of expected inverse-Wishart statistics, as first built and
-  the former default): here, where the sensors are seen nearly alone, it learns the
-  same (stds within 0.2 %, the steering std -0.9 % over the last third, coverage 0.91-0.95)
-  and its NEES of (vy, r) is in the band on 0.86 of the steps (1.01 per dof): early on the
-  scored variances of the grid points above the true steering std fit it and score ay's
-  variance down, so those points keep their weight longer (``python benchmarks/
-  mpf_consistent_steering.py early 50``). But on the consistency study's data, where the
-  steering noise reaches ay beside ay's own, its ay std's interval holds the truth in 0.84-0.89
-  of the runs (scored: 0.97-1.00) and from a guess twice the truth it stays +45 % (``vehjax
-  reproduce consistency``'s MPF-K rows). Time: about 0.7 of MPF (consistent)'s per run-step
-  (benchmarks/results/notes_noise_learning.md); yaw rate 0.106 deg/s on the drive.
-* **augmented EKF** (Remark 1, :func:`vehjax.models.bank_scale.augmented_model`): (vy, r, offset, ay bias,
-  gyro bias) on (ay, r, r_virt), fixed Q and R (the MPF's initial guesses); no bank states and
-  no roll gyro, as the remark's common approach.
+* **Sage-Husa ACKF** (:func:`vehjax.filters.ackf`): R adapted alone, every output in R, Q at the
+  MPF's initial guess; no offset or bias states (its R absorbs them), no coverage.
+* **VB-R (CKF)**, **VB-R (EKF)**: :func:`vehjax.filters.vbakf_r` (Särkkä & Nummenmaa 2009),
+  **VB-PR (CKF)**: :func:`vehjax.filters.vbakf_pr` (Huang et al. 2017, tau = 3): the three
+  sensors' variances learnt from twice the true stds, the offset and the biases as Kalman
+  states; they do not learn the steering noise (fixed at ``--steer-factor`` times the truth).
+* **MPF (paper)**: :mod:`vehjax.banked_road`'s ``build_sim_filter`` (N = ``--particles``,
+  lambda = 0.995, initial stds twice the truth) and ``build_drive_filter`` (lambda = 0.999).
+* **MPF (consistent)**: ``marginalized_pf_grid`` (not the paper's): the offset and the biases as
+  Kalman states, the steering std on a fixed grid (``--grid-points``, default 25) a decade
+  either side of the guess under Jeffreys' prior, the sensor variances scored; no forgetting in
+  simulation, 0.999 on the drive; no random numbers (one execution on the drive).
+* **MPF (inverse-Wishart)**: MPF (consistent) with ``sensor_variances="inverse-wishart"``.
+* **augmented EKF** (Remark 1, :func:`vehjax.models.bank_scale.augmented_model`): (vy, r, offset,
+  ay bias, gyro bias) on (ay, r, r_virt), fixed Q and R (the MPF's initial guesses).
+
+See docs/noise_learning.md for each row in full: the settings, the measurements behind them
+(the steering factor, the grid's size and prior, forgetting, the early NEES, timing, the drive's
+yaw rate) and what was tried first.
 
 What is measured (simulation; steady state = the last third):
 

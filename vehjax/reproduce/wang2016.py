@@ -29,13 +29,10 @@ What the paper specifies and how it is read here (section 4):
   slips, hence the tyre forces, from step to step. No filter can follow it, and it sets most
   of the ax error.
 
-Cases (``--cases``). The paper's claim is that the adaptive filter wins when the
-noise statistics are time-varying and the filters' noise guess is wrong. Eq. 31-32 scale Q(t)
-and R(t) by the same sin(pi t / 10); a fixed filter given the peak Q and R then has the true
-Q/R ratio at every instant, and since the Kalman gain is invariant to a common scale of Q and R
-it already runs at the optimal gain: adaptation has nothing to correct and can only add
-estimation variance. That literal study is kept as the control; two cases give the adaptive
-filter what the paper says it is for:
+Cases (``--cases``). The paper's claim is that the adaptive filter wins when the noise
+statistics are time-varying and the filters' noise guess is wrong; eq. 31-32 scale Q(t) and R(t)
+alike, so given the peak Q and R a fixed filter already runs at the optimal gain. That literal
+study is kept as the control; two cases give the adaptive filter what the paper says it is for:
 
 * ``a`` (R varies): process noise constant at eq. 31's peak, measurement noise R(t) per eq. 32.
   Every filter is given the true Q and the peak R (the honest constant guess), so the fixed
@@ -76,30 +73,9 @@ NEES (7 states, against the true states) and NIS (3 measurements) lie in the two
 chi-square band (:func:`vehjax.metrics.consistency`), and the shares above (over-confident:
 covariance too small) and below (under-confident).
 
-Reading (20 runs x 10 s, seed 0; RMSE, ACKF = the user settings):
-
-* Nowhere does the paper's full ordering ACKF < UKF < EKF appear with a margin: the UKF and
-  CKF agree to 0.1 % in every case although the UKF's points are not the CKF's, and the EKF
-  is within 2 % of them (ay +1.7 % in a; 1-2 % better on u, v, beta in b). The model is nearly linear at the
-  working spread; a large initial-state error in u, v, r is removed by the measurements within
-  a few steps and leaves no trace in the RMSE over 10 s. The paper's EKF and UKF numbers (EKF
-  r RMSE 12 times the UKF's) cannot be reproduced on this model.
-* Control (c): the fixed filters run at the optimal gain (the true Q/R ratio at every
-  instant); the ACKF is 2-6 % worse on every quantity, the paper-literal ACKF 3-23 % worse:
-  adaptation only adds estimation variance. ACKF < UKF on 0 of 6 quantities.
-* (a) R time-varying, Q constant: the ACKF beats the fixed filters on the measured ay (-7 %)
-  and r (-8 %), ties on v, ax, beta (+-1 %), loses on u (+9 %); ACKF < UKF on 3 of 6.
-* (b) wrong constant guess, R0 = 30 x peak R: the ACKF learns R and beats the fixed filters
-  on u (-55 %), ay (-28 %), r (-20 %); v and beta, not measured and set by the 30 % error in
-  m and iz, stay +3 %. ACKF < UKF on 3 of 6. The paper-literal ACKF (full Q from a 3-dim
-  innovation, d_1 = 1, floor 1e-6) is worse than the user settings in every case and row.
-* Consistency: no filter has its run-averaged NEES or NIS in the 95 % band on 90 % of the
-  steps. In a, b, c the fixed filters are under-confident in NIS (mean NIS/3 = 0.50-0.55; in b
-  0.03, R 30x too large) and, in c, in NEES (0.57: the peak Q, R overstate the sin-scaled
-  noise); in a the 30 % parameter error makes them over-confident in NEES (1.5). The ACKF
-  brings the NIS close to 1 (0.77-0.94, 58-66 % of steps in band) but not the NEES; the
-  paper-literal ACKF's Q estimate collapses onto the floor and its NEES is 19 to 8000 times
-  the dimension (strongly over-confident).
+Limits: the paper's ordering ACKF < UKF < EKF does not appear with a margin on this model; the
+ACKF wins only in cases a and b. See docs/wang2016.md for why the literal study cannot favour
+adaptation, and the results case by case (margins per quantity, consistency shares).
 """
 
 from __future__ import annotations

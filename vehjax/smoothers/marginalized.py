@@ -9,172 +9,46 @@ after every step each particle's Gaussian over the states (means ``x``, ``z``, c
 ``P``), its NiW statistics, the offset w_t it drew (eq. 30) and the resampling genealogy
 (:class:`vehjax.filters.marginalized.MPFState`). Then:
 
-1. **Paths** (``method="ancestor"``). M indices are drawn from the final weights and each
-   one's genealogy is followed back (``MPFState.ancestors``): M ancestral paths, each a
-   particle's whole history, in particular its offset draws w_{1:T} (with
-   ``kalman_states="linear"`` its sampled states
-   x_{0:T}, built from them). Equally weighted they approximate p(w_{1:T} | y_{1:T}), the
-   path-space (Kitagawa 1996) smoother of the filter.
-2. **States, given a path.** With ``kalman_states="all"`` a particle's states are Gaussian
-   given its offset draws (and the noise statistics its Kalman filter uses), so given the path
-   the states over the drive are smoothed by the Rauch-Tung-Striebel recursion on the path's
-   own filtered moments: for t = T-1, ..., 1 with s = (x, z),
+1. **Paths** (``method="ancestor"``): M indices drawn from the final weights, each one's
+   genealogy followed back (``MPFState.ancestors``): the path-space (Kitagawa 1996) smoother.
+2. **States, given a path.** ``kalman_states="all"``: the Rauch-Tung-Striebel recursion on the
+   path's own filtered moments, for t = T-1, ..., 1 with s = (x, z),
    ``G = C_t P_t|t-1^+``, ``m_t-1|T = m_t-1 + G (m_t|T - m_t|t-1)``,
-   ``P_t-1|T = P_t-1 + G (P_t|T - P_t|t-1) G^T`` and ``Cov(s_t-1, s_t | .) = G P_t|T``, where
-   ``m_t|t-1, P_t|t-1`` and ``C_t = Cov(s_t-1, s_t)`` are the particle's prediction with its
-   w_t (:func:`vehjax.filters.marginalized.kalman.joint_prediction`). ``P_t|t-1`` may be singular (a
-   particle's sampled states start as a point, and the linear states' noise has rank one on
-   SingleTrackBank): ``^+`` is the pseudo-inverse on the range of ``P_t|t-1``, which holds
-   the rows of C_t, so the recursion is the exact conditional (:func:`psd_right_solve`).
-   Without linear states (the planar filter) a particle's states are a function of its draws
-   and the path itself is the smoothed trajectory.
+   ``P_t-1|T = P_t-1 + G (P_t|T - P_t|t-1) G^T``, ``Cov(s_t-1, s_t | .) = G P_t|T``, ``^+`` the
+   pseudo-inverse on the range of ``P_t|t-1`` (:func:`psd_right_solve`).
+   ``kalman_states="linear"``: the path's sampled states are the trajectory itself and its
+   linear states are smoothed by the backward recursion on the joint Gaussian of
+   (z_t-1, z_t) given x_0:t, y_0:t, ``G = P_ab P_bb^+``, ``m_t-1|T = m_a + G (m_t|T - m_t)``,
+   ``P_t-1|T = P_aa + G (P_t|T - P_t) G^T``, ``Cov(z_t-1, z_t | .) = G P_t|T``, each step's
+   Kalman update recomputed along the path with z_t-1 kept (:func:`linear_step_joint`,
+   :func:`linear_path_rts`).
+3. **Moments**: the equally weighted mixture of the M per-path Gaussians
+   (:func:`mixture_moments`), the lag-one covariance likewise.
+4. **Noise statistics**: eq. 23's estimates over the M paths' particles at each t
+   (:func:`vehjax.filters.marginalized.niw.noise_estimates`, equal weights).
 
-   With ``kalman_states="linear"`` (the paper's Algorithm 1) a particle's sampled states x
-   are a point and its Kalman filter covers the linear states z only (sec. 3.4): given the
-   path x_0:T the model is linear-Gaussian in z, with the offset w_t as a noise that enters the
-   vehicle model's measurement of z_t-1 (g^+ (x_t - f) = a^T z_t-1 + w_t, exactly), the
-   transition of z and y_t alike. So the path's sampled states are the trajectory itself (zero
-   covariance) and its linear states are smoothed by the backward recursion on the joint
-   Gaussian of (z_t-1, z_t) given x_0:t, y_0:t: with m_a, P_aa, P_ab, m_b = m_t, P_bb = P_t
-   its moments, ``G = P_ab P_bb^+``, ``m_t-1|T = m_a + G (m_t|T - m_t)``,
-   ``P_t-1|T = P_aa + G (P_t|T - P_t) G^T``, ``Cov(z_t-1, z_t | .) = G P_t|T``. This is exact
-   because z_t-1 given z_t and the data up to t is independent of the later data (which enter
-   through z_t and independent noise); the joint is not the textbook RTS prediction, since y_t
-   and the vehicle-model measurement share w_t with z_t. The filter keeps only the marginal of
-   z_t, so each step's Kalman update is recomputed along the path with z_t-1 kept
-   (:func:`linear_step_joint`, from the path's filtered moments and NiW statistics at t - 1:
-   the same linearisation, point estimates and missing components as the filter; its z_t
-   block is the filter's to rounding) inside the backward scan (:func:`linear_path_rts`).
-3. **Moments.** The smoothed mean and covariance at each time are those of the equally
-   weighted mixture of the M per-path Gaussians (:func:`mixture_moments`), the lag-one
-   covariance likewise.
-4. **Noise statistics.** At each time t the NiW statistics of the M paths' particles at t give
-   eq. 23's estimates and their mixture covariance (:func:`vehjax.filters.marginalized.niw.
-   noise_estimates`, equal weights).
+``method="ffbsi"`` (``kalman_states="linear"`` only) is the Rao-Blackwellised backward
+simulation of Fong, Godsill, Doucet & West (2002) in the form of Särkkä, Bunch & Godsill (2012)
+over the vehicle states x_t: each trajectory draws particle j at t with probability proportional
+to W_t^j p(x_t+1^m, y_t+1 | x_0:t^j, y_0:t) (:func:`backward_logdens`; the measurement y_t+1 is
+in it, since it depends on the pair through the offset w_t+1), then re-runs its linear states'
+Kalman filter and NiW statistics along it (:func:`linear_path_forward`) and smooths them by
+:func:`linear_path_rts`. The covariance's x block is regularised by ``BACKWARD_JITTER``;
+``backward_ess`` and ``n_distinct`` report per time how far the draws spread.
 
-Backward simulation (``method="ffbsi"``, ``kalman_states="linear"``)
---------------------------------------------------------------------
-The Rao-Blackwellised backward simulation of Fong, Godsill, Doucet & West (2002) in the form
-of Särkkä, Bunch & Godsill (2012, "A backward-simulation based Rao-Blackwellized particle
-smoother for conditionally linear Gaussian models"), over what the particles sample, their
-vehicle states x_t:
+Exact: given a path (or an FFBSi trajectory) its Rao-Blackwellised part, for a model affine in
+the (linear) states and the noisy input, with the plug-in noise of each step. Consistent, with
+Monte-Carlo error: the ancestral paths, whose genealogies coalesce at early times
+(``n_unique``). Limits: FFBSi's backward weights leave out what the data after t + 1 say about
+the linear states (no backward information filter, Lindsten & Schön 2013), so its trajectories
+are not draws of p(x_0:T-1 | y_0:T-1) even as N grows; backward simulation falls back to
+ancestor tracing where the bank covariance across g is small or absent (the planar filter); the
+noise statistics at t condition on y_{1:t} along a path (with ``forgetting=1`` the last row is
+their smoothed estimate); ``kalman_states="all"`` has no FFBSi.
 
-a. **Trajectories.** The last index of each of the M trajectories is drawn from the final
-   weights; then for t = T-2, ..., 0 each trajectory m draws a particle j at t with
-   probability proportional to W_t^j p(x_t+1^m, y_t+1 | x_0:t^j, y_0:t)
-   (:func:`backward_logdens`, drawn as in the bootstrap PF's FFBSi,
-   :func:`vehjax.smoothers.particle.ffbsi_indices`): one Gaussian per particle of the next
-   sampled states and the next measurement, with its linear states z_t ~ N(z_j, P_j) (its own
-   filtered Kalman moments), the offset w_t+1 and the linear states' noise marginalised, the
-   noise statistics by the moment-matched Gaussian of its NiW's Student-t predictive (variance
-   (1 + gamma') Lambda' / (nu' - d - 1) after eq. 20's forgetting; the t itself is not used).
-   The measurement y_t+1 must be in it: it depends on the pair (x_t^j, x_t+1^m) through the
-   offset w_t+1 (d w in eq. 8, and through z_t+1) — with x_t+1 alone, the weights of
-   Särkkä, Bunch & Godsill's model class, the smoothed means on the test model of
-   tests/smoothers/test_smoothing_mpf.py (y2 reads the offset directly) were off by 0.56 of the
-   smoothed std at N = M = 400, against 0.13 for ancestor tracing. The trajectory's x_t is particle
-   j's.
-b. **Linear states and statistics, given a trajectory.** Its Kalman filter of the linear states
-   and its NiW statistics are re-run forward along it (:func:`linear_path_forward`:
-   :func:`linear_path_step`, the filter's steps 4-5 for a particle at x_t-1 moved to x_t,
-   the offset datum w_t = g^+ (x_t - xb)), from the filtered moments and statistics of its
-   particle at t = 0; along an ancestral path this is the filter's own recursion (to rounding;
-   tests/smoothers/test_smoothing_mpf.py). Its linear states are then smoothed by
-   :func:`linear_path_rts` as for an ancestral path, and the moments mixed as in step 3.
-c. **Noise statistics.** At each t, eq. 23's estimates over the M re-run statistics at t (equal
-   weights): with ``forgetting=1`` the last row is the NiW posterior given each trajectory and
-   all the data, mixed over the trajectories (the smoothed estimate of static statistics); the
-   row at t < T-1 conditions on y_0:t along a trajectory drawn with all the data. With
-   forgetting lambda < 1 the statistics at t weigh the data before t by lambda^(t - s): a row
-   is the forgetting filter's estimate along a smoothed trajectory, not a smoothed estimate of
-   time-varying statistics (no backward pass over the NiW).
-
-Near-degeneracy. The filter's vehicle states have noise only along g (the offset): a
-particle's x_t+1 lies on the line xb + g R of its parent, and another particle's density of it
-rests only on the bank's covariance A_bar P A_bar^T across g (on SingleTrackBank the bank
-moves vy, g has a vy and an r component). With a small bank covariance, or none (the planar
-filter, or A_bar = 0 with more than one sampled state), the backward weights across g fall on
-the trajectory's own parent and its copies: backward simulation then reproduces ancestor
-tracing (on a planar toy model most backward ESS are 1). With the bank in the particles'
-Kalman filters the recorded RAV4 drive is not in that case (benchmarks/bench_mpf_ffbsi.py;
-its output under benchmarks/results). The covariance's x block is regularised by
-``BACKWARD_JITTER`` tr / n_xs on its diagonal (relative 1e-9: it keeps the Cholesky finite
-where the block is singular; there it is what sets the weights across g, which then fall on
-the parent as said), and ``backward_ess``
-(the backward weights' ESS, averaged over the trajectories) and ``n_distinct`` (particles by
-value: resampled copies count once) report per time how far the draws spread.
-The trajectories draw from the particles the filter keeps after each step, i.e. after its
-resampling: at a time where it resampled from few heavy particles (often the first steps) the
-set itself holds few distinct particles, which bounds ``n_distinct`` there whatever M.
-``kalman_states="all"`` is not offered: there the particles sample only the offsets, and the
-states at t + 1 depend on the whole past of a trajectory's offsets, so what the later data say
-about them is what ties a trajectory together. Tried with the same one-step weights
-W_t^j p(w_t+1^m, y_t+1 | particle j) and the particles' Gaussians re-run along the stitched
-offsets (which along ancestral paths reproduced the filter to rounding): on the known-noise
-test model of tests/smoothers/test_smoothing_mpf.py the smoothed variances came out 1.7-2.4 times
-the RTS's on average over time at N = M = 400 (means off by 0.21 of the smoothed std, z-RMS 7.5),
-so it was not kept; the backward information filter below would be needed.
-
-What is exact and what is approximate
--------------------------------------
-* FFBSi, exact given a trajectory: its linear states' Kalman filter, smoothed moments and NiW
-  statistics are those the paper's filter would have along that sequence of x_t (the same
-  plug-in noise, linearisation and missing components): the Rao-Blackwellised part has no
-  Monte-Carlo error.
-* FFBSi, approximate: the backward weights use p(x_t+1, y_t+1 | x_0:t^j, y_0:t) where the
-  exact Rao-Blackwellised backward kernel needs p(x_t+1:T-1, y_t+1:T-1 | x_0:t^j, y_0:t):
-  what the data after t + 1 say about the linear states at t + 1 (whose distribution differs
-  between particles) is ignored, i.e. the backward information filter of Lindsten & Schön
-  2013 (Lindsten, Bunch, Särkkä, Schön & Godsill 2016) is not used; and the noise statistics
-  enter the weights as
-  plug-in, moment-matched predictives. So the trajectories are not draws of the filter's
-  p(x_0:T-1 | y_0:T-1) even as N grows. Where the linear states do not feed the sampled ones
-  (A_bar = 0) and the noise is known, the filter is the exact Rao-Blackwellised filter and the
-  smoothed means and lag-one covariances are within Monte-Carlo error of the exact RTS at
-  N = M = 50 and 400 (tests/smoothers/test_smoothing_mpf.py). Where they do (A_bar = 0.1 on the same
-  test model, as the bank feeds vy; benchmarks/mpf_ffbsi_accuracy.py 400 0.1), the dropped term
-  shows: FFBSi's smoothed means were off the exact RTS by 0.165 of the smoothed std (z-RMS 4.9
-  over 8 keys: beyond its Monte-Carlo error) and its variance of the sampled state 1.08 times
-  the RTS's, against 0.191 (z-RMS 2.0) and 1.01 for ancestor tracing, whose filter is itself
-  approximate there.
-* Exact given a path: for a model affine in the states and the noisy input (SingleTrackBank
-  at a given speed) with the noise statistics known (the filter built with ``forgetting=1``
-  and a prior so tight that they do not move), the states given w_{1:T} and y_{1:T} are
-  Gaussian and step 2 gives their mean and covariance exactly, to rounding: the
-  Rao-Blackwellised part has no Monte-Carlo error. With ``kalman_states="linear"`` the same
-  holds for the linear states given the path's sampled states x_0:T, for a model affine in the
-  linear states and the noisy input, with the plug-in noise of each step (whatever the
-  statistics do: the conditional model is the one the path's Kalman filter ran;
-  tests/smoothers/test_smoothing_mpf.py checks one path against batch Gaussian conditioning to
-  1e-9).
-* ``kalman_states="linear"``, approximate beyond the path: only the component of x_t - f along
-  g enters the bank filter (the filter's sec. 3.4; the rest of A_bar z_t-1 has no noise in the
-  model and is dropped, as the filter drops it), and a particle's x_t is built from the bank's
-  Kalman mean (eq. 6), so the paths are draws of the filter's approximation, not of
-  p(x_0:T | y) (the filter's module docstring: vy's variance about 8 % small on
-  SingleTrackBank). Where the linear states do not enter the sampled ones (A_bar = 0) the
-  filter with known noise is the exact Rao-Blackwellised filter and the smoothed means
-  converge to the exact RTS smoother (tests/smoothers/test_smoothing_mpf.py, two particle counts).
-  For a model not affine in the sampled states the linearisation is the filter's, at the
-  path's point and Kalman mean (an extended step per path); nothing is iterated.
-* Consistent, with Monte-Carlo error: the paths. Ancestor tracing draws them from the filter's
-  genealogy, which converges to p(w_{1:T} | y_{1:T}) as N grows, but resampling makes the
-  genealogies coalesce: at early times the M paths pass through few distinct particles
-  (``n_unique``), and the early smoothed moments rest on those, whatever M (``"ffbsi"``
-  re-draws each trajectory's past from all particles, with the approximate weights above).
-  With these two, the smoothed states converge to the exact RTS smoother of
-  the linear-Gaussian system as N grows (tests/smoothers/test_smoothing_mpf.py checks it within
-  Monte-Carlo error at two particle counts).
-* Approximate: with unknown noise statistics each particle's Kalman filter runs with its own
-  point estimates (R_hat, b_hat) at each step, so the per-path RTS is conditional on those
-  (plug-in), as the filter is; for models not affine in the states the prediction is the
-  linearisation at the path's filtered means (an extended RTS per path).
-* Noise statistics (``"ancestor"``): the estimates at t are those the path's particle held
-  at t, i.e. they condition on y_{1:t} along a path chosen with all the data; with
-  ``forgetting=1`` the statistics are static and the row at T-1 is their smoothed estimate
-  (the NiW posterior given the path and all data, mixed over the paths); with forgetting
-  lambda < 1 the earlier rows are not the smoothed posterior of time-varying statistics (no
-  backward pass over the NiW is done).
+See docs/marginalized_smoother.md for each step's recursion and why it is exact, the backward
+weights and the weights tried (with their errors against the exact RTS), the near-degeneracy,
+and what is exact and what is approximate, with the measurements.
 
 Time convention of :func:`vehjax.filter`: x0/P0 describe the state before the first step and
 time t is the state after step t (0 .. T-1). NaN measurement components are missing (the

@@ -1,5 +1,5 @@
 """The objective of a fit: the negative mean log-likelihood per step of a batch of runs, as a
-function of the unconstrained coordinates (module docstring of :mod:`vehjax.tune`).
+function of the unconstrained coordinates (:mod:`vehjax.tune`; docs/tune.md in full).
 
 Everything is checked before tracing (:func:`prepare`, ValueError naming the argument); the
 loss rebuilds the estimator with ``builder(model, Q, R, **builder_kwargs)`` inside the

@@ -1,5 +1,5 @@
 """Unconstrained coordinates of the fitted quantities: the maps from the optimiser's vector to
-the physical values (module docstring of :mod:`vehjax.tune`).
+the physical values (:mod:`vehjax.tune`; docs/tune.md in full).
 
 * a covariance by its log-diagonal (``A = diag(exp(2 d))``) or its log-Cholesky factor
   (``A = L L^T``, ``L`` lower triangular with diagonal ``exp(d)``): :class:`Cov`;
@@ -79,7 +79,7 @@ def param_transform(params, bounds, theta0: np.ndarray, names: tuple, domains=No
     ValueError naming ``bounds``. ``domains``: the model's declared physical domains
     (``model.param_domains()``) or None. A fitted parameter's box is its domain, narrowed by
     ``bounds`` where given; a parameter with neither is kept positive when its starting value
-    is positive, else left free (module docstring of :mod:`vehjax.tune`)."""
+    is positive, else left free (docs/tune.md, Parameterisations)."""
     bounds = validation.keyed("bounds", bounds, params, "the fitted params")
     idx = np.array([names.index(p) for p in params], dtype=int)
     low, high = np.empty(len(params)), np.empty(len(params))

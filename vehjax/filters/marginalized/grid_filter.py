@@ -3,7 +3,7 @@
 steering offset and the sensor biases as constant states, at its own steering-noise variance on a
 fixed grid that is never resampled, so the weights are the posterior over the grid (a
 multiple-model filter over sigma_w). Why and how: :mod:`vehjax.filters.marginalized`'s docstring
-("The consistent filter").
+in short, docs/marginalized.md ("The consistent filter") in full.
 
 One step (every particle, entries over the particles):
 
@@ -151,7 +151,7 @@ def _scored_scale(s: Setup, lam_e, nu, v):
     positive), Lambda_e's diagonal. The sensors' noises are taken as uncorrelated: Lambda_e's
     correlations come from the same slowly forgetting statistics, and kept they made the
     filter suboptimal (the r and roll-rate stds ended 1.1-1.4 % above the oracle's on the
-    consistency study's data; ``sensor_scoring``'s docstring). Also returns the variances
+    consistency study's data; docs/sensor_scoring.md). Also returns the variances
     it gives, (n_s, N)."""
     den = nu - s.noise_dim - 1.0
     lam_diag = jnp.diagonal(lam_e, axis1=0, axis2=1).T  # (ns, N)

@@ -47,7 +47,7 @@ def niw_update(gamma, nu, mu, lam_w, lam_e, eta, extra_e=None, means_known=False
         gamma, nu: scalars.  mu: (d, ...).  lam_w: (...).  lam_e: (d - 1, d - 1, ...).
         eta: (d, ...) the datum minus mu.
         extra_e: (d - 1, d - 1, ...) added to Lambda_e, or None: the expected-statistic term for
-            uncertain or missing sensor data (module docstring of the filter).
+            uncertain or missing sensor data (docs/marginalized.md, eq. 19).
         means_known: the noise's mean is known (zero; the grid filter's, where the
             offset and the biases are Kalman states): the NiW is an inverse-Wishart, gamma = 0
             (kappa = infinity), so the means stay and Lambda gains eta eta^T on both blocks.
