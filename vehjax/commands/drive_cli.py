@@ -10,6 +10,8 @@ line with exit code 2.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from . import config
 
 __all__ = ["add_commands"]
@@ -35,6 +37,18 @@ def _names_list(text: str) -> list:
     return [n.strip() for n in text.split(",")]
 
 
+def _in_file(work, where):
+    """``work()``, a ValueError naming a key (``[fit] params: ...``) prefixed with the file
+    the key is in (``where(section)``: its name)."""
+    try:
+        return work()
+    except ValueError as err:
+        text = str(err)
+        if text.startswith("[") and "]" in text:
+            raise ValueError(f"{where(text[1:text.index(']')])} {text}") from None
+        raise
+
+
 def _cmd_fit(args) -> int:
     from . import fitting
 
@@ -43,16 +57,24 @@ def _cmd_fit(args) -> int:
     cfg = config.override(cfg, "fit", "params",
                           None if args.params is None else _names_list(args.params), "--params")
     cfg = config.override(cfg, "fit", "filter", args.filter, "--filter")
-    config.require(cfg, str(args.config))
-    return fitting.run(args.drive, cfg, args.out, progress=not args.no_progress)
+    name = Path(args.config).name
+    config.require(cfg, name)
+    return _in_file(lambda: fitting.run(args.drive, cfg, args.out,
+                                        progress=not args.no_progress), lambda section: name)
 
 
 def _cmd_estimate(args) -> int:
     from . import estimating
 
     cfg = None if args.config is None else config.read(args.config, ("drive", "estimate"))
-    return estimating.run(args.drive, args.fit, args.out, config=cfg,
-                          smooth=True if args.smooth else None, family=args.filter)
+
+    def where(section):
+        given = cfg is not None and section in ("drive", "estimate") and cfg.get(section)
+        return Path(args.config).name if given else Path(args.fit).name
+
+    return _in_file(lambda: estimating.run(args.drive, args.fit, args.out, config=cfg,
+                                           smooth=True if args.smooth else None,
+                                           family=args.filter), where)
 
 
 def add_commands(sub, out_folder) -> None:

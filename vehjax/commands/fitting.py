@@ -28,7 +28,7 @@ import numpy as np
 from .. import tune
 from ..filtering import filter as run_filter
 from ..filters import input_noise as inoise
-from ..tune.innovations import innovations
+from ..tune.innovations import innovations, p_text
 from ..tune.likelihood import NOISE
 from . import figures, fitfile
 from .setup import BUILDERS, build_model, builder_kwargs, load_drive, on_model, start_values
@@ -81,8 +81,13 @@ def _report(path, drive_path, grid, model, family, res, texts) -> Path:
             f"model: {type(model).__name__}: states {', '.join(model.state_names)}; outputs "
             f"{', '.join(model.output_names)}",
             f"filter: {family}", ""]
+    checks = [f"  {k}: mean NIS {c.nis_mean:.3g} (1 expected), lag-1 autocorrelation "
+              f"{c.lag1:+.3f}, Ljung-Box {p_text(c.p_value)} ({c.lags} lags, {c.n} samples)"
+              for k, c in res.innovations.items()]
+    checks = ["", "innovations of the fitted filter, per output:", *checks] if checks else []
     tail = ["", "warnings:", *[f"  {t}" for t in texts]] if texts else []
-    path.write_text("\n".join(head + [res.summary()] + tail) + "\n", encoding="utf-8")
+    path.write_text("\n".join(head + [res.summary()] + checks + tail) + "\n",
+                    encoding="utf-8")
     return path
 
 
