@@ -310,3 +310,37 @@ def test_the_configurations_names_are_vehjaxs():
     assert drive_config.OPTIMIZERS == optimisers.OPTIMIZERS
     assert drive_config.STARTS == staged.STARTS
     assert drive_config.FILTERS == tuple(setup.BUILDERS)
+
+
+@pytest.mark.slow  # a second fit (UKF): `pytest -m slow`
+def test_ukf_fit_with_biases_input_noise_and_x0_rebuilds_exactly(tmp_path):
+    """[model] output_biases, [fit] input_noise fitted and fit_x0 with the UKF: fit.json holds
+    them, and `vehjax estimate` equals vehjax.filter with the rebuilt UKF."""
+    write_drive(tmp_path / "d1.csv", seed=5, steps=400)
+    t, delta, vx, xs, ys = write_drive(tmp_path / "d2.csv", seed=6, steps=300)
+    text = (CONFIG.replace("dt = 0.01", 'dt = 0.01\noutput_biases = ["ay"]')
+            .replace('noise = ["R"]', 'noise = ["R", "input"]\nfit_x0 = true\nsteps = 20\n'
+                     'input_noise = { delta = 5e-4 }')
+            .replace("process_std = [1e-3, 3e-4]", "process_std = [1e-3, 3e-4, 1e-5]")
+            .replace("P0_std = [0.1, 0.01]", "P0_std = [0.1, 0.01, 0.1]"))
+    (tmp_path / "car.toml").write_text(text)
+    assert cli.main(["fit", str(tmp_path / "d1.csv"), "--config", str(tmp_path / "car.toml"),
+                     "--out", str(tmp_path / "fit"), "--filter", "ukf", "--no-progress"]) == 0
+    content = json.loads((tmp_path / "fit" / "fit.json").read_text())
+    assert content["filter"]["family"] == "ukf" and len(content["x0_fitted"]) == 3
+    assert content["x0"] == [0.0, 0.0, 0.0]  # a new drive starts from the configuration's prior
+    assert set(content["filter"]["input_noise"]) == {"delta"}
+    assert cli.main(["estimate", str(tmp_path / "d2.csv"), "--fit",
+                     str(tmp_path / "fit" / "fit.json"), "--out", str(tmp_path / "est")]) == 0
+    est = Drive.from_csv(tmp_path / "est" / "estimates.csv")
+    theta = [content["model"]["theta"][k] for k in ("m", "iz", "lf", "lr", "cf", "cr")]
+    model = vehjax.models.with_output_biases(vehjax.models.SingleTrack(dt=DT, theta=theta),
+                                             ("ay",))
+    ukf = vehjax.filters.ukf(model, np.array(content["filter"]["Q"]),
+                             np.array(content["filter"]["R"]),
+                             input_noise=content["filter"]["input_noise"])
+    ref = vehjax.filter(ukf, ys, np.stack([delta, vx], axis=1), x0=np.zeros(3),
+                        P0=np.array([0.1, 0.01, 0.1]) ** 2)
+    for i, n in enumerate(("vy", "r", "ay_bias")):
+        np.testing.assert_allclose(est.signals[n], np.asarray(ref.states)[:, i], rtol=1e-9,
+                                   atol=1e-12)

@@ -25,7 +25,7 @@ import numpy as np
 from ..filtering import filter as run_filter
 from ..smoothing import smooth as run_smooth
 from . import figures, fitfile
-from .setup import load_drive, on_model
+from .setup import load_drive, model_label, on_model
 
 __all__ = ["run", "columns", "write_csv", "write_parquet"]
 
@@ -83,20 +83,20 @@ def run(drive_path, fit_path, out, config: dict | None = None, smooth: bool | No
     drive = load_drive(drive_path, section)
     model, est, x0, P0 = fitfile.rebuild(content, family)
     grid = on_model(drive, model, section)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     what = "smoother" if smooth else "filter"
     print(f"vehjax estimate: running the fitted {est.name} {what} over {len(grid.t)} steps of "
           f"{model.dt:g} s", file=sys.stderr, flush=True)
     run_one = run_smooth if smooth else run_filter
     res = run_one(est, grid.measurements, grid.inputs, x0=x0, P0=P0)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     means = np.asarray(res.states, dtype=float)
     stds = np.sqrt(np.maximum(np.diagonal(np.asarray(res.covariances), axis1=-2, axis2=-1), 0.0))
     cols = columns(grid.t, means, stds, model.state_names, model.state_units)
     written = [write_csv(out / "estimates.csv", cols),
                write_parquet(out / "estimates.parquet", cols),
                figures.estimates(out / "estimates.png", grid.t, means, stds, model.state_names,
-                                 model.state_units, f"{type(model).__name__}, {est.name} "
+                                 model.state_units, f"{model_label(content['model'])}, {est.name} "
                                  f"{what} on {Path(drive_path).name}")]
     for p in written:
         if p is not None:

@@ -31,7 +31,8 @@ from ..filters import input_noise as inoise
 from ..tune.innovations import innovations, p_text
 from ..tune.likelihood import NOISE
 from . import figures, fitfile
-from .setup import BUILDERS, build_model, builder_kwargs, load_drive, on_model, start_values
+from .setup import (BUILDERS, build_model, builder_kwargs, load_drive, model_label, on_model,
+                    start_values)
 
 __all__ = ["run", "fit_options"]
 
@@ -75,10 +76,10 @@ def _fit(builder, model, start, grid, options, progress):
     return res, texts
 
 
-def _report(path, drive_path, grid, model, family, res, texts) -> Path:
+def _report(path, drive_path, grid, model, name, family, res, texts) -> Path:
     head = [f"drive: {drive_path} ({len(grid.t)} steps of {model.dt:g} s, t = {grid.t[0]:.6g}.."
             f"{grid.t[-1]:.6g} s)",
-            f"model: {type(model).__name__}: states {', '.join(model.state_names)}; outputs "
+            f"model: {name}: states {', '.join(model.state_names)}; outputs "
             f"{', '.join(model.output_names)}",
             f"filter: {family}", ""]
     checks = [f"  {k}: mean NIS {c.nis_mean:.3g} (1 expected), lag-1 autocorrelation "
@@ -91,7 +92,7 @@ def _report(path, drive_path, grid, model, family, res, texts) -> Path:
     return path
 
 
-def _figures(out: Path, grid, model, res, P0, family):
+def _figures(out: Path, grid, model, name, res, P0, family):
     """fitted.png and innovations.png of the fitted filter on the fit's own drive."""
     ys, us = grid.measurements, grid.inputs
     filt = run_filter(res.estimator, ys, us, x0=res.x0, P0=P0)
@@ -99,7 +100,7 @@ def _figures(out: Path, grid, model, res, P0, family):
     e, S = innovations(res.model, res.Q, res.R, ys[None], us, np.asarray(filt.states)[None],
                        np.asarray(filt.covariances)[None], np.asarray(res.x0, float), P0, Lu)
     names, units = model.output_names, model.output_units
-    label = f"{type(model).__name__}, {family.upper()} at the fitted values"
+    label = f"{name}, {family.upper()} at the fitted values"
     return (figures.fitted(out / "fitted.png", grid.t, ys, e[0], names, units,
                            f"{label}: measured and one-step predicted outputs"),
             figures.innovations(out / "innovations.png", grid.t, e[0], S[0], names, units,
@@ -115,17 +116,18 @@ def run(drive_path, config: dict, out, progress: bool = True) -> int:
     start = start_values(model, config["fit"])
     options = fit_options(model, config["fit"])
     family = config["fit"].get("filter", "ekf")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     fitted = ", ".join(options["params"] + options["noise"]) or "nothing"
-    _say(f"fitting {fitted} of {type(model).__name__} with the {family.upper()} on "
+    name = model_label(config["model"])
+    _say(f"fitting {fitted} of {name} with the {family.upper()} on "
          f"{len(grid.t)} steps of {model.dt:g} s (compiling first)")
     res, texts = _fit(BUILDERS[family], model, start, grid, options, progress)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)  # after the fit: a value it refuses leaves no folder
     P0 = start.P0
-    written = [_report(out / "report.txt", drive_path, grid, model, family, res, texts),
+    written = [_report(out / "report.txt", drive_path, grid, model, name, family, res, texts),
                fitfile.write(out / "fit.json", fitfile.record(config, family, res, start.x0,
                                                               P0, drive_path)),
-               *_figures(out, grid, model, res, P0, family)]
+               *_figures(out, grid, model, name, res, P0, family)]
     print(res.summary())
     for p in written:
         print(f"wrote {p}")

@@ -15,7 +15,7 @@ from .. import filters, models, validation
 from ..data.drive import Drive
 from .config import DRIVE_FORMAT, DRIVE_MAPPING
 
-__all__ = ["load_drive", "build_model", "on_model", "OnGrid", "Start", "start_values",
+__all__ = ["load_drive", "build_model", "model_label", "on_model", "OnGrid", "Start", "start_values",
            "BUILDERS", "builder_kwargs"]
 
 #: the filter families by their name in the configuration
@@ -93,6 +93,13 @@ def build_model(section: dict, drive_dt: float | None):
         return model.with_theta(**theta) if theta else model
     except ValueError as err:
         raise ValueError(f"[model] theta: {str(err).removeprefix('with_theta: ')}") from None
+
+
+def model_label(section: dict) -> str:
+    """The [model] section's model in words: ``"SingleTrack"``, ``"SingleTrack with biases on
+    ay, r"``."""
+    biases = section.get("output_biases", ())
+    return section["name"] + (f" with biases on {', '.join(biases)}" if biases else "")
 
 
 class OnGrid(NamedTuple):
