@@ -96,7 +96,7 @@ def write_drive(path, seed: int, steps: int = STEPS):
 
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
-    """`vehjax fit` on drive 1: (folder, the fit.json content, stdout)."""
+    """`vehjax fit` on drive 1: (folder, the fit.json content)."""
     d = tmp_path_factory.mktemp("drive_fit")
     write_drive(d / "drive1.csv", seed=1)
     (d / "car.toml").write_text(CONFIG)
@@ -217,6 +217,12 @@ BAD_CONFIGS = [
     (CONFIG + "\n[estimate]\nsmooth = 1\n", ["[estimate] smooth", "true or false"]),
     (CONFIG.replace("[fit]", "[fit]\ninput_noise = { steer = 0.001 }"),
      ["[fit] input_noise", "steer"]),
+    (CONFIG.replace("filter =", "bounds = { cf = [1e3, 5e4] }\nfilter ="),
+     ["[fit] bounds", "cf starts at 120000", "[1000, 50000]"]),
+    (CONFIG.replace("filter =", "bounds = { m = [1e3, 5e4] }\nfilter ="),
+     ["[fit] bounds", "'m' is not among the fitted params"]),
+    (CONFIG.replace("filter =", "bounds = { cf = [5e4, 1e3] }\nfilter ="),
+     ["[fit] bounds.cf", "low < high"]),
     (CONFIG.replace("names = {", "names = [").replace('r" }', 'r" ]'), ["car.toml", "TOML"]),
 ]
 
@@ -247,7 +253,7 @@ def test_fit_refuses_a_bad_configuration_in_one_line(small_drive, tmp_path, caps
 
 
 @pytest.mark.parametrize("extra, words", [
-    (["--model", "NoSuchModel"], ["[model] name", "NoSuchModel"]),
+    (["--model", "NoSuchModel"], ["--model: [model] name", "NoSuchModel"]),
     (["--params", "cf,cx"], ["[fit] params", "cx"]),
     (["--params", "cf,cf"], ["--params", "unique"]),
     (["--filter", "pf"], ["--filter", "pf"]),
@@ -276,11 +282,17 @@ def test_estimate_refuses_a_drive_laid_out_otherwise(fitted, tmp_path, capsys):
     d, _ = fitted
     drive, _ = _other_layout(tmp_path / "other.csv", steps=50)
     _refused(capsys, ["estimate", str(drive), "--fit", str(d / "fit" / "fit.json"), "--out",
-                      str(tmp_path / "out")], ["[drive] names", "acc_y"], tmp_path / "out")
-    (tmp_path / "bad.toml").write_text("[model]\nname = 'SingleTrack'\n")
+                      str(tmp_path / "out")], ["fit.json [drive] names", "acc_y"], tmp_path / "out")
+    (tmp_path / "bad.toml").write_text(CONFIG.replace("max_gap", "max_gapp")
+                                       .replace("[drive]", "[drive]\nmax_gapp = 0.1"))
     _refused(capsys, ["estimate", str(drive), "--fit", str(d / "fit" / "fit.json"), "--config",
                       str(tmp_path / "bad.toml"), "--out", str(tmp_path / "out")],
-             ["unknown section [model]"], tmp_path / "out")
+             ["bad.toml [drive] max_gapp", "unknown key"], tmp_path / "out")
+    # a key the configuration's [drive] maps wrongly names that file, not the fit
+    (tmp_path / "bad.toml").write_text(CONFIG.replace("acc_y", "acc_z"))
+    _refused(capsys, ["estimate", str(drive), "--fit", str(d / "fit" / "fit.json"), "--config",
+                      str(tmp_path / "bad.toml"), "--out", str(tmp_path / "out")],
+             ["bad.toml [drive] names", "acc_z"], tmp_path / "out")
 
 
 def test_a_users_model_by_module_path(tmp_path, monkeypatch):

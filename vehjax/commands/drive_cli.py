@@ -39,13 +39,14 @@ def _names_list(text: str) -> list:
 
 def _in_file(work, where):
     """``work()``, a ValueError naming a key (``[fit] params: ...``) prefixed with the file
-    the key is in (``where(section)``: its name)."""
+    the key is in, ``where(message)``: its name, or None for a message that stays as it is."""
     try:
         return work()
     except ValueError as err:
         text = str(err)
-        if text.startswith("[") and "]" in text:
-            raise ValueError(f"{where(text[1:text.index(']')])} {text}") from None
+        source = where(text) if text.startswith("[") else None
+        if source is not None:
+            raise ValueError(f"{source} {text}") from None
         raise
 
 
@@ -59,16 +60,20 @@ def _cmd_fit(args) -> int:
     cfg = config.override(cfg, "fit", "filter", args.filter, "--filter")
     name = Path(args.config).name
     config.require(cfg, name)
+    def where(text):  # a model named on the command line is not the file's
+        return "--model:" if args.model and text.startswith("[model] name") else name
+
     return _in_file(lambda: fitting.run(args.drive, cfg, args.out,
-                                        progress=not args.no_progress), lambda section: name)
+                                        progress=not args.no_progress), where)
 
 
 def _cmd_estimate(args) -> int:
     from . import estimating
 
-    cfg = None if args.config is None else config.read(args.config, ("drive", "estimate"))
+    cfg = None if args.config is None else config.read(args.config)  # [model], [fit]: the fit's
 
-    def where(section):
+    def where(text):
+        section = text[1:text.index("]")] if "]" in text else ""
         given = cfg is not None and section in ("drive", "estimate") and cfg.get(section)
         return Path(args.config).name if given else Path(args.fit).name
 
@@ -108,5 +113,7 @@ def add_commands(sub, out_folder) -> None:
     p.add_argument("--filter", choices=config.FILTERS,
                    help="another filter family with the fitted noise (default: the fit's)")
     p.add_argument("--config", metavar="TOML", help="a configuration whose [drive] and "
-                   "[estimate] sections replace the fit's (a drive file laid out otherwise)")
+                   "[estimate] sections replace the fit's (a drive file laid out otherwise); "
+                   "its other sections are checked and not used (the model and the filter "
+                   "are the fit's)")
     p.set_defaults(func=_cmd_estimate)

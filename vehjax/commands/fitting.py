@@ -40,9 +40,21 @@ __all__ = ["run", "fit_options"]
 _PASSED = ("fit_x0", "start", "compare", "release", "steps", "optimizer", "gtol")
 
 
-def fit_options(model, section: dict) -> dict:
+def _check_starts(model, bounds: dict, floors) -> None:
+    """Each bounded parameter's start (its value in ``model``) strictly inside its bounds, as
+    vehjax.tune.fit requires; those with a data floor (``floors``) it moves there itself."""
+    for k, (lo, hi) in bounds.items():
+        v = float(model.theta[model.param_names.index(k)])
+        if k not in floors and not lo < v < hi:
+            raise ValueError(f"[fit] bounds: {k} starts at {v:g} ([model] theta, else the "
+                             f"model's nominal value), not strictly inside [{lo:g}, {hi:g}]; "
+                             f"give a start inside with [model] theta")
+
+
+def fit_options(model, section: dict, floors=()) -> dict:
     """vehjax.tune.fit's keyword arguments of the [fit] section (but the noise and prior),
-    the parameter names and bounds checked against ``model``."""
+    the parameter names and bounds checked against ``model`` (``floors``: the names of the
+    parameters with a data floor, ``model.data_floors``)."""
     params = section.get("params", ())
     unknown = [p for p in params if p not in model.param_names]
     if unknown:
@@ -53,6 +65,7 @@ def fit_options(model, section: dict) -> dict:
     if stray:
         raise ValueError(f"[fit] bounds: {stray[0]!r} is not among the fitted params "
                          f"({', '.join(params) or 'none'})")
+    _check_starts(model, bounds, floors if section.get("start", "data") == "data" else ())
     out = {k: section[k] for k in _PASSED if k in section}
     out.update(params=tuple(params), bounds=dict(bounds) or None,
                noise=tuple(section.get("noise", NOISE)))
@@ -114,12 +127,14 @@ def run(drive_path, config: dict, out, progress: bool = True) -> int:
     model = build_model(config["model"], drive.dt)
     grid = on_model(drive, model, config["drive"])
     start = start_values(model, config["fit"])
-    options = fit_options(model, config["fit"])
+    options = fit_options(model, config["fit"],
+                          tuple(model.data_floors(grid.measurements, grid.inputs)))
     family = config["fit"].get("filter", "ekf")
     fitted = ", ".join(options["params"] + options["noise"]) or "nothing"
     name = model_label(config["model"])
-    _say(f"fitting {fitted} of {name} with the {family.upper()} on "
-         f"{len(grid.t)} steps of {model.dt:g} s (compiling first)")
+    if progress:
+        _say(f"fitting {fitted} of {name} with the {family.upper()} on {len(grid.t)} steps "
+             f"of {model.dt:g} s (compiling first)")
     res, texts = _fit(BUILDERS[family], model, start, grid, options, progress)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)  # after the fit: a value it refuses leaves no folder
