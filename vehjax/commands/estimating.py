@@ -8,7 +8,8 @@ DIR2:
 
 * ``estimates.csv``: ``t [s]``, then each state's mean ``name [unit]`` and standard deviation
   ``name_std [unit]`` per step of the model's grid, as :meth:`vehjax.data.Drive.from_csv`
-  reads them (numbers written as ``repr``: they read back to the same float64);
+  reads them (numbers written as ``repr``: they read back to the same float64; a state whose
+  unit :data:`vehjax.data.UNITS` does not know reads with ``units={"name": "-"}``);
 * ``estimates.parquet``: the same columns (each field's unit in its metadata), when pyarrow is
   installed (the ``export`` extra); else a one-line note on stderr;
 * ``estimates.png``: each state with its +-2 standard deviation band.

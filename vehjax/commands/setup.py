@@ -35,7 +35,11 @@ def load_drive(path, section: dict) -> Drive:
     """The drive file at ``path`` read with the [drive] section's format options
     (:data:`~vehjax.commands.config.DRIVE_FORMAT`, passed as keyword arguments): a delimited
     text file (CSV) through :meth:`vehjax.data.Drive.from_csv`. ValueError for a missing file
-    (naming ``DRIVE``) and for what the reader refuses (naming the [drive] key)."""
+    (naming ``DRIVE``) and for what the reader refuses (naming the [drive] key).
+
+    The one place a drive file is read: a reader of more formats that takes the same keyword
+    arguments replaces the ``from_csv`` call, its own options joining ``DRIVE_FORMAT`` and
+    the [drive] schema of :mod:`vehjax.commands.config`."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"DRIVE: {str(path)!r} is not a file")
