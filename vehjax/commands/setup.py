@@ -15,8 +15,8 @@ from .. import filters, models, validation
 from ..data.drive import Drive
 from .config import DRIVE_FORMAT, DRIVE_MAPPING
 
-__all__ = ["load_drive", "build_model", "model_label", "on_model", "OnGrid", "Start", "start_values",
-           "BUILDERS", "builder_kwargs"]
+__all__ = ["load_drive", "build_model", "model_label", "on_model", "OnGrid", "Start",
+           "start_values", "BUILDERS", "builder_kwargs"]
 
 #: the filter families by their name in the configuration
 BUILDERS = {"ekf": filters.ekf, "ukf": filters.ukf, "ckf": filters.ckf}
