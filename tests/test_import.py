@@ -48,7 +48,8 @@ def test_import_vehjax_imports_no_jax_numpy_or_matplotlib():
 
 
 @pytest.mark.parametrize("argv", [["--help"], ["--version"], ["simulate", "--help"],
-                                  ["models", "--help"], ["simulate", "NoSuchModel", "x"]])
+                                  ["models", "--help"], ["simulate", "NoSuchModel", "x"],
+                                  ["fit", "--help"], ["estimate", "--help"]])
 def test_the_command_line_parser_imports_no_jax(argv):
     # as ``python -m vehjax.cli`` and as the ``vehjax`` entry point (vehjax.cli:main) run it
     for run in ("import runpy; runpy.run_module('vehjax.cli', run_name='__main__')",

@@ -1,4 +1,5 @@
-"""The ``vehjax`` command: list models, simulate manoeuvres, reproduce the papers, run benchmarks."""
+"""The ``vehjax`` command: list models, simulate manoeuvres, fit a model to a drive file and run
+it over another, reproduce the papers, run benchmarks."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import textwrap
 from pathlib import Path
 
 from . import reproduce  # light: its registry names the study modules, loaded when run
+from .commands import drive_cli  # light: fit and estimate load their work when run
 
 BENCHMARKS = ("gaussian", "particle", "marginalized", "sevendof", "scale", "all", "liu_west_bias",
               "device", "smooth", "fit", "floor")
@@ -262,6 +264,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=integer, default=0, help="random seed (default 0)")
     p.add_argument("--out", type=out_folder, default="out", help="output folder (default ./out)")
     p.set_defaults(func=_cmd_simulate)
+
+    drive_cli.add_commands(sub, out_folder)  # fit, estimate
 
     p = sub.add_parser(
         "reproduce", help="reproduce a paper's study: tables and figures", add_help=False,
