@@ -136,6 +136,7 @@ def test_refusals_name_their_argument_and_change_nothing():
         (dict(y=YS[1], u=US[1], t=1.9), "^t: .*goes back"),           # back
         (dict(y=YS[1], u=US[1], t=3.0), "^t: .*max_gap"),             # too long a gap
         (dict(y=YS[1], u=US[1], t=float("nan")), "^t: "),
+        (dict(y=YS[1], u=US[1], t="soon"), "^t: "),
         (dict(y=YS[1][:1], u=US[1]), r"^y: expected shape \(2,\)"),
         (dict(y=np.ones(3), u=US[1]), r"^y: expected shape \(2,\)"),
         (dict(y=[1.0, np.inf], u=US[1]), "^y: .*inf"),
@@ -160,6 +161,12 @@ def test_refusals_name_their_argument_and_change_nothing():
         vj.Online(est, X0, np.eye(3))
     with pytest.raises(ValueError, match="^dt"):
         vj.Online(est, X0, P0, dt=0.0)
+    with pytest.raises(ValueError, match="^max_gap"):
+        vj.Online(est, X0, P0, dt=DT, max_gap=-1.0)
+    with pytest.raises(ValueError, match="^estimator"):
+        vj.Online(est._replace(ny=None), X0, P0)
+    with pytest.raises(ValueError, match="^estimator"):
+        vj.Online("ekf", X0, P0)
 
 
 @pytest.mark.parametrize("name", ["ekf", "bootstrap_pf"])
@@ -191,7 +198,7 @@ def test_pack_round_trip_with_a_typed_key():
             "n": jnp.asarray(4, jnp.int32), "flag": jnp.asarray(True)}
     layout = O.layout_of(tree)
     buffers = O.pack(tree, layout)
-    assert len(buffers) == 4  # uint32 (the key data), float64, int32, bool
+    assert len(buffers) == 3  # uint32 (the key data), float64 (and the bool), int32
     back = O.unpack(buffers, layout)
     np.testing.assert_array_equal(jax.random.key_data(back["k"]), jax.random.key_data(tree["k"]))
     for f in ("x", "P", "n", "flag"):

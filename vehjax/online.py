@@ -56,11 +56,16 @@ hand it float32 arrays and the call is refused.
 Speed. The step is compiled once, when the filter is built (with the XLA options
 :func:`vehjax.run` uses for the estimator's workload, :func:`vehjax.execution.compiler_options`),
 and every sample calls that same executable, never retraced: a wrong shape is refused on the
-host first. Its state stays on the device as a few flat buffers, because the cost of calling a
-compiled function grows with the number of arrays it takes and returns (about 1.5 us each on
-a CPU), and the step's outputs come back as one vector that :meth:`Online.update` splits into
-numpy views. A gap compiles a second function (a loop over prediction steps) on first use.
-``vehjax bench online`` measures the latency (benchmarks/results/).
+host first. What a sample costs besides the step's arithmetic is the call of a compiled function
+from Python, about 15 us on a CPU, growing by about 1.5 us with each array it takes or returns.
+So the state stays on the device as a few flat buffers (:class:`Layout`), donated to the step
+(updated in place), and the step's outputs come back as one vector that :meth:`Online.update`
+splits into numpy views; the checks of y and u are a few Python-level operations (about 1 us).
+A gap compiles a second function (a loop over prediction steps) on first use. JAX's CPU
+backend hands each call to a worker thread (async dispatch), which a loop that waits for every
+result does not need: a process that sets ``jax.config.update("jax_cpu_enable_async_dispatch",
+False)`` before JAX's first computation runs the step in the calling thread. ``vehjax bench
+online`` measures both (benchmarks/results/).
 
 Limits: one stream per object (for many cars, :func:`vehjax.run` or ``jax.vmap`` of the step);
 the inputs between two stamped samples are not known and are taken to be the later sample's;
@@ -145,13 +150,14 @@ class OnlineEstimate(NamedTuple):
 
 
 class Layout(NamedTuple):
-    """How a pytree of arrays packs into a few flat buffers, one per dtype (:func:`pack`).
+    """How a pytree of arrays packs into a few flat buffers (:func:`pack`): one per dtype, bool
+    leaves stored in the floating buffer (as 0 and 1, exact), a typed PRNG key as its key data.
 
     Attributes:
         treedef: the pytree's structure.
-        slots: per leaf ``(buffer, start, shape, key_impl)``: the buffer it lies in, its offset
-            there, its shape, and for a typed PRNG key its implementation (its key data is
-            stored) or None.
+        slots: per leaf ``(buffer, start, shape, dtype, key_impl)``: the buffer it lies in, its
+            offset there, its shape and dtype, and for a typed PRNG key its implementation (its
+            uint32 key data is stored) or None.
         buffers: per buffer ``(dtype, size)``.
     """
 
@@ -160,47 +166,46 @@ class Layout(NamedTuple):
     buffers: tuple
 
 
-def _leaf_data(leaf):
-    """(array, key implementation or None): a typed PRNG key as its uint32 key data."""
+def _stored(leaf):
+    """(dtype, shape, key implementation or None) of a leaf as it is stored."""
     if jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key):
-        return jax.random.key_data(leaf), jax.random.key_impl(leaf)
-    return leaf, None
+        data = jax.eval_shape(jax.random.key_data, leaf)
+        return np.dtype(data.dtype), tuple(data.shape), jax.random.key_impl(leaf)
+    return np.dtype(leaf.dtype), tuple(leaf.shape), None
 
 
 def layout_of(tree) -> Layout:
-    """The :class:`Layout` of a pytree of arrays (concrete, traced or ShapeDtypeStruct)."""
+    """The :class:`Layout` of a pytree of concrete arrays."""
     leaves, treedef = jax.tree_util.tree_flatten(tree)
+    stored = [_stored(leaf) for leaf in leaves]
+    floats = [d for d, _, _ in stored if np.issubdtype(d, np.floating)]
     order, sizes, slots = [], {}, []
-    for leaf in leaves:
-        impl = None
-        if jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key):
-            shape = jax.eval_shape(jax.random.key_data, leaf)
-            impl, dtype, full = jax.random.key_impl(leaf), shape.dtype, shape.shape
-        else:
-            dtype, full = leaf.dtype, leaf.shape
-        dtype = np.dtype(dtype)
-        if dtype not in sizes:
-            order.append(dtype)
-            sizes[dtype] = 0
-        slots.append((order.index(dtype), sizes[dtype], tuple(full), impl))
-        sizes[dtype] += math.prod(full)
+    for leaf, (dtype, shape, impl) in zip(leaves, stored):
+        into = floats[0] if dtype == np.bool_ and floats else dtype
+        if into not in sizes:
+            order.append(into)
+            sizes[into] = 0
+        slots.append((order.index(into), sizes[into], shape, dtype, impl))
+        sizes[into] += math.prod(shape)
     return Layout(treedef, tuple(slots), tuple((d, sizes[d]) for d in order))
 
 
 def pack(tree, layout: Layout) -> list:
     """The pytree ``tree`` (of ``layout``'s structure) as ``layout``'s flat buffers: a list of
-    1-D arrays, one per dtype, the leaves of that dtype raveled and concatenated in order."""
+    1-D arrays, the leaves stored in each raveled and concatenated in order."""
     parts = [[] for _ in layout.buffers]
-    for leaf, (b, _, _, _) in zip(jax.tree_util.tree_leaves(tree), layout.slots):
-        parts[b].append(jnp.ravel(_leaf_data(leaf)[0]))
+    for leaf, (b, _, _, _, impl) in zip(jax.tree_util.tree_leaves(tree), layout.slots):
+        data = leaf if impl is None else jax.random.key_data(leaf)
+        parts[b].append(jnp.ravel(data).astype(layout.buffers[b][0]))
     return [jnp.concatenate(p) for p in parts]
 
 
 def unpack(buffers, layout: Layout):
     """The pytree that :func:`pack` packed into ``buffers`` (a sequence of 1-D arrays)."""
     leaves = []
-    for b, start_at, shape, impl in layout.slots:
+    for b, start_at, shape, dtype, impl in layout.slots:
         leaf = jnp.reshape(buffers[b][start_at:start_at + math.prod(shape)], shape)
+        leaf = leaf.astype(dtype)
         leaves.append(leaf if impl is None else jax.random.wrap_key_data(leaf, impl=impl))
     return jax.tree_util.tree_unflatten(layout.treedef, leaves)
 
@@ -290,24 +295,45 @@ def model_steps(t: float, t_filter: float | None, dt: float, max_gap: float | No
 
 def _vector(arg: str, value, n: int, dtype, missing: bool) -> np.ndarray:
     """A sample's y or u as a (n,) numpy array of ``dtype``, checked by the house rules (NaN
-    missing in y, +-inf refused; u finite)."""
-    if isinstance(value, np.ndarray) and value.dtype.kind in "fiu":  # the fast path
+    missing in y, +-inf refused; u finite). A real numpy array takes the fast path (a few
+    Python-level checks, about 1 us); anything else goes through :func:`vehjax.validation.array`."""
+    if type(value) is np.ndarray and value.dtype.kind in "fiu":
         a = value.astype(dtype, copy=False)
     else:
         a = np.asarray(validation.array(arg, value, missing=missing), dtype=dtype)
     if a.shape != (n,):
         raise ValueError(f"{arg}: expected shape ({n},), got {a.shape}")
+    values = a.tolist()
     if missing:
-        if np.isinf(a).any():
+        if any(map(math.isinf, values)):
             validation.array(arg, a, missing=True)
-    elif not np.isfinite(a).all():
+    elif not all(map(math.isfinite, values)):
         validation.array(arg, a)
     return a
 
 
-def _option(name: str, value, low_open: bool = True):
-    """None, or a finite float > 0 (>= 0 without ``low_open``)."""
-    return None if value is None else validation.number(name, value, 0.0, low_open=low_open)
+def _widths(estimator) -> tuple[int, int]:
+    """(ny, nu) of an Estimator; ValueError naming ``estimator`` when it is none or lacks them."""
+    if not isinstance(estimator, Estimator):
+        raise ValueError(
+            f"estimator: expected a vehjax.filters.Estimator, got {type(estimator).__name__}")
+    if estimator.ny is None or estimator.nu is None:
+        raise ValueError("estimator: Online needs the measurement and input widths; build the "
+                         "Estimator with ny= and nu=")
+    return estimator.ny, estimator.nu
+
+
+def _stamp(t) -> float:
+    """A time stamp [s] as a float (ValueError naming ``t``; finiteness: :func:`model_steps`)."""
+    try:
+        return float(t)
+    except (TypeError, ValueError):
+        raise ValueError(f"t: expected a time stamp in seconds, got {t!r}") from None
+
+
+def _option(name: str, value):
+    """None, or a finite float > 0."""
+    return None if value is None else validation.number(name, value, 0.0)
 
 
 class Online:
@@ -330,14 +356,9 @@ class Online:
 
     def __init__(self, estimator: Estimator, x0, P0, theta0=None, P_theta0=None, key=None, *,
                  dt=None, t0=None, max_gap=None):
-        if isinstance(estimator, Estimator) and (estimator.ny is None or estimator.nu is None):
-            raise ValueError("estimator: Online needs the measurement and input widths; build "
-                             "the Estimator with ny= and nu=")
-        ny, nu = (None, None) if not isinstance(estimator, Estimator) else (estimator.ny,
-                                                                             estimator.nu)
+        ny, nu = _widths(estimator)
         ys, us, x0, P0, th0, Pth0 = check_arguments(
-            estimator, np.full((1, ny or 0), np.nan), np.zeros((1, nu or 0)), x0, P0, theta0,
-            P_theta0, key)
+            estimator, np.full((1, ny), np.nan), np.zeros((1, nu)), x0, P0, theta0, P_theta0, key)
         self.estimator = estimator
         self.dt = _option("dt", dt)
         self.max_gap = _option("max_gap", max_gap)
@@ -360,12 +381,12 @@ class Online:
         y, u = jax.ShapeDtypeStruct((est.ny,), self._dtype), jax.ShapeDtypeStruct(
             (est.nu,), self._dtype)
         specs = [jax.ShapeDtypeStruct(b.shape, b.dtype) for b in self._buffers]
-        fn = jax.jit(partial(packed_step, est, self.layout))
+        # the state's buffers are donated: the step writes the new state in place
+        fn = jax.jit(partial(packed_step, est, self.layout), donate_argnums=0)
         self._step = fn.lower(specs, y, u).compile(compiler_options=self._options)
-        self._gap = None
+        self._gap = self._unpack = None
         nx, p = est.nx, len(est.param_names)
-        ends = np.cumsum([nx, nx * nx, p, p * p])
-        self._cuts = (nx, (nx, nx), p, (p, p), ends)
+        self._cuts = (nx, p, nx + nx * nx, nx + nx * nx + p, nx + nx * nx + p + p * p)
 
     # ------------------------------------------------------------------------------------------
     # one sample
@@ -395,7 +416,7 @@ class Online:
             if self.dt is None:
                 raise ValueError("t: time stamps need the model's step; pass dt=model.dt to "
                                  "Online")
-            t = float(t)
+            t = _stamp(t)
             k = model_steps(t, None if origin is None else origin + self._steps * self.dt,
                             self.dt, self.max_gap)
             if origin is None:  # the clock starts: this sample is one step after the last
@@ -411,7 +432,7 @@ class Online:
     def _predict(self, buffers, u, n: int):
         """``n`` prediction-only steps (compiled on the first gap)."""
         if self._gap is None:
-            fn = jax.jit(partial(packed_gap, self.estimator, self.layout))
+            fn = jax.jit(partial(packed_gap, self.estimator, self.layout), donate_argnums=0)
             specs = [jax.ShapeDtypeStruct(b.shape, b.dtype) for b in buffers]
             self._gap = fn.lower(specs, jax.ShapeDtypeStruct(u.shape, u.dtype),
                                  jax.ShapeDtypeStruct((), np.int32)).compile(
@@ -419,20 +440,24 @@ class Online:
         return self._gap(buffers, u, np.int32(n))
 
     def _estimate(self, v: np.ndarray) -> OnlineEstimate:
-        nx, shape_x, p, shape_p, ends = self._cuts
-        return OnlineEstimate(
-            mean=v[:nx], cov=v[nx:ends[1]].reshape(shape_x), params=v[ends[1]:ends[2]],
-            params_cov=v[ends[2]:ends[3]].reshape(shape_p), loglik=float(v[-4]),
-            nis=float(v[-3]), n_obs=int(v[-2]), diverged=bool(v[-1]), steps=self._steps,
-            t=self.t)
+        """The :class:`OnlineEstimate` of :func:`output_vector`'s ``v``: views, Python scalars."""
+        nx, p, e1, e2, e3 = self._cuts
+        loglik, nis, n_obs, diverged = v[-4:].tolist()
+        t = None if self._t_origin is None else self._t_origin + self._steps * self.dt
+        return OnlineEstimate(v[:nx], v[nx:e1].reshape(nx, nx), v[e1:e2],
+                              v[e2:e3].reshape(p, p), loglik, nis, int(n_obs), diverged != 0.0,
+                              self._steps, t)
 
     # ------------------------------------------------------------------------------------------
     # state, clock
 
     @property
     def state(self) -> OnlineState:
-        """The whole state (:class:`OnlineState`), arrays on the device."""
-        return unpack(self._buffers, self.layout)
+        """The whole state (:class:`OnlineState`): arrays on the device, a copy (the filter's
+        own buffers are reused by the next update)."""
+        if self._unpack is None:
+            self._unpack = jax.jit(partial(unpack, layout=self.layout))
+        return self._unpack(self._buffers)
 
     @property
     def steps(self) -> int:
@@ -501,8 +526,13 @@ class Online:
         exp = jax.export.export(fn, platforms=platforms)(
             specs, jax.ShapeDtypeStruct((est.ny,), self._dtype),
             jax.ShapeDtypeStruct((est.nu,), self._dtype))
+        try:
+            data = exp.serialize()
+        except ImportError as err:
+            raise ImportError(f"Online.export needs the flatbuffers package (pip install "
+                              f"flatbuffers, or vehjax[online]): {err}") from None
         with open(path, "wb") as f:
-            f.write(exp.serialize())
+            f.write(data)
         return exp
 
 
