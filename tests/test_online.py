@@ -252,3 +252,24 @@ def test_float32_runs_in_float32():
     ref = vj.filter(est, YS[:1].astype(np.float32), US[:1].astype(np.float32),
                     X0.astype(np.float32), P0.astype(np.float32))
     np.testing.assert_allclose(out.mean, ref.states[0], rtol=1e-5)
+
+
+def _bench():
+    from vehjax.cli import load_benchmark
+
+    return load_benchmark("online")
+
+
+def test_bench_online_smoke_ekf(capsys):
+    """Tiny sizes, the EKF row: checked equal to vehjax.filter and filterpy, then timed."""
+    assert _bench().main(["--quick", "--rows", "ekf"]) == 0
+    out = capsys.readouterr().out
+    assert "FAILED" not in out and "target: Online.update median" in out
+    assert all(f"ekf  {c}" in out for c in ("Online.update", "vehjax.filter", "vehjax.run"))
+
+
+@pytest.mark.slow  # the marginalized PF's compiles: about two minutes on 2 cores
+def test_bench_online_smoke_all_rows(capsys):
+    assert _bench().main(["--quick"]) == 0
+    out = capsys.readouterr().out
+    assert "FAILED" not in out and "paper 004's 1.4 ms a step: ratio" in out
