@@ -205,22 +205,33 @@ def test_pack_round_trip_with_a_typed_key():
         np.testing.assert_array_equal(back[f], tree[f])
 
 
+# run as ``python -I -S``: no PYTHONPATH, no working directory and no .pth files (so not the
+# editable install's finder) on sys.path; the packages' folder of jax alone is added
 _LOADER = """
-import json, sys
-sys.modules["vehjax"] = None   # vehjax cannot be imported here
+import importlib.util, json, os, sys
+sys.path.append(sys.argv[1])
 import jax, numpy as np
+source = [p for p in sys.path if os.path.exists(os.path.join(p or ".", "vehjax"))]
+try:
+    import vehjax
+    importable = True
+except ModuleNotFoundError:
+    importable = False
 jax.config.update("jax_enable_x64", True)
-step = jax.export.deserialize(open("step.jax", "rb").read())
+step = jax.jit(jax.export.deserialize(open("step.jax", "rb").read()).call)
 saved = np.load("car.npz")
-state = [saved[f"state_{i}"] for i in range(int(saved["n_buffers"]))]
+cpu = jax.devices("cpu")[0]  # committed like the step's outputs: one compile
+state = [jax.device_put(saved[f"state_{i}"], cpu) for i in range(int(saved["n_buffers"]))]
 data = np.load("data.npz")
 means, logliks = [], []
 for y, u in zip(data["ys"], data["us"]):
-    out = step.call(state, y, u)
+    out = step(state, y, u)
     state = out["state"]
     means.append(np.asarray(out["mean"]).tolist())
     logliks.append(float(out["loglik"]))
-print(json.dumps({"means": means, "logliks": logliks}))
+print(json.dumps({"means": means, "logliks": logliks, "source": source,
+                  "importable": importable, "spec": importlib.util.find_spec("vehjax") is not None,
+                  "loaded": sorted(m for m in sys.modules if m.startswith("vehjax"))}))
 """
 
 
@@ -235,11 +246,15 @@ def test_exported_step_runs_without_vehjax(name, tmp_path):
     ys, us = YS[10:25], US[10:25]
     np.savez(tmp_path / "data.npz", ys=ys, us=us)
     want = [live.update(y, u) for y, u in zip(ys, us)]
+    packages = os.path.dirname(os.path.dirname(jax.__file__))
+    assert not os.path.exists(os.path.join(packages, "vehjax"))  # an editable install's finder
     env = {k: v for k, v in os.environ.items() if k in ("PATH", "HOME", "LANG", "TMPDIR")}
-    done = subprocess.run([sys.executable, "-c", _LOADER], cwd=tmp_path, env=env,
-                          capture_output=True, text=True, timeout=300)
+    done = subprocess.run([sys.executable, "-I", "-S", "-c", _LOADER, packages], cwd=tmp_path,
+                          env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     got = json.loads(done.stdout.strip().splitlines()[-1])
+    assert got["source"] == [] and not got["importable"] and not got["spec"]
+    assert got["loaded"] == []
     np.testing.assert_allclose(got["means"], [w.mean for w in want], **TOL)
     np.testing.assert_allclose(got["logliks"], [w.loglik for w in want], **TOL)
 

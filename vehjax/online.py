@@ -43,10 +43,12 @@ Export. :meth:`Online.export` writes the compiled one-model-step function with `
 
     import jax, numpy as np
     jax.config.update("jax_enable_x64", True)      # before anything else: the step is float64
-    step = jax.export.deserialize(open("step.jax", "rb").read())
+    step = jax.jit(jax.export.deserialize(open("step.jax", "rb").read()).call)
     saved = np.load("car.npz")
-    state = [saved[f"state_{i}"] for i in range(int(saved["n_buffers"]))]
-    out = step.call(state, y, u)                   # y (ny,) NaN missing, u (nu,), float64
+    cpu = jax.devices("cpu")[0]                    # the state placed (committed) as the step's
+    state = [jax.device_put(saved[f"state_{i}"], cpu)   # outputs are: one compile, not two
+             for i in range(int(saved["n_buffers"]))]
+    out = step(state, y, u)                        # y (ny,) NaN missing, u (nu,), float64
     state = out["state"]                           # and out["mean"], out["cov"], out["loglik"], ...
 
 The exported function is one model step without the clock: a gap of k steps is k - 1 calls with
