@@ -61,8 +61,9 @@ and every sample calls that same executable, never retraced: a wrong shape is re
 host first. What a sample costs besides the step's arithmetic is the call of a compiled function
 from Python, about 15 us on a CPU, growing by about 1.5 us with each array it takes or returns.
 So the state stays on the device as a few flat buffers (:class:`Layout`), donated to the step
-(updated in place), and the step's outputs come back as one vector that :meth:`Online.update`
-splits into numpy views; the checks of y and u are a few Python-level operations (about 1 us).
+(updated in place), y and u go to it as one vector (y then u), and the step's outputs come
+back as one vector that :meth:`Online.update` splits into numpy views; the checks of y and u
+are a few Python-level operations (about 1 us each).
 A gap compiles a second function (a loop over prediction steps) on first use. JAX's CPU
 backend hands each call to a worker thread (async dispatch), which a loop that waits for every
 result does not need: a process that sets ``jax.config.update("jax_cpu_enable_async_dispatch",
@@ -256,9 +257,11 @@ def output_vector(out: StepOutput):
                             scalars])
 
 
-def packed_step(estimator: Estimator, layout: Layout, buffers, y, u):
-    """The compiled sample step: (buffers, outputs :func:`output_vector`)."""
-    state, out = model_step(estimator, unpack(buffers, layout), y, u)
+def packed_step(estimator: Estimator, layout: Layout, buffers, yu):
+    """The compiled sample step on y and u concatenated, yu (ny + nu,) (one array to hand to
+    the device per sample, not two): (buffers, outputs :func:`output_vector`)."""
+    ny = estimator.ny
+    state, out = model_step(estimator, unpack(buffers, layout), yu[:ny], yu[ny:])
     return pack(state, layout), output_vector(out)
 
 
@@ -380,12 +383,11 @@ class Online:
         self._nan_y = np.full((est.ny,), np.nan, self._dtype)
         self._no_u = np.zeros((est.nu,), self._dtype)
         self._options = execution.compiler_options(execution.current(), est.workload)
-        y, u = jax.ShapeDtypeStruct((est.ny,), self._dtype), jax.ShapeDtypeStruct(
-            (est.nu,), self._dtype)
+        yu = jax.ShapeDtypeStruct((est.ny + est.nu,), self._dtype)
         specs = [jax.ShapeDtypeStruct(b.shape, b.dtype) for b in self._buffers]
         # the state's buffers are donated: the step writes the new state in place
         fn = jax.jit(partial(packed_step, est, self.layout), donate_argnums=0)
-        self._step = fn.lower(specs, y, u).compile(compiler_options=self._options)
+        self._step = fn.lower(specs, yu).compile(compiler_options=self._options)
         self._gap = self._unpack = None
         nx, p = est.nx, len(est.param_names)
         self._cuts = (nx, p, nx + nx * nx, nx + nx * nx + p, nx + nx * nx + p + p * p)
@@ -426,7 +428,7 @@ class Online:
         buffers = self._buffers
         if k > 1:
             buffers = self._predict(buffers, u, k - 1)
-        buffers, vec = self._step(buffers, y, u)
+        buffers, vec = self._step(buffers, np.concatenate((y, u)))
         self._buffers, self._t_origin = buffers, origin
         self._steps += k
         return self._estimate(np.asarray(vec))
