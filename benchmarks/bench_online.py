@@ -325,7 +325,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--fp-tol", type=float, default=1e-8,
                    help="max abs difference, filterpy vs vehjax.filter (default %(default)s)")
     p.add_argument("--quick", action="store_true",
-                   help="tiny sizes: 50 samples a round, 2 rounds, warm-up 20, N = 50 (default off)")
+                   help="tiny sizes: 50 samples a round, 2 rounds, warm-up 20, N = 50 "
+                        "(default off)")
     return p
 
 

@@ -44,6 +44,9 @@ BUILD = {
     "bootstrap_pf": lambda: vj.filters.bootstrap_pf(MODEL, Q, R, n_particles=64),
 }
 
+# the particle filter's cases: about 10 s each on 2 cores, so in the slow run (pytest -m slow)
+PF_SLOW = pytest.param("bootstrap_pf", marks=pytest.mark.slow)
+
 
 def _counted(est):
     """``est`` whose step counts its traces in ``calls``."""
@@ -67,8 +70,10 @@ def _feed(live, ys, us):
             ("mean", "cov", "loglik", "nis", "n_obs", "diverged")}
 
 
-@pytest.mark.parametrize("name", list(BUILD))
+@pytest.mark.parametrize("name", ["ekf", "ukf", PF_SLOW])
 def test_online_equals_filter_and_compiles_once(name):
+    """Sample by sample equals vehjax.filter (estimates and the final filter state), compiled
+    once."""
     est, calls = _counted(BUILD[name]())
     live = vj.Online(est, X0, P0, key=_key(est))
     traced = len(calls)
@@ -83,16 +88,14 @@ def test_online_equals_filter_and_compiles_once(name):
     assert got["n_obs"][20] == 0 and got["loglik"][20] == 0.0
     assert not got["diverged"].any() and not bool(ref.diverged)
     assert live.steps == T and live.t is None
-
-
-def test_state_is_the_filter_state():
-    est = BUILD["ekf"]()
-    live = vj.Online(est, X0, P0)
-    _feed(live, YS, US)
-    ref = vj.filter(est, YS, US, X0, P0)
-    np.testing.assert_allclose(live.state.filter.x, ref.state.x, **TOL)
-    np.testing.assert_allclose(live.state.filter.P, ref.state.P, **TOL)
-    assert isinstance(live.state, O.OnlineState) and not bool(live.state.bad)
+    # the whole filter state (a PF's particles and key included) is vehjax.filter's last one
+    state = live.state
+    assert isinstance(state, O.OnlineState) and not bool(state.bad)
+    assert jax.tree.structure(state.filter) == jax.tree.structure(ref.state)
+    for a, b in zip(jax.tree.leaves(state.filter), jax.tree.leaves(ref.state)):
+        if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
+            a, b = jax.random.key_data(a), jax.random.key_data(b)
+        np.testing.assert_allclose(a, b, **TOL)
 
 
 def test_stamps_at_two_steps_are_prediction_steps():
@@ -169,7 +172,7 @@ def test_refusals_name_their_argument_and_change_nothing():
         vj.Online("ekf", X0, P0)
 
 
-@pytest.mark.parametrize("name", ["ekf", "bootstrap_pf"])
+@pytest.mark.parametrize("name", ["ekf", PF_SLOW])
 def test_save_and_load_continue_identically(name, tmp_path):
     est = BUILD[name]()
     whole = vj.Online(est, X0, P0, key=_key(est), dt=DT)
@@ -186,8 +189,11 @@ def test_save_and_load_continue_identically(name, tmp_path):
         np.testing.assert_array_equal(a.mean, b.mean)
         np.testing.assert_array_equal(a.cov, b.cov)
     other = vj.filters.bootstrap_pf(MODEL, Q, R, n_particles=32)  # another state's layout
-    with pytest.raises(ValueError, match="^path: "):
+    with pytest.raises(ValueError, match="^path: .*" + ("expects" if est.needs_key else
+                                                           "not of 'bootstrap_pf'")):
         vj.Online.load(tmp_path / "car.npz", other)
+    with pytest.raises(ValueError, match="^estimator"):
+        vj.Online.load(tmp_path / "car.npz", "ekf")
     np.savez(tmp_path / "other.npz", a=np.zeros(2))
     with pytest.raises(ValueError, match="^path: .*not a saved Online"):
         vj.Online.load(tmp_path / "other.npz", est)
@@ -235,7 +241,7 @@ print(json.dumps({"means": means, "logliks": logliks, "source": source,
 """
 
 
-@pytest.mark.parametrize("name", ["ukf", "bootstrap_pf"])
+@pytest.mark.parametrize("name", ["ukf", PF_SLOW])
 def test_exported_step_runs_without_vehjax(name, tmp_path):
     est = BUILD[name]()
     live = vj.Online(est, X0, P0, key=_key(est))
@@ -259,6 +265,7 @@ def test_exported_step_runs_without_vehjax(name, tmp_path):
     np.testing.assert_allclose(got["logliks"], [w.loglik for w in want], **TOL)
 
 
+@pytest.mark.slow  # two more compiles (the filter and vehjax.filter in float32)
 def test_float32_runs_in_float32():
     est = BUILD["ekf"]()
     live = vj.Online(est, X0.astype(np.float32), P0.astype(np.float32))
@@ -275,6 +282,7 @@ def _bench():
     return load_benchmark("online")
 
 
+@pytest.mark.slow  # a benchmark's smoke run (pyproject.toml's slow marker)
 def test_bench_online_smoke_ekf(capsys):
     """Tiny sizes, the EKF row: checked equal to vehjax.filter and filterpy, then timed."""
     assert _bench().main(["--quick", "--rows", "ekf"]) == 0

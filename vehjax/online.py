@@ -496,7 +496,11 @@ class Online:
         """The filter :meth:`save` wrote to ``path``, continuing with ``estimator`` (the one
         it was saved from, or one built alike). ValueError naming ``path`` when the file is not
         such a file or its state does not fit the estimator."""
+        _widths(estimator)
         saved = _read(path)
+        if str(saved["estimator"]) != estimator.name:  # refused before anything compiles
+            raise ValueError(f"path: {path} holds the state of estimator "
+                             f"{str(saved['estimator'])!r}, not of {estimator.name!r}")
         opt = {k: None if np.isnan(saved[k]) else float(saved[k]) for k in ("dt", "max_gap")}
         key = jax.random.key(0) if estimator.needs_key else None  # replaced by the saved state
         th0 = saved["theta0"] if bool(saved["has_theta0"]) else None
@@ -504,8 +508,7 @@ class Online:
         live = cls(estimator, saved["x0"], saved["P0"], th0, Pth0, key, **opt)
         buffers = [saved[f"state_{i}"] for i in range(int(saved["n_buffers"]))]
         expected = [(np.dtype(d), (n,)) for d, n in live.layout.buffers]
-        if [(b.dtype, b.shape) for b in buffers] != expected or str(
-                saved["estimator"]) != estimator.name:
+        if [(b.dtype, b.shape) for b in buffers] != expected:
             raise ValueError(f"path: {path} holds the state of estimator "
                              f"{str(saved['estimator'])!r} in buffers "
                              f"{[(str(b.dtype), b.shape) for b in buffers]}; estimator "
