@@ -287,7 +287,7 @@ def report(row, est, timings, args):
     med = timings[0].stats()[0]
     target = TARGET_US[row]
     line = (f"{row:<5}target: Online.update median {med:.1f} us "
-            f"{'<' if med < target else '>='} {target:g} us")
+            f"{'<' if med < target else '>='} {target:g} us (dispatch {args.dispatch})")
     if row == "mpf":
         line += (f" (N = {args.particles}); paper 004's {PAPER_MS} ms a step: ratio "
                  f"{med / 1e3 / PAPER_MS:.2f}")
