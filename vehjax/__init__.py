@@ -68,6 +68,7 @@ if TYPE_CHECKING:  # what static analysers and IDEs see; at run time each loads 
     from . import calibrate, data, execution, filters, limit_drive, math, metrics, models, scenarios
     from . import second_car, tune
     from .filtering import FilterResult, filter
+    from .online import Online
     from .run import CompiledRun, RunResult, compile_run, run
     from .simulate import Simulation, simulate
     from .smoothing import SmoothResult, smooth
@@ -79,6 +80,7 @@ __all__ = [
     "execution", "simulate",
     "Simulation",
     "filter", "FilterResult", "smooth", "SmoothResult", "run", "compile_run", "RunResult", "CompiledRun",
+    "Online",
 ]
 
 #: the names of ``__all__`` that are not submodules -> the submodule that defines each
@@ -86,6 +88,7 @@ _DEFINED_IN = {
     "filter": "filtering", "FilterResult": "filtering", "smooth": "smoothing", "SmoothResult": "smoothing",
     "run": "run", "compile_run": "run", "RunResult": "run", "CompiledRun": "run",
     "simulate": "simulate", "Simulation": "simulate",
+    "Online": "online",
 }
 
 

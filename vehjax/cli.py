@@ -15,7 +15,7 @@ from . import reproduce  # light: its registry names the study modules, loaded w
 from .commands import drive_cli  # light: fit and estimate load their work when run
 
 BENCHMARKS = ("gaussian", "particle", "marginalized", "sevendof", "scale", "all", "liu_west_bias",
-              "device", "smooth", "fit", "floor")
+              "device", "smooth", "fit", "floor", "online")
 #: the keys of vehjax.models.REGISTRY and vehjax.scenarios.REGISTRY (tests/test_import.py checks
 #: that they agree), written out so that building the parser (``vehjax --help``) imports no JAX
 MODELS = ("Dynamic3DOF", "KinematicBicycle", "SevenDOF", "SingleTrack", "SingleTrackBank",
