@@ -34,8 +34,8 @@ MDF_DRIVE = ('[drive]\nchannels = { steer = "SteerAngle", speed = ["VehSpeed", 1
              'acc_y = "LatAcc", yaw_rate = "YawRate", beta_true = "beta_true" }\n'
              'reference = ["beta_true"]\n'
              'units = { beta_true = "rad" }\n' + NAMES)
-ROS_DRIVE = ('[drive]\nfields = { steer = "/steering.data", speed = "/vehicle/twist.twist.linear.x",'
-             ' acc_y = "/imu/data.linear_acceleration.y", '
+ROS_DRIVE = ('[drive]\nfields = { steer = "/steering.data", '
+             'speed = "/vehicle/twist.twist.linear.x", acc_y = "/imu/data.linear_acceleration.y", '
              'yaw_rate = "/imu/data.angular_velocity.z" }\n'
              'units = { steer = "deg" }\nstamps = "header"\n' + NAMES)
 CAN_DRIVE = ('[drive]\ndbc = "car.dbc"\nchannel = 0\nsignals = { steer = "Steering.SteerAngle", '
@@ -83,7 +83,7 @@ def write_mdf(path, seed, steps):
 def fitted(tmp_path_factory):
     """`vehjax fit` on an MDF4 drive: (folder, the fit.json content)."""
     d = tmp_path_factory.mktemp("mdf_fit")
-    write_mdf(d / "drive1.mf4", seed=1, steps=1501)
+    write_mdf(d / "drive1.mf4", seed=1, steps=501)
     (d / "car.toml").write_text(MDF_DRIVE + MODEL_FIT)
     code = cli.main(["fit", str(d / "drive1.mf4"), "--config", str(d / "car.toml"),
                      "--out", str(d / "fit"), "--no-progress"])
@@ -100,7 +100,7 @@ def test_fit_on_an_mdf4_file_recovers_the_stiffnesses(fitted):
         assert abs(res["values"][k] - v) < 3 * se, (k, res["values"][k], se)
     np.testing.assert_allclose(np.diag(content["filter"]["R"]), np.square(NOISE), rtol=0.15)
     assert content["drive"]["channels"]["speed"] == ["VehSpeed", 1]
-    assert "drive1.mf4 (1501 steps of 0.01 s" in (d / "fit" / "report.txt").read_text()
+    assert "drive1.mf4 (501 steps of 0.01 s" in (d / "fit" / "report.txt").read_text()
 
 
 def _reference(content, drive, names):
@@ -183,7 +183,8 @@ def test_estimate_on_a_ros2_bag_equals_vehjax_filter(fitted, tmp_path):
     (t, delta, vx, xs, ys), start = _bag(tmp_path / "bag", seed=2, steps=401)
     (tmp_path / "bag.toml").write_text(ROS_DRIVE)
     fields = {"steer": "/steering.data", "speed": "/vehicle/twist.twist.linear.x",
-              "acc_y": "/imu/data.linear_acceleration.y", "yaw_rate": "/imu/data.angular_velocity.z"}
+              "acc_y": "/imu/data.linear_acceleration.y",
+              "yaw_rate": "/imu/data.angular_velocity.z"}
     est = _estimate_equals_the_reference(
         fitted, tmp_path / "bag", tmp_path / "bag.toml", tmp_path,
         lambda: read_drive(tmp_path / "bag", fields=fields, units={"steer": "deg"}), xs, vx)
@@ -304,3 +305,20 @@ def test_estimate_refuses_the_fits_mdf_keys_for_a_csv(fitted, tmp_path, capsys):
     _refused(capsys, ["estimate", str(tmp_path / "drive.csv"), "--fit",
                       str(d / "fit" / "fit.json"), "--out", str(tmp_path / "out")],
              ["fit.json [drive] channels", "a CSV file"], tmp_path / "out")
+
+
+def test_a_multi_rate_drive_on_uniform_stamps_is_resampled_for_the_model():
+    """A 20 Hz signal among 100 Hz ones whose stamps all fall on the 100 Hz grid: the union is
+    uniform, yet for_model interpolates the slow signal (numpy.interp on its own samples)
+    instead of handing NaN inputs to the model."""
+    t = 0.01 * np.arange(21)
+    vx = np.full(21, np.nan)
+    vx[::5] = 20.0 + np.arange(5.0)
+    d = Drive(t=t, signals={"delta": np.sin(t), "vx": vx}, units={"delta": "rad", "vx": "m/s"},
+              intervals={"delta": 0.01, "vx": 0.05})
+    assert d.dt == pytest.approx(0.01) and not d.on_grid(0.01)
+    assert Drive(t=t, signals={"delta": np.sin(t)}, units={"delta": "rad"}).on_grid(0.01)
+    u, y = d.for_model(vehjax.models.SingleTrack(dt=0.01), missing_outputs=("ay", "r"))
+    np.testing.assert_allclose(u[:, 1], np.interp(t, t[::5], vx[::5]), rtol=1e-14)
+    np.testing.assert_allclose(u[:, 0], np.sin(t), rtol=1e-14, atol=1e-16)
+    assert np.isnan(y).all()
