@@ -322,3 +322,23 @@ def test_a_multi_rate_drive_on_uniform_stamps_is_resampled_for_the_model():
     np.testing.assert_allclose(u[:, 1], np.interp(t, t[::5], vx[::5]), rtol=1e-14)
     np.testing.assert_allclose(u[:, 0], np.sin(t), rtol=1e-14, atol=1e-16)
     assert np.isnan(y).all()
+
+
+def test_the_fits_drive_section_reads_another_mdf_file(fitted, small_mdf):
+    """fit.json's [drive] (a [channel, group] pair back from JSON as a list) reads another
+    MDF file as read_drive does with the same options."""
+    from vehjax.commands import setup
+
+    drive = setup.load_drive(small_mdf, fitted[1]["drive"])
+    ref = read_drive(small_mdf, channels={"steer": "SteerAngle", "speed": ("VehSpeed", 1),
+                                          "acc_y": "LatAcc", "yaw_rate": "YawRate",
+                                          "beta_true": "beta_true"},
+                     reference=("beta_true",), units={"beta_true": "rad"})
+    np.testing.assert_array_equal(drive.t, ref.t)
+    assert drive.units == ref.units and drive.intervals == ref.intervals
+    for group in ("signals", "reference"):
+        a, b = getattr(drive, group), getattr(ref, group)
+        assert sorted(a) == sorted(b)
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k])
+    assert drive.units["speed"] == "m/s" and drive.intervals["speed"] == pytest.approx(0.05)
