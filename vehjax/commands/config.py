@@ -2,7 +2,7 @@
 
 ::
 
-    [drive]                       # how the drive file is read, and mapped onto the model
+    [drive]                       # how the drive file (here a CSV) is read, and mapped
     time = "time"                 # the time column (default "t")
     units = { time = "ms", steer = "deg", speed = "km/h" }   # column -> unit (else the header's)
     reference = ["beta_ins"]      # columns for validation only
@@ -26,6 +26,26 @@
     [estimate]
     smooth = false                # run the smoother instead of the filter
 
+The drive file's format (its suffix, or a ROS 2 bag folder: :func:`vehjax.data.read_drive`)
+says which [drive] keys read it (:data:`FORMAT_KEYS`); ``units``, ``reference`` and the
+mapping keys (:data:`DRIVE_MAPPING`) serve every format, the others only their own (another
+format's key is refused, naming the key and the drive file's format)::
+
+    # CSV (.csv, .txt): time, units, reference, columns, delimiter, decimal, encoding
+    # MDF4/MDF3 (.mf4, .mdf, .dat): a signal name -> channel, or [channel, group index]
+    channels = { steer = "SteeringWheelAngle", speed = ["VehicleSpeed", 1], r = "YawRate" }
+    # ROS 2 bag (a folder, .db3, .mcap): a signal name -> "/topic.path.to.field"
+    fields = { r = "/imu/data.angular_velocity.z", speed = "/vehicle/twist.twist.linear.x" }
+    stamps = "header"             # or "record" (default "header")
+    # CAN log (.asc, .blf, .log, .trc): the DBC (a relative path is taken relative to this
+    # file's folder) and a signal name -> "MESSAGE.SIGNAL"
+    dbc = "car.dbc"
+    signals = { speed = "ESP_Status.VehicleSpeed", steer = "SAS_Data.SteeringAngle" }
+    channel = 0                   # only this bus channel's frames (default all)
+
+For these formats ``units`` (signal name -> unit) overrides the file's unit, and ``names``
+maps the signal names of ``channels``, ``fields`` or ``signals`` onto the model.
+
 Every key is checked here, before the drive is read: an unknown section or key, or a value
 of the wrong kind, is a ValueError naming the file, the section and the key
 (``car.toml [fit] parms: unknown key; ...``). What needs the model (parameter names, one value
@@ -42,8 +62,8 @@ import math
 import tomllib
 from pathlib import Path
 
-__all__ = ["read", "check", "FILTERS", "DRIVE_FORMAT", "DRIVE_MAPPING", "SCHEMA",
-           "NOISE_KINDS", "OPTIMIZERS", "STARTS"]
+__all__ = ["read", "check", "FILTERS", "DRIVE_FORMAT", "DRIVE_MAPPING", "FORMAT_KEYS",
+           "FORMAT_NEEDS", "FORMAT_LABELS", "SCHEMA", "NOISE_KINDS", "OPTIMIZERS", "STARTS"]
 
 #: the filter families a drive is fitted and estimated with (builders of vehjax.filters)
 FILTERS = ("ekf", "ukf", "ckf")
@@ -52,8 +72,21 @@ FILTERS = ("ekf", "ukf", "ckf")
 NOISE_KINDS = ("Q", "R", "input")
 OPTIMIZERS = ("adam", "lbfgs", "scoring")
 STARTS = ("data", "theta")
-#: [drive] keys that say how the file is read: passed to the reader as keyword arguments
-DRIVE_FORMAT = ("time", "units", "reference", "columns", "delimiter", "decimal", "encoding")
+#: [drive] keys each drive-file format takes, passed to its reader as keyword arguments
+#: (the formats as vehjax.data.read.SUFFIXES names them)
+FORMAT_KEYS = {
+    "csv": ("time", "units", "reference", "columns", "delimiter", "decimal", "encoding"),
+    "mdf": ("channels", "units", "reference"),
+    "ros2": ("fields", "stamps", "units", "reference"),
+    "can": ("dbc", "signals", "channel", "units", "reference"),
+}
+#: the [drive] keys a format cannot be read without
+FORMAT_NEEDS = {"csv": (), "mdf": ("channels",), "ros2": ("fields",), "can": ("dbc", "signals")}
+#: the formats in words, for messages
+FORMAT_LABELS = {"csv": "a CSV file", "mdf": "an MDF file", "ros2": "a ROS 2 bag",
+                 "can": "a CAN log"}
+#: [drive] keys that say how the file is read (those of every format)
+DRIVE_FORMAT = tuple(dict.fromkeys(k for keys in FORMAT_KEYS.values() for k in keys))
 #: [drive] keys that say how the drive is mapped onto the model (Drive.for_model, between)
 DRIVE_MAPPING = ("names", "missing_outputs", "max_gap", "start", "stop")
 
@@ -146,6 +179,27 @@ def plain(key, v):
     return v
 
 
+def channel_source(key, v):
+    """An MDF channel: its name, or ``[name, group index]`` (a tuple) for a name that several
+    channel groups hold."""
+    if isinstance(v, str) and v.strip():
+        return v
+    ok = (isinstance(v, (list, tuple)) and len(v) == 2 and isinstance(v[0], str)
+          and v[0].strip() and isinstance(v[1], int) and not isinstance(v[1], bool) and v[1] >= 0)
+    if not ok:
+        _fail(key, f"expected a channel name or [channel name, group index >= 0], got {v!r}")
+    return tuple(v)
+
+
+def bus_channel(key, v):
+    """A CAN log's channel as python-can's reader names it: an integer >= 0 or a string."""
+    if isinstance(v, int) and not isinstance(v, bool) and v >= 0:
+        return v
+    if isinstance(v, str) and v.strip():
+        return v
+    _fail(key, f"expected a channel number >= 0 or a name (e.g. 0 or \"can0\"), got {v!r}")
+
+
 def bound_pair(key, v) -> tuple:
     """``[low, high]``: two numbers, low < high (``inf`` and ``-inf`` for an open end)."""
     ok = isinstance(v, list) and len(v) == 2 and all(
@@ -159,6 +213,9 @@ SCHEMA = {
     "drive": {
         "time": text, "units": table(text), "reference": names, "columns": names,
         "delimiter": text, "decimal": choice((".", ",")), "encoding": text,
+        "channels": table(channel_source), "fields": table(text),
+        "stamps": choice(("header", "record")), "dbc": text, "signals": table(text),
+        "channel": bus_channel,
         "names": table(text), "missing_outputs": names, "max_gap": positive,
         "start": number, "stop": number,
     },
@@ -211,7 +268,18 @@ def read(path, sections=tuple(SCHEMA)) -> dict:
             raw = tomllib.load(fh)
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"{path.name}: not a valid TOML file: {err}") from None
-    return check(raw, path.name, sections)
+    return _relative_to(check(raw, path.name, sections), path.parent)
+
+
+def _relative_to(config: dict, folder: Path) -> dict:
+    """``config`` with a relative [drive] dbc path made absolute from ``folder`` (the
+    configuration file's), so that it reads from any working directory and from fit.json."""
+    dbc = config.get("drive", {}).get("dbc")
+    if dbc is None:
+        return config
+    dbc = Path(dbc).expanduser()
+    dbc = dbc if dbc.is_absolute() else (folder / dbc).absolute()
+    return {**config, "drive": {**config["drive"], "dbc": str(dbc)}}
 
 
 def require(config: dict, where: str) -> None:

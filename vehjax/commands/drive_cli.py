@@ -19,9 +19,14 @@ __all__ = ["add_commands"]
 _FIT_HELP = ("Fit a model to a drive file by maximum likelihood (vehjax.tune.fit): the "
              "parameters and noise named in the configuration's [fit] section, with standard "
              "errors. Writes DIR/report.txt, DIR/fit.json (the fitted filter, for `vehjax "
-             "estimate`), DIR/fitted.png and DIR/innovations.png. The configuration (TOML): "
-             "[drive] how the file is read (time, units, reference, ...) and mapped onto the "
-             "model (names: column -> model name, max_gap, ...); [model] name (a built-in "
+             "estimate`), DIR/fitted.png and DIR/innovations.png. The drive file is a CSV, "
+             "an MDF4/MDF3 file (.mf4, .mdf, .dat), a ROS 2 bag (its folder, .db3, .mcap) or "
+             "a CAN log (.asc, .blf, .log, .trc) with a DBC (each beyond CSV with its optional "
+             "extra: vehjax[mdf], vehjax[ros], vehjax[can]). The configuration (TOML): "
+             "[drive] how the file is read (units, reference; a CSV's time, columns, ...; an "
+             "MDF file's channels; a bag's fields, stamps; a CAN log's dbc, signals, channel) "
+             "and mapped onto the model (names: signal -> model name, max_gap, ...); "
+             "[model] name (a built-in "
              "model or 'package.module:factory'), dt, options, theta (spec values); [fit] "
              "params, bounds, noise, filter, process_std, meas_std, P0_std, x0, input_noise, "
              "...; [estimate] smooth. See vehjax.commands.config.")
@@ -29,7 +34,9 @@ _ESTIMATE_HELP = ("Run a fitted filter (or its smoother) over another drive file
                   "DIR/estimates.csv (t and each state's mean and standard deviation, units "
                   "in the header), DIR/estimates.parquet (with pyarrow) and DIR/estimates.png. "
                   "The drive is read and mapped as the fit's was (its [drive] section, stored "
-                  "in fit.json) unless --config gives another [drive].")
+                  "in fit.json) unless --config gives another [drive] (a drive file of "
+                  "another format or layout needs one; a relative dbc path is taken from the "
+                  "configuration file's folder).")
 
 
 def _names_list(text: str) -> list:
@@ -87,8 +94,9 @@ def add_commands(sub, out_folder) -> None:
     ``out_folder`` is the argparse type of ``--out``."""
     p = sub.add_parser("fit", help="fit a model to a drive file; writes report, fit.json, "
                        "figures", description=_FIT_HELP)
-    p.add_argument("drive", metavar="DRIVE", help="the drive file (CSV: a header of column "
-                   "names, units as 'name [unit]' or in [drive] units)")
+    p.add_argument("drive", metavar="DRIVE", help="the drive file: a CSV (a header of column "
+                   "names, units as 'name [unit]' or in [drive] units), an MDF4/MDF3 file, a "
+                   "ROS 2 bag (folder, .db3, .mcap) or a CAN log (.asc, .blf, .log, .trc)")
     p.add_argument("--config", required=True, metavar="TOML", help="the configuration file")
     p.add_argument("--model", help="the model, overriding [model] name: a built-in model "
                    "(`vehjax models`) or 'package.module:factory'")
@@ -103,7 +111,8 @@ def add_commands(sub, out_folder) -> None:
 
     p = sub.add_parser("estimate", help="run a fitted filter over a drive file; writes "
                        "estimates (CSV, Parquet) and a figure", description=_ESTIMATE_HELP)
-    p.add_argument("drive", metavar="DRIVE", help="the drive file")
+    p.add_argument("drive", metavar="DRIVE", help="the drive file, of any format `vehjax "
+                   "fit` reads")
     p.add_argument("--fit", required=True, metavar="FIT.json",
                    help="the fit written by `vehjax fit` (DIR/fit.json)")
     p.add_argument("--out", type=out_folder, default="out", help="output folder (default ./out)")

@@ -13,6 +13,8 @@ import numpy as np
 
 from .. import filters, models, validation
 from ..data.drive import Drive
+from ..data.read import drive_format, read_drive
+from . import config
 from .config import DRIVE_FORMAT, DRIVE_MAPPING
 
 __all__ = ["load_drive", "build_model", "model_label", "on_model", "OnGrid", "Start",
@@ -31,22 +33,61 @@ def _keyed(section: str, keys, err: ValueError) -> ValueError:
     return err
 
 
-def load_drive(path, section: dict) -> Drive:
-    """The drive file at ``path`` read with the [drive] section's format options
-    (:data:`~vehjax.commands.config.DRIVE_FORMAT`, passed as keyword arguments): a delimited
-    text file (CSV) through :meth:`vehjax.data.Drive.from_csv`. ValueError for a missing file
-    (naming ``DRIVE``) and for what the reader refuses (naming the [drive] key).
+def _format_options(path: Path, kind: str, section: dict) -> dict:
+    """The [drive] keys of ``section`` that format ``kind`` reads, as the reader's keyword
+    arguments; ValueError naming a key of another format, a key the format needs, a DBC file
+    that is not there."""
+    label = config.FORMAT_LABELS[kind]
+    takes = config.FORMAT_KEYS[kind]
+    for key in DRIVE_FORMAT:
+        if key in section and key not in takes:
+            raise ValueError(f"[drive] {key}: {path.name!r} is {label}, which does not take "
+                             f"{key}; {label} takes {', '.join(takes)}")
+    for key in config.FORMAT_NEEDS[kind]:
+        if key not in section:
+            raise ValueError(f"[drive] {key}: missing; {path.name!r} is {label}, read with "
+                             f"{' and '.join(config.FORMAT_NEEDS[kind])}")
+    options = {k: section[k] for k in takes if k in section}
+    if "channels" in options:  # [channel, group] comes back from fit.json as a list
+        options["channels"] = {k: v if isinstance(v, str) else tuple(v)
+                               for k, v in options["channels"].items()}
+    if "dbc" in options:
+        dbc = Path(options["dbc"]).expanduser()
+        if not dbc.is_file():
+            raise ValueError(f"[drive] dbc: {str(dbc)!r} is not a file (a relative path is "
+                             f"taken relative to the configuration file's folder)")
+        options["dbc"] = dbc
+    return options
 
-    The one place a drive file is read: a reader of more formats that takes the same keyword
-    arguments replaces the ``from_csv`` call, its own options joining ``DRIVE_FORMAT`` and
-    the [drive] schema of :mod:`vehjax.commands.config`."""
+
+def load_drive(path, section: dict) -> Drive:
+    """The drive file at ``path`` read by :func:`vehjax.data.read_drive` with the [drive]
+    section's options for its format (:data:`~vehjax.commands.config.FORMAT_KEYS`: a CSV's
+    ``time``, ``columns``, ...; an MDF file's ``channels``; a ROS 2 bag's ``fields`` and
+    ``stamps``; a CAN log's ``dbc``, ``signals`` and ``channel``; ``units`` and ``reference``
+    for all). ``path`` is a file or a ROS 2 bag folder.
+
+    Raises ValueError naming ``DRIVE`` for a missing file, a suffix of no known format, one
+    the reader cannot read and a format whose optional library is not installed (saying which
+    extra to install); naming the [drive] key for another format's key, a missing one and what
+    the reader refuses (an unknown channel, a unit it cannot convert, ...)."""
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"DRIVE: {str(path)!r} is not a file")
-    options = {k: section[k] for k in DRIVE_FORMAT if k in section}
+    if not path.exists():
+        raise ValueError(f"DRIVE: {str(path)!r} is not a file (nor a ROS 2 bag folder)")
     try:
-        return Drive.from_csv(path, **options)
+        kind = drive_format(path)
+        options = _format_options(path, kind, section)
+        return read_drive(path, **options)
+    except ImportError as err:
+        raise ValueError(f"DRIVE: {str(path)!r} is {config.FORMAT_LABELS[kind]}: {err}") from None
     except ValueError as err:
+        text = str(err)
+        if text.startswith("path:"):
+            raise ValueError("DRIVE:" + text.removeprefix("path:")) from None
+        if text.startswith("["):
+            raise
+        if not any(text.startswith(f"{k}:") for k in DRIVE_FORMAT):
+            raise ValueError(f"DRIVE: {str(path)!r}: {text}") from None
         raise _keyed("drive", DRIVE_FORMAT, err) from None
 
 
@@ -118,13 +159,14 @@ class OnGrid(NamedTuple):
 
 def on_model(drive: Drive, model, section: dict) -> OnGrid:
     """``drive`` cut to [start, stop] and mapped onto ``model`` (:meth:`Drive.for_model`
-    with the section's ``names``, ``missing_outputs`` and ``max_gap``) on the model's grid."""
+    with the section's ``names``, ``missing_outputs`` and ``max_gap``) on the model's grid
+    (resampled unless every signal is already on it: a multi-rate drive's slower signals are
+    interpolated between their own samples)."""
     try:
         if "start" in section or "stop" in section:
             drive = drive.between(section.get("start"), section.get("stop"))
-        dt = float(model.dt)
-        if drive.dt is None or abs(drive.dt - dt) > 1e-9 * dt:
-            drive = drive.resample(dt, max_gap=section.get("max_gap"))
+        if not drive.on_grid(float(model.dt)):
+            drive = drive.resample(float(model.dt), max_gap=section.get("max_gap"))
         us, ys = drive.for_model(model, section.get("names"),
                                  missing_outputs=section.get("missing_outputs", ()))
     except ValueError as err:

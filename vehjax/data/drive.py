@@ -353,6 +353,16 @@ class Drive:
         return Drive(t=grid, signals=on_grid(self.signals), reference=on_grid(self.reference),
                      units=dict(self.units), dt=dt)
 
+    def on_grid(self, dt: float) -> bool:
+        """Whether every signal is sampled on the uniform grid of step ``dt`` [s]: ``t`` is
+        uniform with that step (to 1e-9 relative) and no signal of :attr:`intervals` has another
+        interval (a multi-rate drive whose stamps happen to be uniform still has its slower
+        signals NaN between their samples). :meth:`for_model` resamples a drive that is not."""
+        dt = float(dt)
+        if self.dt is None or abs(self.dt - dt) > 1e-9 * dt:
+            return False
+        return all(abs(v - dt) <= 1e-6 * dt for v in self.intervals.values())
+
     def between(self, start=None, stop=None) -> "Drive":
         """The samples with start <= t <= stop [s] (no resampling), at least 2.
 
@@ -375,17 +385,17 @@ class Drive:
                   max_gap=None):
         """(inputs (T, nu), measurements (T, ny)) for ``model`` on its grid, in its order.
 
-        The drive is resampled to ``model.dt`` unless it is already on that grid. Each model
-        input and output is read from the signal of the same name, or from the column that
-        ``names`` (column name -> model name) maps onto it. Units are matched only where the
-        model declares them (:func:`declared_units`): there the column's SI unit must be the
-        SI unit of the model's, and the column is converted to the model's unit (a column
-        given in deg feeds a model input in rad, or in deg if the model declares deg). Where
-        the model declares none (a :class:`~vehjax.models.Model` built without ``units=``, or
-        a name left out of it) the column goes in unchecked, in its SI unit; declare units
-        with ``Model(..., units={"delta": "rad", "ay": "m/s^2"})`` to have them checked.
-        Missing samples of the measurements stay NaN (a filter skips them); inputs must be
-        complete.
+        The drive is resampled to ``model.dt`` unless it is already on that grid
+        (:meth:`on_grid`; a multi-rate drive is resampled, its slower signals interpolated).
+        Each model input and output is read from the signal of the same name, or from the column
+        that ``names`` (column name -> model name) maps onto it. Units are matched only where
+        the model declares them (:func:`declared_units`): there the column's SI unit must be the
+        SI unit of the model's, and the column is converted to the model's unit (a column given
+        in deg feeds a model input in rad, or in deg if the model declares deg). Where the model
+        declares none (a :class:`~vehjax.models.Model` built without ``units=``, or a name left
+        out of it) the column goes in unchecked, in its SI unit; declare units with
+        ``Model(..., units={"delta": "rad", "ay": "m/s^2"})`` to have them checked. Missing
+        samples of the measurements stay NaN (a filter skips them); inputs must be complete.
 
         A :attr:`reference` channel feeds a model output only when ``names`` maps it there
         (``names={"ref_vy": "vy"}`` for a model with a reference output, e.g.
@@ -421,9 +431,8 @@ class Drive:
                 raise ValueError(f"names: {target!r} is not an input or output of the model "
                                  f"({model.input_names}, {model.output_names})")
         missing_outputs = _names("missing_outputs", missing_outputs, model.output_names)
-        drive = self
-        if self.dt is None or abs(self.dt - float(model.dt)) > 1e-9 * float(model.dt):
-            drive = self.resample(float(model.dt), max_gap=max_gap)
+        drive = self if self.on_grid(float(model.dt)) else self.resample(float(model.dt),
+                                                                         max_gap=max_gap)
         source = {target: col for col, target in names.items()}
         hint = _declare_hint if _keyword_units(model) else None
         u = drive._columns("input", model.input_names, declared_units(model, "input"), source,

@@ -23,12 +23,31 @@ from .drive import Drive
 from .mdf import read_mdf
 from .rosbag import read_ros2
 
-__all__ = ["read_drive", "SUFFIXES"]
+__all__ = ["read_drive", "drive_format", "SUFFIXES"]
 
 #: suffix -> the format read_drive reads it as.
 SUFFIXES = {".csv": "csv", ".txt": "csv", ".mf4": "mdf", ".mdf": "mdf", ".dat": "mdf",
             ".db3": "ros2", ".mcap": "ros2", ".asc": "can", ".blf": "can", ".log": "can",
             ".trc": "can"}
+
+
+def drive_format(path) -> str:
+    """The format :func:`read_drive` reads ``path`` as: ``"csv"``, ``"mdf"``, ``"ros2"`` or
+    ``"can"`` (:data:`SUFFIXES`; a folder holding ``metadata.yaml`` is a ROS 2 bag).
+
+    Raises ValueError (naming ``path``) for a path that does not exist or a suffix of no known
+    format, listing the known ones."""
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"path: {str(path)!r} does not exist")
+    kind = "ros2" if path.is_dir() and (path / "metadata.yaml").is_file() else SUFFIXES.get(
+        path.suffix.lower())
+    if kind is None:
+        what = "a folder without metadata.yaml (not a ROS 2 bag)" if path.is_dir() else (
+            f"suffix {path.suffix!r}")
+        raise ValueError(f"path: {str(path)!r}: {what}; read_drive reads "
+                         f"{', '.join(sorted(SUFFIXES))} files and ROS 2 bag folders")
+    return kind
 
 
 def read_drive(path, **options) -> Drive:
@@ -42,16 +61,7 @@ def read_drive(path, **options) -> Drive:
     Raises ValueError for a path that does not exist or a suffix of no known format (listing
     them), and whatever the reader raises; TypeError for an option the reader does not take.
     """
-    path = Path(path)
-    if not path.exists():
-        raise ValueError(f"path: {str(path)!r} does not exist")
-    kind = "ros2" if path.is_dir() and (path / "metadata.yaml").is_file() else SUFFIXES.get(
-        path.suffix.lower())
-    if kind is None:
-        what = "a folder without metadata.yaml (not a ROS 2 bag)" if path.is_dir() else (
-            f"suffix {path.suffix!r}")
-        raise ValueError(f"path: {str(path)!r}: {what}; read_drive reads "
-                         f"{', '.join(sorted(SUFFIXES))} files and ROS 2 bag folders")
+    kind = drive_format(path)
     if kind == "csv":
         return Drive.from_csv(path, **options)
     if kind == "mdf":
