@@ -128,10 +128,10 @@ def _estimate_equals_the_reference(fitted, drive_path, toml, tmp_path, read, xs,
     for i, n in enumerate(("vy", "r")):
         np.testing.assert_allclose(est.signals[n], states[:, i], rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(est.signals[f"{n}_std"], stds[:, i], rtol=1e-9)
-    # the grid starts at the first stamp, the truth's; stamps since the epoch may lose the
-    # last grid point to rounding (t[-1] - t[0] a little under (T - 1) dt)
+    # the grid starts at the first stamp, the truth's, and keeps the last one, though stamps
+    # since the epoch put t[-1] - t[0] a rounding under (T - 1) dt
     n = len(est.t)
-    assert n >= len(vx) - 1, (n, len(vx))
+    assert n == len(vx), (n, len(vx))
     beta_true = np.arctan(xs[:n, 0] / vx[:n])
     rms = math.sqrt(np.mean((np.arctan(est.signals["vy"] / vx[:n]) - beta_true) ** 2))
     assert rms < 0.1 * np.std(beta_true), np.degrees(rms)

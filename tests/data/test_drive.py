@@ -230,3 +230,15 @@ def test_reference_channel_feeds_a_reference_output(rav4):
         rav4.for_model(model, names={"ref_vy": "vx"})
     with pytest.raises(ValueError, match="units: signal 'ref_yaw_rate' is in 'rad/s'"):
         rav4.for_model(model, names={"ref_yaw_rate": "vy"})
+
+
+def test_resample_keeps_the_last_sample_of_stamps_since_the_epoch():
+    """Nanosecond stamps since the epoch (ROS, BLF) at 100 Hz: t[-1] - t[0] falls a float64
+    rounding under (T - 1) dt; the grid still ends on the last sample, not one short."""
+    T = 333
+    t = (np.int64(1_700_000_000 * 10**9) + np.arange(T, dtype=np.int64) * 10_000_000) / 1e9
+    assert (t[-1] - t[0]) / 0.01 < T - 1  # the rounding this is about
+    y = np.sin(0.1 * np.arange(T))
+    r = Drive.from_arrays(t, {"a": y}, {"a": "-"}).resample(0.01)
+    assert len(r.t) == T and r.t[-1] == t[-1]
+    np.testing.assert_allclose(r.signals["a"], y, rtol=0, atol=1e-5)  # stamps off by ~1e-7 s

@@ -116,6 +116,13 @@ def _step_tolerance(t: np.ndarray, step: float) -> float:
     return max(1e-6 * step, 8.0 * np.finfo(float).eps * float(np.max(np.abs(t))))
 
 
+def _grid_points(t0: float, t1: float, dt: float) -> int:
+    """Points of the grid t0, t0 + dt, ... <= t1 [s], the last one counted where it misses t1
+    by float64 rounding only (of stamps as large as t0, t1: since the epoch, about 2e-7 s)."""
+    slack = max(1e-12 * (t1 - t0), 8.0 * np.finfo(float).eps * max(abs(t0), abs(t1))) / dt
+    return int(math.floor((t1 - t0) / dt + slack)) + 1
+
+
 def interpolate_with_gaps(t_new, t, y, max_gap: float) -> np.ndarray:
     """Linear interpolation of samples (t, y) at ``t_new`` [s], NaN where it would bridge a gap.
 
@@ -337,10 +344,11 @@ class Drive:
             raise ValueError(f"stop: {t1} s is not after start = {t0} s")
         step = 2.5 * float(np.median(np.diff(self.t)))
         given = None if max_gap is None else _positive("max_gap", max_gap)
-        n = int(math.floor((t1 - t0) / dt * (1.0 + 1e-12))) + 1
+        n = _grid_points(t0, t1, dt)
         if n < 2:
             raise ValueError(f"dt: {dt} s gives fewer than 2 samples between {t0} and {t1} s")
         grid = t0 + dt * np.arange(n)
+        grid[-1] = min(grid[-1], t1)  # a last point past t1 by rounding only: on t1
 
         def on_grid(group):
             return {k: interpolate_with_gaps(grid, self.t, v, gap(k)) for k, v in group.items()}
