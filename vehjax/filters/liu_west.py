@@ -644,12 +644,6 @@ def liu_west_ukf(
             "theta_low, theta_high: required, the bounds of the uniform prior of " f"{names}"
         )
     low_n, high_n = _check_box(theta_low, theta_high, names)
-    dom_lo, dom_hi = _domain(low_n, high_n, bounds, names,
-                             np.asarray(model.theta, float)[list(idx)])
-    tf = Transform(dom_lo, dom_hi)
-    # the prior box's width in s (delta method at its centre), for the kernel's jitter
-    centre = 0.5 * (low_n + high_n)
-    width_s = (high_n - low_n) / np.abs(np.asarray(tf.jacobian(tf.to_unconstrained(centre))))
     n = smc.check_n_particles(n_particles)
     a = validation.number("a", a, 0.0, 1.0)
     gamma = validation.number("gamma", gamma, 0.0, 1.0, high_open=False)
@@ -657,8 +651,15 @@ def liu_west_ukf(
     thr = smc.check_ess_threshold(ess_threshold)
     likelihood = validation.choice("likelihood", likelihood, _LIKELIHOODS)
     move = validation.choice("move", move, _MOVES)
+    recurrent = validation.flag("recurrent", recurrent)
     resample = smc.check_resample(resample)
     Qn, Rn = validation.cov("Q", Q, nx, allow_psd=True), validation.cov("R", R, ny)
+    dom_lo, dom_hi = _domain(low_n, high_n, bounds, names,
+                             np.asarray(model.theta, float)[list(idx)])
+    tf = Transform(dom_lo, dom_hi)
+    # the prior box's width in s (delta method at its centre), for the kernel's jitter
+    centre = 0.5 * (low_n + high_n)
+    width_s = (high_n - low_n) / np.abs(np.asarray(tf.jacobian(tf.to_unconstrained(centre))))
     cfg = _Config(
         f=in_dtype(model.transition), h=in_dtype(model.observe), theta=model.theta, names=names,
         idx=np.asarray(idx, np.int32),  # int32: valid with x64 off too (float32 studies)

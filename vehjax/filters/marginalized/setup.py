@@ -46,13 +46,7 @@ class NiW(NamedTuple):
 
 
 def _std_value(name, value):
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = float("nan")
-    if isinstance(value, (bool, np.bool_)) or not np.isfinite(v) or v <= 0.0:
-        raise ValueError(f"{name}: expected a positive, finite standard deviation, got {value!r}")
-    return v
+    return validation.number(name, value, 0.0, what="a positive, finite standard deviation")
 
 
 def std_dict(arg, value, required, allowed, unit_hint):
@@ -153,11 +147,9 @@ def _linear_noise(model, linear_noise_std, li, linear_states) -> np.ndarray:
     if linear_noise_std is None:
         raise ValueError(f"linear_noise_std: required with linear_states {linear_states} "
                          f"(sigma_phi of eq. 3)")
-    try:
-        sig = np.asarray(linear_noise_std, dtype=float)
-    except (TypeError, ValueError):
-        sig = np.array(np.nan)
-    if isinstance(linear_noise_std, (bool, np.bool_)):
+    try:  # real numbers (validation's rule: no bool, string or object), checked below
+        sig = validation.array("linear_noise_std", linear_noise_std, allow_nan=True)
+    except ValueError:
         sig = np.array(np.nan)
     if sig.ndim == 0 and np.isfinite(sig) and sig >= 0 and hasattr(model, "bank_noise_gain"):
         B = np.asarray(model.bank_noise_gain(), dtype=float)[li]
