@@ -313,7 +313,8 @@ def check_size(model, runs: int, steps: int, device=None, *,
     itemsize = np.dtype(jnp.result_type(float)).itemsize
     execution.check_memory(
         study_bytes(model, runs, steps, itemsize), device,
-        what=f"{names}: {runs} runs x {steps} steps of {type(model).__name__}",
+        what=f"{names}: {runs} run{'s' if runs != 1 else ''} x {steps} steps of "
+             f"{type(model).__name__}",
         advice="use fewer runs or fewer steps (a shorter scenario, or a larger dt)")
 
 
