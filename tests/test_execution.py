@@ -224,3 +224,12 @@ def test_bench_device_quick_runs(capsys):
     out = capsys.readouterr().out
     assert "Device benchmark on" in out and "particle-steps per second" in out
     assert re.search(r"EKF\s+[\d.]+\s+[\d.]+", out) and "targets" in out
+
+
+@pytest.mark.parametrize("bad", ["cpu", b"cpu", 3, [], ["cpu"]])
+def test_devices_that_are_not_devices_are_refused_naming_devices(bad):
+    """A string is not read as the sequence of its characters."""
+    with pytest.raises(ValueError, match="^devices: expected") as err:
+        execution.resolve_devices(bad)
+    assert repr(bad) in str(err.value)
+    assert execution.resolve_devices([jax.devices()[0]]) == [jax.devices()[0]]

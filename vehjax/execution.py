@@ -203,6 +203,8 @@ def resolve_devices(devices) -> list:
         # jax.devices()[0] belongs to process 0; under jax.distributed each process uses its own
         return [jax.devices()[0] if jax.process_count() == 1 else jax.local_devices()[0]]
     try:
+        if isinstance(devices, (str, bytes)):  # not read as a sequence of its characters
+            raise TypeError
         devices = list(devices)
     except TypeError:
         raise ValueError(
