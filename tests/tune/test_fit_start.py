@@ -229,3 +229,48 @@ def test_saturating_fits_from_the_defaults_find_the_limit(long_drives, variant):
         assert res.loglik > res.nested.loglik
         assert res.nested.loglik == pytest.approx(linear.loglik, abs=0.1)
         assert _sideslip_rms(res, held) < rms_linear, tyres
+
+
+def _no_stage_may_run(monkeypatch):
+    """Every stage of the staged fit made to fail: a refusal must come before them."""
+    def stage(*a, **k):
+        raise AssertionError("a stage ran (something was traced) before the refusal")
+
+    for name in ("_nested_stage", "fit_from_theta", "compile_objective"):
+        monkeypatch.setattr(staged, name, stage)
+
+
+@pytest.mark.parametrize("start", ["data", "theta"])
+@pytest.mark.parametrize("kw, words", [
+    (dict(bounds={"mu": (3.5, 5.0)}), ["bounds", "mu", "(3.5, 5.0)", "domain (0, 3)"]),
+    (dict(bounds={"cf": (-2.0, -1.0)}), ["bounds", "cf", "domain (0, inf)"]),
+    (dict(learning_rate=0.1), ["learning_rate", "line search", "optimizer='adam'"]),
+    (dict(learning_rate=0.1, optimizer="scoring"), ["learning_rate", "scoring"]),
+])
+def test_the_staged_fit_refuses_what_its_last_stage_would_before_the_first(
+        monkeypatch, start, kw, words):
+    """Bounds wholly outside a parameter's domain and a learning rate for a line search are
+    refused before the nested model's fit (which neither concerns), naming the argument."""
+    _no_stage_may_run(monkeypatch)
+    ys, us = np.zeros((50, 2)), np.tile([0.0, 20.0], (50, 1))
+    with pytest.raises(ValueError) as err:
+        vehjax.tune.fit(vehjax.filters.ekf, SingleTrack(tyres="brush"), np.eye(2), np.eye(2),
+                        ys, us, x0=np.zeros(2), P0=np.eye(2), params=("cf", "mu"),
+                        start=start, progress=False, **kw)
+    text = str(err.value)
+    assert text.startswith(words[0] + ":")
+    for w in words:
+        assert w in text, (w, text)
+
+
+def test_a_learning_rate_is_left_to_a_particle_filter_whose_default_is_adam():
+    from vehjax.tune import driver, likelihood
+
+    model = SingleTrack()
+    args = (model, np.eye(2), np.eye(2), ("cf",), ("Q", "R"), False)
+    assert likelihood.draws_random_numbers(vehjax.filters.bootstrap_pf, *args,
+                                           {"n_particles": 16})
+    assert not likelihood.draws_random_numbers(vehjax.filters.ekf, *args, None)
+    driver.check_options({"learning_rate": 0.1}, stochastic=True)  # adam takes it
+    with pytest.raises(ValueError, match="^learning_rate: the default optimizer"):
+        driver.check_options({"learning_rate": 0.1}, stochastic=False)

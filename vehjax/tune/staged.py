@@ -59,7 +59,8 @@ from .. import execution, validation
 from .diagnostics import Checks
 from .driver import check_options, compile_objective, fit_from_theta
 from . import priors as tune_priors
-from .likelihood import NOISE, check_data, objective
+from .likelihood import NOISE, check_data, draws_random_numbers, objective
+from .parameterisation import check_bounds
 from .release import release_priors, start_value, to_release
 from .result import Comparison, TuneResult
 
@@ -169,6 +170,18 @@ def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: d
         args, ahead = _widened(args, model, released), None
     _reissue(held, cmp.model)
     return lin, cmp, ahead, args, released
+
+
+def _check_ahead(builder, model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs,
+                 options: dict) -> None:
+    """What the model's own fit would refuse, checked before the nested model's fit: bounds
+    outside a parameter's domain, a learning_rate the default (line-search) optimiser of a
+    deterministic filter does not take (the filter built once to tell, nothing traced)."""
+    params = validation.names("params", params, model.param_names, allow_empty=True)
+    check_bounds(params, bounds, model)
+    if options.get("learning_rate") is not None and options.get("optimizer") is None:
+        check_options(options, stochastic=draws_random_numbers(
+            builder, model, Q0, R0, params, noise, fit_x0, builder_kwargs))
 
 
 def _quietly(fn, *args, **kwargs):
@@ -292,6 +305,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     if priors:  # the prior'd parameters fitted; the names checked here, before the nested fit
         params = tune_priors.fitted_params(
             validation.names("params", params, model.param_names, allow_empty=True), priors)
+    _check_ahead(builder, model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs, options)
     args = dict(x0=x0, P0=P0, params=params, bounds=bounds, noise=noise, fit_x0=fit_x0,
                 builder_kwargs=builder_kwargs, priors=priors)
     diagnose = release and validation.flag("standard_errors",
