@@ -304,8 +304,12 @@ class Drive:
         t1 = hi if stop is None else _within("stop", stop, lo, hi)
         if not t1 > t0:
             raise ValueError(f"stop: {t1} s is not after start = {t0} s")
-        gap = 2.5 * float(np.median(np.diff(self.t))) if max_gap is None else _positive(
-            "max_gap", max_gap)
+        step = float(np.median(np.diff(self.t)))
+        gap = 2.5 * step if max_gap is None else _positive("max_gap", max_gap)
+        if gap <= step * (1.0 + 1e-9):  # not longer: (nearly) every interval a gap, NaN
+            raise ValueError(f"max_gap: {gap:g} s is not longer than the drive's sample "
+                             f"interval ({step:g} s, the median): every sample would be a gap; "
+                             f"give more than {step:g} s (default 2.5 intervals)")
         n = int(math.floor((t1 - t0) / dt * (1.0 + 1e-12))) + 1
         if n < 2:
             raise ValueError(f"dt: {dt} s gives fewer than 2 samples between {t0} and {t1} s")
@@ -380,6 +384,7 @@ class Drive:
             if target not in (*model.input_names, *model.output_names):
                 raise ValueError(f"names: {target!r} is not an input or output of the model "
                                  f"({model.input_names}, {model.output_names})")
+        _one_column_each(names)
         missing_outputs = _names("missing_outputs", missing_outputs, model.output_names)
         drive = self
         if self.dt is None or abs(self.dt - float(model.dt)) > 1e-9 * float(model.dt):
@@ -561,6 +566,17 @@ def _column(arg, name, value, n):
                          f"{k + 1} (index {k}) (use NaN for missing samples)")
     a.setflags(write=False)
     return a
+
+
+def _one_column_each(names: dict) -> None:
+    """ValueError naming ``names`` and the columns where two map onto one model name (one
+    would be dropped silently)."""
+    seen = {}
+    for col, target in names.items():
+        if target in seen:
+            raise ValueError(f"names: columns {seen[target]!r} and {col!r} both map onto "
+                             f"{target!r}; map one column onto each model input or output")
+        seen[target] = col
 
 
 def _names(arg, value, known):
