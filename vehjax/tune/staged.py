@@ -199,7 +199,9 @@ def _reissue(caught, label: str | None = None) -> None:
     for w in caught:
         text = str(w.message)
         if label is not None:
-            text = text.replace("vehjax.tune:", f"vehjax.tune (the nested {label}'s fit):", 1)
+            nested = f"vehjax.tune (the nested {label}'s fit):"
+            text = (text.replace("vehjax.tune:", nested, 1) if "vehjax.tune:" in text
+                    else f"{nested} {text}")
         warnings.warn(text, w.category, stacklevel=3)
 
 
@@ -246,15 +248,40 @@ def _from_nested(model, Q0, R0, args: dict, lin) -> tuple:
     if lin is None:
         return model, Q0, R0, args
     args = dict(args)
-    model = model.with_theta(**lin.params)
+    given = {k: float(model.theta[model.param_names.index(k)]) for k in lin.params}
+    model = model.with_theta(**{k: given[k] if k in lin.on_bound else v
+                                for k, v in lin.params.items()})
     noise = args["noise"]
-    Q0 = lin.Q if "Q" in noise else Q0
-    R0 = lin.R if "R" in noise else R0
+    Q0 = _off_bounds(lin.Q, Q0, "Q", model.state_names, lin.on_bound) if "Q" in noise else Q0
+    R0 = _off_bounds(lin.R, R0, "R", model.output_names, lin.on_bound) if "R" in noise else R0
     if "input" in noise:
-        args["builder_kwargs"] = dict(args["builder_kwargs"] or {}, input_noise=lin.input_noise)
+        inoise = lin.input_noise
+        if isinstance(inoise, dict):  # stds by name: those on their bound start as given
+            start = (args["builder_kwargs"] or {}).get("input_noise") or {}
+            inoise = {k: start.get(k, v) if f"input[{k}]" in lin.on_bound else v
+                      for k, v in inoise.items()}
+        args["builder_kwargs"] = dict(args["builder_kwargs"] or {}, input_noise=inoise)
     if args["fit_x0"]:
         args["x0"] = lin.x0
     return model, Q0, R0, args
+
+
+def _off_bounds(fitted, given, name: str, components, on_bound: dict) -> np.ndarray:
+    """The nested fit's covariance ``fitted`` as the model's start, its variances that ended on
+    their bound (zero) back at the ``given`` start: a quantity reaches its bound only at an
+    infinite coordinate (:mod:`vehjax.tune.boundaries`), so a start there could neither move
+    nor be told on its bound; from the given start the model's fit finds the bound again and
+    reports it (``on_bound``) as a fit from ``start="theta"`` does."""
+    out = np.array(fitted, dtype=float)
+    g = np.asarray(given, dtype=float)
+    for i, c in enumerate(components):
+        if f"{name}[{c},{c}]" in on_bound:
+            v = g[i] if g.ndim == 1 else g[i, i]
+            if out.ndim == 1:
+                out[i] = v
+            else:
+                out[i, i] = v
+    return out
 
 
 def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(), bounds=None,
@@ -296,6 +323,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     t0 = time.perf_counter()
     validation.choice("start", start, STARTS)
     validation.flag("compare", compare)
+    validation.flag("fit_x0", fit_x0)
     release = validation.flag("release", release)
     check_options(options)
     validation.model(model)
