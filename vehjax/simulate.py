@@ -355,10 +355,8 @@ def _bias0(bias0, ny: int) -> np.ndarray:
 
 def _input_offset(model, steering_offset) -> np.ndarray:
     """The constant offset (nu,) added to the inputs: ``steering_offset`` [rad] on "delta"."""
-    try:
-        steering_offset = float(steering_offset)
-    except (TypeError, ValueError):
-        raise ValueError(f"steering_offset: expected a number in rad, got {steering_offset!r}") from None
+    steering_offset = validation.number("steering_offset", steering_offset,
+                                        what="a finite number in rad")
     if not np.isfinite(steering_offset):
         raise ValueError(f"steering_offset: expected a finite number in rad, got {steering_offset}")
     offset = np.zeros(len(model.input_names))

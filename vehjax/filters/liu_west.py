@@ -653,6 +653,7 @@ def liu_west_ukf(
     move = validation.choice("move", move, _MOVES)
     recurrent = validation.flag("recurrent", recurrent)
     resample = smc.check_resample(resample)
+    rule = sigma.unscented_rule(nx, alpha, beta, kappa)  # checks alpha, beta, kappa
     Qn, Rn = validation.cov("Q", Q, nx, allow_psd=True), validation.cov("R", R, ny)
     dom_lo, dom_hi = _domain(low_n, high_n, bounds, names,
                              np.asarray(model.theta, float)[list(idx)])
@@ -666,7 +667,7 @@ def liu_west_ukf(
         nx=nx, n=n, low=low_n, high=high_n, dom_lo=dom_lo, dom_hi=dom_hi, tf=tf,
         width_s=width_s, a=a, gamma=gamma, scheme=scheme, threshold=thr, resample=resample,
         predictive=likelihood == "predictive", every=move == "every", recurrent=recurrent,
-        rule=sigma.unscented_rule(nx, alpha, beta, kappa),
+        rule=rule,
         ukf_step=ukf(model, Qn, Rn, alpha=alpha, beta=beta, kappa=kappa).step,
         Q=Qn, R=Rn, s_box=(len(names) + 1) // 2,  # counter streams: normals, box, resampling
     )
