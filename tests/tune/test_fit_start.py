@@ -331,3 +331,18 @@ def test_a_variance_the_data_push_to_zero_is_on_its_bound_from_the_data_start():
     assert res.R[0, 0] < 1e-9 and np.isfinite(res.std_errors["R[r,r]"])
     np.testing.assert_allclose(res.R[1, 1], ref.R[1, 1], rtol=1e-5)
     np.testing.assert_allclose(res.std_errors["R[r,r]"], ref.std_errors["R[r,r]"], rtol=1e-3)
+
+
+def test_fit_from_theta_refuses_a_learning_rate_for_its_default_line_search_before_compiling(
+        monkeypatch):
+    from vehjax.tune import program
+
+    def compiled(*a, **k):
+        raise AssertionError("compiled before the refusal")
+
+    monkeypatch.setattr(program, "compiled_loss", compiled)
+    ys, us = np.zeros((50, 2)), np.tile([0.0, 20.0], (50, 1))
+    with pytest.raises(ValueError, match="^learning_rate: the default optimizer"):
+        vehjax.tune.fit_from_theta(vehjax.filters.ekf, SingleTrack(), np.eye(2), np.eye(2), ys,
+                                   us, x0=np.zeros(2), P0=np.eye(2), params=("cf",),
+                                   learning_rate=0.1, progress=False)

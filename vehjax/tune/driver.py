@@ -343,6 +343,8 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
     if optimizer == "scoring" and setup["stochastic"]:
         raise ValueError("optimizer: 'scoring' needs a deterministic filter (EKF, UKF, CKF); "
                          "use 'adam' for a particle filter")
+    check_options(dict(optimizer=optimizer, learning_rate=learning_rate),  # before compiling
+                  stochastic=setup["stochastic"])
     differences = not setup["stochastic"] and hessian in (None, "differences")
     ahead = _diagnostics_ahead(setup, obj.data, model, Q0, R0, x0, builder_kwargs, bounds,
                                standard_errors, checks)
