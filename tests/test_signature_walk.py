@@ -93,6 +93,10 @@ CALLS = {
     **{f"vehjax.filters.{b}": (lambda b=b: (getattr(vj.filters, b), (M, Q, R),
                                             dict(biases=("ay",), input_offsets=("delta",))))
        for b in ("vbakf_r", "vbakf_pr")},
+    "vehjax.filters.marginalized_pf": lambda: (
+        vj.filters.marginalized_pf, (SingleTrackBank(dt=0.01),),
+        dict(linear_noise_std=0.05, known_std={"phi": 0.01, "r_virt": 0.005},
+             niw=vj.filters.NiW(std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02}))),
     "vehjax.filters.marginalized_pf_grid": lambda: (
         vj.filters.marginalized_pf_grid, (SingleTrackBank(dt=0.01),), dict(linear_noise_std=0.1)),
     "vehjax.data.online_virtual_scale": lambda: (
@@ -110,9 +114,6 @@ EXEMPT = {
     "vehjax.tune.compare": "needs fitted TuneResults (a fit each); tests/tune/test_compare.py",
     "vehjax.data.load_comma2k19": "reads the shipped segment; tests/data/test_comma2k19.py",
     "vehjax.data.prepare_drive": "needs a loaded drive; tests/data/test_prepare.py",
-    "vehjax.filters.marginalized_pf": "needs the banked-road set-up (linear states' noise, the "
-                                      "initial stds of the sensors); tests/filters/marginalized "
-                                      "(not walked yet: its model's checks compile first)",
 }
 
 #: (callable, argument) -> {repr of a value walked here: why the callable takes it}

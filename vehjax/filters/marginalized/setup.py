@@ -206,6 +206,8 @@ def configure(model, n_particles, noisy_input, sensors, known_std, linear_states
     and the constants the filter is built from."""
     validation.model(model)
     n = smc.check_n_particles(n_particles)
+    if kalman_states not in ("linear", "all"):  # before the noise set-up (it computes)
+        raise ValueError(f"kalman_states: expected 'linear' or 'all', got {kalman_states!r}")
     niw = _niw(niw)
     state_names = tuple(model.state_names)
     input_names = tuple(model.input_names)
@@ -232,8 +234,6 @@ def configure(model, n_particles, noisy_input, sensors, known_std, linear_states
     unknown_names = (noisy_input,) + sensors
     std0v, mean0v = _noise_prior(unknown_names, niw.std0, niw.mean0, d)
     lam, g0, nu0 = _forgetting(niw.forgetting, niw.gamma0, niw.nu0, d)
-    if kalman_states not in ("linear", "all"):
-        raise ValueError(f"kalman_states: expected 'linear' or 'all', got {kalman_states!r}")
     gauss = kalman_states == "all" and nz > 0
     _check_affine(model, li)
 
