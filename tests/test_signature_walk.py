@@ -18,9 +18,12 @@ import jax
 import jax.monitoring
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import vehjax as vj
 from vehjax.models import SingleTrack, SingleTrackBank
+from vehjax.tune import parameterisation, program, staged
 
 MODULES = ("vehjax", "vehjax.tune", "vehjax.filters", "vehjax.data")
 
@@ -53,8 +56,6 @@ def _fit(fn):
 def _stop_every_fit(monkeypatch):
     """Where a fit would start (its first stage, its program, its objective) it raises
     :class:`_Accepted` instead: a value that got past every check costs nothing."""
-    from vehjax.tune import program, staged
-
     def accepted(*a, **k):
         raise _Accepted
 
@@ -194,9 +195,6 @@ def test_an_unknown_keyword_is_refused_naming_it(monkeypatch, qual):
 
 
 # -- where values interact: properties against rules written out here ------------------------
-from hypothesis import HealthCheck, given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
-
 _stamp = st.one_of(st.floats(-1e3, 1e3), st.just(math.nan), st.just(math.inf))
 
 
@@ -231,14 +229,12 @@ _end = st.one_of(st.none(), st.floats(-5.0, 6.0), st.just(math.nan))
 def test_bounds_are_refused_exactly_when_they_leave_nothing_of_the_domain(lo, hi):
     """mu's domain is (0, 3): bounds (lo, hi) pass iff both ends are numbers or None, lo < hi,
     and (lo, hi) meets (0, 3) (the interval arithmetic written out here)."""
-    from vehjax.tune.parameterisation import check_bounds
-
     model = SingleTrack(tyres="brush")
     a = -math.inf if lo is None else lo
     b = math.inf if hi is None else hi
     ok = not (math.isnan(a) or math.isnan(b)) and a < b and max(a, 0.0) < min(b, 3.0)
     try:
-        check_bounds(("mu",), {"mu": (lo, hi)}, model)
+        parameterisation.check_bounds(("mu",), {"mu": (lo, hi)}, model)
     except ValueError as err:
         assert not ok, (lo, hi, str(err))
         assert str(err).startswith("bounds") and "mu" in str(err), str(err)
