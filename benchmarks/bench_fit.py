@@ -54,6 +54,7 @@ jax.config.update("jax_enable_x64", True)
 
 import vehjax as vj  # noqa: E402
 import vehjax.tune as vt  # noqa: E402
+from vehjax import cli  # noqa: E402
 from vehjax.models.base import integrate  # noqa: E402
 
 DT = 0.01
@@ -336,21 +337,33 @@ def coverage(problem: str, runs: int, steps: int):
     return p
 
 
+def _models(text: str) -> list[str]:
+    """argparse type of ``--models``: a comma list of names of PROBLEMS."""
+    names = [m.strip() for m in str(text).split(",") if m.strip()]
+    bad = [m for m in names if m not in PROBLEMS]
+    if not names or bad:
+        raise argparse.ArgumentTypeError(f"expected a comma list out of {', '.join(PROBLEMS)}, "
+                                         f"got {text!r}" + (f" (unknown: {', '.join(bad)})"
+                                                            if bad else ""))
+    return names
+
+
 def parser() -> argparse.ArgumentParser:
-    """The benchmark's options (``vehjax bench fit --help``)."""
-    p = argparse.ArgumentParser(prog="vehjax bench fit", description=__doc__.splitlines()[0])
-    p.add_argument("--steps", type=int, default=20000,
+    """The benchmark's options (``vehjax bench fit --help``); a refused one raises ValueError
+    naming it and what it takes (``vehjax`` prints it as one line on stderr, exit code 2)."""
+    p = cli.ArgumentParser(prog="vehjax bench fit", description=__doc__.splitlines()[0])
+    p.add_argument("--steps", type=cli.at_least(int, 10), default=20000,
                    help="steps of the timed single-track fit (default %(default)s)")
     p.add_argument("--baseline", action="store_true",
                    help="also time the fit with L-BFGS and reverse-mode gradients (default off)")
     p.add_argument("--no-speed", action="store_true", help="skip the timed fit (default off)")
     p.add_argument("--coverage", action="store_true",
                    help="run the coverage study too (default off)")
-    p.add_argument("--runs", type=int, default=100,
+    p.add_argument("--runs", type=cli.at_least(int, 2), default=100,
                    help="simulated runs per model, coverage (default %(default)s)")
-    p.add_argument("--coverage-steps", type=int, default=1000,
+    p.add_argument("--coverage-steps", type=cli.at_least(int, 10), default=1000,
                    help="steps per run, coverage (default %(default)s)")
-    p.add_argument("--models", default="single-track,3-DOF",
+    p.add_argument("--models", type=_models, default="single-track,3-DOF",
                    help="comma list of coverage models (default %(default)s)")
     p.add_argument("--quick", action="store_true",
                    help="tiny sizes: a 300-step fit, coverage of 4 runs x 150 steps of the "
@@ -362,13 +375,8 @@ def main(argv=None) -> int:
     args = parser().parse_args(argv)
     if args.quick:
         args.steps, args.runs, args.coverage_steps = 300, 4, 150
-        args.coverage, args.models = True, "single-track"
-    models = [m.strip() for m in args.models.split(",") if m.strip()]
-    if min(args.steps, args.coverage_steps) < 10 or args.runs < 2 or any(m not in PROBLEMS
-                                                                    for m in models):
-        print(f"bench fit: --steps, --coverage-steps >= 10, --runs >= 2; models out of "
-              f"{', '.join(PROBLEMS)}")
-        return 2
+        args.coverage, args.models = True, ["single-track"]
+    models = args.models
     print(f"vehjax bench fit, float64, {jax.devices()[0].platform.upper()}, "
           f"{len(jax.devices())} device(s)")
     if not args.no_speed:

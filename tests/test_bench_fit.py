@@ -42,9 +42,25 @@ def test_fine_rollout_equals_solve_ivp():
     np.testing.assert_allclose(ys[:, 1], ref[:, 1], atol=1e-8)
 
 
-def test_bad_sizes_refused():
-    assert bench.main(["--steps", "5"]) == 2
-    assert bench.main(["--coverage", "--models", "bogus"]) == 2
+@pytest.mark.parametrize("argv, words", [
+    (["--steps", "5"], ["--steps", ">= 10", "'5'"]),
+    (["--coverage-steps", "9"], ["--coverage-steps", ">= 10"]),
+    (["--runs", "1"], ["--runs", ">= 2"]),
+    (["--coverage", "--models", "bogus,3-DOF"], ["--models", "single-track, 3-DOF", "unknown: bogus"]),
+])
+def test_bad_options_refused_naming_the_option_and_what_it_takes(argv, words, capsys):
+    """From Python: a ValueError naming the option; from the command line: that one line on
+    stderr, nothing on stdout, exit code 2 (before any work)."""
+    with pytest.raises(ValueError) as err:
+        bench.main(argv)
+    for w in words:
+        assert w in str(err.value), (w, str(err.value))
+    assert cli.main(["bench", "fit", *argv]) == 2
+    io = capsys.readouterr()
+    assert io.out == "" and len(io.err.splitlines()) == 1
+    assert io.err.startswith("vehjax bench fit: error: argument " + argv[-2])
+    for w in words:
+        assert w in io.err
 
 
 @pytest.mark.slow  # a study: `pytest -m slow` (README)

@@ -208,3 +208,46 @@ def test_bench_all_smoke(capsys):
     assert [line.split()[1] for line in table] == ["vehjax", "dynamax", "cuthbert"]
     assert "ratio EKF: vehjax / fastest peer" in out
     assert "every row at most 0.5x the fastest peer:" in out
+
+
+def test_simulate_too_large_for_memory_is_one_line_before_the_scenario_is_driven(monkeypatch, capsys):
+    import functools
+
+    from vehjax import scenarios
+
+    driven = []
+
+    @functools.wraps(scenarios.step_steer)  # the same signature, so the same default duration
+    def step_steer(*a, **k):
+        driven.append(a)
+        return scenarios.step_steer(*a, **k)
+
+    monkeypatch.setitem(scenarios.REGISTRY, "step_steer", step_steer)
+    code, io = _user_error(capsys, ["simulate", "KinematicBicycle", "step_steer",
+                                    "--runs", "100000000000"])
+    assert code == 2 and len(io.err.splitlines()) == 1 and io.out == "", io.err
+    assert io.err.startswith("vehjax simulate: error: --runs, --dt: 100000000000 runs x 600 steps")
+    assert "fewer runs" in io.err and not driven
+
+
+def test_out_of_memory_at_run_time_is_one_line_other_runtime_errors_propagate(monkeypatch, capsys):
+    import importlib
+
+    sim_mod = importlib.import_module("vehjax.simulate")
+
+    def oom(*a, **k):
+        raise RuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 9 GiB.\n"
+                           "BufferAssignment details ...")
+
+    monkeypatch.setattr(sim_mod, "simulate", oom)
+    code, io = _user_error(capsys, ["simulate", "KinematicBicycle", "step_steer", "--runs", "2"])
+    assert code == 2 and io.err.splitlines() == [
+        "vehjax: error: out of memory: RESOURCE_EXHAUSTED: Out of memory while trying to allocate "
+        "9 GiB.; use fewer runs, steps or particles"], io.err
+
+    def other(*a, **k):
+        raise RuntimeError("something else")
+
+    monkeypatch.setattr(sim_mod, "simulate", other)
+    with pytest.raises(RuntimeError, match="something else"):
+        cli.main(["simulate", "KinematicBicycle", "step_steer", "--runs", "2"])

@@ -248,3 +248,12 @@ def test_one_run_goes_by_the_per_run_step(monkeypatch):
     np.testing.assert_allclose(one.states[0], ref.states, rtol=1e-12, atol=1e-12)
     vj.run(est, ys[:2], us, x0=X0, P0=P0, strategy=cpu)
     assert taken == [True]
+
+
+@pytest.mark.parametrize("bad", ["cpu", b"cpu", 3, [], ["cpu"]])
+def test_devices_that_are_not_devices_are_refused_naming_devices(bad):
+    """A string is not read as the sequence of its characters."""
+    with pytest.raises(ValueError, match="^devices: expected") as err:
+        execution.resolve_devices(bad)
+    assert repr(bad) in str(err.value)
+    assert execution.resolve_devices([jax.devices()[0]]) == [jax.devices()[0]]

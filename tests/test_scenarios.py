@@ -82,3 +82,15 @@ def test_slip_and_steer_is_of_the_vehicledata_kind():
     assert 12.0 < vx.min() < 17.0 and 21.0 < vx.max() < 25.0  # speed swinging around 20 m/s
     assert 0.2 < np.abs(vy).max() < 2.0 and 0.2 < np.abs(r).max() < 0.6  # lateral excitation
     assert np.all(np.asarray(scn.inputs)[:, 2:4] == 0.0)  # front-wheel drive
+
+
+@pytest.mark.parametrize("name", sorted(scenarios.REGISTRY))
+def test_default_steps_counts_the_steps_the_builder_drives(name):
+    """default_steps, found without driving, is the length of the drive each CLI manoeuvre
+    makes with its default duration (the double lane change's depends on the speed)."""
+    model = KinematicBicycle(dt=0.05)
+    build = scenarios.REGISTRY[name]
+    for speed in (15.0, 25.0):
+        assert scenarios.default_steps(build, model, speed) == len(build(model, speed=speed).t)
+    with pytest.raises(ValueError, match="speed"):
+        scenarios.default_steps(build, model, -1.0)

@@ -119,16 +119,30 @@ def _per_component(option: str, values: list[float], names, units) -> list[float
     return values
 
 
+#: a scenario of at least this many steps is announced on stderr before it is driven (it takes
+#: about a second per million steps, before the simulation's own progress bar)
+LONG_SCENARIO_STEPS = 1_000_000
+
+
 def _cmd_simulate(args) -> int:
     import jax
 
     from . import models, plots, scenarios
-    from .simulate import simulate
+    from .simulate import check_size, simulate
 
     model = models.REGISTRY[args.model](dt=args.dt)
-    scn = scenarios.REGISTRY[args.scenario](model, speed=args.speed)
     process = _per_component("--process-std", args.process_std, model.state_names, model.state_units)
     meas = _per_component("--meas-std", args.meas_std, model.output_names, model.output_units)
+    build = scenarios.REGISTRY[args.scenario]
+    steps = scenarios.default_steps(build, model, args.speed)
+    try:  # before the scenario is driven
+        check_size(model, args.runs, steps, names="--runs, --dt")
+    except ValueError as err:
+        raise UsageError("vehjax simulate", str(err)) from None
+    if steps >= LONG_SCENARIO_STEPS:
+        print(f"vehjax simulate: driving {args.scenario} for {steps} steps of {args.dt:g} s "
+              f"first", file=sys.stderr)
+    scn = build(model, speed=args.speed)
     sim = simulate(model, scn, runs=args.runs, key=jax.random.key(args.seed),
                    process_std=process, meas_std=meas)
     out = Path(args.out)
@@ -295,8 +309,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     """Run the command and return its exit code; a user error (a bad option, a ValueError
-    naming an argument, a path that cannot be written) is one line on stderr and code 2, never
-    a traceback. ``--help`` exits (SystemExit 0) as argparse does."""
+    naming an argument, a study too large for the memory, a path that cannot be written) is
+    one line on stderr and code 2, never a traceback. ``--help`` exits (SystemExit 0) as
+    argparse does."""
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -310,6 +325,17 @@ def main(argv=None) -> int:
         prog = getattr(err, "prog", "vehjax")  # a UsageError (also of ``python -m``'s copy)
         print(f"{prog}: error: {text}", file=sys.stderr)
         return 2
+    except RuntimeError as err:  # XLA out of memory where no estimate refused the job first
+        if "RESOURCE_EXHAUSTED" not in str(err):
+            raise
+        print(f"vehjax: error: out of memory: {_first_line(err)}; use fewer runs, steps or "
+              f"particles", file=sys.stderr)
+        return 2
+
+
+def _first_line(err: BaseException) -> str:
+    """The first non-empty line of an error's message."""
+    return next((line.strip() for line in str(err).splitlines() if line.strip()), "")
 
 
 if __name__ == "__main__":

@@ -80,7 +80,8 @@ its CPU strategy's results).
 
 Memory: :func:`memory_limit` is the device's memory (GPU/TPU) or the host's physical memory
 (CPU); ``run`` refuses up front a study whose one-run working set, or whose results on the
-host, cannot fit (:func:`check_fits`).
+host, cannot fit (:func:`check_fits`); ``simulate``, which holds all its runs at once, one
+whose arrays cannot (:func:`check_memory`).
 """
 
 from __future__ import annotations
@@ -96,7 +97,7 @@ import jax
 import jax.numpy as jnp
 
 __all__ = ["Strategy", "for_platform", "for_device", "current", "using", "resolve",
-           "compiler_options", "check_options", "block_size", "memory_limit", "check_fits",
+           "compiler_options", "check_options", "block_size", "memory_limit", "check_fits", "check_memory",
            "resolve_devices", "WORKLOADS", "in_thread"]
 
 #: What an estimator may declare its step to be (``Estimator.workload``).
@@ -205,6 +206,8 @@ def resolve_devices(devices) -> list:
         # jax.devices()[0] belongs to process 0; under jax.distributed each process uses its own
         return [jax.devices()[0] if jax.process_count() == 1 else jax.local_devices()[0]]
     try:
+        if isinstance(devices, (str, bytes)):  # not read as a sequence of its characters
+            raise TypeError
         devices = list(devices)
     except TypeError:
         raise ValueError(
@@ -240,6 +243,25 @@ def check_fits(per_run_bytes: int, results_bytes: int, device) -> None:
             f"study too large: its results need about {results_bytes / 2**30:.1f} GiB of host "
             f"memory and the host has {host / 2**30:.1f} GiB; use fewer runs or steps, or "
             f"return_covariances=False")
+
+
+def check_memory(needed_bytes: int, device, what: str, advice: str) -> None:
+    """Refuse a job that must hold ``needed_bytes`` at once on ``device`` (all its arrays and
+    working set) when they exceed :func:`memory_limit`: one-line ValueError "{what} need about
+    N GiB of memory and the <platform> device <id> has M GiB; {advice}". ``what`` names the
+    arguments that set the size (e.g. "runs, scenario: 100 runs x 1000 steps"). Nothing is
+    refused when the limit is unknown."""
+    limit = memory_limit(device)
+    if limit is not None and needed_bytes > limit:
+        raise ValueError(f"{what} need about {_size(needed_bytes)} of memory and the "
+                         f"{device.platform} device {device.id} has {_size(limit)}; {advice}")
+
+
+def _size(n_bytes: float) -> str:
+    """'3.2 GiB', '12.5 TiB': bytes in binary units."""
+    if n_bytes >= 2**40:
+        return f"{n_bytes / 2**40:.1f} TiB"
+    return f"{n_bytes / 2**30:.1f} GiB"
 
 
 def resolve(strategy, device) -> Strategy:

@@ -401,8 +401,7 @@ def _checked_data(estimator, measurements, inputs, x0, P0, theta0, P_theta0, key
 
 def _check_progress(progress) -> None:
     """ValueError naming ``progress`` unless it is None, True or False."""
-    if progress is not None and not isinstance(progress, (bool, np.bool_)):
-        raise ValueError(f"progress: expected None, True or False, got {progress!r}")
+    validation.flag("progress", progress, allow_none=True)
 
 
 def _check_options(return_covariances, progress, chunk_size) -> None:

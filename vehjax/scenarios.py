@@ -14,6 +14,7 @@ road-wheel steering profile. The resulting inputs are then replayed open loop by
 
 from __future__ import annotations
 
+import inspect
 from typing import Callable, NamedTuple
 
 import equinox as eqx
@@ -34,6 +35,7 @@ __all__ = [
     "slip_and_steer",
     "from_inputs",
     "iso3888_centreline",
+    "default_steps",
     "REGISTRY",
 ]
 
@@ -185,9 +187,26 @@ def double_lane_change(model, speed: float = 20.0, duration: float | None = None
     speed = _check_positive("speed", speed)
     _check_finite("offset", offset)
     if duration is None:
-        duration = (_RUN_IN + sum(_ISO_SECTIONS) + 20.0) / speed
+        duration = _course_duration(speed)
     duration = _check_positive("duration", duration)
     return _drive(model, "double_lane_change", speed, duration, None, offset)
+
+
+def _course_duration(speed: float) -> float:
+    """Seconds to drive the run-in, the ISO course and 20 m beyond at ``speed`` [m/s]."""
+    return (_RUN_IN + sum(_ISO_SECTIONS) + 20.0) / speed
+
+
+def default_steps(builder, model, speed: float = 20.0) -> int:
+    """How many steps ``builder`` (a manoeuvre of :data:`REGISTRY`, or another builder with a
+    ``duration`` argument) drives ``model`` for at ``speed`` [m/s] with its default duration,
+    found without driving: so that a caller can check the size of a long study
+    (:func:`vehjax.simulate.check_size`) before building its scenario."""
+    speed = _check_positive("speed", speed)
+    duration = inspect.signature(builder).parameters["duration"].default
+    if duration is None:  # the double lane change: the course at this speed
+        duration = _course_duration(speed)
+    return int(round(duration / model.dt))
 
 
 def sine_steer(model, speed: float = 20.0, amplitude: float = 0.05, frequency: float = 0.5,

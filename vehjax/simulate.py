@@ -26,10 +26,26 @@ initial state and bias, and the noise-free measurement of the initial state, whe
 step is bad): the simulation is frozen there, so that nothing non-finite reaches a filter run on
 it (a NaN measurement would pass for a missing one). ``Simulation.diverged`` says which runs to
 drop.
+
+Measurements that are not finite while the states are: a model whose ``observe`` returns NaN
+or +-inf for a finite state (a square root of a negative number, a division by zero) gives
+measurements that a filter would take for missing ones (NaN) or refuse (+-inf). Such runs are
+flagged in ``Simulation.nonfinite_measurements`` and a warning says how many there are; their
+values are left as the model gave them (the states are fine, and the run is not frozen).
+
+Sizes: every array of the study is held at once (the noise draws, then the states, measurements
+and biases of all runs), about :func:`study_bytes`; a study that cannot fit in the memory of
+the device it runs on (:func:`vehjax.execution.memory_limit`) is refused up front, before
+anything is traced or allocated (:func:`check_size`, ValueError naming ``runs`` and the
+scenario's steps). A long study (at least ``PROGRESS_RUN_STEPS`` runs x steps) shows a progress
+bar over its steps on stderr (:mod:`vehjax.progress`; ``progress=`` forces it on or off).
 """
 
 from __future__ import annotations
 
+import itertools
+import threading
+import warnings
 from typing import Callable, NamedTuple
 
 import equinox as eqx
@@ -37,9 +53,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import validation
+from . import execution, validation
+from .progress import Progress, text_bar
 
-__all__ = ["Simulation", "simulate"]
+__all__ = ["Simulation", "simulate", "check_size", "study_bytes", "PROGRESS_RUN_STEPS"]
+
+#: a study of at least this many runs x steps shows its progress by default (about ten seconds
+#: of a 3-state model on two CPU cores; below it, no bar)
+PROGRESS_RUN_STEPS = 5_000_000
+_PROGRESS_UPDATES = 100  # the bar moves about this many times over a study
 
 
 class Simulation(NamedTuple):
@@ -58,6 +80,9 @@ class Simulation(NamedTuple):
             envelope; its rows from ``diverged_at`` on hold the last good values (module
             docstring).
         diverged_at: (R,) int32, the first step it did, or -1.
+        nonfinite_measurements: (R,) bool, the model's ``observe`` gave a NaN or +-inf
+            measurement at some step while the run's state was finite (and not diverged): a
+            filter would read a NaN as a missing measurement. A warning names how many runs.
     """
 
     states: jnp.ndarray
@@ -73,6 +98,7 @@ class Simulation(NamedTuple):
     output_names: tuple
     diverged: jnp.ndarray | None = None
     diverged_at: jnp.ndarray | None = None
+    nonfinite_measurements: jnp.ndarray | None = None
 
     def to_dict(self) -> dict:
         """Named numpy arrays, e.g. for ``np.savez``; names are stored as string arrays."""
@@ -90,6 +116,7 @@ class Simulation(NamedTuple):
             "output_names": np.array(self.output_names),
             "diverged": np.asarray(self.diverged),
             "diverged_at": np.asarray(self.diverged_at),
+            "nonfinite_measurements": np.asarray(self.nonfinite_measurements),
         }
 
     def save(self, path) -> None:
@@ -162,6 +189,7 @@ def simulate(
     bias_walk_std=None,
     bias0=None,
     steering_offset: float = 0.0,
+    progress: bool | None = None,
 ) -> Simulation:
     """Simulate ``runs`` noisy realisations of ``scenario`` on ``model``.
 
@@ -184,17 +212,30 @@ def simulate(
         bias0: initial measurement biases, scalar or (ny,).
         steering_offset: constant offset [rad] added to the true steering input named "delta"
             (paper 004 eq. 4); the returned ``inputs`` are the measured ones without it.
+        progress: a progress bar over the steps on stderr: None (default) for a study of at
+            least ``PROGRESS_RUN_STEPS`` runs x steps, True always, False never.
 
     Returns:
         A :class:`Simulation`.
+
+    Raises:
+        ValueError: naming the argument, before anything is traced: a bad model, scenario,
+            std, scale, parameter or key, and a study whose arrays cannot fit in the device's
+            memory (:func:`check_size`, naming ``runs`` and the scenario's steps).
+
+    Warns:
+        RuntimeWarning: runs whose measurements are not finite while their states are
+            (``Simulation.nonfinite_measurements``).
     """
     validation.model(model)
     if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
         raise ValueError(f"runs: expected an integer >= 1, got {runs!r}")
     runs = int(runs)
+    progress = validation.flag("progress", progress, allow_none=True)
     nx, ny, n_par = len(model.state_names), len(model.output_names), len(model.param_names)
     inputs, x0 = _scenario(model, scenario)
     n_steps = inputs.shape[0]
+    check_size(model, runs, n_steps)
     t = np.arange(n_steps) * model.dt
 
     q_std = _vector("process_std", process_std, nx, "one std per state")
@@ -227,7 +268,9 @@ def simulate(
         offset=jnp.asarray(offset, dtype),
         envelope=jnp.asarray(_envelope(model, nx), dtype),
     )
-    states, meas, thetas, biases, x0s, bad_at = _simulate_jit(model, keys, arrays)
+    show = runs * n_steps >= PROGRESS_RUN_STEPS if progress is None else progress
+    states, meas, thetas, biases, x0s, bad_at, bad_y = _execute(model, keys, arrays, show)
+    _warn_nonfinite(np.asarray(bad_y), runs)
     return Simulation(
         states=states,
         measurements=meas,
@@ -242,7 +285,49 @@ def simulate(
         output_names=tuple(model.output_names),
         diverged=bad_at >= 0,
         diverged_at=bad_at,
+        nonfinite_measurements=bad_y,
     )
+
+
+def study_bytes(model, runs: int, steps: int, itemsize: int = 8) -> int:
+    """Bytes that :func:`simulate` holds at once for ``runs`` runs of ``steps`` steps of
+    ``model`` in floats of ``itemsize`` bytes, about: per run and step the noise draws (nx +
+    2 ny numbers) and the states, measurements and biases (nx + 2 ny), each twice (the scan's
+    time-major copies and the returned run-major arrays), and the divergence flag; per step the
+    shared inputs and noise stds (nu + nx + ny), twice."""
+    nx, ny, nu = len(model.state_names), len(model.output_names), len(model.input_names)
+    per_run_step = 2 * 2 * (nx + 2 * ny) * itemsize + 2
+    return int(runs) * int(steps) * per_run_step + int(steps) * 2 * (nu + nx + ny) * itemsize
+
+
+def check_size(model, runs: int, steps: int, device=None, *,
+               names: str = "runs, scenario") -> None:
+    """Refuse a study of ``runs`` runs x ``steps`` steps of ``model`` whose arrays
+    (:func:`study_bytes`) cannot fit in the memory of ``device`` (default: JAX's first device,
+    where :func:`simulate` runs; :func:`vehjax.execution.memory_limit`): one-line ValueError
+    starting with ``names`` (the arguments that set the size), with the estimate and the limit.
+    :func:`simulate` checks it before anything is traced or allocated; a caller that builds a
+    long scenario can check it before building it (the scenario's steps: its duration over
+    ``model.dt``, :func:`vehjax.scenarios.default_steps`)."""
+    device = jax.devices()[0] if device is None else device
+    itemsize = np.dtype(jnp.result_type(float)).itemsize
+    execution.check_memory(
+        study_bytes(model, runs, steps, itemsize), device,
+        what=f"{names}: {runs} run{'s' if runs != 1 else ''} x {steps} steps of "
+             f"{type(model).__name__}",
+        advice="use fewer runs or fewer steps (a shorter scenario, or a larger dt)")
+
+
+def _warn_nonfinite(flags: np.ndarray, runs: int) -> None:
+    """The warning for runs whose measurements are not finite while their states are."""
+    n = int(np.sum(flags))
+    if n:
+        first = int(np.argmax(flags))
+        warnings.warn(
+            f"simulate: model.observe returned NaN or +-inf measurements while the states were "
+            f"finite in {n} of {runs} runs (the first: run {first}); a filter reads a NaN "
+            f"measurement as a missing one. Simulation.nonfinite_measurements flags them",
+            RuntimeWarning, stacklevel=3)
 
 
 def _declared(model, method: str):
@@ -270,10 +355,8 @@ def _bias0(bias0, ny: int) -> np.ndarray:
 
 def _input_offset(model, steering_offset) -> np.ndarray:
     """The constant offset (nu,) added to the inputs: ``steering_offset`` [rad] on "delta"."""
-    try:
-        steering_offset = float(steering_offset)
-    except (TypeError, ValueError):
-        raise ValueError(f"steering_offset: expected a number in rad, got {steering_offset!r}") from None
+    steering_offset = validation.number("steering_offset", steering_offset,
+                                        what="a finite number in rad")
     if not np.isfinite(steering_offset):
         raise ValueError(f"steering_offset: expected a finite number in rad, got {steering_offset}")
     offset = np.zeros(len(model.input_names))
@@ -293,37 +376,105 @@ def _inside(x, envelope):
     return jnp.all(jnp.isfinite(x) & (jnp.abs(x) <= envelope))
 
 
-def _simulate_jit(model, keys, a):
-    return _simulate_runs(model, keys, a)
+# ----------------------------------------------------------------------------------------------
+# the study: one compiled program, a progress bar for a long one
+
+_BARS: dict[int, Progress] = {}  # the bars of the studies running now, by token
+_TOKENS = itertools.count()
+
+
+def _execute(model, keys, arrays, show: bool):
+    """The compiled study, with a progress bar over its steps when ``show``: the program
+    reports every ``steps / _PROGRESS_UPDATES`` steps through a host callback (compiled in only
+    then) to the bar its token names."""
+    if not show:
+        return _simulate_jit(model, keys, arrays, None)
+    n_steps = arrays["inputs"].shape[0]
+    token = next(_TOKENS)
+    bar = Progress(n_steps, "vehjax.simulate", True, unit="step", interval=0.5,
+                   first_text=_bar_text(0, n_steps))
+    _BARS[token] = bar
+    try:
+        out = _simulate_jit(model, keys, {**arrays, "token": jnp.asarray(token, jnp.int32)},
+                            max(1, n_steps // _PROGRESS_UPDATES))
+        jax.block_until_ready(out)
+        _tick(token, n_steps)
+    finally:
+        _BARS.pop(token, None)
+        bar.close()
+    return out
+
+
+def _bar_text(done: int, total: int) -> str:
+    return f"vehjax.simulate [{text_bar(done, total)}] step {done}/{total}"
+
+
+def _tick(token, done) -> None:
+    """Host callback: the study ``token`` has done ``done`` steps."""
+    bar = _BARS.get(int(token))
+    if bar is not None:
+        done = int(done)
+        bar.update(done, "", _bar_text(done, bar.total))
+
+
+def _simulate_jit(model, keys, a, every):
+    return _simulate_runs(model, keys, a, every)
+
+
+def _draws(a, n_steps: int, key, theta_nom):
+    """One run's parameters (np,), initial state (nx,) and noise draws (n_steps, nx + 2 ny)."""
+    nx, ny = a["x0"].shape[0], a["b0"].shape[0]
+    k_par, k_x0, k_noise = jax.random.split(key, 3)
+    theta = theta_nom * (1.0 + a["p_std"] * jax.random.normal(k_par, theta_nom.shape))
+    x0 = a["x0"] + a["s_std"] * jax.random.normal(k_x0, a["x0"].shape)
+    return theta, x0, jax.random.normal(k_noise, (n_steps, nx + 2 * ny))
+
+
+def _step(model, a, carry, xs, theta):
+    """One step of one run (module docstring): the new state, bias and measurement, frozen
+    at their last good values once the state is bad; whether the measurement is not finite
+    while the state is."""
+    nx, ny = a["x0"].shape[0], a["b0"].shape[0]
+    x, bias, y_prev, bad, bad_y = carry
+    u, q, r, e = xs
+    u_true = u + a["offset"]
+    x_next = model.transition(x, u_true, theta) + q * e[:nx]
+    bias_next = bias + a["b_std"] * e[nx + ny:]
+    y = model.observe(x_next, u_true, theta) + bias_next + r * e[nx:nx + ny]
+    bad = bad | ~_inside(x_next, a["envelope"])
+    bad_y = bad_y | (~bad & ~jnp.all(jnp.isfinite(y)))
+    x_next, bias_next, y = (jnp.where(bad, old, new) for old, new in
+                            ((x, x_next), (bias, bias_next), (y_prev, y)))
+    return (x_next, bias_next, y, bad, bad_y), (x_next, y, bias_next, bad)
+
+
+def _report(token, i, every: int) -> None:
+    """Inside the scan: tell the host every ``every`` steps (step ``i`` counted from 0)."""
+    jax.lax.cond((i + 1) % every == 0, lambda: jax.debug.callback(_tick, token, i + 1),
+                 lambda: None)
 
 
 @eqx.filter_jit
-def _simulate_runs(model, keys, a):
-    nx, ny = a["x0"].shape[0], a["b0"].shape[0]
-    n_steps = a["inputs"].shape[0]
+def _simulate_runs(model, keys, a, every):
+    """Every run side by side (vmapped), stepped through time by one scan; ``every``: steps
+    between progress reports, None for none (static)."""
+    n_steps, ny = a["inputs"].shape[0], a["b0"].shape[0]
+    theta, x0, eps = jax.vmap(lambda k, th: _draws(a, n_steps, k, th))(keys, a["theta"])
+    y0 = jax.vmap(lambda x, th: model.observe(x, a["inputs"][0] + a["offset"], th))(x0, theta)
+    runs = keys.shape[0]
+    carry0 = (x0, jnp.broadcast_to(a["b0"], (runs, ny)), (y0 + a["b0"]).astype(x0.dtype),
+              jnp.zeros(runs, bool), jnp.zeros(runs, bool))
+    step = jax.vmap(lambda c, xs, th: _step(model, a, c, xs, th), in_axes=(0, (None, None, None, 0), 0))
 
-    def one_run(k, theta_nom):
-        k_par, k_x0, k_noise = jax.random.split(k, 3)
-        theta = theta_nom * (1.0 + a["p_std"] * jax.random.normal(k_par, theta_nom.shape))
-        x0 = a["x0"] + a["s_std"] * jax.random.normal(k_x0, a["x0"].shape)
-        eps = jax.random.normal(k_noise, (n_steps, nx + 2 * ny))
+    def body(carry, xs):
+        *per_step, i = xs
+        carry, out = step(carry, tuple(per_step), theta)
+        if every is not None:
+            _report(a["token"], i, every)
+        return carry, out
 
-        def step(carry, xs):
-            x, bias, y_prev, bad = carry
-            u, q, r, e = xs
-            u_true = u + a["offset"]
-            x_next = model.transition(x, u_true, theta) + q * e[:nx]
-            bias_next = bias + a["b_std"] * e[nx + ny:]
-            y = model.observe(x_next, u_true, theta) + bias_next + r * e[nx:nx + ny]
-            bad = bad | ~_inside(x_next, a["envelope"])
-            x_next, bias_next, y = (jnp.where(bad, old, new) for old, new in
-                                    ((x, x_next), (bias, bias_next), (y_prev, y)))
-            return (x_next, bias_next, y, bad), (x_next, y, bias_next, bad)
-
-        y0 = model.observe(x0, a["inputs"][0] + a["offset"], theta) + a["b0"]
-        carry0 = (x0, a["b0"], y0.astype(x0.dtype), jnp.zeros((), bool))
-        _, (xs, ys, bs, bad) = jax.lax.scan(step, carry0, (a["inputs"], a["q"], a["r"], eps))
-        bad_at = jnp.where(jnp.any(bad), jnp.argmax(bad), -1).astype(jnp.int32)
-        return xs, ys, theta, bs, x0, bad_at
-
-    return jax.vmap(one_run)(keys, a["theta"])
+    xs = (a["inputs"], a["q"], a["r"], jnp.swapaxes(eps, 0, 1), jnp.arange(n_steps))
+    carry, (states, meas, biases, bad) = jax.lax.scan(body, carry0, xs)
+    bad_at = jnp.where(jnp.any(bad, axis=0), jnp.argmax(bad, axis=0), -1).astype(jnp.int32)
+    run_major = [jnp.swapaxes(v, 0, 1) for v in (states, meas, biases)]
+    return run_major[0], run_major[1], theta, run_major[2], x0, bad_at, carry[4]

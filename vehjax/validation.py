@@ -31,17 +31,20 @@ def is_tracer(a) -> bool:
 
 
 def number(name: str, value, low: float = -np.inf, high: float = np.inf, *,
-           low_open: bool = True, high_open: bool = True) -> float:
-    """A finite float in the interval (low, high), ends open or closed as given."""
+           low_open: bool = True, high_open: bool = True, what: str | None = None) -> float:
+    """A finite float in the interval (low, high), ends open or closed as given. A bool or a
+    string (``"0.5"``) is refused, not read as a number. ``what`` replaces the message's
+    "a finite number in (low, high)", e.g. "a positive, finite standard deviation"."""
     try:
         v = float(value)
     except (TypeError, ValueError):
         v = float("nan")
     ok = np.isfinite(v) and (v > low if low_open else v >= low) and (
         v < high if high_open else v <= high)
-    if isinstance(value, (bool, np.bool_)) or not ok:
+    if isinstance(value, (bool, np.bool_, str, bytes)) or not ok:
         lo, hi = "(" if low_open else "[", ")" if high_open else "]"
-        raise ValueError(f"{name}: expected a finite number in {lo}{low}, {high}{hi}, got {value!r}")
+        what = f"a finite number in {lo}{low}, {high}{hi}" if what is None else what
+        raise ValueError(f"{name}: expected {what}, got {value!r}")
     return v
 
 
@@ -57,11 +60,15 @@ def integer(name: str, value, low: int = 1, high: int | None = None) -> int:
     return int(n)
 
 
-def flag(name: str, value) -> bool:
+def flag(name: str, value, *, allow_none: bool = False) -> bool | None:
     """``value`` as a bool if it is one (Python's or numpy's), else ValueError naming ``name``:
-    a string such as ``"no"`` is truthy in Python, so it is refused rather than read as True."""
+    a string such as ``"no"`` is truthy in Python, so it is refused rather than read as True.
+    With ``allow_none`` None passes as None (an option whose default is decided later)."""
+    if allow_none and value is None:
+        return None
     if not isinstance(value, (bool, np.bool_)):
-        raise ValueError(f"{name}: expected True or False, got {value!r}")
+        expected = "None, True or False" if allow_none else "True or False"
+        raise ValueError(f"{name}: expected {expected}, got {value!r}")
     return bool(value)
 
 

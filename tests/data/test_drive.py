@@ -242,3 +242,36 @@ def test_resample_keeps_the_last_sample_of_stamps_since_the_epoch():
     r = Drive.from_arrays(t, {"a": y}, {"a": "-"}).resample(0.01)
     assert len(r.t) == T and r.t[-1] == t[-1]
     np.testing.assert_allclose(r.signals["a"], y, rtol=0, atol=1e-5)  # stamps off by ~1e-7 s
+
+
+def test_two_columns_onto_one_model_name_are_refused_naming_both():
+    t = np.arange(50) * 0.01
+    d = Drive.from_arrays(t, {"steer": 0.01 * np.sin(t), "steer2": 0.02 * np.sin(t),
+                              "vx": np.full(50, 20.0), "ay": np.zeros(50), "r": np.zeros(50)},
+                          {"steer": "rad", "steer2": "rad", "vx": "m/s", "ay": "m/s^2",
+                           "r": "rad/s"})
+    with pytest.raises(ValueError, match="^names: columns 'steer' and 'steer2' both map onto "
+                                         "'delta'"):
+        d.for_model(SingleTrack(dt=0.01), names={"steer": "delta", "steer2": "delta"})
+    u, _ = d.for_model(SingleTrack(dt=0.01), names={"steer2": "delta"})  # one each: fine
+    np.testing.assert_array_equal(u[:, 0], d.signals["steer2"])
+
+
+@pytest.mark.parametrize("call", ["resample", "for_model"])
+def test_a_max_gap_shorter_than_the_sample_interval_is_refused_naming_it(call):
+    """Every sample would be a gap (all NaN): refused, naming max_gap and the interval; an
+    interval of exactly max_gap (rounding makes some intervals longer) too; one a little
+    longer is bridged (numpy.interp)."""
+    t = np.arange(100) * 0.02
+    d = Drive.from_arrays(t, {"delta": np.sin(t), "vx": np.full(100, 20.0), "ay": np.cos(t),
+                              "r": np.zeros(100)},
+                          {"delta": "rad", "vx": "m/s", "ay": "m/s^2", "r": "rad/s"})
+    for gap in (0.005, 0.02):
+        with pytest.raises(ValueError, match=rf"^max_gap: {gap} s is not longer than the drive's "
+                                             r"sample interval \(0.02 s"):
+            if call == "resample":
+                d.resample(0.01, max_gap=gap)
+            else:
+                d.for_model(SingleTrack(dt=0.01), max_gap=gap)
+    r = d.resample(0.01, max_gap=0.021)
+    np.testing.assert_allclose(r.signals["ay"], np.interp(r.t, t, np.cos(t)), rtol=1e-13)

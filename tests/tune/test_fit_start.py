@@ -229,3 +229,120 @@ def test_saturating_fits_from_the_defaults_find_the_limit(long_drives, variant):
         assert res.loglik > res.nested.loglik
         assert res.nested.loglik == pytest.approx(linear.loglik, abs=0.1)
         assert _sideslip_rms(res, held) < rms_linear, tyres
+
+
+def _no_stage_may_run(monkeypatch):
+    """Every stage of the staged fit made to fail: a refusal must come before them."""
+    def stage(*a, **k):
+        raise AssertionError("a stage ran (something was traced) before the refusal")
+
+    for name in ("_nested_stage", "fit_from_theta", "compile_objective"):
+        monkeypatch.setattr(staged, name, stage)
+
+
+@pytest.mark.parametrize("start", ["data", "theta"])
+@pytest.mark.parametrize("kw, words", [
+    (dict(bounds={"mu": (3.5, 5.0)}), ["bounds", "mu", "(3.5, 5.0)", "domain (0, 3)"]),
+    (dict(bounds={"cf": (-2.0, -1.0)}), ["bounds", "cf", "domain (0, inf)"]),
+    (dict(learning_rate=0.1), ["learning_rate", "line search", "optimizer='adam'"]),
+    (dict(learning_rate=0.1, optimizer="scoring"), ["learning_rate", "scoring"]),
+])
+def test_the_staged_fit_refuses_what_its_last_stage_would_before_the_first(
+        monkeypatch, start, kw, words):
+    """Bounds wholly outside a parameter's domain and a learning rate for a line search are
+    refused before the nested model's fit (which neither concerns), naming the argument."""
+    _no_stage_may_run(monkeypatch)
+    ys, us = np.zeros((50, 2)), np.tile([0.0, 20.0], (50, 1))
+    with pytest.raises(ValueError) as err:
+        vehjax.tune.fit(vehjax.filters.ekf, SingleTrack(tyres="brush"), np.eye(2), np.eye(2),
+                        ys, us, x0=np.zeros(2), P0=np.eye(2), params=("cf", "mu"),
+                        start=start, progress=False, **kw)
+    text = str(err.value)
+    assert text.startswith(words[0] + ":")
+    for w in words:
+        assert w in text, (w, text)
+
+
+def test_a_learning_rate_is_left_to_a_particle_filter_whose_default_is_adam():
+    from vehjax.tune import driver, likelihood
+
+    model = SingleTrack()
+    args = (model, np.eye(2), np.eye(2), ("cf",), ("Q", "R"), False)
+    assert likelihood.draws_random_numbers(vehjax.filters.bootstrap_pf, *args,
+                                           {"n_particles": 16})
+    assert not likelihood.draws_random_numbers(vehjax.filters.ekf, *args, None)
+    driver.check_options({"learning_rate": 0.1}, stochastic=True)  # adam takes it
+    with pytest.raises(ValueError, match="^learning_rate: the default optimizer"):
+        driver.check_options({"learning_rate": 0.1}, stochastic=False)
+
+
+def test_a_nested_variance_on_its_bound_starts_the_models_fit_at_the_given_value():
+    """The nested fit's variances on their bound (zero) start the model's fit at the value the
+    user gave, the others at the nested fit's; a full and a diagonal form alike."""
+    on = {"R[ay,ay]": ("lower", 0.0, -3.1e3)}
+    fitted = np.array([[1e-14, 0.0], [0.0, 3.8e-6]])
+    out = staged._off_bounds(fitted, np.array([0.01, 4e-6]), "R", ("ay", "r"), on)
+    np.testing.assert_array_equal(out, [[0.01, 0.0], [0.0, 3.8e-6]])
+    out = staged._off_bounds(np.array([1e-14, 3.8e-6]), np.diag([0.01, 4e-6]), "R",
+                             ("ay", "r"), on)
+    np.testing.assert_array_equal(out, [0.01, 3.8e-6])
+    assert staged._off_bounds(fitted, np.eye(2), "Q", ("vy", "r"), on) is not fitted
+
+
+def test_the_nested_fits_warnings_say_they_are_the_nested_models():
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        warnings.warn("vehjax.tune: R[ay,ay] is on its lower bound 0")
+        warnings.warn("a warning of another module")
+    with pytest.warns(UserWarning) as out:
+        staged._reissue(caught, "SingleTrack (m, iz)")
+    assert [str(w.message) for w in out] == [
+        "vehjax.tune (the nested SingleTrack (m, iz)'s fit): R[ay,ay] is on its lower bound 0",
+        "vehjax.tune (the nested SingleTrack (m, iz)'s fit): a warning of another module"]
+
+
+@pytest.mark.slow  # two fits of a 300-step drive, about a minute each
+def test_a_variance_the_data_push_to_zero_is_on_its_bound_from_the_data_start():
+    """Exact measurements of ay: R[ay,ay] goes to its bound 0 in the nested (linear) fit, from
+    which the data start begins. It is reported on its bound, with the one-sided derivative, as
+    the fit from the given values (start="theta", the second entry point) reports it, not as
+    undetermined with an infinite standard error; the nested fit's warning is labelled so."""
+    model = SingleTrack(tyres="brush", dt=0.02)
+    scn = vehjax.scenarios.sine_steer(model, speed=15.0, amplitude=0.02, duration=6.0)
+    sim = vehjax.simulate(model, scn, runs=1, key=jax.random.key(1),
+                          process_std=[0.003, 0.003], meas_std=[0.0, 0.002])
+    ys, us = np.asarray(sim.measurements[0]), np.asarray(sim.inputs)
+    kw = dict(x0=np.zeros(2), P0=np.array([0.01, 0.001]), noise=("R",), progress=False)
+    out = {}
+    for start in ("data", "theta"):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            out[start] = vehjax.tune.fit(vehjax.filters.ekf, model, np.full(2, 0.003**2),
+                                         np.array([0.1**2, 0.002**2]), ys, us, start=start, **kw)
+        texts = [str(w.message) for w in caught]
+        assert any(t.startswith("vehjax.tune (the nested SingleTrack") and "R[ay,ay] is on its "
+                   "lower bound 0" in t for t in texts), texts
+        assert not any("do not determine" in t for t in texts), texts
+    res, ref = out["data"], out["theta"]
+    assert res.undetermined == () and set(res.on_bound) == {"R[ay,ay]"}
+    side, bound, dlogl = res.on_bound["R[ay,ay]"]
+    assert (side, bound) == ("lower", 0.0) and dlogl < 0
+    np.testing.assert_allclose(dlogl, ref.on_bound["R[ay,ay]"][2], rtol=1e-3)
+    assert res.R[0, 0] < 1e-9 and np.isfinite(res.std_errors["R[r,r]"])
+    np.testing.assert_allclose(res.R[1, 1], ref.R[1, 1], rtol=1e-5)
+    np.testing.assert_allclose(res.std_errors["R[r,r]"], ref.std_errors["R[r,r]"], rtol=1e-3)
+
+
+def test_fit_from_theta_refuses_a_learning_rate_for_its_default_line_search_before_compiling(
+        monkeypatch):
+    from vehjax.tune import program
+
+    def compiled(*a, **k):
+        raise AssertionError("compiled before the refusal")
+
+    monkeypatch.setattr(program, "compiled_loss", compiled)
+    ys, us = np.zeros((50, 2)), np.tile([0.0, 20.0], (50, 1))
+    with pytest.raises(ValueError, match="^learning_rate: the default optimizer"):
+        vehjax.tune.fit_from_theta(vehjax.filters.ekf, SingleTrack(), np.eye(2), np.eye(2), ys,
+                                   us, x0=np.zeros(2), P0=np.eye(2), params=("cf",),
+                                   learning_rate=0.1, progress=False)

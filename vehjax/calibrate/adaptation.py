@@ -58,8 +58,9 @@ def chain_options(chains, samples, warmup, adapt: bool, adapt_windows, acceptanc
                   d: int):
     """The chain sizes and adaptation options every sampler takes, checked the same way:
     (chains >= 2, samples >= 4, warmup >= 2 with adaptation else >= 0, adapt_windows >= 1,
-    acceptance_target in (0, 1), default :func:`target_acceptance` of the d parameters).
-    ValueError naming the argument."""
+    acceptance_target in (0, 1), default :func:`target_acceptance` of the d parameters; adapt
+    True or False). ValueError naming the argument."""
+    adapt = validation.flag("adapt", adapt)
     chains = validation.integer("chains", chains, 2)
     samples = validation.integer("samples", samples, 4)
     warmup = validation.integer("warmup", warmup, 2 if adapt else 0)

@@ -18,7 +18,6 @@ either is.
 
 from __future__ import annotations
 
-import numbers
 from typing import NamedTuple
 
 import jax
@@ -123,12 +122,8 @@ CPM_KWARGS = ("n_particles", "resampling", "input_noise")
 
 def check_correlation(correlation):
     """``correlation`` (rho of the Crank-Nicolson move) as a float in (0, 1); ValueError."""
-    ok = isinstance(correlation, numbers.Real) and not isinstance(correlation, (bool, np.bool_))
-    rho = float(correlation) if ok else float("nan")
-    if not 0.0 < rho < 1.0:
-        raise ValueError(f"correlation: expected a number in (0, 1) (the Crank-Nicolson move's "
-                         f"rho), got {correlation!r}")
-    return rho
+    return validation.number("correlation", correlation, 0.0, 1.0,
+                             what="a number in (0, 1) (the Crank-Nicolson move's rho)")
 
 
 def cpm_log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R, names,

@@ -342,8 +342,13 @@ class Drive:
         t1 = hi if stop is None else _within("stop", stop, lo, hi)
         if not t1 > t0:
             raise ValueError(f"stop: {t1} s is not after start = {t0} s")
-        step = 2.5 * float(np.median(np.diff(self.t)))
+        median = float(np.median(np.diff(self.t)))
+        step = 2.5 * median
         given = None if max_gap is None else _positive("max_gap", max_gap)
+        if given is not None and given <= median * (1.0 + 1e-9):  # every interval a gap, NaN
+            raise ValueError(f"max_gap: {given:g} s is not longer than the drive's sample "
+                             f"interval ({median:g} s, the median): every sample would be a gap; "
+                             f"give more than {median:g} s (default 2.5 intervals)")
         n = _grid_points(t0, t1, dt)
         if n < 2:
             raise ValueError(f"dt: {dt} s gives fewer than 2 samples between {t0} and {t1} s")
@@ -438,6 +443,7 @@ class Drive:
             if target not in (*model.input_names, *model.output_names):
                 raise ValueError(f"names: {target!r} is not an input or output of the model "
                                  f"({model.input_names}, {model.output_names})")
+        _one_column_each(names)
         missing_outputs = _names("missing_outputs", missing_outputs, model.output_names)
         drive = self if self.on_grid(float(model.dt)) else self.resample(float(model.dt),
                                                                          max_gap=max_gap)
@@ -630,6 +636,17 @@ def _intervals(intervals, names) -> dict:
             raise ValueError(f"intervals: {k!r} is not a signal or reference of this drive")
         out[k] = _positive(f"intervals[{k!r}]", v)
     return out
+
+
+def _one_column_each(names: dict) -> None:
+    """ValueError naming ``names`` and the columns where two map onto one model name (one
+    would be dropped silently)."""
+    seen = {}
+    for col, target in names.items():
+        if target in seen:
+            raise ValueError(f"names: columns {seen[target]!r} and {col!r} both map onto "
+                             f"{target!r}; map one column onto each model input or output")
+        seen[target] = col
 
 
 def _names(arg, value, known):

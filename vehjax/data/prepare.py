@@ -29,6 +29,7 @@ import math
 
 import numpy as np
 
+from .. import validation
 from ..models.bank_scale import TRACK
 
 __all__ = ["gate_virtual_yaw", "virtual_yaw_scale", "online_virtual_scale", "pose_virtual_scale",
@@ -91,9 +92,9 @@ def online_virtual_scale(gyro, r_virt, vx, track, *, noise_std=1.0 * DEG, bias_s
             stds [rad/s] (default 0.5 deg/s), [-].
     """
     gyro, r_virt, vx = (np.asarray(a, float) for a in (gyro, r_virt, vx))
-    for name, v in (("noise_std", noise_std), ("bias_std", bias_std), ("eps_std", eps_std)):
-        if not (np.isfinite(v) and v > 0):
-            raise ValueError(f"{name}: expected a positive std, got {v!r}")
+    noise_std, bias_std, eps_std = (validation.number(name, v, 0.0, what="a positive std")
+                                    for name, v in (("noise_std", noise_std),
+                                                    ("bias_std", bias_std), ("eps_std", eps_std)))
     z = gyro - r_virt
     ok = np.isfinite(z) & np.isfinite(vx)
     H = np.stack([np.ones_like(vx), -np.where(ok, vx, 0.0) / track], axis=1) * ok[:, None]

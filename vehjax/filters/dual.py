@@ -341,6 +341,7 @@ def dual_ekf(
         ``Estimator`` with state :class:`DualState`; ``param_names`` = ``estimate``;
         ``init(x0, P0, theta0, P_theta0)`` with theta0 (p,), P_theta0 (p, p) in physical units.
     """
+    recurrent = validation.flag("recurrent", recurrent)
     cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds, input_noise)
     predictive = _check_param_innovation(param_innovation)
     f, h = _model_fns(model, cfg)
@@ -403,6 +404,7 @@ def dual_ukf(
     Returns:
         ``Estimator`` with state :class:`DualState`; ``param_names`` = ``estimate``.
     """
+    recurrent = validation.flag("recurrent", recurrent)
     cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds, input_noise)
     predictive = _check_param_innovation(param_innovation)
     rule_s = unscented_rule(cfg.nx, alpha, beta, kappa)

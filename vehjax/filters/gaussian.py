@@ -312,7 +312,8 @@ def ukf(
         :class:`SqrtGaussianState` (x, L, theta) when ``sqrt``.
     """
     nx, _ = check_model(model)
-    return _sigma_filter(model, Q, R, unscented_rule(nx, alpha, beta, kappa), bool(sqrt), "UKF",
+    sqrt = validation.flag("sqrt", sqrt)
+    return _sigma_filter(model, Q, R, unscented_rule(nx, alpha, beta, kappa), sqrt, "UKF",
                          input_noise, lambda n: unscented_rule(n, alpha, beta, kappa))
 
 
@@ -334,7 +335,8 @@ def ckf(model, Q, R, sqrt: bool = False, input_noise=None) -> Estimator:
         :class:`SqrtGaussianState` (x, L, theta) when ``sqrt``.
     """
     nx, _ = check_model(model)
-    return _sigma_filter(model, Q, R, cubature_rule(nx), bool(sqrt), "CKF", input_noise,
+    sqrt = validation.flag("sqrt", sqrt)
+    return _sigma_filter(model, Q, R, cubature_rule(nx), sqrt, "CKF", input_noise,
                          cubature_rule)
 
 

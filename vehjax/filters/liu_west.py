@@ -560,12 +560,6 @@ def liu_west_ukf(
             "theta_low, theta_high: required, the bounds of the uniform prior of " f"{names}"
         )
     low_n, high_n = _check_box(theta_low, theta_high, names)
-    dom_lo, dom_hi = _domain(low_n, high_n, bounds, names,
-                             np.asarray(model.theta, float)[list(idx)])
-    tf = Transform(dom_lo, dom_hi)
-    # the prior box's width in s (delta method at its centre), for the kernel's jitter
-    centre = 0.5 * (low_n + high_n)
-    width_s = (high_n - low_n) / np.abs(np.asarray(tf.jacobian(tf.to_unconstrained(centre))))
     n = smc.check_n_particles(n_particles)
     a = validation.number("a", a, 0.0, 1.0)
     gamma = validation.number("gamma", gamma, 0.0, 1.0, high_open=False)
@@ -573,15 +567,23 @@ def liu_west_ukf(
     thr = smc.check_ess_threshold(ess_threshold)
     likelihood = validation.choice("likelihood", likelihood, _LIKELIHOODS)
     move = validation.choice("move", move, _MOVES)
+    recurrent = validation.flag("recurrent", recurrent)
     resample = smc.check_resample(resample)
+    rule = sigma.unscented_rule(nx, alpha, beta, kappa)  # checks alpha, beta, kappa
     Qn, Rn = validation.cov("Q", Q, nx, allow_psd=True), validation.cov("R", R, ny)
+    dom_lo, dom_hi = _domain(low_n, high_n, bounds, names,
+                             np.asarray(model.theta, float)[list(idx)])
+    tf = Transform(dom_lo, dom_hi)
+    # the prior box's width in s (delta method at its centre), for the kernel's jitter
+    centre = 0.5 * (low_n + high_n)
+    width_s = (high_n - low_n) / np.abs(np.asarray(tf.jacobian(tf.to_unconstrained(centre))))
     cfg = _Config(
         f=in_dtype(model.transition), h=in_dtype(model.observe), theta=model.theta, names=names,
         idx=np.asarray(idx, np.int32),  # int32: valid with x64 off too (float32 studies)
         nx=nx, n=n, low=low_n, high=high_n, dom_lo=dom_lo, dom_hi=dom_hi, tf=tf,
         width_s=width_s, a=a, gamma=gamma, scheme=scheme, threshold=thr, resample=resample,
         predictive=likelihood == "predictive", every=move == "every", recurrent=recurrent,
-        rule=sigma.unscented_rule(nx, alpha, beta, kappa),
+        rule=rule,
         ukf_step=ukf(model, Qn, Rn, alpha=alpha, beta=beta, kappa=kappa).step,
         Q=Qn, R=Rn, s_box=(len(names) + 1) // 2,  # counter streams: normals, box, resampling
     )

@@ -394,7 +394,7 @@ class Model(BaseModel):
         if not callable(observe):
             raise ValueError(f"observe: expected a function h(x, u, theta), got {observe!r}")
         self.written_fns = (transition, observe)
-        if fast_math:
+        if validation.flag("fast_math", fast_math):
             transition, observe = fast_elementary(transition), fast_elementary(observe)
         self.transition_fn = transition
         self.observe_fn = observe

@@ -63,12 +63,23 @@ OPTIONS = ("optimizer", "learning_rate", "steps", "tol", "patience", "gtol", "ke
            "progress", "standard_errors", "hessian")
 
 
-def check_options(options: dict) -> None:
+def check_options(options: dict, stochastic: bool | None = None) -> None:
     """``**options`` of :func:`vehjax.tune.fit` checked before anything is traced: TypeError
-    for a name :func:`fit_from_theta` does not take, ValueError naming a bad value."""
+    for a name :func:`fit_from_theta` does not take, ValueError naming a bad value. With
+    ``stochastic`` False (the filter is deterministic) a ``learning_rate`` without an
+    ``optimizer`` is refused: the default optimiser is then a line search; with True (a
+    particle filter) the optimizer "scoring"."""
     for k in options:
         if k not in OPTIONS:
             raise TypeError(f"fit() got an unexpected keyword argument {k!r}")
+    if stochastic and options.get("optimizer") == "scoring":
+        raise ValueError("optimizer: 'scoring' needs a deterministic filter (EKF, UKF, CKF); "
+                         "use 'adam' for a particle filter")
+    if stochastic is False and options.get("optimizer") is None \
+            and options.get("learning_rate") is not None:
+        raise ValueError("learning_rate: the default optimizer of a deterministic filter "
+                         "(scoring, or lbfgs beyond 12 fitted coordinates) takes its steps by a "
+                         "line search; leave it None, or pass optimizer='adam'")
     _check_fit_options(options.get("learning_rate"), options.get("tol", 0.0),
                        options.get("gtol", GTOL), options.get("hessian"), options.get("steps"),
                        options.get("patience"), options.get("optimizer"),
@@ -333,9 +344,8 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
                                                   standard_errors)
     obj, setup = prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
                          noise, fit_x0, key, builder_kwargs, priors)
-    if optimizer == "scoring" and setup["stochastic"]:
-        raise ValueError("optimizer: 'scoring' needs a deterministic filter (EKF, UKF, CKF); "
-                         "use 'adam' for a particle filter")
+    check_options(dict(optimizer=optimizer, learning_rate=learning_rate),  # before compiling
+                  stochastic=setup["stochastic"])
     differences = not setup["stochastic"] and hessian in (None, "differences")
     ahead = _diagnostics_ahead(setup, obj.data, model, Q0, R0, x0, builder_kwargs, bounds,
                                standard_errors, checks)

@@ -10,6 +10,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .. import validation
+
 __all__ = ["Uncertainty", "uncertainty", "hessian_from_gradients", "difference_hessian",
            "FORWARD_REL", "RCOND", "MAX_SCALED_STD"]
 
@@ -46,6 +48,18 @@ class Uncertainty(NamedTuple):
     determined: np.ndarray
 
 
+def _max_std(max_std, shape) -> np.ndarray:
+    """``max_std`` of :func:`uncertainty` as (n,) positive values (inf for no limit)."""
+    try:
+        out = np.broadcast_to(np.asarray(max_std, dtype=float), shape)
+    except (TypeError, ValueError):
+        out = np.full(shape, np.nan)
+    if isinstance(max_std, (str, bytes, bool)) or not np.all(out > 0):
+        raise ValueError(f"max_std: expected a positive number or {shape} of them (inf for no "
+                         f"limit), got {max_std!r}")
+    return out
+
+
 def uncertainty(info_matrix, jac, scales, coord_names, rcond: float = RCOND,
                 max_std=MAX_SCALED_STD, fixed=None, pinned=None) -> Uncertainty:
     """Standard errors and correlations of fitted quantities from the observed information.
@@ -75,7 +89,8 @@ def uncertainty(info_matrix, jac, scales, coord_names, rcond: float = RCOND,
     Iz = np.asarray(info_matrix, dtype=float)
     J = np.asarray(jac, dtype=float)
     scales = np.asarray(scales, dtype=float)
-    max_std = np.broadcast_to(np.asarray(max_std, dtype=float), scales.shape)
+    rcond = validation.number("rcond", rcond, 0.0, 1.0, low_open=False)
+    max_std = _max_std(max_std, scales.shape)
     if fixed is not None and np.any(fixed):
         return _with_fixed(Iz, J, scales, coord_names, rcond, max_std, np.asarray(fixed, bool),
                            pinned)

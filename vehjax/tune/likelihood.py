@@ -124,6 +124,22 @@ def check_data(model, measurements, inputs, x0, P0):
 def _start_estimator(builder, model, setup: dict, key, n_runs: int):
     """(the estimator at the starting values, the stop-gradient keyword, per-run keys or None):
     the builder checks its own arguments and says whether it needs a key."""
+    est0 = _built(builder, model, setup)
+    keys, sg = None, {}
+    if est0.needs_key:  # a particle filter: differentiated with stop-gradient resampling
+        sg = resample_keyword(builder, est0.name, setup["builder_kwargs"])
+        if key is None:
+            raise ValueError(f"key: {est0.name} draws random numbers; pass key=jax.random.key(...)")
+        try:
+            keys = jax.random.split(key, n_runs)
+        except Exception:
+            raise ValueError(f"key: expected a jax.random.key, got {key!r}") from None
+    return est0, sg, keys
+
+
+def _built(builder, model, setup: dict) -> Estimator:
+    """The state-only estimator ``builder`` makes at the starting values (ValueError naming
+    ``builder`` where it is not one)."""
     try:
         est0 = builder(model, setup["Qa"], setup["Ra"], **setup["builder_kwargs"])
     except TypeError as err:  # not a state-only builder(model, Q, R, **kw), or bad keywords
@@ -139,16 +155,16 @@ def _start_estimator(builder, model, setup: dict, key, n_runs: int):
         raise ValueError(f"builder: {est0.name} estimates parameters {est0.param_names}; tune "
                          f"a state-only filter (ekf, ukf, ckf, bootstrap_pf) and fit model "
                          f"parameters with params=")
-    keys, sg = None, {}
-    if est0.needs_key:  # a particle filter: differentiated with stop-gradient resampling
-        sg = resample_keyword(builder, est0.name, setup["builder_kwargs"])
-        if key is None:
-            raise ValueError(f"key: {est0.name} draws random numbers; pass key=jax.random.key(...)")
-        try:
-            keys = jax.random.split(key, n_runs)
-        except Exception:
-            raise ValueError(f"key: expected a jax.random.key, got {key!r}") from None
-    return est0, sg, keys
+    return est0
+
+
+def draws_random_numbers(builder, model, Q0, R0, params, noise, fit_x0,
+                         builder_kwargs) -> bool:
+    """Whether the fit's filter is a particle filter (its optimiser by default adam, not a line
+    search), found by building it at the starting values, before anything is traced;
+    ValueError naming a bad argument as :func:`prepare` does."""
+    setup = _check_what(model, Q0, R0, params, None, noise, fit_x0, builder_kwargs)
+    return bool(_built(_check_builder(builder), model, setup).needs_key)
 
 
 def _coordinates(setup: dict):

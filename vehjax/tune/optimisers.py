@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from .. import validation
 from .information import RCOND
 
 __all__ = ["scoring", "scoring_direction", "lbfgs", "first_order", "first_order_optimizer",
@@ -73,7 +74,9 @@ def scoring_direction(g, B, scales, damping: float = 0.0):
     """The BHHH / scoring step ``-(B + damping lam_max I)^-1 g`` in the scaled coordinates
     ``S z`` (S = diag(scales), the coordinates' natural sizes), over the directions where the
     scaled B has curvature above 1e-10 of its largest eigenvalue (a step of zero along the
-    others): g (n,) gradient, B (n, n) positive semi-definite curvature. Returns (n,)."""
+    others): g (n,) gradient, B (n, n) positive semi-definite curvature, damping >= 0.
+    Returns (n,)."""
+    damping = validation.number("damping", damping, 0.0, low_open=False)
     Bs = B * np.outer(scales, scales)
     lam, V = np.linalg.eigh(0.5 * (Bs + Bs.T))
     top = max(float(lam.max()), np.finfo(float).tiny)

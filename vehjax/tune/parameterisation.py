@@ -89,12 +89,7 @@ def param_transform(params, bounds, theta0: np.ndarray, names: tuple, domains=No
         v = float(theta0[idx[j]])
         declared = np.isfinite(dom_lo[idx[j]]) or np.isfinite(dom_hi[idx[j]])
         if p in bounds or declared:
-            low[j], high[j] = (bounds_maps.check_pair("bounds", p, bounds[p]) if p in bounds
-                               else (-np.inf, np.inf))
-            low[j], high[j] = max(low[j], dom_lo[idx[j]]), min(high[j], dom_hi[idx[j]])
-            if not low[j] < high[j]:
-                raise ValueError(f"bounds: {p}'s bounds {bounds[p]} lie outside its physical "
-                                 f"domain ({dom_lo[idx[j]]:g}, {dom_hi[idx[j]]:g})")
+            low[j], high[j] = _box(p, bounds.get(p), dom_lo[idx[j]], dom_hi[idx[j]])
             if not low[j] < v < high[j]:
                 show = lambda b: None if np.isinf(b) else float(b)  # noqa: E731
                 raise ValueError(
@@ -105,3 +100,28 @@ def param_transform(params, bounds, theta0: np.ndarray, names: tuple, domains=No
         else:
             low[j], high[j] = (0.0 if v > 0 else -np.inf), np.inf
     return idx, bounds_maps.Transform(low, high)
+
+
+def _box(name: str, given, dom_lo: float, dom_hi: float) -> tuple[float, float]:
+    """(low, high): the parameter's domain narrowed by its ``bounds`` entry ``given`` (or None);
+    ValueError naming ``bounds`` and the parameter where the two do not overlap."""
+    low, high = (-np.inf, np.inf) if given is None else bounds_maps.check_pair("bounds", name,
+                                                                                given)
+    low, high = max(low, dom_lo), min(high, dom_hi)
+    if not low < high:
+        raise ValueError(f"bounds: {name}'s bounds {given} lie outside its physical domain "
+                         f"({dom_lo:g}, {dom_hi:g})")
+    return low, high
+
+
+def check_bounds(params, bounds, model) -> None:
+    """``bounds`` of the fitted ``params`` checked against ``model``'s declared domains before
+    anything is fitted (a staged fit's first stage is another model's): ValueError naming
+    ``bounds`` and the parameter for an unknown name, a bad pair, or bounds wholly outside the
+    parameter's domain. Whether the start lies inside is checked where the start is known."""
+    bounds = validation.keyed("bounds", bounds, params, "the fitted params")
+    names, domains = tuple(model.param_names), model.param_domains()
+    dom_lo, dom_hi = ((np.full(len(names), -np.inf), np.full(len(names), np.inf))
+                      if domains is None else domains.bounds())
+    for p, given in bounds.items():
+        _box(p, given, dom_lo[names.index(p)], dom_hi[names.index(p)])

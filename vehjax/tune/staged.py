@@ -59,7 +59,8 @@ from .. import execution, validation
 from .diagnostics import Checks
 from .driver import check_options, compile_objective, fit_from_theta
 from . import priors as tune_priors
-from .likelihood import NOISE, check_data, objective
+from .likelihood import NOISE, check_data, draws_random_numbers, objective
+from .parameterisation import check_bounds
 from .release import release_priors, start_value, to_release
 from .result import Comparison, TuneResult
 
@@ -171,6 +172,18 @@ def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: d
     return lin, cmp, ahead, args, released
 
 
+def _check_ahead(builder, model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs,
+                 options: dict) -> None:
+    """What the model's own fit would refuse, checked before the nested model's fit: bounds
+    outside a parameter's domain, a learning_rate the default (line-search) optimiser of a
+    deterministic filter does not take (the filter built once to tell, nothing traced)."""
+    params = validation.names("params", params, model.param_names, allow_empty=True)
+    check_bounds(params, bounds, model)
+    if options.get("learning_rate") is not None and options.get("optimizer") is None:
+        check_options(options, stochastic=draws_random_numbers(
+            builder, model, Q0, R0, params, noise, fit_x0, builder_kwargs))
+
+
 def _quietly(fn, *args, **kwargs):
     """(``fn(*args, **kwargs)``, the warnings it raised), the warnings held back: a fit that a
     later stage supersedes does not speak for the result."""
@@ -186,7 +199,9 @@ def _reissue(caught, label: str | None = None) -> None:
     for w in caught:
         text = str(w.message)
         if label is not None:
-            text = text.replace("vehjax.tune:", f"vehjax.tune (the nested {label}'s fit):", 1)
+            nested = f"vehjax.tune (the nested {label}'s fit):"
+            text = (text.replace("vehjax.tune:", nested, 1) if "vehjax.tune:" in text
+                    else f"{nested} {text}")
         warnings.warn(text, w.category, stacklevel=3)
 
 
@@ -233,15 +248,40 @@ def _from_nested(model, Q0, R0, args: dict, lin) -> tuple:
     if lin is None:
         return model, Q0, R0, args
     args = dict(args)
-    model = model.with_theta(**lin.params)
+    given = {k: float(model.theta[model.param_names.index(k)]) for k in lin.params}
+    model = model.with_theta(**{k: given[k] if k in lin.on_bound else v
+                                for k, v in lin.params.items()})
     noise = args["noise"]
-    Q0 = lin.Q if "Q" in noise else Q0
-    R0 = lin.R if "R" in noise else R0
+    Q0 = _off_bounds(lin.Q, Q0, "Q", model.state_names, lin.on_bound) if "Q" in noise else Q0
+    R0 = _off_bounds(lin.R, R0, "R", model.output_names, lin.on_bound) if "R" in noise else R0
     if "input" in noise:
-        args["builder_kwargs"] = dict(args["builder_kwargs"] or {}, input_noise=lin.input_noise)
+        inoise = lin.input_noise
+        if isinstance(inoise, dict):  # stds by name: those on their bound start as given
+            start = (args["builder_kwargs"] or {}).get("input_noise") or {}
+            inoise = {k: start.get(k, v) if f"input[{k}]" in lin.on_bound else v
+                      for k, v in inoise.items()}
+        args["builder_kwargs"] = dict(args["builder_kwargs"] or {}, input_noise=inoise)
     if args["fit_x0"]:
         args["x0"] = lin.x0
     return model, Q0, R0, args
+
+
+def _off_bounds(fitted, given, name: str, components, on_bound: dict) -> np.ndarray:
+    """The nested fit's covariance ``fitted`` as the model's start, its variances that ended on
+    their bound (zero) back at the ``given`` start: a quantity reaches its bound only at an
+    infinite coordinate (:mod:`vehjax.tune.boundaries`), so a start there could neither move
+    nor be told on its bound; from the given start the model's fit finds the bound again and
+    reports it (``on_bound``) as a fit from ``start="theta"`` does."""
+    out = np.array(fitted, dtype=float)
+    g = np.asarray(given, dtype=float)
+    for i, c in enumerate(components):
+        if f"{name}[{c},{c}]" in on_bound:
+            v = g[i] if g.ndim == 1 else g[i, i]
+            if out.ndim == 1:
+                out[i] = v
+            else:
+                out[i, i] = v
+    return out
 
 
 def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(), bounds=None,
@@ -283,6 +323,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     t0 = time.perf_counter()
     validation.choice("start", start, STARTS)
     validation.flag("compare", compare)
+    validation.flag("fit_x0", fit_x0)
     release = validation.flag("release", release)
     check_options(options)
     validation.model(model)
@@ -292,6 +333,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     if priors:  # the prior'd parameters fitted; the names checked here, before the nested fit
         params = tune_priors.fitted_params(
             validation.names("params", params, model.param_names, allow_empty=True), priors)
+    _check_ahead(builder, model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs, options)
     args = dict(x0=x0, P0=P0, params=params, bounds=bounds, noise=noise, fit_x0=fit_x0,
                 builder_kwargs=builder_kwargs, priors=priors)
     diagnose = release and validation.flag("standard_errors",

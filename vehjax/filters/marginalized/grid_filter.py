@@ -405,6 +405,7 @@ def marginalized_pf_grid(
     """
     means, grid = _options(means, grid)
     validation.model(model)
+    smc.check_n_particles(n_particles)  # before the augmented model is built (it computes)
     sensors = validation.names("sensors", sensors, tuple(model.output_names))
     linear_states = validation.names("linear_states", linear_states, tuple(model.state_names),
                                     allow_empty=True)

@@ -32,6 +32,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from ... import validation
 from ...models.base import Model
 from ...models.biases import with_input_offset, with_output_biases
 
@@ -63,11 +64,9 @@ def pad_linear_noise(linear_noise_std, n_linear, n_extra, bank_gain):
     is returned as given, for ``marginalized_pf``'s own check to name."""
     if linear_noise_std is None:
         return np.zeros(n_extra) if n_linear == 0 else None
-    if isinstance(linear_noise_std, (bool, np.bool_)):
-        return linear_noise_std
     try:
-        sig = np.asarray(linear_noise_std, dtype=float)
-    except (TypeError, ValueError):
+        sig = validation.array("linear_noise_std", linear_noise_std, allow_nan=True)
+    except ValueError:  # a bool, a string: marginalized_pf's own check names it
         return linear_noise_std
     if sig.ndim == 1 and sig.shape[0] == n_linear:
         return np.r_[sig, np.zeros(n_extra)]
@@ -84,17 +83,9 @@ def bias_walk_stds(bias_walk, sensors):
     if not isinstance(bias_walk, dict) or any(k not in sensors for k in bias_walk):
         raise ValueError(f"bias_walk: expected a dict sensor -> std with sensors from "
                          f"{tuple(sensors)}, got {bias_walk!r}")
-    out = []
-    for k in sensors:
-        v = bias_walk.get(k, 0.0)
-        try:
-            f = float(v)
-        except (TypeError, ValueError):
-            f = float("nan")
-        if isinstance(v, (bool, np.bool_)) or not np.isfinite(f) or f < 0.0:
-            raise ValueError(f"bias_walk[{k!r}]: expected a finite std >= 0, got {v!r}")
-        out.append(f)
-    return np.array(out)
+    return np.array([validation.number(f"bias_walk[{k!r}]", bias_walk.get(k, 0.0), 0.0,
+                                       low_open=False, what="a finite std >= 0")
+                     for k in sensors])
 
 
 def augment_prior(x0, P0, theta, gamma0, ns, mean_sd=None):

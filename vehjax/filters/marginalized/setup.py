@@ -46,13 +46,7 @@ class NiW(NamedTuple):
 
 
 def _std_value(name, value):
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = float("nan")
-    if isinstance(value, (bool, np.bool_)) or not np.isfinite(v) or v <= 0.0:
-        raise ValueError(f"{name}: expected a positive, finite standard deviation, got {value!r}")
-    return v
+    return validation.number(name, value, 0.0, what="a positive, finite standard deviation")
 
 
 def std_dict(arg, value, required, allowed, unit_hint):
@@ -153,11 +147,9 @@ def _linear_noise(model, linear_noise_std, li, linear_states) -> np.ndarray:
     if linear_noise_std is None:
         raise ValueError(f"linear_noise_std: required with linear_states {linear_states} "
                          f"(sigma_phi of eq. 3)")
-    try:
-        sig = np.asarray(linear_noise_std, dtype=float)
-    except (TypeError, ValueError):
-        sig = np.array(np.nan)
-    if isinstance(linear_noise_std, (bool, np.bool_)):
+    try:  # real numbers (validation's rule: no bool, string or object), checked below
+        sig = validation.array("linear_noise_std", linear_noise_std, allow_nan=True)
+    except ValueError:
         sig = np.array(np.nan)
     if sig.ndim == 0 and np.isfinite(sig) and sig >= 0 and hasattr(model, "bank_noise_gain"):
         B = np.asarray(model.bank_noise_gain(), dtype=float)[li]
@@ -214,6 +206,8 @@ def configure(model, n_particles, noisy_input, sensors, known_std, linear_states
     and the constants the filter is built from."""
     validation.model(model)
     n = smc.check_n_particles(n_particles)
+    if kalman_states not in ("linear", "all"):  # before the noise set-up (it computes)
+        raise ValueError(f"kalman_states: expected 'linear' or 'all', got {kalman_states!r}")
     niw = _niw(niw)
     state_names = tuple(model.state_names)
     input_names = tuple(model.input_names)
@@ -240,8 +234,6 @@ def configure(model, n_particles, noisy_input, sensors, known_std, linear_states
     unknown_names = (noisy_input,) + sensors
     std0v, mean0v = _noise_prior(unknown_names, niw.std0, niw.mean0, d)
     lam, g0, nu0 = _forgetting(niw.forgetting, niw.gamma0, niw.nu0, d)
-    if kalman_states not in ("linear", "all"):
-        raise ValueError(f"kalman_states: expected 'linear' or 'all', got {kalman_states!r}")
     gauss = kalman_states == "all" and nz > 0
     _check_affine(model, li)
 

@@ -1,0 +1,242 @@
+"""Every public callable's options fed wrong values, found by walking the signatures.
+
+For each callable of the ``__all__`` of ``vehjax``, ``vehjax.tune``, ``vehjax.filters`` and
+``vehjax.data``, each argument whose default is a bool, int, float or str gets values of the
+wrong kind: a list, a truthy string for a flag, NaN and inf for a number, a string for a
+number, an unknown string for a choice; and every callable an unknown keyword. Each must raise
+ValueError or TypeError naming the argument, before JAX traces or compiles anything (counted by
+:mod:`jax.monitoring`'s compile events). A callable with no such argument is not walked; one
+that has them is either built here (:data:`CALLS`) or exempt with its reason
+(:data:`EXEMPT`), so that a new public function is walked when it is written.
+"""
+
+import importlib
+import inspect
+import math
+
+import jax
+import jax.monitoring
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import vehjax as vj
+from vehjax.models import SingleTrack, SingleTrackBank
+from vehjax.tune import parameterisation, program, staged
+
+MODULES = ("vehjax", "vehjax.tune", "vehjax.filters", "vehjax.data")
+
+#: the compile events of JAX (tracing a function, lowering it, compiling it)
+_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/backend_compile_duration")
+_compiles = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, *a, **k: _compiles.append(name) if name in _EVENTS else None)
+
+
+class _Accepted(Exception):
+    """Raised where a fit would start: the bad value got past every check."""
+
+
+# -- one tiny problem shared by every call --------------------------------------------------
+M = SingleTrack(dt=0.01)
+T = 6
+YS = np.zeros((T, 2))
+US = np.tile([0.0, 20.0], (T, 1))
+Q, R = np.array([1e-4, 1e-4]), np.array([0.04, 1e-4])
+X0, P0 = np.zeros(2), np.array([0.1, 0.01])
+KEY = jax.random.key(0)
+
+
+def _fit(fn):
+    return lambda: (fn, (vj.filters.ekf, M, Q, R, YS, US),
+                    dict(x0=X0, P0=P0, params=("cf",)))
+
+
+def _stop_every_fit(monkeypatch):
+    """Where a fit would start (its first stage, its program, its objective) it raises
+    :class:`_Accepted` instead: a value that got past every check costs nothing."""
+    def accepted(*a, **k):
+        raise _Accepted
+
+    for mod, name in ((staged, "_nested_stage"), (staged, "fit_from_theta"),
+                      (staged, "compile_objective"), (program, "compiled_loss")):
+        monkeypatch.setattr(mod, name, accepted)
+
+
+#: "module.name" -> () -> (the callable, its positional arguments, its keyword arguments):
+#: valid values for everything but the argument under test (built before the count starts)
+CALLS = {
+    "vehjax.simulate": lambda: (vj.simulate, (M, vj.scenarios.from_inputs(M, US, X0)),
+                                dict(key=KEY)),
+    "vehjax.filter": lambda: (vj.filter, (vj.filters.ekf(M, Q, R), YS, US), dict(x0=X0, P0=P0)),
+    "vehjax.smooth": lambda: (vj.smooth, (vj.filters.ekf(M, Q, R), YS, US), dict(x0=X0, P0=P0)),
+    "vehjax.run": lambda: (vj.run, (vj.filters.ekf(M, Q, R), YS[None], US), dict(x0=X0, P0=P0)),
+    "vehjax.compile_run": lambda: (vj.compile_run, (vj.filters.ekf(M, Q, R), YS[None], US),
+                                   dict(x0=X0, P0=P0)),
+    "vehjax.tune.fit": _fit(vj.tune.fit),
+    "vehjax.tune.fit_from_theta": _fit(vj.tune.fit_from_theta),
+    "vehjax.tune.objective": lambda: (vj.tune.objective, (vj.filters.ekf, M, Q, R, YS, US),
+                                      dict(x0=X0, P0=P0)),
+    "vehjax.tune.stop_gradient_pf": lambda: (vj.tune.stop_gradient_pf, (M, Q, R), {}),
+    "vehjax.tune.uncertainty": lambda: (vj.tune.uncertainty,
+                                        (np.eye(2), np.eye(2), np.ones(2), ("a", "b")), {}),
+    "vehjax.tune.scoring_direction": lambda: (vj.tune.scoring_direction,
+                                              (np.ones(2), np.eye(2), np.ones(2)), {}),
+    **{f"vehjax.filters.{b}": (lambda b=b: (getattr(vj.filters, b), (M, Q, R), {}))
+       for b in ("ukf", "ckf", "ackf", "bootstrap_pf")},
+    **{f"vehjax.filters.{b}": (lambda b=b: (getattr(vj.filters, b),
+                                            (M, Q, R, np.array([1e-2]), ("cf",)), {}))
+       for b in ("dual_ekf", "dual_ukf", "joint_ekf", "joint_ukf")},
+    "vehjax.filters.liu_west_ukf": lambda: (vj.filters.liu_west_ukf, (M, Q, R),
+                                            dict(estimate=("cf",), theta_low=[5e4],
+                                                 theta_high=[2e5])),
+    **{f"vehjax.filters.{b}": (lambda b=b: (getattr(vj.filters, b), (M, Q, R),
+                                            dict(biases=("ay",), input_offsets=("delta",))))
+       for b in ("vbakf_r", "vbakf_pr")},
+    "vehjax.filters.marginalized_pf": lambda: (
+        vj.filters.marginalized_pf, (SingleTrackBank(dt=0.01),),
+        dict(linear_noise_std=0.05, known_std={"phi": 0.01, "r_virt": 0.005},
+             niw=vj.filters.NiW(std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02}))),
+    "vehjax.filters.marginalized_pf_grid": lambda: (
+        vj.filters.marginalized_pf_grid, (SingleTrackBank(dt=0.01),), dict(linear_noise_std=0.1)),
+    "vehjax.data.online_virtual_scale": lambda: (
+        vj.data.online_virtual_scale, (np.zeros(T), np.zeros(T), np.full(T, 20.0), 1.6), {}),
+}
+
+#: "module.name" -> why its options are not walked here
+EXEMPT = {
+    "vehjax.tune.TuneResult": "a record of results (a NamedTuple), built by the fit",
+    "vehjax.tune.ScoreTest": "a record of results (a NamedTuple), built by the fit",
+    "vehjax.filters.Estimator": "a record of a filter's functions, built by the builders",
+    "vehjax.filters.StepOutput": "a record a filter's step returns, inside the traced scan",
+    "vehjax.filters.NiW": "a record of prior statistics, checked by the builders that take it",
+    "vehjax.tune.hessian_from_gradients": "takes a compiled gradient function: runs it at once",
+    "vehjax.tune.compare": "needs fitted TuneResults (a fit each); tests/tune/test_compare.py",
+    "vehjax.data.load_comma2k19": "reads the shipped segment; tests/data/test_comma2k19.py",
+    "vehjax.data.prepare_drive": "needs a loaded drive; tests/data/test_prepare.py",
+}
+
+#: (callable, argument) -> {repr of a value walked here: why the callable takes it}
+ALLOWED = {
+    ("vehjax.tune.uncertainty", "max_std"): {"inf": "no limit on the standard errors",
+                                             "[1.0]": "one limit per coordinate, broadcast"},
+}
+
+
+def _walked():
+    """(qualified name, the callable) of every public callable with an option to walk."""
+    out = []
+    for modname in MODULES:
+        mod = importlib.import_module(modname)
+        for name in mod.__all__:
+            obj = getattr(mod, name)
+            if callable(obj) and _options(obj):
+                out.append((f"{modname}.{name}", obj))
+    return out
+
+
+def _options(fn) -> dict:
+    """{argument: default} of the arguments whose default is a bool, int, float or str."""
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return {}
+    return {p.name: p.default for p in params if isinstance(p.default, (bool, int, float, str))}
+
+
+def _bad_values(default) -> list:
+    if isinstance(default, bool):
+        return ["no", [True], 2]
+    if isinstance(default, int):
+        return [[1], "3", 1.5, math.nan]
+    if isinstance(default, float):
+        return [[default], "0.5", math.nan, math.inf]
+    return ["no_such_choice_here", 3]
+
+
+def _cases():
+    for qual, fn in _walked():
+        if qual in EXEMPT:
+            continue
+        for arg, default in _options(fn).items():
+            for bad in _bad_values(default):
+                if repr(bad) in ALLOWED.get((qual, arg), {}):
+                    continue
+                yield pytest.param(qual, arg, bad, id=f"{qual}-{arg}-{bad!r}")
+
+
+def test_every_walked_callable_is_built_here_or_exempt_with_a_reason():
+    names = {q for q, _ in _walked()}
+    assert names - set(CALLS) - set(EXEMPT) == set(), "add a call or an exemption"
+    assert set(CALLS) | set(EXEMPT) <= names, "a listed callable is no longer public"
+
+
+@pytest.mark.parametrize("qual, arg, bad", list(_cases()))
+def test_a_wrong_value_is_refused_naming_it_before_anything_is_compiled(monkeypatch, qual,
+                                                                      arg, bad):
+    _stop_every_fit(monkeypatch)
+    fn, args, kwargs = CALLS[qual]()
+    before = len(_compiles)
+    with pytest.raises((ValueError, TypeError)) as err:
+        fn(*args, **kwargs, **{arg: bad})
+    assert arg in str(err.value), (qual, arg, bad, str(err.value))
+    assert len(_compiles) == before, (qual, arg, bad, "refused only after compiling")
+
+
+@pytest.mark.parametrize("qual", sorted(CALLS))
+def test_an_unknown_keyword_is_refused_naming_it(monkeypatch, qual):
+    """A TypeError as Python raises it, or a ValueError from a callable that passes further
+    keywords on (smooth's particle options) naming the keyword."""
+    _stop_every_fit(monkeypatch)
+    fn, args, kwargs = CALLS[qual]()
+    with pytest.raises((TypeError, ValueError), match="no_such_option"):
+        fn(*args, **kwargs, no_such_option=1)
+
+
+# -- where values interact: properties against rules written out here ------------------------
+_stamp = st.one_of(st.floats(-1e3, 1e3), st.just(math.nan), st.just(math.inf))
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(t=st.lists(_stamp, min_size=0, max_size=6), n=st.integers(0, 7),
+       unit=st.sampled_from(["s", "ms", "min", "parsec"]))
+def test_drive_from_arrays_takes_exactly_the_stamps_and_columns_that_fit(t, n, unit):
+    """A drive is made iff there are at least 2 finite, strictly increasing stamps, a known
+    time unit and a column as long as them; then its stamps are the given ones in seconds and
+    its column the given values. Otherwise a ValueError naming what is wrong."""
+    scale = {"s": 1.0, "ms": 1e-3, "min": 60.0}.get(unit)
+    col = np.arange(float(n))
+    ts = np.asarray(t, dtype=float)
+    ok = (len(ts) >= 2 and np.all(np.isfinite(ts)) and np.all(np.diff(ts) > 0)
+          and scale is not None and n == len(ts))
+    try:
+        d = vj.data.Drive.from_arrays(t, {"y": col}, {"y": "m"}, time_unit=unit)
+    except ValueError as err:
+        assert not ok, (t, n, unit, str(err))
+        assert any(w in str(err) for w in ("t:", "time", "y", "unit")), str(err)
+        return
+    assert ok, (t, n, unit)
+    np.testing.assert_allclose(d.t, ts * scale, rtol=1e-15)
+    np.testing.assert_array_equal(d.signals["y"], col)
+
+
+_end = st.one_of(st.none(), st.floats(-5.0, 6.0), st.just(math.nan))
+
+
+@settings(max_examples=60, deadline=None)
+@given(lo=_end, hi=_end)
+def test_bounds_are_refused_exactly_when_they_leave_nothing_of_the_domain(lo, hi):
+    """mu's domain is (0, 3): bounds (lo, hi) pass iff both ends are numbers or None, lo < hi,
+    and (lo, hi) meets (0, 3) (the interval arithmetic written out here)."""
+    model = SingleTrack(tyres="brush")
+    a = -math.inf if lo is None else lo
+    b = math.inf if hi is None else hi
+    ok = not (math.isnan(a) or math.isnan(b)) and a < b and max(a, 0.0) < min(b, 3.0)
+    try:
+        parameterisation.check_bounds(("mu",), {"mu": (lo, hi)}, model)
+    except ValueError as err:
+        assert not ok, (lo, hi, str(err))
+        assert str(err).startswith("bounds") and "mu" in str(err), str(err)
+        return
+    assert ok, (lo, hi)
