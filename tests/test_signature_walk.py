@@ -67,6 +67,9 @@ def _stop_every_fit(monkeypatch):
 #: "module.name" -> () -> (the callable, its positional arguments, its keyword arguments):
 #: valid values for everything but the argument under test (built before the count starts)
 CALLS = {
+    # the stamps are checked before the file is opened: no bag is needed
+    "vehjax.data.read_ros2": lambda: (vj.data.read_ros2, ("no_such_bag",),
+                                      dict(fields={"r": "/imu.angular_velocity.z"})),
     "vehjax.simulate": lambda: (vj.simulate, (M, vj.scenarios.from_inputs(M, US, X0)),
                                 dict(key=KEY)),
     "vehjax.filter": lambda: (vj.filter, (vj.filters.ekf(M, Q, R), YS, US), dict(x0=X0, P0=P0)),
