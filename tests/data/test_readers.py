@@ -435,7 +435,7 @@ def test_can_errors(tmp_path, can_frames):
     assert np.isfinite(one.signals["vx"]).sum() == 10
 
 
-# -- the shipped drive through MDF4 and a ROS 2 bag ------------------------------------------
+# -- the shipped drive through MDF4, a ROS 2 bag and a CAN log --------------------------------
 def _same_drive(d, rav4, t_atol=0.0):
     np.testing.assert_allclose(d.t, rav4.t, rtol=0, atol=t_atol)
     assert d.signals.keys() == rav4.signals.keys() and d.reference.keys() == rav4.reference.keys()
@@ -486,6 +486,45 @@ def test_rav4_through_a_ros2_bag(tmp_path, rav4):
     d = read_drive(tmp_path / "bag", fields={k: f"/drive.{k}" for k in names},
                    units=dict(rav4.units), reference=tuple(rav4.reference))
     _same_drive(d, rav4, t_atol=1e-9)                             # stamps kept to the ns
+
+
+def _double_dbc(names, units) -> str:
+    """A DBC with one 8-byte message per signal, each an IEEE double (SIG_VALTYPE_ 2): the
+    values go through CAN exactly."""
+    lines = ['VERSION ""', "", "NS_ :", "", "BS_:", "", "BU_: ECU", ""]
+    for i, k in enumerate(names):
+        lines += [f"BO_ {256 + i} M_{k}: 8 ECU",
+                  f' SG_ {k} : 0|64@1- (1,0) [0|0] "{units[k]}" Vector__XXX', ""]
+    lines += [f"SIG_VALTYPE_ {256 + i} {k} : 2;" for i, k in enumerate(names)]
+    return "\n".join(lines) + "\n"
+
+
+def test_rav4_through_a_can_log(tmp_path, rav4):
+    """The shipped drive's first 20 s (2,000 samples of its 24 signals: 48,000 frames) as CAN
+    frames that cantools encodes by a DBC, written by python-can as a candump log, read back:
+    the values exactly, the stamps to the log's microsecond."""
+    cantools = pytest.importorskip("cantools")
+    can = pytest.importorskip("can")
+    part = rav4.between(stop=rav4.t[0] + 19.995)
+    names = [*part.signals, *part.reference]
+    cols = {k: part.signals.get(k, part.reference.get(k)) for k in names}
+    (tmp_path / "rav4.dbc").write_text(_double_dbc(names, part.units))
+    db = cantools.database.load_file(str(tmp_path / "rav4.dbc"))
+    frames = [can.Message(timestamp=float(t), arbitration_id=256 + i, is_extended_id=False,
+                          channel=0, data=db.get_message_by_name(f"M_{k}").encode(
+                              {k: float(cols[k][j])}))
+              for j, t in enumerate(part.t) for i, k in enumerate(names)]
+    path = _log(can, tmp_path / "rav4.log", frames)   # candump: absolute stamps, to the us
+    d = read_drive(path, dbc=tmp_path / "rav4.dbc",
+                   signals={k: f"M_{k}.{k}" for k in names}, reference=tuple(part.reference))
+    np.testing.assert_allclose(d.t, part.t, rtol=0, atol=5e-7)
+    assert d.units == part.units and d.reference.keys() == part.reference.keys()
+    for k in names:                                           # the doubles, exactly
+        np.testing.assert_array_equal(d.signals.get(k, d.reference.get(k)), cols[k], err_msg=k)
+    model = SingleTrackBank(dt=0.01)  # on the model's grid: stamps off by < 0.5 us
+    for a, b in zip(d.for_model(model, missing_outputs=("phi",)),
+                    part.for_model(model, missing_outputs=("phi",))):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
 
 
 # -- read_drive, the extras, Drive.intervals -------------------------------------------------
