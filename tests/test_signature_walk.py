@@ -243,3 +243,51 @@ def test_bounds_are_refused_exactly_when_they_leave_nothing_of_the_domain(lo, hi
         assert str(err).startswith("bounds") and "mu" in str(err), str(err)
         return
     assert ok, (lo, hi)
+
+
+# -- array arguments: a wrong shape, no samples, inf, NaN ----------------------------------
+def _array_variants(a: np.ndarray) -> dict:
+    return {"extra axis": np.stack([a] * 3), "empty": np.zeros((0,) + a.shape[1:]),
+            "inf": np.full(a.shape, np.inf), "nan": np.full(a.shape, np.nan)}
+
+
+_NUMPY_HELPERS = "a numpy helper on arrays the fit made; its arrays' shapes are not checked"
+#: (callable, argument, variant) -> why the callable takes it; (callable, "*", "*"): not walked
+ARRAY_ALLOWED = {
+    **{(q, "measurements", "nan"): "NaN is a missing measurement"
+       for q in ("vehjax.filter", "vehjax.smooth", "vehjax.run", "vehjax.compile_run",
+                 "vehjax.tune.fit", "vehjax.tune.fit_from_theta", "vehjax.tune.objective")},
+    **{(q, "measurements", "extra axis"): "several runs (R, T, ny) fitted together"
+       for q in ("vehjax.tune.fit", "vehjax.tune.fit_from_theta", "vehjax.tune.objective")},
+    ("vehjax.tune.uncertainty", "*", "*"): _NUMPY_HELPERS,
+    ("vehjax.tune.scoring_direction", "*", "*"): _NUMPY_HELPERS,
+    ("vehjax.data.online_virtual_scale", "*", "*"): "arrays of a prepared drive, as "
+                                                     "prepare_drive hands them (NaN missing)",
+}
+
+
+def _array_cases():
+    for qual, make in sorted(CALLS.items()):
+        if (qual, "*", "*") in ARRAY_ALLOWED:
+            continue
+        fn, args, kwargs = make()
+        bound = inspect.signature(fn).bind_partial(*args, **kwargs).arguments
+        for arg, value in bound.items():
+            if isinstance(value, np.ndarray):
+                for variant in _array_variants(value):
+                    if (qual, arg, variant) not in ARRAY_ALLOWED:
+                        yield pytest.param(qual, arg, variant, id=f"{qual}-{arg}-{variant}")
+
+
+@pytest.mark.parametrize("qual, arg, variant", list(_array_cases()))
+def test_a_wrong_array_is_refused_naming_it_before_anything_is_compiled(monkeypatch, qual, arg,
+                                                                        variant):
+    _stop_every_fit(monkeypatch)
+    fn, args, kwargs = CALLS[qual]()
+    bound = inspect.signature(fn).bind_partial(*args, **kwargs).arguments
+    bound[arg] = _array_variants(bound[arg])[variant]
+    before = len(_compiles)
+    with pytest.raises((ValueError, TypeError)) as err:
+        fn(**bound)
+    assert arg in str(err.value), (qual, arg, variant, str(err.value))
+    assert len(_compiles) == before, (qual, arg, variant, "refused only after compiling")

@@ -175,13 +175,15 @@ def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: d
 def _check_ahead(builder, model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs,
                  options: dict) -> None:
     """What the model's own fit would refuse, checked before the nested model's fit: bounds
-    outside a parameter's domain, a learning_rate the default (line-search) optimiser of a
-    deterministic filter does not take (the filter built once to tell, nothing traced)."""
+    outside a parameter's domain; Q0, R0, the noise, the builder and its keywords (the filter
+    built once at the start, nothing traced); a learning_rate the default (line-search)
+    optimiser of a deterministic filter does not take."""
     params = validation.names("params", params, model.param_names, allow_empty=True)
     check_bounds(params, bounds, model)
+    stochastic = draws_random_numbers(builder, model, Q0, R0, params, noise, fit_x0,
+                                      builder_kwargs)
     if options.get("learning_rate") is not None and options.get("optimizer") is None:
-        check_options(options, stochastic=draws_random_numbers(
-            builder, model, Q0, R0, params, noise, fit_x0, builder_kwargs))
+        check_options(options, stochastic=stochastic)
 
 
 def _quietly(fn, *args, **kwargs):
