@@ -152,7 +152,7 @@ def _bad_values(default) -> list:
     if isinstance(default, bool):
         return ["no", [True], 2]
     if isinstance(default, int):
-        return [[1], "3", 1.5, math.nan]
+        return [[1], "3", 1.5, math.nan, 10**15]
     if isinstance(default, float):
         return [[default], "0.5", math.nan, math.inf]
     return ["no_such_choice_here", 3]
@@ -251,7 +251,6 @@ def _array_variants(a: np.ndarray) -> dict:
             "inf": np.full(a.shape, np.inf), "nan": np.full(a.shape, np.nan)}
 
 
-_NUMPY_HELPERS = "a numpy helper on arrays the fit made; its arrays' shapes are not checked"
 #: (callable, argument, variant) -> why the callable takes it; (callable, "*", "*"): not walked
 ARRAY_ALLOWED = {
     **{(q, "measurements", "nan"): "NaN is a missing measurement"
@@ -259,10 +258,13 @@ ARRAY_ALLOWED = {
                  "vehjax.tune.fit", "vehjax.tune.fit_from_theta", "vehjax.tune.objective")},
     **{(q, "measurements", "extra axis"): "several runs (R, T, ny) fitted together"
        for q in ("vehjax.tune.fit", "vehjax.tune.fit_from_theta", "vehjax.tune.objective")},
-    ("vehjax.tune.uncertainty", "*", "*"): _NUMPY_HELPERS,
-    ("vehjax.tune.scoring_direction", "*", "*"): _NUMPY_HELPERS,
-    ("vehjax.data.online_virtual_scale", "*", "*"): "arrays of a prepared drive, as "
-                                                     "prepare_drive hands them (NaN missing)",
+    **{("vehjax.tune.uncertainty", a, v): "a fit's information that is not finite gives NaN "
+       "standard errors, the fit's report of it" for a in ("info_matrix", "jac", "scales")
+       for v in ("nan", "inf")},
+    **{("vehjax.tune.scoring_direction", a, v): "a step from a point where the loss is not "
+       "finite is the optimiser's to reject" for a in ("g", "B", "scales") for v in ("nan", "inf")},
+    **{("vehjax.data.online_virtual_scale", a, v): "a sample that is not finite adds nothing "
+       "(a missing one)" for a in ("gyro", "r_virt", "vx") for v in ("nan", "inf")},
 }
 
 

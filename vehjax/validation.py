@@ -203,6 +203,18 @@ def array(arg: str, value, allow_nan: bool = False, *, missing: bool = False) ->
     return a
 
 
+def shaped(arg: str, value, shape: tuple, allow_nan: bool = True) -> np.ndarray:
+    """:func:`array` of exactly ``shape``: each entry a size, or None for any size >= 1.
+    Non-finite values pass (the caller's rule) unless ``allow_nan`` is False."""
+    a = array(arg, value, allow_nan=allow_nan)
+    if a.ndim != len(shape) or any(a.shape[i] != n if n is not None else a.shape[i] < 1
+                                   for i, n in enumerate(shape)):
+        want = ", ".join("n" if n is None else str(n) for n in shape)
+        raise ValueError(f"{arg}: expected shape ({want}{',' if len(shape) == 1 else ''}), got "
+                         f"{a.shape}")
+    return a
+
+
 def batched_cov(arg: str, P: np.ndarray):
     """ValueError unless P, (n, n) or (R, n, n), is symmetric positive definite (each of its
     matrices); for (R, n, n) the message names the first bad run, ``P0[3]: ...``."""

@@ -67,7 +67,9 @@ def virtual_yaw_scale(gyro, r_virt, vx, track):
     Args:
         gyro, r_virt: (T,) yaw rates [rad/s]; vx: (T,) speed [m/s]; track: rear track l_T [m].
     """
-    gyro, r_virt, vx = (np.asarray(a, float) for a in (gyro, r_virt, vx))
+    gyro = validation.shaped("gyro", gyro, (None,))  # non-finite samples: skipped
+    r_virt, vx = (validation.shaped(k, a, gyro.shape) for k, a in (("r_virt", r_virt),
+                                                                   ("vx", vx)))
     ok = np.isfinite(gyro) & np.isfinite(r_virt) & np.isfinite(vx)
     A = np.stack([np.ones(ok.sum()), -vx[ok] / track], axis=1)
     (b, eps), *_ = np.linalg.lstsq(A, gyro[ok] - r_virt[ok], rcond=None)
@@ -91,7 +93,9 @@ def online_virtual_scale(gyro, r_virt, vx, track, *, noise_std=1.0 * DEG, bias_s
         noise_std: std of gyro - r_virt [rad/s] (default 1 deg/s); bias_std, eps_std: prior
             stds [rad/s] (default 0.5 deg/s), [-].
     """
-    gyro, r_virt, vx = (np.asarray(a, float) for a in (gyro, r_virt, vx))
+    gyro = validation.shaped("gyro", gyro, (None,))  # non-finite samples: skipped
+    r_virt, vx = (validation.shaped(k, a, gyro.shape) for k, a in (("r_virt", r_virt),
+                                                                   ("vx", vx)))
     noise_std, bias_std, eps_std = (validation.number(name, v, 0.0, what="a positive std")
                                     for name, v in (("noise_std", noise_std),
                                                     ("bias_std", bias_std), ("eps_std", eps_std)))

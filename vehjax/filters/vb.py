@@ -398,12 +398,18 @@ def _predicted(setup, fm, z, P, y, u, theta):
     return y, u, h, zp, Pp
 
 
+#: the most fixed-point iterations a step takes (the papers use 5-10; each is a whole update)
+MAX_ITERATIONS = 1000
+
+
 def _check_common(form, forgetting, iterations):
     form = validation.choice("form", form, FORMS)
     rho = validation.number("forgetting", forgetting, 0.0, 1.0, high_open=False)
     if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) \
-            or iterations < 1:
-        raise ValueError(f"iterations: expected an integer >= 1, got {iterations!r}")
+            or not 1 <= iterations <= MAX_ITERATIONS:
+        raise ValueError(f"iterations: expected an integer from 1 to {MAX_ITERATIONS} (the "
+                         f"fixed point settles in a few; each is a whole update, every step), "
+                         f"got {iterations!r}")
     return form, rho, int(iterations)
 
 

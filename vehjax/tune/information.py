@@ -86,9 +86,9 @@ def uncertainty(info_matrix, jac, scales, coord_names, rcond: float = RCOND,
     bool, the quantities on a bound: their standard errors and correlations are NaN.
     ``eigenvalues`` and ``determined`` are then those of the free coordinates.
     """
-    Iz = np.asarray(info_matrix, dtype=float)
-    J = np.asarray(jac, dtype=float)
-    scales = np.asarray(scales, dtype=float)
+    scales = validation.shaped("scales", scales, (None,))
+    Iz = validation.shaped("info_matrix", info_matrix, scales.shape * 2)  # non-finite: NaNs out
+    J = validation.shaped("jac", jac, (None,) + scales.shape)
     rcond = validation.number("rcond", rcond, 0.0, 1.0, low_open=False)
     max_std = _max_std(max_std, scales.shape)
     if fixed is not None and np.any(fixed):

@@ -77,6 +77,9 @@ def scoring_direction(g, B, scales, damping: float = 0.0):
     others): g (n,) gradient, B (n, n) positive semi-definite curvature, damping >= 0.
     Returns (n,)."""
     damping = validation.number("damping", damping, 0.0, low_open=False)
+    scales = validation.shaped("scales", scales, (None,))
+    g = validation.shaped("g", g, scales.shape)
+    B = validation.shaped("B", B, scales.shape * 2)
     Bs = B * np.outer(scales, scales)
     lam, V = np.linalg.eigh(0.5 * (Bs + Bs.T))
     top = max(float(lam.max()), np.finfo(float).tiny)
