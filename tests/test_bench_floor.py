@@ -37,6 +37,7 @@ def test_c_floor_equals_vehjax_filter(cf_scale):
     assert abs(c - other) > 1e-3 * abs(ll)
 
 
+@pytest.mark.slow  # every row compiled, the reverse-mode gradient's 13 s among them
 @needs_cc
 def test_bench_floor_runs(capsys):
     assert bench.main(["--duration", "2", "--repeat", "1"]) == 0

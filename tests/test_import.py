@@ -146,9 +146,8 @@ def test_compiled_programs_are_kept_in_vehjax_cache_folder(tmp_path, first):
 def test_the_cache_defaults_to_the_user_cache_folder_and_can_be_turned_off(tmp_path):
     home = {**_NO_CACHE, "XDG_CACHE_HOME": str(tmp_path)}
     assert _python("import vehjax" + _CACHE, env=home) == str(tmp_path / "vehjax" / "xla")
-    for off in ("off", "0", "False"):
-        assert _python("import vehjax" + _CACHE,
-                       env={**home, "VEHJAX_COMPILATION_CACHE": off}) is None
+    assert _python("import vehjax" + _CACHE,
+                   env={**home, "VEHJAX_COMPILATION_CACHE": "Off"}) is None
     mine = str(tmp_path / "mine")  # a cache the user set is left alone
     assert _python("import vehjax" + _CACHE,
                    env={**home, "JAX_COMPILATION_CACHE_DIR": mine}) == mine

@@ -154,6 +154,7 @@ def test_work_side_by_side_changes_the_time_not_the_result(drives):
         np.testing.assert_allclose(two.std_errors[k], one.std_errors[k], rtol=1e-8)
 
 
+@pytest.mark.slow  # two full fits from the trap, about 2.5 minutes of one core
 def test_a_fit_held_in_the_trap_is_reported_with_both_likelihoods(drives):
     """The trap, deliberately: the brush tyres with mu held at most 1.0 (a user's bounds) on a
     drive that reached 1.35 g. The model cannot produce what was measured: the report says mu
