@@ -13,8 +13,8 @@ inherit it); when JAX was imported first, importing vehjax calls
 
 Compiled programs are kept on disk between processes (JAX's persistent compilation cache, in
 ``~/.cache/vehjax/xla``; ``VEHJAX_CACHE_DIR`` names another folder): the second fit or study of
-the same structure, in a new process, skips most of its compile (a 3,000-step brush fit:
-90 -> 47 s of CPU). Entries are small (a few MB for a fit's programs) and are never evicted:
+the same structure, in a new process, skips most of its compile (the brush fit of
+``benchmarks/bench_fit_limit.py``: about a fifth less wall time the second time). Entries are small (a few MB for a fit's programs) and are never evicted:
 delete the folder to clear it. ``VEHJAX_COMPILATION_CACHE=off`` turns it off; a cache already
 set (``JAX_COMPILATION_CACHE_DIR``, or ``jax.config`` before importing vehjax) is left alone.
 """
