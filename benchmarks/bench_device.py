@@ -105,7 +105,7 @@ def peers(ba, args, sizes) -> list:
 def marginalized(args, size) -> dict:
     """The marginalized PF at N particles: ms per run-step at ``runs`` runs, ms per step for
     one run (both through ``vehjax.compile_run``)."""
-    from vehjax import banked_road as road
+    from vehjax.studies import banked_road as road
 
     drive = vj.data.load_comma2k19()
     model = vj.models.SingleTrackBank(dt=drive.dt)

@@ -1,6 +1,6 @@
 """Identification at the limit: saturating tyre models fitted to simulated limit drives.
 
-The truth is :mod:`vehjax.limit_drive`'s two-track car (magic-formula tyres with a curvature
+The truth is :mod:`vehjax.studies.limit_drive`'s two-track car (magic-formula tyres with a curvature
 factor, load-sensitive stiffness, lateral load transfer): none of the fitted models. Each
 drive is 200 s at 100 Hz (20,000 steps), peaking at about 1.39 g (variant A, truth mu 1.445)
 and 1.27 g (variant B, mu 1.30; held back from every choice made in :mod:`vehjax.tune.staged`).
@@ -100,8 +100,8 @@ def main(argv=None) -> int:
           "in domain, log-likelihood, nested linear's, sideslip RMS deg filter / smoother "
           "(held-out realisation)")
     for v in a.variants.split(","):
-        drive = vehjax.limit_drive.limit_drive(v, duration=a.duration, seed=0)
-        held = vehjax.limit_drive.limit_drive(v, duration=a.duration, seed=1)
+        drive = vehjax.studies.limit_drive.limit_drive(v, duration=a.duration, seed=0)
+        held = vehjax.studies.limit_drive.limit_drive(v, duration=a.duration, seed=1)
         print(f"# {v}: {drive.t.size} steps, truth mu {drive.mu:.4f}, peak |ay| "
               f"{np.max(np.abs(drive.ay)) / 9.81:.3f} g")
         runs = [(t, "data") for t in a.models.split(",")]

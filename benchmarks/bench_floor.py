@@ -3,7 +3,7 @@ same model on the same data.
 
 The model is ``vehjax.models.SingleTrack(tyres="linear")`` at its nominal values (nx = 2:
 lateral velocity, yaw rate; ny = 2: lateral acceleration, yaw rate; RK4, 2 substeps of 5 ms),
-the data :mod:`vehjax.limit_drive`'s variant A (``--duration`` s at 100 Hz, measured steering
+the data :mod:`vehjax.studies.limit_drive`'s variant A (``--duration`` s at 100 Hz, measured steering
 and speed as inputs). The floor is the EKF log-likelihood written in C, scalar by scalar
 (the affine single-track derivative, its RK4 map and the RK4 map's Jacobian, a 2 x 2
 innovation covariance inverted in closed form), compiled with ``gcc -O2`` at the first run
@@ -191,7 +191,7 @@ def main(argv=None) -> int:
     a = parser().parse_args(argv)
     if a.duration <= 0 or a.repeat < 1:
         raise SystemExit("vehjax bench floor: --duration must be > 0 and --repeat >= 1")
-    drive = vehjax.limit_drive.limit_drive("A", duration=a.duration, seed=0)
+    drive = vehjax.studies.limit_drive.limit_drive("A", duration=a.duration, seed=0)
     ys, us = np.asarray(drive.measurements), np.asarray(drive.inputs)
     model = SingleTrack(tyres="linear", theta=tuple(drive.body.values()) +
                         tuple(np.asarray(SingleTrack().theta)[4:]))

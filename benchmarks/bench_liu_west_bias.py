@@ -6,7 +6,7 @@ Liu and West's) on three pieces of work, each chosen with ``--parts``:
 
 ``3dof``
     Dynamic3DOF, m, cx, cy estimated, matched noise
-    (``vehjax.dual_settings.matched_settings``), true lf, lr. Two excitations: "dutta2019" (``vehjax.scenarios.slip_and_steer``, truth at nominal, prior
+    (``vehjax.studies.dual_settings.matched_settings``), true lf, lr. Two excitations: "dutta2019" (``vehjax.scenarios.slip_and_steer``, truth at nominal, prior
     box +-30 % around it) and "second" (chirp steering 0.1-1.5 Hz, 15 m/s with a +-0.8 m/s^2
     speed swing of 12 s period, truth 1.10, 0.92, 1.06 x nominal, the box still +-30 % of
     nominal, so not centred on the truth). Per filter: the mean over runs of the final estimate
@@ -132,7 +132,7 @@ def _grid_reference(est, dyn, sim, x0, P0, start):
 
 def _three_dof(args):
     import vehjax as vj
-    from vehjax.dual_settings import DYNAMIC_SETTINGS, matched_settings, simulate_runs
+    from vehjax.studies.dual_settings import DYNAMIC_SETTINGS, matched_settings, simulate_runs
     from vehjax.filters.gaussian import ukf
 
     for name in ("dutta2019", "second"):

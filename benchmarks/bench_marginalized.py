@@ -54,7 +54,7 @@ def parser() -> argparse.ArgumentParser:
 
 def _problem(runs: int, steps: int):
     import vehjax as vj
-    from vehjax import banked_road as road
+    from vehjax.studies import banked_road as road
 
     drive = vj.data.load_comma2k19()
     model = vj.models.SingleTrackBank(dt=drive.dt)

@@ -34,7 +34,7 @@ def main():
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args()
     import vehjax as vj
-    from vehjax.banked_road import DEG, build_drive_filter
+    from vehjax.studies.banked_road import DEG, build_drive_filter
 
     drive = vj.data.load_comma2k19()
     model = vj.models.SingleTrackBank(dt=drive.dt)

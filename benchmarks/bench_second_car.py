@@ -1,6 +1,6 @@
 """The second car (issue 53): the documented fit against a textbook observer on held-out drives.
 
-The truth is :mod:`vehjax.second_car` (a front-wheel-drive saloon: two-track, magic-formula
+The truth is :mod:`vehjax.studies.second_car` (a front-wheel-drive saloon: two-track, magic-formula
 tyres with first-order lag, a roll degree of freedom with dynamic load transfer, an
 accelerometer with 40-100 Hz vibration; a spec-sheet yaw inertia 2.5 times below the truth's).
 Three 88 s drives at 200 Hz (17,600 steps each): run 1 to fit, runs 2 and 3 held out.
@@ -43,7 +43,7 @@ import numpy as np
 
 import vehjax
 import vehjax.tune
-from vehjax import second_car as sc
+from vehjax.studies import second_car as sc
 from vehjax.models import SingleTrack
 
 from textbook_observer import textbook_observer, textbook_stiffness

@@ -1,4 +1,4 @@
-"""The limit drives of :mod:`vehjax.limit_drive`: their figures, and an EKF at the truth's values.
+"""The limit drives of :mod:`vehjax.studies.limit_drive`: their figures, and an EKF at the truth's values.
 
 Per variant: the cost of generating the drive (first call with compilation, then again), its
 peak |ay|, the fraction of time above 1 g, the truth's peak friction coefficient, the loop's
@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import vehjax as vj
-from vehjax import limit_drive as ld
+from vehjax.studies import limit_drive as ld
 
 
 def steady_limit(truth, speed: float, points: int = 3000) -> float:

@@ -1,7 +1,7 @@
 """How well paper 004's simulation pins the steering-noise std, and how the consistent MPF
 (``marginalized_pf_grid``, issue #33) learns it: the numbers behind the MPF
 (consistent) row of docs/noise_learning.md (noise_learning.py's docstring in short). The data are
-``vehjax reproduce noise-learning``'s (vehjax.banked_road's simulate_truth, seed 0).
+``vehjax reproduce noise-learning``'s (vehjax.studies.banked_road's simulate_truth, seed 0).
 
     python benchmarks/mpf_consistent_steering.py profile RUNS SECONDS
         exact Kalman log-likelihood summed over RUNS runs at 0.5..4 times the true steering
@@ -59,7 +59,7 @@ jax.config.update("jax_enable_x64", True)
 import vehjax as vj  # noqa: E402
 from vehjax import metrics  # noqa: E402
 from vehjax.filters.marginalized import InputStdGrid  # noqa: E402
-from vehjax import banked_road as road  # noqa: E402
+from vehjax.studies import banked_road as road  # noqa: E402
 
 WINDOWS = ((0, 5), (5, 20), (20, 60), (60, 120), (120, 180))
 

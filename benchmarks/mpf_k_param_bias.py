@@ -29,7 +29,7 @@ jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, "tests")
 
 import vehjax as vj  # noqa: E402
-from vehjax.banked_road import MATCHED, matched_setup, matched_truth, simulate_matched  # noqa: E402,E501
+from vehjax.studies.banked_road import MATCHED, matched_setup, matched_truth, simulate_matched  # noqa: E402,E501
 
 from _bank_ref import exact_kalman  # noqa: E402
 

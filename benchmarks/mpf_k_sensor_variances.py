@@ -37,7 +37,7 @@ jax.config.update("jax_enable_x64", True)
 import vehjax as vj  # noqa: E402
 from vehjax import metrics  # noqa: E402
 from vehjax.filters import InputStdGrid, NiW, marginalized_pf_grid  # noqa: E402
-from vehjax.banked_road import MATCHED as N, SENSORS, matched_truth, simulate_matched  # noqa: E402,E501
+from vehjax.studies.banked_road import MATCHED as N, SENSORS, matched_truth, simulate_matched  # noqa: E402,E501
 
 MODEL = vj.models.SingleTrackBank(dt=0.01)
 NX = len(MODEL.state_names)

@@ -25,7 +25,7 @@ steering noise sigma_delta enters as Gamma sigma_delta^2 Gamma^T: scaled by the 
 through B. Each step predicts with u_t, then updates with y_t (vehjax's order).
 
 Untuned noise (:data:`TEXTBOOK_NOISE`): sensor data-sheet values, not fitted. Textbook
-cornering stiffnesses from the axle loads: :func:`vehjax.second_car.textbook_stiffness`.
+cornering stiffnesses from the axle loads: :func:`vehjax.studies.second_car.textbook_stiffness`.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from vehjax.second_car import textbook_stiffness  # noqa: F401  (the spec sheet's stiffnesses)
+from vehjax.studies.second_car import textbook_stiffness  # noqa: F401  (the spec sheet's stiffnesses)
 
 #: Untuned standard deviations: ay [m/s^2], r [rad/s], the steering noise delta [rad]; and a
 #: small process noise on (vy [m/s], r [rad/s]) per step.

@@ -129,7 +129,7 @@ def user_bank_case(runs, seed, points, known=False, steps=400):
 
     from vehjax.filters.marginalized import MeanStates, NiW, marginalized_pf_grid
     from vehjax.models.bank import SingleTrackBank
-    from vehjax.banked_road import matched_inputs
+    from vehjax.studies.banked_road import matched_inputs
 
     dt, deg = 0.01, math.radians(1.0)
     model = SingleTrackBank(dt=dt)

@@ -28,7 +28,7 @@ def _runs_last(tree):
 
 
 #: Relative tolerance between two programs of a filter that draws random numbers (``keys``).
-#: vehjax's particle filters draw normals in float32 (:mod:`vehjax.prng`: Box-Muller with
+#: vehjax's particle filters draw normals in float32 (:mod:`vehjax.runtime.prng`: Box-Muller with
 #: float32 ``log``, ``sqrt`` and polynomial sine and cosine). Two XLA programs may contract
 #: that arithmetic's multiply-adds differently or evaluate ``log`` by another routine, so one
 #: draw agrees between them to a few float32 ulps (2^-23 = 1.2e-7 relative), not to float64's.

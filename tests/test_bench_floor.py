@@ -22,7 +22,7 @@ def test_c_floor_equals_vehjax_filter(cf_scale):
     """Another car (the stiffness scaled), a held-out realisation of the drive: the C EKF's
     log-likelihood equals vehjax.filter's to 1e-10 relative, and differs from it with
     another R (the comparison can fail)."""
-    drive = vehjax.limit_drive.limit_drive("B", duration=10.0, seed=3)
+    drive = vehjax.studies.limit_drive.limit_drive("B", duration=10.0, seed=3)
     ys, us = np.asarray(drive.measurements), np.asarray(drive.inputs)
     th = np.array(tuple(drive.body.values()) + tuple(np.asarray(vehjax.models.SingleTrack().theta)[4:]))
     th[4] *= cf_scale

@@ -92,7 +92,7 @@ def test_the_lazy_names_are_the_eager_ones():
     code = """
     import json, types, vehjax
     from vehjax.run import RunResult  # the submodules run and simulate load before the names
-    import vehjax.dual_settings  # imports vehjax.simulate
+    import vehjax.studies.dual_settings  # imports vehjax.simulate
     out = {"run": type(vehjax.run).__name__, "simulate": type(vehjax.simulate).__name__,
            "all": vehjax.__all__, "dir": all(n in dir(vehjax) for n in vehjax.__all__)}
     ns = {}
@@ -114,8 +114,8 @@ def test_the_lazy_names_are_the_eager_ones():
     assert out["run"] == out["simulate"] == "function"
     assert out["all"] == vehjax.__all__ and out["dir"] and out["same"]
     assert out["star"] == sorted(vehjax.__all__)
-    modules = {"filters", "models", "scenarios", "limit_drive", "second_car", "metrics", "data",
-               "math", "tune", "calibrate", "execution"}
+    modules = {"filters", "models", "scenarios", "studies", "metrics", "data", "tune", "calibrate",
+               "execution"}
     assert out["kinds"] == {n: n in modules for n in vehjax.__all__}
     assert out["missing"] == "module 'vehjax' has no attribute 'no_such_name'"
 

@@ -65,8 +65,7 @@ def _configure_jax() -> None:
 _configure_jax()
 
 if TYPE_CHECKING:  # what static analysers and IDEs see; at run time each loads on first use
-    from . import calibrate, data, execution, filters, limit_drive, math, metrics, models, scenarios
-    from . import second_car, tune
+    from . import calibrate, data, execution, filters, metrics, models, scenarios, studies, tune
     from .filtering import FilterResult, filter
     from .online import Online
     from .run import CompiledRun, RunResult, compile_run, run
@@ -76,7 +75,7 @@ if TYPE_CHECKING:  # what static analysers and IDEs see; at run time each loads 
 __version__ = "0.1.0"
 
 __all__ = [
-    "filters", "models", "scenarios", "limit_drive", "second_car", "metrics", "data", "math", "tune", "calibrate",
+    "filters", "models", "scenarios", "studies", "metrics", "data", "tune", "calibrate",
     "execution", "simulate",
     "Simulation",
     "filter", "FilterResult", "smooth", "SmoothResult", "run", "compile_run", "RunResult", "CompiledRun",

@@ -42,7 +42,7 @@ CPU:
   bootstrap PF (``workload="particles"``) runs slower with it and does not get it.
 * **Substitutes** (``substitute_elementary``): XLA:CPU evaluates float64 sin/cos/tan/atan/atan2
   by one scalar library call per element; a model built with ``fast_math=True`` evaluates them
-  with :mod:`vehjax.elementary`'s arithmetic forms, which vectorise: a markedly faster filter
+  with :mod:`vehjax.lib.elementary`'s arithmetic forms, which vectorise: a markedly faster filter
   on a model written with trigonometry.
 * **Side by side** (``side_by_side``, the machine's cores): one evaluation of a fit's compiled
   program (a filter's scan of many tiny operations) keeps about one core busy, so a fit's
@@ -73,7 +73,7 @@ GPU (measured on one H100, float64, through the public API):
 TPU: the GPU rules (no measurement; nothing in them is GPU-specific).
 
 Random numbers are the same on every platform by design: the particle filters hash counters
-with Threefry-2x32 (:mod:`vehjax.prng`), several times cheaper than ``jax.random`` in float64
+with Threefry-2x32 (:mod:`vehjax.runtime.prng`), several times cheaper than ``jax.random`` in float64
 on CPU, and the same draws everywhere, so that a strategy changes timings, never results beyond
 rounding (``tests/test_execution.py`` holds every family's GPU strategy, forced on the CPU, to
 its CPU strategy's results).
@@ -124,7 +124,7 @@ class Strategy(NamedTuple):
         runs_last: use an estimator's runs-last ``batch`` step where it declares one.
         elemental_emitter: compile ``small_dense`` estimators with XLA:CPU's elemental emitter.
         substitute_elementary: evaluate ``fast_math`` models with the vectorisable
-            trigonometric substitutes (:mod:`vehjax.substitute`).
+            trigonometric substitutes (:mod:`vehjax.runtime.substitute`).
         results_to_host: bring each chunk's results to host memory (numpy) as it finishes;
             False keeps them on the device (``RunResult`` of jax arrays, one device).
         prefetch_inputs: hand a runs-last step its prepared inputs through the scan's carry

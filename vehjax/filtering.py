@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from . import eager, validation
+from . import validation
+from .runtime import eager
 from .engine import AT_BOUND_FRACTION, AT_BOUND_RTOL, FilterResult, check_arguments, one_run
 from .filters.base import Estimator
 
@@ -58,6 +59,6 @@ def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_th
     ys, us, x0, P0, th0, Pth0 = check_arguments(estimator, measurements, inputs, x0, P0,
                                                  theta0, P_theta0, key)
     return_covariances = validation.flag("return_covariances", return_covariances)
-    # called eagerly: compiled as one program (vehjax.eager); under a trace: inline
+    # called eagerly: compiled as one program (vehjax.runtime.eager); under a trace: inline
     return eager.call(one_run, (estimator, return_covariances), {}, jnp.asarray(ys),
                        jnp.asarray(us), jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key)

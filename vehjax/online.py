@@ -87,7 +87,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import eager, execution, validation
+from . import execution, validation
+from .runtime import eager
 from .engine import check_arguments, output_ok, start
 from .filters.base import Estimator, StepOutput
 

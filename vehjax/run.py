@@ -15,7 +15,7 @@ the runs of a chunk. Estimators with a runs-last ``batch`` form (EKF, UKF and CK
 most 8 states and outputs, :mod:`vehjax.filters.runs_last`) are not vmapped where the execution
 strategy says so: one scan runs the batched step with the runs axis last, and what the model
 computes from the inputs alone is computed once for the whole input sequence before the time
-loop (:mod:`vehjax.hoist`); results agree to rounding.
+loop (:mod:`vehjax.runtime.hoist`); results agree to rounding.
 
 How a study executes on its platform (chunk budget, blocking of runs inside a chunk, runs-last
 or vmapped step, XLA options, trigonometric substitutes, results to the host) is decided in one
@@ -50,7 +50,7 @@ XLA options) on the same machine. To rounding: another chunking, blocking, shard
 processes changes which runs XLA computes together and how it vectorises them, so the last bits
 of a result can change; a Gaussian filter's results then agree to a few float64 rounding errors
 amplified by the problem's conditioning. A particle filter draws its normals in float32
-(:mod:`vehjax.prng`), whose last float32 bit can change likewise (relative 1e-7), and where a
+(:mod:`vehjax.runtime.prng`), whose last float32 bit can change likewise (relative 1e-7), and where a
 resampling decision turns on it the run continues as another, equally valid Monte-Carlo
 realisation: particle results agree statistically, and to about 1e-6 relative only while no
 decision flips. Per-run keys do not depend on chunking (run r gets ``split(key, R)[r]``).
@@ -107,7 +107,7 @@ from . import engine, execution, smoothing, validation
 from .engine import FilterResult
 from .filters import runs_last
 from .filters.base import Estimator
-from .progress import Progress, text_bar
+from .runtime.progress import Progress, text_bar
 from .result import RunResult
 
 __all__ = ["RunResult", "CompiledRun", "run", "compile_run", "Strategy"]
@@ -585,7 +585,7 @@ def _call_args(plan: _Plan, i: int):
 
 
 def _bar(n_chunks: int, n_runs: int, enabled: bool) -> Progress:
-    """The study's progress bar per chunk (:mod:`vehjax.progress`)."""
+    """The study's progress bar per chunk (:mod:`vehjax.runtime.progress`)."""
     return Progress(n_chunks, "vehjax.run", enabled, unit="chunk",
                     bar_format="{desc} [{bar:30}] chunk {n_fmt}/{total_fmt}{postfix}, "
                                "{elapsed}",  # tqdm puts ", " before a postfix

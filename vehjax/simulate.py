@@ -38,7 +38,7 @@ and biases of all runs), about :func:`study_bytes`; a study that cannot fit in t
 the device it runs on (:func:`vehjax.execution.memory_limit`) is refused up front, before
 anything is traced or allocated (:func:`check_size`, ValueError naming ``runs`` and the
 scenario's steps). A long study (at least ``PROGRESS_RUN_STEPS`` runs x steps) shows a progress
-bar over its steps on stderr (:mod:`vehjax.progress`; ``progress=`` forces it on or off).
+bar over its steps on stderr (:mod:`vehjax.runtime.progress`; ``progress=`` forces it on or off).
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import execution, validation
-from .progress import Progress, text_bar
+from .runtime.progress import Progress, text_bar
 
 __all__ = ["Simulation", "simulate", "check_size", "study_bytes", "PROGRESS_RUN_STEPS"]
 

@@ -54,7 +54,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import eager, validation
+from . import validation
+from .runtime import eager
 from .engine import FilterResult, check_arguments, finish, output_ok, scan_body, start
 from .lib.entrywise import chol_sym
 from .lib.linalg import is_pd, sym
@@ -399,7 +400,7 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
         if np.shape(initial) != (T, n):
             raise ValueError(f"initial: expected shape ({T}, {n}), got {np.shape(initial)}")
     ys, us = jnp.asarray(ys), jnp.asarray(us)
-    # called eagerly: compiled as one program (vehjax.eager); under a trace: inline
+    # called eagerly: compiled as one program (vehjax.runtime.eager); under a trace: inline
     return eager.call(smooth_one_run, (estimator,),
                        dict(method=method, parallel=parallel, tol=tol, max_iter=max_iter),
                        ys, us, jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key, initial=initial)

@@ -10,7 +10,7 @@ import pytest
 
 import vehjax as vj
 from vehjax import metrics
-from vehjax.banked_road import MATCHED, simulate_matched
+from vehjax.studies.banked_road import MATCHED, simulate_matched
 from vehjax.reproduce import consistency, load
 
 from _bank_ref import exact_kalman

@@ -3,7 +3,7 @@
 
 References nobody here wrote: scipy's bounded optimiser (L-BFGS-B) on the exact likelihood of a
 short drive, the physics of the friction limit (|ay| <= mu g), and the simulated limit drives'
-truth (:mod:`vehjax.limit_drive`: a two-track car with load transfer, not a fitted model).
+truth (:mod:`vehjax.studies.limit_drive`: a two-track car with load transfer, not a fitted model).
 """
 
 import warnings
@@ -23,7 +23,7 @@ from vehjax.tune import staged
 @pytest.fixture(scope="module")
 def drives():
     """One lap and a bit of each limit drive (the laps repeat)."""
-    return {v: vehjax.limit_drive.limit_drive(v, duration=60.0) for v in ("A", "B")}
+    return {v: vehjax.studies.limit_drive.limit_drive(v, duration=60.0) for v in ("A", "B")}
 
 
 def test_peak_lateral_acceleration_averages_the_noise_out_and_skips_nan():
@@ -184,7 +184,7 @@ def test_a_fit_held_in_the_trap_is_reported_with_both_likelihoods(drives):
 @pytest.fixture(scope="module")
 def long_drives():
     """The 200 s drives (20,000 steps) to fit on, and another realisation of each to judge on."""
-    ld = vehjax.limit_drive.limit_drive
+    ld = vehjax.studies.limit_drive.limit_drive
     return {v: (ld(v, seed=0), ld(v, seed=1)) for v in ("A", "B")}
 
 

@@ -1,5 +1,5 @@
 """The release stage of vehjax.tune.fit (vehjax.tune.release): which held values are released,
-where they start, and fits on a drive of a richer truth (vehjax.second_car: tyre lag, roll, a
+where they start, and fits on a drive of a richer truth (vehjax.studies.second_car: tyre lag, roll, a
 vibrating accelerometer, a data-sheet yaw inertia 2.5 times too small) judged on a drive they
 did not see: the documented path, and a calibration with a reference sensor run without it."""
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import vehjax
-from vehjax import second_car as sc
+from vehjax.studies import second_car as sc
 from vehjax.lib.priors import LogNormal, Normal
 from vehjax.models import SingleTrack, SingleTrackLag
 from vehjax.tune import release

@@ -80,7 +80,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import prng, validation
+from .. import validation
+from ..runtime import prng
 from . import resampling as _rs
 from . import sigma, smc
 from ..lib.entrywise import cholesky_observed

@@ -25,7 +25,7 @@ is finite, ``log(finfo.tiny)`` otherwise. Outputs are never NaN. A single partic
 propagated state or predicted measurement is not finite gets weight zero.
 
 Random numbers. A step splits its key once and hashes counters with Threefry-2x32 for all its
-draws (process noise and resampling uniforms), see :mod:`vehjax.prng` for why that is cheaper
+draws (process noise and resampling uniforms), see :mod:`vehjax.runtime.prng` for why that is cheaper
 than ``jax.random.normal`` in float64 mode on CPU. The process-noise standard normals are
 Box-Muller transforms of float32 uniforms on a 2^-24 grid, scaled by chol(Q) in the working
 precision: their resolution (~1e-7) and truncation (|z| <= 5.77) are far below the Monte-Carlo

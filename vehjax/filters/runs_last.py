@@ -17,7 +17,7 @@ vectorisation applies (``vehjax bench all``, rows ekf and ukf, measures vehjax w
 runs both are bound by XLA's fixed cost per kernel and step.
 
 The UKF/CKF model is evaluated at all sigma points of all runs as one flat batch, points laid out
-(n, m * R), after :func:`vehjax.hoist.split` has taken out what depends on the input and the
+(n, m * R), after :func:`vehjax.runtime.hoist.split` has taken out what depends on the input and the
 parameters alone: :attr:`Batch.prepare` computes that once for the whole input sequence before
 the time loop, instead of XLA recomputing it for every point inside it. When every run uses the
 model's own parameters they are constants of the compiled step. What ``prepare`` computes goes
@@ -38,8 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import hoist
-from ..hoist import Split, split
+from ..runtime import hoist
+from ..runtime.hoist import Split, split
 from .base import StepOutput
 from .kalman import update_entries
 from ..lib.entrywise import chol_sym, dot, stack, sym_entries, wsum
@@ -124,7 +124,7 @@ def _prediction(xp, Pp, C) -> Prediction:
 
 
 def _point_model(fn, nx: int, nu: int, n_params: int, dtype, theta_const) -> Split:
-    """``fn(x, u, theta)`` of one point split by :func:`vehjax.hoist.split` into
+    """``fn(x, u, theta)`` of one point split by :func:`vehjax.runtime.hoist.split` into
     ``early(u)`` and ``late(x, theta, *residuals)``; with ``theta_const`` (np,) the parameters
     are that constant and the ``theta`` argument of ``late`` is ignored."""
     if theta_const is not None:
@@ -297,7 +297,7 @@ def _output(x, P, loglik, nis, n_obs) -> StepOutput:
 def _jacobian_constants(fn, nx: int, nu: int, n_params: int, dtype, theta_const):
     """Nested lists over the entries of d fn / dx: the entry's value (a Python float) where it
     is the same number for every state, input and parameter vector (a structural zero or one,
-    :func:`vehjax.hoist.dependence`), None where it varies. With ``theta_const`` the
+    :func:`vehjax.runtime.hoist.dependence`), None where it varies. With ``theta_const`` the
     parameters are that constant."""
     th0 = np.zeros(n_params) if theta_const is None else np.asarray(theta_const)
 

@@ -23,7 +23,7 @@ its own way (:func:`reinitialise` gives it uniform weights and fresh particles) 
 
 Random numbers: keys are raw (2,) uint32 Threefry keys carried in the filter state.
 :func:`normals` and :func:`uniforms` hash counters in straight-line code
-(:mod:`vehjax.prng`, which says why that is cheaper than ``jax.random`` in float64 on CPU:
+(:mod:`vehjax.runtime.prng`, which says why that is cheaper than ``jax.random`` in float64 on CPU:
 no rolled hash loop, no 64-bit uniforms and inverse error function).
 """
 
@@ -36,7 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import prng, validation
+from .. import validation
+from ..runtime import prng
 from . import resampling as _rs
 from ..lib.gaussian import log_density
 from ..lib.linalg import cholesky, logdet_from_chol, solve_lower
@@ -266,7 +267,7 @@ def shrink_move(z, particles, mean, V, a: float):
 
 def normals(key, rows: int, n: int, dtype, stream: int = 0):
     """(rows, n) standard normals from a raw key, by counter hashing and Box-Muller (see
-    :func:`vehjax.prng.std_normal_rows`: resolution ~1e-7, |z| <= 5.77)."""
+    :func:`vehjax.runtime.prng.std_normal_rows`: resolution ~1e-7, |z| <= 5.77)."""
     return prng.std_normal_rows(key, rows, n, dtype, stream=stream)
 
 

@@ -11,4 +11,6 @@ Modules:
     gaussian: the Gaussian log-density of a residual's observed components, once.
     whiteness: autocorrelations with missing samples, the Ljung-Box statistic, chi-square
         survival (innovation checks of :mod:`vehjax.tune.innovations`).
+    elementary: vectorisable sin, cos, tan, arctan and arctan2 (arithmetic only, so XLA:CPU
+        fuses them) for writing fast vehicle models: ``from vehjax.lib.elementary import sin``.
 """

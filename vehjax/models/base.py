@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import validation
-from ..substitute import fast_elementary
+from ..runtime.substitute import fast_elementary
 from .domains import Interval, ParamDomains, envelope, gather, interval
 
 INTEGRATORS = ("euler", "rk4")
@@ -344,8 +344,8 @@ class Model(BaseModel):
         theta: nominal parameters, shape (len(param_names),); zeros when omitted.
         units: optional dict name -> unit string for any of the names.
         fast_math: evaluate the functions with ``jnp.sin``, ``cos``, ``tan``, ``arctan`` and
-            ``arctan2`` replaced by :mod:`vehjax.math`'s vectorisable versions (same results
-            to a few ulps, gradients intact; see :func:`vehjax.substitute.fast_elementary`),
+            ``arctan2`` replaced by :mod:`vehjax.lib.elementary`'s vectorisable versions (same results
+            to a few ulps, gradients intact; see :func:`vehjax.runtime.substitute.fast_elementary`),
             which XLA on CPU fuses into vector loops: about twice as fast a filter on a model
             written with trigonometry. False keeps the functions exactly as given. Filters
             that evaluate the model one point at a time (EKF; every Gaussian filter's per-run

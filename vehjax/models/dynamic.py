@@ -9,7 +9,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from ..elementary import arctan, cos, sin
+from ..lib.elementary import arctan, cos, sin
 from . import domains as dom
 from .base import VehicleModel
 from .tyres import linear_force

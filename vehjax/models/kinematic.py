@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ..elementary import arctan, cos, sin, tan
+from ..lib.elementary import arctan, cos, sin, tan
 from . import domains as dom
 from .base import VehicleModel
 

@@ -72,7 +72,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..elementary import arctan2, cos, sin
+from ..lib.elementary import arctan2, cos, sin
 from . import domains as dom
 from .base import VehicleModel
 from .tyres import pacejka89_lateral, pacejka89_longitudinal

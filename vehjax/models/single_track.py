@@ -44,7 +44,7 @@ i.e. RK4 at 5 ms for dt = 0.01 s). The fastest mode of the linear model has a ra
 |lambda h| <= 0.3 down to 3 m/s, far inside RK4's stability interval (2.78) and with a local
 error of order (lambda h)^5 / 120 < 2e-5 relative per step; use more substeps for lower speeds
 or larger dt. The elementary functions are jax.numpy's (they compile in a fraction of the time of
-:mod:`vehjax.elementary`'s vectorisable ones, which pay off only in large particle filters).
+:mod:`vehjax.lib.elementary`'s vectorisable ones, which pay off only in large particle filters).
 tests/models/test_single_track.py checks the rollout against scipy's ``solve_ivp`` of
 these equations.
 

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ..elementary import arctan, sin
+from ..lib.elementary import arctan, sin
 
 #: Pacejka '89 lateral-force coefficients a0..a13 (Fz in kN, alpha and camber in deg, Fy in N).
 LATERAL_89 = (

@@ -63,9 +63,9 @@ What "matched" means here (nothing below is tuned per filter):
   95 % interval (estimate +- 1.96 reported std) holds the true value, and the spread of the
   final estimates over runs divided by their mean reported std (1 = honest, > 1 over-confident).
   Steering: two sines (0.02 rad at 0.4 Hz, 0.015 rad at 0.11 Hz), vx = 20 m/s. The data, the
-  truth and the filters: :func:`vehjax.banked_road.simulate_matched`,
-  :func:`~vehjax.banked_road.matched_truth`, :func:`~vehjax.banked_road.matched_setup` with
-  :data:`~vehjax.banked_road.MATCHED`, each row's options in ``_MPFS``.
+  truth and the filters: :func:`vehjax.studies.banked_road.simulate_matched`,
+  :func:`~vehjax.studies.banked_road.matched_truth`, :func:`~vehjax.studies.banked_road.matched_setup` with
+  :data:`~vehjax.studies.banked_road.MATCHED`, each row's options in ``_MPFS``.
 
 The parameter-estimating filters (dual and joint EKF/UKF, Liu-West PF + UKF) are checked with
 matched noise in ``vehjax reproduce dutta2019`` ("Consistency" tables, kinematic bicycle and
@@ -81,7 +81,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..banked_road import matched_setup, matched_truth, simulate_matched
+from ..studies.banked_road import matched_setup, matched_truth, simulate_matched
 from . import reporting
 
 PAPER = ("NEES / NIS consistency (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4) of every state "
@@ -92,7 +92,7 @@ FILTERS = ("EKF", "UKF", "CKF", "SR-UKF", "SR-CKF", "ACKF", "ACKF (paper)", "boo
            "MPF (known noise)", "MPF-G", "MPF-G (known noise)", "MPF-G (biases known)",
            "MPF-G (covariances known)", "MPF-G (covariances known; biases as Kalman states)",
            "MPF-K", "MPF-K (inverse-Wishart)")
-#: the MPF rows: :func:`vehjax.banked_road.build_matched_filter`'s options (``marginalized_pf``'s
+#: the MPF rows: :func:`vehjax.studies.banked_road.build_matched_filter`'s options (``marginalized_pf``'s
 #: keywords; ``builder="grid"``: ``marginalized_pf_grid``'s; nu0, gamma0 go into its ``NiW``,
 #: input_std_range, input_std_prior into its ``InputStdGrid``; bias_states: the biases as Kalman
 #: states). What each makes as good as known (gamma0 for

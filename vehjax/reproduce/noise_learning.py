@@ -6,7 +6,7 @@ study and on the shipped RAV4 drive.
                                     [--drive-executions 10] [--drive-particles 500]
                                     [--no-drive] [--seed 0] [--out out/noise_learning]
 
-Simulation: exactly ``vehjax reproduce berntorp2018``'s (:mod:`vehjax.banked_road`'s
+Simulation: exactly ``vehjax reproduce berntorp2018``'s (:mod:`vehjax.studies.banked_road`'s
 ``simulate_truth``, ``bank_profile``, ``looped_inputs``): SingleTrackBank, steering offset 0.28 deg plus white
 steering noise 0.02 deg, the piecewise-linear bank, ay / yaw-gyro / roll-gyro with random-walk
 biases from 0 and white noise of stds 0.2 m/s^2, 0.3 deg/s, 0.3 deg/s; the bank measurement
@@ -23,7 +23,7 @@ The methods (one row each; nothing tuned per method beyond what is written here)
   **VB-PR (CKF)**: :func:`vehjax.filters.vbakf_pr` (Huang et al. 2017, tau = 3): the three
   sensors' variances learnt from twice the true stds, the offset and the biases as Kalman
   states; they do not learn the steering noise (fixed at ``--steer-factor`` times the truth).
-* **MPF (paper)**: :mod:`vehjax.banked_road`'s ``build_sim_filter`` (N = ``--particles``,
+* **MPF (paper)**: :mod:`vehjax.studies.banked_road`'s ``build_sim_filter`` (N = ``--particles``,
   lambda = 0.995, initial stds twice the truth) and ``build_drive_filter`` (lambda = 0.999).
 * **MPF (consistent)**: ``marginalized_pf_grid`` (not the paper's): the offset and the biases as
   Kalman states, the steering std on a fixed grid (``--grid-points``, default 25) a decade
@@ -70,7 +70,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import vehjax as vj
-from vehjax import banked_road as road
+from vehjax.studies import banked_road as road
 from vehjax.data import prepare_drive
 from vehjax.models.bank_scale import augmented_model
 
@@ -157,7 +157,7 @@ def ackf_with_R(est, idx, names, R0):
 
 def _mpf_consistent(model, args, drive, variances=None):
     """The MPF (paper)'s model in :func:`vehjax.filters.marginalized_pf_grid`
-    (:func:`vehjax.banked_road.build_consistent_filter`): the biases as Kalman states with the
+    (:func:`vehjax.studies.banked_road.build_consistent_filter`): the biases as Kalman states with the
     truth's random-walk stds (as the VB rows), the statistics averaged over the offset's
     conditional, Gaussian particle states; ``variances``, its ``sensor_variances``."""
     if drive:

@@ -16,7 +16,7 @@ import numpy as np
 import optax
 
 from .. import execution, validation
-from ..progress import Progress
+from ..runtime.progress import Progress
 from . import optimisers as opt
 from . import program
 from . import boundaries, diagnostics
@@ -87,7 +87,7 @@ def check_options(options: dict, stochastic: bool | None = None) -> None:
 
 
 def _progress(steps: int, enabled, name: str):
-    """``(report(i, loss, best), bar)``: the fit's progress bar (:mod:`vehjax.progress`),
+    """``(report(i, loss, best), bar)``: the fit's progress bar (:mod:`vehjax.runtime.progress`),
     labelled ``vehjax.tune (name)``, its text line rewritten at most 5 times a second."""
     label = f"vehjax.tune ({name})"
     bar = Progress(steps, label, bool(enabled), interval=0.2)

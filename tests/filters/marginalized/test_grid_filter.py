@@ -14,7 +14,7 @@ import pytest
 
 import vehjax as vj
 from vehjax.filters.marginalized.means import augment_prior, map_estimates, with_noise_means
-from vehjax.banked_road import MATCHED, matched_inputs, simulate_matched
+from vehjax.studies.banked_road import MATCHED, matched_inputs, simulate_matched
 from vehjax.models import with_input_offset
 from vehjax.filters.marginalized import (InputStdGrid, MeanStates, NiW, marginalized_pf,
                                          marginalized_pf_grid)

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ... import hoist
+from ...runtime import hoist
 from ...lib.entrywise import entries
 
 __all__ = ["Lin", "linearise", "lin_entries", "entry_kinds", "merge_entries"]
@@ -85,7 +85,7 @@ def lin_entries(lin):
 
 def entry_kinds(f, h, theta, nl, li, i_in, n_u, rows):
     """:class:`Lin` of nested lists saying how each entry of the linearisation varies, found
-    from the traced model (:func:`vehjax.hoist.dependence`); ``rows``: the output rows the
+    from the traced model (:func:`vehjax.runtime.hoist.dependence`); ``rows``: the output rows the
     filter uses. An entry is
 
     * a Python float: the same number at every particle, bank mean and input (a structural

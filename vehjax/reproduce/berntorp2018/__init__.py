@@ -9,12 +9,12 @@ Fig. 8-9, Remark 1).
 The package: :mod:`.study` (the simulation study), :mod:`.drive` (the drive study, in named
 steps), :mod:`.pmmh` (the offline reference's set-up), :mod:`.report` (tables, figures,
 verdicts), :mod:`.cli` (options and ``main``). What a user needs outside this study is public
-elsewhere: the simulated scenario and the paper's filter set-ups in :mod:`vehjax.banked_road`,
+elsewhere: the simulated scenario and the paper's filter set-ups in :mod:`vehjax.studies.banked_road`,
 the drive's preparation (burst gate, the virtual yaw rate's scale) in
 :mod:`vehjax.data.prepare`, the eps-carrying models in :mod:`vehjax.models.bank_scale`.
 Measurements behind the choices below: ``benchmarks/results/notes_berntorp2018.md``.
 
-Simulation (sec. 4): the scenario of :mod:`vehjax.banked_road` (the shipped comma2k19 RAV4
+Simulation (sec. 4): the scenario of :mod:`vehjax.studies.banked_road` (the shipped comma2k19 RAV4
 segment's speed and steering looped to ``--duration`` s, the 0.28 deg offset, a piecewise-linear
 bank, random-walk sensor biases), the filter ``build_sim_filter`` (N = ``--particles``,
 lambda = 0.995, initial std guesses twice the truth); steady state: the last third of the drive.
@@ -80,7 +80,7 @@ Drive (sec. 5, ``--drive``):
 from __future__ import annotations
 
 # the names the tests, the notebook checks and readers of the study reach through the package
-from vehjax.banked_road import (BANK_DEG, BANK_JERK_STD, BIAS_WALK, DEG, DRIVE_STD0, OFFSET,
+from vehjax.studies.banked_road import (BANK_DEG, BANK_JERK_STD, BIAS_WALK, DEG, DRIVE_STD0, OFFSET,
                                 PHI_STD, RVIRT_STD, SENSOR_STD, SENSOR_UNIT, SENSORS, STEER_STD,
                                 bank_profile, build_drive_filter, build_sim_filter,
                                 looped_inputs, simulate_truth)

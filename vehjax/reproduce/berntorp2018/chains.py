@@ -19,7 +19,7 @@ import sys
 import jax
 
 import vehjax as vj
-from vehjax.banked_road import DEG
+from vehjax.studies.banked_road import DEG
 from vehjax.data.prepare import gate_virtual_yaw
 from vehjax.models.bank_scale import TRACK
 

@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 import vehjax as vj
-from vehjax.banked_road import BANK_JERK_STD, DEG, DRIVE_STD0, RVIRT_STD, build_drive_filter
+from vehjax.studies.banked_road import BANK_JERK_STD, DEG, DRIVE_STD0, RVIRT_STD, build_drive_filter
 from vehjax.data.prepare import (gate_virtual_yaw, online_virtual_scale, pose_virtual_scale,
                                  remove_virtual_scale, virtual_yaw_scale)
 from vehjax.filters import gaussian

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from vehjax import calibrate
-from vehjax.banked_road import DEG, RVIRT_STD
+from vehjax.studies.banked_road import DEG, RVIRT_STD
 from vehjax.calibrate import LogNormal, Normal
 from vehjax.filters import bootstrap_pf, gaussian
 from vehjax.models.bank_scale import offset_scale_model

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from vehjax.banked_road import DEG, DRIVE_STD0
+from vehjax.studies.banked_road import DEG, DRIVE_STD0
 from vehjax.models.bank_scale import TRACK
 
 from .pmmh import PMMH_UNITS, SAMPLER

@@ -1,7 +1,7 @@
 """Paper 004's simulation study (sec. 4, Fig. 3-7): ``vehjax reproduce berntorp2018``.
 
 The scenario (inputs looped from the shipped drive, the prescribed bank, biased sensors) and the
-filter are :mod:`vehjax.banked_road`'s; this module runs them over ``--runs`` Monte-Carlo runs of
+filter are :mod:`vehjax.studies.banked_road`'s; this module runs them over ``--runs`` Monte-Carlo runs of
 ``--duration`` s (default 180 s, the paper's "about three minutes"), scores the last third of the
 drive (steady state) against the truth, and writes the report and Fig. 3-7.
 """
@@ -14,7 +14,7 @@ import jax
 import numpy as np
 
 import vehjax as vj
-from vehjax.banked_road import (DEG, OFFSET, SENSOR_STD, SENSOR_UNIT, SENSORS, STEER_STD,
+from vehjax.studies.banked_road import (DEG, OFFSET, SENSOR_STD, SENSOR_UNIT, SENSORS, STEER_STD,
                                 bank_profile, build_sim_filter, looped_inputs, simulate_truth)
 
 from .report import PAPER, _rms, _table
@@ -141,10 +141,10 @@ def main_simulation(args, out_dir):
         "60 s comma2k19 RAV4 highway segment, looped forward/backward in time (a palindrome, "
         "continuous at the joints) to the duration. Truth: SingleTrackBank with the true "
         "steering = measured + 0.28 deg + N(0, 0.02 deg); bank path prescribed through phi_ddot "
-        "in `vehjax.banked_road.simulate_truth`'s own scan of `model.transition` "
+        "in `vehjax.studies.banked_road.simulate_truth`'s own scan of `model.transition` "
         "(piecewise-linear bank rate, 6 deg ramps every 60 s, alternating sign); sensor biases "
         "random walks from 0 (the filter assumes constant means with forgetting). Initial std "
-        "guesses twice the truth. All choices are in the docstrings of `vehjax/banked_road.py` "
+        "guesses twice the truth. All choices are in the docstrings of `vehjax/studies/banked_road.py` "
         "and `vehjax/reproduce/berntorp2018/`.\n",
         f"True sensor stds: ay {SENSOR_STD['ay']} m/s^2, r and roll rate 0.3 deg/s; bias walk "
         "increments per step: ay 1e-3 m/s^2, gyros 3e-4 deg/s; known stds: bank 0.5 deg, "

@@ -63,7 +63,7 @@ How the paper is read (it leaves these open; each choice is ours and printed wit
   unchanged.
 
 The paper's settings, the matched ones and the simulation noise are
-:mod:`vehjax.dual_settings`'s, the dynamic excitation :func:`vehjax.scenarios.slip_and_steer`.
+:mod:`vehjax.studies.dual_settings`'s, the dynamic excitation :func:`vehjax.scenarios.slip_and_steer`.
 This module is the study: the paper's settings and ours, the excitations, the simulated runs,
 the "tuned" fit, the filters and the two stages (:func:`kinematic_study`,
 :func:`dynamic_study`). How its results are read and shown (tables, the written summaries,
@@ -79,7 +79,7 @@ import jax
 import numpy as np
 
 from ... import scenarios
-from ...dual_settings import (DYNAMIC_SETTINGS, KINEMATIC_SETTINGS, SIM_STD,  # noqa: F401
+from ...studies.dual_settings import (DYNAMIC_SETTINGS, KINEMATIC_SETTINGS, SIM_STD,  # noqa: F401
                               matched_settings, simulate_runs)
 from .. import reporting
 

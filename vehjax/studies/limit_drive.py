@@ -78,8 +78,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import validation
-from .models.tyres import magic_formula
+from .. import validation
+from ..models.tyres import magic_formula
 
 __all__ = [
     "G", "LOAD_PASSES", "WARM_PASSES", "NOISE", "VARIANTS", "Truth", "LimitDrive", "limit_drive",

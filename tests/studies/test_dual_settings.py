@@ -1,10 +1,10 @@
-"""The settings of Dutta et al. (2019)'s problem (vehjax.dual_settings): the matched ones are
+"""The settings of Dutta et al. (2019)'s problem (vehjax.studies.dual_settings): the matched ones are
 the simulation's noise."""
 
 import numpy as np
 
 import vehjax as vj
-from vehjax import dual_settings
+from vehjax.studies import dual_settings
 
 
 def test_matched_settings_are_the_simulation_noise():

@@ -1,11 +1,11 @@
-"""vehjax.eager: eager calls of filter/smooth run as one compiled program, traced calls inline."""
+"""vehjax.runtime.eager: eager calls of filter/smooth run as one compiled program, traced calls inline."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import vehjax as vj
-from vehjax import eager
+from vehjax.runtime import eager
 
 MODEL = vj.models.Model(
     transition=lambda x, u, th: jnp.array([x[0] + 0.1 * x[1], x[1] - 0.1 * jnp.sin(x[0]) + 0.1 * u[0]]),

@@ -59,9 +59,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .filters.marginalized import (InputStdGrid, MeanStates, NiW, marginalized_pf,
+from ..filters.marginalized import (InputStdGrid, MeanStates, NiW, marginalized_pf,
                                    marginalized_pf_grid)
-from .models import with_output_biases
+from ..models import with_output_biases
 
 __all__ = ["DEG", "OFFSET", "STEER_STD", "SENSORS", "SENSOR_STD", "SENSOR_UNIT", "BIAS_WALK",
            "PHI_STD", "RVIRT_STD", "BANK_JERK_STD", "BANK_DEG", "DRIVE_STD0", "OFFSET_STD0",

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .simulate import simulate
+from ..simulate import simulate
 
 __all__ = ["SIM_STD", "Q_THETA_REL", "KINEMATIC_SETTINGS", "DYNAMIC_SETTINGS",
            "matched_settings", "simulate_runs"]

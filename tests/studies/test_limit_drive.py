@@ -1,4 +1,4 @@
-"""vehjax.limit_drive: the two-track truth at the friction limit and its simulated drives.
+"""vehjax.studies.limit_drive: the two-track truth at the friction limit and its simulated drives.
 
 References nobody here wrote: scipy's DOP853 for the integration, scipy's brentq for the
 magic formula's peak slip; the rest checks the drives against the issue's targets (issue 47,
@@ -13,7 +13,7 @@ from scipy.integrate import solve_ivp
 from scipy.optimize import brentq
 
 import vehjax  # noqa: F401  (float64)
-from vehjax import limit_drive as ld
+from vehjax.studies import limit_drive as ld
 
 G = 9.81
 

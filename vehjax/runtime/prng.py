@@ -7,7 +7,7 @@ per run and step, and a resolution of 2^-24 is far below any particle filter's M
 so they hash with the same Threefry-2x32 (Salmon, Moraes, Dror & Shaw 2011, 20 rounds) written
 out in straight-line code that XLA fuses into one vectorised loop, and turn 32-bit words into
 float32 normals by Box-Muller. The hash is bit-for-bit ``jax.extend.random.threefry_2x32``
-(tests/test_random.py checks it), so keys from ``jax.random`` plug in unchanged.
+(tests/runtime/test_random.py checks it), so keys from ``jax.random`` plug in unchanged.
 
 Keys are raw (2,) uint32 arrays. A step calls :func:`split` once and draws from the sub-key with
 counters that it chooses so that no two draws of that step share one.

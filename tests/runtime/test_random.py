@@ -1,4 +1,4 @@
-"""vehjax.prng: the unrolled Threefry-2x32 is JAX's hash bit for bit; its normals and
+"""vehjax.runtime.prng: the unrolled Threefry-2x32 is JAX's hash bit for bit; its normals and
 uniforms have the distributions they claim."""
 
 import jax
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from jax.extend.random import threefry_2x32
 
-from vehjax import prng
+from vehjax.runtime import prng
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2**31 + 7])

@@ -18,6 +18,14 @@ sin, cos (Cephes ``sin``/``cos``): x = j pi/4 + r with j even and |r| <= pi/4, t
 subtracted in three parts (Cody-Waite) so r keeps its bits for |x| up to about 1e8, then degree-6
 polynomials in r^2 for sin r and cos r and the octant's sign and swap. Derivatives are defined as
 cos and -sin.
+
+In your own model, on CPU, for float32 or float64 angles::
+
+    from vehjax.lib.elementary import arctan2, cos, sin
+
+float32 arguments stay float32, integers are computed as float; on GPU, or for complex, float16
+or bfloat16 arguments, ``jnp``'s are as good or the only choice. A model already written with
+``jnp`` converts without editing through :func:`vehjax.runtime.substitute.fast_elementary`.
 """
 
 from __future__ import annotations
@@ -33,6 +41,9 @@ _P = (-8.750608600031904122785e-1, -1.615753718733365076637e1, -7.50085579231470
       -1.228866684490136173410e2, -6.485021904942025371773e1)
 _Q = (2.485846490142306297962e1, 1.650270098316988542046e2, 4.328810604912902668951e2,
       4.853903996359136964868e2, 1.945506571482613964425e2)
+
+
+__all__ = ["sin", "cos", "tan", "arctan", "arctan2"]
 
 
 def _horner(z, coeffs, monic: bool):

@@ -6,7 +6,7 @@ inertia, 2.5 times too small, gave sideslip errors several times those of an unt
 linear Kalman filter. :func:`second_car` simulates such a car, so that the documented path, its
 variants and a textbook observer can be compared against a known sideslip.
 
-The truth builds on :mod:`vehjax.limit_drive`'s planar two-track car (its magic-formula tyres
+The truth builds on :mod:`vehjax.studies.limit_drive`'s planar two-track car (its magic-formula tyres
 with load-sensitive stiffness, exact slip angles, body forces; ISO 8855 axes) and adds:
 
 * first-order tyre lag: each wheel's lateral force Fy_i is a state and follows its steady-state
@@ -30,7 +30,7 @@ with load-sensitive stiffness, exact slip angles, body forces; ISO 8855 axes) an
 
 States (8): (vy [m/s], r [rad/s], phi [rad], p [rad/s], Fy_fl, Fy_fr, Fy_rl, Fy_rr [N]); inputs
 (delta [rad] road-wheel steer, vx [m/s] given). In steady state the loads equal
-:mod:`vehjax.limit_drive`'s with an equivalent CoG height and front share (:func:`planar`), so
+:mod:`vehjax.studies.limit_drive`'s with an equivalent CoG height and front share (:func:`planar`), so
 the driver steers by limit_drive's steady-state inverse of that planar truth.
 
 Sensors at 200 Hz: the road-wheel steer (white noise), the speed (white), the yaw rate (white)
@@ -47,7 +47,7 @@ from the static axle loads times typical cornering coefficients (:data:`CORNERIN
 Runs (:data:`RUNS`): three drives of different speed profiles and steering (corners up to
 1.2 g, slaloms, straights), each from a schedule drawn by its own seed: run 1 to fit, runs 2
 and 3 held out. Integration: classical RK4 with substeps of at most 1 ms, inputs linearly
-interpolated between samples, checked against scipy's DOP853 in tests/test_second_car.py.
+interpolated between samples, checked against scipy's DOP853 in tests/studies/test_second_car.py.
 
 Limits: planar apart from roll; no pitch, no longitudinal forces or load transfer (the speed is
 given), no aligning torque or combined slip; the roll axis is level and the unsprung masses
@@ -64,7 +64,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import limit_drive as ld
-from . import validation
+from .. import validation
 
 __all__ = ["G", "NOISE", "RUNS", "SPEC_IZ_RATIO", "CORNERING_COEFFICIENT", "VIBRATION_BAND",
            "Truth", "SecondCarRun", "TRUTH", "planar", "spec_sheet", "textbook_stiffness", "wheel_loads",
@@ -95,7 +95,7 @@ class Truth(NamedTuple):
     """Parameters of the second car's truth (module docstring).
 
     Attributes:
-        body: the planar two-track car (:class:`vehjax.limit_drive.Truth`): m [kg], iz
+        body: the planar two-track car (:class:`vehjax.studies.limit_drive.Truth`): m [kg], iz
             [kg m^2], lf, lr [m], h the CoG height [m], track widths [m], roll_front the front
             share q of the roll stiffness and damping [-], the tyres (cf, cr at the static loads
             [N/rad], load exponent, mu, shape C, curvature E).
@@ -167,7 +167,7 @@ def _roll_gain(truth: Truth) -> float:
 
 
 def planar(truth: Truth) -> ld.Truth:
-    """The :class:`vehjax.limit_drive.Truth` with this car's steady-state loads: its body with
+    """The :class:`vehjax.studies.limit_drive.Truth` with this car's steady-state loads: its body with
     the equivalent CoG height h_eq = hs k / (k - m g hs) + roll_height and front share
     q_eq = (q hs k / (k - m g hs) + roll_height lr / L) / h_eq, so that limit_drive's
     dFz_f = m ay h_eq q_eq / track_f is this car's steady front transfer (the rear alike)."""

@@ -1,11 +1,11 @@
-"""vehjax.progress: the one progress bar of run and tune: disabled writes nothing; without tqdm
+"""vehjax.runtime.progress: the one progress bar of run and tune: disabled writes nothing; without tqdm
 a text line on stderr, rewritten in place, ended once by a newline."""
 
 import builtins
 
 import pytest
 
-from vehjax.progress import Progress, text_bar
+from vehjax.runtime.progress import Progress, text_bar
 
 
 @pytest.fixture

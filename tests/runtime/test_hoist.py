@@ -1,4 +1,4 @@
-"""vehjax.hoist.split: the early/late partition of a model function computes what it does."""
+"""vehjax.runtime.hoist.split: the early/late partition of a model function computes what it does."""
 
 import jax
 import jax.numpy as jnp
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import vehjax as vj
-from vehjax.hoist import split
+from vehjax.runtime.hoist import split
 
 SD = jax.ShapeDtypeStruct
 
@@ -66,7 +66,7 @@ def test_split_rejects_wrong_number_of_flags():
 
 # -- dependence: which output entries are constants of the function --------------------------
 
-from vehjax.hoist import dependence  # noqa: E402
+from vehjax.runtime.hoist import dependence  # noqa: E402
 
 
 def test_dependence_follows_entries_through_moves_and_elementwise_ops():
@@ -130,7 +130,7 @@ def test_entries_found_constant_are_the_same_at_random_points(model):
 def test_numpy_evaluation_of_equations_equals_the_primitives():
     """``dependence`` evaluates common primitives in numpy (hoist._apply); each such equation of
     a function using them gives what binding the primitive gives, dtype and shape included."""
-    from vehjax import hoist
+    from vehjax.runtime import hoist
 
     def fn(x, i):
         a = jnp.stack([x[0] * x[1] - x[2] / x[1], -x[0], jnp.abs(x[2]) + jnp.floor(x[1])])

@@ -1,9 +1,9 @@
-"""vehjax.banked_road: paper 004's simulated scenario (its bank path and looped inputs)."""
+"""vehjax.studies.banked_road: paper 004's simulated scenario (its bank path and looped inputs)."""
 
 import numpy as np
 import pytest
 
-from vehjax import banked_road
+from vehjax.studies import banked_road
 
 
 def test_bank_path_and_looped_inputs():

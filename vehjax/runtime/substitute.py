@@ -3,12 +3,12 @@
 A user's own model written with ``jnp.sin``, ``jnp.cos``, ``jnp.arctan2``... traces to the
 ``sin``, ``cos``, ``tan``, ``atan``, ``atan2`` primitives, which XLA on CPU evaluates in float64
 by one scalar library call per element and does not fuse into vectorised loops (see
-:mod:`vehjax.elementary`). :func:`fast_elementary` traces the function once per argument
+:mod:`vehjax.lib.elementary`). :func:`fast_elementary` traces the function once per argument
 signature, re-traces its jaxpr through an interpreter that binds every primitive as it is
-except those five, which it replaces by the corresponding :mod:`vehjax.elementary` function
+except those five, which it replaces by the corresponding :mod:`vehjax.lib.elementary` function
 (arithmetic and ``where`` only, 1-3 ulp from libm, derivatives by ``custom_jvp``), and
 evaluates the rewritten jaxpr. Nested jaxprs are rewritten too: ``jit``/``closed_call`` bodies
-are inlined (so that :func:`vehjax.hoist.split` sees their equations; a ``jit`` with shardings,
+are inlined (so that :func:`vehjax.runtime.hoist.split` sees their equations; a ``jit`` with shardings,
 layouts, donation or compiler options is rewritten in place instead); ``cond`` branches,
 ``scan``/``while`` bodies, ``checkpoint`` bodies and the primal function of a user's
 ``custom_jvp``/``custom_vjp`` are rewritten in place. A user's custom derivative rules are kept
@@ -33,7 +33,8 @@ import numpy as np
 from jax import lax
 from jax.extend.core import ClosedJaxpr, DropVar, Jaxpr, Literal, jaxpr_as_fun, jaxprs_in_params
 
-from . import elementary, execution
+from .. import execution
+from ..lib import elementary
 
 
 
@@ -226,7 +227,7 @@ class _nullcontext:
 
 def substitute_jaxpr(closed: ClosedJaxpr) -> ClosedJaxpr:
     """``closed`` with every float32/float64 sin, cos, tan, atan, atan2 (nested ones included,
-    where rewritable) replaced by :mod:`vehjax.elementary`'s; same input and output types.
+    where rewritable) replaced by :mod:`vehjax.lib.elementary`'s; same input and output types.
     Returns ``closed`` itself when there is nothing to replace or it has effects."""
     if closed.jaxpr.effects:
         return closed
@@ -293,11 +294,11 @@ def fast_elementary(fn: Callable) -> Callable:
     Returns:
         ``fast(*args, **kwargs)``: what ``fn`` returns, same structure, shapes and dtypes, with
         every float32/float64 ``sin``, ``cos``, ``tan``, ``atan``, ``atan2`` primitive of its
-        trace computed by :mod:`vehjax.elementary` (within 1-3 ulp of libm, derivatives those
+        trace computed by :mod:`vehjax.lib.elementary` (within 1-3 ulp of libm, derivatives those
         of the true functions, see there). ``fast`` works under ``jit``, ``vmap``, ``grad`` and
         ``jacfwd``/``jacrev``. The rewritten jaxpr is cached per argument shapes and dtypes;
         called with concrete arrays it runs compiled (``jax.jit``), called with tracers it
-        binds its equations into the caller's trace, so :func:`vehjax.hoist.split` and XLA
+        binds its equations into the caller's trace, so :func:`vehjax.runtime.hoist.split` and XLA
         see them as if written out.
 
     ``fn`` is called as it is (same results, bit for bit) when its trace has effects, when it

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from vehjax.elementary import arctan, arctan2, cos, sin, tan
+from vehjax.lib.elementary import arctan, arctan2, cos, sin, tan
 
 
 def _ulps(got, ref):

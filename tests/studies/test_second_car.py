@@ -1,4 +1,4 @@
-"""vehjax.second_car (issue 53): the truth's integration, the accelerometer's vibration, the spec
+"""vehjax.studies.second_car (issue 53): the truth's integration, the accelerometer's vibration, the spec
 sheet, the runs; and benchmarks/textbook_observer.py against vehjax's EKF on the linear model."""
 
 import sys
@@ -11,9 +11,9 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import vehjax
-from vehjax import second_car as sc
+from vehjax.studies import second_car as sc
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import textbook_observer as tob  # noqa: E402
 
 G = 9.81
@@ -59,7 +59,7 @@ def test_steady_state_loads_equal_the_planar_truth():
     hs = b.h - sc.TRUTH.roll_height
     phi = b.m * hs * ay / (sc.TRUTH.roll_stiffness - b.m * G * hs)
     np.testing.assert_allclose(sc.wheel_loads(sc.TRUTH, phi, 0.0, ay),
-                               vehjax.limit_drive.wheel_loads(sc.planar(sc.TRUTH), ay),
+                               vehjax.studies.limit_drive.wheel_loads(sc.planar(sc.TRUTH), ay),
                                rtol=1e-12)
     # a roll rate moves load through the dampers: the loads are dynamic
     assert not np.allclose(sc.wheel_loads(sc.TRUTH, phi, 0.2, ay),
