@@ -18,59 +18,15 @@ their work (an estimator's :attr:`~vehjax.filters.Estimator.workload`, its optio
 each platform. The one exception is traced code outside ``run`` (:func:`vehjax.filter` under a
 user's ``jax.jit``): it follows :func:`current`, the strategy of JAX's default backend.
 
-The rules and the reasons behind them
-------------------------------------
-
-Each rule was chosen by measurement; the numbers are kept in the benchmarks' output and the
-README, not here. ``vehjax bench all`` and ``vehjax bench particle`` measure the CPU rules'
-effect, ``vehjax bench device`` (``--strategy`` to force one platform's rules) the device's, and
-``vehjax bench marginalized`` the marginalized PF's.
-
-CPU:
-
-* **Blocking** (``block_numbers``): a chunk's runs are vmapped in blocks of about 65,536 carried
-  numbers (``lax.map`` over blocks), at least 4 runs a block, so that a step's arrays stay in the
-  caches: a bootstrap PF with 1,000 particles on a 3-state model computes 13 runs side by side
-  and is faster per particle-step than with hundreds of runs side by side.
-* **Chunks** (``chunk_bytes``, ``chunk_work``): at most 512 MiB of outputs and working memory
-  per chunk, and at most 2e9 carried numbers x steps, so that a long study is several chunks of
-  a few seconds each and the progress bar moves.
-* **XLA options** (``elemental_emitter``): the filters whose steps are many small dense
-  operations (``workload="small_dense"``: Gaussian, adaptive, dual/joint, Liu-West, marginalized)
-  compile with XLA:CPU's classic elemental emitter instead of its fusion emitters: it compiles
-  them in about half the time, runs them as fast, and runs the marginalized PF faster. The
-  bootstrap PF (``workload="particles"``) runs slower with it and does not get it.
-* **Substitutes** (``substitute_elementary``): XLA:CPU evaluates float64 sin/cos/tan/atan/atan2
-  by one scalar library call per element; a model built with ``fast_math=True`` evaluates them
-  with :mod:`vehjax.lib.elementary`'s arithmetic forms, which vectorise: a markedly faster filter
-  on a model written with trigonometry.
-* **Side by side** (``side_by_side``, the machine's cores): one evaluation of a fit's compiled
-  program (a filter's scan of many tiny operations) keeps about one core busy, so a fit's
-  independent work runs on several threads at once: the n gradients of a Hessian by
-  differences (6 of them about 2.3 times faster on 2 cores), and the next stage's compile
-  beside the current stage's evaluations (:func:`vehjax.tune.fit`'s nested model).
-* **Runs-last step** (``runs_last``): a filter's batched step with the runs axis last
-  (:mod:`vehjax.filters.runs_last`) vectorises across runs, faster than vmapping. Its
-  prepared inputs reach it through the scan's carry where the filter asks (``prefetch_inputs``),
-  which helps the EKF further. Not for a chunk of one run (:func:`runs_last_for`): there the
-  per-run step, the one :func:`vehjax.filter` runs, was faster in every case measured (EKF on
-  the linear and brush single-track and the 3-DOF model, UKF on the 3-DOF model: 1.2-2.6x;
-  ``benchmarks/results/notes_run_one.md``).
-
-GPU (measured on one H100, float64, through the public API):
-
-* **No blocking**: ``lax.map`` over blocks serialises the runs on a GPU, many times slower
-  than one vmapped block (the bootstrap and the marginalized PF alike).
-* **No CPU XLA options**: XLA's GPU compiler refuses ``xla_cpu_use_fusion_emitters``.
-* **Substitutes off**: the GPU has vector sin/cos; the substitutes made no measurable
-  difference, so the model's functions are used as written.
-* **Runs-last step on**: faster than the vmapped step there too (UKF and EKF). Inputs not
-  prefetched through the carry (a CPU fusion rule; not measured on a GPU).
-* **Chunks from the device's memory**: a quarter of the device's memory limit
-  (``memory_stats()["bytes_limit"]``) per chunk, no work limit (a chunk is milliseconds).
-* **One thing at a time** in a fit (``side_by_side=1``): not measured on a device.
-
-TPU: the GPU rules (no measurement; nothing in them is GPU-specific).
+The rules, with the reason and measurement behind each, are in ``docs/execution.md``. In short,
+on CPU: runs vmapped in cache-sized blocks (``block_numbers``); chunks of at most 512 MiB and 2e9
+carried numbers x steps (``chunk_bytes``, ``chunk_work``); XLA:CPU's elemental emitter for the
+small-dense filters (``elemental_emitter``); vectorisable trigonometry for ``fast_math`` models
+(``substitute_elementary``); a fit's independent work on several threads (``side_by_side``); the
+runs-last batched step (``runs_last``) except for a chunk of one run (:func:`runs_last_for`). On
+GPU (and TPU, unmeasured): no blocking, no CPU XLA options, substitutes off, the runs-last step
+on, chunks of a quarter of the device's memory, one thing at a time in a fit. ``vehjax bench
+all``, ``particle``, ``device`` and ``marginalized`` measure them.
 
 Random numbers are the same on every platform by design: the particle filters hash counters
 with Threefry-2x32 (:mod:`vehjax.runtime.prng`), several times cheaper than ``jax.random`` in float64

@@ -256,64 +256,38 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
             ``"input[name]"`` stds in the input's unit) or an (nu, nu) covariance (fitted like
             Q0, reported in units squared).
         fit_x0: also fit x0 (the shape it was given in).
-        optimizer: None (default): "scoring" for deterministic filters with at most 12
-            fitted coordinates (forward-mode derivatives), "lbfgs" for those with more,
-            "adam" for particle filters; "adam", "lbfgs", "scoring" or an
-            ``optax.GradientTransformation``. "lbfgs": ``optax.lbfgs`` with its zoom line
-            search. "scoring": BHHH steps (the outer product of the
-            per-step scores as curvature, :func:`vehjax.tune.score_outer_product`) with a line
-            search, then Newton steps on the Hessian by differences (up to 3) until ``gtol``.
-        learning_rate: > 0; adam's peak rate (default 0.05, cosine decay to 5 % over
-            ``steps``); not for L-BFGS (line search).
+        optimizer: None (default): "scoring" (BHHH then Newton steps, forward-mode
+            derivatives) for deterministic filters with at most 12 fitted coordinates,
+            "lbfgs" for those with more, "adam" for particle filters; or one of those names,
+            or an ``optax.GradientTransformation`` (docs/tune.md, "Optimisers").
         steps: maximum number of iterations, >= 1 (default 300 adam, 100 lbfgs/scoring).
-        tol: >= 0 (adam, custom): the improvement of the best loss that resets ``patience``,
-            relative to max(1, |best loss|).
-        patience: >= 1 (adam, custom), iterations without improvement before stopping (default
-            50: adam's momentum can overshoot for a few tens of iterations).
-        gtol: > 0, L-BFGS stops, converged, when every component of the gradient of the loss
-            (the mean negative log-likelihood per step) with respect to the unconstrained
-            coordinates is at most gtol (the parameterisation is unconstrained: this is the
-            projected gradient), or when its line search finds no lower loss. For every
-            deterministic filter a Newton step on the Hessian then polishes the result (the
-            quantities on a bound held there), and ``converged`` says whether the gradient
-            there over the coordinates of the quantities not on a bound is at most gtol (the
-            projected gradient; :attr:`TuneResult.on_bound`).
+        learning_rate, tol, patience: adam's (and a custom optimiser's) peak rate > 0 (default
+            0.05, cosine decay to 5 % over ``steps``), the relative improvement >= 0 of the best
+            loss that resets ``patience``, and iterations >= 1 without it before stopping (50).
+        gtol: > 0, the projected gradient of the loss (mean negative log-likelihood per
+            step, unconstrained coordinates) at which L-BFGS and scoring stop; deterministic
+            fits then take a Newton polish, and ``converged`` tests gtol there over the
+            quantities not on a bound (docs/tune.md, "The options of a fit in full").
         key: PRNG key, required for particle filters; run r uses ``jax.random.split(key, R)[r]``
             at every iteration.
         builder_kwargs: further keyword arguments of ``builder`` (``sqrt``, ``alpha``,
             ``n_particles``, ``input_noise``, ...).
         progress: show a progress bar (tqdm.auto when installed, else a line on stderr).
-        standard_errors: compute the observed information (the Hessian of the log-likelihood),
-            standard errors, correlations and the undetermined directions (default); for
-            deterministic filters also the diagnostics (``TuneResult.score_tests`` of the
-            parameters held fixed, ``TuneResult.innovations`` per output;
-            :mod:`vehjax.tune.diagnostics`), at the cost of two more compiles, of the
-            objective with the held parameters added and of the filter run with covariances
-            (in a second host thread while the fit runs, where the platform has a core to
-            spare: ``side_by_side`` of :mod:`vehjax.execution`), k + 1 gradient evaluations
-            (side by side) and one filter run (beside them).
-        hessian: how the Hessian is formed from JAX's exact gradient: "differences" (the
-            default for deterministic filters) by forward differences of the gradient, steps
-            1e-6 of each coordinate's natural size, with the one compiled gradient program
-            (n evaluations beside the one at the point, relative error ~1e-6; central
-            differences, 2 n points in one call, where a long fit compiles the batched
-            program); "jax": ``jax.hessian`` (forward over
-            reverse), exact, one more program to compile (on a vehicle model that compile can
-            take longer than the fit); the default for particle filters, whose resampling
-            makes differences unreliable.
+        standard_errors: compute the observed information (the Hessian of the
+            log-likelihood): standard errors, correlations, undetermined directions, and for
+            deterministic filters the score tests of held parameters and the innovation checks
+            (:mod:`vehjax.tune.diagnostics`), at the cost of two more compiles (default True).
+        hessian: "differences" (default for deterministic filters: forward differences of
+            JAX's exact gradient, relative error ~1e-6) or "jax" (``jax.hessian``, exact, one
+            more compile; default for particle filters).
         floors: ``{parameter name: least value the data allow}`` (``model.data_floors``), or
             None: a parameter that ends far below its floor is reported
             (``TuneResult.below_floor``), not called undetermined.
-        priors: ``{parameter name: prior}`` with the prior objects of
-            :mod:`vehjax.lib.priors` (``Normal(mean, std)``, ``LogNormal(median, sigma)``,
-            ``LogNormal.within(value, 0.3)`` for "known to 30 %", ``Uniform(low, high)``; the
-            dict :func:`vehjax.calibrate.pmmh` takes): each named parameter is fitted (added
-            to ``params``) by penalised likelihood, log L + log prior in the physical
-            parameters (the MAP estimate in physical coordinates, no Jacobian term), the
-            penalty in the loss, its gradient, the scoring curvature, the Newton polish and the
-            standard errors (the posterior's curvature); a Uniform is a box (its ``bounds``).
-            ``TuneResult.loglik`` stays the plain log-likelihood; ``priors``, ``pulls`` and
-            ``log_prior`` report the rest (:mod:`vehjax.tune.priors`).
+        priors: ``{parameter name: prior}`` of :mod:`vehjax.lib.priors` (``Normal``,
+            ``LogNormal``, ``LogNormal.within(value, 0.3)``, ``Uniform``; the dict
+            :func:`vehjax.calibrate.pmmh` takes): each named parameter is fitted by penalised
+            likelihood (MAP in physical coordinates); ``loglik`` stays the plain log-likelihood
+            (:mod:`vehjax.tune.priors`).
         compiled: the program of this fit's objective compiled for another start, differing
             only in the fitted values (:func:`compile_objective`; :func:`vehjax.tune.fit`
             compiles the next stage's while it fits the nested model); None (default):

@@ -57,12 +57,9 @@ class TuneResult(NamedTuple):
         history: loss per iteration, (iterations,): ``-sum loglik / (R T)`` at the values that
             iteration started from.
         iterations: how many optimiser iterations ran.
-        converged: deterministic filters (scoring, L-BFGS, then the Newton polish): the
-            projected gradient reached ``gtol``, i.e. every component of the gradient of the
-            loss with respect to the unconstrained coordinates of the quantities not on a bound
-            is at most ``gtol``, and each quantity on a bound (``on_bound``) has the likelihood
-            increasing beyond it (the bounded maximum's Karush-Kuhn-Tucker conditions); adam
-            and custom optimisers: the loss stopped improving (``patience``).
+        converged: deterministic filters: the projected gradient reached ``gtol`` and each
+            quantity on a bound has the likelihood increasing beyond it (the bounded maximum's
+            KKT conditions); adam and custom optimisers: the loss stopped improving.
         diverged: how many runs diverged (``vehjax.filter``'s flag) at the fitted values.
         skipped: iterations whose gradient was not finite.
         values: every fitted quantity by name: ``"Q[x,x]"``, ``"R[y,y]"``, a parameter name,
@@ -70,49 +67,27 @@ class TuneResult(NamedTuple):
         units: the unit of each entry of ``values`` (``"m^2"``, ``"kg"``, ...; ``"-"`` unknown).
         seconds: wall-clock time of the fit, including compilation.
         std_errors: standard error of each entry of ``values`` in its units (same keys), from
-            the observed information (the Hessian of the log-likelihood by JAX in the
-            unconstrained coordinates, carried to the physical quantities by the delta method);
-            inf for a quantity the data do not determine; NaN for a quantity on a bound (the
-            others' then come from the curvature along the free directions, the bound ones
-            held at their bounds); empty with ``standard_errors=False``. For a particle filter
-            a Monte-Carlo estimate.
+            the observed information by the delta method; inf for an undetermined quantity, NaN
+            for one on a bound; empty with ``standard_errors=False``.
         correlations: (m, m) correlations of the entries of ``values`` (in their order); NaN
             rows and columns for undetermined quantities.
         undetermined: names of the fitted quantities (coordinates) along directions of no or
             too little curvature (:func:`vehjax.tune.uncertainty`); a warning names them too.
             A quantity on a bound is not among them.
         on_bound: ``{name: (side, bound, dlogL)}`` for each fitted quantity that ended on a
-            bound of its domain (:mod:`vehjax.tune.boundaries`): ``side`` "lower" or "upper",
-            ``bound`` its value in the quantity's units, ``dlogL`` the derivative of the
-            log-likelihood (summed over the runs) with respect to the quantity there, pointing
-            out of the box (negative on a lower bound, positive on an upper one): the
-            likelihood's maximum lies beyond the bound. Bounds: ``bounds=`` of a model
-            parameter, 0 for a variance of a diagonal Q or R and for an input-noise std. A
-            warning names them too.
+            bound of its domain, with the log-likelihood's derivative pointing out of the box
+            (:mod:`vehjax.tune.boundaries`); a warning names them too.
         gradient: max |d loss / dz| at the result (the loss per step, z unconstrained; every
             coordinate, those of quantities on a bound small as their map flattens there).
         input_noise: the fitted input noise as the builder takes it (stds by name or a
             covariance), or the given one, or None.
-        evaluations: evaluations of the compiled loss-and-gradient program (optimiser, line
-            search, Hessian by differences, Newton polish).
-        optimizer: the optimiser that ran ("scoring", "lbfgs", "adam" or "optax").
-        derivatives: "forward" (:func:`vehjax.tune.forward_scores`) or "reverse"
-            (``jax.value_and_grad``).
-        compile_seconds: wall-clock seconds of compiling that program (part of ``seconds``).
-        hessian_batches: calls of the program that evaluates the gradient at the Hessian's 2 n
-            difference points at once (long forward-mode fits,
-            :data:`vehjax.tune.program.BATCH_HESSIAN_STEPS`; 0 when the points went through
-            the one program, one by one).
-        hessian_compile_seconds: wall-clock seconds of compiling that second program (part of
-            ``seconds``; 0.0 when there was none).
-        compile_cpu_seconds: CPU seconds (``time.process_time``, every thread of the process)
-            of compiling the loss-and-gradient program: on a machine shared with other work
-            the compile's wall-clock time says more about the load than about the compile.
-        below_floor: ``{name: (value, floor)}`` for each model parameter (fitted or not) that
-            ended below :data:`FLOOR_FRACTION` of the least value the data allow
-            (``model.data_floors``, e.g. a friction coefficient below the drive's peak |ay| / g):
-            the model cannot produce what was measured, and the fit explains it by noise. Such
-            a parameter is reported here, not among ``undetermined``; a warning says so too.
+        evaluations, optimizer, derivatives, compile_seconds, hessian_batches,
+            hessian_compile_seconds, compile_cpu_seconds: what the fit cost: evaluations of
+            the compiled loss-and-gradient program, the optimiser that ran, "forward" or
+            "reverse" derivatives, the compile's wall-clock seconds (part of ``seconds``),
+            calls and compile seconds of the batched Hessian program, the compile's CPU seconds.
+        below_floor: ``{name: (value, floor)}``: model parameters that ended below
+            :data:`FLOOR_FRACTION` of the least value the data allow (``model.data_floors``).
         nested: the :class:`Comparison` with the nested model's fit (``model.nested_model()``),
             or None when none was made.
         below_nested: the log-likelihood is below the nested model's by more than
@@ -120,26 +95,14 @@ class TuneResult(NamedTuple):
             reaches (a warning gives both values).
         starts: ``((start values by name, log-likelihood reached), ...)``, one per start
             :func:`vehjax.tune.fit` tried, in order; the result is the best of them.
-        priors: ``{name: prior}`` as given (``priors=``, :mod:`vehjax.tune.priors`); {} for a
-            plain maximum-likelihood fit. ``loglik`` (and ``loglik0``) stay the plain
-            log-likelihood, without the prior; ``history`` records the penalised loss.
-        pulls: ``{name: pull}`` of each Normal / LogNormal prior: the estimate's distance from
-            the prior's centre in the prior's standard deviations, in its own coordinate
-            (``(x - mean) / std``, ``(log x - log median) / sigma``; signed). Beyond
-            :data:`vehjax.tune.priors.PULL_WARN` a warning says the data contradict the stated
-            value.
-        log_prior: the sum of the priors' log densities at the estimate (0.0 without priors);
-            ``loglik + log_prior`` is what the fit maximised.
-        score_tests: ``{name: ScoreTest}`` for each model parameter held fixed: the score
-            (Lagrange-multiplier) test of its value at the fit's optimum, the log-likelihood
-            freeing it would gain and where one Newton step would take it
-            (:mod:`vehjax.tune.diagnostics`); the summary and a warning name the values the
-            data contradict. Deterministic filters with ``standard_errors``; else empty.
-        released: ``{name: ScoreTest}`` of each held parameter that :func:`vehjax.tune.fit`
-            released (:mod:`vehjax.tune.release`): the data rejected its given value (the
-            score test, at the given value, that released it), and it was fitted under the
-            model's data-sheet prior (in ``priors``, its pull in ``pulls``); the summary and a
-            warning say so.
+        priors, pulls, log_prior: the priors as given (``priors=``), each Normal/LogNormal
+            prior's pull (the estimate's signed distance from its centre in its standard
+            deviations; beyond :data:`vehjax.tune.priors.PULL_WARN` a warning), and the sum of
+            the log densities (``loglik + log_prior`` is what the fit maximised).
+        score_tests, released: ``{name: ScoreTest}`` of each held model parameter (the score
+            test of its value, :mod:`vehjax.tune.diagnostics`), and of each one
+            :func:`vehjax.tune.fit` released under its data-sheet prior because the data
+            rejected its given value (:mod:`vehjax.tune.release`).
         innovations: ``{output: InnovationCheck}``: each measured output's mean NIS, lag-1
             autocorrelation and Ljung-Box test of the fitted filter's innovations
             (:mod:`vehjax.tune.innovations`); the summary names the coloured ones. As
