@@ -164,7 +164,7 @@ def contenders(model, ys, us):
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
 
     def fwd(f, d):
-        ll, dll, _ = program.forward_scores(lambda g, dd: setup["per_step"](unravel(g), dd), f, d)
+        ll, dll, _ = program.forward_scores(lambda g, dd: setup.per_step(unravel(g), dd), f, d)
         return -jnp.sum(ll) / obj.n_steps, -jnp.sum(dll.reshape(f.shape[0], -1), 1) / obj.n_steps
 
     out["loss+grad fwd"] = (jax.jit(fwd), (flat, obj.data))

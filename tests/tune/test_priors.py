@@ -211,7 +211,7 @@ def test_objective_and_programs_carry_the_penalty():
     np.testing.assert_allclose(g, np.asarray(g_rev), rtol=1e-8)
     np.testing.assert_allclose(loss.grads(np.stack([loss.x0] * 6))[0], g, rtol=1e-8)
     plain_obj, plain_setup = vt.prepare(*args[:8], ("d", "a", "b"), *args[9:-1], None)
-    assert plain_setup["log_prior"] is None and setup["params"] == ("d", "a", "b")
+    assert plain_setup.log_prior is None and setup.params == ("d", "a", "b")
     # the coordinates: theta = log d, log a, log b (the prior'd parameters after params); the
     # prior's curvature in log a is (a^2 + (a - mean) a) / std^2 and in log b 1 / sigma^2
     # (per step), none in d

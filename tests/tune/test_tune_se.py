@@ -214,7 +214,7 @@ def test_forward_scores_and_bhhh_equal_numpy_differences():
     obj, info = vt.prepare(vj.filters.ekf, scalar_model(), [0.4], [0.7], ys, us, X0, P0,
                            ("a",), None, ("Q", "R"), False, None, None)
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
-    ll, dll, div = vt.forward_scores(lambda g, d: info["per_step"](unravel(g), d), flat,
+    ll, dll, div = vt.forward_scores(lambda g, d: info.per_step(unravel(g), d), flat,
                                      obj.data)
     z = np.asarray(flat)
     phys = lambda z: (np.exp(z[2]), np.exp(2 * z[0]), np.exp(2 * z[1]))  # noqa: E731

@@ -40,17 +40,17 @@ def quantity_bounds(info, model) -> dict:
     parameters with a lower and/or upper bound, the variances of a diagonal Q or R (low 0), the
     input-noise stds given by name (low 0)."""
     out = {}
-    tm = info["theta_map"]
-    for j, p in enumerate(info["params"]):
+    tm = info.theta_map
+    for j, p in enumerate(info.params):
         lo, hi = float(tm.low[j]), float(tm.high[j])
         if np.isfinite(lo) or np.isfinite(hi):
-            out[p] = (lo, hi, float(info["theta0"][info["idx"][j]]))
-    for name, diag, cnames, A0 in (("Q", info["diagQ"], model.state_names, info["Qa"]),
-                                   ("R", info["diagR"], model.output_names, info["Ra"])):
-        if name in info["noise"] and diag:
+            out[p] = (lo, hi, float(info.theta0[info.idx[j]]))
+    for name, diag, cnames, A0 in (("Q", info.diagQ, model.state_names, info.Qa),
+                                   ("R", info.diagR, model.output_names, info.Ra)):
+        if name in info.noise and diag:
             for a, c in enumerate(cnames):
                 out[f"{name}[{c},{c}]"] = (0.0, np.inf, float(A0[a, a]))
-    inp = info["input"]
+    inp = info.input
     if inp is not None and inp.cov is None:
         for n, z in zip(inp.names, inp.z0):
             out[f"input[{n}]"] = (0.0, np.inf, float(np.exp(z)))

@@ -144,13 +144,13 @@ def _augmented(fit, setup, data, bounds, extra):
     parameters fitted too: (obj, setup); penalised by the fit's priors, if any (the optimum's
     free gradient is that objective's)."""
     ys, us, _, P0, _ = data
-    kw = dict(setup["builder_kwargs"])
+    kw = dict(setup.builder_kwargs)
     if fit.input_noise is not None:
         kw["input_noise"] = fit.input_noise
-    return prepare(setup["builder"], fit.model, fit.Q, fit.R, np.asarray(ys),
+    return prepare(setup.builder, fit.model, fit.Q, fit.R, np.asarray(ys),
                    None if us is None else np.asarray(us), np.asarray(fit.x0), np.asarray(P0),
-                   tuple(setup["params"]) + tuple(extra), bounds, setup["noise"],
-                   setup["fit_x0"], None, kw, setup.get("priors"))
+                   tuple(setup.params) + tuple(extra), bounds, setup.noise,
+                   setup.fit_x0, None, kw, setup.priors)
 
 
 class Start(NamedTuple):
@@ -188,7 +188,7 @@ def compile_augmented(start: Start, setup, data, bounds=None, only=None):
     are the program's argument, so it serves the optimum (:func:`vehjax.tune.fit_from_theta`
     compiles it in a second thread while it fits); None when nothing is held (among
     ``only``, unless None)."""
-    extra = testable(start.model, setup["params"], only)
+    extra = testable(start.model, setup.params, only)
     if not extra:
         return None
     obj, aug = _augmented(start, setup, data, bounds, extra)
@@ -197,10 +197,10 @@ def compile_augmented(start: Start, setup, data, bounds=None, only=None):
 
 def compile_innovations(setup, data):
     """The innovation checks' program (:func:`vehjax.tune.innovations.fitted_innovations`)
-    compiled at the fit's start ``setup["z0"]``: its fitted values are the argument, so it
+    compiled at the fit's start ``setup.z0``: its fitted values are the argument, so it
     serves the optimum (:func:`fit_innovations`)."""
-    options = execution.compiler_options(execution.current(), setup["workload"])
-    return jax.jit(inn.fitted_innovations(setup)).lower(setup["z0"], data).compile(
+    options = execution.compiler_options(execution.current(), setup.workload)
+    return jax.jit(inn.fitted_innovations(setup)).lower(setup.z0, data).compile(
         compiler_options=options)
 
 
@@ -325,7 +325,7 @@ def score_tests(res, setup, data, bounds=None, held_coordinates=(), compiled=Non
             the optimum), reused for that block (:func:`augmented_information`), or None.
     """
     model = res.model
-    held = held_parameters(model, setup["params"], only)
+    held = held_parameters(model, setup.params, only)
     ok, bad = _testable(model, held)
     units = dict(zip(model.param_names, getattr(model, "param_units",
                                                 ("-",) * len(model.param_names))))
@@ -336,8 +336,8 @@ def score_tests(res, setup, data, bounds=None, held_coordinates=(), compiled=Non
         names, score, info, opg, aug, z0 = augmented_information(res, setup, data, bounds, ok,
                                                                  compiled, free_hessian)
         block = [i for i, n in enumerate(names) if n not in ok and n not in held_coordinates]
-        d1, d2 = _map_derivatives(aug["theta_map"], jnp.asarray(z0["theta"]))
-        pos = list(aug["params"])
+        d1, d2 = _map_derivatives(aug.theta_map, jnp.asarray(z0["theta"]))
+        pos = list(aug.params)
         for p in ok:
             j, k = names.index(p), pos.index(p)
             ix = np.ix_(block + [j], block + [j])

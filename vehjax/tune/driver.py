@@ -114,7 +114,7 @@ def _hessian_fn(obj, setup, loss, hessian, scales):
     """``hess(x) -> (n, n)``, the Hessian of the mean loss: ``jax.hessian`` compiled
     (``"jax"``, the default for particle filters) or differences of the compiled gradient."""
     if hessian is None:
-        hessian = "jax" if setup["stochastic"] else "differences"
+        hessian = "jax" if setup.stochastic else "differences"
     if hessian == "jax":
         hfn = jax.jit(jax.hessian(lambda f, data: obj.loss(loss.unravel(f), data)[0])).lower(
             jnp.asarray(loss.x0), obj.data).compile(compiler_options=loss.stats["options"])
@@ -167,7 +167,7 @@ def _bounds_at(obj, setup, quantities, x, g, names):
     (m, n) of the quantities with respect to the coordinates, and the free-coordinates mask;
     ``quantities`` from :func:`_quantity_map`."""
     qnames, vals, J = quantities(x)
-    on = boundaries.on_bounds(setup["bounds"], names, dict(zip(qnames, vals.tolist())), g, J,
+    on = boundaries.on_bounds(setup.bounds, names, dict(zip(qnames, vals.tolist())), g, J,
                               qnames, obj.n_steps)
     return on, J, qnames, np.array([n not in on for n in names], dtype=bool)
 
@@ -184,7 +184,7 @@ def _standard_errors(obj, setup, quantities, loss, x, optimizer, hessian, gtol, 
     polished to gtol over the free coordinates, :class:`vehjax.tune.Uncertainty`, the
     quantities on a bound, the Hessian of the mean loss there (n, n))."""
     hess = _hessian_fn(obj, setup, loss, hessian, scales)
-    if setup["stochastic"]:  # no Newton step on a Monte-Carlo objective
+    if setup.stochastic:  # no Newton step on a Monte-Carlo objective
         _, aux, g = loss.vg(x)
         Hm = hess(x)
     else:  # polish the free coordinates, the quantities on a bound held there
@@ -195,7 +195,7 @@ def _standard_errors(obj, setup, quantities, loss, x, optimizer, hessian, gtol, 
             if _free_gradient(g, free) <= gtol:
                 break
     on, J, qnames, free = _bounds_at(obj, setup, quantities, x, g, names)
-    polished = not setup["stochastic"] and _free_gradient(g, free) <= gtol
+    polished = not setup.stochastic and _free_gradient(g, free) <= gtol
     max_std = np.where([n.startswith("x0[") for n in names], np.inf, MAX_SCALED_STD)
     unc = uncertainty(obj.n_steps * Hm, J, scales, names, max_std=max_std, fixed=~free,
                       pinned=np.array([q in on for q in qnames], dtype=bool))
@@ -207,7 +207,7 @@ def _diagnostics_ahead(setup, data, model, Q0, R0, x0, builder_kwargs, bounds, s
     """The diagnostics' programs (:func:`vehjax.tune.diagnostics.compile_ahead`) compiled from
     the start in a second host thread while the fit runs: a future, or None (no standard
     errors, a particle filter, or a platform that does one thing at a time)."""
-    if not standard_errors or setup["stochastic"] or execution.current().side_by_side < 2:
+    if not standard_errors or setup.stochastic or execution.current().side_by_side < 2:
         return None
     start = diagnostics.Start(model, Q0, R0, (builder_kwargs or {}).get("input_noise"), x0)
     return execution.in_thread(diagnostics.compile_ahead, start, setup, data, bounds, checks)
@@ -319,23 +319,23 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
     obj, setup = prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
                          noise, fit_x0, key, builder_kwargs, priors)
     check_options(dict(optimizer=optimizer, learning_rate=learning_rate),  # before compiling
-                  stochastic=setup["stochastic"])
-    differences = not setup["stochastic"] and hessian in (None, "differences")
+                  stochastic=setup.stochastic)
+    differences = not setup.stochastic and hessian in (None, "differences")
     ahead = _diagnostics_ahead(setup, obj.data, model, Q0, R0, x0, builder_kwargs, bounds,
                                standard_errors, checks)
     names, scales = coordinates(setup, model, obj.z0)
     flat0, unravel0 = jax.flatten_util.ravel_pytree(obj.z0)
-    if setup["log_prior"] is not None:  # a narrow prior: the coordinate's size is its width
+    if setup.log_prior is not None:  # a narrow prior: the coordinate's size is its width
         scales = tune_priors.prior_scales(scales, np.diagonal(np.asarray(program.prior_terms(
-            setup["log_prior"], unravel0, flat0, 1)[2])))
-    setup["bounds"] = boundaries.quantity_bounds(setup, model)
-    box = boundaries.coordinate_box(names, flat0, setup["bounds"])
+            setup.log_prior, unravel0, flat0, 1)[2])))
+    setup = setup._replace(bounds=boundaries.quantity_bounds(setup, model))
+    box = boundaries.coordinate_box(names, flat0, setup.bounds)
     loss = program.compiled_loss(obj, setup, batch_hessian=differences and obj.n_steps >=
                                  program.BATCH_HESSIAN_STEPS and (standard_errors or optimizer
                                                                   in (None, "scoring")), box=box,
                                  compiled=compiled)
     if optimizer is None:
-        optimizer = ("adam" if setup["stochastic"] else
+        optimizer = ("adam" if setup.stochastic else
                      "scoring" if loss.vgo is not None else "lbfgs")
     if optimizer == "scoring" and loss.vgo is None:  # too many coordinates for forward mode
         optimizer = "lbfgs"
@@ -346,7 +346,7 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
     steps = (opt.LBFGS_STEPS if line_search else opt.ADAM_STEPS) if steps is None else steps
     patience = 50 if patience is None else patience
     first = None if line_search else opt.first_order_optimizer(optimizer, learning_rate, steps)
-    report, bar = _progress(steps, progress, setup["name"])
+    report, bar = _progress(steps, progress, setup.name)
     x, aux, history, iters, converged, skipped = _optimise(
         loss, optimizer, dict(steps=steps, gtol=gtol, tol=tol, patience=patience, first=first,
                               n_steps=obj.n_steps),
@@ -373,7 +373,7 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
     z = loss.unravel(jnp.asarray(x))
     res = make_result(obj, setup, model, z, aux, history, iters, converged, skipped, unc,
                       grad_max, t_start, on, floors)
-    if standard_errors and not setup["stochastic"]:  # the nested fit of fit() pays nothing
+    if standard_errors and not setup.stochastic:  # the nested fit of fit() pays nothing
         res = res._replace(**diagnostics.fit_diagnostics(
             res, setup, obj.data, z, bounds, tuple(on), _compiled_ahead(ahead), checks,
             (tuple(names), np.asarray(Hm, dtype=float))))

@@ -236,7 +236,7 @@ def fitted_innovations(setup):
     ``data`` (:func:`vehjax.filter`) and its innovations recomputed
     (:func:`one_step_predictions`); traceable, one program for ``jax.jit``. The fitted values
     are its argument, so a program compiled at a fit's start serves its optimum."""
-    at = setup["at"]
+    at = setup.at
 
     def fn(z, data):
         ys, us, _, P0, _ = data

@@ -23,7 +23,7 @@ from .parameterisation import Cov, InputNoise, is_diag, param_transform
 from .particle import resample_keyword, stop_gradient_pf
 from . import priors as tune_priors
 
-__all__ = ["Objective", "objective", "prepare", "check_data", "NOISE", "NOISE_KINDS"]
+__all__ = ["Objective", "FitSetup", "objective", "prepare", "check_data", "NOISE", "NOISE_KINDS"]
 
 NOISE = ("Q", "R")
 NOISE_KINDS = ("Q", "R", "input")
@@ -49,6 +49,62 @@ class Objective(NamedTuple):
     n_steps: int
 
 
+class FitSetup(NamedTuple):
+    """A fit's set-up, checked before tracing (:func:`prepare`): what is fitted, from where, and
+    the functions the optimisers, the standard errors and the report evaluate.
+
+    Attributes:
+        builder: the filter builder (``builder(model, Q, R, **builder_kwargs)``).
+        builder_kwargs: its further keyword arguments (a dict, as given).
+        params: names of the fitted model parameters (those with priors included).
+        noise: which noise is fitted, a subset of ("Q", "R", "input").
+        Qa, Ra: the starting (or held) Q (nx, nx) and R (ny, ny), numpy.
+        diagQ, diagR: whether Q and R are fitted as diagonal.
+        theta0: the model's starting parameter vector (np,).
+        idx: the fitted parameters' indices in ``theta0``.
+        theta_map: their bounded <-> unconstrained map (:mod:`vehjax.lib.transforms`).
+        fit_x0: whether x0 is fitted.
+        input: the fitted input noise's parameterisation (:class:`InputNoise`) or None.
+        priors: ``{name: prior}`` as given; prior_fn: their log density of theta, or None.
+        x0, P0: the runs' prior (x0 (nx,) or (R, nx), P0 (nx, nx) or (R, nx, nx)).
+        z0: the starting coordinates (dict of unconstrained arrays).
+        name: the filter's name; stochastic: whether it draws random numbers (a particle
+            filter); workload: its kind of work (:attr:`Estimator.workload`).
+        per_step: ``per_step(z, data) -> (log-likelihood per run and step, diverged)``.
+        at: ``at(z, data) -> (estimator, model, Q, R, input noise, x0)`` at coordinates z.
+        log_prior: ``log_prior(z)`` or None; log_prior0: its value at z0 (0.0 without).
+        bounds: the fitted quantities' bounds (:func:`vehjax.tune.boundaries.quantity_bounds`),
+            set by the driver; None before.
+    """
+
+    builder_kwargs: dict
+    params: tuple
+    noise: tuple
+    Qa: np.ndarray
+    Ra: np.ndarray
+    diagQ: bool
+    diagR: bool
+    theta0: np.ndarray
+    idx: object
+    fit_x0: bool
+    input: object
+    theta_map: object
+    priors: dict
+    prior_fn: Callable | None
+    builder: Callable | None = None
+    x0: np.ndarray | None = None
+    P0: np.ndarray | None = None
+    z0: dict | None = None
+    name: str | None = None
+    stochastic: bool = False
+    per_step: Callable | None = None
+    at: Callable | None = None
+    workload: str | None = None
+    log_prior: Callable | None = None
+    log_prior0: float = 0.0
+    bounds: dict | None = None
+
+
 def float_array(name: str, value, allow_nan: bool = False) -> np.ndarray:
     """``value`` as a concrete float array by the rules every entry point shares (real; NaN
     missing in measurements, else finite); ValueError naming ``name``."""
@@ -68,8 +124,8 @@ def _check_builder(builder):
 
 
 def _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs,
-                priors=None) -> dict:
-    """The fitted quantities and their starting values checked: a dict of the set-up (the
+                priors=None) -> FitSetup:
+    """The fitted quantities and their starting values checked: the set-up so far (the
     prior'd parameters added to ``params``, a Uniform prior's box to ``bounds``:
     :mod:`vehjax.tune.priors`)."""
     nx, ny = len(model.state_names), len(model.output_names)
@@ -101,7 +157,7 @@ def _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs,
             raise ValueError("noise: 'input' fits the input noise, whose starting value goes in "
                              "builder_kwargs={'input_noise': {input name: std, ...}}")
         inp = InputNoise(builder_kwargs["input_noise"], model)
-    return dict(builder_kwargs=builder_kwargs, params=params, noise=noise, Qa=Qa, Ra=Ra,
+    return FitSetup(builder_kwargs=builder_kwargs, params=params, noise=noise, Qa=Qa, Ra=Ra,
                 diagQ=np.ndim(Q0) == 1 or is_diag(Qa), diagR=np.ndim(R0) == 1 or is_diag(Ra),
                 theta0=theta0, idx=idx, fit_x0=fit_x0, input=inp, theta_map=theta_map,
                 priors=priors, prior_fn=tune_priors.log_prior_fn(priors, names))
@@ -121,13 +177,13 @@ def check_data(model, measurements, inputs, x0, P0):
     return ys, us, np.asarray(x0a, dtype=float), np.asarray(P0a, dtype=float)
 
 
-def _start_estimator(builder, model, setup: dict, key, n_runs: int):
+def _start_estimator(builder, model, setup: FitSetup, key, n_runs: int):
     """(the estimator at the starting values, the stop-gradient keyword, per-run keys or None):
     the builder checks its own arguments and says whether it needs a key."""
     est0 = _built(builder, model, setup)
     keys, sg = None, {}
     if est0.needs_key:  # a particle filter: differentiated with stop-gradient resampling
-        sg = resample_keyword(builder, est0.name, setup["builder_kwargs"])
+        sg = resample_keyword(builder, est0.name, setup.builder_kwargs)
         if key is None:
             raise ValueError(f"key: {est0.name} draws random numbers; pass key=jax.random.key(...)")
         try:
@@ -137,11 +193,11 @@ def _start_estimator(builder, model, setup: dict, key, n_runs: int):
     return est0, sg, keys
 
 
-def _built(builder, model, setup: dict) -> Estimator:
+def _built(builder, model, setup: FitSetup) -> Estimator:
     """The state-only estimator ``builder`` makes at the starting values (ValueError naming
     ``builder`` where it is not one)."""
     try:
-        est0 = builder(model, setup["Qa"], setup["Ra"], **setup["builder_kwargs"])
+        est0 = builder(model, setup.Qa, setup.Ra, **setup.builder_kwargs)
     except TypeError as err:  # not a state-only builder(model, Q, R, **kw), or bad keywords
         raise ValueError(
             f"builder: calling it as builder(model, Q, R, **builder_kwargs) failed ({err}); tune "
@@ -167,12 +223,12 @@ def draws_random_numbers(builder, model, Q0, R0, params, noise, fit_x0,
     return bool(_built(_check_builder(builder), model, setup).needs_key)
 
 
-def _coordinates(setup: dict):
+def _coordinates(setup: FitSetup):
     """(z0, unpack): the starting coordinates (a dict) and the map to the physical values."""
-    noise, inp, idx, theta_map = setup["noise"], setup["input"], setup["idx"], setup["theta_map"]
-    Qa, Ra, theta0, x0a = setup["Qa"], setup["Ra"], setup["theta0"], setup["x0"]
-    covQ = Cov(Qa, setup["diagQ"]) if "Q" in noise else None
-    covR = Cov(Ra, setup["diagR"])
+    noise, inp, idx, theta_map = setup.noise, setup.input, setup.idx, setup.theta_map
+    Qa, Ra, theta0, x0a = setup.Qa, setup.Ra, setup.theta0, setup.x0
+    covQ = Cov(Qa, setup.diagQ) if "Q" in noise else None
+    covR = Cov(Ra, setup.diagR)
     z0 = {}
     if "Q" in noise:
         z0["Q"] = jnp.asarray(covQ.z0)
@@ -180,9 +236,9 @@ def _coordinates(setup: dict):
         z0["R"] = jnp.asarray(covR.z0)
     if inp is not None:
         z0["input"] = jnp.asarray(inp.z0)
-    if setup["params"]:
+    if setup.params:
         z0["theta"] = theta_map.to_unconstrained(jnp.asarray(theta0[idx]))
-    if setup["fit_x0"]:
+    if setup.fit_x0:
         z0["x0"] = jnp.asarray(x0a)
 
     def unpack(z):
@@ -197,10 +253,10 @@ def _coordinates(setup: dict):
     return z0, unpack
 
 
-def _estimator_at(builder, model, setup: dict, unpack, sg: dict):
+def _estimator_at(builder, model, setup: FitSetup, unpack, sg: dict):
     """``at(z, data) -> (estimator, model, Q, R, input noise or None, x0)``: the fit's filter
     built at the coordinates z (traceable), the values not fitted as given."""
-    Qa, Ra, builder_kwargs = setup["Qa"], setup["Ra"], setup["builder_kwargs"]
+    Qa, Ra, builder_kwargs = setup.Qa, setup.Ra, setup.builder_kwargs
 
     def at(z, data):
         v = unpack(z)
@@ -233,11 +289,11 @@ def _per_step(at):
     return per_step
 
 
-def _log_prior(setup: dict, unpack):
+def _log_prior(setup: FitSetup, unpack):
     """``log_prior(z) -> ()``: the priors' log density at the physical parameters of z
     (:func:`vehjax.tune.priors.log_prior_fn`), or None without a penalising prior."""
-    fn = setup["prior_fn"]
-    if fn is None or "theta" not in setup["z0"]:
+    fn = setup.prior_fn
+    if fn is None or "theta" not in setup.z0:
         return None
     return lambda z: fn(unpack(z)["theta"])
 
@@ -245,9 +301,9 @@ def _log_prior(setup: dict, unpack):
 def prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds, noise,
             fit_x0, key, builder_kwargs, priors=None):
     """Everything checked before tracing (ValueError naming the argument): the
-    :class:`Objective` and a dict of the fit's set-up (the builder, the starting values, the
-    parameterisations, ``per_step``, ``at`` (the filter at given coordinates), ``log_prior``, ``stochastic``, ...) for the optimisers
-    and the report. With ``priors`` (:mod:`vehjax.tune.priors`) the loss is the penalised one,
+    :class:`Objective` and the fit's :class:`FitSetup` (the builder, the starting values, the
+    parameterisations, ``per_step``, ``at``, ``log_prior``, ...) for the optimisers and the
+    report. With ``priors`` (:mod:`vehjax.tune.priors`) the loss is the penalised one,
     ``-(sum loglik + log prior) / (R T)``; its aux stays the plain log-likelihood per run."""
     builder = _check_builder(builder)
     validation.model(model)
@@ -255,11 +311,11 @@ def prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds
     ys, us, x0a, P0a = check_data(model, measurements, inputs, x0, P0)
     n_runs, T, _ = ys.shape
     est0, sg, keys = _start_estimator(builder, model, setup, key, n_runs)
-    setup.update(x0=x0a, P0=P0a)
+    setup = setup._replace(builder=builder, x0=x0a, P0=P0a)
     z0, unpack = _coordinates(setup)
     at = _estimator_at(builder, model, setup, unpack, sg)
     per_step = _per_step(at)
-    setup["z0"] = z0
+    setup = setup._replace(z0=z0)
     log_prior = _log_prior(setup, unpack)
 
     def loss(z, data):
@@ -270,7 +326,7 @@ def prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds
 
     data = (jnp.asarray(ys), None if us is None else jnp.asarray(us), jnp.asarray(x0a),
             jnp.asarray(P0a), keys)
-    setup.update(name=est0.name, builder=builder, stochastic=bool(est0.needs_key),
+    setup = setup._replace(name=est0.name, stochastic=bool(est0.needs_key),
                  per_step=per_step, at=at, workload=est0.workload, log_prior=log_prior,
                  log_prior0=0.0 if log_prior is None else float(log_prior(z0)))
     return Objective(loss, z0, data, unpack, n_runs * T), setup

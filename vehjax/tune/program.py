@@ -117,7 +117,7 @@ def _program(obj, setup, unravel, n: int, forward: bool):
     """The function compiled: ``(f, data) -> (loss, aux, grad, BHHH matrix or None)``; with
     priors the loss, gradient and BHHH matrix of the penalised loss (:func:`prior_terms`)."""
     if forward:
-        per_step, log_prior = setup["per_step"], setup.get("log_prior")
+        per_step, log_prior = setup.per_step, setup.log_prior
 
         def program(f, data):
             ll, dll, lls_div = forward_scores(lambda g, d: per_step(unravel(g), d), f, data)
@@ -154,10 +154,10 @@ def compile_program(obj, setup=None) -> Program:
     with the XLA options :mod:`vehjax.execution` gives the estimator's workload."""
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
     n = flat.shape[0]
-    forward = setup is not None and not setup["stochastic"] and n <= FORWARD_MAX
+    forward = setup is not None and not setup.stochastic and n <= FORWARD_MAX
     options = None
     if setup is not None:
-        options = execution.compiler_options(execution.current(), setup["workload"])
+        options = execution.compiler_options(execution.current(), setup.workload)
     t0, c0 = time.perf_counter(), time.process_time()
     compiled = jax.jit(_program(obj, setup, unravel, n, forward)).lower(
         jnp.asarray(flat), obj.data).compile(compiler_options=options)
@@ -187,7 +187,7 @@ def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None,
              "batch_compile_seconds": 0.0, "batch_evaluations": 0, "options": options}
     last = []  # (point, result) of the latest evaluation: the optimiser's last point is the
     # Newton polish's first
-    guard = setup is not None and not setup["stochastic"]
+    guard = setup is not None and not setup.stochastic
     base = []  # the runs diverged at the first point evaluated
 
     def run(f):  # the compiled program at f (clipped into the box); no shared state touched
@@ -236,7 +236,7 @@ def _batched_gradients(setup, unravel, obj, flat, options, stats):
     (forward mode, vmapped over the points), compiled at its first call (the first Hessian of
     the fit)."""
     n = flat.shape[0]
-    per_step, log_prior = setup["per_step"], setup.get("log_prior")
+    per_step, log_prior = setup.per_step, setup.log_prior
 
     def program(F, data):
         def one(f):

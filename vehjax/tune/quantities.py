@@ -58,14 +58,14 @@ def fitted_quantities(info, model, v):
     su = _units(model, "state_units", len(model.state_names))
     ou = _units(model, "output_units", len(model.output_names))
     iu = _units(model, "input_units", len(model.input_names))
-    for name, diag, cnames, cu in (("Q", info["diagQ"], model.state_names, su),
-                                   ("R", info["diagR"], model.output_names, ou)):
-        if name not in info["noise"]:
+    for name, diag, cnames, cu in (("Q", info.diagQ, model.state_names, su),
+                                   ("R", info.diagR, model.output_names, ou)):
+        if name not in info.noise:
             continue
         entries, names, _ = cov_names(name, cnames, len(cnames), diag)
         for (a, b), k in zip(entries, names):
             out.append((k, _sq(cu[a]) if a == b else _prod(cu[a], cu[b]), v[name][a, b]))
-    inp = info["input"]
+    inp = info.input
     if inp is not None:
         names = tuple(model.input_names)
         if inp.cov is None:
@@ -76,10 +76,10 @@ def fitted_quantities(info, model, v):
             for (a, b), k in zip(entries, keys):
                 out.append((k, _sq(iu[a]) if a == b else _prod(iu[a], iu[b]), v["input"][a, b]))
     pu = _units(model, "param_units", len(model.param_names))
-    for p in info["params"]:
+    for p in info.params:
         j = model.param_names.index(p)
         out.append((p, pu[j], v["theta"][j]))
-    if info["fit_x0"]:
+    if info.fit_x0:
         x0 = v["x0"]
         for idx in np.ndindex(np.shape(x0)):
             comp = model.state_names[idx[-1]]
@@ -95,15 +95,15 @@ def coordinates(info, model, z0):
     deviations and log/logit parameter maps, |theta0| for a free parameter, sqrt(A0_rr) for a
     Cholesky entry below the diagonal, the prior standard deviation sqrt(P0_ii) for x0."""
     per = {}
-    for name, diag, cnames, A0 in (("Q", info["diagQ"], model.state_names, info["Qa"]),
-                                   ("R", info["diagR"], model.output_names, info["Ra"])):
+    for name, diag, cnames, A0 in (("Q", info.diagQ, model.state_names, info.Qa),
+                                   ("R", info.diagR, model.output_names, info.Ra)):
         if name in z0:
             n = len(cnames)
             _, _, coords = cov_names(name, cnames, n, diag)
             rows, _ = np.tril_indices(n, -1)
             sc = np.ones(n) if diag else np.concatenate([np.ones(n), np.sqrt(np.diag(A0))[rows]])
             per[name] = (coords, sc)
-    inp = info["input"]
+    inp = info.input
     if inp is not None:
         if inp.cov is None:
             per["input"] = ([f"input[{n}]" for n in inp.names], np.ones(len(inp.names)))
@@ -115,14 +115,14 @@ def coordinates(info, model, z0):
             per["input"] = (coords, np.ones(n) if inp.diag else np.concatenate(
                 [np.ones(n), L0[rows]]))
     if "theta" in z0:
-        th = info["theta0"][[model.param_names.index(p) for p in info["params"]]]
-        free = np.array([k == "none" for k in info["theta_map"].kinds])
-        per["theta"] = (list(info["params"]),
+        th = info.theta0[[model.param_names.index(p) for p in info.params]]
+        free = np.array([k == "none" for k in info.theta_map.kinds])
+        per["theta"] = (list(info.params),
                         np.where(free, np.where(th != 0, np.abs(th), 1.0), 1.0))
     if "x0" in z0:
-        P0 = info["P0"]
+        P0 = info.P0
         sd = np.sqrt(np.diagonal(P0, axis1=-2, axis2=-1))
-        x0 = info["x0"]
+        x0 = info.x0
         names, sc = [], []
         for idx in np.ndindex(x0.shape):
             comp = model.state_names[idx[-1]]

@@ -223,14 +223,14 @@ def make_result(obj, info, model, best_z, best_aux, history, iters, converged, s
     Q, R, theta, x0_fit = v["Q"], v["R"], v["theta"], v["x0"]
     Q, R = 0.5 * (Q + Q.T), 0.5 * (R + R.T)
     fitted_model = model
-    if info["params"]:
+    if info.params:
         fitted_model = model.with_theta(**{p: float(theta[model.param_names.index(p)])
-                                           for p in info["params"]})
-    kw = dict(info["builder_kwargs"])
+                                           for p in info.params})
+    kw = dict(info.builder_kwargs)
     if v["input"] is not None:
         kw["input_noise"] = ({k: float(s) for k, s in v["input"].items()}
                              if isinstance(v["input"], dict) else np.asarray(v["input"]))
-    estimator = info["builder"](fitted_model, Q, R, **kw)
+    estimator = info.builder(fitted_model, Q, R, **kw)
     n_div = int(np.sum(np.asarray(div)))
     if n_div:
         warnings.warn(f"vehjax.tune: {n_div} of {len(div)} runs diverged at the fitted values; "
@@ -252,7 +252,7 @@ def make_result(obj, info, model, best_z, best_aux, history, iters, converged, s
                 f"vehjax.tune: the data do not determine {', '.join(undetermined)} (no or too "
                 f"little curvature of the log-likelihood; their standard errors are inf): "
                 f"fix them, or give data that excite them", stacklevel=3)
-    priors = dict(info.get("priors") or {})
+    priors = dict(info.priors or {})
     pulls, log_prior = tune_priors.report(priors, model, theta)
     message = tune_priors.pull_warning(priors, pulls, values)
     if message:
@@ -264,10 +264,10 @@ def make_result(obj, info, model, best_z, best_aux, history, iters, converged, s
             "maximum within the bounds; widen them if the physics allows", stacklevel=3)
     return TuneResult(
         Q=Q, R=R, theta=np.asarray(theta),
-        params={p: float(theta[model.param_names.index(p)]) for p in info["params"]},
+        params={p: float(theta[model.param_names.index(p)]) for p in info.params},
         x0=x0_fit, model=fitted_model, estimator=estimator,
         loglik=float(np.sum(np.asarray(ll))),
-        loglik0=-history[0] * obj.n_steps - info.get("log_prior0", 0.0),
+        loglik0=-history[0] * obj.n_steps - info.log_prior0,
         history=np.asarray(history), iterations=iters, converged=converged, diverged=n_div,
         skipped=skipped, values=values, units=units, seconds=time.perf_counter() - t_start,
         std_errors=se, correlations=corr, undetermined=undetermined, gradient=grad_max,
