@@ -295,7 +295,7 @@ def test_filter_theta0_replaces_the_model_parameters_of_a_state_only_filter(buil
         vj.run(est, YS, US, x0=X0, P0=P0, theta0=[0.5, 1.0])
     # an estimator that does not say its model's parameter count takes none in run
     with pytest.raises(ValueError, match=r"^theta0: .*with_theta"):
-        vj.run(est._replace(n_theta=None), YS, US, x0=X0, P0=P0, theta0=[0.5])
+        vj.run(est._replace(dims=est.dims._replace(n_theta=None)), YS, US, x0=X0, P0=P0, theta0=[0.5])
 
 
 def test_particle_filter_theta0_replaces_the_model_parameters():

@@ -56,7 +56,7 @@ def _counted(est):
         calls.append(1)
         return est.step(state, y, u)
 
-    return est._replace(step=step, batch=None), calls
+    return est._replace(step=step, runtime=est.runtime._replace(batch=None)), calls
 
 
 def _key(est):
@@ -167,7 +167,7 @@ def test_refusals_name_their_argument_and_change_nothing():
     with pytest.raises(ValueError, match="^max_gap"):
         vj.Online(est, X0, P0, dt=DT, max_gap=-1.0)
     with pytest.raises(ValueError, match="^estimator"):
-        vj.Online(est._replace(ny=None), X0, P0)
+        vj.Online(est._replace(dims=est.dims._replace(ny=None)), X0, P0)
     with pytest.raises(ValueError, match="^estimator"):
         vj.Online("ekf", X0, P0)
 

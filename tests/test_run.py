@@ -12,7 +12,7 @@ import pytest
 
 import vehjax  # noqa: F401  (float64)
 from vehjax import execution
-from vehjax.filters.base import Estimator, StepOutput
+from vehjax.filters.base import Dims, Estimator, ParamSpec, Runtime, StepOutput
 from vehjax.run import RunResult, compile_run, run
 
 DT = 0.1
@@ -64,7 +64,8 @@ def kalman_estimator(F, B, H, Q, Rn, name="kf", param_view=False, needs_key=Fals
             params, pcov = jnp.zeros(0), jnp.zeros((0, 0))
         return (x, P), StepOutput(x, P, ll, nis, n, params, pcov)
 
-    return Estimator(init, step, nx, ("a",) if param_view else (), name, needs_key)
+    return Estimator(init, step, Dims(nx), name, ParamSpec(("a",) if param_view else ()),
+                     Runtime(needs_key=needs_key))
 
 
 def numpy_kf(ys, us, x0, P0):
@@ -205,7 +206,7 @@ def _corrupting(est, threshold=50.0):
         flip = jnp.abs(y[0]) > threshold
         return new, out._replace(cov=jnp.where(flip, -out.cov, out.cov))
 
-    return est._replace(step=step, name="corrupting", batch=None)
+    return est._replace(step=step, name="corrupting", runtime=est.runtime._replace(batch=None))
 
 
 def test_non_positive_definite_covariance_flags_divergence():
@@ -316,7 +317,7 @@ def test_compiler_options_reach_xla_and_keep_the_results():
                                                            "xla_backend_optimization_level": 2}
                                       ) == {"xla_cpu_use_fusion_emitters": True,
                                             "xla_backend_optimization_level": 2}
-    res = run(EST._replace(workload="small_dense"), ys, us, x0=X0, P0=P0)
+    res = run(EST._replace(runtime=EST.runtime._replace(workload="small_dense")), ys, us, x0=X0, P0=P0)
     np.testing.assert_allclose(res.states, out.states, rtol=1e-10, atol=1e-12)
 
 
@@ -332,7 +333,7 @@ def _key_reporting_estimator():
         no_params = (jnp.zeros(0), jnp.zeros((0, 0)))
         return key, StepOutput(mean, jnp.eye(2), zero, zero, jnp.array(0), *no_params)
 
-    return Estimator(init, step, 2, (), "keyed", True)
+    return Estimator(init, step, Dims(2), "keyed", runtime=Runtime(needs_key=True))
 
 
 def test_keys_are_split_per_run_independent_of_chunking():
@@ -378,7 +379,7 @@ def _exploding():
     def boom(*args):
         raise RuntimeError("traced before validation")
 
-    return Estimator(boom, boom, 2, (), "boom", False)
+    return Estimator(boom, boom, Dims(2), "boom")
 
 
 @pytest.mark.parametrize(
@@ -426,7 +427,7 @@ def test_estimator_output_shape_is_checked():
 
     ys, us = _data()
     with pytest.raises(ValueError, match="StepOutput.mean"):
-        run(EST._replace(step=step, batch=None), ys, us, x0=X0, P0=P0)
+        run(EST._replace(step=step, runtime=EST.runtime._replace(batch=None)), ys, us, x0=X0, P0=P0)
 
 
 _SHARDED = textwrap.dedent(

@@ -113,6 +113,7 @@ EXEMPT = {
     "vehjax.tune.ScoreTest": "a record of results (a NamedTuple), built by the fit",
     "vehjax.filters.Estimator": "a record of a filter's functions, built by the builders",
     "vehjax.filters.StepOutput": "a record a filter's step returns, inside the traced scan",
+    "vehjax.filters.Runtime": "a part of the Estimator record, built by the builders",
     "vehjax.filters.NiW": "a record of prior statistics, checked by the builders that take it",
     "vehjax.tune.hessian_from_gradients": "takes a compiled gradient function: runs it at once",
     "vehjax.tune.compare": "needs fitted TuneResults (a fit each); tests/tune/test_compare.py",

@@ -496,7 +496,7 @@ def test_many_runs_form_equals_the_step_run_by_run(name, per_run):
     assert est.batch is not None  # a small model with constant noise has a runs-last step
     assert assert_batch_equals_step(est, ys, us, x0, P0_LIN) == "batch"
     # without it, run vmaps the step: that equals the step run by run as well
-    assert assert_batch_equals_step(est._replace(batch=None), ys, us, x0, P0_LIN) == "vmap"
+    assert assert_batch_equals_step(est._replace(runtime=est.runtime._replace(batch=None)), ys, us, x0, P0_LIN) == "vmap"
 
 
 def test_many_runs_form_with_each_runs_theta0():

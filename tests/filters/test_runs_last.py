@@ -14,7 +14,7 @@ R_RUNS, T = 6, 60
 
 def _vmapped(est):
     """The same estimator with a plain step function: run vmaps it over runs."""
-    return est._replace(batch=None)
+    return est._replace(runtime=est.runtime._replace(batch=None))
 
 
 def _assert_same(a, b, rtol):

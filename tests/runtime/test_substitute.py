@@ -268,8 +268,8 @@ def test_per_point_filter_steps_use_the_functions_as_written():
     ys = np.asarray(jax.vmap(lambda x, u: user_h(x, u, THETA))(X, U))[None].repeat(2, 0)
     kw_run = dict(x0=np.asarray(X[0]), P0=np.diag([1.0, 0.2, 0.05]) ** 2, progress=False)
     ekf_fast, ekf_plain = vj.filters.ekf(fast, Q, R), vj.filters.ekf(plain, Q, R)
-    a = vj.run(ekf_fast._replace(batch=None), ys, np.asarray(U), **kw_run)
-    b = vj.run(ekf_plain._replace(batch=None), ys, np.asarray(U), **kw_run)
+    a = vj.run(ekf_fast._replace(runtime=ekf_fast.runtime._replace(batch=None)), ys, np.asarray(U), **kw_run)
+    b = vj.run(ekf_plain._replace(runtime=ekf_plain.runtime._replace(batch=None)), ys, np.asarray(U), **kw_run)
     np.testing.assert_array_equal(a.states, b.states)  # the very same computation
     c = vj.run(ekf_fast, ys, np.asarray(U), **kw_run)  # runs-last: the substitutes
     np.testing.assert_allclose(c.states, b.states, rtol=1e-12)

@@ -222,7 +222,8 @@ def test_bad_input_names_the_argument():
     with pytest.raises(ValueError, match="method"):
         vj.smooth(lin10, ys, us, method="FFBSi", **kw)
     lin = _known_noise_mpf(10, kalman_states="linear")  # smoothed since issue 29's item 2
-    undeclared = lin._replace(rao_blackwell=lin.rao_blackwell._replace(linear=None))
+    undeclared = lin._replace(backward=lin.backward._replace(
+        rao_blackwell=lin.rao_blackwell._replace(linear=None)))
     with pytest.raises(ValueError, match="estimator.*kalman_states='linear'"):
         ms.smooth(undeclared, ys, us, **kw)
     with pytest.raises(ValueError, match="estimator"):

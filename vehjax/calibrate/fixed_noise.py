@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..filters import NiW, marginalized_pf
-from ..filters.base import Estimator, StepOutput
+from ..filters.base import Dims, Estimator, Runtime, StepOutput
 from ..models import Model
 
 __all__ = ["FIXED_GAMMA0", "FIXED_NU0", "fixed_noise_mpf"]
@@ -135,6 +135,10 @@ def fixed_noise_mpf(model, Q, R, *, input_noise, n_particles: int = 100,
             n_obs=out.n_obs, params=jnp.zeros((0,), out.mean.dtype),
             params_cov=jnp.zeros((0, 0), out.mean.dtype), reinit=out.reinit)
 
-    return Estimator(init=init, step=step, nx=nx, name="fixed_noise_mpf", needs_key=True,
-                     ny=ny, nu=len(model.input_names), workload="small_dense",
-                     n_theta=len(model.param_names))
+    return Estimator(
+        init=init,
+        step=step,
+        name="fixed_noise_mpf",
+        dims=Dims(nx=nx, ny=ny, nu=len(model.input_names), n_theta=len(model.param_names)),
+        runtime=Runtime(needs_key=True, workload="small_dense"),
+    )

@@ -7,7 +7,7 @@ predict/update), :mod:`~vehjax.filters.kalman` (the masked Kalman update and the
 
 from . import kalman, resampling, sigma, smc
 from .adaptive import AckfState, ackf
-from .base import Estimator, StepOutput
+from .base import Backward, Dims, Estimator, ParamSpec, Runtime, StepOutput
 from .dual import DualState, JointState, dual_ekf, dual_ukf, joint_ekf, joint_ukf
 from .gaussian import GaussianState, SqrtGaussianState, ckf, ekf, masked_update, ukf, validate_prior
 from .liu_west import LiuWestState, liu_west_ukf
@@ -17,7 +17,7 @@ from .particle import PFState, bootstrap_pf
 from .vb import VBPRState, VBState, vbakf_pr, vbakf_r
 
 __all__ = [
-    "Estimator", "StepOutput", "ekf", "ukf", "ckf", "ackf", "bootstrap_pf",
+    "Estimator", "StepOutput", "Dims", "ParamSpec", "Runtime", "Backward", "ekf", "ukf", "ckf", "ackf", "bootstrap_pf",
     "dual_ekf", "dual_ukf", "joint_ekf", "joint_ukf", "liu_west_ukf", "marginalized_pf",
     "marginalized_pf_grid", "NiW", "MeanStates", "InputStdGrid", "MPFState",
     "DualState", "JointState", "LiuWestState",

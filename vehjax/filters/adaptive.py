@@ -41,7 +41,7 @@ from .. import validation
 from . import input_noise as _inoise
 from . import sigma
 from ..lib.linalg import sym
-from .base import Estimator, state_output
+from .base import Dims, Estimator, Runtime, state_output
 from ._model import (
     cast_yu, chol_const, check_model, in_dtype, model_dims, model_theta, per_point, point_fns,
     prior,
@@ -188,5 +188,10 @@ def ackf(
         new = AckfState(r.x, r.P, Qh, Rh, k_new, theta)
         return new, state_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
 
-    return Estimator(init=init, step=step, nx=nx, name="ACKF", workload="small_dense",
-                     **model_dims(model))
+    return Estimator(
+        init=init,
+        step=step,
+        name="ACKF",
+        dims=Dims(nx=nx, **model_dims(model)),
+        runtime=Runtime(workload="small_dense"),
+    )

@@ -13,16 +13,16 @@ Three optional parts of the contract are declared fields too, so that ``run`` re
 
 * ``StepOutput.reinit``: the filter had to re-initialise this step (a particle filter whose
   weights all underflowed). ``run`` reports such a run as diverged but does not freeze it.
-* ``Estimator.batch``: ``batch(per_run_inputs: bool, dtype, default_theta: bool) ->
+* ``Estimator.runtime.batch`` (``est.batch``): ``batch(per_run_inputs: bool, dtype, default_theta: bool) ->
   Batch(prepare, step, prefetch)``, the same step for a whole batch of runs at once with the
   runs axis last in every leaf of the state, of y and of the StepOutput (see
   :mod:`vehjax.filters.runs_last`). ``prepare`` maps the whole input sequence, (T, nu) shared or
   (T, nu, R) when ``per_run_inputs``, to what the batch ``step`` takes in place of u at each
   time; ``dtype`` is the filter's float dtype and ``default_theta`` says that every run was
   started with ``theta0=None``. ``vehjax.run`` uses it instead of ``vmap``-ing ``step``. It is a
-  field: ``est._replace(step=...)`` keeps it, so replace ``batch=None`` too when the new step
-  computes something else.
-* ``Estimator.bounds``: ``(low, high)``, two tuples of p Python floats (static under ``jit``),
+  field of ``Estimator.runtime``: ``est._replace(step=...)`` keeps it, so replace it by None too
+  when the new step computes something else.
+* ``Estimator.params.bounds`` (``est.bounds``): ``(low, high)``, two tuples of p Python floats (static under ``jit``),
   the domain of each estimated parameter in physical units (-inf / +inf for an open end), which
   the filter keeps its estimate in (:mod:`vehjax.lib.transforms`); None for state-only filters
   and filters without domains.
@@ -124,11 +124,92 @@ class GaussianSmoother(NamedTuple):
     report: Callable[..., Any] | None = None
 
 
-class Estimator(NamedTuple):
-    """``Estimator(init, step)``: see the module docstring for the signatures.
+class Dims(NamedTuple):
+    """What a filter's ``step`` and ``init`` expect, checked by ``run`` and ``filter`` against the
+    data before tracing.
 
-    Each field is part of the contract between a filter's builder and what runs it; what it
-    must hold and who reads it:
+    Attributes:
+        nx: state dimension; the width of ``StepOutput.mean`` and of ``x0``.
+        ny: measurement width ``step`` expects (the model's outputs); None: not checked.
+        nu: input width ``step`` expects (the model's inputs); None: not checked.
+        n_theta: length of the model's parameter vector, which a state-only filter's ``theta0``
+            replaces; None: a state-only filter takes no theta0 in ``run``.
+        theta_domains: the model's :class:`vehjax.models.domains.ParamDomains`, which a
+            state-only filter's ``theta0`` must lie in; None: not checked.
+    """
+
+    nx: int
+    ny: int | None = None
+    nu: int | None = None
+    n_theta: int | None = None
+    theta_domains: Any = None
+
+
+class ParamSpec(NamedTuple):
+    """The parameters a filter estimates besides the state (empty for state-only filters).
+
+    Attributes:
+        names: names of the p parameters (``StepOutput.params`` (p,)); ``run``, ``filter`` and
+            the results read them.
+        prior: ``(theta0 (p,), P_theta0 (p, p))`` in physical units that ``run`` and ``filter``
+            use when the caller gives none; None: the caller must give them.
+        bounds: ``(low, high)``, two tuples of p floats in physical units (-inf / +inf open),
+            which the filter keeps its estimate in; ``run`` checks ``theta0`` against them and
+            flags runs whose estimate sits on one (``at_bound``). None: no domains.
+    """
+
+    names: tuple[str, ...] = ()
+    prior: tuple | None = None
+    bounds: tuple | None = None
+
+
+class Runtime(NamedTuple):
+    """How the filter is run, for ``run`` and the execution seam (:mod:`vehjax.execution`).
+
+    Attributes:
+        needs_key: ``init`` requires a PRNG key (the particle filters); ``run`` and ``filter``
+            refuse a call without one, and :mod:`vehjax.tune` differentiates such a filter with
+            stop-gradient resampling.
+        batch: optional runs-last form of ``step`` (module docstring), used by ``run`` where the
+            strategy says so instead of ``vmap``-ing ``step``; it must give what ``step`` gives
+            run by run, to rounding (``tests/_contract.py`` checks it). None: ``run`` vmaps.
+        workload: what the step computes, from which the execution seam picks platform options:
+            "default", "small_dense" (many small dense operations) or "particles" (long vectors
+            over particles). It states no platform rule itself.
+    """
+
+    needs_key: bool = False
+    batch: Callable | None = None
+    workload: str = "default"
+
+
+class Backward(NamedTuple):
+    """The forms a backward pass (:func:`vehjax.smooth`, :mod:`vehjax.smoothers`) reads; None
+    where the filter has none.
+
+    Attributes:
+        smoother: :class:`GaussianSmoother`, the Gaussian filter's own prediction and
+            measurement moments (EKF, UKF, CKF, their square-root forms, the joint filters).
+        particle_transition: :class:`ParticleTransition` of a particle filter whose particles
+            move by the model's transition plus Gaussian noise (``bootstrap_pf``), for backward
+            simulation; its state has ``particles`` (nx, N), ``log_weights`` (N,),
+            ``ancestors`` (N,) and ``theta``.
+        rao_blackwell: :class:`vehjax.filters.marginalized.RBTransition` of the marginalized PF
+            (each particle's Gaussian prediction given its offset draw); its state has
+            ``offset`` and ``ancestors``.
+    """
+
+    smoother: GaussianSmoother | None = None
+    particle_transition: ParticleTransition | None = None
+    rao_blackwell: Any = None
+
+
+class Estimator(NamedTuple):
+    """``Estimator(init, step, Dims(nx))``: see the module docstring for the signatures.
+
+    Each field is part of the contract between a filter's builder and what runs it; the
+    optional parts are grouped in small records, whose fields read through as attributes
+    (``est.nx``, ``est.param_names``, ``est.needs_key``, ``est.smoother``, ...).
 
     Attributes:
         init: ``init(x0, P0, theta0=None, P_theta0=None, key=None) -> state``: the filter state
@@ -140,73 +221,41 @@ class Estimator(NamedTuple):
             with y (ny,), NaN components missing. Pure and traceable (``jit``, ``vmap``,
             ``grad``); the StepOutput has the shapes its class documents (checked by
             ``vehjax.filtering`` when traced). Read by everything that runs a filter.
-        nx: state dimension; the width of ``StepOutput.mean`` and of ``x0``.
-        param_names: names of the p parameters the filter estimates (``StepOutput.params``
-            (p,)); empty for state-only filters. ``run``, ``filter`` and the results read it.
+        dims: :class:`Dims`, the widths ``init`` and ``step`` expect.
         name: short label for tables, plots, messages and the multi-process consistency digest
             of ``run``; not a key to any behaviour.
-        needs_key: ``init`` requires a PRNG key (the particle filters); ``run`` and ``filter``
-            refuse a call without one, and :mod:`vehjax.tune` differentiates such a filter with
-            stop-gradient resampling (``resample=`` of its builder).
-        param_prior: ``(theta0 (p,), P_theta0 (p, p))`` in physical units that ``run`` and
-            ``filter`` use when the caller gives none, and report for a run that diverges at
-            its first step; None: a parameter-estimating filter requires them.
-        batch: optional runs-last form of ``step`` (module docstring), used by ``run`` where the
-            execution strategy says so instead of ``vmap``-ing ``step``. Contract: for every
-            state, y and input, the batch step on runs-last arrays gives what ``step`` gives run
-            by run, to rounding (``tests/_contract.py`` checks it for every filter family that
-            has one). None: ``run`` vmaps ``step``.
-        ny: measurement width ``step`` expects (the model's outputs); ``run`` and ``filter``
-            check the data against it before tracing. None: not checked.
-        nu: input width ``step`` expects (the model's inputs); checked likewise. None: not
-            checked.
-        bounds: ``(low, high)`` domains of the estimated parameters, two tuples of p floats in
-            physical units with -inf / +inf for open ends, which the filter keeps its estimate
-            in; ``run`` checks ``theta0`` against them and flags runs whose estimate sits on one
-            (``at_bound``). None: no domains.
-        particle_transition: :class:`ParticleTransition`, set by a particle filter whose
-            particles move by the model's transition plus Gaussian noise (``bootstrap_pf``),
-            for backward simulation over its particles (:mod:`vehjax.smoothers.particle`);
-            its state then has ``particles`` (nx, N), ``log_weights`` (N,), ``ancestors``
-            (N,) and ``theta``. None for every other filter (and for a bootstrap PF with
-            input noise, whose transition density is not that Gaussian).
-        workload: what the step's computation is, for the execution seam
-            (:mod:`vehjax.execution`), which picks platform-specific options from it: "default",
-            "small_dense" (many small dense operations: the Gaussian, adaptive, dual/joint,
-            Liu-West and marginalized filters) or "particles" (long vectors over particles: the
-            bootstrap PF). It states no platform rule itself.
-        n_theta: length of the model's parameter vector, which a state-only filter's
-            ``theta0`` replaces (``vehjax.filter`` and ``vehjax.run`` check it before tracing);
-            None: a state-only filter takes no theta0 in ``run``.
-        theta_domains: the model's :class:`vehjax.models.domains.ParamDomains` (its
-            ``param_domains()``), which a state-only filter's ``theta0`` must lie in
-            (``vehjax.filter`` and ``vehjax.run`` check it before tracing); None: not checked.
-        smoother: :class:`GaussianSmoother`, the Gaussian filter's own prediction and
-            measurement moments for :func:`vehjax.smooth` (set by the EKF, UKF, CKF, their
-            square-root forms and the joint filters); None: no Gaussian smoother.
-        rao_blackwell: :class:`vehjax.filters.marginalized.RBTransition`, set by the
-            marginalized PF: each particle's Gaussian prediction given its offset draw, for
-            :mod:`vehjax.smoothers.marginalized` (:func:`vehjax.smooth` dispatches on it); its
-            state then has ``offset`` and ``ancestors``. None for every other filter.
+        params: :class:`ParamSpec`, the parameters estimated besides the state.
+        runtime: :class:`Runtime`, how ``run`` executes it (key, runs-last form, workload).
+        backward: :class:`Backward`, the forms the smoothers read.
+
+    ``est._replace(step=...)`` keeps ``runtime.batch``: replace it too when the new step computes
+    something else (``est._replace(step=s, runtime=est.runtime._replace(batch=None))``).
     """
 
     init: Callable[..., Any]
     step: Callable[..., tuple[Any, StepOutput]]
-    nx: int
-    param_names: tuple[str, ...] = ()
+    dims: Dims
     name: str = "estimator"
-    needs_key: bool = False
-    param_prior: tuple | None = None
-    batch: Callable | None = None
-    ny: int | None = None
-    nu: int | None = None
-    bounds: tuple | None = None
-    particle_transition: ParticleTransition | None = None
-    workload: str = "default"
-    n_theta: int | None = None
-    theta_domains: Any = None
-    smoother: GaussianSmoother | None = None
-    rao_blackwell: Any = None
+    params: ParamSpec = ParamSpec()
+    runtime: Runtime = Runtime()
+    backward: Backward = Backward()
+
+    nx = property(lambda self: self.dims.nx, doc="``dims.nx``")
+    ny = property(lambda self: self.dims.ny, doc="``dims.ny``")
+    nu = property(lambda self: self.dims.nu, doc="``dims.nu``")
+    n_theta = property(lambda self: self.dims.n_theta, doc="``dims.n_theta``")
+    theta_domains = property(lambda self: self.dims.theta_domains, doc="``dims.theta_domains``")
+    param_names = property(lambda self: self.params.names, doc="``params.names``")
+    param_prior = property(lambda self: self.params.prior, doc="``params.prior``")
+    bounds = property(lambda self: self.params.bounds, doc="``params.bounds``")
+    needs_key = property(lambda self: self.runtime.needs_key, doc="``runtime.needs_key``")
+    batch = property(lambda self: self.runtime.batch, doc="``runtime.batch``")
+    workload = property(lambda self: self.runtime.workload, doc="``runtime.workload``")
+    smoother = property(lambda self: self.backward.smoother, doc="``backward.smoother``")
+    particle_transition = property(lambda self: self.backward.particle_transition,
+                                   doc="``backward.particle_transition``")
+    rao_blackwell = property(lambda self: self.backward.rao_blackwell,
+                             doc="``backward.rao_blackwell``")
 
 
 def check_estimate(model, estimate) -> tuple[tuple[str, ...], tuple[int, ...]]:

@@ -94,7 +94,8 @@ from . import sigma
 from ..lib.transforms import Transform
 from .bounds import check_inside, parse as _parse_bounds
 from ..lib.linalg import sym
-from .base import Estimator, GaussianSmoother, StepOutput, check_estimate
+from .base import (Backward, Dims, Estimator, GaussianSmoother,
+    ParamSpec, Runtime, StepOutput, check_estimate)
 from ._model import cast_yu, check_model, model_dims, per_point
 from ._model import prior as _state_prior
 from .kalman import linearized_measure, linearized_predict, masked_update
@@ -268,8 +269,13 @@ def _walk(cfg: _Setup, z, Q_theta):
 
 def _estimator(cfg: _Setup, model, init, step, name: str, smoother=None) -> Estimator:
     return Estimator(
-        init=init, step=step, nx=cfg.nx, param_names=cfg.names, name=name,
-        bounds=cfg.tf.bounds, workload="small_dense", smoother=smoother, **model_dims(model)
+        init=init,
+        step=step,
+        name=name,
+        dims=Dims(nx=cfg.nx, **model_dims(model)),
+        params=ParamSpec(names=cfg.names, bounds=cfg.tf.bounds),
+        runtime=Runtime(workload="small_dense"),
+        backward=Backward(smoother=smoother),
     )
 
 

@@ -53,7 +53,7 @@ from ._model import (
     prior,
     validate_prior,
 )
-from .base import Estimator, GaussianSmoother, state_output
+from .base import Backward, Dims, Estimator, GaussianSmoother, Runtime, state_output
 from ..lib.linalg import UNROLL_MAX
 from .kalman import (
     UpdateResult,
@@ -167,9 +167,14 @@ def ekf(model, Q, R, input_noise=None) -> Estimator:
         return GaussianState(r.x, r.P, theta), state_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
 
     batch = None if Lu is not None else _runs_last_form(model, Qn, Rn, runs_last.ekf_step)
-    return Estimator(init=_prior_init(model, False), step=step, nx=nx, name="EKF", batch=batch,
-                     workload="small_dense", smoother=_ekf_smoother(model, Qn, Rn, Lu, tr),
-                     **model_dims(model))
+    return Estimator(
+        init=_prior_init(model, False),
+        step=step,
+        name="EKF",
+        dims=Dims(nx=nx, **model_dims(model)),
+        runtime=Runtime(batch=batch, workload="small_dense"),
+        backward=Backward(smoother=_ekf_smoother(model, Qn, Rn, Lu, tr)),
+    )
 
 
 def _ekf_entries(x, P, y, u, theta, f, h, tr, Qn, Rn, Lu):
@@ -258,10 +263,14 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str, input_noi
         batch = None if Lu is not None else _runs_last_form(
             model, Qn, Rn, partial(runs_last.sigma_step, rule=rule))
 
-        return Estimator(init=_prior_init(model, False), step=step, nx=nx, name=name, batch=batch,
-                         workload="small_dense",
-                         smoother=_sigma_smoother(model, Qn, Rn, rule, rule_a, Lu, tr, False),
-                         **model_dims(model))
+        return Estimator(
+            init=_prior_init(model, False),
+            step=step,
+            name=name,
+            dims=Dims(nx=nx, **model_dims(model)),
+            runtime=Runtime(batch=batch, workload="small_dense"),
+            backward=Backward(smoother=_sigma_smoother(model, Qn, Rn, rule, rule_a, Lu, tr, False)),
+        )
 
     LQn, LRn = chol_const(Qn), chol_const(Rn)
 
@@ -276,10 +285,14 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str, input_noi
         out = state_output(x_new, L_new @ L_new.T, loglik, nis, n_obs)
         return SqrtGaussianState(x_new, L_new, theta), out
 
-    return Estimator(init=_prior_init(model, True), step=sqrt_step, nx=nx, name="SR-" + name,
-                     workload="small_dense",
-                     smoother=_sigma_smoother(model, Qn, Rn, rule, rule_a, Lu, tr, True),
-                     **model_dims(model))
+    return Estimator(
+        init=_prior_init(model, True),
+        step=sqrt_step,
+        name="SR-" + name,
+        dims=Dims(nx=nx, **model_dims(model)),
+        runtime=Runtime(workload="small_dense"),
+        backward=Backward(smoother=_sigma_smoother(model, Qn, Rn, rule, rule_a, Lu, tr, True)),
+    )
 
 
 def ukf(

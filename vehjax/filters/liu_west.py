@@ -87,7 +87,7 @@ from . import sigma, smc
 from ..lib.entrywise import cholesky_observed
 from ..lib.transforms import Transform
 from .bounds import check_inside, parse as _parse_bounds
-from .base import Estimator, check_estimate
+from .base import Dims, Estimator, ParamSpec, Runtime, check_estimate
 from ._model import check_model, in_dtype, model_dims, prior
 from .gaussian import GaussianState, ukf
 
@@ -590,7 +590,10 @@ def liu_west_ukf(
     )
     box = (0.5 * (low_n + high_n), np.diag((high_n - low_n) ** 2 / 12.0))
     return Estimator(
-        init=partial(_init, cfg), step=partial(_step, cfg), nx=nx, param_names=names,
-        name="liu_west_ukf", needs_key=True, param_prior=box, bounds=tf.bounds,
-        workload="small_dense", **model_dims(model),
+        init=partial(_init, cfg),
+        step=partial(_step, cfg),
+        name="liu_west_ukf",
+        dims=Dims(nx=nx, **model_dims(model)),
+        params=ParamSpec(names=names, prior=box, bounds=tf.bounds),
+        runtime=Runtime(needs_key=True, workload="small_dense"),
     )

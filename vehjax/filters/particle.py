@@ -53,7 +53,7 @@ from . import resampling as _rs
 from . import smc
 from ..lib.entrywise import cholesky_observed
 from ..lib.linalg import cholesky, is_pd, solve_lower
-from .base import Estimator, ParticleTransition, StepOutput
+from .base import Backward, Dims, Estimator, ParamSpec, ParticleTransition, Runtime, StepOutput
 from ._model import chol_const, check_model, in_dtype, model_dims, model_theta, prior
 
 __all__ = ["PFState", "bootstrap_pf", "propagate", "residuals", "measurement_logliks",
@@ -462,10 +462,11 @@ def bootstrap_pf(
         uniform_stream=(nx + k_u + 1) // 2,  # after the noise rows' counters
     )
     return Estimator(
-        init=partial(_init, cfg), step=partial(_step, cfg), nx=nx, param_names=(),
-        name="bootstrap_pf", needs_key=True,
-        # with input noise the transition density is not N(f(x, u), Q): no backward simulation
-        particle_transition=None if Lu is not None else ParticleTransition(f, _chol_or_none(Qn)),
-        workload="particles",
-        **model_dims(model)
+        init=partial(_init, cfg),
+        step=partial(_step, cfg),
+        name="bootstrap_pf",
+        dims=Dims(nx=nx, **model_dims(model)),
+        params=ParamSpec(names=()),
+        runtime=Runtime(needs_key=True, workload="particles"),
+        backward=Backward(particle_transition=None if Lu is not None else ParticleTransition(f, _chol_or_none(Qn))),
     )

@@ -94,7 +94,7 @@ from . import input_noise as _inoise
 from . import sigma
 from ..lib.linalg import sym
 from ._model import cast_yu, check_model, in_dtype, model_dims, model_theta, per_point, prior
-from .base import Estimator, StepOutput
+from .base import Dims, Estimator, ParamSpec, Runtime, StepOutput
 from .kalman import linearized_measure, linearized_predict, masked_update
 
 __all__ = ["VBState", "VBPRState", "vbakf_r", "vbakf_pr", "FORMS", "ig_predict", "ig_update",
@@ -522,9 +522,14 @@ def vbakf_r(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterati
         return new, _report(st, r.x, r.P, std, vs, r.nis, r.loglik, r.n_obs)
 
     pp = _param_prior(st, R0, a0)
-    return Estimator(init=_init_fn(st, model, stats0, pp), step=step, nx=st.nx,
-                     param_names=st.names, param_prior=pp,
-                     name=f"VB-A{form.upper()}-R", workload="small_dense", **model_dims(model))
+    return Estimator(
+        init=_init_fn(st, model, stats0, pp),
+        step=step,
+        name=f"VB-A{form.upper()}-R",
+        dims=Dims(nx=st.nx, **model_dims(model)),
+        params=ParamSpec(names=st.names, prior=pp),
+        runtime=Runtime(workload="small_dense"),
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -641,6 +646,11 @@ def vbakf_pr(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterat
         return new, _report(st, r.x, r.P, std, vs, r.nis, r.loglik, r.n_obs)
 
     pp = _param_prior(st, R0d, (u0 - m + 1.0) / 2.0)
-    return Estimator(init=_init_fn(st, model, stats0, pp), step=step, nx=st.nx,
-                     param_names=st.names, param_prior=pp,
-                     name=f"VB-A{form.upper()}-PR", workload="small_dense", **model_dims(model))
+    return Estimator(
+        init=_init_fn(st, model, stats0, pp),
+        step=step,
+        name=f"VB-A{form.upper()}-PR",
+        dims=Dims(nx=st.nx, **model_dims(model)),
+        params=ParamSpec(names=st.names, prior=pp),
+        runtime=Runtime(workload="small_dense"),
+    )

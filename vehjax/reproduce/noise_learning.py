@@ -137,7 +137,7 @@ def _q_bank(model):
 def ackf_with_R(est, idx, names, R0):
     """The Sage-Husa ACKF reporting sqrt(diag R^)[idx] as its parameters ``names`` (with a
     negligible reported variance: the ACKF gives no uncertainty of R^)."""
-    from vehjax.filters.base import Estimator
+    from vehjax.filters.base import Dims, Estimator, ParamSpec, Runtime
 
     p = len(idx)
     tiny = 1e-30
@@ -151,8 +151,14 @@ def ackf_with_R(est, idx, names, R0):
         return state, out._replace(params=sd, params_cov=jnp.eye(p, dtype=sd.dtype) * tiny)
 
     prior = (np.sqrt(np.diag(R0)[np.asarray(idx)]), np.eye(p) * tiny)
-    return Estimator(init=init, step=step, nx=est.nx, param_names=tuple(names), name=est.name,
-                     param_prior=prior, ny=est.ny, nu=est.nu, workload=est.workload)
+    return Estimator(
+        init=init,
+        step=step,
+        name=est.name,
+        dims=Dims(nx=est.nx, ny=est.ny, nu=est.nu),
+        params=ParamSpec(names=tuple(names), prior=prior),
+        runtime=Runtime(workload=est.workload),
+    )
 
 
 def _mpf_consistent(model, args, drive, variances=None):

@@ -28,7 +28,7 @@ import numpy as np
 from ... import validation
 from .. import smc
 from ...lib.entrywise import add, dot, entries, matmul, stack, sub
-from ..base import Estimator, StepOutput
+from ..base import Dims, Estimator, ParamSpec, Runtime, StepOutput
 from . import means as _means
 from .grid import grid_posterior, ridge_covariance, with_resolved_std
 from .jeffreys import covariance_information, grid_derivative
@@ -462,6 +462,10 @@ def marginalized_pf_grid(
                                    params_cov=params_cov)
 
     return Estimator(
-        init=init, step=step, nx=nx, param_names=s.param_names, name="marginalized_pf_grid",
-        needs_key=True, param_prior=(s_user.theta_prior, s_user.P_prior), ny=s.n_outputs,
-        nu=s.n_inputs, workload="small_dense")
+        init=init,
+        step=step,
+        name="marginalized_pf_grid",
+        dims=Dims(nx=nx, ny=s.n_outputs, nu=s.n_inputs),
+        params=ParamSpec(names=s.param_names, prior=(s_user.theta_prior, s_user.P_prior)),
+        runtime=Runtime(needs_key=True, workload="small_dense"),
+    )

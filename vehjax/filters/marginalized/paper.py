@@ -35,7 +35,7 @@ import jax.numpy as jnp
 from .. import resampling as _rs
 from .. import smc
 from ...lib.entrywise import add, dot, entries, matmul, mul, stack, sub
-from ..base import Estimator, StepOutput
+from ..base import Backward, Dims, Estimator, ParamSpec, Runtime, StepOutput
 from .contract import LinearStep, RBTransition
 from .kalman import bank_kalman_step, joint_kalman_step, joint_prediction
 from .linearise import linearise
@@ -293,8 +293,11 @@ def marginalized_pf(
     rb = RBTransition(predict=functools.partial(_rb_predict, s, mdl), theta=mdl.theta,
                       order=s.model_order, nz=s.n_linear, gauss=s.gaussian_states, linear=linear)
     return Estimator(
-        init=functools.partial(initial_state, s), step=functools.partial(_step, s, rule, mdl),
-        nx=s.n_states, param_names=s.param_names, name="marginalized_pf", needs_key=True,
-        param_prior=(s.theta_prior, s.P_prior), ny=s.n_outputs, nu=s.n_inputs,
-        workload="small_dense", rao_blackwell=rb,
+        init=functools.partial(initial_state, s),
+        step=functools.partial(_step, s, rule, mdl),
+        name="marginalized_pf",
+        dims=Dims(nx=s.n_states, ny=s.n_outputs, nu=s.n_inputs),
+        params=ParamSpec(names=s.param_names, prior=(s.theta_prior, s.P_prior)),
+        runtime=Runtime(needs_key=True, workload="small_dense"),
+        backward=Backward(rao_blackwell=rb),
     )
