@@ -9,7 +9,7 @@ Rows:
     eks   vehjax's extended RTS through its public path, ``vehjax.compile_run(..., smooth=True)``
           (compile apart, timed calling the compiled study, results copied to the host; on the
           CPU the runs-last forward filter, which keeps its predictions, and the runs-last
-          backward pass from them, :func:`vehjax.smoothing._smooth_runs_last`), and
+          backward pass from them, :func:`vehjax.smoothing.smooth_runs_last`), and
           ``vehjax.smoothing.smooth_one_run``
           ``jax.vmap``-ed over runs ("vehjax vmap") vs dynamax ``extended_kalman_smoother``,
           ``jax.vmap``-ed and ``jax.jit``-ed; vehjax/x is the first row's time over each row's

@@ -12,9 +12,9 @@ and ``step(state, y, u) -> (state, StepOutput)``. One run is::
 (:func:`one_run`). :func:`start` gives ``theta0`` its meaning once: for a filter that estimates
 parameters, the caller's, else the estimator's ``param_prior``, else NaN until the first step's
 estimate; for a state-only filter none (its ``theta0`` is the model's parameters, passed to
-``init``). :func:`check_arguments` is the one check of a run's arguments (shapes, values)
-before anything is traced, by the rules of :mod:`vehjax.validation`; :func:`initial_parameters`
-is the one check of ``theta0`` and ``P_theta0`` (``theta0`` inside ``Estimator.bounds``, a
+``init``). :func:`check_arguments` is the one check of a run's or a study's arguments (shapes,
+values) before anything is traced, by the rules of :mod:`vehjax.validation`;
+:func:`initial_parameters` is the one check of ``theta0`` and ``P_theta0`` (``theta0`` inside ``Estimator.bounds``, a
 state-only filter's inside the model's domains ``Estimator.theta_domains``), for a run and for
 a study (:func:`vehjax.run`). A runs-last batch (:mod:`vehjax.filters.runs_last`) uses the same
 pieces with ``output_ok``'s ``pd``/``all_finite`` for that layout.
@@ -285,21 +285,38 @@ def one_run(estimator: Estimator, return_cov: bool, y, u, x0, P0, th0, Pth0, key
     return finish(per_step, held0, estimator.bounds)._replace(state=state)
 
 
-def check_arguments(estimator, ys, us, x0, P0, theta0, P_theta0, key):
-    """The arguments of one run (:func:`vehjax.filter`, :func:`vehjax.smooth`) checked by
-    :mod:`vehjax.validation` (the rules every entry point shares): concrete values in full,
-    traced ones by dtype and shape. Returns (ys, us, x0, P0, th0, Pth0) as arrays."""
+def check_arguments(estimator, ys, us, x0, P0, theta0, P_theta0, key, study: bool = False):
+    """The one check of a run's arguments before anything is traced, by the rules of
+    :mod:`vehjax.validation` that every entry point shares: concrete values in full, traced ones
+    by dtype and shape.
+
+    One run (:func:`vehjax.filter`, :func:`vehjax.smooth`, :class:`vehjax.Online`): ys (T, ny),
+    us (T, nu), the prior and the initial parameters of that run. A study (``study`` True,
+    :func:`vehjax.run`): ys (R, T, ny), us (T, nu) shared or (R, T, nu), the prior and the initial
+    parameters shared or one per run, the key split per run.
+
+    Returns:
+        (ys, us, x0, P0, th0, Pth0, keys) as arrays; ``keys`` is ``jax.random.split(key, R)``
+        of a study, None for one run (whose ``key`` goes to ``init`` as given) or without key.
+    """
     if not isinstance(estimator, Estimator):
         raise ValueError(
             f"estimator: expected a vehjax.filters.Estimator, got {type(estimator).__name__}"
         )
-    ys, us = validation.data(ys, us, estimator.ny, estimator.nu, "one")
-    x0, P0 = validation.prior(estimator.nx, x0, P0)
-    th0, Pth0 = initial_parameters(estimator, theta0, P_theta0)
+    nx = estimator.nx
+    if study:
+        nx = int(nx)
+        if nx < 1:
+            raise ValueError(f"estimator: nx must be >= 1, got {estimator.nx}")
+    ys, us = validation.data(ys, us, estimator.ny, estimator.nu, "many" if study else "one")
+    runs = ys.shape[0] if study else None
+    x0, P0 = validation.prior(nx, x0, P0, runs=runs)
+    th0, Pth0 = initial_parameters(estimator, theta0, P_theta0, runs=runs)
     if estimator.needs_key and key is None:
         raise ValueError(
             f"key: estimator {estimator.name!r} draws random numbers; pass key=jax.random.key(...)"
         )
+    keys = None
     if key is not None:
-        validation.key(key, 1)  # a PRNG key (an int such as 0 is not), as run checks it
-    return ys, us, x0, P0, th0, Pth0
+        keys = validation.key(key, runs if study else 1)  # a PRNG key (an int such as 0 is not)
+    return ys, us, x0, P0, th0, Pth0, (keys if study else None)

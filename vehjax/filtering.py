@@ -56,8 +56,8 @@ def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_th
             filter's outside the model's domains, ``estimator.theta_domains``); a missing
             key.
     """
-    ys, us, x0, P0, th0, Pth0 = check_arguments(estimator, measurements, inputs, x0, P0,
-                                                 theta0, P_theta0, key)
+    ys, us, x0, P0, th0, Pth0, _ = check_arguments(estimator, measurements, inputs, x0, P0,
+                                                    theta0, P_theta0, key)
     return_covariances = validation.flag("return_covariances", return_covariances)
     # called eagerly: compiled as one program (vehjax.runtime.eager); under a trace: inline
     return eager.call(one_run, (estimator, return_covariances), {}, jnp.asarray(ys),

@@ -365,7 +365,7 @@ class Online:
     def __init__(self, estimator: Estimator, x0, P0, theta0=None, P_theta0=None, key=None, *,
                  dt=None, t0=None, max_gap=None):
         ny, nu = _widths(estimator)
-        ys, us, x0, P0, th0, Pth0 = check_arguments(
+        ys, us, x0, P0, th0, Pth0, _ = check_arguments(
             estimator, np.full((1, ny), np.nan), np.zeros((1, nu)), x0, P0, theta0, P_theta0, key)
         self.estimator = estimator
         self.dt = _option("dt", dt)

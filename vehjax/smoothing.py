@@ -1,6 +1,6 @@
 """``vehjax.smooth``: one run forward-backward, pure and traceable (``jax.jit``, ``jax.vmap``,
-``jax.grad``), and the traced per-run function :func:`smooth_one_run` that ``vehjax.run``
-builds on.
+``jax.grad``), and the traced functions that ``vehjax.run`` builds on: :func:`smooth_one_run`
+(one run) and :func:`smooth_runs_last` (a batch of runs with the runs axis last).
 
 ::
 
@@ -65,7 +65,8 @@ from .smoothers import iterated as _iter
 from .smoothers import marginalized as _marginalized
 from .smoothers import particle as _particle
 
-__all__ = ["SmoothResult", "smooth", "smooth_one_run", "check_options", "METHODS"]
+__all__ = ["SmoothResult", "smooth", "smooth_one_run", "smooth_runs_last", "check_options",
+           "METHODS"]
 
 #: Gaussian smoothing methods (module docstring).
 METHODS = ("rts", "ieks", "ipls")
@@ -219,7 +220,7 @@ def _result(spec, nx: int, filt: FilterResult, M, P, cross, ll=None, k=None, con
     )
 
 
-def _smooth_runs_last(estimator: Estimator, filt: FilterResult, state0, means, covs,
+def smooth_runs_last(estimator: Estimator, filt: FilterResult, state0, means, covs,
                       pred) -> SmoothResult:
     """The filter's own RTS over a batch of runs whose forward pass ran with the runs-last step
     and kept its predictions (``Estimator.batch``'s ``smooth_step``; what
@@ -368,8 +369,8 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
             they do not apply (a particle filter; the plain RTS), and every shape error of
             :func:`vehjax.filter`.
     """
-    ys, us, x0, P0, th0, Pth0 = check_arguments(estimator, measurements, inputs, x0, P0,
-                                                 theta0, P_theta0, key)
+    ys, us, x0, P0, th0, Pth0, _ = check_arguments(estimator, measurements, inputs, x0, P0,
+                                                    theta0, P_theta0, key)
     if estimator.smoother is None:  # the particle smoothers, or none at all
         if estimator.particle_transition is None and estimator.rao_blackwell is None:
             check_options(estimator)  # no smoother: say so, whatever the options

@@ -32,9 +32,9 @@ def test_eager_filter_and_smooth_equal_the_users_jit_and_compile_once():
     sm_j = jax.jit(lambda y: vj.smooth(est, y, us, **kw))(ys)
     np.testing.assert_allclose(sm.states, sm_j.states, rtol=1e-13, atol=1e-15)
     # the second eager call with the same estimator reuses the compiled program
-    n = len(eager._CACHE)
+    n = len(eager.CACHE)
     vj.filter(est, ys + 0.1, us, **kw)
-    assert len(eager._CACHE) == n
+    assert len(eager.CACHE) == n
 
 
 def test_traced_arguments_are_traced_inline_and_the_cache_is_bounded(monkeypatch):
@@ -56,4 +56,4 @@ def test_traced_arguments_are_traced_inline_and_the_cache_is_bounded(monkeypatch
     monkeypatch.setattr(eager, "CACHE_SIZE", 3)
     for p in range(6):
         eager.call(f, (h,), {"power": p}, jnp.asarray(1.0))
-    assert len(eager._CACHE) == 3
+    assert len(eager.CACHE) == 3

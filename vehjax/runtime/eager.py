@@ -1,4 +1,5 @@
-"""Eager calls of the single-run entry points compiled as one program.
+"""Eager calls of the single-run entry points compiled as one program, and vehjax's one cache
+of compiled programs.
 
 :func:`vehjax.filter` and :func:`vehjax.smooth` are pure, traceable functions, and users also
 call them outside ``jax.jit``. Called eagerly, JAX dispatches each operation on its own: every
@@ -8,10 +9,12 @@ XLA's compile of many small programs dominates). :func:`call` therefore runs the
 under ``jax.jit`` when none of its arguments is a tracer, and traces it inline when one is (the
 caller's own ``jit``, ``vmap`` or ``grad``): one rule, the same numbers as under the user's jit.
 
-The compiled function is kept per estimator object (held by the cache, so that its identity is
-not reused while the entry lives) and per value of the static options; the cache keeps the
-``CACHE_SIZE`` most recently used. A new estimator object is a new compile, as it is under the
-user's own ``jax.jit(lambda ...: vehjax.filter(est, ...))``.
+The cache (:func:`cached`, :data:`CACHE`) holds these jitted functions and the studies
+``vehjax.run`` compiles ahead of time with XLA options: each entry is keyed by the identities
+of the objects it was made for (the estimator; held by the entry, so that an identity is not
+reused while the entry lives) and by the values that make it (static options, the argument
+shapes); it keeps the ``CACHE_SIZE`` most recently used. A new estimator object is a new
+compile, as it is under the user's own ``jax.jit(lambda ...: vehjax.filter(est, ...))``.
 """
 
 from collections import OrderedDict
@@ -19,10 +22,26 @@ from functools import partial
 
 import jax
 
-__all__ = ["call", "CACHE_SIZE"]
+__all__ = ["call", "cached", "CACHE", "CACHE_SIZE"]
 
 CACHE_SIZE = 32
-_CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
+#: key -> (the objects held, the compiled function); the most recently used last.
+CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
+
+
+def cached(held: tuple, key: tuple, make):
+    """The compiled function of ``(ids of held, *key)``: the cached one, else ``make()``,
+    kept with ``held`` (LRU, at most ``CACHE_SIZE`` entries)."""
+    key = (tuple(id(h) for h in held), *key)
+    entry = CACHE.get(key)
+    if entry is None:
+        entry = (held, make())
+        CACHE[key] = entry
+        while len(CACHE) > CACHE_SIZE:
+            CACHE.popitem(last=False)
+    else:
+        CACHE.move_to_end(key)
+    return entry[1]
 
 
 def _traced(args) -> bool:
@@ -36,13 +55,6 @@ def call(fn, held: tuple, static: dict, *args, **kwargs):
     options); ``args`` and ``kwargs`` are its traced arguments (arrays, None, pytrees)."""
     if _traced((args, kwargs)):
         return fn(*held, *args, **static, **kwargs)
-    key = (fn, tuple(id(h) for h in held), tuple(sorted(static.items())))
-    entry = _CACHE.get(key)
-    if entry is None:
-        entry = (held, jax.jit(partial(fn, *held, **static)))
-        _CACHE[key] = entry
-        while len(_CACHE) > CACHE_SIZE:
-            _CACHE.popitem(last=False)
-    else:
-        _CACHE.move_to_end(key)
-    return entry[1](*args, **kwargs)
+    jitted = cached(held, (fn, tuple(sorted(static.items()))),
+                    lambda: jax.jit(partial(fn, *held, **static)))
+    return jitted(*args, **kwargs)
