@@ -333,7 +333,7 @@ def pf_row(p, args):
     x0 = jnp.asarray(p["x0"])
     us, ys = p["us"], p["ys"]
     out = []
-    est = vj.filters.bootstrap_pf(user_model(), p["Q"], p["R"], N, "systematic", ESS_THRESHOLD)
+    est = vj.filters.bootstrap_pf(user_model(), p["Q"], p["R"], n_particles=N, resampling="systematic", ess_threshold=ESS_THRESHOLD)
     c, fn = _vehjax(est, p, key=jax.random.key(1))
     out.append(Contender("vehjax", c, fn, lambda fn=fn: fn().states))
 

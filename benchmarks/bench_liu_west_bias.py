@@ -144,7 +144,7 @@ def _three_dof(args):
               f"m, cx, cy = {truth[0]:.0f} kg, {truth[1]:.0f} N, {truth[2]:.0f} N/rad")
         finals = {}
         for move in MOVES:
-            est = vj.filters.liu_west_ukf(dyn, s["Q"], s["R"], args.particles,
+            est = vj.filters.liu_west_ukf(dyn, s["Q"], s["R"], n_particles=args.particles,
                                           estimate=("m", "cx", "cy"), theta_low=box[:, 0],
                                           theta_high=box[:, 1], move=move)
             t0 = time.perf_counter()

@@ -194,7 +194,7 @@ def test_joint_filter_smooths_parameters_as_states():
         ys.append([x + rng.normal(0, 0.2)])
     ys = np.array(ys)
     qx, qb, r = 0.01, 1e-4, 0.04
-    est = vj.filters.joint_ekf(model, [qx], [r], [qb], estimate="b", bounds={})
+    est = vj.filters.joint_ekf(model, [qx], [r], Q_theta=[qb], estimate="b", bounds={})
     sm = vj.smooth(est, ys, us, x0=[0.0], P0=[0.5], theta0=[0.0], P_theta0=[1.0])
     # numpy RTS on z = (x, b): z' = [[0.9, 1], [0, 1]] z + [u, 0], y = [1, 0] z
     Aa, Qa, Ha = np.array([[0.9, 1.0], [0.0, 1.0]]), np.diag([qx, qb]), np.array([[1.0, 0.0]])
@@ -266,7 +266,7 @@ def test_bad_input_names_the_argument(data):
     est = vj.filters.ekf(model, Q, R)
     cases = [
         (dict(estimator=vj.filters.dual_ekf(_pendulum(), np.diag([1e-4, 1e-3]), [0.01, 0.01],
-                                            [0.1], estimate="g")), "estimator"),
+                                            Q_theta=[0.1], estimate="g")), "estimator"),
         (dict(method="nope"), "method"),
         (dict(method="ipls"), "method"),                  # the EKF iterates Jacobians
         (dict(method="ieks", max_iter=0), "max_iter"),
@@ -332,7 +332,7 @@ def test_joint_ukf_smooths_parameters_as_constant_states():
     ys[3, 1] = ys[11] = ys[20, 0] = np.nan
     qx, qb, rr = np.array([4e-4, 2.5e-3]), 1e-3, np.array([0.01, 0.04])
     x0, P0, th0, Pth0 = np.array([0.1, 0.0]), np.array([0.2, 0.3]), np.array([0.0]), np.array([1.0])
-    est = vj.filters.joint_ukf(model, qx, rr, [qb], estimate="b", bounds={}, theta_scale=1.0,
+    est = vj.filters.joint_ukf(model, qx, rr, Q_theta=[qb], estimate="b", bounds={}, theta_scale=1.0,
                                theta_decay=gamma)
     sm = vj.smooth(est, ys, us, x0=x0, P0=P0, theta0=th0, P_theta0=Pth0)
 

@@ -255,8 +255,8 @@ def _compare(out, ref, tol=1e-8):
 NONLIN_FILTERS = {
     "ekf": lambda: ekf(NONLIN, Q_NL, R_NL),
     "ukf": lambda: ukf(NONLIN, Q_NL, R_NL),
-    "ukf_negw0": lambda: ukf(NONLIN, Q_NL, R_NL, 0.5, 2.0, -1.0),
-    "sr_ukf_negw0": lambda: ukf(NONLIN, Q_NL, R_NL, 0.5, 2.0, -1.0, sqrt=True),
+    "ukf_negw0": lambda: ukf(NONLIN, Q_NL, R_NL, alpha=0.5, beta=2.0, kappa=-1.0),
+    "sr_ukf_negw0": lambda: ukf(NONLIN, Q_NL, R_NL, alpha=0.5, beta=2.0, kappa=-1.0, sqrt=True),
     "ckf": lambda: ckf(NONLIN, Q_NL, R_NL),
     "sr_ckf": lambda: ckf(NONLIN, Q_NL, R_NL, sqrt=True),
 }

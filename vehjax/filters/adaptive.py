@@ -93,6 +93,7 @@ def ackf(
     model,
     Q0,
     R0,
+    *,
     forgetting: float = 0.98,
     adapt=("Q", "R"),
     floor: float = 1e-6,

@@ -328,7 +328,7 @@ _ARGS_DOC = """
 
 
 def dual_ekf(
-    model, Q, R, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
+    model, Q, R, *, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
     param_innovation: str = "predictive", bounds=None, recurrent: bool = True, input_noise=None,
 ) -> Estimator:
     """Dual extended Kalman filter (Dutta et al. 2019, Algorithm 1), Jacobians by ``jax.jacfwd``.
@@ -384,7 +384,7 @@ def dual_ekf(
 
 
 def dual_ukf(
-    model, Q, R, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
+    model, Q, R, *, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
     alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0,
     param_innovation: str = "predictive", bounds=None, recurrent: bool = True, input_noise=None,
 ) -> Estimator:
@@ -485,7 +485,7 @@ def _noise_aug(cfg: _Setup, a, Q_theta, dt, fa=None, u=None):
 
 
 def joint_ekf(
-    model, Q, R, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None, bounds=None,
+    model, Q, R, *, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None, bounds=None,
     input_noise=None,
 ) -> Estimator:
     """Joint EKF on the augmented state [x; theta] with random-walk parameters.
@@ -511,7 +511,7 @@ def joint_ekf(
 
 
 def joint_ukf(
-    model, Q, R, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
+    model, Q, R, *, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
     alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, bounds=None, input_noise=None,
 ) -> Estimator:
     """Joint UKF on the augmented state [x; theta] (nx + p sigma-point dimensions).

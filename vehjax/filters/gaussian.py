@@ -120,7 +120,7 @@ def _prior_init(model, sqrt: bool):
 # EKF
 
 
-def ekf(model, Q, R, input_noise=None) -> Estimator:
+def ekf(model, Q, R, *, input_noise=None) -> Estimator:
     """Extended Kalman filter, Jacobians of transition and observe by ``jax.jacfwd``; the
     covariance update in Joseph form (stays positive definite for very wide priors).
 
@@ -283,7 +283,7 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str, input_noi
 
 
 def ukf(
-    model, Q, R, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, sqrt: bool = False,
+    model, Q, R, *, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, sqrt: bool = False,
     input_noise=None,
 ) -> Estimator:
     """Unscented Kalman filter with the scaled sigma points of Dutta et al. 2019 eq. 14-19.
@@ -317,7 +317,7 @@ def ukf(
                          input_noise, lambda n: unscented_rule(n, alpha, beta, kappa))
 
 
-def ckf(model, Q, R, sqrt: bool = False, input_noise=None) -> Estimator:
+def ckf(model, Q, R, *, sqrt: bool = False, input_noise=None) -> Estimator:
     """Cubature Kalman filter: third-degree spherical-radial rule, 2 nx equally weighted points.
 
     Args:

@@ -465,6 +465,7 @@ def liu_west_ukf(
     model,
     Q,
     R,
+    *,
     n_particles: int = 1000,
     estimate=None,
     theta_low=None,

@@ -391,6 +391,7 @@ def bootstrap_pf(
     model,
     Q,
     R,
+    *,
     n_particles: int = 1000,
     resampling: str = "systematic",
     ess_threshold: float = 0.5,

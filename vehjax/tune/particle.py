@@ -80,5 +80,5 @@ def stop_gradient_pf(model, Q, R, n_particles: int = 1000, resampling: str = "sy
     then the Fisher-identity estimate of the score, ``sum_i W_T^i grad log p(x^i_0:T, y_1:T)``
     along the particles' ancestral paths (the particles reparameterised, ``f(x) + chol(Q) z``),
     a consistent estimate of ``grad log p(y_1:T)`` (bias O(1/N))."""
-    return bootstrap_pf(model, Q, R, n_particles, resampling, ess_threshold,
+    return bootstrap_pf(model, Q, R, n_particles=n_particles, resampling=resampling, ess_threshold=ess_threshold,
                         resample=smc.resample_stop_gradient)
