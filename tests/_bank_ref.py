@@ -146,7 +146,7 @@ def user_bank_case(runs, seed, points, known=False, steps=400):
     factor = 1.0 if known else 2.0
     est = marginalized_pf_grid(
         user_linear_bank(model.theta, float(U[0, 0]), dt), points, sensors=sensors,
-        known_std=known_std, linear_noise_std=bank_std,
+        known_std=known_std, Q=bank_std ** 2,
         niw=NiW(std0={"delta": 2 * sig_w, **{n: factor * std[n] for n in sensors}},
                 forgetting=1.0, nu0=1e10 if known else None),
         means=MeanStates(mean_std0={"delta": 1.0 * deg, "ay": 0.5, "r": 1.0 * deg,

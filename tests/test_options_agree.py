@@ -14,7 +14,7 @@ MODEL = vj.models.Model(
     input_names=("u",), output_names=("y", "z"), param_names=("a",), theta=(1.0,))
 Q = R = [0.1, 0.1]
 MPF = dict(noisy_input="u", sensors=("y",), linear_states=("w",), known_std={"z": 0.2},
-           linear_noise_std=0.05, niw=F.NiW(std0={"u": 0.5, "y": 0.3}))
+           Q=0.05 ** 2, niw=F.NiW(std0={"u": 0.5, "y": 0.3}))
 BUILDERS = {
     "bootstrap_pf": lambda **k: F.bootstrap_pf(MODEL, Q, R, **k),
     "liu_west_ukf": lambda **k: F.liu_west_ukf(MODEL, Q, R, estimate=("a",), theta_low=[0.5],

@@ -387,7 +387,7 @@ def test_a_filter_without_smoother_is_named_whatever_the_options():
                         lambda x, u, th: jnp.stack([x[0], x[1]]), dt=0.1, state_names=("v", "w"),
                         input_names=("u",), output_names=("y", "z"))
     est = marginalized_pf_grid(m, 8, noisy_input="u", sensors=("y",), linear_states=("w",),
-                               known_std={"z": 0.2}, linear_noise_std=0.05,
+                               known_std={"z": 0.2}, Q=0.05 ** 2,
                                niw=NiW(std0={"u": 0.5, "y": 0.3}))
     with pytest.raises(ValueError, match="^estimator: 'marginalized_pf_grid' has no smoother"):
         vj.smooth(est, np.zeros((5, 2)), np.zeros((5, 1)), x0=np.zeros(2), P0=np.eye(2),

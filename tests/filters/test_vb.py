@@ -256,7 +256,7 @@ def test_bad_input_raises_naming_it(build):
             build(LINEAR, Q, R0, iterations=n)
     with pytest.raises(ValueError, match="form"):
         build(LINEAR, Q, R0, form="pf")
-    with pytest.raises(ValueError, match="R0"):
+    with pytest.raises(ValueError, match="^R: "):
         build(LINEAR, Q, [0.1, 0.1, 0.1])
     with pytest.raises(ValueError, match="sensors"):
         build(LINEAR, Q, R0, sensors=("nope",))
@@ -321,6 +321,6 @@ def test_vbakf_r_refuses_a_full_R0_rather_than_dropping_its_correlations():
     """vbakf_r learns one variance per sensor: a full R0 would lose its correlations silently,
     so it is refused naming R0 and the way out (issue 46); its diagonal is accepted."""
     R_full = np.array([[0.1, 0.03], [0.03, 0.1]])
-    with pytest.raises(ValueError, match="^R0: vbakf_r learns one variance per sensor.*vbakf_pr"):
+    with pytest.raises(ValueError, match="^R: vbakf_r learns one variance per sensor.*vbakf_pr"):
         vb.vbakf_r(LINEAR, Q, R_full)
     vb.vbakf_r(LINEAR, Q, np.diag(np.diag(R_full)))  # a diagonal matrix is the variances

@@ -58,7 +58,7 @@ E[Sigma^-1] = nu Psi^-1)::
       x^(i+1), P^(i+1) = Kalman update of (x-, P^-) with y and R^
 
   The plug-ins are the IW means, as the paper writes it (:func:`iw_plugin`); u_0 = ``dof0``
-  (> m + 1), U_0 = (u_0 - m - 1) R0, so the prior mean of R is R0; tau >= 0 (the paper
+  (> m + 1), U_0 = (u_0 - m - 1) R, so the prior mean of the learnt R is the given ``R``; tau >= 0 (the paper
   recommends 2 <= tau <= 6) weighs the nominal P~-.
 
 **Variants and choices made here.** ``sensors``: the outputs whose noise is learnt (Huang's IW
@@ -303,14 +303,14 @@ def _per_name(arg, value, names, closed=False):
     return np.array([validation.number(arg, v, 0.0, low_open=not closed) for v in vals], float)
 
 
-def _sensor_R0(R0, m, sensors_names):
-    R0 = np.asarray(R0, float)
+def _sensor_R0(R, m, sensors_names):
+    R0 = np.asarray(R, float)
     if R0.ndim == 1:
         if R0.shape != (m,) or not np.all(np.isfinite(R0)) or np.any(R0 <= 0):
-            raise ValueError(f"R0: expected {m} positive variances (one per sensor "
+            raise ValueError(f"R: expected {m} positive variances (one per sensor "
                              f"{sensors_names}), got {R0!r}")
         return np.diag(R0)
-    return validation.cov("R0", R0, m)
+    return validation.cov("R", R0, m)
 
 
 def _param_prior(setup, R0_diag, dof_shape):
@@ -436,7 +436,7 @@ class VBState(NamedTuple):
     theta: jnp.ndarray
 
 
-def vbakf_r(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterations: int = 5,
+def vbakf_r(model, Q, R, *, form: str = "ckf", forgetting: float = 1.0, iterations: int = 5,
             dof0: float = 10.0, sensors=None, known_std=None, biases=(), input_offsets=(),
             bias_walk: float = 0.0, offset_walk: float = 0.0, bias_std0: float = 1.0,
             offset_std0: float = 0.01, input_noise=None) -> Estimator:
@@ -445,8 +445,10 @@ def vbakf_r(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterati
     Args:
         model: a vehjax model (nx states, ny outputs).
         Q: process noise covariance of the model's states, (nx, nx) or (nx,), known.
-        R0: prior variances of the sensors' noise, (m,) (one per ``sensors``, output units
-            squared): the prior IG(dof0, dof0 R0) has plug-in beta / alpha = R0.
+        R: the sensors' noise variances R0 as the prior states them, (m,) (one per ``sensors``,
+            output units squared): the prior mean of the learnt diagonal R (its start), the
+            prior IG(dof0, dof0 R0) having plug-in beta / alpha = R0. Only the sensors' block:
+            the known outputs' noise is ``known_std``.
         form: "ekf" (linearisation by ``jax.jacfwd``), "ukf" (scaled unscented rule, alpha 1)
             or "ckf" (cubature rule) for every Gaussian integral.
         forgetting: rho in (0, 1] of the variances' dynamics (module docstring); 1: stationary.
@@ -469,19 +471,19 @@ def vbakf_r(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterati
 
     Raises:
         ValueError: naming the argument: form unknown, forgetting outside (0, 1], iterations
-            < 1, dof0 <= 0, bad names, R0 not m positive variances, non-positive stds.
+            < 1, dof0 <= 0, bad names, R not m positive variances, non-positive stds.
     """
     form, rho, N = _check_common(form, forgetting, iterations)
     a0 = validation.number("dof0", dof0, 0.0)
     st = _setup(model, Q, sensors, known_std, biases, input_offsets, bias_walk, offset_walk,
                 bias_std0, offset_std0, input_noise)
     m = len(st.sens)
-    R0m = _sensor_R0(R0, m, tuple(str(model.output_names[i]) for i in st.sens))
+    R0m = _sensor_R0(R, m, tuple(str(model.output_names[i]) for i in st.sens))
     if np.any(R0m != np.diag(np.diag(R0m))):
         raise ValueError(
-            "R0: vbakf_r learns one variance per sensor (a diagonal R, the sensors' noises "
-            "independent) and would drop the correlations of a full R0; give the (m,) variances "
-            "(np.diag(R0)), or use vbakf_pr for a full covariance")
+            "R: vbakf_r learns one variance per sensor (a diagonal R, the sensors' noises "
+            "independent) and would drop the correlations of a full R; give the (m,) variances "
+            "(np.diag(R)), or use vbakf_pr for a full covariance")
     R0 = np.diag(R0m)
     fm = _form(form, st.n, st.Lu)
     sens = st.sens
@@ -552,7 +554,7 @@ class VBPRState(NamedTuple):
     theta: jnp.ndarray
 
 
-def vbakf_pr(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterations: int = 10,
+def vbakf_pr(model, Q, R, *, form: str = "ckf", forgetting: float = 1.0, iterations: int = 10,
              tau: float = 3.0, dof0: float | None = None, sensors=None, known_std=None,
              biases=(), input_offsets=(), bias_walk: float = 0.0, offset_walk: float = 0.0,
              bias_std0: float = 1.0, offset_std0: float = 0.01, input_noise=None) -> Estimator:
@@ -561,8 +563,10 @@ def vbakf_pr(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterat
     Args:
         model: a vehjax model.
         Q: nominal process noise Q~ of the model's states, (nx, nx) or (nx,).
-        R0: nominal sensors' R, (m, m) or (m,) variances; the prior is IW(dof0,
-            (dof0 - m - 1) R0) (mean R0).
+        R: the sensors' nominal noise covariance R0, (m, m) or (m,) variances (one per
+            ``sensors``, output units squared): the prior mean of the learnt R, the prior being
+            IW(dof0, (dof0 - m - 1) R0). Only the sensors' block: the known outputs' noise is
+            ``known_std``.
         form: "ekf", "ukf" or "ckf" (see :func:`vbakf_r`).
         forgetting: rho in (0, 1] of R's IW dynamics.
         iterations: fixed-point iterations N >= 1.
@@ -577,14 +581,14 @@ def vbakf_pr(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterat
         stds the square roots of diag(U / (u - m - 1)).
 
     Raises:
-        ValueError: naming the argument (forgetting, iterations, tau, dof0, R0, names, ...).
+        ValueError: naming the argument (forgetting, iterations, tau, dof0, R, names, ...).
     """
     form, rho, N = _check_common(form, forgetting, iterations)
     tau = validation.number("tau", tau, 0.0, low_open=False)
     st = _setup(model, Q, sensors, known_std, biases, input_offsets, bias_walk, offset_walk,
                 bias_std0, offset_std0, input_noise)
     m = len(st.sens)
-    R0m = _sensor_R0(R0, m, tuple(str(model.output_names[i]) for i in st.sens))
+    R0m = _sensor_R0(R, m, tuple(str(model.output_names[i]) for i in st.sens))
     u0 = m + 11.0 if dof0 is None else validation.number("dof0", dof0, m + 1.0)
     fm = _form(form, st.n, st.Lu)
     sens = st.sens

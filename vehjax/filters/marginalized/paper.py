@@ -205,7 +205,7 @@ def marginalized_pf(
     sensors=("ay", "r", "roll_rate"),
     known_std=None,
     linear_states=("phi", "phi_dot", "phi_ddot"),
-    linear_noise_std=None,
+    Q=None,
     niw: NiW | None = None,
     kalman_states: str = "linear",
     ess_threshold: float = 0.5,
@@ -234,10 +234,11 @@ def marginalized_pf(
             states a negligible variance in P0 (e.g. 1e-20): with a 1e-3 rad/s^2 spread on
             phi_ddot each particle's bank grows by 1.8 rad a minute and the offset and ay bias
             drift to explain it.
-        linear_noise_std: their process noise: for a model with ``bank_noise_gain()`` a scalar
-            sigma_phi of eq. 3 [rad/s^3] (Q = sigma^2 B B^T on the linear states); otherwise,
-            or given as one value per linear state, additive stds per step (Q diagonal).
-            Required when there are linear states; >= 0.
+        Q: the linear states' process noise covariance per step: for a model with
+            ``bank_noise_gain()`` a scalar sigma_phi^2 of eq. 3 [rad^2/s^6] (the covariance
+            sigma_phi^2 B B^T on the linear states); otherwise, or given as one value per
+            linear state, additive variances (a diagonal covariance); or the (n, n) covariance
+            of the n linear states. Required when there are linear states; >= 0.
         niw: :class:`~vehjax.filters.marginalized.NiW`, the noise statistics' start (``std0``,
             required; ``mean0``, ``gamma0``, ``nu0``) and their ``forgetting`` (eq. 17-20).
         ess_threshold: resample when ESS < ess_threshold * N, in [0, 1].
@@ -274,7 +275,7 @@ def marginalized_pf(
     Raises:
         ValueError: naming the argument: unknown input, sensor, known-std output or state
             names, a name in both ``sensors`` and ``known_std``, a model not affine in the linear
-            states, non-positive stds (negative ``linear_noise_std``), lambda outside (0, 1] or
+            states, non-positive stds, a negative ``Q``, lambda outside (0, 1] or
             too small for nu0, gamma0 <= 0, nu0 <= d + 1, n_particles < 2, a bad resampling
             scheme, ess_threshold or kalman_states, a ``niw`` that is not a
             :class:`~vehjax.filters.marginalized.NiW`, or a ``resample`` that is not callable.
@@ -283,7 +284,7 @@ def marginalized_pf(
                        ess_threshold=smc.check_ess_threshold(ess_threshold),
                        resample=smc.check_resample(resample))
     s = configure(model, n_particles, noisy_input, sensors, known_std, linear_states,
-                  linear_noise_std, niw, kalman_states)
+                  Q, niw, kalman_states)
     mdl = model_fns(model, s)
     linear = LinearStep(
         transition=mdl.transition, observe=mdl.observe, sampled_idx=s.sampled_idx,
