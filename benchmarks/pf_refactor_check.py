@@ -16,7 +16,7 @@ import sys, pickle
 import jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
 import vehjax as vj
-from vehjax.filters import bootstrap_pf, liu_west_ukf
+from vehjax.filters import Resampling, bootstrap_pf, liu_west_ukf
 
 mode, path = sys.argv[1], sys.argv[2]
 DT = 0.1
@@ -35,7 +35,9 @@ def rec(name, est, ys_, us_, x0, P0, key, **kw):
 k = jax.random.key(5)
 for thr in (0.0, 0.5, 1.0):
     for scheme in ("systematic", "multinomial", "residual", "stratified"):
-        rec(f"pf-{scheme}-{thr}", bootstrap_pf(lin, Q, Rf, n_particles=64, resampling=scheme, ess_threshold=thr), ys, us, np.zeros(2), np.eye(2), k)
+        rec(f"pf-{scheme}-{thr}", bootstrap_pf(lin, Q, Rf, n_particles=64,
+                                               resampling=Resampling(scheme=scheme,
+                                                                     ess_threshold=thr)), ys, us, np.zeros(2), np.eye(2), k)
 rec("pf-diagR", bootstrap_pf(lin, Q, np.diag([0.09, 0.16]), n_particles=50), ys, us, np.zeros(2), np.eye(2), k)
 rec("pf-inoise", bootstrap_pf(lin, Q * 0, Rf, n_particles=50, input_noise={"up": 0.1, "uv": 0.2}), ys, us, np.zeros(2), np.eye(2), k)
 rec("pf-underflow", bootstrap_pf(lin, Q, Rf * 1e-6, n_particles=30), ys * 50, us, np.zeros(2), np.eye(2), k)

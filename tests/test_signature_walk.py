@@ -95,9 +95,14 @@ CALLS = {
     "vehjax.filters.liu_west_ukf": lambda: (vj.filters.liu_west_ukf, (M, Q, R),
                                             dict(estimate=("cf",), theta_low=[5e4],
                                                  theta_high=[2e5])),
-    **{f"vehjax.filters.{b}": (lambda b=b: (getattr(vj.filters, b), (M, Q, R),
-                                            dict(biases=("ay",), input_offsets=("delta",))))
+    **{f"vehjax.filters.{b}": (lambda b=b: (getattr(vj.filters, b), (M, Q, R), dict(
+        augment=vj.filters.Augmentation(biases=("ay",), input_offsets=("delta",)))))
        for b in ("vbakf_r", "vbakf_pr")},
+    # the option records check their own fields when made
+    **{f"vehjax.filters.{r}": (lambda r=r: (getattr(vj.filters, r), (), {}))
+       for r in ("SigmaPoints", "Resampling", "LiuWestKernel")},
+    "vehjax.filters.Augmentation": lambda: (vj.filters.Augmentation, (),
+                                            dict(biases=("ay",), input_offsets=("delta",))),
     "vehjax.filters.marginalized_pf": lambda: (
         vj.filters.marginalized_pf, (SingleTrackBank(dt=0.01),),
         dict(Q=0.05 ** 2, known_std={"phi": 0.01, "r_virt": 0.005},

@@ -71,7 +71,7 @@ def data():
 BUILDERS = {
     "ekf": lambda m: vj.filters.ekf(m, Q, R),
     "ukf": lambda m: vj.filters.ukf(m, Q, R),
-    "ukf_small_alpha": lambda m: vj.filters.ukf(m, Q, R, alpha=0.5),
+    "ukf_small_alpha": lambda m: vj.filters.ukf(m, Q, R, points=vj.filters.SigmaPoints(alpha=0.5)),
     "ckf": lambda m: vj.filters.ckf(m, Q, R),
     "sr_ukf": lambda m: vj.filters.ukf(m, Q, R, sqrt=True),
     "sr_ckf": lambda m: vj.filters.ckf(m, Q, R, sqrt=True),
@@ -139,9 +139,11 @@ def test_square_root_equals_plain_on_nonlinear_model():
     (the cubature forms are compared on the linear model above)."""
     model, ys, us = _pendulum_data()
     Qp, Rp = np.diag([1e-4, 2.5e-3]), np.diag([0.01, 0.01])
-    a = vj.smooth(vj.filters.ukf(model, Qp, Rp, alpha=0.5, sqrt=True), ys, us, x0=[0.7, 0.0],
+    a = vj.smooth(vj.filters.ukf(model, Qp, Rp, points=vj.filters.SigmaPoints(alpha=0.5),
+                                 sqrt=True), ys, us, x0=[0.7, 0.0],
                   P0=[0.1, 0.1])
-    b = vj.smooth(vj.filters.ukf(model, Qp, Rp, alpha=0.5), ys, us, x0=[0.7, 0.0],
+    b = vj.smooth(vj.filters.ukf(model, Qp, Rp, points=vj.filters.SigmaPoints(alpha=0.5)), ys, us,
+                  x0=[0.7, 0.0],
                   P0=[0.1, 0.1])
     assert vj.filters.sigma.unscented_rule(2, 0.5).wc[0] < 0
     np.testing.assert_allclose(a.states, b.states, atol=1e-10)

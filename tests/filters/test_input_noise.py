@@ -146,7 +146,8 @@ def test_perturbed_inputs_have_the_input_covariance():
 GAUSSIAN = [
     ("ekf", lambda m, Q_, **k: vj.filters.ekf(m, Q_, R, **k)),
     ("ukf", lambda m, Q_, **k: vj.filters.ukf(m, Q_, R, **k)),
-    ("ukf-small-alpha", lambda m, Q_, **k: vj.filters.ukf(m, Q_, R, alpha=0.5, **k)),
+    ("ukf-small-alpha", lambda m, Q_, **k: vj.filters.ukf(m, Q_, R,
+                                                          points=vj.filters.SigmaPoints(alpha=0.5), **k)),
     ("ckf", lambda m, Q_, **k: vj.filters.ckf(m, Q_, R, **k)),
     ("sr-ukf", lambda m, Q_, **k: vj.filters.ukf(m, Q_, R, sqrt=True, **k)),
     ("sr-ckf", lambda m, Q_, **k: vj.filters.ckf(m, Q_, R, sqrt=True, **k)),

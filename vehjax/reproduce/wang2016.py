@@ -328,7 +328,8 @@ def build_filter(name, model, Q, R):
     if name == "ekf":
         return vj.filters.ekf(model, Q, R)
     if name == "ukf":
-        return vj.filters.ukf(model, Q, R, alpha=UKF_ALPHA, beta=UKF_BETA, kappa=UKF_KAPPA)
+        points = vj.filters.SigmaPoints(alpha=UKF_ALPHA, beta=UKF_BETA, kappa=UKF_KAPPA)
+        return vj.filters.ukf(model, Q, R, points=points)
     if name == "ckf":
         return vj.filters.ckf(model, Q, R)
     settings = ACKF_PAPER if name == "ackf-paper" else ACKF_USER

@@ -26,6 +26,7 @@ from vehjax.filters.particle import bootstrap_pf
 from vehjax.models.bank import SingleTrackBank
 
 from _bank_ref import continuous_matrices, discrete_matrices, exact_kalman, mpf_kwargs
+from _records import grouped
 
 DT = 0.01
 VX = 20.0
@@ -561,7 +562,7 @@ def _kw(**over):
     ("gamma0", dict(gamma0=-1.0)),
     ("nu0", dict(nu0=4.0)),
     ("ess_threshold", dict(ess_threshold=2.0)),
-    ("resampling", dict(resampling="bogus")),
+    ("scheme", dict(resampling="bogus")),
     ("kalman_states", dict(kalman_states="bank")),
     ("resample", dict(resample="systematic")),
 ])
@@ -717,7 +718,8 @@ def _tiny_mpf_run(**extra):
                             dt=0.1, state_names=("v",), input_names=("u",), output_names=("y",))
     rng = np.random.default_rng(0)
     ys, us = rng.normal(size=(12, 1)), rng.normal(size=(12, 1))
-    est = marginalized_pf(model, 16, noisy_input="u", sensors=("y",), linear_states=(), **extra,
+    est = marginalized_pf(model, 16, noisy_input="u", sensors=("y",), linear_states=(),
+                          **grouped(extra, ("resampling",)),
                           niw=NiW(std0={"u": 0.5, "y": 0.3}))
     return vj.filter(est, ys, us, x0=np.zeros(1), P0=np.eye(1), key=jax.random.key(0))
 
