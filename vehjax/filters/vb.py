@@ -63,18 +63,16 @@ E[Sigma^-1] = nu Psi^-1)::
 
 **Variants and choices made here.** ``sensors``: the outputs whose noise is learnt (Huang's IW
 covers their block of R, full); ``known_std``: outputs of known std; outputs in neither are not
-used. ``augment`` (:class:`Augmentation`: ``biases`` and ``input_offsets``) adds bias and
-offset states to the Kalman state (y = h(x) + b, the model driven by u + offset; priors
-``bias_std0``/``offset_std0``, walk ``bias_walk``).
-Missing measurements (NaN) are skipped by the Kalman update; in VB-AKF their alpha_j, beta_j keep
-their prediction, in VBAKF-PR a step with some sensor missing leaves q(R) at its prediction.
+used. ``augment`` (:class:`Augmentation`) adds bias and offset states to the Kalman state (y =
+h(x) + b, the model driven by u + offset). Missing measurements (NaN) are skipped by the Kalman
+update; in VB-AKF their alpha_j, beta_j keep their prediction, in VBAKF-PR a step with some
+sensor missing leaves q(R) at its prediction.
 ``out.params`` (SI units of the model): ``<input>_offset``, ``<sensor>_bias`` (Kalman means),
 ``<sensor>_std`` = sqrt(R^_jj); ``params_cov`` the Kalman block and, per std, std^2 psi1(a) / 4
 (the delta method; cross-covariances between biases and stds 0). VBAKF-PR learns P_{k|k-1},
 not Q: the state keeps the plug-in ``P_pred``.
 
-See docs/vb.md for VBAKF-PR's plug-ins and update in full and each of these choices with its
-reason.
+See docs/vb.md for VBAKF-PR's plug-ins and update in full and each choice with its reason.
 
 Every filter here is a plain :class:`~vehjax.filters.base.Estimator` (vmapped by
 :func:`vehjax.run`; no runs-last form). Divergence (NaN/inf in the mean, an indefinite P) is
