@@ -248,7 +248,8 @@ def ukf_row(p, args):
     f = lambda x, u: transition(x, u, th)  # noqa: E731
     h = lambda x, u: observe(x, u, th)  # noqa: E731
     out = []
-    est = vj.filters.ukf(user_model(), Q=p["Q"], R=p["R"], alpha=ALPHA, beta=BETA, kappa=KAPPA)
+    est = vj.filters.ukf(user_model(), Q=p["Q"], R=p["R"],
+                         points=vj.filters.SigmaPoints(alpha=ALPHA, beta=BETA, kappa=KAPPA))
     c, fn = _vehjax(est, p)
     out.append(Contender("vehjax", c, fn, lambda fn=fn: fn().states))
 
@@ -256,8 +257,8 @@ def ukf_row(p, args):
         from dynamax.nonlinear_gaussian_ssm import (ParamsNLGSSM, UKFHyperParams,
                                                     unscented_kalman_filter)
 
-        prior = vj.filters.ukf(user_model(), Q=p["Q"], R=p["R"], alpha=ALPHA, beta=BETA,
-                               kappa=KAPPA)
+        prior = vj.filters.ukf(user_model(), Q=p["Q"], R=p["R"],
+                               points=vj.filters.SigmaPoints(alpha=ALPHA, beta=BETA, kappa=KAPPA))
         nan_y = jnp.full((p["ys"].shape[-1],), jnp.nan)
         _, first = prior.step(prior.init(jnp.asarray(p["x0"]), jnp.asarray(p["P0"])), nan_y,
                               p["us"][0])
@@ -333,7 +334,9 @@ def pf_row(p, args):
     x0 = jnp.asarray(p["x0"])
     us, ys = p["us"], p["ys"]
     out = []
-    est = vj.filters.bootstrap_pf(user_model(), p["Q"], p["R"], N, "systematic", ESS_THRESHOLD)
+    est = vj.filters.bootstrap_pf(user_model(), p["Q"], p["R"], n_particles=N,
+                                  resampling=vj.filters.Resampling(scheme="systematic",
+                                                                   ess_threshold=ESS_THRESHOLD))
     c, fn = _vehjax(est, p, key=jax.random.key(1))
     out.append(Contender("vehjax", c, fn, lambda fn=fn: fn().states))
 
@@ -415,8 +418,8 @@ def liu_west_row(p, args):
     th_nom = jnp.asarray(THETA)
     out = []
     est = vj.filters.liu_west_ukf(user_model(), p["Q"], p["R"], n_particles=N, estimate=ESTIMATE,
-                                  theta_low=low, theta_high=high, a=SHRINKAGE,
-                                  ess_threshold=ESS_THRESHOLD, alpha=ALPHA, beta=BETA, kappa=KAPPA)
+                                  theta_low=low, theta_high=high, kernel=vj.filters.LiuWestKernel(a=SHRINKAGE),
+                                  resampling=vj.filters.Resampling(ess_threshold=ESS_THRESHOLD), points=vj.filters.SigmaPoints(alpha=ALPHA, beta=BETA, kappa=KAPPA))
     c, fn = _vehjax(est, p, key=jax.random.key(2))
     cache = {}
 

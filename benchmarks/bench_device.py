@@ -138,8 +138,9 @@ def scale(ba, args, size) -> dict:
     s = _best(prep, max(1, args.repeat - 1))
     print(f"UKF {size['ukf_runs']} runs x {T} steps: compile {c:.1f} s, run {s:.3f} s "
           f"({prep.n_chunks} chunk(s))")
-    pf = vj.filters.bootstrap_pf(ba.user_model(), p["Q"], p["R"], size["particles"],
-                                 "systematic", ba.ESS_THRESHOLD)
+    pf = vj.filters.bootstrap_pf(ba.user_model(), p["Q"], p["R"], n_particles=size["particles"],
+                                 resampling=vj.filters.Resampling(scheme="systematic",
+                                                                  ess_threshold=ba.ESS_THRESHOLD))
     ys = np.broadcast_to(np.asarray(p["ys"]), (size["pf_runs"],) + np.shape(p["ys"])[1:])
     c, prep = _prepared(pf, ys, p["us"], p["x0"], p["P0"], args.strategy, key=jax.random.key(1))
     s_pf = _best(prep, max(1, args.repeat - 1))
@@ -157,8 +158,8 @@ def float32(ba, args, runs, steps, particles) -> list:
     families = {
         "EKF": (vj.filters.ekf(m, Q=p["Q"], R=p["R"]), None),
         "UKF": (vj.filters.ukf(m, Q=p["Q"], R=p["R"]), None),
-        "bootstrap PF": (vj.filters.bootstrap_pf(m, p["Q"], p["R"], particles, "systematic",
-                                                 ba.ESS_THRESHOLD), jax.random.key(1)),
+        "bootstrap PF": (vj.filters.bootstrap_pf(m, p["Q"], p["R"], n_particles=particles,
+                                                 resampling=vj.filters.Resampling(scheme="systematic", ess_threshold=ba.ESS_THRESHOLD)), jax.random.key(1)),
         "Liu-West": (vj.filters.liu_west_ukf(m, p["Q"], p["R"], n_particles=particles,
                                              estimate=ba.ESTIMATE, theta_low=low,
                                              theta_high=high), jax.random.key(2)),

@@ -79,7 +79,8 @@ def _best_of(fn, repeat: int) -> float:
 
 def bench_vehjax(model, sim, Q, R, x0, P0):
     """(compile time in s, a call that runs the compiled study and returns the states)."""
-    est = vj.filters.ukf(model, Q=Q, R=R, alpha=ALPHA, beta=BETA, kappa=KAPPA)
+    est = vj.filters.ukf(model, Q=Q, R=R, points=vj.filters.SigmaPoints(alpha=ALPHA, beta=BETA,
+                                                                        kappa=KAPPA))
     t0 = time.perf_counter()
     compiled = vj.compile_run(est, sim.measurements, sim.inputs, x0=x0, P0=P0)
     compile_s = time.perf_counter() - t0
@@ -97,7 +98,8 @@ def bench_dynamax(model, sim, Q, R, x0, P0):
     # dynamax conditions on y_t first and then predicts with u_{t+1}; vehjax predicts with u_t
     # and then conditions. Giving dynamax vehjax's first prediction as its prior makes the two
     # recursions identical.
-    prior = vj.filters.ukf(model, Q=Q, R=R, alpha=ALPHA, beta=BETA, kappa=KAPPA)
+    prior = vj.filters.ukf(model, Q=Q, R=R, points=vj.filters.SigmaPoints(alpha=ALPHA, beta=BETA,
+                                                                          kappa=KAPPA))
     nan_y = jnp.full((sim.measurements.shape[-1],), jnp.nan)
     _, first = prior.step(prior.init(jnp.asarray(x0), jnp.asarray(P0)), nan_y, sim.inputs[0])
     params = ParamsNLGSSM(initial_mean=first.mean, initial_covariance=first.cov, dynamics_function=f,

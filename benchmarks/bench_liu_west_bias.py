@@ -144,9 +144,10 @@ def _three_dof(args):
               f"m, cx, cy = {truth[0]:.0f} kg, {truth[1]:.0f} N, {truth[2]:.0f} N/rad")
         finals = {}
         for move in MOVES:
-            est = vj.filters.liu_west_ukf(dyn, s["Q"], s["R"], args.particles,
+            est = vj.filters.liu_west_ukf(dyn, s["Q"], s["R"], n_particles=args.particles,
                                           estimate=("m", "cx", "cy"), theta_low=box[:, 0],
-                                          theta_high=box[:, 1], move=move)
+                                          theta_high=box[:,
+                                                         1], kernel=vj.filters.LiuWestKernel(move=move))
             t0 = time.perf_counter()
             res = vj.run(est, sim.measurements, sim.inputs, x0=np.asarray(scn.x0),
                          P0=np.diag(s["P0"]), key=jax.random.key(args.seed + 1),
@@ -217,7 +218,7 @@ def _skewed(args):
     for M in (500, 2000):
         for move in MOVES:
             est = vj.filters.liu_west_ukf(model, Q=[_QV], R=[_RV], n_particles=M, estimate=("g",),
-                                          theta_low=[low], theta_high=[high], move=move)
+                                          theta_low=[low], theta_high=[high], kernel=vj.filters.LiuWestKernel(move=move))
             out = vj.run(est, ys[:, :, None], us[:, :, None], x0=[0.0], P0=[[1.0]],
                          key=jax.random.key(args.seed), progress=False)
             z = (np.asarray(out.params[:, -1, 0]) - mean) / std
@@ -245,7 +246,7 @@ def _few(args):
         for move in MOVES:
             est = vj.filters.liu_west_ukf(model, Q=np.full(4, 1e-4), R=meas_std**2,
                                           n_particles=M, estimate=("lf", "lr"), theta_low=low,
-                                          theta_high=high, move=move)
+                                          theta_high=high, kernel=vj.filters.LiuWestKernel(move=move))
             out = vj.run(est, sim.measurements, sim.inputs, x0=scn.x0,
                          P0=np.diag([1, 1, 0.2, 2.0]), key=jax.random.key(args.seed + 1),
                          return_covariances=True, progress=False)

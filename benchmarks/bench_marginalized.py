@@ -99,6 +99,7 @@ def _driver(est, U, x0, P0, batched: bool):
 
 
 def _bootstrap(model, road, n):
+    from vehjax.filters import Resampling
     from vehjax.filters.particle import bootstrap_pf
 
     D = road.DEG
@@ -108,7 +109,8 @@ def _bootstrap(model, road, n):
     Q = np.outer(g, g) * (0.05 * D) ** 2 + np.outer(Bq, Bq) * road.BANK_JERK_STD ** 2
     Q = Q + np.diag([1e-4, 1e-4 * D, 1e-6, 1e-6, 1e-6]) ** 2
     R = np.array([0.2, 0.3 * D, 0.3 * D, road.PHI_STD, road.RVIRT_STD]) ** 2
-    return bootstrap_pf(model, Q, R, n, "systematic", 0.5)
+    return bootstrap_pf(model, Q, R, n_particles=n, resampling=Resampling(scheme="systematic",
+                                                                          ess_threshold=0.5))
 
 
 def _step_flops(est, x0, P0, key, y, u, n):

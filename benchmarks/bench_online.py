@@ -221,7 +221,8 @@ def row_problem(row, samples, particles):
     if row in ("ekf", "ukf"):
         model, ys, us, Q, R, x0, P0 = single_track_problem(samples)
         est = (vj.filters.ekf(model, Q, R) if row == "ekf" else
-               vj.filters.ukf(model, Q, R, alpha=ALPHA, beta=BETA, kappa=KAPPA))
+               vj.filters.ukf(model, Q, R, points=vj.filters.SigmaPoints(alpha=ALPHA, beta=BETA,
+                                                                         kappa=KAPPA)))
         return est, ys, us, x0, P0, None, model.dt, model, (Q, R)
     mb = load_benchmark("marginalized")
     road, model, U, _, Y, = mb._problem(1, samples)[:5]

@@ -42,6 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import vehjax as vj
+from vehjax.filters import Resampling
 from vehjax.filters.particle import bootstrap_pf
 
 ESS_THRESHOLD = 0.5
@@ -69,7 +70,8 @@ def _compile(jitted, *args):
 
 
 def vehjax_scan(model, sim, Q, R, x0, P0, n_particles, keys):
-    est = bootstrap_pf(model, Q, R, n_particles, "systematic", ESS_THRESHOLD)
+    est = bootstrap_pf(model, Q, R, n_particles=n_particles,
+                       resampling=Resampling(scheme="systematic", ess_threshold=ESS_THRESHOLD))
 
     def one(key, ys):
         state = est.init(jnp.asarray(x0), jnp.asarray(P0), key=key)
@@ -174,7 +176,8 @@ def vehjax_run(model, sim, Q, R, x0, P0, n_particles, key):
         from vehjax.run import compile_run
     except ImportError:
         return None, float("nan")
-    est = bootstrap_pf(model, Q, R, n_particles, "systematic", ESS_THRESHOLD)
+    est = bootstrap_pf(model, Q, R, n_particles=n_particles,
+                       resampling=Resampling(scheme="systematic", ess_threshold=ESS_THRESHOLD))
     t0 = time.perf_counter()
     prepared = compile_run(est, sim.measurements, sim.inputs, x0=x0, P0=P0, key=key,
                            progress=False)

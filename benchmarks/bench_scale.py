@@ -108,9 +108,9 @@ def main(argv=None) -> int:
     key = jax.random.key(1)
     n_max, r_min = max(particles), min(pf_runs)
     for n in particles:
-        record(f"PF {r_min} runs x {T} steps x {n} particles", bootstrap_pf(model, Q, R, n),
+        record(f"PF {r_min} runs x {T} steps x {n} particles", bootstrap_pf(model, Q, R, n_particles=n),
                r_min, T, r_min * T * n, "particle-step", key)
-    pf = bootstrap_pf(model, Q, R, n_max)
+    pf = bootstrap_pf(model, Q, R, n_particles=n_max)
     record(f"PF {r_min} runs x {T_half} steps x {n_max} particles", pf, r_min, T_half,
            r_min * T_half * n_max, "particle-step", key)
     for n in pf_runs[1:]:

@@ -83,7 +83,8 @@ def gaussian_row(row, p, ball):
     if row == "eks":
         est = vj.filters.ekf(model, Q=p["Q"], R=p["R"])
     else:
-        est = vj.filters.ukf(model, Q=p["Q"], R=p["R"], alpha=1.0, beta=2.0, kappa=0.0)
+        est = vj.filters.ukf(model, Q=p["Q"], R=p["R"], points=vj.filters.SigmaPoints(alpha=1.0,
+                                                                                      beta=2.0, kappa=0.0))
     us, x0, P0 = p["us"], jnp.asarray(p["x0"]), jnp.asarray(p["P0"])
 
     t0 = time.perf_counter()

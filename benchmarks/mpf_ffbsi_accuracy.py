@@ -54,7 +54,7 @@ m, Ps = m[:, :2], Ps[:, :2, :2]
 sd = np.sqrt(np.diagonal(Ps, axis1=1, axis2=2))
 n = int(sys.argv[1])
 est = marginalized_pf(t._model_lin(ab=AB), n, noisy_input="u", sensors=("y1",),
-                      known_std={"y2": t.SD2}, linear_states=("a",), linear_noise_std=t.SIG_Z,
+                      known_std={"y2": t.SD2}, linear_states=("a",), Q=t.SIG_Z ** 2,
                       kalman_states="linear",
                       niw=NiW(std0={"u": t.SIG_W, "y1": t.SD1}, mean0={"u": t.MU_W, "y1": t.B1},
                               forgetting=1.0, nu0=1e7, gamma0=1e-9))

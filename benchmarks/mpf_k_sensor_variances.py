@@ -46,7 +46,7 @@ NX = len(MODEL.state_names)
 def _filter(points, std0, nu0=None, variances=None):
     """MPF-K as the study builds it, the steering std known (a grid of the true std)."""
     return marginalized_pf_grid(MODEL, points, sensors=SENSORS, known_std=N.known_std,
-                                linear_noise_std=N.bank_jerk_std,
+                                Q=N.bank_jerk_std ** 2,
                                 linear_states=("phi", "phi_dot", "phi_ddot"),
                                 sensor_variances=variances,
                                 niw=NiW(std0={"delta": N.steer_std, **std0},

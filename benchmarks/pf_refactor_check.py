@@ -16,7 +16,7 @@ import sys, pickle
 import jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
 import vehjax as vj
-from vehjax.filters import bootstrap_pf, liu_west_ukf
+from vehjax.filters import Resampling, bootstrap_pf, liu_west_ukf
 
 mode, path = sys.argv[1], sys.argv[2]
 DT = 0.1
@@ -35,10 +35,12 @@ def rec(name, est, ys_, us_, x0, P0, key, **kw):
 k = jax.random.key(5)
 for thr in (0.0, 0.5, 1.0):
     for scheme in ("systematic", "multinomial", "residual", "stratified"):
-        rec(f"pf-{scheme}-{thr}", bootstrap_pf(lin, Q, Rf, 64, scheme, thr), ys, us, np.zeros(2), np.eye(2), k)
-rec("pf-diagR", bootstrap_pf(lin, Q, np.diag([0.09, 0.16]), 50), ys, us, np.zeros(2), np.eye(2), k)
-rec("pf-inoise", bootstrap_pf(lin, Q * 0, Rf, 50, input_noise={"up": 0.1, "uv": 0.2}), ys, us, np.zeros(2), np.eye(2), k)
-rec("pf-underflow", bootstrap_pf(lin, Q, Rf * 1e-6, 30), ys * 50, us, np.zeros(2), np.eye(2), k)
+        rec(f"pf-{scheme}-{thr}", bootstrap_pf(lin, Q, Rf, n_particles=64,
+                                               resampling=Resampling(scheme=scheme,
+                                                                     ess_threshold=thr)), ys, us, np.zeros(2), np.eye(2), k)
+rec("pf-diagR", bootstrap_pf(lin, Q, np.diag([0.09, 0.16]), n_particles=50), ys, us, np.zeros(2), np.eye(2), k)
+rec("pf-inoise", bootstrap_pf(lin, Q * 0, Rf, n_particles=50, input_noise={"up": 0.1, "uv": 0.2}), ys, us, np.zeros(2), np.eye(2), k)
+rec("pf-underflow", bootstrap_pf(lin, Q, Rf * 1e-6, n_particles=30), ys * 50, us, np.zeros(2), np.eye(2), k)
 # Liu-West on the kinematic bicycle
 m = vj.models.KinematicBicycle(dt=0.05)
 scn = vj.scenarios.sine_steer(m, speed=10.0, duration=30 * m.dt)
@@ -50,7 +52,7 @@ names = ("lf", "lr")
 th = np.asarray(m.theta)[[m.param_names.index(n) for n in names]]
 for kw in (dict(), dict(recurrent=False), dict(likelihood="measurement"), dict(move="every"), dict(gamma=0.9),
            dict(bounds={}), dict(ess_threshold=1.0, resampling="residual")):
-    est = liu_west_ukf(m, np.eye(nx) * 1e-4, np.eye(ny) * 0.0025, 100, names, th * 0.7, th * 1.3, **kw)
+    est = liu_west_ukf(m, np.eye(nx) * 1e-4, np.eye(ny) * 0.0025, n_particles=100, estimate=names, theta_low=th * 0.7, theta_high=th * 1.3, **kw)
     rec("lw-" + repr(sorted(kw.items())), est, ysb, usb, np.asarray(scn.x0), np.eye(nx) * 1e-2, k)
 # stop-gradient PF: values and gradient
 import vehjax.tune as vt

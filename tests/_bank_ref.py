@@ -146,7 +146,7 @@ def user_bank_case(runs, seed, points, known=False, steps=400):
     factor = 1.0 if known else 2.0
     est = marginalized_pf_grid(
         user_linear_bank(model.theta, float(U[0, 0]), dt), points, sensors=sensors,
-        known_std=known_std, linear_noise_std=bank_std,
+        known_std=known_std, Q=bank_std ** 2,
         niw=NiW(std0={"delta": 2 * sig_w, **{n: factor * std[n] for n in sensors}},
                 forgetting=1.0, nu0=1e10 if known else None),
         means=MeanStates(mean_std0={"delta": 1.0 * deg, "ay": 0.5, "r": 1.0 * deg,
@@ -162,13 +162,15 @@ def mpf_kwargs(**kw):
     """The marginalized PFs' keyword arguments from flat ones: the NiW fields (std0, mean0,
     gamma0, nu0, forgetting) grouped into ``niw=NiW(...)``, mean_std0 and bias_walk into
     ``means=MeanStates(...)``, input_std_range and input_std_prior into
-    ``grid=InputStdGrid(...)``."""
+    ``grid=InputStdGrid(...)``, resampling, ess_threshold and resample into
+    ``resampling=Resampling(...)``."""
     from vehjax.filters.marginalized import InputStdGrid, MeanStates, NiW
+    from _records import grouped
 
     groups = {"niw": (NiW, ("std0", "mean0", "gamma0", "nu0", "forgetting")),
               "means": (MeanStates, ("mean_std0", "bias_walk")),
               "grid": (InputStdGrid, ("input_std_range", "input_std_prior"))}
-    out = dict(kw)
+    out = grouped(kw, ("resampling",))
     for name, (cls, fields) in groups.items():
         got = {k: out.pop(k) for k in fields if k in out}
         if got:

@@ -57,7 +57,7 @@ def _estimators():
     assert ukf.batch is not None  # the runs-last path of vehjax.run; the PF is vmapped
     # ess_threshold=0: never resamples, so no decision turns on a draw's last float32 bit
     return ukf, vehjax.filters.bootstrap_pf(model, Q, RN, n_particles=PF_PARTICLES,
-                                            ess_threshold=0.0)
+                                            resampling=vehjax.filters.Resampling(ess_threshold=0.0))
 
 
 def _make_data(path):

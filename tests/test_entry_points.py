@@ -401,8 +401,8 @@ def test_run_refuses_repeated_devices():
 
 
 @pytest.mark.parametrize("call, arg", [
-    (lambda: F.ukf(MODEL, Q, R, alpha="x"), "alpha"),
-    (lambda: F.ukf(MODEL, Q, R, kappa=1j), "kappa"),
+    (lambda: F.ukf(MODEL, Q, R, points=F.SigmaPoints(alpha="x")), "alpha"),
+    (lambda: F.ukf(MODEL, Q, R, points=F.SigmaPoints(kappa=1j)), "kappa"),
     (lambda: F.ekf(MODEL, [[1j]], R), "Q"),
     (lambda: F.ekf(MODEL, Q, R, input_noise={"u": 1j}), "input_noise"),
     (lambda: F.dual_ekf(MODEL, Q, R, Q_theta=["x"], estimate="a"), "Q_theta"),

@@ -61,7 +61,7 @@ def _families():
         "joint_ukf": (vj.filters.joint_ukf(MODEL, Q, R, Q_theta=np.diag([1e-6]),
                                            estimate=("g",)),
                       dict(theta0=th[:1] * 1.1, P_theta0=np.diag([0.04]))),
-        "bootstrap_pf": (vj.filters.bootstrap_pf(MODEL, Q, R, 64), dict(key=jax.random.key(1))),
+        "bootstrap_pf": (vj.filters.bootstrap_pf(MODEL, Q, R, n_particles=64), dict(key=jax.random.key(1))),
         "liu_west": (vj.filters.liu_west_ukf(MODEL, Q, R, n_particles=32, estimate=("g",),
                                              theta_low=[1.0], theta_high=[3.0]),
                      dict(key=jax.random.key(2))),
@@ -171,7 +171,7 @@ def test_results_can_stay_on_the_device():
 
 def test_memory_guards_refuse_a_study_that_cannot_fit():
     ys, us = _data(runs=2)
-    huge_pf = vj.filters.bootstrap_pf(MODEL, Q, R, 2**30)  # 16 x 8 x 2^30 x 2 bytes a run
+    huge_pf = vj.filters.bootstrap_pf(MODEL, Q, R, n_particles=2**30)  # 16 x 8 x 2^30 x 2 bytes a run
     with pytest.raises(ValueError, match=r"one run needs about .* GiB.* device has .* GiB"):
         vj.run(huge_pf, ys, us, x0=X0, P0=P0, key=jax.random.key(0))
     # results: 300 states with covariances over 4000 runs x 2000 steps = 5.8 TB on the host

@@ -176,7 +176,7 @@ def test_dual_filter_without_theta0_reports_its_parameters():
     from vehjax.filters import dual_ekf
 
     m = vj.models.KinematicBicycle(dt=0.05)
-    est = dual_ekf(m, np.full(4, 1e-3), np.full(4, 1e-2), np.full(2, 1e-6), estimate=("lf", "lr"))
+    est = dual_ekf(m, np.full(4, 1e-3), np.full(4, 1e-2), Q_theta=np.full(2, 1e-6), estimate=("lf", "lr"))
     sim = vj.simulate(m, vj.scenarios.sine_steer(m, speed=5.0, duration=2.0), runs=1,
                       meas_std=0.1, key=jax.random.key(0))
     r = vj.filter(est, sim.measurements[0], sim.inputs, x0=np.asarray(sim.states[0, 0]),

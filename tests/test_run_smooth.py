@@ -104,7 +104,7 @@ def test_bad_smooth_is_refused_naming_it():
     for smooth in ("bogus", 3, "ipls"):  # ipls needs a sigma-point filter
         with pytest.raises(ValueError, match="smooth"):
             vj.run(est, ys, us, x0=X0, P0=P0, smooth=smooth)
-    pf = vj.filters.bootstrap_pf(MODEL, Q, R, 16)
+    pf = vj.filters.bootstrap_pf(MODEL, Q, R, n_particles=16)
     with pytest.raises(ValueError, match="smooth"):
         vj.run(pf, ys, us, x0=X0, P0=P0, smooth=True, key=jax.random.key(0))
 

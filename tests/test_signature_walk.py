@@ -89,20 +89,26 @@ CALLS = {
     **{f"vehjax.filters.{b}": (lambda b=b: (getattr(vj.filters, b), (M, Q, R), {}))
        for b in ("ukf", "ckf", "ackf", "bootstrap_pf")},
     **{f"vehjax.filters.{b}": (lambda b=b: (getattr(vj.filters, b),
-                                            (M, Q, R, np.array([1e-2]), ("cf",)), {}))
+                                            (M, Q, R),
+                                            dict(Q_theta=np.array([1e-2]), estimate=("cf",))))
        for b in ("dual_ekf", "dual_ukf", "joint_ekf", "joint_ukf")},
     "vehjax.filters.liu_west_ukf": lambda: (vj.filters.liu_west_ukf, (M, Q, R),
                                             dict(estimate=("cf",), theta_low=[5e4],
                                                  theta_high=[2e5])),
-    **{f"vehjax.filters.{b}": (lambda b=b: (getattr(vj.filters, b), (M, Q, R),
-                                            dict(biases=("ay",), input_offsets=("delta",))))
+    **{f"vehjax.filters.{b}": (lambda b=b: (getattr(vj.filters, b), (M, Q, R), dict(
+        augment=vj.filters.Augmentation(biases=("ay",), input_offsets=("delta",)))))
        for b in ("vbakf_r", "vbakf_pr")},
+    # the option records check their own fields when made
+    **{f"vehjax.filters.{r}": (lambda r=r: (getattr(vj.filters, r), (), {}))
+       for r in ("SigmaPoints", "Resampling", "LiuWestKernel")},
+    "vehjax.filters.Augmentation": lambda: (vj.filters.Augmentation, (),
+                                            dict(biases=("ay",), input_offsets=("delta",))),
     "vehjax.filters.marginalized_pf": lambda: (
         vj.filters.marginalized_pf, (SingleTrackBank(dt=0.01),),
-        dict(linear_noise_std=0.05, known_std={"phi": 0.01, "r_virt": 0.005},
+        dict(Q=0.05 ** 2, known_std={"phi": 0.01, "r_virt": 0.005},
              niw=vj.filters.NiW(std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02}))),
     "vehjax.filters.marginalized_pf_grid": lambda: (
-        vj.filters.marginalized_pf_grid, (SingleTrackBank(dt=0.01),), dict(linear_noise_std=0.1)),
+        vj.filters.marginalized_pf_grid, (SingleTrackBank(dt=0.01),), dict(Q=0.1 ** 2)),
     "vehjax.data.online_virtual_scale": lambda: (
         vj.data.online_virtual_scale, (np.zeros(T), np.zeros(T), np.full(T, 20.0), 1.6), {}),
 }

@@ -71,7 +71,7 @@ def data():
 BUILDERS = {
     "ekf": lambda m: vj.filters.ekf(m, Q, R),
     "ukf": lambda m: vj.filters.ukf(m, Q, R),
-    "ukf_small_alpha": lambda m: vj.filters.ukf(m, Q, R, alpha=0.5),
+    "ukf_small_alpha": lambda m: vj.filters.ukf(m, Q, R, points=vj.filters.SigmaPoints(alpha=0.5)),
     "ckf": lambda m: vj.filters.ckf(m, Q, R),
     "sr_ukf": lambda m: vj.filters.ukf(m, Q, R, sqrt=True),
     "sr_ckf": lambda m: vj.filters.ckf(m, Q, R, sqrt=True),
@@ -139,9 +139,11 @@ def test_square_root_equals_plain_on_nonlinear_model():
     (the cubature forms are compared on the linear model above)."""
     model, ys, us = _pendulum_data()
     Qp, Rp = np.diag([1e-4, 2.5e-3]), np.diag([0.01, 0.01])
-    a = vj.smooth(vj.filters.ukf(model, Qp, Rp, alpha=0.5, sqrt=True), ys, us, x0=[0.7, 0.0],
+    a = vj.smooth(vj.filters.ukf(model, Qp, Rp, points=vj.filters.SigmaPoints(alpha=0.5),
+                                 sqrt=True), ys, us, x0=[0.7, 0.0],
                   P0=[0.1, 0.1])
-    b = vj.smooth(vj.filters.ukf(model, Qp, Rp, alpha=0.5), ys, us, x0=[0.7, 0.0],
+    b = vj.smooth(vj.filters.ukf(model, Qp, Rp, points=vj.filters.SigmaPoints(alpha=0.5)), ys, us,
+                  x0=[0.7, 0.0],
                   P0=[0.1, 0.1])
     assert vj.filters.sigma.unscented_rule(2, 0.5).wc[0] < 0
     np.testing.assert_allclose(a.states, b.states, atol=1e-10)
@@ -194,7 +196,7 @@ def test_joint_filter_smooths_parameters_as_states():
         ys.append([x + rng.normal(0, 0.2)])
     ys = np.array(ys)
     qx, qb, r = 0.01, 1e-4, 0.04
-    est = vj.filters.joint_ekf(model, [qx], [r], [qb], estimate="b", bounds={})
+    est = vj.filters.joint_ekf(model, [qx], [r], Q_theta=[qb], estimate="b", bounds={})
     sm = vj.smooth(est, ys, us, x0=[0.0], P0=[0.5], theta0=[0.0], P_theta0=[1.0])
     # numpy RTS on z = (x, b): z' = [[0.9, 1], [0, 1]] z + [u, 0], y = [1, 0] z
     Aa, Qa, Ha = np.array([[0.9, 1.0], [0.0, 1.0]]), np.diag([qx, qb]), np.array([[1.0, 0.0]])
@@ -266,7 +268,7 @@ def test_bad_input_names_the_argument(data):
     est = vj.filters.ekf(model, Q, R)
     cases = [
         (dict(estimator=vj.filters.dual_ekf(_pendulum(), np.diag([1e-4, 1e-3]), [0.01, 0.01],
-                                            [0.1], estimate="g")), "estimator"),
+                                            Q_theta=[0.1], estimate="g")), "estimator"),
         (dict(method="nope"), "method"),
         (dict(method="ipls"), "method"),                  # the EKF iterates Jacobians
         (dict(method="ieks", max_iter=0), "max_iter"),
@@ -332,7 +334,7 @@ def test_joint_ukf_smooths_parameters_as_constant_states():
     ys[3, 1] = ys[11] = ys[20, 0] = np.nan
     qx, qb, rr = np.array([4e-4, 2.5e-3]), 1e-3, np.array([0.01, 0.04])
     x0, P0, th0, Pth0 = np.array([0.1, 0.0]), np.array([0.2, 0.3]), np.array([0.0]), np.array([1.0])
-    est = vj.filters.joint_ukf(model, qx, rr, [qb], estimate="b", bounds={}, theta_scale=1.0,
+    est = vj.filters.joint_ukf(model, qx, rr, Q_theta=[qb], estimate="b", bounds={}, theta_scale=1.0,
                                theta_decay=gamma)
     sm = vj.smooth(est, ys, us, x0=x0, P0=P0, theta0=th0, P_theta0=Pth0)
 
@@ -387,7 +389,7 @@ def test_a_filter_without_smoother_is_named_whatever_the_options():
                         lambda x, u, th: jnp.stack([x[0], x[1]]), dt=0.1, state_names=("v", "w"),
                         input_names=("u",), output_names=("y", "z"))
     est = marginalized_pf_grid(m, 8, noisy_input="u", sensors=("y",), linear_states=("w",),
-                               known_std={"z": 0.2}, linear_noise_std=0.05,
+                               known_std={"z": 0.2}, Q=0.05 ** 2,
                                niw=NiW(std0={"u": 0.5, "y": 0.3}))
     with pytest.raises(ValueError, match="^estimator: 'marginalized_pf_grid' has no smoother"):
         vj.smooth(est, np.zeros((5, 2)), np.zeros((5, 1)), x0=np.zeros(2), P0=np.eye(2),

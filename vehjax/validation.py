@@ -72,6 +72,17 @@ def flag(name: str, value, *, allow_none: bool = False) -> bool | None:
     return bool(value)
 
 
+def record(name: str, value, cls):
+    """An option record: ``value`` if it is a ``cls``, ``cls()`` (its defaults) for None, else
+    ValueError naming ``name`` (the records check their own fields when made)."""
+    if value is None:
+        return cls()
+    if not isinstance(value, cls):
+        raise ValueError(f"{name}: expected {cls.__module__.rsplit('.', 1)[0]}.{cls.__name__}"
+                         f"(...), got {value!r}")
+    return value
+
+
 def choice(name: str, value, options) -> str:
     if not isinstance(value, str) or value not in options:
         raise ValueError(f"{name}: expected one of {tuple(options)}, got {value!r}")

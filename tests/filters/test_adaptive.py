@@ -228,9 +228,9 @@ def test_bad_input_raises():
         ackf(LINEAR, Q_TRUE, R_TRUE, floor=0.0)
     with pytest.raises(ValueError, match="^prior_steps:"):
         ackf(LINEAR, Q_TRUE, R_TRUE, prior_steps=-1)
-    with pytest.raises(ValueError, match="^Q0:"):
+    with pytest.raises(ValueError, match="^Q:"):
         ackf(LINEAR, -Q_TRUE, R_TRUE)
-    with pytest.raises(ValueError, match="^R0:"):
+    with pytest.raises(ValueError, match="^R:"):
         ackf(LINEAR, Q_TRUE, np.ones(3))
     est = ackf(LINEAR, Q_TRUE, R_TRUE)
     with pytest.raises(ValueError, match="^P0:"):

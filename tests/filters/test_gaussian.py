@@ -13,6 +13,7 @@ from filterpy.kalman import CubatureKalmanFilter, MerweScaledSigmaPoints, Unscen
 from filterpy.kalman.CubatureKalmanFilter import spherical_radial_sigmas
 
 import vehjax as vj  # float64
+from vehjax.filters import SigmaPoints
 from vehjax.filters.gaussian import ckf, ekf, masked_update, ukf, validate_prior
 from vehjax.filters.sigma import (
     chol_update,
@@ -97,7 +98,8 @@ LINEAR_FILTERS = {
     "ukf": lambda m, Q, R: ukf(m, Q, R),
     "ckf": lambda m, Q, R: ckf(m, Q, R),
     "sr_ukf": lambda m, Q, R: ukf(m, Q, R, sqrt=True),
-    "sr_ukf_negw0": lambda m, Q, R: ukf(m, Q, R, alpha=0.5, beta=2.0, kappa=-1.0, sqrt=True),
+    "sr_ukf_negw0": lambda m, Q, R: ukf(m, Q, R, points=SigmaPoints(alpha=0.5, beta=2.0,
+                                                                    kappa=-1.0), sqrt=True),
     "sr_ckf": lambda m, Q, R: ckf(m, Q, R, sqrt=True),
 }
 
@@ -255,8 +257,10 @@ def _compare(out, ref, tol=1e-8):
 NONLIN_FILTERS = {
     "ekf": lambda: ekf(NONLIN, Q_NL, R_NL),
     "ukf": lambda: ukf(NONLIN, Q_NL, R_NL),
-    "ukf_negw0": lambda: ukf(NONLIN, Q_NL, R_NL, 0.5, 2.0, -1.0),
-    "sr_ukf_negw0": lambda: ukf(NONLIN, Q_NL, R_NL, 0.5, 2.0, -1.0, sqrt=True),
+    "ukf_negw0": lambda: ukf(NONLIN, Q_NL, R_NL, points=SigmaPoints(alpha=0.5, beta=2.0,
+                                                                    kappa=-1.0)),
+    "sr_ukf_negw0": lambda: ukf(NONLIN, Q_NL, R_NL, points=SigmaPoints(alpha=0.5, beta=2.0,
+                                                                       kappa=-1.0), sqrt=True),
     "ckf": lambda: ckf(NONLIN, Q_NL, R_NL),
     "sr_ckf": lambda: ckf(NONLIN, Q_NL, R_NL, sqrt=True),
 }
@@ -465,9 +469,9 @@ def test_bad_prior_and_tuning_raise():
     with pytest.raises(ValueError, match="^x0:"):  # the shape check also holds under jit
         jax.jit(lambda x: est.init(x, P0_LIN))(jnp.zeros(5))
     with pytest.raises(ValueError, match="^alpha:"):
-        ukf(LINEAR, Q_LIN, R_LIN, alpha=0.0)
+        ukf(LINEAR, Q_LIN, R_LIN, points=SigmaPoints(alpha=0.0))
     with pytest.raises(ValueError, match="^kappa:"):
-        ukf(LINEAR, Q_LIN, R_LIN, kappa=-4.0)
+        ukf(LINEAR, Q_LIN, R_LIN, points=SigmaPoints(kappa=-4.0))
     with pytest.raises(ValueError, match=r"^P0\[1\]:"):
         validate_prior(est, np.zeros((2, 4)), np.stack([P0_LIN, -P0_LIN]))
     with pytest.raises(ValueError, match="^x0:"):

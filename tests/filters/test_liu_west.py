@@ -11,9 +11,12 @@ import vehjax as vj
 from vehjax.lib.transforms import Transform
 from vehjax.filters.gaussian import GaussianState, ukf
 from vehjax.filters import smc
+from vehjax.filters import LiuWestKernel, Resampling
 from vehjax.filters.liu_west import liu_west_ukf
 from vehjax.filters.smc import shrink_move
 from vehjax.lib.entrywise import cholesky_observed
+
+from _records import grouped
 
 # Scalar linear model with an unknown input gain b: x' = A x + b u + w, y = x + v.
 A, QV, RV, B_TRUE = 0.9, 0.05, 0.1, 1.0
@@ -68,7 +71,7 @@ def test_recovers_the_gain_like_the_exact_posterior():
     data = [_gain_data(T, s) for s in range(runs)]
     ys, us = np.stack([d[0] for d in data]), np.stack([d[1] for d in data])
     est = liu_west_ukf(_gain_model(), Q=[QV], R=[RV], n_particles=300, estimate=("b",),
-                       theta_low=[LOW], theta_high=[HIGH], gamma=1.0)
+                       theta_low=[LOW], theta_high=[HIGH], kernel=LiuWestKernel(gamma=1.0))
     out = vj.run(est, ys, us, x0=[0.0], P0=[[1.0]], theta0=[1.0], P_theta0=[[1 / 3]],
                  key=jax.random.key(0), return_covariances=True)
     assert not out.diverged.any()
@@ -151,8 +154,8 @@ def test_step_without_information_keeps_the_cloud(bounds):
     )
     M = 20_000
     est = liu_west_ukf(model, Q=[QV], R=[RV], n_particles=M, estimate="b", theta_low=[1000.0],
-                       theta_high=[2500.0], a=0.8, ess_threshold=0.0, bounds=bounds,
-                       move="every")
+                       theta_high=[2500.0], kernel=LiuWestKernel(a=0.8,
+                                                                 move="every"), resampling=Resampling(ess_threshold=0.0), bounds=bounds)
     to_physical = Transform(*est.bounds).to_physical
     state = est.init(jnp.zeros(1), jnp.eye(1), key=jax.random.key(0))
     before = np.asarray(state.particles[0])  # particles (p, M)
@@ -198,7 +201,8 @@ def _scan(est, ys, us, key):
 
 def _two_output_est(**kw):
     return liu_west_ukf(_two_output_model(), Q=[0.05, 0.05], R=[0.1, 0.2], n_particles=64,
-                        estimate=("b1", "b2"), theta_low=[0.0, 0.0], theta_high=[2.0, 1.0], **kw)
+                        estimate=("b1", "b2"), theta_low=[0.0, 0.0], theta_high=[2.0, 1.0],
+                        **grouped(kw))
 
 
 EST2 = _two_output_est()
@@ -312,7 +316,7 @@ def test_estimator_contract():
         (dict(a=0.0), "a"),
         (dict(gamma=0.0), "gamma"),
         (dict(gamma=1.5), "gamma"),
-        (dict(resampling="bogus"), "resampling"),
+        (dict(resampling="bogus"), "scheme"),
         (dict(ess_threshold=2.0), "ess_threshold"),
         (dict(likelihood="exact"), "likelihood"),
         (dict(move="sometimes"), "move"),
@@ -325,7 +329,7 @@ def test_bad_input_raises_value_error_naming_it(kwargs, name):
                 theta_high=[HIGH])
     args.update(kwargs)
     with pytest.raises(ValueError, match=name):
-        liu_west_ukf(_gain_model(), **args)
+        liu_west_ukf(_gain_model(), **grouped(args))
 
 
 def test_bad_init_raises_value_error_naming_it():
@@ -516,7 +520,7 @@ def test_complex_box_is_refused_as_complex(arg):
                 theta_high=[HIGH])
     args[arg] = [1.0 + 0.5j]
     with pytest.raises(ValueError, match=rf"^{arg}: .*complex") as err:
-        liu_west_ukf(_gain_model(), **args)
+        liu_west_ukf(_gain_model(), **grouped(args))
     assert "numbers" not in str(err.value)
 
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import vehjax as vj
+from vehjax.filters import Resampling
 from vehjax.filters.particle import bootstrap_pf
 
 # A 2-state linear-Gaussian model (position and velocity), both observed.
@@ -146,7 +147,8 @@ def test_every_scheme_tracks_the_kalman_filter(scheme, threshold):
     T = 20
     _, ys, us = _simulate(T, R_DIAG, seed=4)
     m_kf, P_kf, _ = _kalman(ys, us, R_DIAG)
-    est = bootstrap_pf(_model(), Q, R_DIAG, 1000, resampling=scheme, ess_threshold=threshold)
+    est = bootstrap_pf(_model(), Q, R_DIAG, n_particles=1000, resampling=Resampling(scheme=scheme,
+                                                                                    ess_threshold=threshold))
     state, out = _run(est, ys, us, _keys(4))
     z = (np.asarray(out.states) - m_kf) / np.sqrt(np.diagonal(P_kf, axis1=1, axis2=2))
     assert np.sqrt(np.mean(z**2)) < 0.1
@@ -157,7 +159,8 @@ def test_every_scheme_tracks_the_kalman_filter(scheme, threshold):
 def test_zero_ess_threshold_never_resamples():
     T = 15
     _, ys, us = _simulate(T, R_DIAG, seed=5)
-    state, _ = _run(bootstrap_pf(_model(), Q, R_DIAG, 200, ess_threshold=0.0), ys, us, _keys(2))
+    state, _ = _run(bootstrap_pf(_model(), Q, R_DIAG, n_particles=200,
+                                 resampling=Resampling(ess_threshold=0.0)), ys, us, _keys(2))
     w = np.asarray(state.weights)
     assert np.all(np.ptp(w, axis=1) > 0)  # never resampled: weights accumulate
     assert np.all(np.asarray(state.ess) < 20)  # and degenerate
@@ -180,8 +183,8 @@ def test_missing_component_is_the_same_as_not_measuring_it():
         input_names=("up", "uv"),
         output_names=("yp",),
     )
-    _, out_nan = _run(bootstrap_pf(_model(), Q, R_FULL, 300), ys_nan, us, _keys(2))
-    _, out_one = _run(bootstrap_pf(one_output, Q, R_FULL[:1, :1], 300), ys[:, :1], us, _keys(2))
+    _, out_nan = _run(bootstrap_pf(_model(), Q, R_FULL, n_particles=300), ys_nan, us, _keys(2))
+    _, out_one = _run(bootstrap_pf(one_output, Q, R_FULL[:1, :1], n_particles=300), ys[:, :1], us, _keys(2))
     for field in ("states", "covariances", "loglik", "nis"):
         np.testing.assert_allclose(getattr(out_nan, field), getattr(out_one, field), rtol=1e-9,
                                    atol=1e-12, err_msg=field)
@@ -191,7 +194,7 @@ def test_missing_component_is_the_same_as_not_measuring_it():
 @pytest.fixture(scope="module")
 def one_step():
     """A 20000-particle filter with full R, its jitted step and its initial state."""
-    est = bootstrap_pf(_model(), Q, R_FULL, 20000)
+    est = bootstrap_pf(_model(), Q, R_FULL, n_particles=20000)
     state = est.init(jnp.asarray(X0), jnp.asarray(P0), key=jax.random.key(1))
     return est, jax.jit(est.step), state
 
@@ -220,7 +223,7 @@ def test_process_noise_is_gaussian_with_covariance_q():
         transition=lambda x, u, th: 0.0 * x, observe=lambda x, u, th: x,
         dt=DT, state_names=("p", "v"), input_names=(), output_names=("yp", "yv"),
     )
-    est = bootstrap_pf(zero, Q, R_DIAG, 50000)
+    est = bootstrap_pf(zero, Q, R_DIAG, n_particles=50000)
     state = est.init(jnp.asarray(X0), jnp.asarray(P0), key=jax.random.key(7))
     state, _ = jax.jit(est.step)(state, jnp.array([jnp.nan, jnp.nan]), jnp.zeros(0))
     v = np.asarray(state.particles).T  # (N, nx): the process noise of one step
@@ -236,7 +239,7 @@ def test_weights_underflow_reinitialises_with_finite_outputs():
     _, ys, us = _simulate(T, R_DIAG, seed=7)
     ys_bad = ys.copy()
     ys_bad[10] = [1e4, -1e4]  # 1e4 / 0.3 standard deviations away: every weight underflows
-    est = bootstrap_pf(_model(), Q, R_DIAG, 500)
+    est = bootstrap_pf(_model(), Q, R_DIAG, n_particles=500)
     state, out = _run(est, ys_bad, us, _keys(3))
     for field in ("states", "covariances", "loglik", "nis"):
         assert np.all(np.isfinite(np.asarray(getattr(out, field)))), field
@@ -262,7 +265,8 @@ def test_non_finite_particles_get_zero_weight_and_a_nan_model_never_leaks():
         observe=lambda x, u, th: x,
         dt=DT, state_names=("p", "v"), input_names=(), output_names=("yp", "yv"),
     )
-    est = bootstrap_pf(half_nan, Q, R_DIAG, 1000, ess_threshold=0.0)
+    est = bootstrap_pf(half_nan, Q, R_DIAG, n_particles=1000,
+                       resampling=Resampling(ess_threshold=0.0))
     state = est.init(jnp.array([0.0, 0.0]), jnp.eye(2), key=jax.random.key(0))
     state, out = jax.jit(est.step)(state, jnp.array([0.5, 0.0]), jnp.zeros(0))
     assert np.all(np.isfinite(out.mean)) and np.all(np.isfinite(out.cov))
@@ -276,7 +280,7 @@ def test_non_finite_particles_get_zero_weight_and_a_nan_model_never_leaks():
         transition=lambda x, u, th: x * jnp.nan, observe=lambda x, u, th: x,
         dt=DT, state_names=("p", "v"), input_names=(), output_names=("yp", "yv"),
     )
-    est = bootstrap_pf(all_nan, Q, R_DIAG, 100)
+    est = bootstrap_pf(all_nan, Q, R_DIAG, n_particles=100)
     step = jax.jit(est.step)
     state = est.init(jnp.asarray(X0), jnp.asarray(P0), key=jax.random.key(0))
     for y in _simulate(5, R_DIAG, seed=0)[1]:
@@ -291,7 +295,7 @@ def test_float32_prior_runs_in_float32():
     T = 20
     _, ys, us = _simulate(T, R_DIAG, seed=8)
     m_kf, P_kf, _ = _kalman(ys, us, R_DIAG)
-    est = bootstrap_pf(_model(), Q, R_DIAG, 1000)
+    est = bootstrap_pf(_model(), Q, R_DIAG, n_particles=1000)
     state, out = _run(est, ys.astype(np.float32), us.astype(np.float32), _keys(2),
                       x0=X0.astype(np.float32), P0_=P0.astype(np.float32))
     assert out.states.dtype == jnp.float32 and state.particles.dtype == jnp.float32
@@ -308,7 +312,7 @@ def test_dynamic3dof_follows_the_truth():
     Rd = np.diag([0.2, 0.2, 0.05]) ** 2
     sim = vj.simulate(model, scn, runs=2, key=jax.random.key(0),
                       process_std=np.sqrt(np.diag(Qd)), meas_std=np.sqrt(np.diag(Rd)))
-    est = bootstrap_pf(model, Qd, Rd, 300)
+    est = bootstrap_pf(model, Qd, Rd, n_particles=300)
 
     def one(key, ys):
         return vj.filter(est, ys, sim.inputs, jnp.asarray(scn.x0),
@@ -337,11 +341,11 @@ def test_bad_input_raises_value_error_naming_it():
     for n in (0, -3, 2.5, True, "100"):
         with pytest.raises(ValueError, match="n_particles"):
             bootstrap_pf(m, Q, R_DIAG, n_particles=n)
-    with pytest.raises(ValueError, match="resampling.*systematic.*stratified.*multinomial.*resid"):
-        bootstrap_pf(m, Q, R_DIAG, resampling="bogus")
+    with pytest.raises(ValueError, match="^scheme.*systematic.*stratified.*multinomial.*resid"):
+        bootstrap_pf(m, Q, R_DIAG, resampling=Resampling(scheme="bogus"))
     for thr in (-0.1, 1.5, "half", float("nan")):
         with pytest.raises(ValueError, match="ess_threshold"):
-            bootstrap_pf(m, Q, R_DIAG, ess_threshold=thr)
+            bootstrap_pf(m, Q, R_DIAG, resampling=Resampling(ess_threshold=thr))
     with pytest.raises(ValueError, match="Q"):
         bootstrap_pf(m, np.eye(3), R_DIAG)
     with pytest.raises(ValueError, match="Q"):
@@ -350,7 +354,7 @@ def test_bad_input_raises_value_error_naming_it():
         bootstrap_pf(m, Q, -np.eye(2))
     with pytest.raises(ValueError, match="model"):
         bootstrap_pf(object(), Q, R_DIAG)
-    est = bootstrap_pf(m, Q, R_DIAG, 10)
+    est = bootstrap_pf(m, Q, R_DIAG, n_particles=10)
     with pytest.raises(ValueError, match="key"):
         est.init(jnp.asarray(X0), jnp.asarray(P0))
     with pytest.raises(ValueError, match="x0"):
@@ -365,7 +369,7 @@ def test_works_with_vehjax_run():
     run_mod = pytest.importorskip("vehjax.run")
     T = 15
     _, ys, us = _simulate(T, R_DIAG, seed=9)
-    est = bootstrap_pf(_model(), Q, R_DIAG, 200)
+    est = bootstrap_pf(_model(), Q, R_DIAG, n_particles=200)
     res = run_mod.run(est, np.stack([ys, ys]), us, x0=X0, P0=P0, key=jax.random.key(0))
     m_kf, _, _ = _kalman(ys, us, R_DIAG)
     assert res.states.shape == (2, T, 2) and not np.any(res.diverged)
@@ -505,18 +509,20 @@ def test_resample_argument_is_called_and_validated():
         return smc.resample(*args)
 
     k = jax.random.key(2)
-    plain = vj.filter(bootstrap_pf(_model(), Q, R_DIAG, 50), ys, us, X0, P0, key=k)
-    mine = vj.filter(bootstrap_pf(_model(), Q, R_DIAG, 50, "stratified", 0.9,
-                                  resample=counting), ys, us, X0, P0, key=k)
+    plain = vj.filter(bootstrap_pf(_model(), Q, R_DIAG, n_particles=50), ys, us, X0, P0, key=k)
+    mine = vj.filter(bootstrap_pf(_model(), Q, R_DIAG, n_particles=50,
+                                  resampling=Resampling(scheme="stratified", ess_threshold=0.9,
+                                                        resample=counting)), ys, us, X0, P0, key=k)
     assert calls and all(c == ("stratified", 0.9) for c in calls)  # traced with its arguments
-    sg = vj.filter(bootstrap_pf(_model(), Q, R_DIAG, 50, resample=smc.resample_stop_gradient),
+    sg = vj.filter(bootstrap_pf(_model(), Q, R_DIAG, n_particles=50,
+                                resampling=Resampling(resample=smc.resample_stop_gradient)),
                    ys, us, X0, P0, key=k)
     np.testing.assert_array_equal(sg.states, plain.states)  # same forward pass
     np.testing.assert_array_equal(sg.loglik, plain.loglik)
     assert not np.array_equal(mine.states, plain.states)  # another scheme and threshold
     for bad in (42, "systematic"):
         with pytest.raises(ValueError, match="^resample: expected None or a resampling func"):
-            bootstrap_pf(_model(), Q, R_DIAG, 50, resample=bad)
+            bootstrap_pf(_model(), Q, R_DIAG, n_particles=50, resampling=Resampling(resample=bad))
 
 
 def test_many_runs_form_equals_the_step_run_by_run():
@@ -526,7 +532,8 @@ def test_many_runs_form_equals_the_step_run_by_run():
     ys = np.stack([_simulate(T, R_FULL, seed=s, missing=[(2, 0)])[1] for s in range(runs)])
     _, _, us = _simulate(T, R_FULL, seed=0)
     x0 = X0 + np.arange(runs)[:, None] * 0.1
-    est = bootstrap_pf(_model(), Q, R_FULL, 64, ess_threshold=0.8)
+    est = bootstrap_pf(_model(), Q, R_FULL, n_particles=64,
+                       resampling=Resampling(ess_threshold=0.8))
     form = assert_batch_equals_step(est, ys, us, x0, P0, keys=jax.random.split(jax.random.key(0),
                                                                                runs))
     assert form == ("batch" if est.batch is not None else "vmap")

@@ -234,8 +234,9 @@ def test_bias_and_input_offset_as_kalman_states():
     for t in range(T):
         x = A @ x + B @ (us[t] + offset) + rng.multivariate_normal(np.zeros(2), Q)
         Y.append(H @ x + rng.multivariate_normal(np.zeros(2), R_TRUE) + np.array([bias, 0.0]))
-    est = vb.vbakf_r(LINEAR, Q, np.diag(R_TRUE), form="ekf", biases=("y1",),
-                     input_offsets=("a",), bias_std0=1.0, offset_std0=1.0, iterations=3)
+    est = vb.vbakf_r(LINEAR, Q, np.diag(R_TRUE), form="ekf",
+                     augment=vb.Augmentation(biases=("y1",), input_offsets=("a",), bias_std0=1.0,
+                                             offset_std0=1.0), iterations=3)
     assert est.param_names == ("a_offset", "y1_bias", "y1_std", "y2_std")
     assert vb.param_units(LINEAR, est) == ("m/s^2", "m", "m", "m")
     res = vj.filter(est, np.array(Y), us, x0=X0, P0=P0)
@@ -256,12 +257,12 @@ def test_bad_input_raises_naming_it(build):
             build(LINEAR, Q, R0, iterations=n)
     with pytest.raises(ValueError, match="form"):
         build(LINEAR, Q, R0, form="pf")
-    with pytest.raises(ValueError, match="R0"):
+    with pytest.raises(ValueError, match="^R: "):
         build(LINEAR, Q, [0.1, 0.1, 0.1])
     with pytest.raises(ValueError, match="sensors"):
         build(LINEAR, Q, R0, sensors=("nope",))
     with pytest.raises(ValueError, match="biases"):
-        build(LINEAR, Q, [0.1], sensors=("y1",), biases=("y2",))
+        build(LINEAR, Q, [0.1], sensors=("y1",), augment=vb.Augmentation(biases=("y2",)))
     with pytest.raises(ValueError, match="known_std"):
         build(LINEAR, Q, R0, sensors=("y1", "y2"), known_std={"y1": 0.1})
     build(LINEAR, Q, R0, forgetting=1.0, iterations=1)  # the edges are allowed
@@ -307,20 +308,22 @@ def test_missing_components_leave_their_statistics():
 
 
 def test_per_name_bias_stds():
-    est = vb.vbakf_r(LINEAR, Q, [0.1, 0.1], biases=("y1", "y2"),
-                     bias_std0={"y1": 2.0, "y2": 0.5}, bias_walk={"y1": 0.0, "y2": 0.01})
+    aug = vb.Augmentation(biases=("y1", "y2"), bias_std0={"y1": 2.0, "y2": 0.5},
+                          bias_walk={"y1": 0.0, "y2": 0.01})
+    est = vb.vbakf_r(LINEAR, Q, [0.1, 0.1], augment=aug)
     _, P = est.param_prior
     np.testing.assert_allclose(np.diag(P)[:2], [4.0, 0.25])
     with pytest.raises(ValueError, match="bias_std0"):
-        vb.vbakf_r(LINEAR, Q, [0.1, 0.1], biases=("y1", "y2"), bias_std0={"y1": 2.0})
+        vb.vbakf_r(LINEAR, Q, [0.1, 0.1], augment=vb.Augmentation(biases=("y1", "y2"),
+                                                                  bias_std0={"y1": 2.0}))
     with pytest.raises(ValueError, match="bias_walk"):
-        vb.vbakf_r(LINEAR, Q, [0.1, 0.1], biases=("y1",), bias_walk=-1.0)
+        vb.vbakf_r(LINEAR, Q, [0.1, 0.1], augment=vb.Augmentation(biases=("y1",), bias_walk=-1.0))
 
 
 def test_vbakf_r_refuses_a_full_R0_rather_than_dropping_its_correlations():
     """vbakf_r learns one variance per sensor: a full R0 would lose its correlations silently,
     so it is refused naming R0 and the way out (issue 46); its diagonal is accepted."""
     R_full = np.array([[0.1, 0.03], [0.03, 0.1]])
-    with pytest.raises(ValueError, match="^R0: vbakf_r learns one variance per sensor.*vbakf_pr"):
+    with pytest.raises(ValueError, match="^R: vbakf_r learns one variance per sensor.*vbakf_pr"):
         vb.vbakf_r(LINEAR, Q, R_full)
     vb.vbakf_r(LINEAR, Q, np.diag(np.diag(R_full)))  # a diagonal matrix is the variances

@@ -209,7 +209,8 @@ def test_ancestor_tracing_is_degenerate_as_documented():
     with the same key."""
     ys, us = _data(T=40)
     n = 100
-    est = vj.filters.bootstrap_pf(_model(), Q, R, n_particles=n, ess_threshold=1.0)
+    est = vj.filters.bootstrap_pf(_model(), Q, R, n_particles=n,
+                                  resampling=vj.filters.Resampling(ess_threshold=1.0))
     an = jax.jit(lambda: ps.smooth(est, ys, us, x0=X0, P0=P0, key=jax.random.key(4),
                                    method="ancestor", n_trajectories=n))()
     nu = np.asarray(an.n_unique)

@@ -90,7 +90,7 @@ def _known_noise_mpf(n, **kw):
     """The MPF with its noise statistics made known (nu0 = 1e7, lambda = 1, gamma0 = 1e-9, the
     true means and stds as prior) and the linear state in each particle's Gaussian."""
     return marginalized_pf(_model(), n, noisy_input="u", sensors=("y1",), known_std={"y2": SD2},
-                           linear_states=("a",), linear_noise_std=SIG_Z,
+                           linear_states=("a",), Q=SIG_Z ** 2,
                            kalman_states=kw.pop("kalman_states", "all"), **kw,
                            niw=NiW(std0={"u": SIG_W, "y1": SD1}, mean0={"u": MU_W, "y1": B1},
                                    forgetting=1.0, nu0=1e7, gamma0=1e-9))
@@ -251,7 +251,7 @@ def _bank_mpf(model):
     """The paper's filter with Gaussian particle states on SingleTrackBank (16 particles) and
     its prior covariance."""
     est = marginalized_pf(model, 16, known_std={"phi": 0.01, "r_virt": 0.005},
-                          linear_noise_std=0.05, kalman_states="all",
+                          Q=0.05 ** 2, kalman_states="all",
                           niw=NiW(std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02}))
     return est, np.diag([0.1, 0.01, 1e-4, 1e-4, 1e-4])
 
@@ -335,7 +335,7 @@ def _linear_mpf(n, ab=AB):
     """The paper's filter on _model_lin, noise statistics unknown and forgotten (lambda 0.9), so
     that the plug-in estimates move along a path."""
     return marginalized_pf(_model_lin(ab), n, noisy_input="u", sensors=("y1",),
-                           known_std={"y2": SD2}, linear_states=("a",), linear_noise_std=SIG_Z,
+                           known_std={"y2": SD2}, linear_states=("a",), Q=SIG_Z ** 2,
                            kalman_states="linear",
                            niw=NiW(std0={"u": 0.5, "y1": 0.2}, forgetting=LAM_LIN))
 
@@ -523,7 +523,7 @@ def kalman_rts_exact(ys, us):
 def _smoothed_linear(n, reps=8, method=None):
     ys, us = _data_exact()
     est = marginalized_pf(_model_lin(ab=0.0), n, noisy_input="u", sensors=("y1",),
-                          known_std={"y2": SD2}, linear_states=("a",), linear_noise_std=SIG_Z,
+                          known_std={"y2": SD2}, linear_states=("a",), Q=SIG_Z ** 2,
                           kalman_states="linear",
                           niw=NiW(std0={"u": SIG_W, "y1": SD1}, mean0={"u": MU_W, "y1": B1},
                                   forgetting=1.0, nu0=1e7, gamma0=1e-9))
@@ -583,7 +583,7 @@ def test_linear_step_joint_is_the_filters_kalman_step_on_single_track_bank():
     Y[[9, 25], names.index("r")] = np.nan
     n = 16
     est = marginalized_pf(model, n, known_std={"phi": 0.01, "r_virt": 0.005},
-                          linear_noise_std=0.05, kalman_states="linear",
+                          Q=0.05 ** 2, kalman_states="linear",
                           niw=NiW(std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02}))
     P0b = np.diag([0.1, 0.01, 1e-2, 1e-3, 1e-4]) ** 2
     fwd = jax.jit(lambda k: ms.forward(est, jnp.asarray(Y), jnp.asarray(U), jnp.zeros(5),

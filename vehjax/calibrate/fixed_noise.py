@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..filters import NiW, marginalized_pf
+from ..filters import NiW, Resampling, marginalized_pf
 from ..filters.base import Dims, Estimator, Runtime, StepOutput
 from ..models import Model
 
@@ -60,10 +60,10 @@ def _fixed_noise_filter(aug, n_particles, name, q_std, resampling, ess_threshold
     states = aug.state_names[1:]
     return marginalized_pf(
         aug, n_particles, noisy_input=name, sensors=tuple(aug.output_names),
-        linear_states=states, linear_noise_std=q_std,
+        linear_states=states, Q=q_std ** 2,
         niw=NiW(std0={k: 1.0 for k in (name,) + tuple(aug.output_names)}, forgetting=1.0,
-                gamma0=FIXED_GAMMA0, nu0=FIXED_NU0), kalman_states="all", resampling=resampling,
-        ess_threshold=ess_threshold)
+                gamma0=FIXED_GAMMA0, nu0=FIXED_NU0), kalman_states="all",
+        resampling=Resampling(scheme=resampling, ess_threshold=ess_threshold))
 
 
 def fixed_noise_mpf(model, Q, R, *, input_noise, n_particles: int = 100,

@@ -26,7 +26,7 @@ import numpy as np
 
 from .. import validation
 from ..filtering import filter as run_filter
-from ..filters import bootstrap_pf
+from ..filters import Resampling, bootstrap_pf
 from ..filters import input_noise as inoise
 from ..lib import square_root
 from . import correlated
@@ -118,6 +118,7 @@ def log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R, nam
 #: ``builder_kwargs`` of the bootstrap PF that the correlated estimate (:mod:`vehjax.calibrate.correlated`)
 #: reproduces; it resamples systematically at every step
 CPM_KWARGS = ("n_particles", "resampling", "input_noise")
+_CPM_RESAMPLING = Resampling(scheme="systematic")
 
 
 def check_correlation(correlation):
@@ -138,7 +139,7 @@ def cpm_log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R,
     Raises:
         ValueError: ``builder`` not ``vehjax.filters.bootstrap_pf`` (the only filter whose
             random numbers this reproduces), or ``builder_kwargs`` other than ``n_particles``,
-            ``resampling="systematic"`` and ``input_noise``.
+            ``resampling=Resampling(scheme="systematic")`` and ``input_noise``.
     """
     if builder is not bootstrap_pf:
         raise ValueError(f"correlation: the correlated estimate is written for "
@@ -146,10 +147,10 @@ def cpm_log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R,
                          f"correlation=None")
     kwargs = dict(builder_kwargs or {})
     extra = sorted(set(kwargs) - set(CPM_KWARGS))
-    if extra or kwargs.get("resampling", "systematic") != "systematic":
+    if extra or kwargs.get("resampling", _CPM_RESAMPLING) != _CPM_RESAMPLING:
         raise ValueError(f"builder_kwargs: with correlation the bootstrap PF resamples "
                          f"systematically at every step and takes only {CPM_KWARGS} "
-                         f"(resampling='systematic'), got {kwargs!r}")
+                         f"(resampling=Resampling(scheme='systematic')), got {kwargs!r}")
     n = validation.integer("n_particles", kwargs.get("n_particles", 1000), 2)
     tg = targets(model, names)
     if tg.inputs and "input_noise" in kwargs:

@@ -10,11 +10,13 @@ from .adaptive import AckfState, ackf
 from .base import Backward, Dims, Estimator, ParamSpec, Runtime, StepOutput
 from .dual import DualState, JointState, dual_ekf, dual_ukf, joint_ekf, joint_ukf
 from .gaussian import GaussianState, SqrtGaussianState, ckf, ekf, masked_update, ukf, validate_prior
-from .liu_west import LiuWestState, liu_west_ukf
+from .sigma import SigmaPoints
+from .smc import Resampling
+from .liu_west import LiuWestKernel, LiuWestState, liu_west_ukf
 from .marginalized import (InputStdGrid, MeanStates, MPFState, NiW, marginalized_pf,
                            marginalized_pf_grid)
 from .particle import PFState, bootstrap_pf
-from .vb import VBPRState, VBState, vbakf_pr, vbakf_r
+from .vb import Augmentation, VBPRState, VBState, vbakf_pr, vbakf_r
 
 __all__ = [
     "Estimator", "StepOutput", "Dims", "ParamSpec", "Runtime", "Backward", "ekf", "ukf", "ckf", "ackf", "bootstrap_pf",
@@ -23,5 +25,6 @@ __all__ = [
     "DualState", "JointState", "LiuWestState",
     "GaussianState", "SqrtGaussianState", "AckfState", "PFState",
     "vbakf_r", "vbakf_pr", "VBState", "VBPRState",
+    "SigmaPoints", "Resampling", "LiuWestKernel", "Augmentation",
     "masked_update", "validate_prior", "sigma", "kalman", "smc", "resampling",
 ]

@@ -16,7 +16,7 @@ for Z); the two signs of eq. 29-30 are read that way.
 
 Order within a step: the gain at step k uses Q_{k-1}, R_{k-1}; the new estimates are formed
 after the update and used from step k + 1 on. Thus an innovation never weights itself, the first
-step runs on the user's Q0, R0, and ``loglik`` stays the predictive log-likelihood given
+step runs on the user's ``Q``, ``R`` (written Q0, R0 here), and ``loglik`` stays the predictive log-likelihood given
 y_1..y_{k-1}.
 
 Positive definiteness: the raw recursions are differences of covariances and can become
@@ -91,8 +91,9 @@ def _projector(ref: np.ndarray, floor: float):
 
 def ackf(
     model,
-    Q0,
-    R0,
+    Q,
+    R,
+    *,
     forgetting: float = 0.98,
     adapt=("Q", "R"),
     floor: float = 1e-6,
@@ -103,10 +104,12 @@ def ackf(
 
     Args:
         model: a vehjax model (nx states, ny outputs).
-        Q0: initial process noise covariance, (nx, nx) or (nx,) variances; state units squared.
+        Q: initial value of the adapted process noise covariance (Q0 below and in the module
+            docstring), (nx, nx) or (nx,) variances; state units squared.
             Positive definite when ``adapt`` includes "Q" (it is the metric of the projection
             below); otherwise positive semi-definite (zero with ``input_noise``).
-        R0: initial measurement noise covariance, (ny, ny) or (ny,) variances.
+        R: initial value of the adapted measurement noise covariance (R0), (ny, ny) or (ny,)
+            variances.
         forgetting: forgetting factor b in (0, 1]; the memory index is d_k = (1-b)/(1-b^k), so
             past steps fade with weight b per step (memory of about 1/(1-b) steps). The paper
             uses b in [0.95, 0.995]; other values are accepted (smaller b tracks faster and is
@@ -135,8 +138,8 @@ def ackf(
     if isinstance(adapt, str):
         adapt = (adapt,)
     adapt = validation.names("adapt", adapt, _ADAPT, allow_empty=True)
-    Q0n = validation.cov("Q0", Q0, nx, allow_psd="Q" not in adapt)
-    R0n = validation.cov("R0", R0, ny)
+    Q0n = validation.cov("Q", Q, nx, allow_psd="Q" not in adapt)
+    R0n = validation.cov("R", R, ny)
     b = validation.number("forgetting", forgetting, 0.0, 1.0, high_open=False)
     Lu = _inoise.input_factor(input_noise, model.input_names)
     tr = in_dtype(per_point(model)[0])

@@ -99,7 +99,7 @@ from .base import (Backward, Dims, Estimator, GaussianSmoother,
 from ._model import cast_yu, check_model, model_dims, per_point
 from ._model import prior as _state_prior
 from .kalman import linearized_measure, linearized_predict, masked_update
-from .sigma import unscented_rule
+from .sigma import SigmaPoints
 
 __all__ = ["DualState", "JointState", "dual_ekf", "dual_ukf", "joint_ekf", "joint_ukf"]
 
@@ -334,7 +334,7 @@ _ARGS_DOC = """
 
 
 def dual_ekf(
-    model, Q, R, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
+    model, Q, R, *, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
     param_innovation: str = "predictive", bounds=None, recurrent: bool = True, input_noise=None,
 ) -> Estimator:
     """Dual extended Kalman filter (Dutta et al. 2019, Algorithm 1), Jacobians by ``jax.jacfwd``.
@@ -390,8 +390,8 @@ def dual_ekf(
 
 
 def dual_ukf(
-    model, Q, R, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
-    alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0,
+    model, Q, R, *, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
+    points: SigmaPoints = SigmaPoints(),
     param_innovation: str = "predictive", bounds=None, recurrent: bool = True, input_noise=None,
 ) -> Estimator:
     """Dual unscented Kalman filter (Dutta et al. 2019, Algorithm 2).
@@ -401,8 +401,8 @@ def dual_ukf(
     (th-, Pth-) and propagates each through the model from the previous state estimate:
     ``Z_i = h(f(x_(t-1), u_t, th_i), u_t, th_i)``.
     {args}
-        alpha, beta, kappa: scaling of both sigma-point sets (eq. 14-19, see
-            :func:`vehjax.filters.sigma.unscented_rule`).
+        points: scaling of both sigma-point sets, :class:`~vehjax.filters.SigmaPoints` (eq.
+            14-19, see :func:`vehjax.filters.sigma.unscented_rule`).
         param_innovation: "predictive" (default): the parameter innovation covariance is
             ``Cov_i[Z_i] + S`` with S the state filter's; "measurement": ``Cov_i[Z_i] + R`` as
             Algorithm 2 is printed.
@@ -410,13 +410,13 @@ def dual_ukf(
     Returns:
         ``Estimator`` with state :class:`DualState`; ``param_names`` = ``estimate``.
     """
+    points = validation.record("points", points, SigmaPoints)
     recurrent = validation.flag("recurrent", recurrent)
     cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds, input_noise)
     predictive = _check_param_innovation(param_innovation)
-    rule_s = unscented_rule(cfg.nx, alpha, beta, kappa)
-    rule_a = None if cfg.Lu is None else unscented_rule(cfg.nx + cfg.Lu.shape[1], alpha, beta,
-                                                        kappa)
-    rule_p = unscented_rule(len(cfg.names), alpha, beta, kappa)
+    rule_s = points.rule(cfg.nx)
+    rule_a = None if cfg.Lu is None else points.rule(cfg.nx + cfg.Lu.shape[1])
+    rule_p = points.rule(len(cfg.names))
     f, h = _model_fns(model, cfg)
 
     def step(state, y, u):
@@ -491,7 +491,7 @@ def _noise_aug(cfg: _Setup, a, Q_theta, dt, fa=None, u=None):
 
 
 def joint_ekf(
-    model, Q, R, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None, bounds=None,
+    model, Q, R, *, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None, bounds=None,
     input_noise=None,
 ) -> Estimator:
     """Joint EKF on the augmented state [x; theta] with random-walk parameters.
@@ -517,20 +517,21 @@ def joint_ekf(
 
 
 def joint_ukf(
-    model, Q, R, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
-    alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, bounds=None, input_noise=None,
+    model, Q, R, *, Q_theta, estimate, theta_decay: float = 1.0, theta_scale=None,
+    points: SigmaPoints = SigmaPoints(), bounds=None, input_noise=None,
 ) -> Estimator:
     """Joint UKF on the augmented state [x; theta] (nx + p sigma-point dimensions).
     {args}
-        alpha, beta, kappa: sigma-point scaling (see :func:`vehjax.filters.sigma.unscented_rule`).
+        points: sigma-point scaling, :class:`~vehjax.filters.SigmaPoints` (see
+            :func:`vehjax.filters.sigma.unscented_rule`).
 
     Returns:
         ``Estimator`` with state :class:`JointState`; ``param_names`` = ``estimate``.
     """
+    points = validation.record("points", points, SigmaPoints)
     cfg = _setup(model, Q, R, Q_theta, estimate, theta_decay, theta_scale, bounds, input_noise)
-    rule = unscented_rule(cfg.nx + len(cfg.names), alpha, beta, kappa)
-    rule_a = None if cfg.Lu is None else unscented_rule(
-        cfg.nx + len(cfg.names) + cfg.Lu.shape[1], alpha, beta, kappa)
+    rule = points.rule(cfg.nx + len(cfg.names))
+    rule_a = None if cfg.Lu is None else points.rule(cfg.nx + len(cfg.names) + cfg.Lu.shape[1])
     fa, ha = _augmented(model, cfg)
 
     def step(state, y, u):

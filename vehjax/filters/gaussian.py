@@ -66,7 +66,7 @@ from .kalman import (
     measure_entries,
     predict_entries,
 )
-from .sigma import SigmaRule, cubature_rule, unscented_rule
+from .sigma import SigmaPoints, SigmaRule, cubature_rule
 
 __all__ = ["GaussianState", "SqrtGaussianState", "ekf", "ukf", "ckf", "masked_update",
            "UpdateResult", "validate_prior", "check_cov"]
@@ -120,7 +120,7 @@ def _prior_init(model, sqrt: bool):
 # EKF
 
 
-def ekf(model, Q, R, input_noise=None) -> Estimator:
+def ekf(model, Q, R, *, input_noise=None) -> Estimator:
     """Extended Kalman filter, Jacobians of transition and observe by ``jax.jacfwd``; the
     covariance update in Joseph form (stays positive definite for very wide priors).
 
@@ -296,8 +296,7 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str, input_noi
 
 
 def ukf(
-    model, Q, R, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, sqrt: bool = False,
-    input_noise=None,
+    model, Q, R, *, points: SigmaPoints = SigmaPoints(), sqrt: bool = False, input_noise=None,
 ) -> Estimator:
     """Unscented Kalman filter with the scaled sigma points of Dutta et al. 2019 eq. 14-19.
 
@@ -306,10 +305,11 @@ def ukf(
         Q: process noise covariance, (nx, nx), or (nx,) variances; in state units squared.
             Positive semi-definite: zero variances for noise-free states are allowed.
         R: measurement noise covariance, (ny, ny), or (ny,) variances; in output units squared.
-        alpha, beta, kappa: sigma-point scaling (see :func:`vehjax.filters.sigma.unscented_rule`).
-            The defaults alpha = 1, beta = 2, kappa = 0 put the points at +-sqrt(nx) standard
-            deviations with non-negative weights, which keeps P positive definite on strongly
-            nonlinear vehicle models; small alpha (1e-3) gives a large negative centre weight.
+        points: the sigma-point scaling, :class:`~vehjax.filters.SigmaPoints` (alpha, beta,
+            kappa; see :func:`vehjax.filters.sigma.unscented_rule`). The defaults alpha = 1,
+            beta = 2, kappa = 0 put the points at +-sqrt(nx) standard deviations with
+            non-negative weights, which keeps P positive definite on strongly nonlinear vehicle
+            models; small alpha (1e-3) gives a large negative centre weight.
         sqrt: propagate the Cholesky factor of P by QR (square-root UKF). A negative centre
             weight is handled by a rank-1 Cholesky downdate. Use it for priors far wider than
             the measurement noise (P0 ~ 1e12 R and more): the plain form's P- - K S K^T then
@@ -318,19 +318,19 @@ def ukf(
             ``{input name: std}`` in the input's units or an (nu, nu) covariance in input units
             squared; None (default) for none. The prediction's sigma points are those of the
             state augmented with the k noisy input components (the rule in nx + k dimensions,
-            same alpha, beta, kappa); Q may then be zero. No runs-last form (``batch=None``).
+            same ``points``); Q may then be zero. No runs-last form (``batch=None``).
 
     Returns:
         ``Estimator`` with state :class:`GaussianState` (x, P, theta), or
         :class:`SqrtGaussianState` (x, L, theta) when ``sqrt``.
     """
     nx, _ = check_model(model)
+    points = validation.record("points", points, SigmaPoints)
     sqrt = validation.flag("sqrt", sqrt)
-    return _sigma_filter(model, Q, R, unscented_rule(nx, alpha, beta, kappa), sqrt, "UKF",
-                         input_noise, lambda n: unscented_rule(n, alpha, beta, kappa))
+    return _sigma_filter(model, Q, R, points.rule(nx), sqrt, "UKF", input_noise, points.rule)
 
 
-def ckf(model, Q, R, sqrt: bool = False, input_noise=None) -> Estimator:
+def ckf(model, Q, R, *, sqrt: bool = False, input_noise=None) -> Estimator:
     """Cubature Kalman filter: third-degree spherical-radial rule, 2 nx equally weighted points.
 
     Args:

@@ -72,6 +72,7 @@ kernel, no gamma) and the UKF only predicts.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from functools import partial
 from typing import Any, Callable, NamedTuple
@@ -82,7 +83,6 @@ import numpy as np
 
 from .. import validation
 from ..runtime import prng
-from . import resampling as _rs
 from . import sigma, smc
 from ..lib.entrywise import cholesky_observed
 from ..lib.transforms import Transform
@@ -97,6 +97,36 @@ __all__ = ["LiuWestState", "liu_west_ukf", "full_theta", "box_jitter", "predict_
 
 _LIKELIHOODS = ("predictive", "measurement")
 _MOVES = ("resampled", "every")
+
+
+@dataclasses.dataclass(frozen=True)
+class LiuWestKernel:
+    """How :func:`liu_west_ukf` weighs and moves its parameter particles (its option ``kernel``).
+
+    Attributes:
+        a: Liu-West shrinkage in (0, 1); the kernel variance is h^2 V with h^2 = 1 - a^2.
+            Liu and West's discount factor delta in [0.95, 0.99] gives a = (3 delta - 1) /
+            (2 delta) in [0.974, 0.995].
+        gamma: residual weight factor in (0, 1]: the fraction of each particle's weight carried
+            to the next step, the rest spread evenly (module docstring). 1 is plain Liu-West.
+        move: when the kernel moves the particles: "resampled" (default) at the steps that
+            resample, "every" at every step with a measurement (Liu and West's, the paper's).
+            "every" biases a skewed posterior's mean (module docstring).
+        likelihood: what the particles are weighed by: "predictive" (S = the UKF's one-step
+            innovation covariance) or "measurement" (S = R, as in the paper); module docstring.
+    """
+
+    a: float = 0.98
+    gamma: float = 1.0
+    move: str = "resampled"
+    likelihood: str = "predictive"
+
+    def __post_init__(self):
+        object.__setattr__(self, "a", validation.number("a", self.a, 0.0, 1.0))
+        object.__setattr__(self, "gamma", validation.number("gamma", self.gamma, 0.0, 1.0,
+                                                            high_open=False))
+        validation.choice("move", self.move, _MOVES)
+        validation.choice("likelihood", self.likelihood, _LIKELIHOODS)
 
 
 class LiuWestState(NamedTuple):
@@ -465,22 +495,16 @@ def liu_west_ukf(
     model,
     Q,
     R,
+    *,
     n_particles: int = 1000,
     estimate=None,
     theta_low=None,
     theta_high=None,
-    a: float = 0.98,
-    gamma: float = 1.0,
-    resampling: str = "systematic",
-    ess_threshold: float = 0.5,
-    likelihood: str = "predictive",
-    alpha: float = 1.0,
-    beta: float = 2.0,
-    kappa: float = 0.0,
+    kernel: LiuWestKernel = LiuWestKernel(),
+    resampling: smc.Resampling = smc.Resampling(),
+    points: sigma.SigmaPoints = sigma.SigmaPoints(),
     bounds=None,
     recurrent: bool = True,
-    move: str = "resampled",
-    resample=None,
 ) -> Estimator:
     """Liu-West particle filter for the parameters ``estimate`` plus a UKF for the state.
 
@@ -494,19 +518,14 @@ def liu_west_ukf(
         estimate: names of the estimated parameters, a subset of ``model.param_names`` (p of
             them); the others stay at ``model.theta``.
         theta_low, theta_high: (p,) bounds of the uniform prior, physical units, low < high.
-        a: Liu-West shrinkage in (0, 1); the kernel variance is h^2 V with h^2 = 1 - a^2.
-            Liu and West's discount factor delta in [0.95, 0.99] gives a = (3 delta - 1) /
-            (2 delta) in [0.974, 0.995].
-        gamma: residual weight factor in (0, 1]: the fraction of each particle's weight carried
-            to the next step, the rest spread evenly (module docstring). 1 is plain Liu-West.
-        resampling: "systematic", "stratified", "multinomial" or "residual"
-            (see :mod:`vehjax.filters.resampling`).
-        ess_threshold: resample when ESS < ess_threshold * M, in [0, 1]; 1 resamples every step
-            whose weights are not all equal, 0 never (with ``move="resampled"`` the kernel then
-            never moves the particles either).
-        likelihood: "predictive" (S = the UKF's one-step innovation covariance) or
-            "measurement" (S = R, as in the paper); see the module docstring.
-        alpha, beta, kappa: the UKF's sigma-point scaling
+        kernel: :class:`LiuWestKernel`: the shrinkage a, the residual weight gamma, when the
+            kernel moves the particles and the likelihood they are weighed by.
+        resampling: :class:`~vehjax.filters.Resampling`: the scheme, the ESS rule (resample
+            when ESS < ess_threshold * M; 1 resamples every step whose weights are not all
+            equal, 0 never, and with ``move="resampled"`` the kernel then never moves the
+            particles either) and the resampling function (``resample``, e.g.
+            :func:`vehjax.filters.smc.resample_stop_gradient`).
+        points: the UKF's sigma-point scaling, :class:`~vehjax.filters.SigmaPoints`
             (:func:`vehjax.filters.sigma.unscented_rule`).
         bounds: ``{name: (low, high)}`` domains of the estimated parameters in physical units,
             None for an open end; the particles never leave them (the kernel acts on the
@@ -516,17 +535,10 @@ def liu_west_ukf(
             docstring). A dict is the whole specification: parameters it
             does not name are unbounded, so ``bounds={}`` is the kernel on theta itself (Liu and
             West's, whose particles can leave the box). Each domain must contain its prior box.
-        move: when the Liu-West kernel moves the particles: "resampled" (default) at the
-            steps that resample, "every" at every step with a measurement (Liu and West's, the
-            paper's). "every" biases a skewed posterior's mean (module docstring).
         recurrent: True (default): predict each particle from the UKF's state moved to first
             order to its own parameters, mu + D (theta_i - theta_bar), D = d mu / d theta_bar
             carried through the UKF's recursion (``jax.jacfwd`` of its step); False: from mu
             (module docstring).
-        resample: the resampling function, None (default) for
-            :func:`vehjax.filters.smc.resample`; a callable with its signature
-            ``(particles, w, log_w, u, scheme, threshold) -> (particles, log_w, w, resampled)``,
-            e.g. :func:`vehjax.filters.smc.resample_stop_gradient`.
 
     Returns:
         ``Estimator`` with ``needs_key=True`` and ``param_names = estimate``:
@@ -550,9 +562,11 @@ def liu_west_ukf(
         ValueError: naming the argument, for a wrong model, Q or R of the wrong shape or not
             positive definite, n_particles < 2, unknown or empty ``estimate``, theta_low /
             theta_high of the wrong length or not low < high, ``bounds`` naming other
-            parameters, not pairs with low < high, or not containing the prior box, a outside
-            (0, 1), gamma outside (0, 1], an unknown resampling scheme, likelihood or move,
-            ess_threshold outside [0, 1], a ``resample`` that is not callable.
+            parameters, not pairs with low < high, or not containing the prior box, a
+            ``kernel``, ``resampling`` or ``points`` that is not its record (the records refuse
+            a outside (0, 1), gamma outside (0, 1], an unknown likelihood, move or resampling
+            scheme, ess_threshold outside [0, 1] and a ``resample`` that is not callable when
+            made).
     """
     nx, ny = check_model(model)
     names, idx = check_estimate(model, estimate)
@@ -562,15 +576,13 @@ def liu_west_ukf(
         )
     low_n, high_n = _check_box(theta_low, theta_high, names)
     n = smc.check_n_particles(n_particles)
-    a = validation.number("a", a, 0.0, 1.0)
-    gamma = validation.number("gamma", gamma, 0.0, 1.0, high_open=False)
-    scheme = _rs.check_scheme(resampling)
-    thr = smc.check_ess_threshold(ess_threshold)
-    likelihood = validation.choice("likelihood", likelihood, _LIKELIHOODS)
-    move = validation.choice("move", move, _MOVES)
+    kernel = validation.record("kernel", kernel, LiuWestKernel)
+    a, gamma, likelihood, move = kernel.a, kernel.gamma, kernel.likelihood, kernel.move
+    resampling = validation.record("resampling", resampling, smc.Resampling)
+    scheme, thr, resample = resampling.scheme, resampling.ess_threshold, resampling.function()
     recurrent = validation.flag("recurrent", recurrent)
-    resample = smc.check_resample(resample)
-    rule = sigma.unscented_rule(nx, alpha, beta, kappa)  # checks alpha, beta, kappa
+    points = validation.record("points", points, sigma.SigmaPoints)
+    rule = points.rule(nx)  # checks n + kappa
     Qn, Rn = validation.cov("Q", Q, nx, allow_psd=True), validation.cov("R", R, ny)
     dom_lo, dom_hi = _domain(low_n, high_n, bounds, names,
                              np.asarray(model.theta, float)[list(idx)])
@@ -585,7 +597,7 @@ def liu_west_ukf(
         width_s=width_s, a=a, gamma=gamma, scheme=scheme, threshold=thr, resample=resample,
         predictive=likelihood == "predictive", every=move == "every", recurrent=recurrent,
         rule=rule,
-        ukf_step=ukf(model, Qn, Rn, alpha=alpha, beta=beta, kappa=kappa).step,
+        ukf_step=ukf(model, Qn, Rn, points=points).step,
         Q=Qn, R=Rn, s_box=(len(names) + 1) // 2,  # counter streams: normals, box, resampling
     )
     box = (0.5 * (low_n + high_n), np.diag((high_n - low_n) ** 2 / 12.0))

@@ -49,7 +49,6 @@ import numpy as np
 
 from .. import validation
 from . import input_noise as _inoise
-from . import resampling as _rs
 from . import smc
 from ..lib.entrywise import cholesky_observed
 from ..lib.linalg import cholesky, is_pd, solve_lower
@@ -391,11 +390,10 @@ def bootstrap_pf(
     model,
     Q,
     R,
+    *,
     n_particles: int = 1000,
-    resampling: str = "systematic",
-    ess_threshold: float = 0.5,
+    resampling: smc.Resampling = smc.Resampling(),
     input_noise=None,
-    resample=None,
 ) -> Estimator:
     """Bootstrap particle filter: propagate through the model plus Gaussian noise, weigh by the
     Gaussian measurement likelihood, resample when the effective sample size drops.
@@ -407,21 +405,17 @@ def bootstrap_pf(
         R: measurement-noise covariance, (ny, ny) or (ny,) variances, positive definite, in
             output units squared.
         n_particles: number of particles N >= 2.
-        resampling: "systematic", "stratified", "multinomial" or "residual"
-            (see :mod:`vehjax.filters.resampling`).
-        ess_threshold: resample when ESS < ess_threshold * N; 0 never resamples, 1 resamples
-            whenever the weights are not all equal.
+        resampling: :class:`~vehjax.filters.Resampling`: the scheme, the ESS rule (resample
+            when ESS < ess_threshold * N; 0 never resamples, 1 whenever the weights are not all
+            equal) and the resampling function (``resample``, e.g.
+            :func:`vehjax.filters.smc.resample_stop_gradient`: the same forward pass, the
+            resampling's score in the gradient, what :mod:`vehjax.tune` differentiates).
         input_noise: noise entering through the inputs (:mod:`vehjax.filters.input_noise`):
             ``{input name: std}`` in the input's units or an (nu, nu) covariance in input units
             squared; None (default) for none. Each particle is propagated with its own input
             ``u_t + Lu z_i`` (z_i standard normal, drawn with the process noise), so the
             transition sees the input noise exactly; the measurement uses u_t. Q may then be
             zero.
-        resample: the resampling function, None (default) for
-            :func:`vehjax.filters.smc.resample`; a callable with its signature
-            ``(particles, w, log_w, u, scheme, threshold) -> (particles, log_w, w, resampled)``,
-            e.g. :func:`vehjax.filters.smc.resample_stop_gradient` (the same forward pass, the
-            resampling's score in the gradient: what :mod:`vehjax.tune` differentiates).
 
     Returns:
         ``Estimator`` with ``needs_key=True``:
@@ -443,14 +437,13 @@ def bootstrap_pf(
 
     Raises:
         ValueError: naming the argument, for a wrong model, a Q or R of the wrong shape or not
-            positive definite, n_particles < 2, an unknown resampling scheme, an ess_threshold
-            outside [0, 1], a ``resample`` that is not callable.
+            positive definite, n_particles < 2, a ``resampling`` that is not a
+            :class:`~vehjax.filters.Resampling` (which checks its own fields when made).
     """
     nx, ny = check_model(model)
     n = smc.check_n_particles(n_particles)
-    scheme = _rs.check_scheme(resampling)
-    thr = smc.check_ess_threshold(ess_threshold)
-    resample = smc.check_resample(resample)
+    resampling = validation.record("resampling", resampling, smc.Resampling)
+    scheme, thr, resample = resampling.scheme, resampling.ess_threshold, resampling.function()
     Qn, Rn = validation.cov("Q", Q, nx, allow_psd=True), validation.cov("R", R, ny)
     Lu = _inoise.input_factor(input_noise, model.input_names)
     k_u = 0 if Lu is None else Lu.shape[1]

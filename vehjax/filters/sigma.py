@@ -33,6 +33,7 @@ The small-matrix kernels (:func:`cholesky`, :func:`solve_lower`) come from
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -80,6 +81,39 @@ def _check_dim(n) -> int:
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"n: expected a positive integer dimension, got {n!r}")
     return int(n)
+
+
+@dataclasses.dataclass(frozen=True)
+class SigmaPoints:
+    """The scaled unscented rule's parameters (dynamax's ``UKFHyperParams``), the option
+    ``points`` of :func:`~vehjax.filters.ukf`, the dual and joint UKFs and
+    :func:`~vehjax.filters.liu_west_ukf`; :func:`unscented_rule` says what each does.
+
+    Attributes:
+        alpha: spread of the points, > 0. The default 1 with kappa 0 puts them at +-sqrt(n)
+            standard deviations with non-negative weights, which keeps P positive definite on
+            strongly nonlinear vehicle models; small alpha (1e-3) gives a large negative centre
+            weight.
+        beta: prior-knowledge term; 2 is optimal for a Gaussian.
+        kappa: secondary scaling; n + kappa must be > 0 (checked by the builder, which knows n).
+    """
+
+    alpha: float = 1.0
+    beta: float = 2.0
+    kappa: float = 0.0
+
+    def __post_init__(self):
+        for name in ("alpha", "beta", "kappa"):
+            v = getattr(self, name)
+            if np.ndim(v) != 0:
+                raise ValueError(f"{name}: expected a finite number, got {v!r}")
+            validation.number(name, v)  # finite, real (text, complex: ValueError naming it)
+        if float(self.alpha) <= 0.0:
+            raise ValueError(f"alpha: expected alpha > 0, got {float(self.alpha)}")
+
+    def rule(self, n: int) -> SigmaRule:
+        """:func:`unscented_rule` in ``n`` dimensions with these parameters."""
+        return unscented_rule(n, self.alpha, self.beta, self.kappa)
 
 
 def unscented_rule(n: int, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0) -> SigmaRule:

@@ -29,8 +29,9 @@ no rolled hash loop, no 64-bit uniforms and inverse error function).
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -222,6 +223,37 @@ def check_resample(resample_fn):
             f"vehjax.filters.smc.resample(particles, w, log_w, u, scheme, threshold) (e.g. "
             f"vehjax.filters.smc.resample_stop_gradient), got {resample_fn!r}")
     return resample_fn
+
+
+@dataclasses.dataclass(frozen=True)
+class Resampling:
+    """How a particle filter resamples, the option ``resampling`` of
+    :func:`~vehjax.filters.bootstrap_pf`, :func:`~vehjax.filters.liu_west_ukf` and
+    :func:`~vehjax.filters.marginalized_pf`.
+
+    Attributes:
+        scheme: "systematic", "stratified", "multinomial" or "residual"
+            (:mod:`vehjax.filters.resampling`).
+        ess_threshold: resample when ESS < ess_threshold * N, in [0, 1]; 0 never resamples, 1
+            whenever the weights are not all equal.
+        resample: the resampling function, None (default) for :func:`resample`; a callable with
+            its signature ``(particles, w, log_w, u, scheme, threshold) -> (particles, log_w,
+            w, resampled)``, e.g. :func:`resample_stop_gradient` (the same forward pass, the
+            resampling's score in the gradient: what :mod:`vehjax.tune` differentiates).
+    """
+
+    scheme: str = "systematic"
+    ess_threshold: float = 0.5
+    resample: Any = None
+
+    def __post_init__(self):
+        _rs.check_scheme(self.scheme, "scheme")
+        object.__setattr__(self, "ess_threshold", check_ess_threshold(self.ess_threshold))
+        check_resample(self.resample)
+
+    def function(self):
+        """The resampling function: ``resample``, or :func:`resample` for None."""
+        return check_resample(self.resample)
 
 
 def reinitialise(underflow, fresh, particles, log_w, w):

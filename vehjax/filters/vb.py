@@ -58,22 +58,21 @@ E[Sigma^-1] = nu Psi^-1)::
       x^(i+1), P^(i+1) = Kalman update of (x-, P^-) with y and R^
 
   The plug-ins are the IW means, as the paper writes it (:func:`iw_plugin`); u_0 = ``dof0``
-  (> m + 1), U_0 = (u_0 - m - 1) R0, so the prior mean of R is R0; tau >= 0 (the paper
-  recommends 2 <= tau <= 6) weighs the nominal P~-.
+  (> m + 1), U_0 = (u_0 - m - 1) R0 with R0 the builders' ``R``, so the prior mean of the
+  learnt R is R0; tau >= 0 (the paper recommends 2 <= tau <= 6) weighs the nominal P~-.
 
 **Variants and choices made here.** ``sensors``: the outputs whose noise is learnt (Huang's IW
 covers their block of R, full); ``known_std``: outputs of known std; outputs in neither are not
-used. ``biases`` and ``input_offsets`` add bias and offset states to the Kalman state (y = h(x)
-+ b, the model driven by u + offset; priors ``bias_std0``/``offset_std0``, walk ``bias_walk``).
-Missing measurements (NaN) are skipped by the Kalman update; in VB-AKF their alpha_j, beta_j keep
-their prediction, in VBAKF-PR a step with some sensor missing leaves q(R) at its prediction.
+used. ``augment`` (:class:`Augmentation`) adds bias and offset states to the Kalman state (y =
+h(x) + b, the model driven by u + offset). Missing measurements (NaN) are skipped by the Kalman
+update; in VB-AKF their alpha_j, beta_j keep their prediction, in VBAKF-PR a step with some
+sensor missing leaves q(R) at its prediction.
 ``out.params`` (SI units of the model): ``<input>_offset``, ``<sensor>_bias`` (Kalman means),
 ``<sensor>_std`` = sqrt(R^_jj); ``params_cov`` the Kalman block and, per std, std^2 psi1(a) / 4
 (the delta method; cross-covariances between biases and stds 0). VBAKF-PR learns P_{k|k-1},
 not Q: the state keeps the plug-in ``P_pred``.
 
-See docs/vb.md for VBAKF-PR's plug-ins and update in full and each of these choices with its
-reason.
+See docs/vb.md for VBAKF-PR's plug-ins and update in full and each choice with its reason.
 
 Every filter here is a plain :class:`~vehjax.filters.base.Estimator` (vmapped by
 :func:`vehjax.run`; no runs-last form). Divergence (NaN/inf in the mean, an indefinite P) is
@@ -82,7 +81,8 @@ flagged by :func:`vehjax.filter` / :func:`vehjax.run` as for every filter.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import dataclasses
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -97,7 +97,8 @@ from ._model import cast_yu, check_model, in_dtype, model_dims, model_theta, per
 from .base import Dims, Estimator, ParamSpec, Runtime, StepOutput
 from .kalman import linearized_measure, linearized_predict, masked_update
 
-__all__ = ["VBState", "VBPRState", "vbakf_r", "vbakf_pr", "FORMS", "ig_predict", "ig_update",
+__all__ = ["Augmentation", "VBState", "VBPRState", "vbakf_r", "vbakf_pr", "FORMS", "ig_predict",
+           "ig_update",
            "iw_predict", "iw_pred_cov_prior", "iw_plugin", "std_moments", "param_units"]
 
 #: The Gaussian forms: linearisation (EKF) or the sigma-point rules of :mod:`~.sigma`.
@@ -232,10 +233,44 @@ class _Setup(NamedTuple):
     Lu: object
 
 
-def _setup(model, Q, sensors, known_std, biases, input_offsets, bias_walk, offset_walk,
-           bias_std0, offset_std0, input_noise):
+@dataclasses.dataclass(frozen=True)
+class Augmentation:
+    """The bias and offset states :func:`vbakf_r` and :func:`vbakf_pr` add to the Kalman state
+    (their option ``augment``): y = h(x) + b, the model driven by u + offset.
+
+    Attributes:
+        biases: sensors with an unknown additive bias, estimated as a Kalman state each.
+        input_offsets: inputs with an unknown additive offset (the model sees u + offset).
+        bias_walk, offset_walk: random-walk stds per step of the biases and offsets (>= 0), in
+            the output's / input's units: one number for all or a dict naming each.
+        bias_std0, offset_std0: prior stds of the biases and offsets (mean 0), > 0; a number
+            or a dict naming each.
+
+    The names are checked against the model by the builder; the numbers when made.
+    """
+
+    biases: Any = ()
+    input_offsets: Any = ()
+    bias_walk: Any = 0.0
+    offset_walk: Any = 0.0
+    bias_std0: Any = 1.0
+    offset_std0: Any = 0.01
+
+    def __post_init__(self):
+        for arg, closed in (("bias_walk", True), ("offset_walk", True), ("bias_std0", False),
+                            ("offset_std0", False)):
+            v = getattr(self, arg)
+            for x in (v.values() if isinstance(v, dict) else (v,)):
+                validation.number(arg, x, 0.0, low_open=not closed)
+
+
+def _setup(model, Q, sensors, known_std, augment, input_noise):
     nx, ny = check_model(model)
     outs, ins = tuple(model.output_names), tuple(model.input_names)
+    aug = validation.record("augment", augment, Augmentation)
+    biases, input_offsets = aug.biases, aug.input_offsets
+    bias_walk, offset_walk, bias_std0, offset_std0 = (aug.bias_walk, aug.offset_walk,
+                                                      aug.bias_std0, aug.offset_std0)
     known = {} if known_std is None else validation.keyed("known_std", known_std, outs, "outputs")
     if sensors is None:
         sensors = tuple(o for o in outs if o not in known)
@@ -303,14 +338,14 @@ def _per_name(arg, value, names, closed=False):
     return np.array([validation.number(arg, v, 0.0, low_open=not closed) for v in vals], float)
 
 
-def _sensor_R0(R0, m, sensors_names):
-    R0 = np.asarray(R0, float)
+def _sensor_R0(R, m, sensors_names):
+    R0 = np.asarray(R, float)
     if R0.ndim == 1:
         if R0.shape != (m,) or not np.all(np.isfinite(R0)) or np.any(R0 <= 0):
-            raise ValueError(f"R0: expected {m} positive variances (one per sensor "
+            raise ValueError(f"R: expected {m} positive variances (one per sensor "
                              f"{sensors_names}), got {R0!r}")
         return np.diag(R0)
-    return validation.cov("R0", R0, m)
+    return validation.cov("R", R0, m)
 
 
 def _param_prior(setup, R0_diag, dof_shape):
@@ -436,17 +471,18 @@ class VBState(NamedTuple):
     theta: jnp.ndarray
 
 
-def vbakf_r(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterations: int = 5,
-            dof0: float = 10.0, sensors=None, known_std=None, biases=(), input_offsets=(),
-            bias_walk: float = 0.0, offset_walk: float = 0.0, bias_std0: float = 1.0,
-            offset_std0: float = 0.01, input_noise=None) -> Estimator:
+def vbakf_r(model, Q, R, *, form: str = "ckf", forgetting: float = 1.0, iterations: int = 5,
+            dof0: float = 10.0, sensors=None, known_std=None,
+            augment: Augmentation = Augmentation(), input_noise=None) -> Estimator:
     """Särkkä & Nummenmaa's VB adaptive Kalman filter (unknown diagonal R), nonlinear form.
 
     Args:
         model: a vehjax model (nx states, ny outputs).
         Q: process noise covariance of the model's states, (nx, nx) or (nx,), known.
-        R0: prior variances of the sensors' noise, (m,) (one per ``sensors``, output units
-            squared): the prior IG(dof0, dof0 R0) has plug-in beta / alpha = R0.
+        R: the sensors' noise variances R0 as the prior states them, (m,) (one per ``sensors``,
+            output units squared): the prior mean of the learnt diagonal R (its start), the
+            prior IG(dof0, dof0 R0) having plug-in beta / alpha = R0. Only the sensors' block:
+            the known outputs' noise is ``known_std``.
         form: "ekf" (linearisation by ``jax.jacfwd``), "ukf" (scaled unscented rule, alpha 1)
             or "ckf" (cubature rule) for every Gaussian integral.
         forgetting: rho in (0, 1] of the variances' dynamics (module docstring); 1: stationary.
@@ -455,12 +491,8 @@ def vbakf_r(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterati
             dof0 with forgetting 1 is a point mass at R0 (the filter is then the Kalman filter).
         sensors: outputs whose variance is learnt (default: every output not in known_std).
         known_std: {output: std} of outputs with known noise; outputs in neither are unused.
-        biases: sensors with an unknown additive bias, estimated as a Kalman state each.
-        input_offsets: inputs with an unknown additive offset (the model sees u + offset).
-        bias_walk, offset_walk: random-walk stds per step of the biases and offsets (>= 0), in
-            the output's / input's units: one number for all or a dict naming each.
-        bias_std0, offset_std0: prior stds of the biases and offsets (mean 0), > 0; a number
-            or a dict naming each.
+        augment: :class:`Augmentation`, the bias and offset states added to the Kalman state
+            (their names, random walks and prior stds); the default adds none.
         input_noise: noise through the inputs (:mod:`vehjax.filters.input_noise`) or None.
 
     Returns:
@@ -469,19 +501,18 @@ def vbakf_r(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterati
 
     Raises:
         ValueError: naming the argument: form unknown, forgetting outside (0, 1], iterations
-            < 1, dof0 <= 0, bad names, R0 not m positive variances, non-positive stds.
+            < 1, dof0 <= 0, bad names, R not m positive variances, non-positive stds.
     """
     form, rho, N = _check_common(form, forgetting, iterations)
     a0 = validation.number("dof0", dof0, 0.0)
-    st = _setup(model, Q, sensors, known_std, biases, input_offsets, bias_walk, offset_walk,
-                bias_std0, offset_std0, input_noise)
+    st = _setup(model, Q, sensors, known_std, augment, input_noise)
     m = len(st.sens)
-    R0m = _sensor_R0(R0, m, tuple(str(model.output_names[i]) for i in st.sens))
+    R0m = _sensor_R0(R, m, tuple(str(model.output_names[i]) for i in st.sens))
     if np.any(R0m != np.diag(np.diag(R0m))):
         raise ValueError(
-            "R0: vbakf_r learns one variance per sensor (a diagonal R, the sensors' noises "
-            "independent) and would drop the correlations of a full R0; give the (m,) variances "
-            "(np.diag(R0)), or use vbakf_pr for a full covariance")
+            "R: vbakf_r learns one variance per sensor (a diagonal R, the sensors' noises "
+            "independent) and would drop the correlations of a full R; give the (m,) variances "
+            "(np.diag(R)), or use vbakf_pr for a full covariance")
     R0 = np.diag(R0m)
     fm = _form(form, st.n, st.Lu)
     sens = st.sens
@@ -557,39 +588,38 @@ class VBPRState(NamedTuple):
     theta: jnp.ndarray
 
 
-def vbakf_pr(model, Q, R0, *, form: str = "ckf", forgetting: float = 1.0, iterations: int = 10,
+def vbakf_pr(model, Q, R, *, form: str = "ckf", forgetting: float = 1.0, iterations: int = 10,
              tau: float = 3.0, dof0: float | None = None, sensors=None, known_std=None,
-             biases=(), input_offsets=(), bias_walk: float = 0.0, offset_walk: float = 0.0,
-             bias_std0: float = 1.0, offset_std0: float = 0.01, input_noise=None) -> Estimator:
+             augment: Augmentation = Augmentation(), input_noise=None) -> Estimator:
     """Huang et al.'s VB adaptive Kalman filter with inaccurate Q and R, nonlinear form.
 
     Args:
         model: a vehjax model.
         Q: nominal process noise Q~ of the model's states, (nx, nx) or (nx,).
-        R0: nominal sensors' R, (m, m) or (m,) variances; the prior is IW(dof0,
-            (dof0 - m - 1) R0) (mean R0).
+        R: the sensors' nominal noise covariance R0, (m, m) or (m,) variances (one per
+            ``sensors``, output units squared): the prior mean of the learnt R, the prior being
+            IW(dof0, (dof0 - m - 1) R0). Only the sensors' block: the known outputs' noise is
+            ``known_std``.
         form: "ekf", "ukf" or "ckf" (see :func:`vbakf_r`).
         forgetting: rho in (0, 1] of R's IW dynamics.
         iterations: fixed-point iterations N >= 1.
         tau: tuning parameter >= 0 of the predicted covariance's IW prior (weight of the
             nominal P~-; the paper recommends 2..6; huge: P~- taken as exact).
         dof0: u_0 > m + 1; default m + 1 + 10 (ten samples' worth of R0).
-        sensors, known_std, biases, input_offsets, bias_walk, offset_walk, bias_std0,
-        offset_std0, input_noise: as in :func:`vbakf_r`.
+        sensors, known_std, augment, input_noise: as in :func:`vbakf_r`.
 
     Returns:
         ``Estimator`` with state :class:`VBPRState`; ``param_names`` as :func:`vbakf_r`'s, the
         stds the square roots of diag(U / (u - m - 1)).
 
     Raises:
-        ValueError: naming the argument (forgetting, iterations, tau, dof0, R0, names, ...).
+        ValueError: naming the argument (forgetting, iterations, tau, dof0, R, names, ...).
     """
     form, rho, N = _check_common(form, forgetting, iterations)
     tau = validation.number("tau", tau, 0.0, low_open=False)
-    st = _setup(model, Q, sensors, known_std, biases, input_offsets, bias_walk, offset_walk,
-                bias_std0, offset_std0, input_noise)
+    st = _setup(model, Q, sensors, known_std, augment, input_noise)
     m = len(st.sens)
-    R0m = _sensor_R0(R0, m, tuple(str(model.output_names[i]) for i in st.sens))
+    R0m = _sensor_R0(R, m, tuple(str(model.output_names[i]) for i in st.sens))
     u0 = m + 11.0 if dof0 is None else validation.number("dof0", dof0, m + 1.0)
     fm = _form(form, st.n, st.Lu)
     sens = st.sens

@@ -198,9 +198,10 @@ def build(method, model, args, drive=False):
     if method.startswith("VB-"):
         kw = dict(form="ckf" if "CKF" in method else "ekf", forgetting=args.forgetting,
                   iterations=args.iterations, sensors=SENSORS, known_std=known,
-                  biases=SENSORS, input_offsets=("delta",),
-                  bias_walk={s: road.BIAS_WALK[s] for s in SENSORS},
-                  bias_std0=road.BIAS_STD0, offset_std0=road.OFFSET_STD0,
+                  augment=filters.Augmentation(
+                      biases=SENSORS, input_offsets=("delta",),
+                      bias_walk={s: road.BIAS_WALK[s] for s in SENSORS},
+                      bias_std0=road.BIAS_STD0, offset_std0=road.OFFSET_STD0),
                   input_noise={"delta": steer0})
         if method.startswith("VB-R"):
             return filters.vbakf_r(model, Q, R0, dof0=10.0, **kw), all5, P0

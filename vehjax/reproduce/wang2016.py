@@ -37,7 +37,7 @@ study is kept as the control; two cases give the adaptive filter what the paper 
 * ``a`` (R varies): process noise constant at eq. 31's peak, measurement noise R(t) per eq. 32.
   Every filter is given the true Q and the peak R (the honest constant guess), so the fixed
   filters over-weight the model while R(t) is small (start and end of the drive).
-* ``b`` (wrong Q/R): the eq. 31-32 truth of the control, but every filter, ACKF's Q0, R0
+* ``b`` (wrong Q/R): the eq. 31-32 truth of the control, but every filter, ACKF's initial Q, R
   included, starts from the peak Q and R0 = ``--r-factor`` (30) times the peak R: a constant
   guess whose Q/R ratio is 30 times too small.
 * ``c`` (control): the literal study as before: eq. 31-32 truth, filters given the peak Q, R,
@@ -328,7 +328,8 @@ def build_filter(name, model, Q, R):
     if name == "ekf":
         return vj.filters.ekf(model, Q, R)
     if name == "ukf":
-        return vj.filters.ukf(model, Q, R, alpha=UKF_ALPHA, beta=UKF_BETA, kappa=UKF_KAPPA)
+        points = vj.filters.SigmaPoints(alpha=UKF_ALPHA, beta=UKF_BETA, kappa=UKF_KAPPA)
+        return vj.filters.ukf(model, Q, R, points=points)
     if name == "ckf":
         return vj.filters.ckf(model, Q, R)
     settings = ACKF_PAPER if name == "ackf-paper" else ACKF_USER

@@ -161,7 +161,7 @@ def build_sim_filter(model, n_particles, kalman_states="linear"):
     return marginalized_pf(
         model, n_particles, noisy_input="delta", sensors=SENSORS,
         known_std={"phi": PHI_STD, "r_virt": RVIRT_STD},
-        linear_states=("phi", "phi_dot", "phi_ddot"), linear_noise_std=BANK_JERK_STD,
+        linear_states=("phi", "phi_dot", "phi_ddot"), Q=BANK_JERK_STD ** 2,
         niw=NiW(std0={"delta": 2 * STEER_STD, **{s: 2 * SENSOR_STD[s] for s in SENSORS}},
                 forgetting=0.995), kalman_states=kalman_states)
 
@@ -178,12 +178,12 @@ def build_drive_filter(model, n_particles, forgetting=0.999, variant="bank",
         return marginalized_pf(
             model, n_particles, noisy_input="delta", sensors=("ay", "r", "roll_rate"),
             known_std={"phi": PHI_STD, "r_virt": RVIRT_STD},
-            linear_states=("phi", "phi_dot", "phi_ddot") + scale, linear_noise_std=BANK_JERK_STD,
+            linear_states=("phi", "phi_dot", "phi_ddot") + scale, Q=BANK_JERK_STD ** 2,
             niw=NiW(std0={**DRIVE_STD0, "roll_rate": DRIVE_STD0["r"]}, forgetting=forgetting),
             kalman_states=kalman_states)
     return marginalized_pf(model, n_particles, noisy_input="delta", sensors=("ay", "r"),
                            known_std={"r_virt": RVIRT_STD}, linear_states=scale,
-                           linear_noise_std=0.0 if scale else None,
+                           Q=0.0 if scale else None,
                            niw=NiW(std0=DRIVE_STD0, forgetting=forgetting),
                            kalman_states=kalman_states)
 
@@ -202,7 +202,7 @@ def build_consistent_filter(model, points, std0, forgetting=1.0, nu0=None, grid=
     return marginalized_pf_grid(
         model, points, noisy_input="delta", sensors=SENSORS,
         known_std={"phi": PHI_STD, "r_virt": RVIRT_STD},
-        linear_states=("phi", "phi_dot", "phi_ddot") + scale, linear_noise_std=BANK_JERK_STD,
+        linear_states=("phi", "phi_dot", "phi_ddot") + scale, Q=BANK_JERK_STD ** 2,
         niw=NiW(std0=std0, forgetting=forgetting, nu0=nu0),
         means=MeanStates(bias_walk={s: BIAS_WALK[s] for s in SENSORS},
                          mean_std0={"delta": OFFSET_STD0, **BIAS_STD0}),
@@ -294,7 +294,7 @@ def build_matched_filter(model, n_particles, options=None, noise=MATCHED):
               mean0={"delta": noise.offset} if kalman else {"delta": noise.offset, **noise.bias},
               forgetting=1.0, **{k: opts.pop(k) for k in ("nu0", "gamma0") if k in opts})
     common = dict(sensors=SENSORS, known_std=noise.known_std,
-                  linear_noise_std=noise.bank_jerk_std, niw=niw,
+                  Q=noise.bank_jerk_std ** 2, niw=niw,
                   linear_states=("phi", "phi_dot", "phi_ddot")
                   + (tuple(f"{s}_bias" for s in SENSORS) if kalman else ()))
     if grid:

@@ -264,7 +264,7 @@ def _estimator_at(builder, model, setup: FitSetup, unpack, sg: dict):
         R = v["R"] if "R" in z else Ra
         mdl = eqx.tree_at(lambda m: m.theta, model, v["theta"]) if "theta" in z else model
         kw = builder_kwargs if "input" not in z else {**builder_kwargs, "input_noise": v["input"]}
-        est = builder(mdl, Q, R, **kw, **sg)
+        est = builder(mdl, Q, R, **{**kw, **sg})  # sg replaces the caller's resampling
         return est, mdl, Q, R, kw.get("input_noise"), v["x0"] if "x0" in z else data[2]
 
     return at

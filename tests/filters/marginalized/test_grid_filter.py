@@ -32,7 +32,7 @@ STD0 = {"delta": math.radians(0.3), "ay": 0.2, "r": math.radians(0.6),
 
 
 def _kw(**over):
-    kw = dict(known_std=KNOWN, linear_noise_std=0.05, std0=STD0)
+    kw = dict(known_std=KNOWN, Q=0.05 ** 2, std0=STD0)
     kw.update(over)
     return mpf_kwargs(**kw)
 
@@ -135,7 +135,7 @@ def test_default_is_the_papers_filter():
     prior is mean0 with gamma0 std0^2), the particles' Kalman filters cover the bank only
     ("linear"), and it declares its Rao-Blackwell structure for smoothing."""
     est = marginalized_pf(MODEL, 100, **_kw())
-    default = marginalized_pf(MODEL, 100, known_std=KNOWN, linear_noise_std=0.05,
+    default = marginalized_pf(MODEL, 100, known_std=KNOWN, Q=0.05 ** 2,
                               niw=NiW(std0=STD0))
     for e in (est, default):
         assert e.rao_blackwell is not None and not e.rao_blackwell.gauss
@@ -227,7 +227,7 @@ def test_with_the_noise_known_it_is_the_exact_kalman_filter_of_the_biased_model(
     x0, P0 = np.zeros(5), np.array([1e-30, 1e-30, 1e-6, 1e-6, 1e-6])
     std0 = dict(STD0, delta=1e-10)
     est = marginalized_pf_grid(MODEL, N, sensors=SENSORS, known_std=KNOWN,
-                               linear_noise_std=sig_phi,
+                               Q=sig_phi ** 2,
                                niw=NiW(std0=std0, mean0={"delta": offset}, forgetting=1.0, nu0=1e7,
                                        gamma0=1.0))
     out = vj.run(est, Y, U, x0=x0, P0=P0, key=jax.random.key(5), return_covariances=True)
@@ -320,7 +320,7 @@ def test_input_std_grid_is_the_exact_posterior_of_the_steering_std(prior, varian
     x0, P0 = np.zeros(5), np.array([1e-30, 1e-30, 1e-6, 1e-6, 1e-6])
     lo, hi = sig_w / 1.5, sig_w * 1.5
     est = marginalized_pf_grid(user_linear_bank(MODEL.theta, float(U[0, 0]), DT), N,
-                               sensors=SENSORS, known_std=KNOWN, linear_noise_std=bank_std,
+                               sensors=SENSORS, known_std=KNOWN, Q=bank_std ** 2,
                                sensor_variances=variances,
                                niw=NiW(std0=STD0, mean0={"delta": offset}, forgetting=1.0,
                                        nu0=1e10),
@@ -649,7 +649,7 @@ def test_a_sensor_seen_beside_the_input_noise_is_learnt_from_a_wrong_guess():
     X, Y, U = simulate_matched(MODEL, 20, 300, 7)
     std0 = {"delta": MATCHED.steer_std, **{k: 2.0 * v for k, v in MATCHED.sensor_std.items()}}
     est = marginalized_pf_grid(MODEL, 3, sensors=SENSORS, known_std=MATCHED.known_std,
-                               linear_noise_std=MATCHED.bank_jerk_std,
+                               Q=MATCHED.bank_jerk_std ** 2,
                                niw=NiW(std0=std0, mean0={"delta": MATCHED.offset, **MATCHED.bias},
                                        forgetting=1.0),
                                grid=InputStdGrid(input_std_prior="log-uniform",
@@ -676,7 +676,7 @@ def test_the_gyros_scored_variances_match_the_oracle():
     (100 runs, seeds 0-3; ``benchmarks/mpf_k_param_bias.py``)."""
     X, Y, U = simulate_matched(MODEL, 20, 300, 11)
     est = marginalized_pf_grid(MODEL, 3, sensors=SENSORS, known_std=MATCHED.known_std,
-                               linear_noise_std=MATCHED.bank_jerk_std, sensor_variances="scored",
+                               Q=MATCHED.bank_jerk_std ** 2, sensor_variances="scored",
                                niw=NiW(std0={"delta": MATCHED.steer_std, **MATCHED.sensor_std},
                                        mean0={"delta": MATCHED.offset, **MATCHED.bias},
                                        forgetting=1.0),

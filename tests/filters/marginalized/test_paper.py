@@ -26,6 +26,7 @@ from vehjax.filters.particle import bootstrap_pf
 from vehjax.models.bank import SingleTrackBank
 
 from _bank_ref import continuous_matrices, discrete_matrices, exact_kalman, mpf_kwargs
+from _records import grouped
 
 DT = 0.01
 VX = 20.0
@@ -333,7 +334,7 @@ def study():
     Ys = Ys.copy()
     Ys[:, :, 2][rng.random((STUDY_R, STUDY_T)) < 0.1] = np.nan
     Ys[:, STUDY_T // 2:STUDY_T // 2 + 20, :] = np.nan
-    est = marginalized_pf(MODEL, STUDY_N, known_std=KNOWN, linear_noise_std=0.05,
+    est = marginalized_pf(MODEL, STUDY_N, known_std=KNOWN, Q=0.05 ** 2,
                           niw=NiW(std0=STD0))
     x0, P0 = _bank_prior(Xs)
     out = vj.run(est, Ys, U, x0=x0, P0=P0, key=jax.random.key(0), return_covariances=True)
@@ -451,7 +452,7 @@ def test_known_noise_with_gaussian_particle_states_is_the_exact_kalman_filter():
     km, kc = exact_kalman(MODEL.theta, VX, DT, Ys, U[:, 1], OFFSET, sig_w, sig_phi,
                           [BIAS.get(k, 0.0) for k in names], [STD[k] for k in names], x0, P0,
                           MODEL.bank_noise_gain())
-    est = marginalized_pf(MODEL, N, known_std=KNOWN, linear_noise_std=sig_phi, kalman_states="all",
+    est = marginalized_pf(MODEL, N, known_std=KNOWN, Q=sig_phi ** 2, kalman_states="all",
                           niw=NiW(std0={"delta": sig_w, "ay": STD["ay"], "r": STD["r"], "roll_rate": STD["roll_rate"]},
                                   mean0={"delta": OFFSET, **BIAS}, forgetting=1.0, nu0=1e7,
                                   gamma0=1e-9))
@@ -494,7 +495,7 @@ def test_float32_runs_and_learns():
     """The bank filter in float32 end to end: finite, no divergence, the offset learnt."""
     T, R = 400, 2
     Xs, Ys, U, _ = _simulate(T, R, seed=11)
-    est = marginalized_pf(MODEL, 32, known_std=KNOWN, linear_noise_std=0.05, niw=NiW(std0=STD0))
+    est = marginalized_pf(MODEL, 32, known_std=KNOWN, Q=0.05 ** 2, niw=NiW(std0=STD0))
     x0, P0 = _bank_prior(Xs)
     f32 = np.float32
     out = vj.run(est, Ys.astype(f32), U.astype(f32), x0=x0.astype(f32), P0=P0.astype(f32),
@@ -524,7 +525,7 @@ def test_many_runs_form_equals_the_step_run_by_run():
     ys, us = rng.normal(size=(runs, T, 2)), rng.normal(size=(T, 1))
     ys[1, 2, 0] = np.nan
     est = marginalized_pf(model, 8, noisy_input="u", sensors=("y",), linear_states=("w",),
-                          known_std={"z": 0.2}, linear_noise_std=0.05,
+                          known_std={"z": 0.2}, Q=0.05 ** 2,
                           niw=NiW(std0={"u": 0.5, "y": 0.3}))
     x0 = 0.1 * np.arange(runs)[:, None] * np.ones((runs, 2))
     form = assert_batch_equals_step(est, ys, us, x0, np.eye(2),
@@ -537,7 +538,7 @@ def test_many_runs_form_equals_the_step_run_by_run():
 
 
 def _kw(**over):
-    kw = dict(known_std=KNOWN, linear_noise_std=0.05, std0=STD0)
+    kw = dict(known_std=KNOWN, Q=0.05 ** 2, std0=STD0)
     kw.update(over)
     return mpf_kwargs(**kw)
 
@@ -550,8 +551,8 @@ def _kw(**over):
     ("known_std", dict(known_std={"bogus": 0.01})),
     ("known_std", dict(known_std={"r": 0.01})),
     ("linear_states", dict(linear_states=("phi", "bogus"))),
-    ("linear_noise_std", dict(linear_noise_std=-1.0)),
-    ("linear_noise_std", dict(linear_noise_std=None)),
+    ("^Q:", dict(Q=-1.0)),
+    ("^Q:", dict(Q=None)),
     ("std0", dict(std0={**STD0, "r": -0.01})),
     ("std0", dict(std0={"delta": 0.01})),
     ("mean0", dict(mean0={"bogus": 0.0})),
@@ -561,7 +562,7 @@ def _kw(**over):
     ("gamma0", dict(gamma0=-1.0)),
     ("nu0", dict(nu0=4.0)),
     ("ess_threshold", dict(ess_threshold=2.0)),
-    ("resampling", dict(resampling="bogus")),
+    ("scheme", dict(resampling="bogus")),
     ("kalman_states", dict(kalman_states="bank")),
     ("resample", dict(resample="systematic")),
 ])
@@ -585,7 +586,7 @@ def test_model_not_affine_in_the_linear_states_is_refused():
                             dt=0.01, state_names=("v", "phi", "phid"), input_names=("delta",),
                             output_names=("vm", "phim"))
     kw = mpf_kwargs(sensors=("vm",), known_std={"phim": 0.01}, linear_states=("phi", "phid"),
-                    linear_noise_std=0.1, std0={"delta": 0.01, "vm": 0.1})
+                    Q=0.1 ** 2, std0={"delta": 0.01, "vm": 0.1})
     with pytest.raises(ValueError, match="linear_states"):
         marginalized_pf(model, 10, **kw)
     # the same with the bank linear is accepted
@@ -686,7 +687,7 @@ def test_per_step_entries_change_nothing_on_a_nonlinear_user_model(monkeypatch):
     Y = np.asarray(jax.vmap(sim)(jax.random.split(jax.random.key(3), R)))
     Y = Y + np.array([0.1, 0.005, 0.002]) * rng.standard_normal(Y.shape) + np.array([0.05, 0, 0])
     kw = mpf_kwargs(sensors=("ay", "r"), known_std={"phim": 0.002},
-                    linear_states=("phi", "phid"), linear_noise_std=0.01,
+                    linear_states=("phi", "phid"), Q=0.01 ** 2,
                     std0={"delta": math.radians(0.4), "ay": 0.2, "r": 0.01})
     args = dict(x0=np.zeros(4), P0=np.diag([0.01, 0.001, 1e-4, 1e-4]), key=jax.random.key(4),
                 return_covariances=True)
@@ -717,7 +718,8 @@ def _tiny_mpf_run(**extra):
                             dt=0.1, state_names=("v",), input_names=("u",), output_names=("y",))
     rng = np.random.default_rng(0)
     ys, us = rng.normal(size=(12, 1)), rng.normal(size=(12, 1))
-    est = marginalized_pf(model, 16, noisy_input="u", sensors=("y",), linear_states=(), **extra,
+    est = marginalized_pf(model, 16, noisy_input="u", sensors=("y",), linear_states=(),
+                          **grouped(extra, ("resampling",)),
                           niw=NiW(std0={"u": 0.5, "y": 0.3}))
     return vj.filter(est, ys, us, x0=np.zeros(1), P0=np.eye(1), key=jax.random.key(0))
 

@@ -357,7 +357,7 @@ def marginalized_pf_grid(
     sensors=("ay", "r", "roll_rate"),
     known_std=None,
     linear_states=("phi", "phi_dot", "phi_ddot"),
-    linear_noise_std=None,
+    Q=None,
     niw: NiW | None = None,
     means: MeanStates | None = None,
     grid: InputStdGrid | None = None,
@@ -375,7 +375,7 @@ def marginalized_pf_grid(
     ``vehjax reproduce noise-learning`` measures both.
 
     Args:
-        model, noisy_input, sensors, known_std, linear_states, linear_noise_std, niw: as
+        model, noisy_input, sensors, known_std, linear_states, Q, niw: as
             :func:`~vehjax.filters.marginalized.marginalized_pf`'s (``niw``: the sensor
             covariances' inverse-Wishart statistics, and the means' prior by ``gamma0``).
         n_particles: N >= 2, the grid's points.
@@ -418,10 +418,10 @@ def marginalized_pf_grid(
         raise ValueError(f"model: already has states named {clash}, which "
                          f"marginalized_pf_grid adds (the offset and the biases)")
     aug = _means.with_noise_means(model, sensors, noisy_input)
-    linear_noise_std = _means.pad_linear_noise(
-        linear_noise_std, len(linear_states), len(extra), hasattr(model, "bank_noise_gain"))
+    Q = _means.pad_linear_noise(Q, len(linear_states), len(extra),
+                                hasattr(model, "bank_noise_gain"))
     s_user = configure(aug, n_particles, noisy_input, sensors, known_std,
-                       tuple(linear_states) + extra, linear_noise_std, niw, "all")
+                       tuple(linear_states) + extra, Q, niw, "all")
     ns, nx = s_user.n_sensors, len(model.state_names)
     names = (noisy_input,) + tuple(sensors)
     msd = std_dict("mean_std0", {} if means.mean_std0 is None else means.mean_std0, (), names,

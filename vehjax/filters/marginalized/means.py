@@ -56,23 +56,28 @@ def with_noise_means(model, sensors, noisy_input) -> Model:
     return with_input_offset(with_output_biases(model, sensors), noisy_input)
 
 
-def pad_linear_noise(linear_noise_std, n_linear, n_extra, bank_gain):
-    """``linear_noise_std`` of the user's linear states extended to the added (constant) mean
-    states: None with no linear states -> zeros; per-state stds -> zeros appended; a scalar on
-    a model without ``bank_noise_gain`` -> that std on each linear state, zeros after (with
-    the gain the scalar is sigma_phi and the gain is zero on the added states). Anything else
-    is returned as given, for ``marginalized_pf``'s own check to name."""
-    if linear_noise_std is None:
+def pad_linear_noise(Q, n_linear, n_extra, bank_gain):
+    """``Q`` (process covariance) of the user's linear states extended to the added (constant)
+    mean states: None with no linear states -> zeros; per-state variances -> zeros appended; an
+    (n_linear, n_linear) covariance -> zero rows and columns appended; a scalar on a model
+    without ``bank_noise_gain`` -> that variance on each linear state, zeros after (with the
+    gain the scalar is sigma_phi^2 and the gain is zero on the added states). Anything else is
+    returned as given, for ``marginalized_pf``'s own check to name."""
+    if Q is None:
         return np.zeros(n_extra) if n_linear == 0 else None
     try:
-        sig = validation.array("linear_noise_std", linear_noise_std, allow_nan=True)
+        q = validation.array("Q", Q, allow_nan=True)
     except ValueError:  # a bool, a string: marginalized_pf's own check names it
-        return linear_noise_std
-    if sig.ndim == 1 and sig.shape[0] == n_linear:
-        return np.r_[sig, np.zeros(n_extra)]
-    if sig.ndim == 0 and not bank_gain:
-        return np.r_[np.full(n_linear, float(sig)), np.zeros(n_extra)]
-    return linear_noise_std
+        return Q
+    if q.ndim == 1 and q.shape[0] == n_linear:
+        return np.r_[q, np.zeros(n_extra)]
+    if q.ndim == 2 and q.shape == (n_linear, n_linear):
+        out = np.zeros((n_linear + n_extra, n_linear + n_extra))
+        out[:n_linear, :n_linear] = q
+        return out
+    if q.ndim == 0 and not bank_gain:
+        return np.r_[np.full(n_linear, float(q)), np.zeros(n_extra)]
+    return Q
 
 
 def bias_walk_stds(bias_walk, sensors):

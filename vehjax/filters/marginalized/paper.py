@@ -32,7 +32,7 @@ from typing import Callable, NamedTuple
 
 import jax.numpy as jnp
 
-from .. import resampling as _rs
+from ... import validation
 from .. import smc
 from ...lib.entrywise import add, dot, entries, matmul, mul, stack, sub
 from ..base import Backward, Dims, Estimator, ParamSpec, Runtime, StepOutput
@@ -205,12 +205,10 @@ def marginalized_pf(
     sensors=("ay", "r", "roll_rate"),
     known_std=None,
     linear_states=("phi", "phi_dot", "phi_ddot"),
-    linear_noise_std=None,
+    Q=None,
     niw: NiW | None = None,
     kalman_states: str = "linear",
-    ess_threshold: float = 0.5,
-    resampling: str = "systematic",
-    resample=None,
+    resampling: smc.Resampling = smc.Resampling(),
 ) -> Estimator:
     """Noise-adaptive marginalized particle filter (Berntorp & Di Cairano 2018): the state, an
     unknown-mean unknown-variance input error and the biases and covariance of some sensors,
@@ -234,14 +232,17 @@ def marginalized_pf(
             states a negligible variance in P0 (e.g. 1e-20): with a 1e-3 rad/s^2 spread on
             phi_ddot each particle's bank grows by 1.8 rad a minute and the offset and ay bias
             drift to explain it.
-        linear_noise_std: their process noise: for a model with ``bank_noise_gain()`` a scalar
-            sigma_phi of eq. 3 [rad/s^3] (Q = sigma^2 B B^T on the linear states); otherwise,
-            or given as one value per linear state, additive stds per step (Q diagonal).
-            Required when there are linear states; >= 0.
+        Q: the linear states' process noise covariance per step: for a model with
+            ``bank_noise_gain()`` a scalar sigma_phi^2 of eq. 3 [rad^2/s^6] (the covariance
+            sigma_phi^2 B B^T on the linear states); otherwise, or given as one value per
+            linear state, additive variances (a diagonal covariance); or the (n, n) covariance
+            of the n linear states. Required when there are linear states; >= 0.
         niw: :class:`~vehjax.filters.marginalized.NiW`, the noise statistics' start (``std0``,
             required; ``mean0``, ``gamma0``, ``nu0``) and their ``forgetting`` (eq. 17-20).
-        ess_threshold: resample when ESS < ess_threshold * N, in [0, 1].
-        resampling: "systematic", "stratified", "multinomial" or "residual".
+        resampling: :class:`~vehjax.filters.Resampling`: the scheme, the ESS rule (resample
+            when ESS < ess_threshold * N) and the resampling function (``resample``, e.g.
+            :func:`vehjax.filters.smc.resample_stop_gradient`, what :mod:`vehjax.tune` builds
+            the filter with to differentiate its log-likelihood).
         kalman_states: what each particle's Kalman filter covers. "linear" (the paper's
             Algorithm 1): the linear states; a particle's other states are a point, x_t built
             by eq. 6 from the bank's Kalman mean. "all": every state; a particle is a sequence
@@ -251,11 +252,6 @@ def marginalized_pf(
             vy's variance about 8 % too small on SingleTrackBank;
             :mod:`vehjax.filters.marginalized`). 1.2-1.3x
             the time per step. No difference without linear states.
-        resample: the resampling function, ``resample(particles, w, log_w, u, scheme,
-            threshold) -> (particles, log_w, w, resampled)`` with the signature and meaning of
-            :func:`vehjax.filters.smc.resample` (which None means), e.g.
-            :func:`vehjax.filters.smc.resample_stop_gradient` (what :mod:`vehjax.tune` builds
-            the filter with to differentiate its log-likelihood).
 
     Returns:
         ``Estimator`` (``needs_key=True``), ``nx`` = all model states, ``param_names`` =
@@ -274,16 +270,17 @@ def marginalized_pf(
     Raises:
         ValueError: naming the argument: unknown input, sensor, known-std output or state
             names, a name in both ``sensors`` and ``known_std``, a model not affine in the linear
-            states, non-positive stds (negative ``linear_noise_std``), lambda outside (0, 1] or
-            too small for nu0, gamma0 <= 0, nu0 <= d + 1, n_particles < 2, a bad resampling
-            scheme, ess_threshold or kalman_states, a ``niw`` that is not a
-            :class:`~vehjax.filters.marginalized.NiW`, or a ``resample`` that is not callable.
+            states, non-positive stds, a negative ``Q``, lambda outside (0, 1] or
+            too small for nu0, gamma0 <= 0, nu0 <= d + 1, n_particles < 2, a bad
+            kalman_states, a ``niw`` that is not a :class:`~vehjax.filters.marginalized.NiW`,
+            or a ``resampling`` that is not a :class:`~vehjax.filters.Resampling` (which checks
+            its own fields when made).
     """
-    rule = _Resampling(scheme=_rs.check_scheme(resampling),
-                       ess_threshold=smc.check_ess_threshold(ess_threshold),
-                       resample=smc.check_resample(resample))
+    resampling = validation.record("resampling", resampling, smc.Resampling)
+    rule = _Resampling(scheme=resampling.scheme, ess_threshold=resampling.ess_threshold,
+                       resample=resampling.function())
     s = configure(model, n_particles, noisy_input, sensors, known_std, linear_states,
-                  linear_noise_std, niw, kalman_states)
+                  Q, niw, kalman_states)
     mdl = model_fns(model, s)
     linear = LinearStep(
         transition=mdl.transition, observe=mdl.observe, sampled_idx=s.sampled_idx,

@@ -139,25 +139,27 @@ class Setup(NamedTuple):
     n_outputs: int
 
 
-def _linear_noise(model, linear_noise_std, li, linear_states) -> np.ndarray:
-    """Q of the linear states from ``linear_noise_std`` (the builder's docstring)."""
+def _linear_noise(model, Q, li, linear_states) -> np.ndarray:
+    """Process covariance of the linear states from ``Q`` (the builder's docstring)."""
     nz = len(li)
     if not nz:
         return np.zeros((0, 0))
-    if linear_noise_std is None:
-        raise ValueError(f"linear_noise_std: required with linear_states {linear_states} "
-                         f"(sigma_phi of eq. 3)")
+    if Q is None:
+        raise ValueError(f"Q: required with linear_states {linear_states} "
+                         f"(sigma_phi^2 of eq. 3)")
     try:  # real numbers (validation's rule: no bool, string or object), checked below
-        sig = validation.array("linear_noise_std", linear_noise_std, allow_nan=True)
+        q = validation.array("Q", Q, allow_nan=True)
     except ValueError:
-        sig = np.array(np.nan)
-    if sig.ndim == 0 and np.isfinite(sig) and sig >= 0 and hasattr(model, "bank_noise_gain"):
+        q = np.array(np.nan)
+    if q.ndim == 0 and np.isfinite(q) and q >= 0 and hasattr(model, "bank_noise_gain"):
         B = np.asarray(model.bank_noise_gain(), dtype=float)[li]
-        return float(sig) ** 2 * np.outer(B, B)
-    if sig.shape in ((), (nz,)) and np.all(np.isfinite(sig)) and np.all(sig >= 0):
-        return np.diag(np.broadcast_to(sig, (nz,)) ** 2)
-    raise ValueError(f"linear_noise_std: expected a std >= 0 or {nz} of them, got "
-                     f"{linear_noise_std!r}")
+        return float(q) * np.outer(B, B)
+    if q.shape in ((), (nz,)) and np.all(np.isfinite(q)) and np.all(q >= 0):
+        return np.diag(np.broadcast_to(q, (nz,)))
+    if q.shape == (nz, nz):
+        return validation.cov("Q", q, nz, allow_psd=True)
+    raise ValueError(f"Q: expected a variance >= 0, {nz} of them or an ({nz}, {nz}) "
+                     f"covariance, got {Q!r}")
 def _noise_prior(unknown_names, std0, mean0, d):
     """Checked (std0 values, mean0 values, lambda-free priors) of the unknown noise."""
     std0 = std_dict("std0", {} if std0 is None else std0, unknown_names, unknown_names,
@@ -201,7 +203,7 @@ def _niw(niw) -> NiW:
 
 
 def configure(model, n_particles, noisy_input, sensors, known_std, linear_states,
-              linear_noise_std, niw, kalman_states) -> Setup:
+              Q, niw, kalman_states) -> Setup:
     """Every check of the arguments the two builders share (ValueError naming the argument)
     and the constants the filter is built from."""
     validation.model(model)
@@ -230,7 +232,7 @@ def configure(model, n_particles, noisy_input, sensors, known_std, linear_states
         raise ValueError("linear_states: at least one state must remain a particle state")
     nz, nx, ny, ns = len(li), len(state_names), len(output_names), len(sensors)
     d = 1 + ns
-    Qz = _linear_noise(model, linear_noise_std, li, linear_states)
+    Qz = _linear_noise(model, Q, li, linear_states)
     unknown_names = (noisy_input,) + sensors
     std0v, mean0v = _noise_prior(unknown_names, niw.std0, niw.mean0, d)
     lam, g0, nu0 = _forgetting(niw.forgetting, niw.gamma0, niw.nu0, d)

@@ -348,13 +348,13 @@ def _builders(model, s, estimate, box, particles: int):
     common = dict(estimate=estimate, theta_decay=_DECAY)
     low, high = np.asarray(box).T
     return {
-        "Dual EKF": lambda: dual_ekf(model, s["Q"], s["R"], s["Q_theta"], **common),
-        "Dual UKF": lambda: dual_ukf(model, s["Q"], s["R"], s["Q_theta"], **common),
+        "Dual EKF": lambda: dual_ekf(model, s["Q"], s["R"], Q_theta=s["Q_theta"], **common),
+        "Dual UKF": lambda: dual_ukf(model, s["Q"], s["R"], Q_theta=s["Q_theta"], **common),
         "Particle+UKF": lambda: liu_west_ukf(
-            model, s["Q"], s["R"], particles, estimate=estimate, theta_low=low, theta_high=high
-        ),
-        "Joint EKF": lambda: joint_ekf(model, s["Q"], s["R"], s["Q_theta"], **common),
-        "Joint UKF": lambda: joint_ukf(model, s["Q"], s["R"], s["Q_theta"], **common),
+            model, s["Q"], s["R"], n_particles=particles, estimate=estimate, theta_low=low,
+            theta_high=high),
+        "Joint EKF": lambda: joint_ekf(model, s["Q"], s["R"], Q_theta=s["Q_theta"], **common),
+        "Joint UKF": lambda: joint_ukf(model, s["Q"], s["R"], Q_theta=s["Q_theta"], **common),
     }
 
 
