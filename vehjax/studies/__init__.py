@@ -10,3 +10,7 @@ Modules:
     second_car: a simulated second car (front-wheel-drive saloon) whose truth is richer than any
         fitted model, for checks on a car nothing was tuned to.
 """
+
+from . import banked_road, dual_settings, limit_drive, second_car
+
+__all__ = ["banked_road", "dual_settings", "limit_drive", "second_car"]
