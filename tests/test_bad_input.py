@@ -160,7 +160,7 @@ def test_pf_with_r_far_below_the_noise_reinitialises_and_keeps_going():
 
 
 def test_large_particle_study_is_chunked_by_what_the_filter_holds():
-    from vehjax.run import _plan
+    from vehjax.runner.plan import plan as _plan
 
     m = vj.models.Dynamic3DOF()
     est = F.bootstrap_pf(m, np.eye(3) * 1e-3, np.eye(3) * 1e-2, n_particles=5000)

@@ -232,7 +232,8 @@ def test_digest_tells_different_arguments_apart(data):
     """What the processes compare before they run (one process suffices to test it)."""
     import importlib
 
-    run_module = importlib.import_module("vehjax.run")
+    plan_module = importlib.import_module("vehjax.runner.plan")
+    shard = importlib.import_module("vehjax.runner.shard")
     d = np.load(data)
     ukf, pf = _estimators()
 
@@ -240,9 +241,9 @@ def test_digest_tells_different_arguments_apart(data):
         args = dict(x0=d["x0s"], P0=P0, theta0=None, P_theta0=None, key=key,
                     return_covariances=False, chunk_size=None, progress=None, devices=None)
         args.update(kw)
-        plan = run_module._plan(est, ys, d["us"], **args)
+        plan = plan_module.plan(est, ys, d["us"], **args)
         assert not plan.spans_processes  # one process: the plain path
-        return run_module._digest(plan)
+        return shard.digest(plan)
 
     base = digest()
     assert base.dtype == np.uint32 and base.shape == (8,)

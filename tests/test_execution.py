@@ -231,14 +231,14 @@ def test_one_run_goes_by_the_per_run_step(monkeypatch):
     the runs-last step, under the CPU's strategy (execution.runs_last_for)."""
     import importlib
 
-    run_module = importlib.import_module("vehjax.run")  # the module (vehjax.run is the function)
+    batch = importlib.import_module("vehjax.runner.batch")
 
     cpu = execution.for_platform("cpu")
     assert not execution.runs_last_for(cpu, 1) and execution.runs_last_for(cpu, 2)
     assert not execution.runs_last_for(cpu._replace(runs_last=False), 5)
     taken = []
-    real = run_module._runs_last_study
-    monkeypatch.setattr(run_module, "_runs_last_study",
+    real = batch.runs_last_study
+    monkeypatch.setattr(batch, "runs_last_study",
                         lambda *a, **k: taken.append(a[3][0]) or real(*a, **k))
     est = FAMILIES["ekf"][0]
     ys, us = _data(runs=2, steps=7, seed=5)  # shapes no other test traces (no cached study)

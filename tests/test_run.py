@@ -14,6 +14,8 @@ import vehjax  # noqa: F401  (float64)
 from vehjax import execution
 from vehjax.filters.base import Dims, Estimator, ParamSpec, Runtime, StepOutput
 from vehjax.run import RunResult, compile_run, run
+from vehjax.runner import plan as plan_mod
+from vehjax.runtime import eager
 
 DT = 0.1
 F = np.array([[1.0, DT], [0.0, 1.0]])
@@ -242,8 +244,6 @@ def test_runs_in_blocks_equal_runs_side_by_side():
     (the CPU rule, for filters with a large state, e.g. particles): the same results as all
     runs vmapped at once (the GPU rule), per-run keys included, also when the block does not
     divide the chunk."""
-    run_mod = sys.modules["vehjax.run"]  # the module (vehjax.run is also the function)
-
     est = _key_reporting_estimator()
     ys, us = _data(R=10, seed=6)
     key = jax.random.key(3)
@@ -251,9 +251,9 @@ def test_runs_in_blocks_equal_runs_side_by_side():
     whole = run(est, ys, us, x0=X0, P0=P0, key=key, strategy=side_by_side)
     kf = run(EST, ys, us, x0=X0, P0=P0, return_covariances=True)
     tiny = execution.for_platform("cpu")._replace(block_numbers=1)  # blocks of 4 runs
-    plan = run_mod._plan(EST, ys, us, X0, P0, None, None, None, False, None, None, None, tiny)
+    plan = plan_mod.plan(EST, ys, us, X0, P0, None, None, None, False, None, None, None, tiny)
     assert plan.block == 4 < plan.chunk == 10
-    assert run_mod._plan(EST, ys, us, X0, P0, None, None, None, False, None, None, None,
+    assert plan_mod.plan(EST, ys, us, X0, P0, None, None, None, False, None, None, None,
                          "gpu").block is None
     blocked = run(est, ys, us, x0=X0, P0=P0, key=key, strategy=tiny)
     np.testing.assert_array_equal(blocked.states, whole.states)
@@ -263,7 +263,7 @@ def test_runs_in_blocks_equal_runs_side_by_side():
 def test_blocks_are_balanced():
     """Runs go in as few blocks as the block size allows, as even as they can be: 20 runs at
     a block of 19 are two blocks of 10 (not 19 and 1 padded to 19: 38 runs computed)."""
-    balanced = sys.modules["vehjax.run"].balanced_blocks
+    balanced = plan_mod.balanced_blocks
     assert balanced(20, 19) == (2, 10)
     assert balanced(10, 4) == (3, 4)
     assert balanced(100, 4) == (25, 4)
@@ -301,14 +301,13 @@ def test_compiler_options_reach_xla_and_keep_the_results():
     with pytest.raises(ValueError, match="compiler_options.*xla_no_such_option"):
         run(EST, ys, us, x0=X0, P0=P0, compiler_options={"xla_no_such_option": 1})
     # the compiled study is reused by the next call with the same estimator, options, shapes
-    run_mod = sys.modules["vehjax.run"]
-    n = len(run_mod._COMPILED)
+    n = len(eager.CACHE)
     again = run(EST, ys + 1.0, us, x0=X0, P0=P0, compiler_options=opts)
-    assert len(run_mod._COMPILED) == n
+    assert len(eager.CACHE) == n
     np.testing.assert_allclose(again.states[1], numpy_kf(ys[1] + 1.0, us[1], X0, P0)[0],
                                rtol=1e-10, atol=1e-12)
     run(EST, ys[:2], us[:2], x0=X0, P0=P0, compiler_options=opts)  # other shapes: anew
-    assert len(run_mod._COMPILED) == min(n + 1, run_mod._COMPILED_MAX)
+    assert len(eager.CACHE) == min(n + 1, eager.CACHE_SIZE)
     # the strategy's options (by the estimator's workload) under the caller's, name by name
     cpu = execution.for_platform("cpu")
     assert execution.compiler_options(cpu, "small_dense") == {"xla_cpu_use_fusion_emitters": False}

@@ -97,20 +97,12 @@ from .result import RunResult
 from .runner import batch
 from .runner.execute import compile_chunks, execute
 from .runner.plan import Plan, check_progress, plan as _plan
-from .runner.plan import balanced_blocks  # noqa: F401  (named here by the tests)
 from .runner.shard import AXIS
-from .runner.shard import digest as _digest  # noqa: F401  (named here by the tests)
-from .runtime import eager
 
 __all__ = ["RunResult", "CompiledRun", "run", "compile_run", "Strategy"]
 
 Strategy = execution.Strategy
 
-# The names the tests reach for: the runs-last study (which the chunk function looks up here),
-# the blocks, the plan and the digest of vehjax.runner; the one cache of compiled programs.
-_runs_last_study = batch.runs_last_study
-_COMPILED = eager.CACHE
-_COMPILED_MAX = eager.CACHE_SIZE
 
 
 @eqx.filter_jit
@@ -143,7 +135,7 @@ def _study_traced(estimator, ys, us, x0, P0, th0, Pth0, keys, return_cov, mesh, 
             res, cross = batch.smoothed_study(estimator, smooth, return_cov, per_run, block,
                                               strategy, *args)
         elif execution.runs_last_for(strategy, args[0].shape[0]) and estimator.batch is not None:
-            res = _runs_last_study(estimator, return_cov, strategy.prefetch_inputs, per_run,
+            res = batch.runs_last_study(estimator, return_cov, strategy.prefetch_inputs, per_run,
                                    *args)
         else:
             res = batch.vmapped_study(estimator, return_cov, per_run, block, *args)

@@ -361,6 +361,18 @@ def _param_prior(setup, R0_diag, dof_shape):
     return th, P
 
 
+def _estimator(setup, model, stats0, step, prior_params, name: str) -> Estimator:
+    """The VB filter's Estimator: ``step`` with the prior's init (:func:`_init_fn`), the
+    reported parameters (offsets, biases, stds) and their default prior."""
+    return Estimator(
+        init=_init_fn(setup, model, stats0, prior_params),
+        step=step,
+        name=name,
+        dims=Dims(nx=setup.nx, **model_dims(model)),
+        params=ParamSpec(names=setup.names, prior=prior_params),
+        runtime=Runtime(workload="small_dense"),
+    )
+
 def _init_fn(setup, model, stats0, prior_params):
     """``init(x0, P0, theta0, P_theta0, key)``: x0 (nx,), P0 over the model's states; theta0
     (p,), when given, replaces the prior's offsets, biases (Kalman means) and stds (the prior
@@ -552,15 +564,8 @@ def vbakf_r(model, Q, R, *, form: str = "ckf", forgetting: float = 1.0, iteratio
         new = VBState(r.x, r.P, a_new, b_new, theta)
         return new, _report(st, r.x, r.P, std, vs, r.nis, r.loglik, r.n_obs)
 
-    pp = _param_prior(st, R0, a0)
-    return Estimator(
-        init=_init_fn(st, model, stats0, pp),
-        step=step,
-        name=f"VB-A{form.upper()}-R",
-        dims=Dims(nx=st.nx, **model_dims(model)),
-        params=ParamSpec(names=st.names, prior=pp),
-        runtime=Runtime(workload="small_dense"),
-    )
+    return _estimator(st, model, stats0, step, _param_prior(st, R0, a0),
+                      f"VB-A{form.upper()}-R")
 
 
 # --------------------------------------------------------------------------------------------
@@ -675,12 +680,5 @@ def vbakf_pr(model, Q, R, *, form: str = "ckf", forgetting: float = 1.0, iterati
         new = VBPRState(r.x, r.P, u_new, U_new, Pp, theta)
         return new, _report(st, r.x, r.P, std, vs, r.nis, r.loglik, r.n_obs)
 
-    pp = _param_prior(st, R0d, (u0 - m + 1.0) / 2.0)
-    return Estimator(
-        init=_init_fn(st, model, stats0, pp),
-        step=step,
-        name=f"VB-A{form.upper()}-PR",
-        dims=Dims(nx=st.nx, **model_dims(model)),
-        params=ParamSpec(names=st.names, prior=pp),
-        runtime=Runtime(workload="small_dense"),
-    )
+    return _estimator(st, model, stats0, step, _param_prior(st, R0d, (u0 - m + 1.0) / 2.0),
+                      f"VB-A{form.upper()}-PR")

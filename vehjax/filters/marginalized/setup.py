@@ -192,16 +192,6 @@ def _forgetting(forgetting, gamma0, nu0, d):
     return lam, g0, nu0
 
 
-def _niw(niw) -> NiW:
-    """Checked type of ``niw`` (None: the defaults, no std0)."""
-    if niw is None:
-        return NiW()
-    if not isinstance(niw, NiW):
-        raise ValueError(f"niw: expected vehjax.filters.marginalized.NiW(std0=..., ...), got "
-                         f"{niw!r}")
-    return niw
-
-
 def configure(model, n_particles, noisy_input, sensors, known_std, linear_states,
               Q, niw, kalman_states) -> Setup:
     """Every check of the arguments the two builders share (ValueError naming the argument)
@@ -210,7 +200,7 @@ def configure(model, n_particles, noisy_input, sensors, known_std, linear_states
     n = smc.check_n_particles(n_particles)
     if kalman_states not in ("linear", "all"):  # before the noise set-up (it computes)
         raise ValueError(f"kalman_states: expected 'linear' or 'all', got {kalman_states!r}")
-    niw = _niw(niw)
+    niw = validation.record("niw", niw, NiW)  # None: the defaults, no std0
     state_names = tuple(model.state_names)
     input_names = tuple(model.input_names)
     output_names = tuple(model.output_names)
