@@ -9,6 +9,8 @@ import pytest
 import vehjax as vj
 from vehjax import filters as F
 
+from _contract import DRAW_RTOL
+
 T, RUNS = 40, 3
 
 
@@ -75,12 +77,17 @@ def test_filter_and_run_agree_for_every_builder(name):
     keys = jax.random.split(key, RUNS) if key is not None else [None] * RUNS
     for r in range(RUNS):
         one = vj.filter(est, ys[r], us, X0, P0, key=keys[r], **prior)
-        tol = dict(rtol=1e-9, atol=1e-12)
+        # two programs: a filter that draws random numbers agrees to its float32 draws'
+        # rounding (tests/_contract.py), the others to float64 rounding
+        rtol = DRAW_RTOL if est.needs_key else 1e-9
+        tol = dict(rtol=rtol, atol=1e-12)
         np.testing.assert_allclose(one.states, out.states[r], **tol)
-        np.testing.assert_allclose(one.covariances, out.covariances[r], **tol)
+        # an entry near zero (an off-diagonal covariance) carries the error of the largest
+        cov_atol = rtol * float(np.max(np.abs(out.covariances[r]))) if est.needs_key else 1e-12
+        np.testing.assert_allclose(one.covariances, out.covariances[r], rtol=rtol, atol=cov_atol)
         np.testing.assert_allclose(one.params, out.params[r], **tol)
         np.testing.assert_allclose(one.params_cov, out.params_cov[r], **tol)
-        np.testing.assert_allclose(float(one.loglik.sum()), out.loglik[r], rtol=1e-9)
+        np.testing.assert_allclose(float(one.loglik.sum()), out.loglik[r], rtol=rtol)
         np.testing.assert_allclose(one.nis, out.nis[r], **tol)
         np.testing.assert_array_equal(one.n_obs, out.n_obs[r])
         assert bool(one.diverged) == bool(out.diverged[r]) and int(one.diverged_at) == out.diverged_at[r]

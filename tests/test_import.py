@@ -153,3 +153,39 @@ def test_the_cache_defaults_to_the_user_cache_folder_and_can_be_turned_off(tmp_p
                    env={**home, "JAX_COMPILATION_CACHE_DIR": mine}) == mine
     assert _python(f"import jax\njax.config.update('jax_compilation_cache_dir', {mine!r})\n"
                    "import vehjax" + _CACHE, env=home) == mine
+
+
+def test_xla_flags_raise_the_small_loop_limit_once(monkeypatch):
+    """The small-while-loop limit is added to XLA_FLAGS, merged into backend extra options
+    already given, and left as it is where the user set it or turned it off."""
+    monkeypatch.delenv("VEHJAX_XLA_SMALL_LOOPS", raising=False)
+    item = f"xla_cpu_small_while_loop_byte_threshold={vehjax.SMALL_LOOP_BYTES}"
+    assert vehjax._xla_flags("") == f"--xla_backend_extra_options={item}"
+    assert (vehjax._xla_flags("--xla_a=1 --xla_backend_extra_options=k=v --xla_b=2")
+            == f"--xla_a=1 --xla_backend_extra_options=k=v,{item} --xla_b=2")
+    mine = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0"
+    assert vehjax._xla_flags(mine) == mine
+    assert vehjax._xla_flags(vehjax._xla_flags("")) == vehjax._xla_flags("")
+    monkeypatch.setenv("VEHJAX_XLA_SMALL_LOOPS", "Off")
+    assert vehjax._xla_flags("--xla_a=1") == "--xla_a=1"
+
+
+_SMALL_CALL = """
+import json, vehjax, jax, numpy as np
+from vehjax.models import SingleTrack
+est = vehjax.filters.ekf(SingleTrack(tyres="linear"), np.diag([1e-4, 1e-5]), np.diag([0.1, 1e-4]))
+us = np.tile([0.01, 20.0], (50, 1))
+f = jax.jit(lambda y: vehjax.filter(est, y, us, x0=np.zeros(2), P0=np.eye(2)).loglik)
+print(json.dumps("xla_cpu_small_call" in f.lower(np.zeros((50, 2))).compile().as_text()))
+"""
+
+
+@pytest.mark.parametrize("first", ["", "import jax\n"])
+def test_a_filters_scan_compiles_into_one_kernel(first):
+    """With vehjax imported before JAX computes anything (JAX imported first or not), XLA:CPU
+    compiles a filter's scan over time into one function (its small-loop call) rather than
+    running each step's kernels through its thunk executor; VEHJAX_XLA_SMALL_LOOPS=off keeps
+    XLA's own limit, under which it does not."""
+    flags = {"XLA_FLAGS": None, "VEHJAX_XLA_SMALL_LOOPS": None}
+    assert _python(first + _SMALL_CALL, env=flags) is True
+    assert _python(first + _SMALL_CALL, env={**flags, "VEHJAX_XLA_SMALL_LOOPS": "off"}) is False

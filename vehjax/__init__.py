@@ -17,6 +17,11 @@ the same structure, in a new process, skips most of its compile (the brush fit o
 ``benchmarks/bench_fit_limit.py``: about a fifth less wall time the second time). Entries are small (a few MB for a fit's programs) and are never evicted:
 delete the folder to clear it. ``VEHJAX_COMPILATION_CACHE=off`` turns it off; a cache already
 set (``JAX_COMPILATION_CACHE_DIR``, or ``jax.config`` before importing vehjax) is left alone.
+
+On the CPU, importing vehjax also lets XLA compile each filter's scan over time into one
+function (``XLA_FLAGS``, :data:`SMALL_LOOP_BYTES`): one run goes several times faster. It acts
+when vehjax is imported before JAX computes anything; ``VEHJAX_XLA_SMALL_LOOPS=off`` turns it
+off (docs/execution.md, "One kernel per scan").
 """
 
 import importlib
@@ -46,10 +51,40 @@ def _cache_dir() -> str | None:
     return os.path.join(base, "vehjax", "xla")
 
 
+#: XLA:CPU compiles a while loop that accesses at most this many bytes into one function
+#: (its small-while-loop pass; XLA's own limit is 1 kB), instead of running each step's kernels
+#: one by one through its thunk executor: a filter's ``lax.scan`` over a drive then runs at
+#: the speed of compiled scalar code (``benchmarks/bench_floor.py``)
+SMALL_LOOP_BYTES = 1 << 30
+_SMALL_LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
+
+
+def _xla_flags(flags: str) -> str:
+    """``XLA_FLAGS`` with XLA:CPU's small-while-loop limit raised to :data:`SMALL_LOOP_BYTES`
+    (a backend extra option, merged into a ``--xla_backend_extra_options`` already given);
+    unchanged when the flags set that limit already or ``VEHJAX_XLA_SMALL_LOOPS`` is
+    ``0``/``off``/``false``/``no``."""
+    if _SMALL_LOOP_OPTION in flags or os.environ.get(
+            "VEHJAX_XLA_SMALL_LOOPS", "").strip().lower() in ("0", "off", "false", "no"):
+        return flags
+    item = f"{_SMALL_LOOP_OPTION}={SMALL_LOOP_BYTES}"
+    words = flags.split()
+    for i, w in enumerate(words):
+        if w.startswith("--xla_backend_extra_options="):
+            words[i] = w + ("," if not w.endswith("=") else "") + item
+            return " ".join(words)
+    return " ".join(words + [f"--xla_backend_extra_options={item}"])
+
+
 def _configure_jax() -> None:
     """float64 on, and the persistent compilation cache (:func:`_cache_dir`), through the
     environment when JAX is not imported yet (it reads it when imported; child processes
-    inherit it), through ``jax.config`` when it is."""
+    inherit it), through ``jax.config`` when it is. XLA's flags (:func:`_xla_flags`) are read
+    when JAX starts its first backend: set here in every case, they act unless JAX has
+    computed something before vehjax was imported."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if _xla_flags(flags) != flags:
+        os.environ["XLA_FLAGS"] = _xla_flags(flags)
     cache = _cache_dir()
     if "jax" in sys.modules:
         config = sys.modules["jax"].config

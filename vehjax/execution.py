@@ -19,7 +19,9 @@ each platform. The one exception is traced code outside ``run`` (:func:`vehjax.f
 user's ``jax.jit``): it follows :func:`current`, the strategy of JAX's default backend.
 
 The rules, with the reason and measurement behind each, are in ``docs/execution.md``. In short,
-on CPU: runs vmapped in cache-sized blocks (``block_numbers``); chunks of at most 512 MiB and 2e9
+on CPU: each scan compiled into one function (XLA's small-while-loop limit raised when vehjax
+is imported, ``vehjax.SMALL_LOOP_BYTES``: a process-wide XLA flag, the one rule not in this
+module, since it must be set before JAX starts); runs vmapped in cache-sized blocks (``block_numbers``); chunks of at most 512 MiB and 2e9
 carried numbers x steps (``chunk_bytes``, ``chunk_work``); XLA:CPU's elemental emitter for the
 small-dense filters (``elemental_emitter``); vectorisable trigonometry for ``fast_math`` models
 (``substitute_elementary``); a fit's independent work on several threads (``side_by_side``); the

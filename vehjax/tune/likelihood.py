@@ -282,9 +282,15 @@ def _per_step(at):
             res = _filter(est, y, u, xi, Pi, key=k, return_covariances=False)
             return res.loglik, res.diverged
 
-        axes = (0, None if us_ is None or us_.ndim == 2 else 0, 0 if x0v.ndim == 2 else None,
-                0 if P0_.ndim == 3 else None, None if keys_ is None else 0)
-        return jax.vmap(one, in_axes=axes)(ys_, us_, x0v, P0_, keys_)
+        # the prior given per run: the filter's carried state is batched over the runs from
+        # its first step, so JAX traces the scan's body once for the runs (a shared prior
+        # would make it iterate to a fixed point); the values are the same
+        runs = ys_.shape[0]
+        x0r = jnp.broadcast_to(x0v, (runs,) + x0v.shape[-1:])
+        P0r = jnp.broadcast_to(P0_, (runs,) + P0_.shape[-2:])
+        axes = (0, None if us_ is None or us_.ndim == 2 else 0, 0, 0,
+                None if keys_ is None else 0)
+        return jax.vmap(one, in_axes=axes)(ys_, us_, x0r, P0r, keys_)
 
     return per_step
 
