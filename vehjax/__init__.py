@@ -33,13 +33,17 @@ from typing import TYPE_CHECKING
 
 
 
+def _turned_off(variable: str) -> bool:
+    """Whether the environment variable says ``0``/``off``/``false``/``no`` (any case)."""
+    return os.environ.get(variable, "").strip().lower() in ("0", "off", "false", "no")
+
+
 def _cache_dir() -> str | None:
     """The folder of the persistent compilation cache vehjax asks JAX for: ``VEHJAX_CACHE_DIR``,
     else ``$XDG_CACHE_HOME/vehjax/xla`` (``~/.cache/vehjax/xla``); None when
     ``VEHJAX_COMPILATION_CACHE`` is ``0``/``off``/``false``/``no``, or when a cache is set
     already (``JAX_COMPILATION_CACHE_DIR``, or ``jax.config`` of an imported JAX)."""
-    if os.environ.get("VEHJAX_COMPILATION_CACHE", "").strip().lower() in ("0", "off", "false",
-                                                                          "no"):
+    if _turned_off("VEHJAX_COMPILATION_CACHE"):
         return None
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         return None
@@ -64,8 +68,7 @@ def _xla_flags(flags: str) -> str:
     (a backend extra option, merged into a ``--xla_backend_extra_options`` already given);
     unchanged when the flags set that limit already or ``VEHJAX_XLA_SMALL_LOOPS`` is
     ``0``/``off``/``false``/``no``."""
-    if _SMALL_LOOP_OPTION in flags or os.environ.get(
-            "VEHJAX_XLA_SMALL_LOOPS", "").strip().lower() in ("0", "off", "false", "no"):
+    if _SMALL_LOOP_OPTION in flags or _turned_off("VEHJAX_XLA_SMALL_LOOPS"):
         return flags
     item = f"{_SMALL_LOOP_OPTION}={SMALL_LOOP_BYTES}"
     words = flags.split()
@@ -83,8 +86,9 @@ def _configure_jax() -> None:
     when JAX starts its first backend: set here in every case, they act unless JAX has
     computed something before vehjax was imported."""
     flags = os.environ.get("XLA_FLAGS", "")
-    if _xla_flags(flags) != flags:
-        os.environ["XLA_FLAGS"] = _xla_flags(flags)
+    ours = _xla_flags(flags)
+    if ours != flags:
+        os.environ["XLA_FLAGS"] = ours
     cache = _cache_dir()
     if "jax" in sys.modules:
         config = sys.modules["jax"].config

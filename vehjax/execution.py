@@ -21,9 +21,9 @@ user's ``jax.jit``): it follows :func:`current`, the strategy of JAX's default b
 The rules, with the reason and measurement behind each, are in ``docs/execution.md``. In short,
 on CPU: each scan compiled into one function (XLA's small-while-loop limit raised when vehjax
 is imported, ``vehjax.SMALL_LOOP_BYTES``: a process-wide XLA flag, the one rule not in this
-module, since it must be set before JAX starts); runs vmapped in cache-sized blocks (``block_numbers``); chunks of at most 512 MiB and 2e9
-carried numbers x steps (``chunk_bytes``, ``chunk_work``); XLA:CPU's elemental emitter for the
-small-dense filters (``elemental_emitter``); vectorisable trigonometry for ``fast_math`` models
+module, since it must be set before JAX starts); runs vmapped in cache-sized blocks
+(``block_numbers``); chunks of at most 512 MiB and 2e9 carried numbers x steps (``chunk_bytes``,
+``chunk_work``); XLA:CPU's elemental emitter for the small-dense filters (``elemental_emitter``); vectorisable trigonometry for ``fast_math`` models
 (``substitute_elementary``); a fit's independent work on several threads (``side_by_side``); the
 runs-last batched step (``runs_last``) except for a chunk of one run (:func:`runs_last_for`). On
 GPU (and TPU, unmeasured): no blocking, no CPU XLA options, substitutes off, the runs-last step
