@@ -288,10 +288,7 @@ class SingleTrack(VehicleModel):
 
     def transition(self, x, u, theta):
         """State after ``dt`` seconds, input held: ``substeps`` integrator steps, shape (2,)."""
-        h = self.dt / self.substeps
-        for _ in range(self.substeps):
-            x = _step(self.derivative, x, u, theta, h, self.integrator)
-        return x
+        return integrate(self.derivative, x, u, theta, self.dt, self.integrator, self.substeps)
 
     def lateral_acceleration(self, x, u, theta):
         """ay = Fy / m = vy' + vx r [m/s^2] at the CoG."""
@@ -389,6 +386,3 @@ def peak_lateral_acceleration(ay, dt: float, window: float = 0.2) -> float:
     means = np.abs(sums) / np.maximum(counts, 1.0)
     return float(np.max(np.where(counts > 0, means, 0.0)))
 
-
-def _step(derivative, x, u, theta, h, integrator):
-    return integrate(derivative, x, u, theta, h, integrator)

@@ -49,13 +49,16 @@ def split(fn: Callable, args: Sequence, late: Sequence[bool]) -> Split:
             dtypes.
         late: one flag per argument: True for the arguments that vary from point to point.
 
-    A function with side effects is kept whole in ``late`` (``early`` then returns the
+    Calls (``jit``, e.g. a model's derivative, :func:`vehjax.models.base.integrate`) are
+    inlined first (:func:`inline_calls`), so their equations are split like the rest. A
+    function with side effects is kept whole in ``late`` (``early`` then returns the
     early arguments unchanged), so the split never changes what is computed or how often.
     """
     late = tuple(bool(f) for f in late)
     if len(late) != len(args):
         raise ValueError(f"late: expected {len(args)} flags, got {len(late)}")
     closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*args)
+    closed = inline_calls(closed)
     jaxpr, consts = closed.jaxpr, closed.consts
     out_tree = jax.tree.structure(out_shape)
     late_in = [v for v, f in zip(jaxpr.invars, late) if f]
@@ -99,6 +102,50 @@ def split(fn: Callable, args: Sequence, late: Sequence[bool]) -> Split:
 
     return Split(lambda *a: tuple(early_fn(*a)), late_fn, len(residuals))
 
+
+
+#: call primitives whose bodies :func:`inline_calls` writes in place
+_CALLS = frozenset({"jit", "pjit", "closed_call", "core_call"})
+
+
+def inline_calls(closed: ClosedJaxpr) -> ClosedJaxpr:
+    """``closed`` with the body of every call equation (``jit`` without shardings or donated
+    arguments, ``closed_call``), at any depth of calls, written in place; ``closed`` itself
+    when it holds none. The same operations, in the same order."""
+    if not any(_inlinable(e) for e in closed.jaxpr.eqns):
+        return closed
+    specs = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=getattr(a, "weak_type", False))
+             for a in closed.in_avals]
+    return jax.make_jaxpr(lambda *a: _bind_inlined(closed.jaxpr, closed.consts, a))(*specs)
+
+
+def _inlinable(eqn) -> bool:
+    p = eqn.params
+    return (eqn.primitive.name in _CALLS and isinstance(p.get("jaxpr", p.get("call_jaxpr")),
+                                                       ClosedJaxpr)
+            and not any(p.get("donated_invars", ())) and not p.get("compiler_options_kvs")
+            and all(s is None or type(s).__name__ == "UnspecifiedValue"
+                    for s in tuple(p.get("in_shardings", ())) + tuple(p.get("out_shardings", ()))))
+
+
+def _bind_inlined(jaxpr: Jaxpr, consts, args) -> list:
+    """Bind ``jaxpr``'s equations into the current trace, calls inlined (:func:`inline_calls`)."""
+    env = dict(zip(jaxpr.constvars, consts))
+    env.update(zip(jaxpr.invars, args))
+
+    def read(v):
+        return v.val if isinstance(v, Literal) else env[v]
+
+    for eqn in jaxpr.eqns:
+        ins = [read(v) for v in eqn.invars]
+        if _inlinable(eqn):
+            body = eqn.params.get("jaxpr", eqn.params.get("call_jaxpr"))
+            outs = _bind_inlined(body.jaxpr, body.consts, ins)
+        else:
+            outs = eqn.primitive.bind(*ins, **eqn.primitive.get_bind_params(eqn.params))
+            outs = outs if eqn.primitive.multiple_results else [outs]
+        env.update(zip(eqn.outvars, outs))
+    return [read(v) for v in jaxpr.outvars]
 
 
 # ---------------------------------------------------------------------------------------------
