@@ -174,3 +174,26 @@ def test_registry_lists_every_model_with_units():
         assert len(m.state_units) == m.nx and len(m.param_units) == m.n_params
         assert len(m.input_units) == m.nu and len(m.output_units) == m.ny
         assert cls.__name__ in m.describe()
+
+
+def test_integrate_substeps_are_steps_of_dt_over_substeps():
+    """integrate(..., substeps=k) = k steps of dt / k, eager and traced, bit for bit; traced,
+    the derivative is one call whose trace every stage of every sub-step shares."""
+    from vehjax.models.base import integrate
+    model = vj.models.SingleTrack(tyres="brush")
+    x, u, th = jnp.array([0.4, 0.2]), jnp.array([0.05, 18.0]), jnp.asarray(model.theta)
+    for integrator, stages in (("rk4", 4), ("euler", 1)):
+        def two_steps(x, u, th):
+            for _ in range(2):
+                x = integrate(model.derivative, x, u, th, 0.005, integrator)
+            return x
+
+        def substeps(x, u, th):
+            return integrate(model.derivative, x, u, th, 0.01, integrator, substeps=2)
+
+        np.testing.assert_array_equal(substeps(x, u, th), two_steps(x, u, th))
+        np.testing.assert_array_equal(jax.jit(substeps)(x, u, th), jax.jit(two_steps)(x, u, th))
+        calls = [e for e in jax.make_jaxpr(substeps)(x, u, th).jaxpr.eqns
+                 if e.primitive.name in ("jit", "pjit")]
+        assert len(calls) == 2 * stages
+        assert len({id(e.params["jaxpr"].jaxpr) for e in calls}) == 1

@@ -159,3 +159,27 @@ def test_numpy_evaluation_of_equations_equals_the_primitives():
             hoist._NUMPY)
         env.update(zip(eqn.outvars, got))
     assert n_numpy >= 20
+
+
+def test_inline_calls_writes_nested_calls_in_place_and_split_sees_through_them():
+    from jax.extend.core import jaxpr_as_fun
+
+    from vehjax.runtime.hoist import inline_calls
+
+    inner = jax.jit(lambda x, u: x * jnp.cos(u[0]) + u[1])
+    outer = jax.jit(lambda x, u: inner(x, u) * 2.0)
+
+    def fn(x, u, theta):
+        return outer(x, u) + theta[0]
+
+    closed = jax.make_jaxpr(fn)(*[jnp.ones(2), jnp.ones(2), jnp.ones(1)])
+    flat = inline_calls(closed)
+    assert not [e for e in flat.jaxpr.eqns if e.primitive.name in ("jit", "pjit")]
+    args = (jnp.array([0.3, -1.2]), jnp.array([0.7, 2.0]), jnp.array([0.5]))
+    np.testing.assert_array_equal(jaxpr_as_fun(flat)(*args)[0], fn(*args))
+    # cos(u[0]) is inside the calls and needs no state: split computes it early
+    sp = split(fn, _args(2, 2, 1), late=(True, False, False))
+    late_prims = {e.primitive.name for e in jax.make_jaxpr(sp.late)(
+        *[jnp.ones(2)] + list(sp.early(jnp.ones(2), jnp.ones(1)))).jaxpr.eqns}
+    assert "cos" not in late_prims and sp.n_residuals > 0
+    np.testing.assert_array_equal(sp.late(args[0], *sp.early(args[1], args[2])), fn(*args))

@@ -214,12 +214,14 @@ class Ahead(NamedTuple):
 
 def compile_ahead(start: Start, setup, data, bounds=None, checks: Checks = Checks()) -> Ahead:
     """The programs :func:`fit_diagnostics` runs at the optimum, compiled from the fit's start
-    one after the other: the score tests' (:func:`compile_augmented`, for the held parameters
-    among ``checks.held``) and, with ``checks.innovations``, the innovation checks'
-    (:func:`compile_innovations`). :func:`vehjax.tune.fit_from_theta` runs this in a second
-    host thread while it fits."""
+    side by side: the score tests' (:func:`compile_augmented`, for the held parameters among
+    ``checks.held``) here and, with ``checks.innovations``, the innovation checks'
+    (:func:`compile_innovations`) in another host thread. :func:`vehjax.tune.fit_from_theta`
+    runs this in a second host thread while it fits: the two compiles, which end the fit
+    when they finish after it, then use the cores its evaluations leave."""
+    inn = execution.in_thread(compile_innovations, setup, data) if checks.innovations else None
     aug = compile_augmented(start, setup, data, bounds, checks.held)
-    return Ahead(aug, compile_innovations(setup, data) if checks.innovations else None)
+    return Ahead(aug, None if inn is None else inn.result())
 
 
 def _held_columns(loss, x, scales, held, free_hessian, names):
