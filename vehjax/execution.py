@@ -92,6 +92,11 @@ class Strategy(NamedTuple):
             threads (:mod:`vehjax.tune`: the gradients of a Hessian by differences, the
             compile of the next stage's program beside the current stage's evaluations); 1:
             one after the other.
+        rolled_substeps: a model's integrator sub-steps (:func:`vehjax.models.base.integrate`,
+            more than one per sample) as a loop, not written out: on XLA:CPU the one-run step
+            of a fit's program then compiles in half the time and runs about a third faster
+            (the single-track model's two RK4 sub-steps; ``benchmarks/results``); the same
+            arithmetic, rounded apart by a few ulps.
     """
 
     platform: str
@@ -104,6 +109,7 @@ class Strategy(NamedTuple):
     results_to_host: bool = True
     prefetch_inputs: bool = True
     side_by_side: int = 1
+    rolled_substeps: bool = False
 
 
 def for_platform(platform: str, device_memory: int | None = None) -> Strategy:
@@ -113,7 +119,7 @@ def for_platform(platform: str, device_memory: int | None = None) -> Strategy:
     if name == "cpu":
         return Strategy("cpu", _CPU_CHUNK_BYTES, _CPU_CHUNK_WORK, _CPU_BLOCK_NUMBERS,
                         runs_last=True, elemental_emitter=True, substitute_elementary=True,
-                        side_by_side=os.cpu_count() or 1)
+                        side_by_side=os.cpu_count() or 1, rolled_substeps=True)
     if name in ("gpu", "cuda", "rocm", "tpu"):
         budget = (_DEVICE_CHUNK_FALLBACK if device_memory is None
                   else int(_DEVICE_CHUNK_FRACTION * device_memory))
@@ -250,7 +256,7 @@ def _check(s: Strategy) -> None:
             s.side_by_side < 1:
         raise ValueError(f"strategy: side_by_side must be an int >= 1, got {s.side_by_side!r}")
     for name in ("runs_last", "elemental_emitter", "substitute_elementary", "results_to_host",
-                 "prefetch_inputs"):
+                 "prefetch_inputs", "rolled_substeps"):
         if not isinstance(getattr(s, name), bool):
             raise ValueError(f"strategy: {name} must be True or False, got "
                              f"{getattr(s, name)!r}")

@@ -177,11 +177,15 @@ def test_registry_lists_every_model_with_units():
 
 
 def test_integrate_substeps_are_steps_of_dt_over_substeps():
-    """integrate(..., substeps=k) = k steps of dt / k, eager and traced, bit for bit; traced,
-    the derivative is one call whose trace every stage of every sub-step shares."""
+    """integrate(..., substeps=k) = k steps of dt / k: eager and written out (traced), bit for
+    bit, the derivative one call whose trace every stage of every sub-step shares; rolled
+    into a loop (the CPU's strategy) to rounding."""
+    from vehjax import execution
     from vehjax.models.base import integrate
     model = vj.models.SingleTrack(tyres="brush")
     x, u, th = jnp.array([0.4, 0.2]), jnp.array([0.05, 18.0]), jnp.asarray(model.theta)
+    cpu = execution.for_platform("cpu")
+    assert cpu.rolled_substeps and not execution.for_platform("gpu").rolled_substeps
     for integrator, stages in (("rk4", 4), ("euler", 1)):
         def two_steps(x, u, th):
             for _ in range(2):
@@ -191,9 +195,17 @@ def test_integrate_substeps_are_steps_of_dt_over_substeps():
         def substeps(x, u, th):
             return integrate(model.derivative, x, u, th, 0.01, integrator, substeps=2)
 
-        np.testing.assert_array_equal(substeps(x, u, th), two_steps(x, u, th))
-        np.testing.assert_array_equal(jax.jit(substeps)(x, u, th), jax.jit(two_steps)(x, u, th))
-        calls = [e for e in jax.make_jaxpr(substeps)(x, u, th).jaxpr.eqns
-                 if e.primitive.name in ("jit", "pjit")]
+        ref = two_steps(x, u, th)
+        np.testing.assert_array_equal(substeps(x, u, th), ref)
+        with execution.using(cpu._replace(rolled_substeps=False)):
+            np.testing.assert_array_equal(jax.jit(substeps)(x, u, th), ref)
+            calls = [e for e in jax.make_jaxpr(substeps)(x, u, th).jaxpr.eqns
+                     if e.primitive.name in ("jit", "pjit")]
         assert len(calls) == 2 * stages
         assert len({id(e.params["jaxpr"].jaxpr) for e in calls}) == 1
+        with execution.using(cpu):  # a new function: JAX keeps a function's trace
+            rolled = lambda x, u, th: substeps(x, u, th)  # noqa: E731
+            eqns = jax.make_jaxpr(rolled)(x, u, th).jaxpr.eqns
+            np.testing.assert_allclose(jax.jit(rolled)(x, u, th), ref, rtol=1e-14)
+        assert [e.primitive.name for e in eqns if e.primitive.name in ("scan", "while")]
+        assert not [e for e in eqns if e.primitive.name in ("jit", "pjit")]

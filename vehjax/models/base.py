@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import validation
+from .. import execution, validation
 from ..runtime.substitute import fast_elementary
 from .domains import Interval, ParamDomains, envelope, gather, interval
 
@@ -46,13 +46,19 @@ def integrate(derivative: Callable, x, u, theta, dt: float, integrator: str, sub
     Traced (inside ``jit``, ``vmap``, a filter's scan), ``derivative`` is one ``jax.jit`` call
     traced once: the stages of every sub-step share its trace and JAX's transformations of it
     (a fit's forward-mode tangents through the EKF's Jacobians), about half the trace of a fit's
-    program for the single-track model with two RK4 sub-steps. XLA inlines the call: the
-    arithmetic is the same. Called with concrete arrays, ``derivative`` runs as it is."""
-    if any(isinstance(v, jax.core.Tracer) for v in (x, u, theta)):
-        d = jax.jit(lambda a, b, c: derivative(a, b, c))
-    else:
-        d = derivative
+    program for the single-track model with two RK4 sub-steps; XLA inlines the call, the
+    arithmetic is the same. Several sub-steps are a loop (``lax.fori_loop``) where the
+    platform's strategy says so (``rolled_substeps`` of :mod:`vehjax.execution`: on the CPU),
+    else written out. Called with concrete arrays, ``derivative`` runs as it is, written out."""
     h = dt / substeps
+    if not any(isinstance(v, jax.core.Tracer) for v in (x, u, theta)):
+        for _ in range(substeps):
+            x = _integrator_step(derivative, x, u, theta, h, integrator)
+        return x
+    d = jax.jit(lambda a, b, c: derivative(a, b, c))
+    if substeps > 1 and execution.current().rolled_substeps:
+        return jax.lax.fori_loop(0, substeps, lambda _, xk: _integrator_step(
+            d, xk, u, theta, h, integrator), x)
     for _ in range(substeps):
         x = _integrator_step(d, x, u, theta, h, integrator)
     return x
