@@ -3,6 +3,7 @@ check of the arguments, one cache of compiled programs)."""
 
 import inspect
 
+import jax
 import numpy as np
 import pytest
 
@@ -52,4 +53,25 @@ def test_compiled_studies_live_in_the_one_cache():
     held = [entry[0] for entry in eager.CACHE.values()]
     assert any(h and h[0] is EST for h in held)
     vj.run(EST, ys + 1.0, us, **kw)
+    assert len(eager.CACHE) == n
+
+
+def test_chunk_shapes_are_those_of_every_chunks_arguments():
+    """compile_chunks keys a compiled study by shard.chunk_shapes: the shapes and dtypes of
+    every chunk's arguments (the last chunk padded), with per-run priors and a key."""
+    pf = vj.filters.bootstrap_pf(M, np.eye(M.nx) * 1e-4, np.eye(len(M.output_names)) * 1e-2,
+                                 n_particles=8)
+    ys = np.zeros((5, 4, EST.ny))
+    us = np.zeros((5, 4, EST.nu))
+    x0, P0 = np.zeros((5, EST.nx)), np.eye(EST.nx)
+    p = plan.plan(pf, ys, us, x0, P0, None, None, jax.random.key(0), False, 2, None, None)
+    assert p.n_chunks == 3
+    specs = shard.chunk_shapes(p)
+    for i in range(p.n_chunks):
+        args, _ = shard.chunk_args(p, i)
+        assert [None if a is None else (a.shape, a.dtype) for a in args] == \
+            [None if s is None else (s.shape, s.dtype) for s in specs]
+    # the filter's carried numbers are found once per estimator and shapes
+    n = len(eager.CACHE)
+    plan.plan(pf, ys + 1.0, us, x0, P0, None, None, jax.random.key(1), False, 2, None, None)
     assert len(eager.CACHE) == n

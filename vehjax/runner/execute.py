@@ -26,7 +26,7 @@ from ..result import RunResult
 from ..runtime import eager
 from ..runtime.progress import Progress, text_bar
 from .plan import Plan
-from .shard import chunk_args
+from .shard import chunk_args, chunk_shapes
 
 __all__ = ["call_args", "execute", "compile_chunks"]
 
@@ -96,9 +96,8 @@ def compile_chunks(plan: Plan, fn, options: dict | None, cache: bool = False):
     its shapes), with XLA ``options``. ``cache``: reuse (and keep) the compiled study of the
     same estimator object, options and argument shapes (:func:`vehjax.runtime.eager.cached`).
     ValueError naming ``compiler_options`` for an option XLA does not take."""
-    args, _ = call_args(plan, 0)
-
     def make():
+        args, _ = call_args(plan, 0)
         try:
             return fn.lower(*args).compile(compiler_options=options)
         except jax.errors.JaxRuntimeError as err:
@@ -108,6 +107,10 @@ def compile_chunks(plan: Plan, fn, options: dict | None, cache: bool = False):
 
     if not cache:
         return make()
+    # the key from the chunk's shapes (chunk_shapes): nothing placed on a device for a study
+    # compiled before
+    args = (plan.estimator, *chunk_shapes(plan), plan.return_cov, plan.mesh, plan.block,
+            plan.strategy, plan.smooth)
     leaves, tree = jax.tree.flatten(args[1:])
     sig = (tree, tuple((np.shape(a), str(a.dtype)) if hasattr(a, "dtype") else a
                        for a in leaves))

@@ -27,6 +27,7 @@ from jax.sharding import Mesh
 
 from .. import engine, execution, smoothing, validation
 from ..filters.base import Estimator
+from ..runtime import eager
 from .shard import AXIS, check_same_study
 
 __all__ = ["Plan", "plan", "balanced_blocks", "check_progress", "STATE_TEMPORARIES"]
@@ -65,15 +66,21 @@ def balanced_blocks(runs: int, block: int) -> tuple[int, int]:
 
 
 def _state_numbers(estimator, x0, P0, th0, Pth0, keys) -> int:
-    """How many numbers the filter carries for one run (its state from ``init``)."""
+    """How many numbers the filter carries for one run (its state from ``init``), found by
+    ``jax.eval_shape`` once per estimator and argument shapes (kept with the compiled studies,
+    :func:`vehjax.runtime.eager.cached`: a repeated study does not trace ``init`` again)."""
     def first(a, per_run_ndim):
         return None if a is None else (a[0] if a.ndim == per_run_ndim else a)
 
-    state = jax.eval_shape(
-        estimator.init, first(x0, 2), first(P0, 3), first(th0, 2), first(Pth0, 3),
-        None if keys is None else keys[0],
-    )
-    return sum(int(np.prod(a.shape)) for a in jax.tree.leaves(state))
+    args = (first(x0, 2), first(P0, 3), first(th0, 2), first(Pth0, 3),
+            None if keys is None else keys[0])
+    sig = tuple(None if a is None else (np.shape(a), str(a.dtype)) for a in args)
+
+    def count():
+        state = jax.eval_shape(estimator.init, *args)
+        return sum(int(np.prod(a.shape)) for a in jax.tree.leaves(state))
+
+    return eager.cached((estimator,), ("state numbers", sig), count)
 
 
 def per_run_bytes(estimator, ys, state_numbers: int, return_cov: bool) -> tuple[int, int]:

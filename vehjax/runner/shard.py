@@ -93,6 +93,17 @@ def _global_array(a, sharding):
     return jax.make_array_from_callback(a.shape, sharding, lambda index: a[index])
 
 
+def chunk_shapes(plan):
+    """What :func:`chunk_args` gives for every chunk, as ``jax.ShapeDtypeStruct`` (nothing placed
+    on a device): ((ys, us, x0, P0, th0, Pth0, keys) shapes and dtypes)."""
+    def spec(a, per_run):
+        shape = (plan.chunk,) + a.shape[1:] if per_run else a.shape
+        return jax.ShapeDtypeStruct(shape, a.dtype)
+
+    args = [None if a is None else spec(a, r) for a, r in zip(plan.arrays, plan.per_run)]
+    return (*args, None if plan.keys is None else spec(plan.keys, True))
+
+
 def chunk_args(plan, i: int):
     """Device-placed arguments of chunk ``i`` (padded with copies of the last run):
     ((ys, us, x0, P0, th0, Pth0, keys), number of real runs)."""
@@ -114,10 +125,15 @@ def chunk_args(plan, i: int):
         whole = NamedSharding(plan.mesh, PartitionSpec())
     else:
         split = whole = plan.devices[0]
+    # on JAX's default device a host array goes to the compiled study as it is (its call moves
+    # it, faster than a device_put of its own)
+    host = plan.mesh is None and plan.devices[0] == jax.devices()[0]
     args = []
     for a, r in zip(plan.arrays, plan.per_run):
         if a is None:
             args.append(None)
+        elif host and isinstance(a, np.ndarray):
+            args.append(a[idx] if r else a)
         else:
             args.append(jax.device_put(a[idx] if r else a, split if r else whole))
     keys = None if plan.keys is None else jax.device_put(plan.keys[idx], split)
