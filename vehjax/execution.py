@@ -23,9 +23,11 @@ on CPU: each scan compiled into one function (XLA's small-while-loop limit raise
 is imported, ``vehjax.SMALL_LOOP_BYTES``: a process-wide XLA flag, the one rule not in this
 module, since it must be set before JAX starts); runs vmapped in cache-sized blocks
 (``block_numbers``); chunks of at most 512 MiB and 2e9 carried numbers x steps (``chunk_bytes``,
-``chunk_work``); XLA:CPU's elemental emitter for the small-dense filters (``elemental_emitter``); vectorisable trigonometry for ``fast_math`` models
-(``substitute_elementary``); a fit's independent work on several threads (``side_by_side``); the
-runs-last batched step (``runs_last``) except for a chunk of one run (:func:`runs_last_for`). On
+``chunk_work``); XLA:CPU's elemental emitter for the small-dense filters
+(``elemental_emitter``); vectorisable trigonometry for ``fast_math`` models
+(``substitute_elementary``); a fit's independent work on several threads (``side_by_side``); a
+model's integrator sub-steps as a loop (``rolled_substeps``); the runs-last batched step
+(``runs_last``) except for a chunk of one run (:func:`runs_last_for`). On
 GPU (and TPU, unmeasured): no blocking, no CPU XLA options, substitutes off, the runs-last step
 on, chunks of a quarter of the device's memory, one thing at a time in a fit. ``vehjax bench
 all``, ``particle``, ``device`` and ``marginalized`` measure them.

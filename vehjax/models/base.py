@@ -51,12 +51,9 @@ def integrate(derivative: Callable, x, u, theta, dt: float, integrator: str, sub
     platform's strategy says so (``rolled_substeps`` of :mod:`vehjax.execution`: on the CPU),
     else written out. Called with concrete arrays, ``derivative`` runs as it is, written out."""
     h = dt / substeps
-    if not any(isinstance(v, jax.core.Tracer) for v in (x, u, theta)):
-        for _ in range(substeps):
-            x = _integrator_step(derivative, x, u, theta, h, integrator)
-        return x
-    d = jax.jit(lambda a, b, c: derivative(a, b, c))
-    if substeps > 1 and execution.current().rolled_substeps:
+    traced = any(validation.is_tracer(v) for v in (x, u, theta))
+    d = jax.jit(lambda a, b, c: derivative(a, b, c)) if traced else derivative
+    if traced and substeps > 1 and execution.current().rolled_substeps:
         return jax.lax.fori_loop(0, substeps, lambda _, xk: _integrator_step(
             d, xk, u, theta, h, integrator), x)
     for _ in range(substeps):

@@ -31,11 +31,17 @@ from .shard import chunk_args, chunk_shapes
 __all__ = ["call_args", "execute", "compile_chunks"]
 
 
+def _with_options(plan: Plan, arrays) -> tuple:
+    """The chunk function's arguments: the estimator, a chunk's ``arrays`` (or their shapes),
+    the plan's options."""
+    return (plan.estimator, *arrays, plan.return_cov, plan.mesh, plan.block, plan.strategy,
+            plan.smooth)
+
+
 def call_args(plan: Plan, i: int):
     """(the chunk function's arguments for chunk ``i``, its number of real runs)."""
     args, n = chunk_args(plan, i)
-    return (plan.estimator, *args, plan.return_cov, plan.mesh, plan.block, plan.strategy,
-            plan.smooth), n
+    return _with_options(plan, args), n
 
 
 def _bar(n_chunks: int, n_runs: int, enabled: bool) -> Progress:
@@ -107,11 +113,8 @@ def compile_chunks(plan: Plan, fn, options: dict | None, cache: bool = False):
 
     if not cache:
         return make()
-    # the key from the chunk's shapes (chunk_shapes): nothing placed on a device for a study
-    # compiled before
-    args = (plan.estimator, *chunk_shapes(plan), plan.return_cov, plan.mesh, plan.block,
-            plan.strategy, plan.smooth)
-    leaves, tree = jax.tree.flatten(args[1:])
+    # the key from the chunk's shapes: nothing placed on a device for a study compiled before
+    leaves, tree = jax.tree.flatten(_with_options(plan, chunk_shapes(plan))[1:])
     sig = (tree, tuple((np.shape(a), str(a.dtype)) if hasattr(a, "dtype") else a
                        for a in leaves))
     return eager.cached((plan.estimator,), (fn, tuple(sorted((options or {}).items())), sig),

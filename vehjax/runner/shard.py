@@ -125,15 +125,10 @@ def chunk_args(plan, i: int):
         whole = NamedSharding(plan.mesh, PartitionSpec())
     else:
         split = whole = plan.devices[0]
-    # on JAX's default device a host array goes to the compiled study as it is (its call moves
-    # it, faster than a device_put of its own)
-    host = plan.mesh is None and plan.devices[0] == jax.devices()[0]
     args = []
     for a, r in zip(plan.arrays, plan.per_run):
         if a is None:
             args.append(None)
-        elif host and isinstance(a, np.ndarray):
-            args.append(a[idx] if r else a)
         else:
             args.append(jax.device_put(a[idx] if r else a, split if r else whole))
     keys = None if plan.keys is None else jax.device_put(plan.keys[idx], split)

@@ -30,8 +30,9 @@ CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
 
 
 def cached(held: tuple, key: tuple, make):
-    """The compiled function of ``(ids of held, *key)``: the cached one, else ``make()``,
-    kept with ``held`` (LRU, at most ``CACHE_SIZE`` entries)."""
+    """What ``make()`` gives for ``(ids of held, *key)`` (a compiled function; or what a study's
+    plan finds by tracing, :mod:`vehjax.runner.plan`): the cached one, else ``make()``, kept with
+    ``held`` (LRU, at most ``CACHE_SIZE`` entries)."""
     key = (tuple(id(h) for h in held), *key)
     entry = CACHE.get(key)
     if entry is None:

@@ -104,28 +104,49 @@ def split(fn: Callable, args: Sequence, late: Sequence[bool]) -> Split:
 
 
 
-#: call primitives whose bodies :func:`inline_calls` writes in place
-_CALLS = frozenset({"jit", "pjit", "closed_call", "core_call"})
+#: call primitives (function-call boundaries with no semantics on CPU) that :func:`inline_calls`
+#: and :mod:`vehjax.runtime.substitute` write in place
+CALLS = frozenset({"jit", "pjit", "closed_call", "core_call", "call"})
+
+
+def _unspecified(x) -> bool:
+    return x is None or type(x).__name__ == "UnspecifiedValue"
+
+
+def inlinable_call(eqn) -> bool:
+    """Whether ``eqn`` is a call whose body can be written in place: a call primitive
+    (:data:`CALLS`); a ``jit`` without donated arguments, shardings, layouts or compiler
+    options."""
+    if eqn.primitive.name not in CALLS:
+        return False
+    p = eqn.params
+    if eqn.primitive.name in ("jit", "pjit"):
+        return (not any(p.get("donated_invars", ()))
+                and all(_unspecified(s) for s in tuple(p.get("in_shardings", ()))
+                        + tuple(p.get("out_shardings", ())))
+                and all(lay is None for lay in tuple(p.get("in_layouts", ()))
+                        + tuple(p.get("out_layouts", ())))
+                and not p.get("compiler_options_kvs"))
+    return True
+
+
+def call_body(eqn):
+    """(jaxpr, consts) of a call equation's body."""
+    body = eqn.params.get("jaxpr", eqn.params.get("call_jaxpr"))
+    if isinstance(body, ClosedJaxpr):
+        return body.jaxpr, body.consts
+    return body, ()
 
 
 def inline_calls(closed: ClosedJaxpr) -> ClosedJaxpr:
-    """``closed`` with the body of every call equation (``jit`` without shardings or donated
-    arguments, ``closed_call``), at any depth of calls, written in place; ``closed`` itself
-    when it holds none. The same operations, in the same order."""
-    if not any(_inlinable(e) for e in closed.jaxpr.eqns):
+    """``closed`` with the body of every inlinable call (:func:`inlinable_call`), at any depth of
+    calls, written in place; ``closed`` itself when it holds none. The same operations, in the
+    same order."""
+    if not any(inlinable_call(e) for e in closed.jaxpr.eqns):
         return closed
     specs = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=getattr(a, "weak_type", False))
              for a in closed.in_avals]
     return jax.make_jaxpr(lambda *a: _bind_inlined(closed.jaxpr, closed.consts, a))(*specs)
-
-
-def _inlinable(eqn) -> bool:
-    p = eqn.params
-    return (eqn.primitive.name in _CALLS and isinstance(p.get("jaxpr", p.get("call_jaxpr")),
-                                                       ClosedJaxpr)
-            and not any(p.get("donated_invars", ())) and not p.get("compiler_options_kvs")
-            and all(s is None or type(s).__name__ == "UnspecifiedValue"
-                    for s in tuple(p.get("in_shardings", ())) + tuple(p.get("out_shardings", ()))))
 
 
 def _bind_inlined(jaxpr: Jaxpr, consts, args) -> list:
@@ -138,9 +159,8 @@ def _bind_inlined(jaxpr: Jaxpr, consts, args) -> list:
 
     for eqn in jaxpr.eqns:
         ins = [read(v) for v in eqn.invars]
-        if _inlinable(eqn):
-            body = eqn.params.get("jaxpr", eqn.params.get("call_jaxpr"))
-            outs = _bind_inlined(body.jaxpr, body.consts, ins)
+        if inlinable_call(eqn):
+            outs = _bind_inlined(*call_body(eqn), ins)
         else:
             outs = eqn.primitive.bind(*ins, **eqn.primitive.get_bind_params(eqn.params))
             outs = outs if eqn.primitive.multiple_results else [outs]

@@ -35,6 +35,7 @@ from jax.extend.core import ClosedJaxpr, DropVar, Jaxpr, Literal, jaxpr_as_fun, 
 
 from .. import execution
 from ..lib import elementary
+from .hoist import CALLS, call_body, inlinable_call
 
 
 
@@ -65,11 +66,9 @@ _SUBSTITUTES: dict[Any, Callable] = {
     lax.atan2_p: elementary.arctan2,
 }
 _FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
-#: Calls inlined into the enclosing jaxpr (function-call boundaries with no semantics on CPU).
-_INLINE = frozenset({"jit", "pjit", "closed_call", "core_call", "call"})
 #: Primitives whose nested jaxprs are rewritten in place (same params otherwise).
 _NESTED = frozenset({"cond", "scan", "while", "remat2", "checkpoint", "custom_jvp_call",
-                     "custom_vjp_call", "custom_vjp_call_jaxpr"}) | _INLINE
+                     "custom_vjp_call", "custom_vjp_call_jaxpr"}) | CALLS
 _MARK = "_vehjax_fast_elementary"  # on a wrapper: the wrapper itself
 _MEMO = "_vehjax_fast_elementary_wrapper"  # on a wrapped function: (its id, its wrapper)
 _MAX_ENTRIES = 32
@@ -109,28 +108,6 @@ def _like(out, aval):
     if getattr(aval, "weak_type", False) and not jax.typeof(out).weak_type:
         out = _weak_convert(out, aval.dtype)
     return out
-
-
-def _unspecified(x) -> bool:
-    return x is None or type(x).__name__ == "UnspecifiedValue"
-
-
-def _inlinable(eqn) -> bool:
-    p = eqn.params
-    if eqn.primitive.name in ("jit", "pjit"):
-        return (not any(p.get("donated_invars", ()))
-                and all(_unspecified(s) for s in p.get("in_shardings", ()) + p.get("out_shardings", ()))
-                and all(lay is None for lay in p.get("in_layouts", ()) + p.get("out_layouts", ()))
-                and not p.get("compiler_options_kvs"))
-    return True
-
-
-def _sub_jaxpr(eqn):
-    """(jaxpr, consts) of a call primitive's body."""
-    body = eqn.params.get("jaxpr", eqn.params.get("call_jaxpr"))
-    if isinstance(body, ClosedJaxpr):
-        return body.jaxpr, body.consts
-    return body, ()
 
 
 def _specs(avals):
@@ -182,9 +159,8 @@ def _apply(eqn, invals, memo: dict):
     if _substitutable(eqn):
         return _like(_SUBSTITUTES[prim](*invals), eqn.outvars[0].aval)
     if prim.name in _NESTED and any(_has_work(j, memo) for j in jaxprs_in_params(eqn.params)):
-        if prim.name in _INLINE and _inlinable(eqn):
-            body, consts = _sub_jaxpr(eqn)
-            return _interpret(body, consts, memo, *invals)
+        if inlinable_call(eqn):
+            return _interpret(*call_body(eqn), memo, *invals)
         params = {k: _rewrite_param(v, memo) for k, v in eqn.params.items()}
         return prim.bind(*invals, **prim.get_bind_params(params))
     return prim.bind(*invals, **prim.get_bind_params(eqn.params))
