@@ -93,6 +93,7 @@ from .. import validation
 from . import input_noise as _inoise
 from . import sigma
 from ..lib.linalg import sym
+from ..models.biases import augmented
 from ._model import cast_yu, check_model, in_dtype, model_dims, model_theta, per_point, prior
 from .base import Dims, Estimator, ParamSpec, Runtime, StepOutput
 from .kalman import linearized_measure, linearized_predict, masked_update
@@ -298,19 +299,9 @@ def _setup(model, Q, sensors, known_std, augment, input_noise):
     Qa[nx:nx + nb, nx:nx + nb] = np.diag(bw ** 2)
     Qa[nx + nb:, nx + nb:] = np.diag(ow ** 2)
     Lu = None if Lu is None else np.asarray(Lu)
-    b_rows = np.array([outs.index(b) for b in biases], int)
-    o_rows = np.array([ins.index(o) for o in offs], int)
     tr, ob = (in_dtype(g) for g in per_point(model))
-
-    def shift(z, u):
-        return u.at[o_rows].add(z[nx + nb:]) if no else u
-
-    def f_uw(z, u, theta):
-        return jnp.concatenate([tr(z[:nx], shift(z, u), theta), z[nx:]])
-
-    def h_z(z, u, theta):
-        y = ob(z[:nx], shift(z, u), theta)
-        return y.at[b_rows].add(z[nx:nx + nb]) if nb else y
+    f_uw, h_z = augmented(tr, ob, nx, bias_rows=[outs.index(b) for b in biases],
+                          offset_cols=[ins.index(o) for o in offs])
 
     sens = np.array([outs.index(s) for s in sensors], int)
     known_var = np.zeros(ny)

@@ -18,7 +18,7 @@ import numpy as np
 
 from .base import Model
 
-__all__ = ["with_output_biases", "with_input_offset"]
+__all__ = ["with_output_biases", "with_input_offset", "augmented"]
 
 
 class _BiasedBank(Model):
@@ -54,15 +54,32 @@ def with_output_biases(model, outputs) -> Model:
         ValueError: ``outputs`` empty, repeated or not outputs of the model.
     """
     names, rows = _picked("outputs", outputs, model.output_names)
-    nx, units = len(model.state_names), _units(model)
+    transition, observe = augmented(model.transition, model.observe, len(model.state_names),
+                                    bias_rows=rows)
+    return _wrapped(model, transition, observe, names, "_bias", _units(model))
 
-    def transition(x, u, theta):
-        return jnp.concatenate([model.transition(x[:nx], u, theta), x[nx:]])
 
-    def observe(x, u, theta):
-        return model.observe(x[:nx], u, theta).at[rows].add(x[nx:])
+def augmented(transition, observe, nx: int, bias_rows=(), offset_cols=()):
+    """(transition, observe) on a state z = (x, biases, offsets): the model's ``nx`` states,
+    then one additive bias per output row in ``bias_rows`` (y = h(x, u + offset) + b), then
+    one additive offset per input column in ``offset_cols`` (the model driven by u + offset);
+    the transition keeps the biases and offsets. ``transition``, ``observe``: the model's
+    ``(x, u, theta)`` functions. Used by :func:`with_output_biases`, :func:`with_input_offset`
+    and the VB filters' ``augment`` (:class:`vehjax.filters.Augmentation`)."""
+    b_rows, o_cols = np.asarray(bias_rows, int), np.asarray(offset_cols, int)
+    nb, no = len(b_rows), len(o_cols)
 
-    return _wrapped(model, transition, observe, names, "_bias", units)
+    def shifted(z, u):
+        return jnp.asarray(u).at[o_cols].add(z[nx + nb:]) if no else u
+
+    def f(z, u, theta):
+        return jnp.concatenate([transition(z[:nx], shifted(z, u), theta), z[nx:]])
+
+    def h(z, u, theta):
+        y = observe(z[:nx], shifted(z, u), theta)
+        return y.at[b_rows].add(z[nx:nx + nb]) if nb else y
+
+    return f, h
 
 
 def _picked(arg, value, known):
@@ -125,15 +142,6 @@ def with_input_offset(model, inputs) -> Model:
         ValueError: ``inputs`` empty, repeated or not inputs of the model.
     """
     names, cols = _picked("inputs", inputs, model.input_names)
-    nx, units = len(model.state_names), _units(model)
-
-    def shifted(x, u):
-        return jnp.asarray(u).at[cols].add(x[nx:])
-
-    def transition(x, u, theta):
-        return jnp.concatenate([model.transition(x[:nx], shifted(x, u), theta), x[nx:]])
-
-    def observe(x, u, theta):
-        return model.observe(x[:nx], shifted(x, u), theta)
-
-    return _wrapped(model, transition, observe, names, "_offset", units)
+    transition, observe = augmented(model.transition, model.observe, len(model.state_names),
+                                    offset_cols=cols)
+    return _wrapped(model, transition, observe, names, "_offset", _units(model))
