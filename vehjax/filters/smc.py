@@ -45,7 +45,8 @@ from ..lib.linalg import cholesky, logdet_from_chol, solve_lower
 
 __all__ = [
     "Reweighted", "reweight", "ess", "resample", "resample_stop_gradient", "check_resample",
-    "equal_weights", "stop_gradient_weights", "reinitialise", "moments", "normals",
+    "equal_weights", "stop_gradient_weights", "reinitialise", "moments", "mixture",
+    "normals",
     "uniforms", "split", "raw_key", "log_tiny", "check_n_particles",
     "check_ess_threshold", "gaussian_logliks", "step_loglik",
 ]
@@ -282,6 +283,19 @@ def moments(w, x):
         for j in range(i, n):
             entries[i, j] = entries[j, i] = jnp.sum(wd[i] * d[j])
     cov = jnp.stack([jnp.stack([entries[i, j] for j in range(n)]) for i in range(n)])
+    return mean, cov
+
+
+def mixture(w, means, covs=None, start: int = 0):
+    """Mean (n,) and covariance (n, n) of a mixture of N Gaussians with weights w (N,) summing
+    to 1 and means the columns of ``means`` (n, N): the spread of the means (:func:`moments`)
+    plus the weighted mean of the components' covariances ``covs`` (n - start, n - start, N),
+    which cover the trailing states from index ``start`` (the earlier states, e.g. a
+    marginalized filter's sampled ones, are point masses in each component); None: all
+    point masses (the particles' moments)."""
+    mean, cov = moments(w, means)
+    if covs is not None:
+        cov = cov.at[start:, start:].add(jnp.einsum("ijn,n->ij", covs, w))
     return mean, cov
 
 

@@ -23,7 +23,7 @@ after every step each particle's Gaussian over the states (means ``x``, ``z``, c
    Kalman update recomputed along the path with z_t-1 kept (:func:`linear_step_joint`,
    :func:`linear_path_rts`).
 3. **Moments**: the equally weighted mixture of the M per-path Gaussians
-   (:func:`mixture_moments`), the lag-one covariance likewise.
+   (:func:`vehjax.filters.smc.mixture`), the lag-one covariance likewise.
 4. **Noise statistics**: eq. 23's estimates over the M paths' particles at each t
    (:func:`vehjax.filters.marginalized.niw.noise_estimates`, equal weights).
 
@@ -69,12 +69,14 @@ from .. import validation
 from ..engine import output_ok
 from ..filters.marginalized.linearise import linearise
 from ..filters.marginalized.niw import impute_missing, niw_predict, niw_update, noise_estimates
+from ..filters import smc
 from ..filters.base import Estimator
+from ..lib.linalg import sym
 from .particle import count_unique, ffbsi_indices
 
 __all__ = [
     "MPFSmootherResult", "MPFForward", "smooth", "forward", "backward", "METHODS",
-    "trace_ancestors", "psd_right_solve", "psd_part", "rts_step", "mixture_moments",
+    "trace_ancestors", "psd_right_solve", "psd_part", "rts_step",
     "linear_step_joint", "linear_path_rts", "linear_path_step", "linear_path_forward",
     "backward_logdens", "backward_ess",
 ]
@@ -203,15 +205,6 @@ def rts_step(m, P, m_pred, P_pred, C, m_next, P_next):
     m_s = m + G @ (m_next - m_pred)
     P_s = P + G @ (P_next - P_pred) @ G.T
     return m_s, psd_part(P_s), G @ P_next
-
-
-def mixture_moments(means, covs):
-    """Mean and covariance of the equally weighted mixture of M Gaussians, means (M, n) and
-    covs (M, n, n): mean(m_i) and mean(P_i) + mean((m_i - m)(m_i - m)^T)."""
-    mean = jnp.mean(means, axis=0)
-    d = means - mean
-    cov = jnp.mean(covs, axis=0) + jnp.einsum("mi,mj->ij", d, d) / means.shape[0]
-    return mean, 0.5 * (cov + cov.T)
 
 
 def _mixture_cross(m0, m1, cross):
@@ -703,9 +696,11 @@ def backward(estimator: Estimator, fwd: MPFForward, measurements, inputs, *, key
         cross = jnp.zeros((m, max(T - 1, 0), nk, nk), dtype)
     inv = np.asarray(rb.order)
     ms, Pss, cross = ms[..., inv], Pss[..., inv, :][..., inv], cross[..., inv, :][..., inv]
-    mean, cov = jax.vmap(mixture_moments, in_axes=(1, 1))(ms, Pss)
+    w_eq = jnp.full((m,), 1.0 / m, dtype)  # the paths, equally weighted
+    mean, cov = jax.vmap(lambda mt, Pt: smc.mixture(w_eq, mt.T, jnp.moveaxis(Pt, 0, -1)),
+                         in_axes=(1, 1))(ms, Pss)
+    cov = sym(cov)
     cr = jax.vmap(_mixture_cross, in_axes=(1, 1, 1))(ms[:, :-1], ms[:, 1:], cross)
-    w_eq = jnp.full((m,), 1.0 / m, dtype)
     params, params_cov = jax.vmap(
         lambda mu, lw, le, nu, g: noise_estimates(w_eq, mu, lw, le, nu, g))(
         stats[0].transpose(1, 2, 0), stats[1].T, stats[2].transpose(1, 2, 3, 0),

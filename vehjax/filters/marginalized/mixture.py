@@ -20,10 +20,7 @@ def mixture_moments(s: Setup, w_now, x, z, P):
     mixture of their Kalman filters, with a relative jitter of sqrt(eps) on the diagonal."""
     dtype = x.dtype
     Xp = jnp.concatenate([x, z])  # sampled then linear states
-    mean_p, cov_p = smc.moments(w_now, Xp)
-    if s.n_linear:
-        k0 = s.n_states - s.n_kalman
-        cov_p = cov_p.at[k0:, k0:].add(jnp.einsum("ijn,n->ij", P, w_now))
+    mean_p, cov_p = smc.mixture(w_now, Xp, P if s.n_linear else None, s.n_states - s.n_kalman)
     jitter = jnp.sqrt(jnp.finfo(dtype).eps) * jnp.diagonal(cov_p) + jnp.sqrt(
         jnp.finfo(dtype).tiny)
     cov_p = cov_p + jnp.diag(jitter)
