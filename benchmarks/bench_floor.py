@@ -24,8 +24,15 @@ round, ``--repeat`` rounds, the best kept), in us per step and as a ratio to the
                   (:func:`vehjax.tune.program.forward_scores`, the program ``tune.fit``
                   compiles)
 
+``--model 3dof``: the same filter and run rows on :class:`vehjax.models.Dynamic3DOF` (nx = 3:
+vx, vy, r, all measured; five inputs; linear tyres through the arctangent slip angles, RK4 in
+one step of 10 ms) against a second C EKF (:data:`C_SOURCE_3DOF`: the derivative's Jacobian
+by hand, the RK4 map's by the chain rule through the four stages, a 3 x 3 Cholesky), on a sine
+steer simulated ten times finer than the filter's step.
+
     python benchmarks/bench_floor.py                 # or: vehjax bench floor
     python benchmarks/bench_floor.py --duration 20 --repeat 2
+    python benchmarks/bench_floor.py --model 3dof
 """
 
 from __future__ import annotations
@@ -44,7 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import vehjax
-from vehjax.models import SingleTrack
+from vehjax.models import Dynamic3DOF, SingleTrack
 from vehjax.tune import program
 
 C_SOURCE = r"""
@@ -110,19 +117,124 @@ double ekf_loglik(const double *theta, double dt, int substeps, const double *Q,
 }
 """
 
+C_SOURCE_3DOF = r"""
+#include <math.h>
+typedef struct { double m, cx, cy, lf, lr, iz, ca; } car;
+
+/* the 3-DOF derivative (vx, vy, r)' and its Jacobian J (row-major 3 x 3) at x, inputs u =
+   (s_fl, s_fr, s_rl, s_rr, delta): linear tyres, alpha_f = d - atan((vy + lf r) / vx),
+   alpha_r = -atan((vy - lr r) / vx) */
+static void deriv(const car *c, const double *x, const double *u, double *f, double *J) {
+    double vx = x[0], vy = x[1], r = x[2], d = u[4];
+    double af_arg = (vy + c->lf * r) / vx, ar_arg = (vy - c->lr * r) / vx;
+    double fxf = c->cx * u[0] + c->cx * u[1], fxr = c->cx * u[2] + c->cx * u[3];
+    double fyf = 2.0 * c->cy * (d - atan(af_arg)), fyr = 2.0 * c->cy * (-atan(ar_arg));
+    double cs = cos(d), sn = sin(d);
+    double fx = fxf * cs - fyf * sn + fxr - c->ca * vx * vx;
+    double fy = fxf * sn + fyf * cs + fyr;
+    double mz = c->lf * (fxf * sn + fyf * cs) - c->lr * fyr;
+    f[0] = vy * r + fx / c->m; f[1] = -vx * r + fy / c->m; f[2] = mz / c->iz;
+    double gf = 1.0 / (1.0 + af_arg * af_arg), gr = 1.0 / (1.0 + ar_arg * ar_arg);
+    double daf[3] = {gf * af_arg / vx, -gf / vx, -gf * c->lf / vx};   /* d alpha_f / dx */
+    double dar[3] = {gr * ar_arg / vx, -gr / vx, gr * c->lr / vx};    /* d alpha_r / dx */
+    double dkin0[3] = {0.0, r, vy}, dkin1[3] = {-r, 0.0, -vx};
+    for (int k = 0; k < 3; ++k) {
+        double dfyf = 2.0 * c->cy * daf[k], dfyr = 2.0 * c->cy * dar[k];
+        double dfx = -dfyf * sn - (k == 0 ? 2.0 * c->ca * vx : 0.0);
+        J[k] = dkin0[k] + dfx / c->m;
+        J[3 + k] = dkin1[k] + (dfyf * cs + dfyr) / c->m;
+        J[6 + k] = (c->lf * dfyf * cs - c->lr * dfyr) / c->iz;
+    }
+}
+
+static void matmul3(const double *A, const double *B, double *C) {
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            C[3 * i + j] = A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j];
+}
+
+/* one RK4 step of h from x (in place) and its Jacobian F = d x_new / d x */
+static void rk4(const car *c, const double *u, double h, double *x, double *F) {
+    double k[4][3], D[9], M[9], dk[4][9], t[3];
+    deriv(c, x, u, k[0], dk[0]);
+    for (int s = 1; s < 4; ++s) {
+        double a = s < 3 ? 0.5 * h : h;
+        for (int i = 0; i < 3; ++i) t[i] = x[i] + a * k[s - 1][i];
+        for (int i = 0; i < 9; ++i) M[i] = (i % 4 == 0 ? 1.0 : 0.0) + a * dk[s - 1][i];
+        deriv(c, t, u, k[s], D);
+        matmul3(D, M, dk[s]);
+    }
+    for (int i = 0; i < 3; ++i)
+        x[i] += h / 6.0 * (k[0][i] + 2.0 * k[1][i] + 2.0 * k[2][i] + k[3][i]);
+    for (int i = 0; i < 9; ++i)
+        F[i] = (i % 4 == 0 ? 1.0 : 0.0) + h / 6.0 * (dk[0][i] + 2.0 * dk[1][i] + 2.0 * dk[2][i]
+                                                     + dk[3][i]);
+}
+
+double ekf_loglik(const double *theta, double dt, int substeps, const double *Q, const double *R,
+                  const double *ys, const double *us, long T, const double *x0, const double *P0) {
+    car c = {theta[0], theta[1], theta[2], theta[3], theta[4], theta[5], theta[6]};
+    double x[3] = {x0[0], x0[1], x0[2]}, P[9], F[9], G[9], FP[9], ll = 0.0, h = dt / substeps;
+    for (int i = 0; i < 9; ++i) P[i] = P0[i];
+    for (long t = 0; t < T; ++t) {
+        const double *u = us + 5 * t, *y = ys + 3 * t;
+        for (int s = 0; s < substeps; ++s) {
+            rk4(&c, u, h, x, F);
+            matmul3(F, P, FP);
+            for (int i = 0; i < 3; ++i)                         /* P = F P F^T (+ Q below) */
+                for (int j = 0; j < 3; ++j)
+                    G[3 * i + j] = FP[3 * i] * F[3 * j] + FP[3 * i + 1] * F[3 * j + 1]
+                                   + FP[3 * i + 2] * F[3 * j + 2];
+            for (int i = 0; i < 9; ++i) P[i] = G[i];
+        }
+        for (int i = 0; i < 9; ++i) P[i] += Q[i];
+        /* observe the states (H = I): S = P + R, its Cholesky factor L (lower) */
+        double S[9], L[9] = {0}, e[3], a[3], Si[9];
+        for (int i = 0; i < 9; ++i) S[i] = P[i] + R[i];
+        L[0] = sqrt(S[0]); L[3] = S[3] / L[0]; L[6] = S[6] / L[0];
+        L[4] = sqrt(S[4] - L[3] * L[3]); L[7] = (S[7] - L[6] * L[3]) / L[4];
+        L[8] = sqrt(S[8] - L[6] * L[6] - L[7] * L[7]);
+        for (int i = 0; i < 3; ++i) e[i] = y[i] - x[i];
+        a[0] = e[0] / L[0]; a[1] = (e[1] - L[3] * a[0]) / L[4];     /* a = L^-1 e */
+        a[2] = (e[2] - L[6] * a[0] - L[7] * a[1]) / L[8];
+        ll += -0.5 * (a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+              - log(L[0] * L[4] * L[8]) - 1.5 * log(2.0 * M_PI);
+        /* S^-1 from L: the columns of L^-T L^-1 */
+        for (int j = 0; j < 3; ++j) {
+            double b[3] = {j == 0, j == 1, j == 2}, z[3];
+            z[0] = b[0] / L[0]; z[1] = (b[1] - L[3] * z[0]) / L[4];
+            z[2] = (b[2] - L[6] * z[0] - L[7] * z[1]) / L[8];
+            double w2 = z[2] / L[8], w1 = (z[1] - L[7] * w2) / L[4];
+            double w0 = (z[0] - L[3] * w1 - L[6] * w2) / L[0];
+            Si[j] = w0; Si[3 + j] = w1; Si[6 + j] = w2;
+        }
+        double K[9], Pn[9];
+        matmul3(P, Si, K);                                          /* K = P S^-1 */
+        for (int i = 0; i < 3; ++i) x[i] += K[3 * i] * e[0] + K[3 * i + 1] * e[1] + K[3 * i + 2] * e[2];
+        matmul3(K, P, Pn);                                          /* P = P - K P */
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) G[3 * i + j] = P[3 * i + j] - Pn[3 * i + j];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) P[3 * i + j] = 0.5 * (G[3 * i + j] + G[3 * j + i]);
+    }
+    return ll;
+}
+"""
+
 X0, P0 = np.zeros(2), np.diag([0.1, 0.01])
 Q = np.diag([1e-4, 1e-5])
 R = np.diag([0.1, 1e-4])
 
 
-def c_floor():
-    """The C EKF log-likelihood as a Python function (compiled once into a temporary folder),
-    or None without a C compiler."""
+def c_floor(source: str = C_SOURCE, Q=Q, R=R, x0=X0, P0=P0):
+    """The C EKF log-likelihood of ``source`` (:data:`C_SOURCE`, :data:`C_SOURCE_3DOF`) with
+    the noise ``Q``, ``R`` and the prior ``x0``, ``P0`` as a Python function ``(model, ys, us)``
+    (compiled once into a temporary folder), or None without a C compiler."""
     cc = shutil.which("gcc") or shutil.which("cc")
     if cc is None:
         return None
     folder = Path(tempfile.mkdtemp(prefix="vehjax_floor_"))
-    (folder / "ekf.c").write_text(C_SOURCE)
+    (folder / "ekf.c").write_text(source)
     subprocess.run([cc, "-O2", "-shared", "-fPIC", "-o", str(folder / "ekf.so"),
                     str(folder / "ekf.c"), "-lm"], check=True)
     lib = ctypes.CDLL(str(folder / "ekf.so"))
@@ -136,24 +248,32 @@ def c_floor():
 
     def loglik(model, ys, us):
         keep = [np.ascontiguousarray(a, dtype=np.float64) for a in
-                (model.theta, Q, R, ys, us, X0, P0)]
-        return f(ptr(keep[0]), model.dt, model.substeps, ptr(keep[1]), ptr(keep[2]),
+                (model.theta, Q, R, ys, us, x0, P0)]
+        return f(ptr(keep[0]), model.dt, getattr(model, "substeps", 1), ptr(keep[1]), ptr(keep[2]),
                  ptr(keep[3]), ptr(keep[4]), len(ys), ptr(keep[5]), ptr(keep[6]))
 
     return loglik
 
 
-def contenders(model, ys, us):
-    """{row: (callable, what it was compiled with)} of vehjax's paths, each compiled here."""
+def filter_rows(model, ys, us, Q, R, x0, P0):
+    """{row: (callable, its arguments)}: ``vehjax.filter`` with the EKF and the UKF, and
+    ``vehjax.compile_run`` of the EKF with one run."""
     yj, uj = jnp.asarray(ys), jnp.asarray(us)
     out = {}
     for name, build in (("filter EKF", vehjax.filters.ekf), ("filter UKF", vehjax.filters.ukf)):
         est = build(model, Q, R)
-        fn = jax.jit(lambda y, u, e=est: jnp.sum(vehjax.filter(e, y, u, x0=X0, P0=P0).loglik))
+        fn = jax.jit(lambda y, u, e=est: jnp.sum(vehjax.filter(e, y, u, x0=x0, P0=P0).loglik))
         out[name] = (fn, (yj, uj))
-    compiled = vehjax.compile_run(vehjax.filters.ekf(model, Q, R), ys[None], us, x0=X0, P0=P0,
+    compiled = vehjax.compile_run(vehjax.filters.ekf(model, Q, R), ys[None], us, x0=x0, P0=P0,
                                   progress=False)
     out["run EKF"] = (lambda: compiled().states, ())
+    return out
+
+
+def contenders(model, ys, us):
+    """{row: (callable, what it was compiled with)} of vehjax's paths on the single-track
+    problem, each compiled here: :func:`filter_rows` and the fit's loss rows."""
+    out = filter_rows(model, ys, us, Q, R, X0, P0)
     obj, setup = vehjax.tune.likelihood.prepare(
         vehjax.filters.ekf, model, Q, R, ys, us, X0, P0, ("cf", "cr"), None, ("R",), False,
         None, None)  # the objective of vehjax.tune.objective(..., params=("cf", "cr"),
@@ -184,21 +304,53 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, default=200.0,
                    help="s of the drive at 100 Hz (default 200: 20,000 steps)")
     p.add_argument("--repeat", type=int, default=5, help="interleaved rounds (default 5)")
+    p.add_argument("--model", choices=tuple(PROBLEMS), default="single_track",
+                   help="single_track (default; the filter, run and fit rows) or 3dof "
+                        "(Dynamic3DOF: the filter and run rows)")
     return p
+
+
+def single_track_problem(duration: float, seed: int = 0):
+    """(label, model, ys, us, Q, R, x0, P0, C source) of the single-track rows: the limit
+    drive's variant A (``duration`` s at 100 Hz), the linear-tyre model at its body values."""
+    drive = vehjax.studies.limit_drive.limit_drive("A", duration=duration, seed=seed)
+    ys, us = np.asarray(drive.measurements), np.asarray(drive.inputs)
+    model = SingleTrack(tyres="linear", theta=tuple(drive.body.values()) +
+                        tuple(np.asarray(SingleTrack().theta)[4:]))
+    return ("SingleTrack linear (nx = 2, ny = 2)", model, ys, us, Q, R, X0, P0, C_SOURCE)
+
+
+def three_dof_problem(duration: float, seed: int = 0, fine: int = 10):
+    """The same for :class:`vehjax.models.Dynamic3DOF` (nx = 3, its states measured, RK4 at
+    dt = 0.01 s): a sine steer (0.03 rad, 0.4 Hz) from 20 m/s simulated ``fine`` times finer
+    (``vehjax.simulate`` at dt / fine, every ``fine``-th sample kept) with process noise, and
+    noisy measurements of (vx, vy, r)."""
+    model = Dynamic3DOF(dt=0.01)
+    sim_model = Dynamic3DOF(dt=model.dt / fine)
+    scn = vehjax.scenarios.sine_steer(sim_model, speed=20.0, amplitude=0.03, frequency=0.4,
+                                      duration=duration)
+    sim = vehjax.simulate(sim_model, scn, runs=1, key=jax.random.key(seed),
+                          process_std=np.array([0.003, 0.003, 3e-4]),
+                          meas_std=np.array([0.1, 0.05, 0.005]))
+    ys = np.asarray(sim.measurements[0])[fine - 1::fine]
+    us = np.asarray(sim.inputs)[::fine][:len(ys)]
+    Q3, R3 = np.diag([1e-4, 1e-4, 1e-6]), np.diag([0.01, 0.0025, 2.5e-5])
+    x0, P0 = np.array([20.0, 0.0, 0.0]), np.diag([1.0, 0.1, 0.01])
+    return ("Dynamic3DOF (nx = 3, ny = 3)", model, ys, us, Q3, R3, x0, P0, C_SOURCE_3DOF)
+
+
+PROBLEMS = {"single_track": single_track_problem, "3dof": three_dof_problem}
 
 
 def main(argv=None) -> int:
     a = parser().parse_args(argv)
     if a.duration <= 0 or a.repeat < 1:
         raise SystemExit("vehjax bench floor: --duration must be > 0 and --repeat >= 1")
-    drive = vehjax.studies.limit_drive.limit_drive("A", duration=a.duration, seed=0)
-    ys, us = np.asarray(drive.measurements), np.asarray(drive.inputs)
-    model = SingleTrack(tyres="linear", theta=tuple(drive.body.values()) +
-                        tuple(np.asarray(SingleTrack().theta)[4:]))
+    label, model, ys, us, Qm, Rm, x0, P0m, source = PROBLEMS[a.model](a.duration)
     T = len(ys)
-    floor = c_floor()
-    ll_vehjax = float(jnp.sum(vehjax.filter(vehjax.filters.ekf(model, Q, R), ys, us, x0=X0,
-                                            P0=P0).loglik))
+    floor = c_floor(source, Qm, Rm, x0, P0m)
+    ll_vehjax = float(jnp.sum(vehjax.filter(vehjax.filters.ekf(model, Qm, Rm), ys, us, x0=x0,
+                                            P0=P0m).loglik))
     if floor is not None:
         ll_c = floor(model, ys, us)
         rel = abs(ll_c - ll_vehjax) / abs(ll_vehjax)
@@ -206,7 +358,8 @@ def main(argv=None) -> int:
               f"(relative difference {rel:.1e})")
         if not rel <= 1e-9:
             raise SystemExit("vehjax bench floor: the C floor and vehjax.filter disagree")
-    rows = contenders(model, ys, us)
+    rows = (contenders(model, ys, us) if a.model == "single_track" else
+            filter_rows(model, ys, us, Qm, Rm, x0, P0m))
     compile_s = {k: timed(fn, args) for k, (fn, args) in rows.items()}  # first call: compile
     best = {k: np.inf for k in rows}
     best_c = np.inf
@@ -217,7 +370,7 @@ def main(argv=None) -> int:
             best_c = min(best_c, time.perf_counter() - t0)
         for k, (fn, args) in rows.items():
             best[k] = min(best[k], timed(fn, args))
-    print(f"# {T} steps, SingleTrack linear (nx = 2, ny = 2), float64, {jax.devices()[0]}; "
+    print(f"# {T} steps, {label}, float64, {jax.devices()[0]}; "
           f"best of {a.repeat} interleaved rounds; first call (compile + one run) apart")
     print(f"{'row':<15} {'us/step':>9} {'x floor':>9} {'first call s':>13}")
     c_us = best_c / T * 1e6

@@ -44,3 +44,24 @@ def test_bench_floor_runs(capsys):
     out = capsys.readouterr().out
     for row in ("C floor", "filter EKF", "loss+grad fwd"):
         assert row in out
+
+
+@needs_cc
+def test_c_floor_of_the_3dof_model_equals_vehjax_filter():
+    """The second C EKF (Dynamic3DOF, its Jacobian by hand and through RK4's stages by the
+    chain rule), on another realisation and another car (cornering stiffness 0.7x): the
+    log-likelihood equals vehjax.filter's (jacfwd Jacobians) to 1e-10 relative, and differs
+    from it with another R."""
+    _, model, ys, us, Q, R, x0, P0, source = bench.three_dof_problem(5.0, seed=4)
+    th = np.asarray(model.theta).copy()
+    th[2] *= 0.7
+    model = vehjax.models.Dynamic3DOF(dt=model.dt, theta=tuple(th))
+    floor = bench.c_floor(source, Q, R, x0, P0)
+
+    def ll(R_):
+        return float(jnp.sum(vehjax.filter(vehjax.filters.ekf(model, Q, R_), ys, us, x0=x0,
+                                           P0=P0).loglik))
+
+    c = floor(model, ys, us)
+    assert abs(c - ll(R)) <= 1e-10 * abs(ll(R))
+    assert abs(c - ll(2 * R)) > 1e-3 * abs(ll(R))
