@@ -3,6 +3,7 @@ posteriors computed here on grids from the exact Kalman likelihood (numpy) and t
 (scipy); split R-hat and ESS against BDA3 written out here, tensorflow-probability, and the AR(1)
 closed form."""
 
+import functools
 import math
 
 import jax
@@ -12,8 +13,8 @@ import pytest
 from scipy import stats
 
 import vehjax as vj
-from vehjax.calibrate import (LogNormal, Normal, Uniform, effective_sample_size, particle_gibbs,
-                              pmmh, split_rhat)
+from vehjax.calibrate import (Adaptation, Chains, LogNormal, Normal, RandomWalk, Sweep, Uniform,
+                              effective_sample_size, particle_gibbs, pmmh, split_rhat)
 
 A, Q, SIGMA_R, T = 0.8, 0.3**2, 0.5, 40
 
@@ -57,10 +58,10 @@ def test_pmmh_recovers_the_grid_posterior_of_a_noise_std():
     std = float(np.sqrt(np.sum(w * (grid - mean) ** 2)))
     assert w[0] < 1e-8 and w[-1] < 1e-8                          # the grid holds the posterior
 
-    res = pmmh(vj.filters.bootstrap_pf, _model(), ys, None, x0=[0.0], P0=[1.0], Q=[Q], R=[1.0],
-               priors={"R:y": prior}, key=jax.random.key(3), chains=4, samples=600,
-               warmup=150, builder_kwargs={"n_particles": 100})
-    assert res.samples.shape == (4, 600, 1) and res.names == ("R:y",)
+    res = pmmh(functools.partial(vj.filters.bootstrap_pf, n_particles=100), _model(), ys, None,
+               x0=[0.0], P0=[1.0], Q=[Q], R=[1.0], priors={"R[y]": prior},
+               key=jax.random.key(3), chains=Chains(n=4, samples=600, warmup=150))
+    assert res.samples.shape == (4, 600, 1) and res.names == ("R[y]",)
     assert np.all(res.rhat < 1.05), res.rhat
     ess = float(res.ess[0])
     assert ess > 300, ess
@@ -68,18 +69,18 @@ def test_pmmh_recovers_the_grid_posterior_of_a_noise_std():
     assert abs(res.mean[0] - mean) < 4 * std / math.sqrt(ess), (res.mean, mean, std, ess)
     assert abs(res.std[0] - std) < 4 * std / math.sqrt(2 * ess), (res.std, std, ess)
     assert 0.15 < res.acceptance.mean() < 0.9
-    assert "R:y" in res.summary()
+    assert "R[y]" in res.summary()
 
 
 @pytest.mark.slow  # two runs, each compiles its sampler (~10 s CPU each)
 def test_pmmh_is_reproducible_from_one_key():
     """The same call twice (the grid-posterior test's): the same draws, bit for bit."""
     ys = _data()
-    kw = dict(x0=[0.0], P0=[1.0], Q=[Q], R=[1.0], priors={"R:y": LogNormal(median=0.6, sigma=0.5)},
-              key=jax.random.key(3), chains=4, samples=600, warmup=150,
-              builder_kwargs={"n_particles": 100})
-    res = pmmh(vj.filters.bootstrap_pf, _model(), ys, None, **kw)
-    again = pmmh(vj.filters.bootstrap_pf, _model(), ys, None, **kw)
+    kw = dict(x0=[0.0], P0=[1.0], Q=[Q], R=[1.0], priors={"R[y]": LogNormal(median=0.6, sigma=0.5)},
+              key=jax.random.key(3), chains=Chains(n=4, samples=600, warmup=150))
+    pf = functools.partial(vj.filters.bootstrap_pf, n_particles=100)
+    res = pmmh(pf, _model(), ys, None, **kw)
+    again = pmmh(pf, _model(), ys, None, **kw)
     np.testing.assert_array_equal(again.samples, res.samples)
 
 
@@ -106,11 +107,11 @@ def test_particle_gibbs_recovers_a_two_parameter_grid_posterior():
     w /= w.sum()
     assert w[0].max() < 1e-8 and w[-1].max() < 1e-8 and w[:, 0].max() < 1e-8
     assert w[:, -1].max() < 1e-8                                    # the grid holds it
-    marg = {"a": (a_grid[:, 0], w.sum(axis=1)), "R:y": (s_grid[0], w.sum(axis=0))}
+    marg = {"a": (a_grid[:, 0], w.sum(axis=1)), "R[y]": (s_grid[0], w.sum(axis=0))}
     res = particle_gibbs(_model(), ys, None, x0=[0.0], P0=[1.0], Q=[Q], R=[1.0],
-                         priors={"a": Normal(0.5, 0.5), "R:y": LogNormal(0.6, 0.5)},
-                         key=jax.random.key(5), chains=4, samples=600, warmup=100,
-                         n_particles=20, proposal_std=[0.1, 0.3])
+                         priors={"a": Normal(0.5, 0.5), "R[y]": LogNormal(0.6, 0.5)},
+                         key=jax.random.key(5), chains=Chains(n=4, samples=600, warmup=100),
+                         sweep=Sweep(n_particles=20), proposal=RandomWalk(std=[0.1, 0.3]))
     assert np.all(res.rhat < 1.05), res.rhat
     for k, name in enumerate(res.names):
         grid, p = marg[name]
@@ -192,20 +193,25 @@ def test_priors_and_bad_input():
     kw = dict(x0=[0.0], P0=[1.0], Q=[Q], R=[1.0], key=jax.random.key(0))
     with pytest.raises(ValueError, match="priors: unknown name 'b'"):
         pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"b": Normal(0, 1)}, **kw)
-    with pytest.raises(ValueError, match=r"priors: 'R:z'"):
-        pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"R:z": Normal(0, 1)}, **kw)
+    with pytest.raises(ValueError, match=r"priors: 'R\[z\]'"):
+        pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"R[z]": Normal(0, 1)}, **kw)
+    with pytest.raises(ValueError, match=r"priors: 'R:y': quantities are spelled R\[y\]"):
+        pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"R:y": Normal(0, 1)}, **kw)
+    with pytest.raises(ValueError, match=r"priors: 'R\[y,y\]': calibrate samples standard"):
+        pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"R[y,y]": Normal(0, 1)}, **kw)
     with pytest.raises(ValueError, match="priors"):
         pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"a": (0, 1)}, **kw)
     with pytest.raises(ValueError, match="chains"):
-        pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"a": Normal(0, 1)}, chains=1,
-             **kw)
+        pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"a": Normal(0, 1)},
+             chains=Chains(n=1), **kw)
     with pytest.raises(ValueError, match="key"):
         pmmh(vj.filters.bootstrap_pf, _model(), ys, None, priors={"a": Normal(0, 1)},
              **{**kw, "key": 0})
     with pytest.raises(ValueError, match="n_particles"):
-        particle_gibbs(_model(), ys, None, priors={"a": Normal(0, 1)}, n_particles=1, **kw)
-    with pytest.raises(ValueError, match=r"priors: 'Q:z': no 'z'"):
-        particle_gibbs(_model(), ys, None, priors={"Q:z": Normal(0, 1)}, **kw)
+        particle_gibbs(_model(), ys, None, priors={"a": Normal(0, 1)},
+                       sweep=Sweep(n_particles=1), **kw)
+    with pytest.raises(ValueError, match=r"priors: 'Q\[z\]': no 'z'"):
+        particle_gibbs(_model(), ys, None, priors={"Q[z]": Normal(0, 1)}, **kw)
 
 
 def test_adaptation_mathematics_against_numpy_and_scipy():
@@ -338,9 +344,9 @@ def test_fixed_noise_mpf_likelihood_is_unbiased_against_the_exact_kalman_filter(
     a, s = 0.75, 0.45  # not the model's nominal a: theta0 must reach the filter
     exact = _kalman_loglik_input_noise(ys, us, np.array([[a, 0.0], [0.1, 1.0]]), _MPF_B, _MPF_D,
                                        _MPF_Q, _MPF_R, s, np.zeros(2), np.ones(2))
-    ll = log_likelihood_fn(fixed_noise_mpf, _mpf_model(), ys, us, x0=np.zeros(2), P0=np.ones(2),
-                           Q=_MPF_Q, R=_MPF_R, names=("a", "input:u"),
-                           builder_kwargs={"n_particles": 32})
+    ll = log_likelihood_fn(functools.partial(fixed_noise_mpf, n_particles=32), _mpf_model(), ys,
+                           us, x0=np.zeros(2), P0=np.ones(2), Q=_MPF_Q, R=_MPF_R,
+                           names=("a", "input[u]"))
     lls = np.asarray(jax.jit(jax.vmap(lambda k: ll(jnp.array([a, s]), k)))(
         jax.random.split(jax.random.key(5), 256)))
     r = np.exp(lls - exact)
@@ -366,9 +372,9 @@ def test_pmmh_with_the_marginalized_pf_recovers_the_grid_posterior():
     std = float(np.sqrt(np.sum(w * (grid - mean) ** 2)))
     assert w[0] < 1e-8 and w[-1] < 1e-8                          # the grid holds the posterior
 
-    res = pmmh(fixed_noise_mpf, _mpf_model(), ys, us, x0=np.zeros(2), P0=np.ones(2), Q=_MPF_Q,
-               R=_MPF_R, priors={"input:u": prior}, key=jax.random.key(4), chains=4,
-               samples=600, warmup=100, builder_kwargs={"n_particles": 32})
+    res = pmmh(functools.partial(fixed_noise_mpf, n_particles=32), _mpf_model(), ys, us,
+               x0=np.zeros(2), P0=np.ones(2), Q=_MPF_Q, R=_MPF_R, priors={"input[u]": prior},
+               key=jax.random.key(4), chains=Chains(n=4, samples=600, warmup=100))
     assert np.all(res.rhat < 1.05), res.rhat
     ess = float(res.ess[0])
     assert ess > 300, ess
@@ -390,22 +396,33 @@ def test_starting_values_outside_the_support_raise_naming_init():
     np.testing.assert_allclose(z0, [0.0, math.log(2.0), 0.0], atol=1e-15)
 
 
+#: each option's record, made with the one bad value (the records check their fields when made)
+_OPTION = {
+    "proposal.adaptation.acceptance": lambda v: dict(
+        proposal=RandomWalk(adaptation=Adaptation(acceptance=v))),
+    "chains.n": lambda v: dict(chains=Chains(n=v, samples=4, warmup=2)),
+    "proposal.std": lambda v: dict(proposal=RandomWalk(std=v)),
+}
+
+
 @pytest.mark.parametrize("sampler", ["pmmh", "particle_gibbs"])
 @pytest.mark.parametrize("arg, value, match", [
-    ("acceptance_target", 23.4, r"^acceptance_target: expected a number in \(0, 1\)"),
-    ("acceptance_target", 0.0, r"^acceptance_target"),
-    ("chains", 1, r"^chains"),
-    ("proposal_std", [0.1, 0.2, 0.3], r"^proposal_std: expected a positive number or 1 positive"),
+    ("proposal.adaptation.acceptance", 23.4,
+     r"^proposal\.adaptation\.acceptance: expected a number in \(0, 1\)"),
+    ("proposal.adaptation.acceptance", 0.0, r"^proposal\.adaptation\.acceptance"),
+    ("chains.n", 1, r"^chains"),
+    ("proposal.std", [0.1, 0.2, 0.3], r"^proposal\.std: expected a positive number or 1 positive"),
 ])
 def test_samplers_check_the_same_options_the_same_way(sampler, arg, value, match):
     """The same bad value gives the same error in every sampler that takes the option (issue
     46), before anything is run, naming the argument."""
     ys = np.zeros((5, 1))
-    kw = dict(x0=[0.0], P0=[1.0], Q=[0.1], R=[1.0], priors={"R:y": LogNormal(0.6, 0.5)},
-              key=jax.random.key(0), samples=4, warmup=2, **{arg: value})
+    kw = dict(x0=[0.0], P0=[1.0], Q=[0.1], R=[1.0], priors={"R[y]": LogNormal(0.6, 0.5)},
+              key=jax.random.key(0), chains=Chains(samples=4, warmup=2))
     with pytest.raises(ValueError, match=match):
+        kw.update(_OPTION[arg](value))
         if sampler == "pmmh":
-            pmmh(vj.filters.bootstrap_pf, _model(), ys, None, builder_kwargs={"n_particles": 4},
+            pmmh(functools.partial(vj.filters.bootstrap_pf, n_particles=4), _model(), ys, None,
                  **kw)
         else:
-            particle_gibbs(_model(), ys, None, n_particles=4, **kw)
+            particle_gibbs(_model(), ys, None, sweep=Sweep(n_particles=4), **kw)

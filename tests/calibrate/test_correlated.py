@@ -1,9 +1,10 @@
-"""Correlated pseudo-marginal PMMH (vehjax.calibrate.correlated, vehjax.calibrate.pmmh(correlation=...)):
+"""Correlated pseudo-marginal PMMH (vehjax.calibrate.correlated, pmmh(Correlated(...))):
 the bootstrap PF's likelihood as a function of its random numbers is unbiased against an exact
 Kalman likelihood written here in numpy; the Crank-Nicolson move correlates successive
 estimates (measured against independent ones); the Hilbert index and systematic resampling
 against plain-Python transcriptions; a correlated chain recovers a grid posterior (slow)."""
 
+import functools
 import math
 
 import jax
@@ -15,7 +16,7 @@ from scipy import stats
 import vehjax as vj
 from vehjax import calibrate
 from vehjax.calibrate import correlated
-from vehjax.calibrate import LogNormal, pmmh
+from vehjax.calibrate import Chains, Correlated, LogNormal, pmmh
 
 # a 2-state linear-Gaussian model with noise through its input, a missing component and a bias
 DT, A22, B2, SU, BIAS = 0.1, 0.9, 0.5, 0.4, 0.3
@@ -71,8 +72,8 @@ def test_cpm_likelihood_is_unbiased_against_the_exact_kalman_filter():
     state goes through the Hilbert sort, the input noise and the bias are calibrated names."""
     ys, us = _lg_data()
     loglik, draw = calibrate.cpm_log_likelihood_fn(
-        vj.filters.bootstrap_pf, _lg_model(), ys, us, x0=np.zeros(2), P0=P0, Q=QD, R=RD,
-        names=("input:u", "bias:yp"), builder_kwargs={"n_particles": 32})
+        Correlated(functools.partial(vj.filters.bootstrap_pf, n_particles=32), 0.999),
+        _lg_model(), ys, us, x0=np.zeros(2), P0=P0, Q=QD, R=RD, names=("input[u]", "bias[yp]"))
     v = jnp.array([SU, BIAS])
     M = 2000
     lls = np.asarray(jax.jit(jax.vmap(lambda k: loglik(v, draw(k))))(
@@ -106,9 +107,9 @@ def test_crank_nicolson_move_correlates_the_estimates():
     move's variance is fresh)."""
     model, ys = _ar1()
     sd_diff, sd = calibrate.log_likelihood_difference_spread(
-        vj.filters.bootstrap_pf, model, ys, None, x0=[0.0], P0=[1.0], Q=[0.09], R=[0.25],
-        values={"R:y": 0.5}, key=jax.random.key(1), correlation=0.999, n_evals=64,
-        builder_kwargs={"n_particles": 32})
+        Correlated(functools.partial(vj.filters.bootstrap_pf, n_particles=32), 0.999), model, ys,
+        None, x0=[0.0], P0=[1.0], Q=[0.09], R=[0.25], values={"R[y]": 0.5},
+        key=jax.random.key(1), n_evals=64)
     assert sd > 0.5, sd                                    # the estimate is noisy
     assert sd_diff < 0.2 * math.sqrt(2.0) * sd, (sd_diff, sd)
     # the move itself: rho a + sqrt(1 - rho^2) e, leaf by leaf
@@ -160,19 +161,19 @@ def test_hilbert_index_and_systematic_resampling_against_transcriptions():
 
 def test_correlation_is_checked():
     model, ys = _ar1()
-    kw = dict(x0=[0.0], P0=[1.0], Q=[0.09], R=[0.25], priors={"R:y": LogNormal(0.5, 0.5)},
-              key=jax.random.key(0), chains=2, samples=4, warmup=2)
+    kw = dict(x0=[0.0], P0=[1.0], Q=[0.09], R=[0.25], priors={"R[y]": LogNormal(0.5, 0.5)},
+              key=jax.random.key(0), chains=Chains(n=2, samples=4, warmup=2))
     for bad in (0.0, 1.0, -0.5, 1.5, float("nan"), True, [0.9], "0.9"):
         with pytest.raises(ValueError, match="correlation"):
-            pmmh(vj.filters.bootstrap_pf, model, ys, None, correlation=bad, **kw)
+            pmmh(Correlated(vj.filters.bootstrap_pf, bad), model, ys, None, **kw)
     with pytest.raises(ValueError, match="bootstrap_pf only"):
-        pmmh(vj.filters.ekf, model, ys, None, correlation=0.9, **kw)
-    with pytest.raises(ValueError, match="builder_kwargs"):
-        pmmh(vj.filters.bootstrap_pf, model, ys, None, correlation=0.9,
-             builder_kwargs={"n_particles": 8, "ess_threshold": 0.5}, **kw)
-    with pytest.raises(ValueError, match="builder_kwargs"):
-        pmmh(vj.filters.bootstrap_pf, model, ys, None, correlation=0.9,
-             builder_kwargs={"n_particles": 8, "resampling": "multinomial"}, **kw)
+        pmmh(Correlated(vj.filters.ekf, 0.9), model, ys, None, **kw)
+    with pytest.raises(ValueError, match="builder"):
+        pmmh(Correlated(functools.partial(vj.filters.bootstrap_pf, n_particles=8,
+                                          ess_threshold=0.5), 0.9), model, ys, None, **kw)
+    with pytest.raises(ValueError, match="builder"):
+        pmmh(Correlated(functools.partial(vj.filters.bootstrap_pf, n_particles=8,
+                                          resampling="multinomial"), 0.9), model, ys, None, **kw)
 
 
 @pytest.mark.slow  # a sampler study (three compiles, 3 x 4 x 1500 iterations)
@@ -206,13 +207,13 @@ def test_correlated_pmmh_recovers_the_grid_posterior_of_a_noise_std():
     model = vj.models.Model(transition=lambda x, u, th: th[0] * x, observe=lambda x, u, th: x,
                             dt=1.0, state_names=("x",), param_names=("a",), input_names=(),
                             output_names=("y",), theta=[A])
-    kw = dict(x0=[0.0], P0=[1.0], Q=[Q], R=[1.0], priors={"R:y": LogNormal(median=0.6, sigma=0.5)},
-              key=jax.random.key(3), chains=4, samples=1200, warmup=300,
-              builder_kwargs={"n_particles": 10})
-    res = pmmh(vj.filters.bootstrap_pf, model, ys, None, correlation=0.99, **kw)
-    again = pmmh(vj.filters.bootstrap_pf, model, ys, None, correlation=0.99, **kw)
+    kw = dict(x0=[0.0], P0=[1.0], Q=[Q], R=[1.0], priors={"R[y]": LogNormal(median=0.6, sigma=0.5)},
+              key=jax.random.key(3), chains=Chains(n=4, samples=1200, warmup=300))
+    pf = functools.partial(vj.filters.bootstrap_pf, n_particles=10)
+    res = pmmh(Correlated(pf, 0.99), model, ys, None, **kw)
+    again = pmmh(Correlated(pf, 0.99), model, ys, None, **kw)
     np.testing.assert_array_equal(again.samples, res.samples)      # one key, the same draws
-    indep = pmmh(vj.filters.bootstrap_pf, model, ys, None, **kw)
+    indep = pmmh(pf, model, ys, None, **kw)
     assert np.all(res.rhat < 1.05), res.rhat
     ess = float(res.ess[0])
     assert ess > 150 and ess > 2 * float(indep.ess[0]), (ess, indep.ess)

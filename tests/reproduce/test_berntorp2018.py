@@ -115,8 +115,8 @@ def test_drive_study(tmp_path):
     assert "distinct particles at t = 0" in report and "backward ESS" in report
     # the PMMH offline reference: one row per quantity with R-hat and ESS
     assert "particle marginal Metropolis-Hastings" in report and "PMMH likelihood: bootstrap" in report
-    for name in ("delta_offset [deg]", "eps [1e-4]", "bias:ay", "bias:r", "R:ay", "R:r [",
-                 "R:r_virt", "input:delta"):
+    for name in ("delta_offset [deg]", "eps [1e-4]", "bias[ay]", "bias[r]", "R[ay]", "R[r] [",
+                 "R[r_virt]", "input[delta]"):
         mean, sd, interval, rhat, ess = _row(text, name)
         assert np.isfinite(float(mean)) and float(sd) >= 0 and float(rhat) > 0 and float(ess) > 0
 
@@ -162,7 +162,7 @@ def test_online_scale_of_the_ekf_matches_the_offline_estimate_on_the_drive():
 def test_particle_gibbs_process_noise_stands_for_the_steering_noise():
     """Particle Gibbs takes additive noise only: the steering-input std enters as per-state
     process stds, sqrt(PMMH_Q + (B s)^2) with B = d f / d delta, here against central finite
-    differences of the reference model's transition; the priors swap input:delta for them."""
+    differences of the reference model's transition; the priors swap input[delta] for them."""
     from vehjax.models import SingleTrackBank
 
     pm = berntorp2018.pmmh_model(SingleTrackBank(dt=0.01))
@@ -179,8 +179,8 @@ def test_particle_gibbs_process_noise_stands_for_the_steering_noise():
     np.testing.assert_allclose(berntorp2018.pg_process_std(pm, U, s),
                                np.sqrt(berntorp2018.PMMH_Q + (B * s) ** 2), rtol=1e-6)
     pr = berntorp2018.pg_priors(pm, U)
-    assert "input:delta" not in pr and {"Q:vy", "Q:r"} <= set(pr)
-    assert set(pr) - {"Q:vy", "Q:r"} == set(berntorp2018.pmmh_priors()) - {"input:delta"}
+    assert "input[delta]" not in pr and {"Q[vy]", "Q[r]"} <= set(pr)
+    assert set(pr) - {"Q[vy]", "Q[r]"} == set(berntorp2018.pmmh_priors()) - {"input[delta]"}
     assert all(name in berntorp2018.PMMH_UNITS for name in pr)
 
 
@@ -223,12 +223,12 @@ def test_posterior_agreement_z_scores():
     s_b^2 / ESS_b) and the std ratio, in the report's units, written out here."""
     from types import SimpleNamespace
 
-    a = SimpleNamespace(names=("eps", "R:ay"), mean=np.array([-4e-4, 0.31]),
+    a = SimpleNamespace(names=("eps", "R[ay]"), mean=np.array([-4e-4, 0.31]),
                         std=np.array([1e-4, 0.01]), ess=np.array([100.0, 400.0]))
-    b = SimpleNamespace(names=("R:ay", "eps"), mean=np.array([0.30, -4.5e-4]),
+    b = SimpleNamespace(names=("R[ay]", "eps"), mean=np.array([0.30, -4.5e-4]),
                         std=np.array([0.02, 2e-4]), ess=np.array([100.0, 25.0]))
     rows = berntorp2018.posterior_agreement(a, b)
     z_eps = (-4e-4 + 4.5e-4) / np.sqrt(1e-8 / 100 + 4e-8 / 25)
     z_ay = 0.01 / np.sqrt(1e-4 / 400 + 4e-4 / 100)
     assert rows[0] == ("eps [1e-4]", "-4", "-4.5", f"{z_eps:+.2f}", "0.500")
-    assert rows[1] == ("R:ay [m/s^2]", "+0.31", "+0.3", f"{z_ay:+.2f}", "0.500")
+    assert rows[1] == ("R[ay] [m/s^2]", "+0.31", "+0.3", f"{z_ay:+.2f}", "0.500")

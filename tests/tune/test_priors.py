@@ -158,7 +158,8 @@ def test_same_priors_in_calibrate():
     ys, us = data(n=60)
     res = vj.calibrate.pmmh(vj.filters.ekf, model(theta=(0.85, 0.45, 0.3)), ys, us, x0=X0,
                             P0=P0, Q=[Q], R=[R], priors=PRIORS, key=jax.random.key(0),
-                            chains=2, samples=4, warmup=4, adapt=False)
+                            chains=vj.calibrate.Chains(n=2, samples=4, warmup=4),
+                            proposal=vj.calibrate.RandomWalk(adaptation=None))
     assert tuple(res.names) == ("a", "b")
 
 

@@ -8,14 +8,22 @@ unbiased, so the chain's stationary distribution is the exact posterior p(phi | 
 the number of particles (fewer particles only make the chain stickier). Paper 004 (Berntorp &
 Di Cairano) judges its online estimates against such an offline reference (its sec. 5, ref. [28]).
 
-What is calibrated (``priors``, a dict name -> prior):
+What is calibrated (``priors``, a dict name -> prior), in :mod:`vehjax.tune`'s bracket grammar
+(one index: a standard deviation or a bias; tune's two-index covariance entries are not sampled):
 
 * a model parameter by its name (``"cf"``), in the parameter's units;
-* ``"R:<output>"``: the measurement-noise std of that output [output units];
-* ``"Q:<state>"``: the process-noise std of that state [state units per step];
-* ``"bias:<output>"``: a constant sensor bias, y = h(x, u) + bias + noise [output units];
-* ``"input:<input>"``: the std of noise entering through that input [input units], for builders
+* ``"R[<output>]"``: the measurement-noise std of that output [output units];
+* ``"Q[<state>]"``: the process-noise std of that state [state units per step];
+* ``"bias[<output>]"``: a constant sensor bias, y = h(x, u) + bias + noise [output units];
+* ``"input[<input>]"``: the std of noise entering through that input [input units], for builders
   that take ``input_noise`` (every vehjax filter).
+
+The earlier ``"R:ay"`` keys are refused with a ValueError giving the new spelling. A sampler's
+settings are records (:mod:`~vehjax.calibrate.options`): ``chains=Chains(n, samples, warmup,
+init)``, ``proposal=RandomWalk(std or cov, adaptation=Adaptation(windows, acceptance))``,
+particle Gibbs's ``sweep=Sweep(n_particles, moves)``; a builder's options by
+``functools.partial(builder, ...)``; the correlated estimate ``Correlated(builder,
+correlation)`` in place of a builder.
 
 The package, one concern a module:
 
@@ -55,9 +63,11 @@ from .gibbs import conditional_pf_as, log_joint, particle_gibbs
 from .likelihood import (cpm_log_likelihood_fn, log_likelihood_difference_spread,
                          log_likelihood_fn, log_likelihood_spread)
 from .marginal import pmmh
+from .options import Adaptation, Chains, Correlated, RandomWalk, Sweep
 from .priors import PRIORS, LogNormal, Normal, Uniform, log_prior_unconstrained, to_physical
 
-__all__ = ["Normal", "LogNormal", "Uniform", "PMMHResult", "pmmh", "log_likelihood_fn",
+__all__ = ["Normal", "LogNormal", "Uniform", "PMMHResult", "pmmh", "Chains", "RandomWalk",
+           "Adaptation", "Sweep", "Correlated", "log_likelihood_fn",
            "log_likelihood_spread", "cpm_log_likelihood_fn", "log_likelihood_difference_spread",
            "fixed_noise_mpf", "target_acceptance", "adaptation_windows",
            "adapted_covariance", "scale_update", "proposal_factor",

@@ -1,7 +1,8 @@
 """The random walk's adaptation over the warm-up of a particle MCMC chain.
 
 The random-walk covariance starts as ``(0.1 * prior scale)^2`` per coordinate (unconstrained
-units) unless a proposal is given (:func:`initial_factor`). With ``adapt`` the warm-up is cut
+units) unless a proposal is given (:func:`initial_factor`; :class:`~vehjax.calibrate.RandomWalk`).
+With an :class:`~vehjax.calibrate.Adaptation` (the default) the warm-up is cut
 into windows of doubling length (:func:`adaptation_windows`; the first 80 % of it); after each
 the proposal becomes s^2 (2.38^2 / d) C (Roberts & Rosenthal 2001's scaling) with C the
 covariance of that window's draws pooled over chains, shrunk toward the previous estimate
@@ -16,6 +17,7 @@ from a plain Metropolis-Hastings chain. :class:`Adapt` is the state a sampler ca
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import NamedTuple
 
@@ -24,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import validation
+from .options import Chains, RandomWalk
 
 __all__ = ["RW_SCALE", "RW_ACCEPTANCE", "target_acceptance", "adaptation_windows",
            "adapted_covariance", "scale_update", "proposal_factor", "initial_factor", "Adapt",
@@ -54,24 +57,24 @@ def target_acceptance(d: int, loglik_std=0.0):
     return a_d * noisy / math.erfc(0.5 * RW_SCALE / math.sqrt(2.0))
 
 
-def chain_options(chains, samples, warmup, adapt: bool, adapt_windows, acceptance_target,
-                  d: int):
-    """The chain sizes and adaptation options every sampler takes, checked the same way:
-    (chains >= 2, samples >= 4, warmup >= 2 with adaptation else >= 0, adapt_windows >= 1,
-    acceptance_target in (0, 1), default :func:`target_acceptance` of the d parameters; adapt
-    True or False). ValueError naming the argument."""
-    adapt = validation.flag("adapt", adapt)
-    chains = validation.integer("chains", chains, 2)
-    samples = validation.integer("samples", samples, 4)
-    warmup = validation.integer("warmup", warmup, 2 if adapt else 0)
-    adapt_windows = validation.integer("adapt_windows", adapt_windows, 1)
-    if acceptance_target is None:
-        acceptance_target = target_acceptance(d)
-    acceptance_target = validation.number("acceptance_target", acceptance_target, 0.0)
-    if not (0.0 < acceptance_target < 1.0):
-        raise ValueError(f"acceptance_target: expected a number in (0, 1), got "
-                         f"{acceptance_target!r}")
-    return chains, samples, warmup, adapt_windows, acceptance_target
+def chain_options(chains, proposal, d: int, warmup: int):
+    """The chains and the random walk every sampler takes, checked the same way: (the
+    :class:`~vehjax.calibrate.Chains` (``Chains()`` for None) with its warm-up set, ``warmup``
+    (the sampler's default) where None; the :class:`~vehjax.calibrate.RandomWalk`
+    (``RandomWalk()`` for None); the acceptance target (the adaptation's, default
+    :func:`target_acceptance` of the d quantities); the iterations after which the proposal is
+    re-estimated (:func:`adaptation_windows`; empty without adaptation)). ValueError naming the
+    argument (``chains.warmup`` >= 2 with adaptation)."""
+    chains = validation.record("chains", chains, Chains)
+    if chains.warmup is None:
+        chains = dataclasses.replace(chains, warmup=warmup)
+    proposal = validation.record("proposal", proposal, RandomWalk)
+    ad = proposal.adaptation
+    if ad is None:
+        return chains, proposal, target_acceptance(d), np.zeros(0, int)
+    validation.integer("chains.warmup", chains.warmup, 2)
+    target = target_acceptance(d) if ad.acceptance is None else ad.acceptance
+    return chains, proposal, target, adaptation_windows(chains.warmup, ad.windows)
 
 
 def adaptation_windows(warmup: int, windows: int) -> np.ndarray:
@@ -166,26 +169,24 @@ def adapt_step(ad: Adapt, i, z, accepted, ends, target, prior_count):
     return jax.lax.cond(jnp.any(i + 1 == jnp.asarray(ends)), update, lambda ad: ad, ad)
 
 
-def initial_factor(priors, proposal_std, proposal_cov=None):
-    """The random walk's starting Cholesky factor (d, d), unconstrained units: of
-    ``proposal_cov`` when given, else diag(``proposal_std``), else diag(0.1 x each prior's
-    scale). ValueError naming the argument."""
+def initial_factor(priors, proposal):
+    """The random walk's starting Cholesky factor (d, d), unconstrained units, of a
+    :class:`~vehjax.calibrate.RandomWalk`: of its ``cov`` when given, else diag(``std``), else
+    diag(0.1 x each prior's scale). ValueError naming the field for a size other than d."""
     d = len(priors)
-    if proposal_cov is not None:
-        if proposal_std is not None:
-            raise ValueError("proposal_cov: give proposal_std or proposal_cov, not both")
-        C = np.asarray(proposal_cov, float)
+    if proposal.cov is not None:
+        C = np.asarray(proposal.cov, float)
         L = np.linalg.cholesky(C) if C.shape == (d, d) and np.all(np.isfinite(C)) \
             and np.allclose(C, C.T) and np.all(np.linalg.eigvalsh(C) > 0) else None
         if L is None:
-            raise ValueError(f"proposal_cov: expected a symmetric positive definite ({d}, {d}) "
-                             f"matrix (unconstrained units), got {proposal_cov!r}")
+            raise ValueError(f"proposal.cov: expected a symmetric positive definite ({d}, {d}) "
+                             f"matrix (unconstrained units), got {proposal.cov!r}")
         return L
-    if proposal_std is None:
+    if proposal.std is None:
         return np.diag([0.1 * p.scale for p in priors])
-    s = np.asarray(proposal_std, float) if np.ndim(proposal_std) <= 1 else None
+    s = np.asarray(proposal.std, float) if np.ndim(proposal.std) <= 1 else None
     s = None if s is None or s.shape not in ((), (1,), (d,)) else np.broadcast_to(s, (d,))
     if s is None or not np.all(np.isfinite(s)) or np.any(s <= 0):
-        raise ValueError(f"proposal_std: expected a positive number or {d} positive numbers "
-                         f"(unconstrained units), got {proposal_std!r}")
+        raise ValueError(f"proposal.std: expected a positive number or {d} positive numbers "
+                         f"(unconstrained units), got {proposal.std!r}")
     return np.diag(s)

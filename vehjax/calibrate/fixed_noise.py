@@ -86,7 +86,7 @@ def fixed_noise_mpf(model, Q, R, *, input_noise, n_particles: int = 100,
     Args:
         model: a vehjax model affine in its states and in the noisy input (the filter checks).
         Q: (nx,) variances or (nx, nx) (its diagonal is used) per step, concrete (not
-            calibrated: ``Q:`` priors are refused).
+            calibrated: ``Q[...]`` priors are refused).
         R: (ny,) variances or (ny, ny) (its diagonal is used: the outputs' noises independent).
         input_noise: dict with one entry, input name -> std [input units] (may be traced).
         n_particles, resampling, ess_threshold: as :func:`vehjax.filters.marginalized_pf`.
@@ -103,7 +103,7 @@ def fixed_noise_mpf(model, Q, R, *, input_noise, n_particles: int = 100,
         Qd = np.asarray(Q, float)
     except jax.errors.TracerArrayConversionError:
         raise ValueError("Q: fixed_noise_mpf takes a fixed Q (its values set the Kalman "
-                         "filters' noise when built); drop the 'Q:' priors") from None
+                         "filters' noise when built); drop the 'Q[...]' priors") from None
     q_std = np.sqrt(np.diag(Qd) if Qd.ndim == 2 else Qd)
     R = jnp.asarray(R, float)
     r_std = jnp.sqrt(jnp.diag(R) if R.ndim == 2 else R)

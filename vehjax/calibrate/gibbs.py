@@ -20,10 +20,10 @@ import numpy as np
 from .. import validation
 from ..filters import resampling as _rs
 from ..filters import smc
-from .adaptation import (adapt_init, adapt_step, adaptation_windows, chain_options,
-                         initial_factor)
+from .adaptation import adapt_init, adapt_step, chain_options, initial_factor
 from .diagnostics import PMMHResult, result
 from .likelihood import targets
+from .options import Chains, RandomWalk, Sweep
 from .priors import check_priors, log_prior_unconstrained, starting_values, to_physical
 
 __all__ = ["conditional_pf_as", "log_joint", "particle_gibbs"]
@@ -138,28 +138,28 @@ def log_joint(model, traj, theta, LQ, r_var, bias, ys, us, x0, LP0):
 
 
 def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, key,
-                   n_particles: int = 20, chains: int = 4, samples: int = 1000,
-                   warmup: int = 200, mh_steps: int = 3, proposal_std=None,
-                   adapt: bool = True, adapt_windows: int = 5, acceptance_target=None,
-                   init=None) -> PMMHResult:
+                   sweep: Sweep = Sweep(), chains: Chains = Chains(),
+                   proposal: RandomWalk = RandomWalk()) -> PMMHResult:
     """Particle Gibbs with ancestor sampling (Lindsten, Jordan & Schon 2014) over named
-    quantities (model parameters, ``"R:<output>"``, ``"Q:<state>"``, ``"bias:<output>"`` as in
-    :func:`pmmh`; no input noise).
+    quantities (model parameters, ``"R[<output>]"``, ``"Q[<state>]"``, ``"bias[<output>]"`` as
+    in :func:`pmmh`; no input noise).
 
     Each sweep draws a state trajectory from :func:`conditional_pf_as` given the current
-    values, then makes ``mh_steps`` random-walk Metropolis-Hastings moves of the values (in the
-    priors' unconstrained coordinates) on log p(x_0:T, y | values) + log prior
+    values, then makes ``sweep.moves`` random-walk Metropolis-Hastings moves of the values (in
+    the priors' unconstrained coordinates) on log p(x_0:T, y | values) + log prior
     (:func:`log_joint`). Few particles suffice (ancestor sampling keeps the trajectory mixing).
     The model's process noise must be additive and Q positive definite; R is diagonal
     ((ny,) variances or a diagonal matrix).
 
     Args:
-        model, measurements (T, ny), inputs (T, nu) or None, x0, P0, Q, R, priors, key,
-            chains, samples, warmup, proposal_std, adapt, adapt_windows, acceptance_target,
-            init: as in :func:`pmmh`; the adaptation tunes the moves of the values given the
-            trajectory (pooled over chains, the acceptance averaged over the sweep's moves).
-        n_particles: particles of the conditional PF, >= 2.
-        mh_steps: Metropolis-Hastings moves of the values per sweep, >= 1.
+        model, measurements (T, ny), inputs (T, nu) or None, x0, P0, Q, R, priors, key: as in
+            :func:`pmmh`.
+        sweep: :class:`Sweep`: the conditional PF's particles (default 20) and the moves of
+            the values per sweep (default 3).
+        chains: :class:`Chains` as in :func:`pmmh`; warm-up 200 unless given.
+        proposal: :class:`RandomWalk` as in :func:`pmmh`; the adaptation tunes the moves of
+            the values given the trajectory (pooled over chains, the acceptance averaged over
+            the sweep's moves).
 
     Returns:
         :class:`PMMHResult` (``loglik``: log p(x_0:T, y | values) of each draw with its
@@ -168,11 +168,11 @@ def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, ke
     names, prs = check_priors(priors)
     tg = targets(model, names)
     if tg.inputs:
-        raise ValueError("priors: particle_gibbs does not calibrate input noise ('input:')")
-    chains, samples, warmup, adapt_windows, acceptance_target = chain_options(
-        chains, samples, warmup, adapt, adapt_windows, acceptance_target, len(prs))
-    n = smc.check_n_particles(n_particles)
-    mh_steps = validation.integer("mh_steps", mh_steps, 1)
+        raise ValueError("priors: particle_gibbs does not calibrate input noise ('input[...]')")
+    chains, proposal, acceptance_target, ends = chain_options(chains, proposal, len(prs), 200)
+    sweep = validation.record("sweep", sweep, Sweep)
+    n, mh_steps = sweep.n_particles, sweep.moves
+    warmup, samples = chains.warmup, chains.samples
     ys, us = validation.data(measurements, inputs, model.ny, model.nu, "one")
     ys, us = jnp.asarray(ys, float), jnp.asarray(us, float)
     x0a, P0a = validation.prior(model.nx, x0, P0)
@@ -182,9 +182,9 @@ def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, ke
     if not np.allclose(Rm, np.diag(np.diag(Rm))):
         raise ValueError("R: particle_gibbs needs a diagonal measurement covariance")
     Rm = jnp.asarray(Rm)
-    L = jnp.asarray(initial_factor(prs, proposal_std))
-    z0 = jnp.tile(starting_values(prs, init, names), (chains, 1))
-    keys = validation.key(key, chains)
+    L = jnp.asarray(initial_factor(prs, proposal))
+    z0 = jnp.tile(starting_values(prs, chains.init, names, "chains.init"), (chains.n, 1))
+    keys = validation.key(key, chains.n)
     theta_base = jnp.asarray(model.theta, float)
     T = ys.shape[0]
 
@@ -194,9 +194,7 @@ def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, ke
     def target(z, traj):
         return log_joint(model, traj, *parts(z), ys, us, x0a, LP0) + log_prior_unconstrained(prs, z)
 
-    ends = adaptation_windows(warmup, adapt_windows) if adapt else np.zeros(0, int)
-
-    def sweep(key_c, z, traj, i, L):
+    def one_sweep(key_c, z, traj, i, L):
         """One sweep of one chain: (z, traj) -> (z, traj, log joint, acceptance rate)."""
         k_pf, k_mh = jax.random.split(jax.random.fold_in(key_c, i))
         traj = conditional_pf_as(model, k_pf, traj, *parts(z), ys, us, x0a, LP0, n)
@@ -214,7 +212,7 @@ def particle_gibbs(model, measurements, inputs=None, *, x0, P0, Q, R, priors, ke
     def run(keys, z0, L0):
         def body(carry, i):
             z, traj, ad = carry
-            z, traj, lj, acc = jax.vmap(lambda k, zc, tc: sweep(k, zc, tc, i, ad.L))(
+            z, traj, lj, acc = jax.vmap(lambda k, zc, tc: one_sweep(k, zc, tc, i, ad.L))(
                 keys, z, traj)
             ad = adapt_step(ad, i, z, acc, ends, acceptance_target, 5.0 * len(prs))
             return (z, traj, ad), (z, lj, acc)

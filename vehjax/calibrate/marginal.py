@@ -8,11 +8,11 @@ the number of particles (fewer particles only make the chain stickier). The chai
 priors' unconstrained coordinates (:mod:`vehjax.calibrate.priors`) with a Gaussian random walk,
 adapted over the warm-up (:mod:`vehjax.calibrate.adaptation`).
 
-Correlated pseudo-marginal (``pmmh(..., correlation=rho)``, Deligiannidis, Doucet & Pitt 2018):
-the chain carries the bootstrap PF's random numbers and moves them by a Crank-Nicolson step with
-each proposal (:func:`vehjax.calibrate.likelihood.cpm_log_likelihood_fn`,
-:mod:`vehjax.calibrate.correlated`), so that the acceptance ratio compares two strongly
-correlated estimates.
+Correlated pseudo-marginal (``pmmh(Correlated(bootstrap_pf, rho), ...)``, Deligiannidis,
+Doucet & Pitt 2018): the chain carries the bootstrap PF's random numbers and moves them by a
+Crank-Nicolson step with each proposal
+(:func:`vehjax.calibrate.likelihood.cpm_log_likelihood_fn`, :mod:`vehjax.calibrate.correlated`),
+so that the acceptance ratio compares two strongly correlated estimates.
 
 Random streams: one ``key`` is split into one key per chain; iteration i of chain c draws its
 proposal, its accept uniform and its particle filter's key from ``fold_in(key_c, i + 1)``
@@ -30,11 +30,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import validation
-from .adaptation import (adapt_init, adapt_step, adaptation_windows, chain_options,
-                         initial_factor)
+from .adaptation import adapt_init, adapt_step, chain_options, initial_factor
 from .correlated import crank_nicolson
 from .diagnostics import PMMHResult, result
-from .likelihood import check_correlation, cpm_log_likelihood_fn, log_likelihood_fn
+from .likelihood import cpm_log_likelihood_fn, log_likelihood_fn
+from .options import Chains, Correlated, RandomWalk
 from .priors import check_priors, log_prior_unconstrained, starting_values, to_physical
 
 __all__ = ["sampler", "pmmh"]
@@ -114,85 +114,64 @@ def sampler(loglik, priors, n_iter: int, ends, target: float, prior_count: float
 
 
 def pmmh(builder, model, measurements, inputs=None, *, x0, P0, Q, R, priors, key,
-         chains: int = 4, samples: int = 1000, warmup: int = 500, proposal_std=None,
-         adapt: bool = True, adapt_windows: int = 5, acceptance_target=None,
-         init=None, builder_kwargs=None, proposal_cov=None, correlation=None) -> PMMHResult:
+         chains: Chains = Chains(), proposal: RandomWalk = RandomWalk()) -> PMMHResult:
     """Particle marginal Metropolis-Hastings over named quantities of a model and its noise.
 
     Args:
-        builder: filter builder ``builder(model, Q, R, **builder_kwargs)``: for PMMH
-            ``vehjax.filters.bootstrap_pf`` (``builder_kwargs={"n_particles": N}``), whose
+        builder: filter builder ``builder(model, Q, R)``, its options by ``functools.partial``:
+            for PMMH ``partial(vehjax.filters.bootstrap_pf, n_particles=N)``, whose
             likelihood estimate is unbiased, or :func:`fixed_noise_mpf` (the marginalized PF
             with fixed noise statistics: unbiased, far less noisy for models affine in the
-            states); a Kalman filter gives exact Metropolis-Hastings.
+            states); a Kalman filter gives exact Metropolis-Hastings. Or a :class:`Correlated`
+            (the bootstrap PF with its correlation rho): correlated pseudo-marginal
+            (Deligiannidis, Doucet & Pitt 2018): the chain carries the bootstrap PF's random
+            numbers aux (:func:`cpm_log_likelihood_fn`, :mod:`vehjax.calibrate.correlated`),
+            each proposal moves them to rho aux + sqrt(1 - rho^2) eps with the random walk's
+            step and both are accepted or rejected together; the acceptance ratio then sees
+            the noise of a difference of two strongly correlated estimates
+            (:func:`log_likelihood_difference_spread`) instead of two independent ones.
         model: a vehjax model; its ``theta`` holds the parameters that are not calibrated.
         measurements: (T, ny) one drive, NaN components missing; inputs (T, nu) or None.
         x0, P0: the prior of the state before the first step.
         Q, R: process / measurement noise, (n,) variances or (n, n); named stds replace their
             diagonal entries.
         priors: dict name -> :class:`Normal` / :class:`LogNormal` / :class:`Uniform` (module
-            docstring for the names).
+            docstring for the names: ``"R[ay]"``, ``"Q[vy]"``, ``"bias[ay]"``,
+            ``"input[delta]"`` standard deviations and biases, parameters by name).
         key: PRNG key; every random number of the run comes from it.
-        chains: number of chains C >= 2 (vmapped); samples: draws kept per chain; warmup:
-            iterations discarded per chain (>= 2 when ``adapt``).
-        proposal_std: random-walk std per quantity in unconstrained units (scalar or (d,));
-            default 0.1 x the prior's scale.
-        proposal_cov: instead of ``proposal_std``, the random walk's starting covariance
-            (d, d) in unconstrained units, e.g. a pilot chain's ``PMMHResult.proposal_cov``.
-        adapt: re-estimate the proposal during the warm-up (module docstring).
-        adapt_windows: how many times (windows of doubling length over the first 80 % of the
-            warm-up, :func:`adaptation_windows`).
-        acceptance_target: the acceptance rate the scale is tuned toward; default
-            ``target_acceptance(d)`` (exact likelihood; 0.44 for d = 1 to 0.234); for a
-            particle filter's estimate ``target_acceptance(d, std)`` with the estimate's std
-            (:func:`log_likelihood_spread`).
-        init: dict name -> starting value (physical); default the prior's centre (median).
-        correlation: None (default): every iteration's estimate has its own random numbers
-            (the plain pseudo-marginal chain). rho in (0, 1): correlated pseudo-marginal
-            (Deligiannidis, Doucet & Pitt 2018): the chain carries the bootstrap PF's random
-            numbers aux (:func:`cpm_log_likelihood_fn`, :mod:`vehjax.calibrate.correlated`), each proposal
-            moves them to rho aux + sqrt(1 - rho^2) eps with the random walk's step and both
-            are accepted or rejected together; the acceptance ratio then sees the noise of a
-            difference of two strongly correlated estimates
-            (:func:`log_likelihood_difference_spread`) instead of two independent ones.
-            Only for ``builder=vehjax.filters.bootstrap_pf``. rho near 1 (e.g. 0.99 to 0.9999,
-            1 - rho about N / T by Deligiannidis et al.'s scaling) keeps that noise small for
-            a one-dimensional state; with several states the sorted resampling keeps less of
-            the correlation, the less the longer the record (:mod:`vehjax.calibrate.correlated`): measure it
-            with :func:`log_likelihood_difference_spread` before relying on it.
+        chains: :class:`Chains` (number, draws kept, warm-up, starting values; default 4 x
+            (500 + 1000) from the priors' centres; warm-up 500 unless given).
+        proposal: :class:`RandomWalk`: the random walk's start (default 0.1 x each prior's
+            scale) and its :class:`Adaptation` over the warm-up (module docstring).
 
     Returns:
         :class:`PMMHResult`.
 
     Raises:
         ValueError: naming the argument, for unknown names, bad priors or sizes, or a zero
-            likelihood at the starting values; ``correlation`` outside (0, 1) or with a
-            builder other than the bootstrap PF.
+            likelihood at the starting values (``chains.init``).
     """
     names, prs = check_priors(priors)
-    rho = None if correlation is None else check_correlation(correlation)
-    chains, samples, warmup, adapt_windows, acceptance_target = chain_options(
-        chains, samples, warmup, adapt, adapt_windows, acceptance_target, len(prs))
+    chains, proposal, target, ends = chain_options(chains, proposal, len(prs), 500)
     draw = move = None
-    if rho is None:
-        loglik = log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0, Q=Q,
-                                   R=R, names=names, builder_kwargs=builder_kwargs)
-    else:
+    if isinstance(builder, Correlated):
         loglik, draw = cpm_log_likelihood_fn(builder, model, measurements, inputs, x0=x0,
-                                             P0=P0, Q=Q, R=R, names=names,
-                                             builder_kwargs=builder_kwargs)
+                                             P0=P0, Q=Q, R=R, names=names)
+        rho = builder.correlation
 
         def move(aux, k):
             return crank_nicolson(aux, draw(k), rho)
-    L0 = initial_factor(prs, proposal_std, proposal_cov)
-    z0 = np.tile(starting_values(prs, init, names), (chains, 1))
-    keys = validation.key(key, chains)
-    ends = adaptation_windows(warmup, adapt_windows) if adapt else np.zeros(0, int)
-    run = sampler(loglik, prs, warmup + samples, ends, acceptance_target, 5.0 * len(prs),
-                   draw, move)
+    else:
+        loglik = log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0, Q=Q,
+                                   R=R, names=names)
+    L0 = initial_factor(prs, proposal)
+    z0 = np.tile(starting_values(prs, chains.init, names, "chains.init"), (chains.n, 1))
+    keys = validation.key(key, chains.n)
+    run = sampler(loglik, prs, chains.warmup + chains.samples, ends, target, 5.0 * len(prs),
+                  draw, move)
     zs, lls, acc, L, lt0 = run(keys, jnp.asarray(z0), jnp.asarray(L0))
     if not np.all(np.isfinite(np.asarray(lt0))):
-        raise ValueError("init: the likelihood estimate at the starting values is zero (the "
-                         "filter diverged or the prior excludes them); give other init values "
-                         "or more particles")
-    return result(names, prs, zs, lls, acc, L, warmup)
+        raise ValueError("chains.init: the likelihood estimate at the starting values is zero "
+                         "(the filter diverged or the prior excludes them); give other "
+                         "chains.init values or more particles")
+    return result(names, prs, zs, lls, acc, L, chains.warmup)

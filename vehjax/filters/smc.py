@@ -75,10 +75,11 @@ def log_tiny(dtype) -> float:
     return float(np.log(np.finfo(np.dtype(dtype)).tiny))
 
 
-def check_n_particles(n_particles) -> int:
+def check_n_particles(n_particles, name: str = "n_particles") -> int:
     """``n_particles`` as an int in [2, 2**30] (one particle has no weights to compare or
-    resample), else ValueError naming it: the one rule of every particle filter and sampler."""
-    return validation.integer("n_particles", n_particles, 2, 2**30)
+    resample), else ValueError naming it (``name``, e.g. a record's field): the one rule of
+    every particle filter and sampler."""
+    return validation.integer(name, n_particles, 2, 2**30)
 
 
 def check_ess_threshold(ess_threshold) -> float:

@@ -152,16 +152,17 @@ def check_priors(priors) -> tuple:
     return tuple(priors), tuple(priors.values())
 
 
-def starting_values(priors, init, names) -> np.ndarray:
+def starting_values(priors, init, names, name: str = "init") -> np.ndarray:
     """(d,) unconstrained starting values: ``init`` where given, else the priors' centres.
-    ValueError naming ``init`` for a value outside its prior's support (zero prior density)."""
-    init = validation.keyed("init", init, names)
+    ValueError naming ``init`` (``name``, e.g. a record's field) for an unknown name or a value
+    outside its prior's support (zero prior density)."""
+    init = validation.keyed(name, init, names)
     x0 = [init.get(n, p.center) for n, p in zip(names, priors)]
     inside = [bool(np.isfinite(float(p.log_density(jnp.asarray(x, float)))))
               for x, p in zip(x0, priors)]
     z0 = np.array([float(p.to_unconstrained(x)) for x, p in zip(x0, priors)])
     if not (all(inside) and np.all(np.isfinite(z0))):
-        raise ValueError(f"init: a starting value lies outside its prior's support: {init!r}")
+        raise ValueError(f"{name}: a starting value lies outside its prior's support: {init!r}")
     return z0
 
 

@@ -27,9 +27,9 @@ from .pmmh import run_pmmh
 from .report import pmmh_check
 
 #: the exact Kalman chain's posterior mean on the first 20 s (physical units)
-AT = {"delta_offset": 0.01254 * DEG, "eps": -4.331e-4, "bias:ay": -0.06369,
-      "bias:r": 0.02133 * DEG, "R:ay": 0.3051, "R:r": 0.1223 * DEG, "R:r_virt": 1.182 * DEG,
-      "input:delta": 0.1356 * DEG}
+AT = {"delta_offset": 0.01254 * DEG, "eps": -4.331e-4, "bias[ay]": -0.06369,
+      "bias[r]": 0.02133 * DEG, "R[ay]": 0.3051, "R[r]": 0.1223 * DEG, "R[r_virt]": 1.182 * DEG,
+      "input[delta]": 0.1356 * DEG}
 
 
 def main(argv=None):

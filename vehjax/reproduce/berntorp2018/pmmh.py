@@ -16,7 +16,7 @@ their correlation dropped) with priors of their own (:func:`pg_priors`); its mov
 :data:`PG_STEP` of each prior's scale, since given a whole trajectory the values are known far
 better than the PMMH likelihood tells them. ``cpm``: the bootstrap PF's likelihood with
 correlated random numbers (correlated pseudo-marginal, Deligiannidis, Doucet & Pitt 2018;
-``pmmh(correlation=PMMH_CORRELATION)``), at the bootstrap chain's N and iterations.
+``pmmh(Correlated(bootstrap_pf, PMMH_CORRELATION))``), at the bootstrap chain's N and iterations.
 
 Every sampler adapts its random walk over the warm-up (:func:`vehjax.calibrate.pmmh`: windows of
 doubling length, the pooled draws' covariance and a scale tuned toward the optimal acceptance)
@@ -28,6 +28,7 @@ behind the defaults: ``benchmarks/results/notes_berntorp2018.md``.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 
@@ -52,16 +53,16 @@ def pmmh_priors():
     (sigma 1, i.e. a factor e either way) stds: ay 0.3 m/s^2, gyro 0.3 deg/s, r_virt 0.5 deg/s
     (the paper's value), steering 0.1 deg."""
     return {"delta_offset": Normal(0.0, 0.5 * DEG), "eps": Normal(0.0, 1e-3),
-            "bias:ay": Normal(0.0, 0.5), "bias:r": Normal(0.0, 0.5 * DEG),
-            "R:ay": LogNormal(0.3, 1.0), "R:r": LogNormal(0.3 * DEG, 1.0),
-            "R:r_virt": LogNormal(RVIRT_STD, 1.0), "input:delta": LogNormal(0.1 * DEG, 1.0)}
+            "bias[ay]": Normal(0.0, 0.5), "bias[r]": Normal(0.0, 0.5 * DEG),
+            "R[ay]": LogNormal(0.3, 1.0), "R[r]": LogNormal(0.3 * DEG, 1.0),
+            "R[r_virt]": LogNormal(RVIRT_STD, 1.0), "input[delta]": LogNormal(0.1 * DEG, 1.0)}
 
 
 #: Units and scale of the PMMH quantities in the report.
-PMMH_UNITS = {"delta_offset": ("deg", DEG), "eps": ("1e-4", 1e-4), "bias:ay": ("m/s^2", 1.0),
-              "bias:r": ("deg/s", DEG), "R:ay": ("m/s^2", 1.0), "R:r": ("deg/s", DEG),
-              "R:r_virt": ("deg/s", DEG), "input:delta": ("deg", DEG),
-              "Q:vy": ("m/s", 1.0), "Q:r": ("deg/s", DEG)}
+PMMH_UNITS = {"delta_offset": ("deg", DEG), "eps": ("1e-4", 1e-4), "bias[ay]": ("m/s^2", 1.0),
+              "bias[r]": ("deg/s", DEG), "R[ay]": ("m/s^2", 1.0), "R[r]": ("deg/s", DEG),
+              "R[r_virt]": ("deg/s", DEG), "input[delta]": ("deg", DEG),
+              "Q[vy]": ("m/s", 1.0), "Q[r]": ("deg/s", DEG)}
 PMMH_Q = np.array([0.01, 0.01 * DEG]) ** 2  # vy [m/s], r [rad/s] per step
 PMMH_P0 = np.array([0.1, 0.5 * DEG]) ** 2
 
@@ -92,9 +93,9 @@ def pg_priors(pm, U):
     """Particle Gibbs's priors: :func:`pmmh_priors` with the steering-input std replaced by
     log-normal (sigma 1) process stds of vy and r centred on :func:`pg_process_std` at the
     input prior's centre (0.1 deg)."""
-    pr = {k: v for k, v in pmmh_priors().items() if not k.startswith("input:")}
+    pr = {k: v for k, v in pmmh_priors().items() if not k.startswith("input[")}
     q = pg_process_std(pm, U, 0.1 * DEG)
-    return {**pr, "Q:vy": LogNormal(float(q[0]), 1.0), "Q:r": LogNormal(float(q[1]), 1.0)}
+    return {**pr, "Q[vy]": LogNormal(float(q[0]), 1.0), "Q[r]": LogNormal(float(q[1]), 1.0)}
 
 
 def _pg_init(pm, U, init):
@@ -103,9 +104,9 @@ def _pg_init(pm, U, init):
     if init is None:
         return None
     init = dict(init)
-    steer = init.pop("input:delta", None)
+    steer = init.pop("input[delta]", None)
     if steer is not None:
-        init["Q:vy"], init["Q:r"] = map(float, pg_process_std(pm, U, steer))
+        init["Q[vy]"], init["Q[r]"] = map(float, pg_process_std(pm, U, steer))
     return init
 
 
@@ -119,7 +120,7 @@ def _pg_init(pm, U, init):
 #: not yet a posterior (measurements: benchmarks/results/notes_berntorp2018.md)
 PMMH_ITERS = {"kalman": 4000, "mpf": 400, "bootstrap": 200, "pg": 200, "cpm": 200}
 PMMH_PARTICLES = {"mpf": 256, "bootstrap": 64, "pg": 64, "cpm": 64}
-#: the correlated chain (cpm: :func:`vehjax.calibrate.pmmh` with ``correlation``): the
+#: the correlated chain (cpm: :func:`vehjax.calibrate.pmmh` of a ``Correlated``): the
 #: Crank-Nicolson move's rho, and the bootstrap chain's particles and iterations (to compare
 #: the two at the same cost). With the 2-state model the particles are Hilbert-sorted
 #: (:mod:`vehjax.calibrate.correlated`); the report gives the measured std of the log-likelihood difference the
@@ -170,21 +171,22 @@ def run_pmmh(model, Y, U, *, iters=None, particles=None, chains=4, key, likeliho
         # (0.1 of each prior's): moves of PG_STEP of the prior's scale, PG_MOVES per sweep
         step = [PG_STEP * p.scale for p in priors.values()]
         t0 = time.perf_counter()
-        res = calibrate.particle_gibbs(pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2), P0=PMMH_P0,
-                                       Q=np.diag(PMMH_Q), R=R0, priors=priors, key=key,
-                                       chains=chains, samples=iters - iters // 2,
-                                       warmup=iters // 2, n_particles=particles, init=init,
-                                       proposal_std=step, mh_steps=PG_MOVES)
+        res = calibrate.particle_gibbs(
+            pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2), P0=PMMH_P0, Q=np.diag(PMMH_Q), R=R0,
+            priors=priors, key=key, sweep=calibrate.Sweep(n_particles=particles, moves=PG_MOVES),
+            chains=calibrate.Chains(n=chains, samples=iters - iters // 2, warmup=iters // 2,
+                                    init=init),
+            proposal=calibrate.RandomWalk(std=step))
         return res, time.perf_counter() - t0, info
     corr = PMMH_CORRELATION if likelihood == "cpm" else None
     if corr is not None:
         info["correlation"] = corr
     if likelihood in ("bootstrap", "cpm"):
-        builder, kw = bootstrap_pf, {"n_particles": particles}
+        builder = functools.partial(bootstrap_pf, n_particles=particles)
     elif likelihood == "mpf":
-        builder, kw = calibrate.fixed_noise_mpf, {"n_particles": particles}
+        builder = functools.partial(calibrate.fixed_noise_mpf, n_particles=particles)
     else:
-        builder, kw = gaussian.ekf, {}
+        builder = gaussian.ekf
     t0 = time.perf_counter()
     priors = pmmh_priors()
     target = None
@@ -193,10 +195,9 @@ def run_pmmh(model, Y, U, *, iters=None, particles=None, chains=4, key, likeliho
         if at is not None and corr is not None:
             info["loglik_diff_std"], info["loglik_std"] = \
                 calibrate.log_likelihood_difference_spread(
-                    builder, pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2), P0=PMMH_P0, Q=PMMH_Q,
-                    R=R0, values={k: at[k] for k in priors},
-                    key=jax.random.fold_in(key, 2015), correlation=corr,
-                    n_evals=spread_evals, builder_kwargs=kw)
+                    calibrate.Correlated(builder, corr), pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2),
+                    P0=PMMH_P0, Q=PMMH_Q, R=R0, values={k: at[k] for k in priors},
+                    key=jax.random.fold_in(key, 2015), n_evals=spread_evals)
             # the ratio's noise is the difference's: as an estimate of std s / sqrt(2)'s
             target = max(calibrate.target_acceptance(
                 len(priors), info["loglik_diff_std"] / math.sqrt(2.0)), PMMH_MIN_TARGET)
@@ -204,16 +205,18 @@ def run_pmmh(model, Y, U, *, iters=None, particles=None, chains=4, key, likeliho
             info["loglik_std"], _ = calibrate.log_likelihood_spread(
                 builder, pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2), P0=PMMH_P0, Q=PMMH_Q, R=R0,
                 values={k: at[k] for k in priors}, key=jax.random.fold_in(key, 2015),
-                n_evals=spread_evals, builder_kwargs=kw)
+                n_evals=spread_evals)
             # at most Sherlock et al.'s 7 % (their optimum, at a std of 1.8): a noisier
             # estimate would ask for an acceptance near 0 and a scale without bound
             target = max(calibrate.target_acceptance(len(priors), info["loglik_std"]),
                          PMMH_MIN_TARGET)
-    res = calibrate.pmmh(builder, pm, Y[:, [0, 1, 4]], U, x0=np.zeros(2), P0=PMMH_P0, Q=PMMH_Q,
-                         R=R0, priors=priors, key=key, chains=chains,
-                         samples=iters - iters // 2, warmup=iters // 2, builder_kwargs=kw,
-                         init=init, acceptance_target=target, proposal_cov=proposal_cov,
-                         correlation=corr)
+    res = calibrate.pmmh(
+        builder if corr is None else calibrate.Correlated(builder, corr), pm, Y[:, [0, 1, 4]], U,
+        x0=np.zeros(2), P0=PMMH_P0, Q=PMMH_Q, R=R0, priors=priors, key=key,
+        chains=calibrate.Chains(n=chains, samples=iters - iters // 2, warmup=iters // 2,
+                                init=init),
+        proposal=calibrate.RandomWalk(cov=proposal_cov,
+                                      adaptation=calibrate.Adaptation(acceptance=target)))
     info["acceptance_target"] = target if target is not None else \
         calibrate.target_acceptance(len(priors))
     return res, time.perf_counter() - t0, info
@@ -229,10 +232,10 @@ def chain_start(d, Es, Pm, names, stop):
     the causal eps at the segment's end, the MPF's stds, r_virt's residual std): a short
     warm-up."""
     return {"delta_offset": float(Es[0, 2]), "eps": float(d["eps_rls"][stop - 1]),
-            "bias:ay": float(Es[0, 3]), "bias:r": float(Es[0, 4]),
-            "R:ay": float(Pm[:, -1, names.index("ay_std")].mean()),
-            "R:r": float(Pm[:, -1, names.index("r_std")].mean()), "R:r_virt": d["rvirt_sd"],
-            "input:delta": float(Pm[:, -1, names.index("delta_std")].mean())}
+            "bias[ay]": float(Es[0, 3]), "bias[r]": float(Es[0, 4]),
+            "R[ay]": float(Pm[:, -1, names.index("ay_std")].mean()),
+            "R[r]": float(Pm[:, -1, names.index("r_std")].mean()), "R[r_virt]": d["rvirt_sd"],
+            "input[delta]": float(Pm[:, -1, names.index("delta_std")].mean())}
 
 
 def run_samplers(args, d, Es, Pm, names, log=print):

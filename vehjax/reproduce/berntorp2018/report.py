@@ -502,7 +502,7 @@ def _sampler_text(lik, info):
                    f"unbiased estimate of the same likelihood and the same posterior)",
             "pg": f"particle Gibbs with ancestor sampling (ref. [29]), conditional PF with "
                   f"N = {info['particles']}, steering noise as additive process noise "
-                  f"(Q:vy, Q:r; their correlation dropped)"}[lik]
+                  f"(Q[vy], Q[r]; their correlation dropped)"}[lik]
 
 
 def pmmh_markdown(res):
