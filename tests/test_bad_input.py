@@ -221,11 +221,11 @@ EST = FAMILIES["ukf"]()
         (dict(P0=-np.eye(2)), "P0"),
         (dict(P0=np.eye(3)), "P0"),
         (dict(theta0=[1.0, 2.0]), "theta0"),  # the model has one parameter
-        (dict(chunk_size=0), "chunk_size"),
-        (dict(chunk_size=2.5), "chunk_size"),
+        (dict(execution=dict(chunk_size=0)), "execution.chunk_size"),
+        (dict(execution=dict(chunk_size=2.5)), "execution.chunk_size"),
         (dict(progress="yes"), "progress"),
         (dict(return_covariances="no"), "return_covariances"),
-        (dict(devices=[1, 2]), "devices"),
+        (dict(execution=dict(devices=[1, 2])), "execution.devices"),
         (dict(key=0), "key"),
     ],
 )
@@ -233,6 +233,8 @@ def test_run_arguments(kwargs, arg):
     kw = dict(x0=X0, P0=P0, progress=False)
     kw.update(kwargs)
     with pytest.raises(ValueError, match=f"^{arg}:"):
+        if "execution" in kw:  # the record's fields check themselves when it is made
+            kw["execution"] = vj.Execution(**kw["execution"])
         vj.run(EST, YS, US, **kw)
 
 

@@ -73,7 +73,7 @@ def _ukf_study(ukf, d, **kw):
     """The runs-last UKF path; 3 runs a chunk (a multiple of 1 or 3 devices): 3 chunks of the
     7 runs, the last padded."""
     return vehjax.run(ukf, d["ys"], d["us"], x0=d["x0s"], P0=P0, return_covariances=True,
-                      chunk_size=3, progress=False, **kw)
+                      execution=vehjax.Execution(chunk_size=3), progress=False, **kw)
 
 
 def _studies(data_path, pf_progress=False, **kw):
@@ -112,7 +112,7 @@ def _worker(pid, port, n_local, data_path, out_path):
     t2 = time.perf_counter()
     # devices=False: each process runs the whole study on its own first device, no communication
     d = np.load(data_path)
-    results["local"] = _ukf_study(_estimators()[0], d, devices=False)
+    results["local"] = _ukf_study(_estimators()[0], d, execution=vehjax.Execution(devices=False))
     t3 = time.perf_counter()
     # arguments that differ between processes are refused in every process, nothing hangs
     ys = d["ys"].copy()
@@ -212,7 +212,7 @@ def test_two_processes_equal_one_process(data, tmp_path):
     """Process 0 with two CPU devices, process 1 with one: three devices in the global mesh."""
     procs = _start((2, 1), data, tmp_path)
     try:
-        one = _studies(data, devices=False)  # one process, one device, meanwhile
+        one = _studies(data, execution=vehjax.Execution(devices=False))  # one process, one device, meanwhile
     finally:
         outs, logs = _finish(*procs)
     assert "vehjax.run" in logs[0] and "vehjax.run" not in logs[1]  # the progress bar
@@ -239,7 +239,7 @@ def test_digest_tells_different_arguments_apart(data):
 
     def digest(est=ukf, ys=d["ys"], key=None, **kw):
         args = dict(x0=d["x0s"], P0=P0, theta0=None, P_theta0=None, key=key,
-                    return_covariances=False, chunk_size=None, progress=None, devices=None)
+                    return_covariances=False, progress=None, execution=None)
         args.update(kw)
         plan = plan_module.plan(est, ys, d["us"], **args)
         assert not plan.spans_processes  # one process: the plain path
@@ -250,7 +250,7 @@ def test_digest_tells_different_arguments_apart(data):
     np.testing.assert_array_equal(digest(), base)
     ys = d["ys"].copy()
     ys[0, 0, 0] = np.nextafter(ys[0, 0, 0], np.inf)
-    for other in (digest(ys=ys), digest(chunk_size=2), digest(return_covariances=True),
+    for other in (digest(ys=ys), digest(execution=vehjax.Execution(chunk_size=2)), digest(return_covariances=True),
                   digest(x0=d["x0s"][0]), digest(est=ukf._replace(name="other"))):
         assert not np.array_equal(other, base)
     keyed = digest(est=pf, key=jax.random.key(0))

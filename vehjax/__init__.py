@@ -107,6 +107,7 @@ if TYPE_CHECKING:  # what static analysers and IDEs see; at run time each loads 
     from . import calibrate, data, execution, filters, metrics, models, scenarios, studies, tune
     from .filtering import FilterResult, filter
     from .online import Online
+    from .execution import Execution
     from .run import CompiledRun, RunResult, compile_run, run
     from .simulate import Simulation, simulate
     from .smoothing import SmoothResult, smooth
@@ -118,13 +119,14 @@ __all__ = [
     "execution", "simulate",
     "Simulation",
     "filter", "FilterResult", "smooth", "SmoothResult", "run", "compile_run", "RunResult", "CompiledRun",
-    "Online",
+    "Execution", "Online",
 ]
 
 #: the names of ``__all__`` that are not submodules -> the submodule that defines each
 _DEFINED_IN = {
     "filter": "filtering", "FilterResult": "filtering", "smooth": "smoothing", "SmoothResult": "smoothing",
     "run": "run", "compile_run": "run", "RunResult": "run", "CompiledRun": "run",
+    "Execution": "execution",
     "simulate": "simulate", "Simulation": "simulate",
     "Online": "online",
 }
