@@ -102,7 +102,8 @@ def _smoothed(n, reps=8):
     est = _known_noise_mpf(n)
 
     def one(key):
-        return vj.smooth(est, ys, us, x0=X0, P0=P0, key=key, n_trajectories=n)
+        return vj.smooth(est, ys, us, x0=X0, P0=P0, key=key,
+                         method=vj.smoothers.AncestorPaths(n_trajectories=n))
 
     keys = jax.random.split(jax.random.key(5), reps)
     return jax.jit(jax.vmap(one))(keys)
@@ -529,7 +530,9 @@ def _smoothed_linear(n, reps=8, method=None):
                                   forgetting=1.0, nu0=1e7, gamma0=1e-9))
 
     def one(key):
-        return vj.smooth(est, ys, us, x0=X0, P0=P0, key=key, n_trajectories=n, method=method)
+        return vj.smooth(est, ys, us, x0=X0, P0=P0, key=key,
+                         method=vj.smoothers.methods.BY_NAME[method or "ancestor"](
+                             n_trajectories=n))  # None: the marginalized PF's ancestor paths
 
     keys = jax.random.split(jax.random.key(5), reps)
     return jax.jit(jax.vmap(one))(keys)

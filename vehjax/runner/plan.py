@@ -117,7 +117,7 @@ def _smooth_method(estimator, smooth) -> str | None:
         raise ValueError(f"smooth: expected True, False or one of {smoothing.METHODS}, got "
                          f"{smooth!r}")
     try:
-        return smoothing.check_options(estimator, None if smooth is True else smooth)[0]
+        return smoothing.check_options(estimator, None if smooth is True else smooth).name
     except ValueError as err:
         raise ValueError(f"smooth: {err}") from None
 
