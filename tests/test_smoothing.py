@@ -402,4 +402,4 @@ def test_a_filter_without_smoother_is_named_whatever_the_options():
                                niw=NiW(std0={"u": 0.5, "y": 0.3}))
     with pytest.raises(ValueError, match="^estimator: 'marginalized_pf_grid' has no smoother"):
         vj.smooth(est, np.zeros((5, 2)), np.zeros((5, 1)), x0=np.zeros(2), P0=np.eye(2),
-                  key=jax.random.key(0), n_trajectories=4)
+                  key=jax.random.key(0), method=vj.smoothers.AncestorPaths(n_trajectories=4))

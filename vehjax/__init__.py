@@ -109,7 +109,7 @@ if TYPE_CHECKING:  # what static analysers and IDEs see; at run time each loads 
     from .online import Online
     from .execution import Execution
     from .run import CompiledRun, RunResult, compile_run, run
-    from .simulate import Simulation, simulate
+    from .simulate import BiasWalk, NoiseScale, ParamDraw, Simulation, simulate
     from .smoothing import SmoothResult, smooth
 
 __version__ = "0.1.0"
@@ -117,7 +117,7 @@ __version__ = "0.1.0"
 __all__ = [
     "filters", "models", "scenarios", "studies", "metrics", "data", "tune", "calibrate",
     "execution", "simulate",
-    "Simulation",
+    "Simulation", "ParamDraw", "NoiseScale", "BiasWalk",
     "filter", "FilterResult", "smooth", "SmoothResult", "run", "compile_run", "RunResult", "CompiledRun",
     "Execution", "Online",
 ]
@@ -127,7 +127,8 @@ _DEFINED_IN = {
     "filter": "filtering", "FilterResult": "filtering", "smooth": "smoothing", "SmoothResult": "smoothing",
     "run": "run", "compile_run": "run", "RunResult": "run", "CompiledRun": "run",
     "Execution": "execution",
-    "simulate": "simulate", "Simulation": "simulate",
+    "simulate": "simulate", "Simulation": "simulate", "ParamDraw": "simulate",
+    "NoiseScale": "simulate", "BiasWalk": "simulate",
     "Online": "online",
 }
 

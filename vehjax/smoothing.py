@@ -307,8 +307,9 @@ def check_options(estimator: Estimator, method=None):
     rec = _methods.record(method)
     rec = _methods.RTS() if rec is None else rec
     if isinstance(rec, _methods.PARTICLE):
-        raise ValueError(f"method: {rec!r} applies to particle filters only; {estimator.name!r} "
-                         f"is a Gaussian filter, whose smoothers are RTS, IEKS and IPLS")
+        raise ValueError(f"method: {type(rec).__name__} applies to particle filters only; "
+                         f"{estimator.name!r} is a Gaussian filter, whose smoothers are RTS, "
+                         f"IEKS and IPLS")
     if rec.name == "ieks" and not spec.taylor:
         raise ValueError(f"method: 'ieks' iterates Jacobian linearisations; {estimator.name!r} "
                          f"linearises by sigma points, use method='ipls'")
@@ -327,9 +328,9 @@ def _particle_method(estimator: Estimator, method) -> dict:
         return {}
     if isinstance(rec, _methods.GAUSSIAN):
         raise ValueError(
-            f"method: {rec!r} is one of the Gaussian smoothers; {estimator.name!r} is a particle "
-            f"filter, whose smoother takes FFBSi, RejectionSampling or AncestorPaths "
-            f"(vehjax.smoothers)")
+            f"method: {type(rec).__name__} is one of the Gaussian smoothers; {estimator.name!r} "
+            f"is a particle filter, whose smoother takes FFBSi, RejectionSampling or "
+            f"AncestorPaths (vehjax.smoothers)")
     return dict(method=rec.name, **dataclasses.asdict(rec))
 
 
