@@ -135,8 +135,8 @@ def test_inf_measurements_one_rule():
         y_inf[7, 0] = -np.inf
         y_nan[4, 1] = y_nan[7, 0] = np.nan
         with pytest.raises(ValueError, match=r"^measurements:.*inf.*\(4, 1\)"):
-            vj.filter(est, y_inf, US, X0, P0, key=key)
-        traced = jax.jit(lambda y: vj.filter(est, y, US, X0, P0, key=key))
+            vj.filter(est, y_inf, US, x0=X0, P0=P0, key=key)
+        traced = jax.jit(lambda y: vj.filter(est, y, US, x0=X0, P0=P0, key=key))
         a, b = traced(y_inf), traced(y_nan)
         np.testing.assert_array_equal(a.states, b.states)
         assert int(a.n_obs[4]) == 1 and int(a.n_obs[7]) == 1

@@ -251,7 +251,7 @@ def test_one_run_goes_by_the_per_run_step(monkeypatch):
     ys, us = _data(runs=2, steps=7, seed=5)  # shapes no other test traces (no cached study)
     one = vj.run(est, ys[:1], us, x0=X0, P0=P0, execution=vj.Execution(strategy=cpu))
     assert taken == []
-    ref = vj.filter(est, ys[0], us, X0, P0)
+    ref = vj.filter(est, ys[0], us, x0=X0, P0=P0)
     np.testing.assert_allclose(one.states[0], ref.states, rtol=1e-12, atol=1e-12)
     vj.run(est, ys[:2], us, x0=X0, P0=P0, execution=vj.Execution(strategy=cpu))
     assert taken == [True]
