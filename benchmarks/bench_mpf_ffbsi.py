@@ -1,6 +1,7 @@
 """The marginalized PF's smoother on the recorded RAV4 drive (``vehjax reproduce berntorp2018
 --drive``'s data and filter, issue #29 item 2): ancestor tracing against Rao-Blackwellised
-backward simulation (``vehjax.smooth(..., method=vehjax.smoothers.FFBSi(...))``, :mod:`vehjax.smoothers.marginalized`).
+backward simulation (``vehjax.smooth(..., method=vehjax.smoothers.FFBSi(...))``,
+:mod:`vehjax.smoothers.marginalized`).
 
 The drive is prepared as ``vehjax reproduce berntorp2018 --drive`` does with its defaults
 (:func:`vehjax.data.prepare_drive`: virtual yaw rate's scale error removed offline, gated at

@@ -212,7 +212,8 @@ def test_two_processes_equal_one_process(data, tmp_path):
     """Process 0 with two CPU devices, process 1 with one: three devices in the global mesh."""
     procs = _start((2, 1), data, tmp_path)
     try:
-        one = _studies(data, execution=vehjax.Execution(devices=False))  # one process, one device, meanwhile
+        # one process, one device, meanwhile
+        one = _studies(data, execution=vehjax.Execution(devices=False))
     finally:
         outs, logs = _finish(*procs)
     assert "vehjax.run" in logs[0] and "vehjax.run" not in logs[1]  # the progress bar
@@ -250,7 +251,8 @@ def test_digest_tells_different_arguments_apart(data):
     np.testing.assert_array_equal(digest(), base)
     ys = d["ys"].copy()
     ys[0, 0, 0] = np.nextafter(ys[0, 0, 0], np.inf)
-    for other in (digest(ys=ys), digest(execution=vehjax.Execution(chunk_size=2)), digest(return_covariances=True),
+    for other in (digest(ys=ys), digest(execution=vehjax.Execution(chunk_size=2)),
+                  digest(return_covariances=True),
                   digest(x0=d["x0s"][0]), digest(est=ukf._replace(name="other"))):
         assert not np.array_equal(other, base)
     keyed = digest(est=pf, key=jax.random.key(0))

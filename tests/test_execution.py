@@ -133,8 +133,10 @@ def test_gpu_strategy_on_the_cpu_gives_the_cpu_results(family, monkeypatch):
         return out
 
     monkeypatch.setattr(execution, "compiler_options", spy)
-    a = vj.run(est, ys, us, x0=X0, P0=P0, return_covariances=True, execution=vj.Execution(strategy=cpu), **kw)
-    b = vj.run(est, ys, us, x0=X0, P0=P0, return_covariances=True, execution=vj.Execution(strategy="gpu"), **kw)
+    a = vj.run(est, ys, us, x0=X0, P0=P0, return_covariances=True,
+               execution=vj.Execution(strategy=cpu), **kw)
+    b = vj.run(est, ys, us, x0=X0, P0=P0, return_covariances=True,
+               execution=vj.Execution(strategy="gpu"), **kw)
     assert [p for p, _ in seen] == ["cpu", "gpu"]
     assert seen[1][1] is None or not any(k.startswith("xla_cpu") for k in seen[1][1])
     ulp = vj.run(est, ys * (1 + np.finfo(float).eps), us, x0=X0, P0=P0, return_covariances=True,

@@ -17,9 +17,8 @@ step with the runs axis last (:mod:`vehjax.runner.batch`); results agree to roun
 
 How a study executes on its platform (chunk budget, blocking of runs inside a chunk, runs-last
 or vmapped step, XLA options, trigonometric substitutes, results to the host) is decided in one
-place, :mod:`vehjax.execution`, from the device the study runs on; ``execution=``
-(:class:`vehjax.Execution`: chunk size, devices, XLA options, strategy) overrides it.
-This module holds no platform rule.
+place, :mod:`vehjax.execution`, from the device the study runs on; ``execution=`` (a
+:class:`vehjax.Execution`) overrides it. This module holds no platform rule.
 
 A NaN measurement component is missing; ``run`` passes it to the filter untouched and the filter
 skips that component's update. Every filter treats any non-finite component as missing; ``run``
@@ -70,9 +69,9 @@ every process, equal to a one-process run up to rounding (as above)::
 
 Chunk placement and the check that the processes run the same study (a process that does not
 call ``run``, or fails before it, leaves the others waiting): :mod:`vehjax.runner.shard`.
-``Execution(devices=False)`` makes every process run the whole study alone on its first local device; a
-sequence of devices is all the calling process's (a local study) or includes devices of every
-process. The progress bar shows on process 0 only.
+``Execution(devices=False)`` makes every process run the whole study alone on its first local
+device; a sequence of devices is all the calling process's (a local study) or includes devices
+of every process. The progress bar shows on process 0 only.
 
 Compile and execution time can be measured apart with :func:`compile_run`::
 
