@@ -268,7 +268,7 @@ def test_single_track_bank_smoke():
     est, P0b = _bank_mpf(model)
     key = jax.random.key(2)
     sm = jax.jit(lambda: vj.smooth(est, Y, U, x0=np.zeros(5), P0=P0b, key=key,
-                                   n_trajectories=8))()
+                                   method=vj.smoothers.AncestorPaths(n_trajectories=8)))()
     assert sm.states.shape == (Tb, 5) and sm.covariances.shape == (Tb, 5, 5)
     assert sm.params.shape == (Tb, 8) and sm.params_cov.shape == (Tb, 8, 8)
     assert not bool(sm.diverged)
@@ -287,7 +287,7 @@ def test_single_track_bank_long_drive_smoothed_covariances_are_psd():
     U, Y = _bank_drive(model, Tb, np.zeros(5), seed=1)
     est, P0b = _bank_mpf(model)
     sm = jax.jit(lambda: vj.smooth(est, Y, U, x0=np.zeros(5), P0=P0b, key=jax.random.key(5),
-                                   n_trajectories=8))()
+                                   method=vj.smoothers.AncestorPaths(n_trajectories=8)))()
     assert not bool(sm.diverged)
     assert_psd(sm.covariances)
     assert np.all(np.isfinite(sm.cross_covariances))
