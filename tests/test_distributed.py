@@ -69,14 +69,14 @@ def _make_data(path):
     np.savez(path, ys=ys, us=rng.normal(size=(UKF_STEPS, 1)), x0s=x0s)
 
 
-def _ukf_study(ukf, d, **kw):
+def _ukf_study(ukf, d, **placement):
     """The runs-last UKF path; 3 runs a chunk (a multiple of 1 or 3 devices): 3 chunks of the
-    7 runs, the last padded."""
+    7 runs, the last padded. ``placement``: further fields of its vehjax.Execution."""
     return vehjax.run(ukf, d["ys"], d["us"], x0=d["x0s"], P0=P0, return_covariances=True,
-                      execution=vehjax.Execution(chunk_size=3), progress=False, **kw)
+                      execution=vehjax.Execution(chunk_size=3, **placement), progress=False)
 
 
-def _studies(data_path, pf_progress=False, **kw):
+def _studies(data_path, pf_progress=False, **placement):
     """The studies as RunResults; the same calls in every process (SPMD). The PF (vmapped path,
     per-run keys) is compiled by compile_run; 4 runs in one chunk, padded to the device count."""
     d = np.load(data_path)
@@ -84,10 +84,11 @@ def _studies(data_path, pf_progress=False, **kw):
     pf_ys = d["ys"][:PF_RUNS, :PF_STEPS].copy()
     pf_ys[pf_ys > 1e3] = np.nan
     pf_args = (pf, pf_ys, d["us"][:PF_STEPS])
-    pf_kw = dict(x0=d["x0s"][0], P0=P0, key=jax.random.key(11), progress=False, **kw)
+    pf_kw = dict(x0=d["x0s"][0], P0=P0, key=jax.random.key(11), progress=False,
+                 execution=vehjax.Execution(**placement))
     prepared = vehjax.compile_run(*pf_args, **pf_kw)
     return {
-        "ukf": _ukf_study(ukf, d, **kw),
+        "ukf": _ukf_study(ukf, d, **placement),
         "pf_compiled": prepared(),
         # the executable compile_run made; a progress bar on process 0 only
         "pf": vehjax.run(*pf_args, **{**pf_kw, "progress": pf_progress}),
@@ -112,7 +113,7 @@ def _worker(pid, port, n_local, data_path, out_path):
     t2 = time.perf_counter()
     # devices=False: each process runs the whole study on its own first device, no communication
     d = np.load(data_path)
-    results["local"] = _ukf_study(_estimators()[0], d, execution=vehjax.Execution(devices=False))
+    results["local"] = _ukf_study(_estimators()[0], d, devices=False)
     t3 = time.perf_counter()
     # arguments that differ between processes are refused in every process, nothing hangs
     ys = d["ys"].copy()
@@ -213,7 +214,7 @@ def test_two_processes_equal_one_process(data, tmp_path):
     procs = _start((2, 1), data, tmp_path)
     try:
         # one process, one device, meanwhile
-        one = _studies(data, execution=vehjax.Execution(devices=False))
+        one = _studies(data, devices=False)
     finally:
         outs, logs = _finish(*procs)
     assert "vehjax.run" in logs[0] and "vehjax.run" not in logs[1]  # the progress bar
