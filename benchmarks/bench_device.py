@@ -83,7 +83,8 @@ def _prepared(est, ys, us, x0, P0, strategy, key=None, dtype=np.float64):
     cast = lambda a: np.asarray(a, dtype)  # noqa: E731
     t0 = time.perf_counter()
     prep = vj.compile_run(est, cast(ys), cast(us), x0=cast(x0), P0=cast(P0), key=key,
-                          progress=False, strategy=strategy)
+                          progress=False,
+                          execution=vj.Execution(strategy=strategy))
     return time.perf_counter() - t0, prep
 
 

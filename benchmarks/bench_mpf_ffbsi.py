@@ -1,6 +1,7 @@
 """The marginalized PF's smoother on the recorded RAV4 drive (``vehjax reproduce berntorp2018
 --drive``'s data and filter, issue #29 item 2): ancestor tracing against Rao-Blackwellised
-backward simulation (``vehjax.smooth(..., method="ffbsi")``, :mod:`vehjax.smoothers.marginalized`).
+backward simulation (``vehjax.smooth(..., method=vehjax.smoothers.FFBSi(...))``,
+:mod:`vehjax.smoothers.marginalized`).
 
 The drive is prepared as ``vehjax reproduce berntorp2018 --drive`` does with its defaults
 (:func:`vehjax.data.prepare_drive`: virtual yaw rate's scale error removed offline, gated at
@@ -46,7 +47,8 @@ def main():
     print(f"RAV4 drive: T = {T} steps, N = {a.particles}, M = {a.paths}")
     for method in a.methods.split(","):
         fn = jax.jit(lambda y, u, k, method=method: vj.smooth(
-            est, y, u, x0=np.zeros(6), P0=P0, key=k, n_trajectories=a.paths, method=method))
+            est, y, u, x0=np.zeros(6), P0=P0, key=k,
+            method=vj.smoothers.methods.BY_NAME[method](n_trajectories=a.paths)))
         times = []
         for r in range(2):
             t0 = time.perf_counter()

@@ -197,7 +197,7 @@ def batch_calls(est, ys, us, x0, P0, key):
     x0j, P0j = jnp.asarray(x0), jnp.asarray(P0)
 
     def one(ys, us):
-        return vj.filter(est, ys, us, x0j, P0j, key=key, return_covariances=False).states
+        return vj.filter(est, ys, us, x0=x0j, P0=P0j, key=key, return_covariances=False).states
 
     t0 = time.perf_counter()
     compiled = jax.jit(one).lower(jnp.asarray(ys), jnp.asarray(us)).compile()
@@ -249,7 +249,7 @@ def time_row(row, args):
     # checks: the warm-up plus the first round from the prior, against vehjax.filter
     means, _ = online(ys[:w], us[:w])
     first = slice(w, w + args.steps)
-    ref = np.asarray(vj.filter(est, ys[:w + args.steps], us[:w + args.steps], x0, P0, key=key,
+    ref = np.asarray(vj.filter(est, ys[:w + args.steps], us[:w + args.steps], x0=x0, P0=P0, key=key,
                                return_covariances=False).states)
     timings = [Timing("Online.update", f"built and compiled in {build_s:.1f} s"),
                Timing("vehjax.filter", f"per step of a {args.steps}-step jit; compile "

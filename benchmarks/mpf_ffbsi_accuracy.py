@@ -60,7 +60,8 @@ est = marginalized_pf(t._model_lin(ab=AB), n, noisy_input="u", sensors=("y1",),
                               forgetting=1.0, nu0=1e7, gamma0=1e-9))
 for meth in ("ffbsi", "ancestor"):
     sm = jax.jit(jax.vmap(lambda k, meth=meth: vj.smooth(
-        est, ys, us, x0=t.X0, P0=t.P0, key=k, n_trajectories=n, method=meth)))(
+        est, ys, us, x0=t.X0, P0=t.P0, key=k,
+        method=vj.smoothers.methods.BY_NAME[meth](n_trajectories=n))))(
         jax.random.split(jax.random.key(5), 8))
     rms = float(np.sqrt(np.mean(((np.asarray(sm.states) - m) / sd) ** 2)))
     vr = (np.asarray(sm.covariances).mean(0).diagonal(axis1=1, axis2=2)

@@ -30,7 +30,7 @@ us = rng.normal(size=(T, 2)) * 0.1
 Q = np.array([[0.02, 0.005], [0.005, 0.05]]); Rf = np.array([[0.09, 0.02], [0.02, 0.16]])
 out = {}
 def rec(name, est, ys_, us_, x0, P0, key, **kw):
-    r = jax.jit(lambda k: vj.filter(est, ys_, us_, x0, P0, key=k, **kw))(key)
+    r = jax.jit(lambda k: vj.filter(est, ys_, us_, x0=x0, P0=P0, key=k, **kw))(key)
     out[name] = jax.tree.map(np.asarray, (r.states, r.covariances, r.params, r.loglik, r.nis, r.diverged, r.state))
 k = jax.random.key(5)
 for thr in (0.0, 0.5, 1.0):
@@ -64,11 +64,11 @@ def sgpf():
 est = sgpf()
 rec("sg", est, ys, us, np.zeros(2), np.eye(2), k)
 def ll(x0):
-    return vj.filter(sgpf(), ys, us, x0, np.eye(2), key=k).loglik.sum()
+    return vj.filter(sgpf(), ys, us, x0=x0, P0=np.eye(2), key=k).loglik.sum()
 out["sg-grad"] = np.asarray(jax.jit(jax.grad(ll))(jnp.asarray([0.1, -0.2])))
 def llq(s):
     e = vt.stop_gradient_pf(lin, Q * s, Rf, 64)
-    return vj.filter(e, ys, us, jnp.zeros(2), np.eye(2), key=k).loglik.sum()
+    return vj.filter(e, ys, us, x0=jnp.zeros(2), P0=np.eye(2), key=k).loglik.sum()
 out["sg-gradQ"] = np.asarray(jax.jit(jax.grad(llq))(1.3))
 if mode == "save":
     pickle.dump(out, open(path, "wb"))

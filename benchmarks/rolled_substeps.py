@@ -93,12 +93,14 @@ def study_part(duration: float, runs: int, repeat: int) -> None:
         best = {True: np.inf, False: np.inf}
         for rolled in (True, False):  # the compiles
             vehjax.run(est, ys, drive.inputs, x0=bl.X0, P0=bl.P0, progress=False,
-                       strategy=CPU._replace(rolled_substeps=rolled))
+                       execution=vehjax.Execution(
+                           strategy=CPU._replace(rolled_substeps=rolled)))
         for _ in range(repeat):
             for rolled in (True, False):
                 t = time.perf_counter()
                 vehjax.run(est, ys, drive.inputs, x0=bl.X0, P0=bl.P0, progress=False,
-                           strategy=CPU._replace(rolled_substeps=rolled))
+                           execution=vehjax.Execution(
+                           strategy=CPU._replace(rolled_substeps=rolled)))
                 best[rolled] = min(best[rolled], time.perf_counter() - t)
         print(f"  {name.upper()}: loop {best[True]:.3f}, written out {best[False]:.3f}")
 

@@ -43,7 +43,7 @@ def rows_of(case: str, T: int) -> dict:
     cpu = execution.for_platform("cpu")
     for rl in (True, False):
         c = vehjax.compile_run(est, ys, us1, x0=x0, P0=P0, progress=False,
-                               strategy=cpu._replace(runs_last=rl))
+                               execution=vehjax.Execution(strategy=cpu._replace(runs_last=rl)))
         rows[(case, f"run runs_last={rl}")] = (c, ())
     return rows
 

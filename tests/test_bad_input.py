@@ -135,8 +135,8 @@ def test_inf_measurements_one_rule():
         y_inf[7, 0] = -np.inf
         y_nan[4, 1] = y_nan[7, 0] = np.nan
         with pytest.raises(ValueError, match=r"^measurements:.*inf.*\(4, 1\)"):
-            vj.filter(est, y_inf, US, X0, P0, key=key)
-        traced = jax.jit(lambda y: vj.filter(est, y, US, X0, P0, key=key))
+            vj.filter(est, y_inf, US, x0=X0, P0=P0, key=key)
+        traced = jax.jit(lambda y: vj.filter(est, y, US, x0=X0, P0=P0, key=key))
         a, b = traced(y_inf), traced(y_nan)
         np.testing.assert_array_equal(a.states, b.states)
         assert int(a.n_obs[4]) == 1 and int(a.n_obs[7]) == 1
@@ -221,11 +221,11 @@ EST = FAMILIES["ukf"]()
         (dict(P0=-np.eye(2)), "P0"),
         (dict(P0=np.eye(3)), "P0"),
         (dict(theta0=[1.0, 2.0]), "theta0"),  # the model has one parameter
-        (dict(chunk_size=0), "chunk_size"),
-        (dict(chunk_size=2.5), "chunk_size"),
+        (dict(execution=dict(chunk_size=0)), "execution.chunk_size"),
+        (dict(execution=dict(chunk_size=2.5)), "execution.chunk_size"),
         (dict(progress="yes"), "progress"),
         (dict(return_covariances="no"), "return_covariances"),
-        (dict(devices=[1, 2]), "devices"),
+        (dict(execution=dict(devices=[1, 2])), "execution.devices"),
         (dict(key=0), "key"),
     ],
 )
@@ -233,6 +233,8 @@ def test_run_arguments(kwargs, arg):
     kw = dict(x0=X0, P0=P0, progress=False)
     kw.update(kwargs)
     with pytest.raises(ValueError, match=f"^{arg}:"):
+        if "execution" in kw:  # the record's fields check themselves when it is made
+            kw["execution"] = vj.Execution(**kw["execution"])
         vj.run(EST, YS, US, **kw)
 
 

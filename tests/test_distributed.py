@@ -69,14 +69,14 @@ def _make_data(path):
     np.savez(path, ys=ys, us=rng.normal(size=(UKF_STEPS, 1)), x0s=x0s)
 
 
-def _ukf_study(ukf, d, **kw):
+def _ukf_study(ukf, d, **placement):
     """The runs-last UKF path; 3 runs a chunk (a multiple of 1 or 3 devices): 3 chunks of the
-    7 runs, the last padded."""
+    7 runs, the last padded. ``placement``: further fields of its vehjax.Execution."""
     return vehjax.run(ukf, d["ys"], d["us"], x0=d["x0s"], P0=P0, return_covariances=True,
-                      chunk_size=3, progress=False, **kw)
+                      execution=vehjax.Execution(chunk_size=3, **placement), progress=False)
 
 
-def _studies(data_path, pf_progress=False, **kw):
+def _studies(data_path, pf_progress=False, **placement):
     """The studies as RunResults; the same calls in every process (SPMD). The PF (vmapped path,
     per-run keys) is compiled by compile_run; 4 runs in one chunk, padded to the device count."""
     d = np.load(data_path)
@@ -84,10 +84,11 @@ def _studies(data_path, pf_progress=False, **kw):
     pf_ys = d["ys"][:PF_RUNS, :PF_STEPS].copy()
     pf_ys[pf_ys > 1e3] = np.nan
     pf_args = (pf, pf_ys, d["us"][:PF_STEPS])
-    pf_kw = dict(x0=d["x0s"][0], P0=P0, key=jax.random.key(11), progress=False, **kw)
+    pf_kw = dict(x0=d["x0s"][0], P0=P0, key=jax.random.key(11), progress=False,
+                 execution=vehjax.Execution(**placement))
     prepared = vehjax.compile_run(*pf_args, **pf_kw)
     return {
-        "ukf": _ukf_study(ukf, d, **kw),
+        "ukf": _ukf_study(ukf, d, **placement),
         "pf_compiled": prepared(),
         # the executable compile_run made; a progress bar on process 0 only
         "pf": vehjax.run(*pf_args, **{**pf_kw, "progress": pf_progress}),
@@ -212,7 +213,8 @@ def test_two_processes_equal_one_process(data, tmp_path):
     """Process 0 with two CPU devices, process 1 with one: three devices in the global mesh."""
     procs = _start((2, 1), data, tmp_path)
     try:
-        one = _studies(data, devices=False)  # one process, one device, meanwhile
+        # one process, one device, meanwhile
+        one = _studies(data, devices=False)
     finally:
         outs, logs = _finish(*procs)
     assert "vehjax.run" in logs[0] and "vehjax.run" not in logs[1]  # the progress bar
@@ -239,7 +241,7 @@ def test_digest_tells_different_arguments_apart(data):
 
     def digest(est=ukf, ys=d["ys"], key=None, **kw):
         args = dict(x0=d["x0s"], P0=P0, theta0=None, P_theta0=None, key=key,
-                    return_covariances=False, chunk_size=None, progress=None, devices=None)
+                    return_covariances=False, progress=None, execution=None)
         args.update(kw)
         plan = plan_module.plan(est, ys, d["us"], **args)
         assert not plan.spans_processes  # one process: the plain path
@@ -250,7 +252,8 @@ def test_digest_tells_different_arguments_apart(data):
     np.testing.assert_array_equal(digest(), base)
     ys = d["ys"].copy()
     ys[0, 0, 0] = np.nextafter(ys[0, 0, 0], np.inf)
-    for other in (digest(ys=ys), digest(chunk_size=2), digest(return_covariances=True),
+    for other in (digest(ys=ys), digest(execution=vehjax.Execution(chunk_size=2)),
+                  digest(return_covariances=True),
                   digest(x0=d["x0s"][0]), digest(est=ukf._replace(name="other"))):
         assert not np.array_equal(other, base)
     keyed = digest(est=pf, key=jax.random.key(0))

@@ -396,8 +396,8 @@ def test_tune_fit_refuses_a_dual_filter_naming_the_builder():
 
 def test_run_refuses_repeated_devices():
     d = jax.devices()[0]
-    with pytest.raises(ValueError, match="^devices: expected each device at most once"):
-        vj.run(EKF, YS, US, x0=X0, P0=P0, devices=[d, d])
+    with pytest.raises(ValueError, match="^execution.devices: expected each device at most once"):
+        vj.run(EKF, YS, US, x0=X0, P0=P0, execution=vj.Execution(devices=[d, d]))
 
 
 @pytest.mark.parametrize("call, arg", [
@@ -411,9 +411,11 @@ def test_run_refuses_repeated_devices():
     (lambda: vj.filter(EKF, YS[0], US, x0="x", P0=P0), "x0"),
     (lambda: vj.simulate(MODEL, vj.scenarios.from_inputs(MODEL, US, X0), meas_std=1j),
      "meas_std"),
-    (lambda: vj.simulate(MODEL, vj.scenarios.from_inputs(MODEL, US, X0), bias0="x"), "bias0"),
+    (lambda: vj.simulate(MODEL, vj.scenarios.from_inputs(MODEL, US, X0),
+                         bias=vj.BiasWalk(initial="x")), "bias.initial"),
     (lambda: vj.simulate(MODEL, "not a scenario"), "scenario"),
-    (lambda: vj.run(EKF, YS, US, x0=X0, P0=P0, chunk_size="2"), "chunk_size"),
+    (lambda: vj.run(EKF, YS, US, x0=X0, P0=P0, execution=vj.Execution(chunk_size="2")),
+     "execution.chunk_size"),
 ])
 def test_wrong_argument_types_are_value_errors_naming_the_argument(call, arg):
     """Not a TypeError or an error from inside JAX: a ValueError naming the argument."""

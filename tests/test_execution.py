@@ -104,7 +104,7 @@ def test_each_platform_has_its_rules():
     for bad in ("fpga", 3, cpu._replace(block_numbers=0), cpu._replace(runs_last="yes"),
                 cpu._replace(chunk_bytes=-1.0), cpu._replace(side_by_side=0)):
         with pytest.raises(ValueError, match="strategy"):
-            vj.run(FAMILIES["ekf"][0], ys, us, x0=X0, P0=P0, strategy=bad)
+            vj.run(FAMILIES["ekf"][0], ys, us, x0=X0, P0=P0, execution=vj.Execution(strategy=bad))
 
 
 @pytest.mark.parametrize("family", [
@@ -133,12 +133,14 @@ def test_gpu_strategy_on_the_cpu_gives_the_cpu_results(family, monkeypatch):
         return out
 
     monkeypatch.setattr(execution, "compiler_options", spy)
-    a = vj.run(est, ys, us, x0=X0, P0=P0, return_covariances=True, strategy=cpu, **kw)
-    b = vj.run(est, ys, us, x0=X0, P0=P0, return_covariances=True, strategy="gpu", **kw)
+    a = vj.run(est, ys, us, x0=X0, P0=P0, return_covariances=True,
+               execution=vj.Execution(strategy=cpu), **kw)
+    b = vj.run(est, ys, us, x0=X0, P0=P0, return_covariances=True,
+               execution=vj.Execution(strategy="gpu"), **kw)
     assert [p for p, _ in seen] == ["cpu", "gpu"]
     assert seen[1][1] is None or not any(k.startswith("xla_cpu") for k in seen[1][1])
     ulp = vj.run(est, ys * (1 + np.finfo(float).eps), us, x0=X0, P0=P0, return_covariances=True,
-                 strategy=cpu, **kw)  # the same compiled study, data one ulp away
+                 execution=vj.Execution(strategy=cpu), **kw)  # the same compiled study, data one ulp away
     for name in ("states", "covariances", "params", "loglik", "nis"):
         ref, got, moved = (np.asarray(getattr(r, name)) for r in (a, b, ulp))
         sensitivity = float(np.nanmax(np.abs(moved - ref), initial=0.0))
@@ -168,9 +170,9 @@ def test_gpu_strategy_drops_the_substitutes():
 def test_results_can_stay_on_the_device():
     est, _ = FAMILIES["ekf"]
     ys, us = _data(runs=5)
-    host = vj.run(est, ys, us, x0=X0, P0=P0, chunk_size=2)
-    dev = vj.run(est, ys, us, x0=X0, P0=P0, chunk_size=2,
-                 strategy=execution.for_platform("cpu")._replace(results_to_host=False))
+    host = vj.run(est, ys, us, x0=X0, P0=P0, execution=vj.Execution(chunk_size=2))
+    dev = vj.run(est, ys, us, x0=X0, P0=P0, execution=vj.Execution(
+        chunk_size=2, strategy=execution.for_platform("cpu")._replace(results_to_host=False)))
     assert isinstance(dev.states, jax.Array) and isinstance(host.states, np.ndarray)
     np.testing.assert_allclose(np.asarray(dev.states), host.states, rtol=1e-13, atol=0)
 
@@ -249,11 +251,11 @@ def test_one_run_goes_by_the_per_run_step(monkeypatch):
                         lambda *a, **k: taken.append(a[3][0]) or real(*a, **k))
     est = FAMILIES["ekf"][0]
     ys, us = _data(runs=2, steps=7, seed=5)  # shapes no other test traces (no cached study)
-    one = vj.run(est, ys[:1], us, x0=X0, P0=P0, strategy=cpu)
+    one = vj.run(est, ys[:1], us, x0=X0, P0=P0, execution=vj.Execution(strategy=cpu))
     assert taken == []
-    ref = vj.filter(est, ys[0], us, X0, P0)
+    ref = vj.filter(est, ys[0], us, x0=X0, P0=P0)
     np.testing.assert_allclose(one.states[0], ref.states, rtol=1e-12, atol=1e-12)
-    vj.run(est, ys[:2], us, x0=X0, P0=P0, strategy=cpu)
+    vj.run(est, ys[:2], us, x0=X0, P0=P0, execution=vj.Execution(strategy=cpu))
     assert taken == [True]
 
 

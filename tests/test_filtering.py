@@ -76,7 +76,7 @@ def test_filter_and_run_agree_for_every_builder(name):
                  **prior)
     keys = jax.random.split(key, RUNS) if key is not None else [None] * RUNS
     for r in range(RUNS):
-        one = vj.filter(est, ys[r], us, X0, P0, key=keys[r], **prior)
+        one = vj.filter(est, ys[r], us, x0=X0, P0=P0, key=keys[r], **prior)
         # two programs: a filter that draws random numbers agrees to its float32 draws'
         # rounding (tests/_contract.py), the others to float64 rounding
         rtol = DRAW_RTOL if est.needs_key else 1e-9
@@ -97,16 +97,16 @@ def test_filter_and_run_agree_for_every_builder(name):
 def test_filter_jits_and_vmaps():
     est = F.ukf(MODEL, Q, R)
     ys, us = _data()
-    batched = jax.jit(jax.vmap(lambda y: vj.filter(est, y, us, X0, P0)))(jnp.asarray(ys))
+    batched = jax.jit(jax.vmap(lambda y: vj.filter(est, y, us, x0=X0, P0=P0)))(jnp.asarray(ys))
     assert batched.states.shape == (RUNS, T, 2) and batched.loglik.shape == (RUNS, T)
-    single = vj.filter(est, ys[2], us, X0, P0)
+    single = vj.filter(est, ys[2], us, x0=X0, P0=P0)
     np.testing.assert_allclose(batched.states[2], single.states, rtol=1e-12)
     assert isinstance(single.state, F.GaussianState)
 
 
 def _ukf_loglik(r_diag, ys, us):
     est = F.ukf(MODEL, Q, jnp.diag(r_diag))  # built inside: R traced
-    return vj.filter(est, ys, us, X0, P0).loglik.sum()
+    return vj.filter(est, ys, us, x0=X0, P0=P0).loglik.sum()
 
 
 @pytest.mark.parametrize("missing", [0.0, 0.3])
@@ -137,7 +137,7 @@ def test_grads_wrt_Q_theta_and_x0_are_finite_with_missing_data(build):
 
     def loglik(q_diag, k, x0):
         est = build(MODEL, jnp.diag(q_diag), R)
-        res = vj.filter(est, ys, us, x0, P0, theta0=jnp.stack([k]))
+        res = vj.filter(est, ys, us, x0=x0, P0=P0, theta0=jnp.stack([k]))
         return res.loglik.sum()
 
     g = jax.jit(jax.grad(loglik, argnums=(0, 1, 2)))(jnp.diag(Q), 2.0, jnp.asarray(X0))
@@ -153,19 +153,19 @@ def test_filter_checks_shapes():
     est = F.ukf(MODEL, Q, R)
     ys, us = _data(runs=1)
     with pytest.raises(ValueError, match="^measurements:"):
-        vj.filter(est, ys, us, X0, P0)  # (1, T, ny): that is a study
+        vj.filter(est, ys, us, x0=X0, P0=P0)  # (1, T, ny): that is a study
     with pytest.raises(ValueError, match="^measurements:"):
-        vj.filter(est, ys[0, :, :1], us, X0, P0)
+        vj.filter(est, ys[0, :, :1], us, x0=X0, P0=P0)
     with pytest.raises(ValueError, match="^inputs:"):
-        vj.filter(est, ys[0], us[:-1], X0, P0)
+        vj.filter(est, ys[0], us[:-1], x0=X0, P0=P0)
     with pytest.raises(ValueError, match="^inputs:"):
-        vj.filter(est, ys[0], None, X0, P0)
+        vj.filter(est, ys[0], None, x0=X0, P0=P0)
     with pytest.raises(ValueError, match="^x0:"):
-        vj.filter(est, ys[0], us, X0[:1], P0)
+        vj.filter(est, ys[0], us, x0=X0[:1], P0=P0)
     with pytest.raises(ValueError, match="^key:"):
-        vj.filter(BUILDERS["bootstrap_pf"](), ys[0], us, X0, P0)
+        vj.filter(BUILDERS["bootstrap_pf"](), ys[0], us, x0=X0, P0=P0)
     with pytest.raises(ValueError, match="^P_theta0:"):
-        vj.filter(BUILDERS["dual_ekf"](), ys[0], us, X0, P0)
+        vj.filter(BUILDERS["dual_ekf"](), ys[0], us, x0=X0, P0=P0)
 
 
 def test_liu_west_needs_no_theta0():

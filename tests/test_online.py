@@ -79,7 +79,7 @@ def test_online_equals_filter_and_compiles_once(name):
     traced = len(calls)
     got = _feed(live, YS, US)
     assert len(calls) == traced  # the step was traced before the first sample, never again
-    ref = vj.filter(est, YS, US, X0, P0, key=_key(est))
+    ref = vj.filter(est, YS, US, x0=X0, P0=P0, key=_key(est))
     np.testing.assert_allclose(got["mean"], ref.states, **TOL)
     np.testing.assert_allclose(got["cov"], ref.covariances, **TOL)
     np.testing.assert_allclose(got["loglik"], ref.loglik, **TOL)
@@ -115,7 +115,7 @@ def test_stamps_at_two_steps_are_prediction_steps():
         rows_y += [np.full(2, np.nan)] * (k - 1) + [YS[i]]
         rows_u += [US[i]] * k
         at.append(len(rows_y) - 1)
-    ref = vj.filter(est, np.array(rows_y), np.array(rows_u), X0, P0)
+    ref = vj.filter(est, np.array(rows_y), np.array(rows_u), x0=X0, P0=P0)
     np.testing.assert_allclose(np.stack([o.mean for o in outs]), ref.states[np.array(at)], **TOL)
     np.testing.assert_allclose(np.stack([o.cov for o in outs]), ref.covariances[np.array(at)],
                                **TOL)
@@ -272,7 +272,7 @@ def test_float32_runs_in_float32():
     out = live.update(YS[0], US[0])
     assert out.mean.dtype == np.float32 and out.cov.dtype == np.float32
     ref = vj.filter(est, YS[:1].astype(np.float32), US[:1].astype(np.float32),
-                    X0.astype(np.float32), P0.astype(np.float32))
+                    x0=X0.astype(np.float32), P0=P0.astype(np.float32))
     np.testing.assert_allclose(out.mean, ref.states[0], rtol=1e-5)
 
 

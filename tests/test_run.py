@@ -12,6 +12,7 @@ import pytest
 
 import vehjax  # noqa: F401  (float64)
 from vehjax import execution
+from vehjax.execution import Execution
 from vehjax.filters.base import Dims, Estimator, ParamSpec, Runtime, StepOutput
 from vehjax.run import RunResult, compile_run, run
 from vehjax.runner import plan as plan_mod
@@ -231,11 +232,13 @@ def test_chunked_equals_unchunked_and_progress(capsys):
     whole = run(EST, ys, us, x0=X0, P0=P0, return_covariances=True)
     assert capsys.readouterr().err == ""  # one chunk: no bar by default
     for chunk in (3, 100):
-        part = run(EST, ys, us, x0=X0, P0=P0, return_covariances=True, chunk_size=chunk)
+        part = run(EST, ys, us, x0=X0, P0=P0, return_covariances=True,
+                   execution=Execution(chunk_size=chunk))
         _assert_close(part, whole)
     err = capsys.readouterr().err
     assert "chunk 3/3" in err and "7/7 runs" in err and ", ," not in err
-    run(EST, ys, us, x0=X0, P0=P0, return_covariances=True, chunk_size=3, progress=False)
+    run(EST, ys, us, x0=X0, P0=P0, return_covariances=True,
+        execution=Execution(chunk_size=3), progress=False)
     assert capsys.readouterr().err == ""
 
 
@@ -248,16 +251,18 @@ def test_runs_in_blocks_equal_runs_side_by_side():
     ys, us = _data(R=10, seed=6)
     key = jax.random.key(3)
     side_by_side = execution.for_platform("cpu")._replace(block_numbers=None)
-    whole = run(est, ys, us, x0=X0, P0=P0, key=key, strategy=side_by_side)
+    whole = run(est, ys, us, x0=X0, P0=P0, key=key, execution=Execution(strategy=side_by_side))
     kf = run(EST, ys, us, x0=X0, P0=P0, return_covariances=True)
     tiny = execution.for_platform("cpu")._replace(block_numbers=1)  # blocks of 4 runs
-    plan = plan_mod.plan(EST, ys, us, X0, P0, None, None, None, False, None, None, None, tiny)
+    plan = plan_mod.plan(EST, ys, us, X0, P0, None, None, None, False, None,
+                         Execution(strategy=tiny))
     assert plan.block == 4 < plan.chunk == 10
-    assert plan_mod.plan(EST, ys, us, X0, P0, None, None, None, False, None, None, None,
-                         "gpu").block is None
-    blocked = run(est, ys, us, x0=X0, P0=P0, key=key, strategy=tiny)
+    assert plan_mod.plan(EST, ys, us, X0, P0, None, None, None, False, None,
+                         Execution(strategy="gpu")).block is None
+    blocked = run(est, ys, us, x0=X0, P0=P0, key=key, execution=Execution(strategy=tiny))
     np.testing.assert_array_equal(blocked.states, whole.states)
-    _assert_close(run(EST, ys, us, x0=X0, P0=P0, return_covariances=True, strategy=tiny), kf)
+    _assert_close(run(EST, ys, us, x0=X0, P0=P0, return_covariances=True,
+                      execution=Execution(strategy=tiny)), kf)
 
 
 def test_blocks_are_balanced():
@@ -277,7 +282,8 @@ def test_blocks_are_balanced():
 
 def test_compile_run_times_compilation_apart():
     ys, us = _data(R=7, seed=4)
-    kw = dict(x0=X0, P0=P0, return_covariances=True, chunk_size=3, progress=False)
+    kw = dict(x0=X0, P0=P0, return_covariances=True,
+              execution=Execution(chunk_size=3), progress=False)
     prepared = compile_run(EST, ys, us, **kw)
     assert prepared.compile_seconds > 0 and prepared.chunk_size == 3 and prepared.n_chunks == 3
     a, b = prepared(), prepared()
@@ -292,21 +298,23 @@ def test_compiler_options_reach_xla_and_keep_the_results():
     a ValueError naming the argument."""
     ys, us = _data(R=3, seed=9)
     opts = {"xla_backend_optimization_level": 1}
-    out = run(EST, ys, us, x0=X0, P0=P0, compiler_options=opts)
-    prepared = compile_run(EST, ys, us, x0=X0, P0=P0, compiler_options=opts)
+    out = run(EST, ys, us, x0=X0, P0=P0, execution=Execution(compiler_options=opts))
+    prepared = compile_run(EST, ys, us, x0=X0, P0=P0, execution=Execution(compiler_options=opts))
     for res in (out, prepared()):
         for r in range(3):
             np.testing.assert_allclose(res.states[r], numpy_kf(ys[r], us[r], X0, P0)[0],
                                        rtol=1e-10, atol=1e-12)
     with pytest.raises(ValueError, match="compiler_options.*xla_no_such_option"):
-        run(EST, ys, us, x0=X0, P0=P0, compiler_options={"xla_no_such_option": 1})
+        run(EST, ys, us, x0=X0, P0=P0,
+            execution=Execution(compiler_options={"xla_no_such_option": 1}))
     # the compiled study is reused by the next call with the same estimator, options, shapes
     n = len(eager.CACHE)
-    again = run(EST, ys + 1.0, us, x0=X0, P0=P0, compiler_options=opts)
+    again = run(EST, ys + 1.0, us, x0=X0, P0=P0, execution=Execution(compiler_options=opts))
     assert len(eager.CACHE) == n
     np.testing.assert_allclose(again.states[1], numpy_kf(ys[1] + 1.0, us[1], X0, P0)[0],
                                rtol=1e-10, atol=1e-12)
-    run(EST, ys[:2], us[:2], x0=X0, P0=P0, compiler_options=opts)  # other shapes: anew
+    run(EST, ys[:2], us[:2], x0=X0, P0=P0,
+        execution=Execution(compiler_options=opts))  # other shapes: anew
     assert len(eager.CACHE) == min(n + 1, eager.CACHE_SIZE)
     # the strategy's options (by the estimator's workload) under the caller's, name by name
     cpu = execution.for_platform("cpu")
@@ -345,7 +353,8 @@ def test_keys_are_split_per_run_independent_of_chunking():
     expected = np.asarray(jax.random.key_data(jax.random.split(key, 5)), float)
     np.testing.assert_array_equal(out.states, np.broadcast_to(expected[:, None], (5, T, 2)))
     assert len({tuple(k) for k in expected}) == 5
-    chunked = run(est, ys, us, x0=X0, P0=P0, key=key, chunk_size=3, progress=False)
+    chunked = run(est, ys, us, x0=X0, P0=P0, key=key,
+                  execution=Execution(chunk_size=3), progress=False)
     np.testing.assert_array_equal(chunked.states, out.states)
 
 
@@ -398,16 +407,16 @@ def _exploding():
         (dict(P0=np.diag([1.0, -1.0])), "P0"),
         (dict(P0=np.array([[1.0, 0.5], [0.0, 1.0]])), "P0"),
         (dict(P0=np.stack([np.eye(2), np.diag([1.0, 0.0])])), "P0"),
-        (dict(chunk_size=0), "chunk_size"),
-        (dict(chunk_size=2.5), "chunk_size"),
+        (dict(execution=dict(chunk_size=0)), "chunk_size"),
+        (dict(execution=dict(chunk_size=2.5)), "chunk_size"),
         (dict(key="seed"), "key"),
-        (dict(devices="cpu"), "devices"),
+        (dict(execution=dict(devices="cpu")), "devices"),
         (dict(progress="yes"), "progress"),
         (dict(return_covariances="yes"), "return_covariances"),
         (dict(theta0=[1.0]), "theta0"),
         (dict(estimator="ukf"), "estimator"),
-        (dict(compiler_options=[("xla_backend_optimization_level", 1)]), "compiler_options"),
-        (dict(compiler_options={"xla_backend_optimization_level": [1]}), "compiler_options"),
+        (dict(execution=dict(compiler_options=[("xla_backend_optimization_level", 1)])), "compiler_options"),
+        (dict(execution=dict(compiler_options={"xla_backend_optimization_level": [1]})), "compiler_options"),
     ],
 )
 def test_bad_input_raises_before_tracing(change, arg):
@@ -416,6 +425,8 @@ def test_bad_input_raises_before_tracing(change, arg):
     kwargs.update(change)
     est, ys, us = kwargs.pop("estimator"), kwargs.pop("measurements"), kwargs.pop("inputs")
     with pytest.raises(ValueError, match=arg):
+        if "execution" in kwargs:  # the record's fields check themselves, before any tracing
+            kwargs["execution"] = Execution(**kwargs["execution"])
         run(est, ys, us, **kwargs)
 
 
@@ -436,16 +447,17 @@ _SHARDED = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     import jax, numpy as np
     import test_run as t
+    from vehjax.execution import Execution
     from vehjax.run import compile_run, run
     assert len(jax.devices()) == 2, jax.devices()
     ys, us = t._data(R=5, seed=9)
     ys[3, 8, 1] = 1e300
     kw = dict(x0=t.X0, P0=t.P0, return_covariances=True)
-    one = run(t.EST, ys, us, devices=False, **kw)
+    one = run(t.EST, ys, us, execution=Execution(devices=False), **kw)
     two = run(t.EST, ys, us, **kw)  # one chunk of 6: 5 runs padded over 2 devices
     assert one.diverged.tolist() == [False, False, False, True, False]
     t._assert_close(two, one)
-    prepared = compile_run(t.EST, ys, us, chunk_size=1, **kw)
+    prepared = compile_run(t.EST, ys, us, execution=Execution(chunk_size=1), **kw)
     assert (prepared.chunk_size, prepared.n_chunks) == (2, 3)  # rounded up to the device count
     t._assert_close(prepared(progress=False), one)
     # the runs-last UKF step (vehjax.filters.runs_last) sharded the same way
@@ -456,7 +468,7 @@ _SHARDED = textwrap.dedent(
     est = vj.filters.ukf(model, [1e-3, 1e-3, 1e-4], [0.04, 0.04, 0.0025])
     assert est.batch is not None
     kw = dict(x0=scn.x0, P0=np.eye(3) * 0.1, return_covariances=True, progress=False)
-    one = run(est, sim.measurements, sim.inputs, devices=False, **kw)
+    one = run(est, sim.measurements, sim.inputs, execution=Execution(devices=False), **kw)
     two = run(est, sim.measurements, sim.inputs, **kw)
     np.testing.assert_allclose(two.states, one.states, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(two.covariances, one.covariances, rtol=1e-12, atol=1e-15)

@@ -70,7 +70,7 @@ def test_smoothed_study_equals_the_textbook_rts_run_by_run():
         # in chunks of 2 and, inside them, blocks (the CPU rule forced small)
         strat = execution.for_platform("cpu")._replace(block_numbers=1)
         out = vj.run(est, ys, us, x0=X0, P0=P0, smooth=True, return_covariances=True,
-                     chunk_size=2, strategy=strat)
+                     execution=vj.Execution(chunk_size=2, strategy=strat))
         filt = vj.run(est, ys, us, x0=X0, P0=P0)
         assert out.cross_covariances.shape == (5, 14, 2, 2) and "smoothed" in out.name
         for r in range(5):
@@ -121,8 +121,8 @@ def test_runs_last_smoothing_equals_the_vmapped_one_with_per_run_inputs():
     assert est.batch is not None
     cpu = execution.for_platform("cpu")
     kw = dict(x0=x0s, P0=np.broadcast_to(P0, (3, 2, 2)), smooth=True, return_covariances=True)
-    fast = vj.run(est, ys, us_r, strategy=cpu, **kw)
-    slow = vj.run(est, ys, us_r, strategy=cpu._replace(runs_last=False), **kw)
+    fast = vj.run(est, ys, us_r, execution=vj.Execution(strategy=cpu), **kw)
+    slow = vj.run(est, ys, us_r, execution=vj.Execution(strategy=cpu._replace(runs_last=False)), **kw)
     for name in ("states", "covariances", "cross_covariances", "loglik"):
         np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=1e-12,
                                    atol=1e-14)

@@ -25,7 +25,7 @@ import vehjax as vj
 from vehjax.models import SingleTrack, SingleTrackBank
 from vehjax.tune import parameterisation, program, staged
 
-MODULES = ("vehjax", "vehjax.tune", "vehjax.filters", "vehjax.data")
+MODULES = ("vehjax", "vehjax.tune", "vehjax.filters", "vehjax.data", "vehjax.smoothers")
 
 #: the compile events of JAX (tracing a function, lowering it, compiling it)
 _EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/backend_compile_duration")
@@ -73,7 +73,9 @@ CALLS = {
     "vehjax.simulate": lambda: (vj.simulate, (M, vj.scenarios.from_inputs(M, US, X0)),
                                 dict(key=KEY)),
     "vehjax.filter": lambda: (vj.filter, (vj.filters.ekf(M, Q, R), YS, US), dict(x0=X0, P0=P0)),
-    "vehjax.smooth": lambda: (vj.smooth, (vj.filters.ekf(M, Q, R), YS, US), dict(x0=X0, P0=P0)),
+    # vehjax.smooth's options are the fields of its method's record (vehjax.smoothers)
+    **{f"vehjax.smoothers.{name}": (lambda name=name: (getattr(vj.smoothers, name), (), {}))
+       for name in ("RTS", "IEKS", "IPLS", "FFBSi", "RejectionSampling", "AncestorPaths")},
     "vehjax.run": lambda: (vj.run, (vj.filters.ekf(M, Q, R), YS[None], US), dict(x0=X0, P0=P0)),
     "vehjax.compile_run": lambda: (vj.compile_run, (vj.filters.ekf(M, Q, R), YS[None], US),
                                    dict(x0=X0, P0=P0)),
@@ -131,6 +133,11 @@ EXEMPT = {
 ALLOWED = {
     ("vehjax.tune.uncertainty", "max_std"): {"inf": "no limit on the standard errors",
                                              "[1.0]": "one limit per coordinate, broadcast"},
+    **{(f"vehjax.smoothers.{name}", arg): {
+        "1000000000000000": "a count or a cap with no upper bound (the caller's time and memory)"}
+       for name, arg in (("IEKS", "max_iter"), ("IPLS", "max_iter"), ("FFBSi", "n_trajectories"),
+                         ("RejectionSampling", "n_trajectories"),
+                         ("RejectionSampling", "max_tries"), ("AncestorPaths", "n_trajectories"))},
 }
 
 
@@ -202,6 +209,13 @@ def test_an_unknown_keyword_is_refused_naming_it(monkeypatch, qual):
     fn, args, kwargs = CALLS[qual]()
     with pytest.raises((TypeError, ValueError), match="no_such_option"):
         fn(*args, **kwargs, no_such_option=1)
+
+
+def test_smooth_refuses_an_unknown_keyword_naming_it():
+    """vehjax.smooth has no option of its own left to walk (they are its method records', walked
+    above), so it is not in CALLS; an unknown keyword is still refused naming it."""
+    with pytest.raises(TypeError, match="no_such_option"):
+        vj.smooth(vj.filters.ekf(M, Q, R), YS, US, x0=X0, P0=P0, no_such_option=1)
 
 
 # -- where values interact: properties against rules written out here ------------------------

@@ -66,8 +66,9 @@ def test_time_varying_scale_biases_offset_and_parameters(setup):
     model, scn = setup
     T = len(scn.t)
     scale = np.where(scn.t < 1.0, 0.0, 1.0)
-    sim = vj.simulate(model, scn, runs=30, key=jax.random.key(1), meas_std=0.1, meas_scale=scale,
-                      param_std=0.1, bias_walk_std=[0.0, 0.01, 0.0], bias0=[0.5, 0.0, 0.0],
+    sim = vj.simulate(model, scn, runs=30, key=jax.random.key(1), meas_std=0.1,
+                      noise_scale=vj.NoiseScale(meas=scale), params=vj.ParamDraw(std=0.1),
+                      bias=vj.BiasWalk(std=[0.0, 0.01, 0.0], initial=[0.5, 0.0, 0.0]),
                       steering_offset=0.01)
     resid = np.asarray(sim.measurements - sim.states - sim.biases)
     assert np.max(np.abs(resid[:, scn.t < 1.0])) < 1e-12 and np.std(resid[:, scn.t >= 1.0]) > 0.05
@@ -78,8 +79,9 @@ def test_time_varying_scale_biases_offset_and_parameters(setup):
     np.testing.assert_allclose(rel.std(), 0.1, rtol=0.2)
     np.testing.assert_array_equal(sim.inputs, scn.inputs)  # the filter sees measured inputs
     # with the offset the truth steers more than the measured input: the yaw rate grows
-    clean = vj.simulate(model, scn, runs=1, theta=model.theta)
-    same = vj.simulate(model, scn, runs=1, theta=model.theta, steering_offset=0.01)
+    clean = vj.simulate(model, scn, runs=1, params=vj.ParamDraw(theta=model.theta))
+    same = vj.simulate(model, scn, runs=1, params=vj.ParamDraw(theta=model.theta),
+                       steering_offset=0.01)
     assert float(np.mean(same.states[0, :, 2] - clean.states[0, :, 2])) > 0.01
 
 
@@ -91,8 +93,8 @@ def test_time_varying_scale_biases_offset_and_parameters(setup):
         (dict(meas_std=-0.1), "meas_std"),
         (dict(process_std=[0.1, 0.1]), "process_std"),
         (dict(meas_std=float("inf")), "meas_std"),
-        (dict(meas_scale=np.ones(3)), "meas_scale"),
-        (dict(theta=np.ones(3)), "theta"),
+        (dict(noise_scale=vj.NoiseScale(meas=np.ones(3))), "noise_scale.meas"),
+        (dict(params=vj.ParamDraw(theta=np.ones(3))), "params.theta"),
         (dict(steering_offset=float("nan")), "steering_offset"),
     ],
 )

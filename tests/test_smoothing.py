@@ -3,6 +3,8 @@ textbook recursion (Rauch, Tung & Striebel 1965; Särkkä, Bayesian Filtering an
 4.3 and 8.2), square-root forms against plain ones, the smoother moments against the filter
 step, joint filters, NaN components, divergence, bad input."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -101,7 +103,8 @@ def test_parallel_rts_equals_numpy_textbook_rts(data):
     ys, us = data[0][:8], data[1][:8]     # short: the associative scan is compiled per level
     ref_m, ref_P, ref_C, ref_ll = numpy_rts(ys, us)
     est = BUILDERS["ukf"](linear_model())
-    sm = jax.jit(lambda y, u: vj.smooth(est, y, u, x0=X0, P0=P0, parallel=True))(ys, us)
+    sm = jax.jit(lambda y, u: vj.smooth(est, y, u, x0=X0, P0=P0,
+                                                  method=vj.smoothers.RTS(parallel=True)))(ys, us)
     np.testing.assert_allclose(sm.states, ref_m, atol=1e-9)
     np.testing.assert_allclose(sm.covariances, ref_P, atol=1e-9)
     np.testing.assert_allclose(sm.cross_covariances, ref_C, atol=1e-9)
@@ -271,13 +274,14 @@ def test_bad_input_names_the_argument(data):
                                             Q_theta=[0.1], estimate="g")), "estimator"),
         (dict(method="nope"), "method"),
         (dict(method="ipls"), "method"),                  # the EKF iterates Jacobians
-        (dict(method="ieks", max_iter=0), "max_iter"),
-        (dict(method="ieks", tol=0.0), "tol"),
-        (dict(method="ieks", initial=np.zeros((3, 3))), "initial"),
+        # the records check their fields when made (inside the check below)
+        (dict(method=functools.partial(vj.smoothers.IEKS, max_iter=0)), "max_iter"),
+        (dict(method=functools.partial(vj.smoothers.IEKS, tol=0.0)), "tol"),
+        (dict(method=vj.smoothers.IEKS(initial=np.zeros((3, 3)))), "initial"),
         (dict(P0=np.eye(2)), "P0"),
         (dict(inputs=us[:-1]), "inputs"),
-        (dict(n_trajectories=10), "particle_options"),
-        (dict(parallel="yes"), "parallel"),
+        (dict(method=vj.smoothers.FFBSi(n_trajectories=10)), "method"),  # a particle filter's
+        (dict(method=functools.partial(vj.smoothers.RTS, parallel="yes")), "parallel"),
     ]
     for kw, arg in cases:
         call = dict(estimator=est, measurements=ys, inputs=us, x0=X0, P0=P0)
@@ -286,6 +290,8 @@ def test_bad_input_names_the_argument(data):
             call.update(measurements=np.zeros((5, 2)), inputs=np.zeros((5, 1)), x0=[0.1, 0.0],
                         P0=[0.1, 0.1], P_theta0=[1.0])
         with pytest.raises(ValueError, match=arg):
+            if isinstance(call.get("method"), functools.partial):
+                call["method"] = call["method"]()
             vj.smooth(**call)
     with pytest.raises(ValueError, match="method"):
         vj.smooth(vj.filters.ukf(model, Q, R), ys, us, x0=X0, P0=P0, method="ieks")
@@ -296,17 +302,20 @@ def test_bad_input_names_the_argument(data):
 def test_options_are_checked_against_the_estimator_family(data, kw):
     """An option that does not apply is refused naming it, with the reason (issue 46): the
     Gaussian smoothers' options for a particle filter, the iteration options for the plain RTS
-    smoother; a particle filter's own options for a Gaussian filter."""
+    smoother; a particle filter's own options for a Gaussian filter. The options are fields of
+    the method's record (vehjax.smoothers): a Gaussian record is refused for a particle filter,
+    naming ``method``; the plain RTS record has no iteration option at all."""
     ys, us = data
     model = linear_model()
     name = next(iter(kw))
     pf = vj.filters.bootstrap_pf(model, Q, R, n_particles=16)
-    with pytest.raises(ValueError, match=f"^{name}: an option of the Gaussian smoothers; "
-                                         f"'bootstrap_pf' is a particle filter"):
-        vj.smooth(pf, ys, us, x0=X0, P0=P0, key=jax.random.key(0), **kw)
+    record = vj.smoothers.RTS(**kw) if name == "parallel" else vj.smoothers.IEKS(**kw)
+    with pytest.raises(ValueError, match=r"^method: .* is one of the Gaussian smoothers; "
+                                         r"'bootstrap_pf' is a particle filter"):
+        vj.smooth(pf, ys, us, x0=X0, P0=P0, key=jax.random.key(0), method=record)
     if name in ("tol", "max_iter", "initial"):
-        with pytest.raises(ValueError, match=f"^{name}: only the iterated smoothers"):
-            vj.smooth(vj.filters.ekf(model, Q, R), ys, us, x0=X0, P0=P0, **kw)
+        with pytest.raises(TypeError, match=name):  # only the iterated smoothers iterate
+            vj.smoothers.RTS(**kw)
 
 
 def test_joint_ukf_smooths_parameters_as_constant_states():
@@ -393,4 +402,4 @@ def test_a_filter_without_smoother_is_named_whatever_the_options():
                                niw=NiW(std0={"u": 0.5, "y": 0.3}))
     with pytest.raises(ValueError, match="^estimator: 'marginalized_pf_grid' has no smoother"):
         vj.smooth(est, np.zeros((5, 2)), np.zeros((5, 1)), x0=np.zeros(2), P0=np.eye(2),
-                  key=jax.random.key(0), n_trajectories=4)
+                  key=jax.random.key(0), method=vj.smoothers.AncestorPaths(n_trajectories=4))

@@ -107,8 +107,9 @@ if TYPE_CHECKING:  # what static analysers and IDEs see; at run time each loads 
     from . import calibrate, data, execution, filters, metrics, models, scenarios, studies, tune
     from .filtering import FilterResult, filter
     from .online import Online
+    from .execution import Execution
     from .run import CompiledRun, RunResult, compile_run, run
-    from .simulate import Simulation, simulate
+    from .simulate import BiasWalk, NoiseScale, ParamDraw, Simulation, simulate
     from .smoothing import SmoothResult, smooth
 
 __version__ = "0.1.0"
@@ -116,16 +117,18 @@ __version__ = "0.1.0"
 __all__ = [
     "filters", "models", "scenarios", "studies", "metrics", "data", "tune", "calibrate",
     "execution", "simulate",
-    "Simulation",
+    "Simulation", "ParamDraw", "NoiseScale", "BiasWalk",
     "filter", "FilterResult", "smooth", "SmoothResult", "run", "compile_run", "RunResult", "CompiledRun",
-    "Online",
+    "Execution", "Online",
 ]
 
 #: the names of ``__all__`` that are not submodules -> the submodule that defines each
 _DEFINED_IN = {
     "filter": "filtering", "FilterResult": "filtering", "smooth": "smoothing", "SmoothResult": "smoothing",
     "run": "run", "compile_run": "run", "RunResult": "run", "CompiledRun": "run",
-    "simulate": "simulate", "Simulation": "simulate",
+    "Execution": "execution",
+    "simulate": "simulate", "Simulation": "simulate", "ParamDraw": "simulate",
+    "NoiseScale": "simulate", "BiasWalk": "simulate",
     "Online": "online",
 }
 

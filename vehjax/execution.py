@@ -5,12 +5,17 @@ compiled call (chunk), whether runs inside a chunk go through in cache-sized blo
 filter's runs-last batched step is used, which XLA options the study is compiled with, whether a
 model's trigonometry is replaced by vectorisable substitutes, and whether results come back to
 host memory per chunk. ``run`` and ``compile_run`` pick the strategy of the device the study
-runs on (:func:`for_device`); ``strategy=`` overrides it (a :class:`Strategy`, or a platform
-name: ``"cpu"``, ``"gpu"``, ``"tpu"``)::
+runs on (:func:`for_device`); :class:`Execution`'s ``strategy`` overrides it (a
+:class:`Strategy`, or a platform name: ``"cpu"``, ``"gpu"``, ``"tpu"``)::
 
-    out = vehjax.run(est, ys, us, x0=x0, P0=P0, strategy="gpu")          # GPU rules anywhere
+    out = vehjax.run(est, ys, us, x0=x0, P0=P0,
+                     execution=vehjax.Execution(strategy="gpu"))          # GPU rules anywhere
     s = vehjax.execution.for_platform("cpu")._replace(block_numbers=None)  # CPU, no blocking
-    out = vehjax.run(est, ys, us, x0=x0, P0=P0, strategy=s)
+    out = vehjax.run(est, ys, us, x0=x0, P0=P0, execution=vehjax.Execution(strategy=s))
+
+:class:`Execution` holds every platform knob of a study (``chunk_size``, ``devices``,
+``compiler_options``, ``strategy``), the one ``execution=`` option of ``run`` and
+``compile_run``.
 
 Nothing else in vehjax reads the platform: filters, models and the rest of ``run`` describe
 their work (an estimator's :attr:`~vehjax.filters.Estimator.workload`, its optional runs-last
@@ -48,15 +53,17 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import dataclasses
 import os
 from concurrent.futures import Future, ThreadPoolExecutor
 from functools import lru_cache
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-__all__ = ["Strategy", "for_platform", "for_device", "current", "using", "resolve",
+__all__ = ["Execution", "Strategy", "for_platform", "for_device", "current", "using", "resolve",
            "compiler_options", "check_options", "block_size", "memory_limit", "check_fits", "check_memory",
            "resolve_devices", "WORKLOADS", "in_thread"]
 
@@ -112,6 +119,76 @@ class Strategy(NamedTuple):
     prefetch_inputs: bool = True
     side_by_side: int = 1
     rolled_substeps: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class Execution:
+    """Where and how a study of :func:`vehjax.run` / :func:`vehjax.compile_run` executes, the
+    option ``execution`` of both: the platform knobs, which change timings and memory, never
+    results beyond rounding (module docstring of :mod:`vehjax.run`, "What is reproducible").
+
+    Attributes:
+        chunk_size: at most this many runs per jitted call, rounded up to a multiple of the
+            device count (chunks are balanced and the last is padded to the common size).
+            None: as many as keep a chunk's outputs and the filters' working memory (their
+            state from ``init`` times the temporaries of a step, so particles and sigma points
+            count) within the strategy's budget (on CPU near 512 MiB, and its work near 2e9
+            state numbers x steps), so that a long study runs in several chunks and shows its
+            progress.
+        devices: None shards runs over all ``jax.devices()``; False uses the default device
+            only; or a sequence of jax devices, each at most once. Under ``jax.distributed``:
+            None shards over the devices of all processes and returns all runs in every
+            process; False runs the whole study in each process on its first local device; a
+            sequence is all this process's devices, or includes devices of every process and
+            is the same in every process.
+        compiler_options: XLA options for compiling the study, a dict of option names (str) to
+            str, bool, int or float values, e.g. ``{"xla_backend_optimization_level": 1}``, on
+            top of the strategy's own (these override them name by name). A compiled study is
+            reused by the next call with the same estimator object, options and shapes. Level 1
+            helps a particle filter on :class:`~vehjax.models.SevenDOF` on CPU, whose step LLVM
+            at level 3 takes over 10 minutes to compile. Options XLA does not take are refused
+            when the study is compiled.
+        strategy: how the study executes on its platform (chunk budget, blocking of runs,
+            runs-last step, XLA options, trigonometric substitutes, results on the host or the
+            device): None for the rules of the platform of the first device used,
+            ``"cpu"``/``"gpu"``/``"tpu"`` for that platform's, or a :class:`Strategy`.
+
+    Raises:
+        ValueError: naming the field (``execution.chunk_size: ...``), when made: a chunk_size
+            that is not None or an integer >= 1, devices that are not None, False or a
+            sequence of distinct jax devices, compiler_options that are not such a dict, a
+            strategy that is not None, a platform name or a valid :class:`Strategy`.
+    """
+
+    chunk_size: int | None = None
+    devices: Any = None
+    compiler_options: dict | None = None
+    strategy: Strategy | str | None = None
+
+    def __post_init__(self):
+        _named(check_chunk_size, self.chunk_size)
+        if self.devices is not None:
+            _named(resolve_devices, self.devices)
+        _named(check_options, self.compiler_options)
+        _named(check_strategy, self.strategy)
+
+
+def _named(check, value):
+    """``check(value)``, its ValueError naming the field of :class:`Execution`."""
+    try:
+        return check(value)
+    except ValueError as err:
+        raise ValueError(f"execution.{err}") from None
+
+
+def check_chunk_size(chunk_size) -> None:
+    """ValueError naming ``chunk_size`` unless it is None or an integer >= 1."""
+    if chunk_size is not None and (
+        isinstance(chunk_size, (bool, np.bool_))
+        or not isinstance(chunk_size, (int, np.integer))
+        or chunk_size < 1
+    ):
+        raise ValueError(f"chunk_size: expected None or an integer >= 1, got {chunk_size!r}")
 
 
 def for_platform(platform: str, device_memory: int | None = None) -> Strategy:
@@ -182,6 +259,8 @@ def resolve_devices(devices) -> list:
         ) from None
     if not devices or not all(isinstance(d, jax.Device) for d in devices):
         raise ValueError(f"devices: expected a non-empty sequence of jax devices, got {devices!r}")
+    if len(set(devices)) != len(devices):  # a mesh of repeated devices fails deep inside JAX
+        raise ValueError(f"devices: expected each device at most once, got {devices}")
     owners = {d.process_index for d in devices}
     if owners != {jax.process_index()} and owners != set(range(jax.process_count())):
         raise ValueError(
@@ -230,18 +309,29 @@ def _size(n_bytes: float) -> str:
     return f"{n_bytes / 2**30:.1f} GiB"
 
 
+def check_strategy(strategy) -> None:
+    """ValueError naming ``strategy`` unless it is None, a platform name or a valid
+    :class:`Strategy` (what :func:`resolve` takes)."""
+    if strategy is None:
+        return
+    if isinstance(strategy, Strategy):
+        _check(strategy)
+    elif isinstance(strategy, str):
+        for_platform(strategy)
+    else:
+        raise ValueError(f"strategy: expected None, 'cpu', 'gpu', 'tpu' or a "
+                         f"vehjax.execution.Strategy, got {strategy!r}")
+
+
 def resolve(strategy, device) -> Strategy:
     """``strategy`` as given to ``run``: None (``device``'s), a platform name, or a Strategy."""
+    check_strategy(strategy)
     if strategy is None:
         return for_device(device)
     if isinstance(strategy, Strategy):
-        _check(strategy)
         return strategy
-    if isinstance(strategy, str):
-        return for_platform(strategy, None if strategy.lower() == "cpu"
-                            else _device_memory(device) if device.platform != "cpu" else None)
-    raise ValueError(f"strategy: expected None, 'cpu', 'gpu', 'tpu' or a "
-                     f"vehjax.execution.Strategy, got {strategy!r}")
+    return for_platform(strategy, None if strategy.lower() == "cpu"
+                        else _device_memory(device) if device.platform != "cpu" else None)
 
 
 def _check(s: Strategy) -> None:

@@ -21,7 +21,7 @@ from .filters.base import Estimator
 __all__ = ["FilterResult", "filter", "AT_BOUND_RTOL", "AT_BOUND_FRACTION"]
 
 
-def filter(estimator: Estimator, measurements, inputs, x0, P0, theta0=None, P_theta0=None,
+def filter(estimator: Estimator, measurements, inputs, *, x0, P0, theta0=None, P_theta0=None,
            key=None, return_covariances: bool = True) -> FilterResult:
     """Run ``estimator`` over one run of T steps: ``init``, then ``lax.scan`` of ``step``.
 

@@ -17,8 +17,8 @@ step with the runs axis last (:mod:`vehjax.runner.batch`); results agree to roun
 
 How a study executes on its platform (chunk budget, blocking of runs inside a chunk, runs-last
 or vmapped step, XLA options, trigonometric substitutes, results to the host) is decided in one
-place, :mod:`vehjax.execution`, from the device the study runs on; ``strategy=`` overrides it.
-This module holds no platform rule.
+place, :mod:`vehjax.execution`, from the device the study runs on; ``execution=`` (a
+:class:`vehjax.Execution`) overrides it. This module holds no platform rule.
 
 A NaN measurement component is missing; ``run`` passes it to the filter untouched and the filter
 skips that component's update. Every filter treats any non-finite component as missing; ``run``
@@ -56,7 +56,7 @@ decision flips. Per-run keys do not depend on chunking (run r gets ``split(key, 
 
 Past one machine (multi-controller JAX): after ``jax.distributed.initialize`` in every process,
 ``run`` called in every process with the same arguments (the SPMD convention: the same data,
-key, ``chunk_size`` and ``devices``) shards each chunk's runs over the devices of all processes
+key and ``execution``) shards each chunk's runs over the devices of all processes
 (``jax.devices()``, the global mesh) and returns the whole :class:`RunResult`, all R runs, in
 every process, equal to a one-process run up to rounding (as above)::
 
@@ -69,9 +69,9 @@ every process, equal to a one-process run up to rounding (as above)::
 
 Chunk placement and the check that the processes run the same study (a process that does not
 call ``run``, or fails before it, leaves the others waiting): :mod:`vehjax.runner.shard`.
-``devices=False`` makes every process run the whole study alone on its first local device; a
-sequence of devices is all the calling process's (a local study) or includes devices of every
-process. The progress bar shows on process 0 only.
+``Execution(devices=False)`` makes every process run the whole study alone on its first local
+device; a sequence of devices is all the calling process's (a local study) or includes devices
+of every process. The progress bar shows on process 0 only.
 
 Compile and execution time can be measured apart with :func:`compile_run`::
 
@@ -82,8 +82,8 @@ Compile and execution time can be measured apart with :func:`compile_run`::
 
 from __future__ import annotations
 
+import inspect
 import time
-from typing import Sequence
 
 import equinox as eqx
 import jax
@@ -91,7 +91,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
-from . import execution
+from . import execution, validation
+from .execution import Execution
 from .filters.base import Estimator
 from .result import RunResult
 from .runner import batch
@@ -99,7 +100,7 @@ from .runner.execute import compile_chunks, execute
 from .runner.plan import Plan, check_progress, plan as _plan
 from .runner.shard import AXIS
 
-__all__ = ["RunResult", "CompiledRun", "run", "compile_run", "Strategy"]
+__all__ = ["RunResult", "CompiledRun", "run", "compile_run", "Execution", "Strategy"]
 
 Strategy = execution.Strategy
 
@@ -163,10 +164,10 @@ def _planned(arguments: dict):
     """(the study's :class:`vehjax.runner.plan.Plan`, its XLA options or None) from the
     arguments of :func:`run` / :func:`compile_run` (their one signature), checked."""
     a = dict(arguments)
-    options = a.pop("compiler_options")
-    execution.check_options(options)
+    ex = validation.record("execution", a["execution"], Execution)
     plan = _plan(a.pop("estimator"), a.pop("measurements"), a.pop("inputs"), **a)
-    return plan, execution.compiler_options(plan.strategy, plan.estimator.workload, options)
+    return plan, execution.compiler_options(plan.strategy, plan.estimator.workload,
+                                            ex.compiler_options)
 
 
 def run(
@@ -180,11 +181,8 @@ def run(
     P_theta0=None,
     key=None,
     return_covariances: bool = False,
-    chunk_size: int | None = None,
     progress: bool | None = None,
-    devices: Sequence | bool | None = None,
-    compiler_options: dict | None = None,
-    strategy: execution.Strategy | str | None = None,
+    execution: Execution | None = None,
     smooth: bool | str = False,
 ) -> RunResult:
     """Run ``estimator`` over R runs of T steps in one jitted call per chunk of runs.
@@ -205,31 +203,12 @@ def run(
         key: PRNG key, required when ``estimator.needs_key``; run r gets
             ``jax.random.split(key, R)[r]``.
         return_covariances: also return ``covariances`` and ``params_cov`` (R*T*nx*nx numbers).
-        chunk_size: at most this many runs per jitted call, rounded up to a multiple of the
-            device count (chunks are balanced and the last is padded to the common size).
-            Default: as many as keep a chunk's outputs and the filters' working memory (their
-            state from ``init`` times the temporaries of a step, so particles and sigma points
-            count) near 512 MiB, and its work near 2e9 state numbers x steps, so that a long
-            study runs in several chunks and shows its progress.
         progress: progress bar per chunk (tqdm's, which renders in Jupyter, when installed;
             else a text line on stderr); default shown when there are several chunks.
-        devices: None shards runs over all ``jax.devices()``; False uses the default device only;
-            or a sequence of devices. Under ``jax.distributed`` (see the module docstring):
-            None shards over the devices of all processes and returns all runs in every
-            process; False runs the whole study in each process on its first local device; a
-            sequence is all this process's devices, or includes devices of every process and
-            is the same in every process.
-        compiler_options: XLA options for compiling this study, e.g.
-            ``{"xla_backend_optimization_level": 1}``, on top of the strategy's own (these
-            override them name by name). A compiled study is reused by the next call with the
-            same estimator object, options and shapes. Level 1 helps a particle filter on
-            :class:`~vehjax.models.SevenDOF` on CPU, whose step LLVM at level 3 takes over 10
-            minutes to compile (``vehjax reproduce consistency`` passes it).
-        strategy: how the study executes on its platform (:mod:`vehjax.execution`: chunk
-            budget, blocking of runs, runs-last step, XLA options, trigonometric substitutes,
-            results on the host or the device): None for the rules of the platform of the
-            first device used, ``"cpu"``/``"gpu"``/``"tpu"`` for that platform's, or a
-            :class:`vehjax.execution.Strategy`. Results do not depend on it beyond rounding.
+        execution: where and how the study executes, a :class:`vehjax.Execution` (its
+            ``chunk_size``, ``devices``, ``compiler_options`` and ``strategy``, the rules of
+            :mod:`vehjax.execution`); None: ``Execution()``, every default. Results do not
+            depend on it beyond rounding.
         smooth: False (filter), True (each run smoothed by the filter's own RTS smoother,
             :func:`vehjax.smooth`), or ``"rts"``, ``"ieks"``, ``"ipls"``: then ``states``,
             ``covariances``, ``params`` and ``params_cov`` are the smoothed ones, ``loglik``
@@ -249,8 +228,8 @@ def run(
         ValueError: naming the argument, for wrong shapes, non-finite inputs/x0/P0, a P0 that is
             not symmetric positive definite, a missing key or theta0, a theta0 outside the
             estimator's parameter domains (``Estimator.bounds``) or, for a state-only
-            filter, the model's (``Estimator.theta_domains``), compiler_options that are
-            not a dict of option names to values, an unknown strategy, a ``smooth`` the
+            filter, the model's (``Estimator.theta_domains``), an ``execution`` that is not
+            a :class:`vehjax.Execution` (whose fields check themselves when it is made), a ``smooth`` the
             estimator has no smoother for, a study whose one run
             cannot fit the device's memory or whose results cannot fit the host's (with the
             estimate and the limit), before anything is traced; options XLA does not take,
@@ -300,31 +279,14 @@ class CompiledRun:
         return execute(self._plan, self._compiled, progress)
 
 
-def compile_run(
-    estimator: Estimator,
-    measurements,
-    inputs,
-    *,
-    x0,
-    P0,
-    theta0=None,
-    P_theta0=None,
-    key=None,
-    return_covariances: bool = False,
-    chunk_size: int | None = None,
-    progress: bool | None = None,
-    devices: Sequence | bool | None = None,
-    compiler_options: dict | None = None,
-    strategy: execution.Strategy | str | None = None,
-    smooth: bool | str = False,
-) -> CompiledRun:
+def compile_run(*args, **kwargs) -> CompiledRun:
     """Validate and compile a study without running it, for timing compilation apart.
 
     Same arguments as :func:`run`. ``compile_run(...)()`` returns what ``run(...)`` returns,
     under ``jax.distributed`` too: call both in every process with the same arguments. The
     prepared study holds its own copy of the arrays: calling it again repeats the same study.
     """
-    plan, options = _planned(locals())
+    plan, options = _planned(_arguments(args, kwargs))
     # its own copy of the data: "call again to repeat" repeats this study, whatever the
     # caller writes into its arrays afterwards
     plan = plan._replace(arrays=tuple(None if a is None else np.array(a, copy=True)
@@ -332,3 +294,20 @@ def compile_run(
     t0 = time.perf_counter()
     compiled = compile_chunks(plan, _study, options)
     return CompiledRun(plan, compiled, time.perf_counter() - t0)
+
+
+_SIGNATURE = inspect.signature(run)
+
+
+def _arguments(args: tuple, kwargs: dict) -> dict:
+    """``compile_run``'s arguments bound to :func:`run`'s one signature, defaults filled in
+    (TypeError as a call of ``run`` with them would raise)."""
+    try:
+        bound = _SIGNATURE.bind(*args, **kwargs)
+    except TypeError as err:
+        raise TypeError(f"compile_run(): {err}") from None
+    bound.apply_defaults()
+    return dict(bound.arguments)
+
+
+compile_run.__signature__ = _SIGNATURE.replace(return_annotation=CompiledRun)

@@ -6,14 +6,14 @@ step; row t of the output holds the state after applying input u_t,
     states[t]       = transition(states[t-1], u_t + steering offset, theta_r) + w_t
     measurements[t] = observe(states[t], u_t + steering offset, theta_r) + bias_t + v_t
 
-with w_t ~ N(0, diag(process_std * process_scale[t])^2) and v_t ~ N(0, diag(meas_std *
-meas_scale[t])^2). The filter is given the *measured* inputs ``sim.inputs`` (without the steering
+with w_t ~ N(0, diag(process_std * noise_scale.process[t])^2) and v_t ~ N(0, diag(meas_std *
+noise_scale.meas[t])^2) (:class:`NoiseScale`; biases: :class:`BiasWalk`). The filter is given the *measured* inputs ``sim.inputs`` (without the steering
 offset), as a car's estimator would be.
 
-Parameters: ``theta`` (the model's, or the one given) must lie in the model's declared domains
-(:meth:`vehjax.models.BaseModel.param_domains`; ValueError naming ``theta`` and the parameter,
-before anything is traced); a model without domains is not checked. The per-run perturbation
-of ``param_std`` is drawn while tracing and is not checked: a run it pushes outside the domain
+Parameters (:class:`ParamDraw`): ``params.theta`` (the model's, or the one given) must lie in
+the model's declared domains (:meth:`vehjax.models.BaseModel.param_domains`; ValueError naming
+``params.theta`` and the parameter, before anything is traced); a model without domains is not
+checked. The per-run perturbation of ``params.std`` is drawn while tracing and is not checked: a run it pushes outside the domain
 shows as ``diverged`` if its states blow up.
 
 Divergence, with the meaning :func:`vehjax.run` gives it (:mod:`vehjax.engine`): a step whose
@@ -43,10 +43,11 @@ bar over its steps on stderr (:mod:`vehjax.runtime.progress`; ``progress=`` forc
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import threading
 import warnings
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import equinox as eqx
 import jax
@@ -56,7 +57,8 @@ import numpy as np
 from . import execution, validation
 from .runtime.progress import Progress, text_bar
 
-__all__ = ["Simulation", "simulate", "check_size", "study_bytes", "PROGRESS_RUN_STEPS"]
+__all__ = ["Simulation", "simulate", "BiasWalk", "NoiseScale", "ParamDraw", "check_size",
+           "study_bytes", "PROGRESS_RUN_STEPS"]
 
 #: a study of at least this many runs x steps shows its progress by default (about ten seconds
 #: of a 3-state model on two CPU cores; below it, no bar)
@@ -124,6 +126,75 @@ class Simulation(NamedTuple):
         np.savez(path, **self.to_dict())
 
 
+def _real(name: str, value, nonnegative: bool):
+    """The checks of a record's field that need no model (its sizes are checked by
+    :func:`simulate`): real and finite (:func:`vehjax.validation.array`), non-negative for a
+    std or a scale; ValueError naming it."""
+    if value is None or callable(value):
+        return
+    arr = np.asarray(validation.array(name, value, allow_nan=True), dtype=float)
+    if not np.all(np.isfinite(arr)) or (nonnegative and np.any(arr < 0)):
+        what = "non-negative, finite" if nonnegative else "finite"
+        raise ValueError(f"{name}: expected {what} values, got {arr}")
+
+
+@dataclasses.dataclass(frozen=True)
+class BiasWalk:
+    """Random-walk measurement biases, the option ``bias`` of :func:`simulate`:
+    ``bias_t = bias_{t-1} + N(0, diag(std)^2)`` from ``bias_0 = initial``, added to the
+    measurements (``Simulation.biases``).
+
+    Attributes:
+        std: std of the per-step increments, scalar or (ny,), output units per step; None: 0.
+        initial: the initial biases, scalar or (ny,), output units; None: 0.
+    """
+
+    std: Any = None
+    initial: Any = None
+
+    def __post_init__(self):
+        _real("bias.std", self.std, True)
+        _real("bias.initial", self.initial, False)
+
+
+@dataclasses.dataclass(frozen=True)
+class NoiseScale:
+    """Time-varying multipliers of the noise stds, the option ``noise_scale`` of
+    :func:`simulate`: the process noise's std at step t is ``process_std * process[t]``, the
+    measurement noise's ``meas_std * meas[t]``.
+
+    Attributes:
+        process, meas: (T,) non-negative factors, or callables of the time vector t [s] (e.g.
+            ``lambda t: np.sin(np.pi * t / 10)`` for paper 001 eq. 31-32); None: 1.
+    """
+
+    process: Callable | np.ndarray | None = None
+    meas: Callable | np.ndarray | None = None
+
+    def __post_init__(self):
+        _real("noise_scale.process", self.process, True)
+        _real("noise_scale.meas", self.meas, True)
+
+
+@dataclasses.dataclass(frozen=True)
+class ParamDraw:
+    """The runs' true parameters, the option ``params`` of :func:`simulate`:
+    ``theta_r = theta * (1 + std * N(0, 1))``.
+
+    Attributes:
+        theta: the parameters, (np,) or (R, np); None: ``model.theta``. Must lie in the
+            model's declared domains (module docstring).
+        std: relative std of a per-run perturbation, scalar or (np,); None: 0.
+    """
+
+    theta: Any = None
+    std: Any = None
+
+    def __post_init__(self):
+        _real("params.theta", self.theta, False)
+        _real("params.std", self.std, True)
+
+
 def _vector(name: str, value, n: int, what: str, allow_none=True):
     """A non-negative finite vector of length n from a scalar or a sequence."""
     if value is None:
@@ -181,13 +252,10 @@ def simulate(
     process_std=None,
     meas_std=None,
     *,
-    param_std=None,
-    theta=None,
+    params: ParamDraw | None = None,
     x0_std=None,
-    process_scale: Callable | np.ndarray | None = None,
-    meas_scale: Callable | np.ndarray | None = None,
-    bias_walk_std=None,
-    bias0=None,
+    noise_scale: NoiseScale | None = None,
+    bias: BiasWalk | None = None,
     steering_offset: float = 0.0,
     progress: bool | None = None,
 ) -> Simulation:
@@ -200,16 +268,13 @@ def simulate(
         key: a ``jax.random.key``; the same key gives the same runs. Defaults to key(0).
         process_std: std of the additive process noise per step, scalar or (nx,), state units.
         meas_std: std of the measurement noise, scalar or (ny,), output units.
-        param_std: relative std of a per-run perturbation of the parameters, scalar or (np,):
-            theta_r = theta * (1 + param_std * N(0, 1)).
-        theta: true parameters, (np,) or (R, np); defaults to ``model.theta``.
+        params: the true parameters and their per-run perturbation, a :class:`ParamDraw`
+            (``theta``, ``std``); None: ``model.theta`` for every run.
         x0_std: std of a per-run perturbation of the initial state, scalar or (nx,).
-        process_scale, meas_scale: time-varying multipliers of the two stds, (T,) arrays or
-            callables of the time vector t [s] (e.g. ``lambda t: np.sin(np.pi * t / 10)`` for
-            paper 001 eq. 31-32).
-        bias_walk_std: std of the per-step increments of random-walk measurement biases, scalar
-            or (ny,), output units per step.
-        bias0: initial measurement biases, scalar or (ny,).
+        noise_scale: time-varying multipliers of the two stds, a :class:`NoiseScale`
+            (``process``, ``meas``); None: constant stds.
+        bias: random-walk measurement biases, a :class:`BiasWalk` (``std``, ``initial``);
+            None: no biases.
         steering_offset: constant offset [rad] added to the true steering input named "delta"
             (paper 004 eq. 4); the returned ``inputs`` are the measured ones without it.
         progress: a progress bar over the steps on stderr: None (default) for a study of at
@@ -219,8 +284,8 @@ def simulate(
         A :class:`Simulation`.
 
     Raises:
-        ValueError: naming the argument, before anything is traced: a bad model, scenario,
-            std, scale, parameter or key, and a study whose arrays cannot fit in the device's
+        ValueError: naming the argument (a record's field as ``bias.std``), before anything
+            is traced: a bad model, scenario, std, scale, parameter, record or key, and a study whose arrays cannot fit in the device's
             memory (:func:`check_size`, naming ``runs`` and the scenario's steps).
 
     Warns:
@@ -238,19 +303,24 @@ def simulate(
     check_size(model, runs, n_steps)
     t = np.arange(n_steps) * model.dt
 
+    params = validation.record("params", params, ParamDraw)
+    noise_scale = validation.record("noise_scale", noise_scale, NoiseScale)
+    bias = validation.record("bias", bias, BiasWalk)
     q_std = _vector("process_std", process_std, nx, "one std per state")
     r_std = _vector("meas_std", meas_std, ny, "one std per output")
-    p_std = _vector("param_std", param_std, n_par, "a relative std per parameter")
+    p_std = _vector("params.std", params.std, n_par, "a relative std per parameter")
     s_std = _vector("x0_std", x0_std, nx, "one std per state")
-    b_std = _vector("bias_walk_std", bias_walk_std, ny, "one std per output")
-    b0 = _bias0(bias0, ny)
-    q_scale = _scale("process_scale", process_scale, t)
-    r_scale = _scale("meas_scale", meas_scale, t)
+    b_std = _vector("bias.std", bias.std, ny, "one std per output")
+    b0 = _bias0(bias.initial, ny)
+    q_scale = _scale("noise_scale.process", noise_scale.process, t)
+    r_scale = _scale("noise_scale.meas", noise_scale.meas, t)
     offset = _input_offset(model, steering_offset)
-    base_theta = validation.per_run("theta", np.asarray(model.theta) if theta is None else theta,
-                                   (n_par,), runs, f"parameters {tuple(model.param_names)}")
+    theta = params.theta
+    base_theta = validation.per_run("params.theta",
+                                    np.asarray(model.theta) if theta is None else theta,
+                                    (n_par,), runs, f"parameters {tuple(model.param_names)}")
     base_theta = np.asarray(base_theta, dtype=float)
-    validation.in_domain("theta", base_theta, _declared(model, "param_domains"))
+    validation.in_domain("params.theta", base_theta, _declared(model, "param_domains"))
     base_theta = np.broadcast_to(base_theta, (runs, n_par))
     keys = validation.key(jax.random.key(0) if key is None else key, runs)
 
@@ -344,12 +414,13 @@ def _envelope(model, nx: int) -> np.ndarray:
 
 
 def _bias0(bias0, ny: int) -> np.ndarray:
-    """``simulate``'s initial output biases (ny,): None (zeros), a scalar or one per output."""
-    b0 = np.asarray(validation.array("bias0", 0.0 if bias0 is None else bias0, allow_nan=True),
-                    dtype=float)
+    """``simulate``'s initial output biases (ny,) from ``bias.initial``: None (zeros), a scalar
+    or one per output."""
+    b0 = np.asarray(validation.array("bias.initial", 0.0 if bias0 is None else bias0,
+                                     allow_nan=True), dtype=float)
     b0 = np.full(ny, float(b0)) if b0.ndim == 0 else b0
     if b0.shape != (ny,) or not np.all(np.isfinite(b0)):
-        raise ValueError(f"bias0: expected a finite scalar or shape ({ny},), got {b0}")
+        raise ValueError(f"bias.initial: expected a finite scalar or shape ({ny},), got {b0}")
     return b0
 
 

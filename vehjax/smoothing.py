@@ -6,7 +6,11 @@
 
     sm = vehjax.smooth(est, ys, us, x0=x0, P0=P0)                  # ys (T, ny), us (T, nu)
     sm.states, sm.covariances, sm.cross_covariances, sm.loglik.sum()
-    sm = vehjax.smooth(est, ys, us, x0=x0, P0=P0, method="ieks", parallel=True)
+    sm = vehjax.smooth(est, ys, us, x0=x0, P0=P0,
+                       method=vehjax.smoothers.IEKS(parallel=True))
+
+The method is a record of :mod:`vehjax.smoothers.methods`, holding that method's options
+only, or its name (``"rts"``, ``"ieks"``, ...) for the record with the defaults.
 
 Time convention of :mod:`vehjax.filtering`: x0/P0 describe the state before the first step;
 ``states[t]`` is the smoothed estimate after step t (predict with ``inputs[t]``, update with
@@ -15,15 +19,16 @@ Time convention of :mod:`vehjax.filtering`: x0/P0 describe the state before the 
 Methods, for a Gaussian filter (one with ``Estimator.smoother``: EKF, UKF, CKF, their
 square-root forms, joint EKF/UKF):
 
-* ``None`` / ``"rts"``: the filter's own RTS: extended RTS for the EKF, unscented / cubature RTS
+* ``None`` / :class:`~vehjax.smoothers.RTS` (``"rts"``): the filter's own RTS: extended RTS for the EKF, unscented / cubature RTS
   (Särkkä 2008) for the UKF / CKF, in Cholesky factors throughout for the square-root forms
-  (:mod:`vehjax.smoothers.gaussian`). With ``parallel=True`` the filter's own linearisation
+  (:mod:`vehjax.smoothers.gaussian`). With ``RTS(parallel=True)`` the filter's own linearisation
   (about its filtered and predicted moments) is smoothed by the parallel-in-time Kalman filter
   and RTS smoother (:mod:`vehjax.smoothers.parallel`): the same numbers, to rounding; the
   forward filter that provides the linearisation is still sequential.
-* ``"ieks"`` (EKF, joint EKF) / ``"ipls"`` (sigma-point filters): the iterated smoothers of
+* :class:`~vehjax.smoothers.IEKS` (``"ieks"``: EKF, joint EKF) / :class:`~vehjax.smoothers.IPLS`
+  (``"ipls"``: sigma-point filters): the iterated smoothers of
   :mod:`vehjax.smoothers.iterated`, started from the filter's own means and covariances (or
-  ``initial``), each pass sequential or (``parallel=True``) parallel in time; ``loglik`` is
+  ``initial``), each pass sequential or (``parallel``) parallel in time; ``loglik`` is
   that of the model linearised about the fixed point, differentiable by implicit
   differentiation. The square-root filters' iterated and parallel passes run on covariances.
 
@@ -33,12 +38,13 @@ filters have no smoother: their two filters never form the joint Gaussian of sta
 parameters that a Gaussian smoother needs (a ValueError naming ``estimator``).
 
 Particle filters (``Estimator.particle_transition``, the bootstrap PF) go to
-:func:`vehjax.smoothers.particle.smooth` (backward simulation), with ``method`` and the
-``particle_options``.
+:func:`vehjax.smoothers.particle.smooth` (backward simulation): ``method`` None /
+:class:`~vehjax.smoothers.FFBSi`, :class:`~vehjax.smoothers.RejectionSampling` or
+:class:`~vehjax.smoothers.AncestorPaths`, each with its ``n_trajectories`` M.
 The marginalized PF (``Estimator.rao_blackwell``) goes to
-:func:`vehjax.smoothers.marginalized.smooth` likewise: ``method`` None / ``"ancestor"``
-(ancestor paths with a per-path RTS) or ``"ffbsi"`` (Rao-Blackwellised backward simulation,
-``kalman_states="linear"``), ``n_trajectories`` M.
+:func:`vehjax.smoothers.marginalized.smooth` likewise: ``method`` None / ``AncestorPaths``
+(ancestor paths with a per-path RTS) or ``FFBSi`` (Rao-Blackwellised backward simulation,
+``kalman_states="linear"``).
 
 NaN measurement components are missing (skipped), as in the filters. Divergence: a run whose
 filter diverged (:mod:`vehjax.filtering`) or whose smoothed moments are not finite and positive
@@ -48,6 +54,7 @@ so that one bad run never puts NaN into a study.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -63,12 +70,13 @@ from .filters.base import Estimator
 from .smoothers import gaussian as _gauss
 from .smoothers import iterated as _iter
 from .smoothers import marginalized as _marginalized
+from .smoothers import methods as _methods
 from .smoothers import particle as _particle
 
 __all__ = ["SmoothResult", "smooth", "smooth_one_run", "smooth_runs_last", "check_options",
            "METHODS"]
 
-#: Gaussian smoothing methods (module docstring).
+#: The Gaussian smoothing methods' names (module docstring; :mod:`vehjax.smoothers.methods`).
 METHODS = ("rts", "ieks", "ipls")
 
 
@@ -174,8 +182,8 @@ def smooth_one_run(estimator: Estimator, y, u, x0, P0, th0=None, Pth0=None, key=
     """One run smoothed, traced, without validation (what ``vehjax.run(..., smooth=True)``
     vmaps): y (T, ny) with NaN missing, u (T, nu), x0 (nx,), P0 (nx, nx), th0/Pth0 as for
     :func:`vehjax.filter`; ``method`` one of :data:`METHODS` (not None), ``parallel``, ``tol``,
-    ``max_iter``, ``initial`` as for :func:`smooth`, checked beforehand by
-    :func:`check_options`. Gaussian filters only (``estimator.smoother`` set)."""
+    ``max_iter``, ``initial`` the fields of :func:`smooth`'s method record, checked beforehand
+    (:func:`check_options`). Gaussian filters only (``estimator.smoother`` set)."""
     spec = estimator.smoother
     states, filt = forward(estimator, y, u, x0, P0, th0, Pth0, key)
     if method == "rts":
@@ -276,17 +284,16 @@ def _good_runs_last(M, P, cross):
 # the public single-run function
 
 
-#: The iterated smoothers' defaults: ``tol`` and ``max_iter`` of :func:`smooth`.
-TOL, MAX_ITER = 1e-6, 20
+#: The iterated smoothers' defaults: ``tol`` and ``max_iter`` of :class:`~vehjax.smoothers.IEKS`.
+TOL, MAX_ITER = _methods.TOL, _methods.MAX_ITER
 
 
-def check_options(estimator: Estimator, method=None, tol=None, max_iter=None):
-    """The Gaussian smoothing options checked before tracing: (method, tol, max_iter) with
-    ``method`` None turned into ``"rts"`` and ``tol``/``max_iter`` None into :data:`TOL` /
-    :data:`MAX_ITER`. ValueError naming ``estimator`` (no smoother), ``method`` (unknown, or
-    'ieks' for a sigma-point filter / 'ipls' for a Jacobian one), ``tol`` (not > 0) or
-    ``max_iter`` (not an integer >= 1), and ``tol``/``max_iter`` given to the plain RTS
-    smoother, which does not iterate."""
+def check_options(estimator: Estimator, method=None):
+    """The Gaussian smoothing method checked before tracing: its record
+    (:mod:`vehjax.smoothers.methods`: :class:`~vehjax.smoothers.methods.RTS`, ``IEKS`` or
+    ``IPLS``), None or a name standing for the record with its defaults (None: the filter's
+    own RTS). ValueError naming ``estimator`` (no smoother) or ``method`` (unknown, a particle
+    smoother's, or IEKS for a sigma-point filter / IPLS for a Jacobian one)."""
     if not isinstance(estimator, Estimator):
         raise ValueError(
             f"estimator: expected a vehjax.filters.Estimator, got {type(estimator).__name__}")
@@ -297,41 +304,41 @@ def check_options(estimator: Estimator, method=None, tol=None, max_iter=None):
             f"UKF, CKF (plain and square-root), the joint EKF/UKF, the bootstrap PF without "
             f"input noise and the paper's marginalized PF (marginalized_pf; dual filters and "
             f"marginalized_pf_grid do not form the joint Gaussian or paths a smoother needs)")
-    method = "rts" if method is None else validation.choice("method", method, METHODS)
-    if method == "ieks" and not spec.taylor:
+    rec = _methods.record(method)
+    rec = _methods.RTS() if rec is None else rec
+    if isinstance(rec, _methods.PARTICLE):
+        raise ValueError(f"method: {type(rec).__name__} applies to particle filters only; "
+                         f"{estimator.name!r} is a Gaussian filter, whose smoothers are RTS, "
+                         f"IEKS and IPLS")
+    if rec.name == "ieks" and not spec.taylor:
         raise ValueError(f"method: 'ieks' iterates Jacobian linearisations; {estimator.name!r} "
                          f"linearises by sigma points, use method='ipls'")
-    if method == "ipls" and spec.taylor:
+    if rec.name == "ipls" and spec.taylor:
         raise ValueError(f"method: 'ipls' iterates sigma-point linearisations; "
                          f"{estimator.name!r} linearises by Jacobians, use method='ieks'")
-    if method == "rts":
-        for name, value in (("tol", tol), ("max_iter", max_iter)):
-            if value is not None:
-                raise ValueError(f"{name}: only the iterated smoothers ('ieks', 'ipls') "
-                                 f"iterate; the RTS smoother takes no {name}")
-    return (method, validation.number("tol", TOL if tol is None else tol, 0.0),
-            validation.integer("max_iter", MAX_ITER if max_iter is None else max_iter, 1))
+    return rec
 
 
-def _refuse_gaussian_options(estimator: Estimator, parallel, tol, max_iter, initial) -> None:
-    """ValueError naming the first Gaussian-smoother option given to a particle filter's
-    smoother, which would ignore it."""
-    given = [name for name, on in (("parallel", parallel is not False), ("tol", tol is not None),
-                                   ("max_iter", max_iter is not None),
-                                   ("initial", initial is not None)) if on]
-    if given:
+def _particle_method(estimator: Estimator, method) -> dict:
+    """A particle filter's smoothing method as the particle smoother's keyword arguments
+    (``method``, ``n_trajectories``, ``max_tries``); {} for None (its default). ValueError
+    naming ``method`` for a Gaussian smoother's record, which it would not run."""
+    rec = _methods.record(method)
+    if rec is None:
+        return {}
+    if isinstance(rec, _methods.GAUSSIAN):
         raise ValueError(
-            f"{given[0]}: an option of the Gaussian smoothers; {estimator.name!r} is a particle "
-            f"filter, whose smoother takes method and its own options (n_trajectories, ...), "
-            f"not {', '.join(given)}")
+            f"method: {type(rec).__name__} is one of the Gaussian smoothers; {estimator.name!r} "
+            f"is a particle filter, whose smoother takes FFBSi, RejectionSampling or "
+            f"AncestorPaths (vehjax.smoothers)")
+    return dict(method=rec.name, **dataclasses.asdict(rec))
 
 
 def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=None,
-           P_theta0=None, key=None, method=None, parallel=False, tol: float | None = None,
-           max_iter: int | None = None, initial=None, **particle_options) -> SmoothResult:
+           P_theta0=None, key=None, method=None) -> SmoothResult:
     """Smooth one run of T steps (module docstring for the methods).
 
-    Pure and traceable (``jax.jit`` with the options static, ``jax.vmap`` over runs,
+    Pure and traceable (``jax.jit`` with the method static, ``jax.vmap`` over runs,
     ``jax.grad`` of ``smooth(...).loglik.sum()`` with the estimator built inside).
 
     Args:
@@ -341,67 +348,54 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
         inputs: (T, nu); None when the model has no inputs.
         x0, P0: state before the first step, (nx,), and its covariance (nx, nx) or (nx,).
         theta0, P_theta0, key: as for :func:`vehjax.filter`.
-        method: None (the filter's own RTS), ``"rts"``, ``"ieks"`` (Jacobian filters) or
-            ``"ipls"`` (sigma-point filters); for particle filters the particle smoother's
-            method (:func:`vehjax.smoothers.particle.smooth`), for the marginalized PF
-            ``"ancestor"`` or ``"ffbsi"`` (:func:`vehjax.smoothers.marginalized.smooth`).
-        parallel: run the Kalman filter and RTS smoother passes parallel in time: True or
-            "associative" (``jax.lax.associative_scan``, O(T) work; its 2 log2 T copies of
-            the combination compile slowly on XLA:CPU, about a minute at T = 10^3 on a busy
-            2-core machine) or "doubling" (recursive doubling, O(T log T) work, one copy:
-            compiles in seconds at any T); False: sequential.
-        tol: iterated smoothers: stop when no smoothed mean moves by more than ``tol`` of its
-            smoothed standard deviation in a pass (> 0); None: 1e-6.
-        max_iter: iterated smoothers: at most this many passes (>= 1); ``converged`` False in
-            the result when they did not meet ``tol``; None: 20.
-        initial: iterated smoothers: the start, (T, n) means (n = nx, or nx + p unconstrained
-            for joint filters) with the prior covariance at every step; None: the filter's own
-            filtered means and covariances.
-        particle_options: passed to the particle smoother (e.g. ``n_trajectories``).
+        method: a record of :mod:`vehjax.smoothers.methods`, with that method's options, or
+            its name for the record with the defaults; None: the filter's own. Gaussian
+            filters: :class:`~vehjax.smoothers.RTS` (None, ``"rts"``; ``parallel``),
+            :class:`~vehjax.smoothers.IEKS` (``"ieks"``, Jacobian filters) or
+            :class:`~vehjax.smoothers.IPLS` (``"ipls"``, sigma-point filters), the iterated
+            ones with ``parallel``, ``tol``, ``max_iter``, ``initial``. The bootstrap PF
+            (:func:`vehjax.smoothers.particle.smooth`): :class:`~vehjax.smoothers.FFBSi`
+            (None, ``"ffbsi"``), :class:`~vehjax.smoothers.RejectionSampling`
+            (``"rejection"``) or :class:`~vehjax.smoothers.AncestorPaths` (``"ancestor"``);
+            the marginalized PF (:func:`vehjax.smoothers.marginalized.smooth`): AncestorPaths
+            (None) or FFBSi.
 
     Returns:
         :class:`SmoothResult`; for particle filters what the particle smoother returns.
 
     Raises:
         ValueError: naming the argument: a filter without a smoother (``estimator``), an
-            unknown or unsuitable ``method``, ``tol`` <= 0, ``max_iter`` < 1, ``initial`` of
-            the wrong shape, ``parallel``, ``tol``, ``max_iter`` or ``initial`` given where
-            they do not apply (a particle filter; the plain RTS), and every shape error of
-            :func:`vehjax.filter`.
+            unknown or unsuitable ``method`` (a Gaussian smoother for a particle filter, a
+            particle smoother for a Gaussian one), ``method.initial`` of the wrong shape (the
+            records check their other fields when made, ``method.tol: ...``), and every shape
+            error of :func:`vehjax.filter`.
     """
     ys, us, x0, P0, th0, Pth0, _ = check_arguments(estimator, measurements, inputs, x0, P0,
                                                     theta0, P_theta0, key)
     if estimator.smoother is None:  # the particle smoothers, or none at all
         if estimator.particle_transition is None and estimator.rao_blackwell is None:
-            check_options(estimator)  # no smoother: say so, whatever the options
-        _refuse_gaussian_options(estimator, parallel, tol, max_iter, initial)
+            check_options(estimator)  # no smoother: say so, whatever the method
+        opts = _particle_method(estimator, method)
         if estimator.particle_transition is not None:
-            opts = dict(particle_options)
-            if method is not None:
-                opts["method"] = method
             if theta0 is not None:
                 opts["theta0"] = theta0
             return _particle.smooth(estimator, measurements, inputs, x0=x0, P0=P0, key=key,
                                     **opts)
-        opts = dict(particle_options, method=method)
+        opts.setdefault("method", None)
+        opts.pop("max_tries", None)  # "rejection" is the bootstrap PF's: refused by name there
         return _marginalized.smooth(estimator, measurements, inputs, x0=x0, P0=P0, key=key,
                                     theta0=theta0, **opts)
-    if particle_options:
-        raise ValueError(f"particle_options: {sorted(particle_options)} apply to particle "
-                         f"filters only")
-    method, tol, max_iter = check_options(estimator, method, tol, max_iter)
-    if parallel not in (False, True, "associative", "doubling"):
-        raise ValueError(f"parallel: expected False, True, 'associative' or 'doubling', got "
-                         f"{parallel!r}")
+    rec = check_options(estimator, method)
     T = np.shape(ys)[0]
+    initial = getattr(rec, "initial", None)
     if initial is not None:
         n = estimator.nx + len(estimator.param_names)
-        if method == "rts":
-            raise ValueError("initial: only the iterated smoothers ('ieks', 'ipls') take a start")
         if np.shape(initial) != (T, n):
-            raise ValueError(f"initial: expected shape ({T}, {n}), got {np.shape(initial)}")
+            raise ValueError(f"method.initial: expected shape ({T}, {n}), got "
+                             f"{np.shape(initial)}")
+    tol, max_iter = getattr(rec, "tol", TOL), getattr(rec, "max_iter", MAX_ITER)
     ys, us = jnp.asarray(ys), jnp.asarray(us)
     # called eagerly: compiled as one program (vehjax.runtime.eager); under a trace: inline
     return eager.call(smooth_one_run, (estimator,),
-                       dict(method=method, parallel=parallel, tol=tol, max_iter=max_iter),
+                       dict(method=rec.name, parallel=rec.parallel, tol=tol, max_iter=max_iter),
                        ys, us, jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key, initial=initial)

@@ -245,7 +245,7 @@ def test_theta0_outside_the_domain_raises_naming_theta0(name):
     with pytest.raises(ValueError, match="^theta0"):  # before tracing, per-run theta0 too
         vj.run(est, ys, us, x0=x0, P0=P0, theta0=[[1.5, 1.5], [1.5, -1.0]], P_theta0=np.eye(2))
     with pytest.raises(ValueError, match="^theta0"):
-        vj.filter(est, ys[0], us, x0, P0, theta0=np.array([-1.0, 1.5]), P_theta0=np.eye(2))
+        vj.filter(est, ys[0], us, x0=x0, P0=P0, theta0=np.array([-1.0, 1.5]), P_theta0=np.eye(2))
     # without domains a negative theta0 is a value like any other
     F.dual_ekf(KIN, **KIN_KW, bounds={}).init(x0, P0, np.array([1.5, -0.2]), np.eye(2))
 

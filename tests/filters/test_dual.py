@@ -124,7 +124,7 @@ def _scan_runs(est, ys, us):
     """vmap over runs of vehjax.filter from (X0, P0, B0, PB0); one compile."""
 
     def one(y):
-        return vj.filter(est, y, us, X0, P0, B0, PB0)
+        return vj.filter(est, y, us, x0=X0, P0=P0, theta0=B0, P_theta0=PB0)
 
     outs = jax.jit(jax.vmap(one))(jnp.asarray(ys))
     return [jax.tree.map(lambda a: np.asarray(a[i]), outs) for i in range(ys.shape[0])]

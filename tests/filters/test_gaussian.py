@@ -87,7 +87,7 @@ def _scan(est, ys, us, x0, P0):
 
     @jax.jit
     def go(ys, us, x0, P0):
-        res = vj.filter(est, ys, us, x0, P0)
+        res = vj.filter(est, ys, us, x0=x0, P0=P0)
         return res.state, res
 
     return go(jnp.asarray(ys), jnp.asarray(us), jnp.asarray(x0), jnp.asarray(P0))
@@ -120,7 +120,7 @@ def test_linear_gaussian_equals_kalman_filter(name):
     est = LINEAR_FILTERS[name](LINEAR, Q_LIN, R_LIN)
 
     def one(y):
-        return vj.filter(est, y, us, X0_LIN, P0_LIN)
+        return vj.filter(est, y, us, x0=X0_LIN, P0=P0_LIN)
 
     outs = jax.jit(jax.vmap(one))(jnp.asarray(ys2))
     for i in range(2):
@@ -316,7 +316,7 @@ def test_noise_free_state_q_with_zero_variance_equals_kalman_filter(name):
     est = {"ekf": ekf, "ukf": ukf, "ckf": ckf,
            "sr_ukf": lambda m, q, r: ukf(m, q, r, sqrt=True)}[name](LINEAR, Q0, R_LIN)
     ys, us = _linear_data()
-    out = vj.filter(est, ys, us, X0_LIN, P0_LIN)
+    out = vj.filter(est, ys, us, x0=X0_LIN, P0=P0_LIN)
     m, P, ll, _ = _numpy_kf(ys, us, Q=Q0)
     np.testing.assert_allclose(out.states, m, rtol=0, atol=1e-9)
     np.testing.assert_allclose(out.covariances, P, rtol=0, atol=1e-9)
@@ -422,7 +422,7 @@ def test_vmap_over_runs_and_grad_of_loglik():
 
     def total_loglik(log_r, ys):
         est = ekf(LINEAR, Q_LIN, R_LIN * jnp.exp(log_r))  # traced R: shape check only
-        return vj.filter(est, ys, jnp.asarray(us), X0_LIN, P0_LIN).loglik.sum()
+        return vj.filter(est, ys, jnp.asarray(us), x0=X0_LIN, P0=P0_LIN).loglik.sum()
 
     batched = jax.jit(jax.vmap(jax.value_and_grad(total_loglik), in_axes=(None, 0)))
     lls, grads = batched(0.0, jnp.asarray(ys2))

@@ -192,7 +192,7 @@ def _scan(est, ys, us, key):
     if id(est) not in _SCANS:
 
         def one(ys, us, key):
-            res = vj.filter(est, ys, us, jnp.zeros(2), jnp.eye(2), key=key)
+            res = vj.filter(est, ys, us, x0=jnp.zeros(2), P0=jnp.eye(2), key=key)
             return res.state, res
 
         _SCANS[id(est)] = (est, jax.jit(one))

@@ -77,7 +77,7 @@ def _run(est, ys, us, keys, x0=X0, P0_=P0):
     if id(est) not in _RUNNERS:
 
         def one(key, ys, us, x0, P0_):
-            res = vj.filter(est, ys, us, x0, P0_, key=key)
+            res = vj.filter(est, ys, us, x0=x0, P0=P0_, key=key)
             return res.state, res
 
         _RUNNERS[id(est)] = (est, jax.jit(jax.vmap(one, in_axes=(0, None, None, None, None))))
@@ -315,8 +315,8 @@ def test_dynamic3dof_follows_the_truth():
     est = bootstrap_pf(model, Qd, Rd, n_particles=300)
 
     def one(key, ys):
-        return vj.filter(est, ys, sim.inputs, jnp.asarray(scn.x0),
-                         jnp.asarray(np.diag([0.1, 0.05, 0.01]) ** 2), key=key)
+        return vj.filter(est, ys, sim.inputs, x0=jnp.asarray(scn.x0),
+                         P0=jnp.asarray(np.diag([0.1, 0.05, 0.01]) ** 2), key=key)
 
     out = jax.jit(jax.vmap(one))(_keys(2), sim.measurements)
     err = np.sqrt(np.mean((np.asarray(out.states) - np.asarray(sim.states)) ** 2, axis=(0, 1)))
@@ -509,14 +509,14 @@ def test_resample_argument_is_called_and_validated():
         return smc.resample(*args)
 
     k = jax.random.key(2)
-    plain = vj.filter(bootstrap_pf(_model(), Q, R_DIAG, n_particles=50), ys, us, X0, P0, key=k)
+    plain = vj.filter(bootstrap_pf(_model(), Q, R_DIAG, n_particles=50), ys, us, x0=X0, P0=P0, key=k)
     mine = vj.filter(bootstrap_pf(_model(), Q, R_DIAG, n_particles=50,
                                   resampling=Resampling(scheme="stratified", ess_threshold=0.9,
-                                                        resample=counting)), ys, us, X0, P0, key=k)
+                                                        resample=counting)), ys, us, x0=X0, P0=P0, key=k)
     assert calls and all(c == ("stratified", 0.9) for c in calls)  # traced with its arguments
     sg = vj.filter(bootstrap_pf(_model(), Q, R_DIAG, n_particles=50,
                                 resampling=Resampling(resample=smc.resample_stop_gradient)),
-                   ys, us, X0, P0, key=k)
+                   ys, us, x0=X0, P0=P0, key=k)
     np.testing.assert_array_equal(sg.states, plain.states)  # same forward pass
     np.testing.assert_array_equal(sg.loglik, plain.loglik)
     assert not np.array_equal(mine.states, plain.states)  # another scheme and threshold

@@ -92,7 +92,8 @@ def test_runs_last_chunked_equals_one_chunk(study, build):
     est = build(model, Q, R)
     kw = dict(x0=x0, P0=P0, return_covariances=True, progress=False)
     one = vj.run(est, ys, us, **kw)
-    chunked = vj.run(est, ys, us, chunk_size=4, **kw)  # 6 runs: a full and a padded chunk
+    # 6 runs: a full and a padded chunk
+    chunked = vj.run(est, ys, us, execution=vj.Execution(chunk_size=4), **kw)
     _assert_same(chunked, one, 1e-12)
 
 

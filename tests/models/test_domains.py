@@ -105,7 +105,7 @@ def test_inside_the_domain_builds_and_simulates_finite(built, us, wide):
     assert np.all(dom.inside(theta))
     rebuilt = type(model)(theta=theta, **({"tyres": model.tyres} if hasattr(model, "tyres") else {}))
     np.testing.assert_array_equal(np.asarray(rebuilt.theta), theta)
-    sim = vj.simulate(model, scn, runs=1, theta=theta)
+    sim = vj.simulate(model, scn, runs=1, params=vj.ParamDraw(theta=theta))
     assert np.all(np.isfinite(np.asarray(sim.states)))
     assert np.all(np.isfinite(np.asarray(sim.measurements)))
     if not wide:
@@ -136,10 +136,12 @@ def test_outside_the_domain_refused_naming_the_parameter(built, j, u):
         type(model)(theta=theta, **kw)
     with pytest.raises(ValueError, match=r"^with_theta: " + pattern):
         model.with_theta(**{name: float(theta[j])})
-    with pytest.raises(ValueError, match=r"^theta: " + pattern):
-        vj.simulate(model, scn, theta=theta)
-    with pytest.raises(ValueError, match=r"^theta: " + pattern.replace(" = .*", r" = .* \(run 1\)")):
-        vj.simulate(model, scn, runs=2, theta=np.stack([np.asarray(model.theta), theta]))
+    with pytest.raises(ValueError, match=r"^params.theta: " + pattern):
+        vj.simulate(model, scn, params=vj.ParamDraw(theta=theta))
+    with pytest.raises(ValueError,
+                       match=r"^params.theta: " + pattern.replace(" = .*", r" = .* \(run 1\)")):
+        vj.simulate(model, scn, runs=2,
+                    params=vj.ParamDraw(theta=np.stack([np.asarray(model.theta), theta])))
     est = _ekf(model)
     nx, ny = len(model.state_names), len(model.output_names)
     ys = np.zeros((3, ny))
@@ -154,9 +156,9 @@ def test_per_run_theta_names_the_run():
     model = SingleTrack()
     theta = np.tile(np.asarray(model.theta), (3, 1))
     theta[2, 0] = -1.0
-    with pytest.raises(ValueError, match=r"^theta: parameter 'm' = -1 \(run 2\) is outside its "
-                                         r"domain \(0, inf\) in SingleTrack"):
-        vj.simulate(model, _scenario(model), runs=3, theta=theta)
+    with pytest.raises(ValueError, match=r"^params.theta: parameter 'm' = -1 \(run 2\) is "
+                                         r"outside its domain \(0, inf\) in SingleTrack"):
+        vj.simulate(model, _scenario(model), runs=3, params=vj.ParamDraw(theta=theta))
 
 
 @pytest.mark.parametrize("name", ["cf", "cr"])
@@ -208,7 +210,7 @@ def test_user_model_without_domains_unchanged_with_domains_checked():
     res = vj.filter(est, np.zeros((3, 1)), None, x0=np.zeros(1), P0=np.eye(1), theta0=[-7.0])
     assert not bool(res.diverged)
     sim = vj.simulate(model, vj.scenarios.from_inputs(model, np.zeros((3, 0)), np.ones(1)),
-                      theta=[-7.0])
+                      params=vj.ParamDraw(theta=[-7.0]))
     assert sim.states.shape == (1, 3, 1)
     with pytest.raises(ValueError, match=r"^theta: parameter 'a' = -5 is outside its domain "
                                          r"\(0, 1\] in Model"):
@@ -234,7 +236,7 @@ def test_simulate_flags_an_exploding_user_model_at_the_first_non_finite_state():
     with np.errstate(over="ignore"):
         ref = np.cumprod(np.full(T, 1e3))
     first = int(np.argmax(~np.isfinite(ref)))
-    sim = vj.simulate(model, scn, runs=2, theta=np.array([[1e3], [0.5]]))
+    sim = vj.simulate(model, scn, runs=2, params=vj.ParamDraw(theta=np.array([[1e3], [0.5]])))
     np.testing.assert_array_equal(np.asarray(sim.diverged), [True, False])
     np.testing.assert_array_equal(np.asarray(sim.diverged_at), [first, -1])
     states = np.asarray(sim.states)

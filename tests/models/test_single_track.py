@@ -396,9 +396,9 @@ def test_nan_reference_column_is_skipped_by_the_filter(cls):
     ys_ref = np.concatenate([ys, np.full((len(ys), 2), np.nan)], axis=1)
     Q = np.diag([1e-4, 1e-5, 1e4, 1e4][:plain.nx])
     P0 = np.diag([1e-2, 1e-3, 1e6, 1e6][:plain.nx])
-    a = vehjax.filter(vehjax.filters.ekf(plain, Q, np.diag([0.09, 2.5e-5])), ys, u, x0, P0)
+    a = vehjax.filter(vehjax.filters.ekf(plain, Q, np.diag([0.09, 2.5e-5])), ys, u, x0=x0, P0=P0)
     b = vehjax.filter(vehjax.filters.ekf(ref, Q, np.diag([0.09, 2.5e-5, 0.01, 1e-4])), ys_ref,
-                      u, x0, P0)
+                      u, x0=x0, P0=P0)
     assert np.all(np.isfinite(np.asarray(b.loglik)))
     np.testing.assert_allclose(np.asarray(b.loglik), np.asarray(a.loglik), rtol=1e-12)
     np.testing.assert_allclose(np.asarray(b.states), np.asarray(a.states), rtol=1e-12,
@@ -406,7 +406,7 @@ def test_nan_reference_column_is_skipped_by_the_filter(cls):
     # with the reference present the filter uses it: a different likelihood
     ys_ok = np.concatenate([ys, np.zeros((len(ys), 2))], axis=1)
     c = vehjax.filter(vehjax.filters.ekf(ref, Q, np.diag([0.09, 2.5e-5, 0.01, 1e-4])), ys_ok,
-                      u, x0, P0)
+                      u, x0=x0, P0=P0)
     assert abs(float(np.sum(c.loglik)) - float(np.sum(a.loglik))) > 1.0
 
 

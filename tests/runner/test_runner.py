@@ -47,7 +47,7 @@ def test_compiled_studies_live_in_the_one_cache():
     ys = np.zeros((2, 4, EST.ny))
     us = np.zeros((4, EST.nu))
     kw = dict(x0=np.zeros(EST.nx), P0=np.eye(EST.nx),
-              compiler_options={"xla_backend_optimization_level": 1})
+              execution=vj.Execution(compiler_options={"xla_backend_optimization_level": 1}))
     vj.run(EST, ys, us, **kw)
     n = len(eager.CACHE)
     held = [entry[0] for entry in eager.CACHE.values()]
@@ -64,7 +64,8 @@ def test_chunk_shapes_are_those_of_every_chunks_arguments():
     ys = np.zeros((5, 4, EST.ny))
     us = np.zeros((5, 4, EST.nu))
     x0, P0 = np.zeros((5, EST.nx)), np.eye(EST.nx)
-    p = plan.plan(pf, ys, us, x0, P0, None, None, jax.random.key(0), False, 2, None, None)
+    p = plan.plan(pf, ys, us, x0, P0, None, None, jax.random.key(0), False, None,
+                  vj.Execution(chunk_size=2))
     assert p.n_chunks == 3
     specs = shard.chunk_shapes(p)
     for i in range(p.n_chunks):
@@ -73,5 +74,6 @@ def test_chunk_shapes_are_those_of_every_chunks_arguments():
             [None if s is None else (s.shape, s.dtype) for s in specs]
     # the filter's carried numbers are found once per estimator and shapes
     n = len(eager.CACHE)
-    plan.plan(pf, ys + 1.0, us, x0, P0, None, None, jax.random.key(1), False, 2, None, None)
+    plan.plan(pf, ys + 1.0, us, x0, P0, None, None, jax.random.key(1), False, None,
+              vj.Execution(chunk_size=2))
     assert len(eager.CACHE) == n

@@ -102,7 +102,8 @@ def _smoothed(n, reps=8):
     est = _known_noise_mpf(n)
 
     def one(key):
-        return vj.smooth(est, ys, us, x0=X0, P0=P0, key=key, n_trajectories=n)
+        return vj.smooth(est, ys, us, x0=X0, P0=P0, key=key,
+                         method=vj.smoothers.AncestorPaths(n_trajectories=n))
 
     keys = jax.random.split(jax.random.key(5), reps)
     return jax.jit(jax.vmap(one))(keys)
@@ -267,7 +268,7 @@ def test_single_track_bank_smoke():
     est, P0b = _bank_mpf(model)
     key = jax.random.key(2)
     sm = jax.jit(lambda: vj.smooth(est, Y, U, x0=np.zeros(5), P0=P0b, key=key,
-                                   n_trajectories=8))()
+                                   method=vj.smoothers.AncestorPaths(n_trajectories=8)))()
     assert sm.states.shape == (Tb, 5) and sm.covariances.shape == (Tb, 5, 5)
     assert sm.params.shape == (Tb, 8) and sm.params_cov.shape == (Tb, 8, 8)
     assert not bool(sm.diverged)
@@ -286,7 +287,7 @@ def test_single_track_bank_long_drive_smoothed_covariances_are_psd():
     U, Y = _bank_drive(model, Tb, np.zeros(5), seed=1)
     est, P0b = _bank_mpf(model)
     sm = jax.jit(lambda: vj.smooth(est, Y, U, x0=np.zeros(5), P0=P0b, key=jax.random.key(5),
-                                   n_trajectories=8))()
+                                   method=vj.smoothers.AncestorPaths(n_trajectories=8)))()
     assert not bool(sm.diverged)
     assert_psd(sm.covariances)
     assert np.all(np.isfinite(sm.cross_covariances))
@@ -529,7 +530,9 @@ def _smoothed_linear(n, reps=8, method=None):
                                   forgetting=1.0, nu0=1e7, gamma0=1e-9))
 
     def one(key):
-        return vj.smooth(est, ys, us, x0=X0, P0=P0, key=key, n_trajectories=n, method=method)
+        return vj.smooth(est, ys, us, x0=X0, P0=P0, key=key,
+                         method=vj.smoothers.methods.BY_NAME[method or "ancestor"](
+                             n_trajectories=n))  # None: the marginalized PF's ancestor paths
 
     keys = jax.random.split(jax.random.key(5), reps)
     return jax.jit(jax.vmap(one))(keys)

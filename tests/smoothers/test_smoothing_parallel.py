@@ -149,15 +149,15 @@ def test_parallel_ieks_converges_to_scipy_map(pend):
     model, ys, us = pend
     est = vj.filters.ekf(model, QP, RP)
     ref = _map_trajectory(ys, us)
-    sm = jax.jit(lambda y: vj.smooth(est, y, us, x0=M0, P0=PP0, method="ieks", tol=1e-10,
-                                     max_iter=40, parallel=True))(ys)
+    sm = jax.jit(lambda y: vj.smooth(est, y, us, x0=M0, P0=PP0, method=vj.smoothers.IEKS(
+        tol=1e-10, max_iter=40, parallel=True)))(ys)
     assert bool(sm.converged) and not bool(sm.diverged)
     assert 1 < int(sm.iterations) < 40
     np.testing.assert_allclose(sm.states, ref, atol=1e-7)
     rts = vj.smooth(est, ys, us, x0=M0, P0=PP0)
     assert np.abs(rts.states - ref).max() > 1e-4  # the plain extended RTS is not the MAP
-    one = jax.jit(lambda y: vj.smooth(est, y, us, x0=M0, P0=PP0, method="ieks", tol=1e-12,
-                                      max_iter=1))(ys)
+    one = jax.jit(lambda y: vj.smooth(est, y, us, x0=M0, P0=PP0, method=vj.smoothers.IEKS(
+        tol=1e-12, max_iter=1)))(ys)
     assert not bool(one.converged) and int(one.iterations) == 1
 
 
@@ -168,9 +168,10 @@ def test_ipls_fixed_point_from_two_starts(pend):
     doubling)."""
     model, ys, us = pend
     est = vj.filters.ckf(model, QP, RP)
-    run = jax.jit(lambda y, init, par: vj.smooth(est, y, us, x0=M0, P0=PP0, method="ipls",
-                                                 tol=1e-10, max_iter=60, initial=init,
-                                                 parallel=par), static_argnums=2)
+    run = jax.jit(lambda y, init, par: vj.smooth(est, y, us, x0=M0, P0=PP0,
+                                                 method=vj.smoothers.IPLS(
+                                                     tol=1e-10, max_iter=60, initial=init,
+                                                     parallel=par)), static_argnums=2)
     a = run(ys, None, False)
     b = run(ys, np.tile(M0, (TN, 1)), "doubling")
     for r in (a, b):
@@ -187,8 +188,8 @@ def test_sequential_ieks_map_and_loglik_gradient_equals_finite_differences(pend)
 
     def sm(g):
         est = vj.filters.ekf(model, QP, RP)
-        return vj.smooth(est, ys, us, x0=M0, P0=PP0, theta0=jnp.array([g]), method="ieks",
-                         tol=1e-12, max_iter=60)
+        return vj.smooth(est, ys, us, x0=M0, P0=PP0, theta0=jnp.array([g]),
+                         method=vj.smoothers.IEKS(tol=1e-12, max_iter=60))
 
     g0, h = 9.0, 1e-4
     # one program: the log-likelihood, its gradient and the smoothing (as auxiliary output)

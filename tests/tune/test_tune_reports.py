@@ -150,7 +150,7 @@ def test_single_step_fit_with_the_default_optimizer_does_not_fail(y):
     S = max(y * y, a * a * P0[0, 0])
     best = -0.5 * (y * y / S + np.log(2 * np.pi * S))
     assert res.loglik == pytest.approx(best, rel=1e-6, abs=1e-6) and res.converged
-    out = vj.filter(res.estimator, ys, us, np.zeros(1), P0)  # the estimator is built
+    out = vj.filter(res.estimator, ys, us, x0=np.zeros(1), P0=P0)  # the estimator is built
     assert np.all(np.isfinite(np.asarray(out.loglik)))
     if y == 0.0:
         assert {k: v[:2] for k, v in res.on_bound.items()} == {

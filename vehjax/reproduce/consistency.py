@@ -110,7 +110,7 @@ _MPFS = {"MPF": {}, "MPF (known noise)": _KNOWN_NOISE, "MPF-G": dict(kalman_stat
          "MPF-K (inverse-Wishart)": dict(builder="grid", sensor_variances="inverse-wishart")}
 TARGET = 0.90
 
-#: XLA options of the pairs that need them (``vehjax.run``'s ``compiler_options``): LLVM at
+#: XLA options of the pairs that need them (``vehjax.Execution``'s ``compiler_options``): LLVM at
 #: level 3 compiles the bootstrap PF's step on SevenDOF vmapped over runs for many minutes. That
 #: pair is the study's longest by far to run too: every particle takes one RK4 transition with
 #: 10 sub-steps of the 7-DOF model per step (``vehjax bench sevendof`` measures its cost)
@@ -217,11 +217,13 @@ def check(estimator, Y, U, X, x0, P0, key, compiler_options=None, theta=None,
     parameter name -> index of the state that estimates it instead (the row with the biases as
     Kalman states). The NEES is over the truth's states, the first ``X.shape[-1]``."""
     from .. import metrics
+    from ..execution import Execution
     from ..run import run
 
     out, seconds = reporting.timed(run, estimator, Y, U, x0=x0, P0=P0,
                                  key=key if estimator.needs_key else None,
-                                 return_covariances=True, compiler_options=compiler_options)
+                                 return_covariances=True,
+                                 execution=Execution(compiler_options=compiler_options))
     nx = X.shape[-1]
     keep = ~out.diverged
     e = metrics.nees(out.states[..., :nx], out.covariances[..., :nx, :nx], X)

@@ -259,7 +259,8 @@ def setup(runs, seed=0, duration=10.0, speed=80.0 / 3.6, param_error=0.3, r_fact
     # The noise-free drive, by the same compiled simulation as the noisy runs (zero stds).
     T, nx, ny = len(scn.inputs), len(truth_model.state_names), len(truth_model.output_names)
     nom = vj.simulate(truth_model, scn, runs=runs, process_std=np.zeros(nx),
-                      meas_std=np.zeros(ny), process_scale=np.ones(T), meas_scale=np.ones(T))
+                      meas_std=np.zeros(ny),
+                      noise_scale=vj.NoiseScale(process=np.ones(T), meas=np.ones(T)))
     process_std = _PROCESS_FRACTION * np.ptp(np.asarray(nom.states[0]), axis=0)
     meas_std = _MEAS_FRACTION * np.ptp(np.asarray(nom.measurements[0]), axis=0)
     sims = {}
@@ -271,7 +272,8 @@ def setup(runs, seed=0, duration=10.0, speed=80.0 / 3.6, param_error=0.3, r_fact
             sine = _sine(np.arange(T) * truth_model.dt)
             s = vj.simulate(truth_model, scn, runs=runs, key=jax.random.key(seed),
                             process_std=process_std, meas_std=meas_std,
-                            process_scale=sine if kind == "both" else one, meas_scale=sine)
+                            noise_scale=vj.NoiseScale(process=sine if kind == "both" else one,
+                                                      meas=sine))
             sims[kind] = (s, _derived(truth_model, s.states, s.inputs, truth_model.theta))
         return sims[kind]
 

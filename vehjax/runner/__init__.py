@@ -3,8 +3,8 @@ runs is scheduled, never what one run computes (that is :mod:`vehjax.engine`'s).
 
 ::
 
-    p = plan.plan(est, ys, us, x0, P0, theta0, P_theta0, key, return_covariances, chunk_size,
-                  progress, devices, strategy, smooth)        # checked, before any trace
+    p = plan.plan(est, ys, us, x0, P0, theta0, P_theta0, key, return_covariances,
+                  progress, execution, smooth)       # checked, before any trace
     out = execute.execute(p, chunk_fn, progress)              # chunk by chunk, a RunResult
 
 Modules:

@@ -3,8 +3,8 @@ runs inside a chunk, its devices and mesh, and the memory checks, all before any
 
 ::
 
-    p = plan(est, ys, us, x0, P0, theta0, P_theta0, key, return_covariances, chunk_size,
-             progress, devices, strategy, smooth)
+    p = plan(est, ys, us, x0, P0, theta0, P_theta0, key, return_covariances, progress,
+             execution, smooth)            # vehjax.run's arguments (execution: an Execution)
     p.chunk, p.n_chunks, p.block        # runs per jitted call, calls, runs side by side
 
 The arguments are checked by :func:`vehjax.engine.check_arguments` (the one check every entry
@@ -25,7 +25,9 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
-from .. import engine, execution, smoothing, validation
+from .. import engine, smoothing, validation
+from .. import execution as platform
+from ..execution import Execution
 from ..filters.base import Estimator
 from ..runtime import eager
 from .shard import AXIS, check_same_study
@@ -53,7 +55,7 @@ class Plan(NamedTuple):
     progress: bool | None
     spans_processes: bool = False  # the mesh holds other processes' devices (jax.distributed)
     block: int | None = None  # runs vmapped side by side inside a chunk (None: all)
-    strategy: execution.Strategy | None = None  # how it executes (vehjax.execution)
+    strategy: platform.Strategy | None = None  # how it executes (vehjax.execution)
     smooth: str | None = None  # the smoothing method (vehjax.smoothing.METHODS), or None
 
 
@@ -99,17 +101,11 @@ def check_progress(progress) -> None:
     validation.flag("progress", progress, allow_none=True)
 
 
-def _check_options(return_covariances, progress, chunk_size) -> None:
-    """ValueError naming the option unless ``return_covariances`` is a bool, ``progress`` None
-    or a bool and ``chunk_size`` None or an integer >= 1."""
+def _check_options(return_covariances, progress) -> None:
+    """ValueError naming the option unless ``return_covariances`` is a bool and ``progress``
+    None or a bool (the fields of :class:`vehjax.execution.Execution` check themselves)."""
     validation.flag("return_covariances", return_covariances)
     check_progress(progress)
-    if chunk_size is not None and (
-        isinstance(chunk_size, (bool, np.bool_))
-        or not isinstance(chunk_size, (int, np.integer))
-        or chunk_size < 1
-    ):
-        raise ValueError(f"chunk_size: expected None or an integer >= 1, got {chunk_size!r}")
 
 
 def _smooth_method(estimator, smooth) -> str | None:
@@ -121,43 +117,39 @@ def _smooth_method(estimator, smooth) -> str | None:
         raise ValueError(f"smooth: expected True, False or one of {smoothing.METHODS}, got "
                          f"{smooth!r}")
     try:
-        return smoothing.check_options(estimator, None if smooth is True else smooth)[0]
+        return smoothing.check_options(estimator, None if smooth is True else smooth).name
     except ValueError as err:
         raise ValueError(f"smooth: {err}") from None
 
 
-def _devices(devices) -> tuple:
-    devs = tuple(execution.resolve_devices(devices))
-    if len(set(devs)) != len(devs):  # a mesh of repeated devices fails deep inside JAX
-        raise ValueError(f"devices: expected each device at most once, got {list(devs)}")
-    return devs
-
-
 def plan(estimator, measurements, inputs, x0, P0, theta0, P_theta0, key, return_covariances,
-         chunk_size, progress, devices, strategy=None, smooth=False) -> Plan:
-    """The :class:`Plan` of a study of ``vehjax.run``'s arguments (less ``compiler_options``),
-    checked (ValueError naming the argument) before anything is traced; under
-    ``jax.distributed`` also checked to be the same in every process
+         progress, execution=None, smooth=False) -> Plan:
+    """The :class:`Plan` of a study of ``vehjax.run``'s arguments (its one signature; of
+    ``execution``, a :class:`vehjax.Execution` or None, the ``compiler_options`` are
+    ``run``'s to apply), checked (ValueError naming the argument) before anything is traced;
+    under ``jax.distributed`` also checked to be the same in every process
     (:func:`vehjax.runner.shard.check_same_study`)."""
     ys, us, x0, P0, th0, Pth0, keys = engine.check_arguments(
         estimator, measurements, inputs, x0, P0, theta0, P_theta0, key, study=True)
-    _check_options(return_covariances, progress, chunk_size)
+    _check_options(return_covariances, progress)
+    ex = validation.record("execution", execution, Execution)
     R, T, _ = ys.shape
     nx = int(estimator.nx)
 
     method = _smooth_method(estimator, smooth)
-    devs = _devices(devices)
+    devs = tuple(platform.resolve_devices(ex.devices))
     n_dev = len(devs)
-    strat = execution.resolve(strategy, devs[0])
+    strat = platform.resolve(ex.strategy, devs[0])
     numbers = _state_numbers(estimator, x0, P0, th0, Pth0, keys)
     run_bytes, result_bytes = per_run_bytes(estimator, ys, numbers, bool(return_covariances))
     if method is not None:  # a smoother keeps the filter's states and its cross-covariances
         run_bytes += 3 * T * 8 * numbers
         result_bytes += T * 8 * nx * nx if return_covariances else 0
-    execution.check_fits(run_bytes, R * result_bytes, devs[0])
-    block = execution.block_size(strat, numbers)
+    platform.check_fits(run_bytes, R * result_bytes, devs[0])
+    block = platform.block_size(strat, numbers)
+    chunk_size = ex.chunk_size
     if chunk_size is None:
-        chunk_size = execution.chunk_runs(strat, run_bytes, T, numbers)
+        chunk_size = platform.chunk_runs(strat, run_bytes, T, numbers)
     # Balance the chunks and make each a multiple of the device count.
     chunk = balanced_blocks(R, int(chunk_size))[1]
     chunk = math.ceil(chunk / n_dev) * n_dev

@@ -77,7 +77,7 @@ def check_same_study(plan) -> None:
         raise ValueError(
             f"vehjax.run under jax.distributed ({jax.process_count()} processes): every process "
             f"must call it with the same arguments (measurements, inputs, x0, P0, theta0, "
-            f"P_theta0, key, chunk_size, return_covariances, devices); process "
+            f"P_theta0, key, return_covariances, execution); process "
             f"{jax.process_index()} found them to differ between processes"
         )
 

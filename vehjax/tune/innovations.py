@@ -246,7 +246,7 @@ def fitted_innovations(setup):
         P0 = jnp.diag(P0) if P0.ndim == 1 else P0
 
         def one(y, u, a, B):
-            out = run_filter(est, y, u, a, B)
+            out = run_filter(est, y, u, x0=a, P0=B)
             uu = jnp.zeros((T, 0), y.dtype) if u is None else u
             return one_step_predictions(model, Q, R, y, uu, out.states, out.covariances, a, B,
                                         Lu)

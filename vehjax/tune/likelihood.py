@@ -279,7 +279,7 @@ def _per_step(at):
         est, _, _, _, _, x0v = at(z, data)
 
         def one(y, u, xi, Pi, k):
-            res = _filter(est, y, u, xi, Pi, key=k, return_covariances=False)
+            res = _filter(est, y, u, x0=xi, P0=Pi, key=k, return_covariances=False)
             return res.loglik, res.diverged
 
         # the prior given per run: the filter's carried state is batched over the runs from
