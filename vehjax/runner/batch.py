@@ -117,10 +117,23 @@ def runs_last_study(estimator: Estimator, return_cov: bool, prefetch: bool, per_
 
 def vmapped_study(estimator, return_cov, per_run, block, *args):
     """`engine.one_run` over the runs (leading axis of the per-run arguments), in
-    blocks of ``block`` runs vmapped side by side (all at once when ``block`` is None)."""
+    blocks of ``block`` runs vmapped side by side (all at once when ``block`` is None). A
+    chunk of one run is computed unbatched (:func:`one_run_study`)."""
     one = partial(engine.one_run, estimator, return_cov)
+    if args[0].shape[0] == 1:
+        return one_run_study(one, per_run, args)
     side_by_side = jax.vmap(one, in_axes=tuple(0 if r else None for r in per_run))
     return blocked(side_by_side, per_run, block, args)
+
+
+def one_run_study(one, per_run, args):
+    """``one`` (the one-run engine) on a chunk of one run: the per-run arguments' runs axis
+    dropped, the outputs given it back. The program is then :func:`vehjax.filter`'s: a
+    vmap over a runs axis of length 1 compiles its small matrix products as batched ones,
+    which XLA:CPU runs slower (Dynamic3DOF EKF, 20,000 steps: 1.44 against 0.91 us a step,
+    ``benchmarks/bench_floor.py --model 3dof``)."""
+    res = one(*(a[0] if r else a for a, r in zip(args, per_run)))
+    return jax.tree.map(lambda a: a[None], res)
 
 
 def blocked(side_by_side, per_run, block, args):
