@@ -154,10 +154,11 @@ def contenders(model, ys, us):
     compiled = vehjax.compile_run(vehjax.filters.ekf(model, Q, R), ys[None], us, x0=X0, P0=P0,
                                   progress=False)
     out["run EKF"] = (lambda: compiled().states, ())
-    obj, setup = vehjax.tune.likelihood.prepare(
-        vehjax.filters.ekf, model, Q, R, ys, us, X0, P0, ("cf", "cr"), None, ("R",), False,
-        None, None)  # the objective of vehjax.tune.objective(..., params=("cf", "cr"),
-    # noise=("R",)) and its per-step form, which the fit's forward-mode program differentiates
+    obj, setup = vehjax.tune.prepare(
+        vehjax.filters.ekf, model, Q, R, ys, us, x0=X0, P0=P0,
+        params=vehjax.tune.Fitted(("cf", "cr"), noise=("R",)))  # the objective of
+    # vehjax.tune.objective and its per-step form, which the fit's forward-mode program
+    # differentiates
     out["loss"] = (jax.jit(lambda z, d: obj.loss(z, d)[0]), (obj.z0, obj.data))
     out["loss+grad"] = (jax.jit(jax.value_and_grad(lambda z, d: obj.loss(z, d)[0])),
                         (obj.z0, obj.data))

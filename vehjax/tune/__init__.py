@@ -11,16 +11,11 @@
 
     res = vehjax.tune.fit(vehjax.filters.ekf, model, Q0, R0, ys, us, x0=x0, P0=P0,
                           params=("m", "iz"))                 # model parameters too
-    res = vehjax.tune.fit(vehjax.filters.ekf, model, Q0, R0, ys, us, x0=x0, P0=P0,
-                          params=vehjax.tune.Fitted(("m", "iz"), noise=("R",)),
-                          options=vehjax.tune.Options(optimizer=vehjax.tune.LBFGS(steps=50),
-                                                      progress=False))
 
-What is fitted is ``params``: names, or :class:`Fitted` (the names, the noise, x0, bounds,
-priors); how, ``options``: :class:`Options` (the optimiser, one record each: :class:`Adam`,
-:class:`LBFGS`, :class:`Scoring`, :class:`FirstOrder`; the standard errors,
-:class:`StandardErrors`; the progress bar; a particle filter's key); where from, ``start`` of
-:func:`fit`: "data", "theta" or :class:`Start` (:mod:`vehjax.tune.options`).
+What is fitted: ``params``, names or :class:`Fitted` (names, noise, x0, bounds, priors); how:
+``options``, :class:`Options` (the optimiser, a record each: :class:`Adam`, :class:`LBFGS`,
+:class:`Scoring`, :class:`FirstOrder`; :class:`StandardErrors`; progress; a particle filter's
+key); where from: ``start``, "data", "theta" or :class:`Start` (:mod:`vehjax.tune.options`).
 
 The objective is the summed log-likelihood ``sum_r vehjax.filter(est, y_r, u_r, ...).loglik.sum()``
 over a batch of runs (one run ``(T, ny)`` or a batch ``(R, T, ny)``), ``jax.grad`` of it through
