@@ -23,8 +23,7 @@ from . import boundaries, diagnostics
 from . import priors as tune_priors
 from .information import MAX_SCALED_STD, difference_hessian, uncertainty
 from .likelihood import NOISE, prepare_fit
-from .options import (LBFGS, Adam, FirstOrder, Fitted, Options, Scoring, fitted,
-                      optimizer_name)
+from .options import LBFGS, Adam, Fitted, Options, Scoring, fitted, optimizer_name
 from .quantities import coordinates, fitted_quantities
 from .result import TuneResult, make_result
 
