@@ -191,11 +191,15 @@ def time_fit(steps: int, seed: int = 0, baseline: bool = False):
     ys, us = single_track_data(steps, seed)
     builder, model, Q0, R0 = (kw.pop(k) for k in ("builder", "model", "Q0", "R0"))
     saved = vt.program.FORWARD_MAX
+    optimizer = None
     if baseline:
-        vt.program.FORWARD_MAX, kw["optimizer"] = 0, "lbfgs"
+        vt.program.FORWARD_MAX, optimizer = 0, "lbfgs"
     try:
         c0, w0 = time.process_time(), time.perf_counter()
-        res = vt.fit(builder, model, Q0, R0, ys, us, progress=False, **kw)
+        res = vt.fit(builder, model, Q0, R0, ys, us, x0=kw["x0"], P0=kw["P0"],
+                     params=vt.Fitted(kw["params"], noise=kw["noise"]),
+                     builder_kwargs=kw.get("builder_kwargs"),
+                     options=vt.Options(optimizer=optimizer, progress=False))
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
     finally:
         vt.program.FORWARD_MAX = saved
@@ -242,7 +246,8 @@ def batched_fits(problem: str, runs: int, steps: int, seed0: int = 1000, iters: 
         bk["input_noise"] = {"delta": truth["input[delta]"]}
     R_true = np.array([truth[k] for k in truth if k.startswith("R[")])
     obj = vt.objective(kw["builder"], model, kw["Q0"], R_true, ys[0], us[0], x0=kw["x0"],
-                       P0=kw["P0"], params=kw["params"], noise=kw["noise"], builder_kwargs=bk)
+                       P0=kw["P0"], params=vt.Fitted(kw["params"], noise=kw["noise"]),
+                       builder_kwargs=bk)
     flat0, unravel = jax.flatten_util.ravel_pytree(obj.z0)
     n = flat0.shape[0]
     names = list(truth)

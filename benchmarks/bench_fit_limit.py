@@ -51,11 +51,11 @@ def fit(drive, tyres: str, start: str = "data"):
     t0, c0 = time.perf_counter(), time.process_time()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = vehjax.tune.fit(vehjax.filters.ekf, start_model(tyres, drive.body),
-                              np.zeros((2, 2)), R0, drive.measurements, drive.inputs, x0=X0,
-                              P0=P0, params=PARAMS[tyres], noise=("R", "input"),
-                              builder_kwargs={"input_noise": INPUT0}, progress=False,
-                              start=start)
+        res = vehjax.tune.fit(vehjax.filters.ekf, start_model(tyres, drive.body), np.zeros((2, 2)),
+                              R0, drive.measurements, drive.inputs, x0=X0, P0=P0,
+                              params=vehjax.tune.Fitted(PARAMS[tyres], noise=("R", "input")),
+                              builder_kwargs={"input_noise": INPUT0},
+                              options=vehjax.tune.Options(progress=False), start=start)
     return res, time.perf_counter() - t0, time.process_time() - c0, [str(w.message) for w in
                                                                      caught]
 

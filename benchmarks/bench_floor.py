@@ -274,10 +274,11 @@ def contenders(model, ys, us):
     """{row: (callable, what it was compiled with)} of vehjax's paths on the single-track
     problem, each compiled here: :func:`filter_rows` and the fit's loss rows."""
     out = filter_rows(model, ys, us, Q, R, X0, P0)
-    obj, setup = vehjax.tune.likelihood.prepare(
-        vehjax.filters.ekf, model, Q, R, ys, us, X0, P0, ("cf", "cr"), None, ("R",), False,
-        None, None)  # the objective of vehjax.tune.objective(..., params=("cf", "cr"),
-    # noise=("R",)) and its per-step form, which the fit's forward-mode program differentiates
+    obj, setup = vehjax.tune.prepare(
+        vehjax.filters.ekf, model, Q, R, ys, us, x0=X0, P0=P0,
+        params=vehjax.tune.Fitted(("cf", "cr"), noise=("R",)))  # the objective of
+    # vehjax.tune.objective and its per-step form, which the fit's forward-mode program
+    # differentiates
     out["loss"] = (jax.jit(lambda z, d: obj.loss(z, d)[0]), (obj.z0, obj.data))
     out["loss+grad"] = (jax.jit(jax.value_and_grad(lambda z, d: obj.loss(z, d)[0])),
                         (obj.z0, obj.data))

@@ -76,7 +76,7 @@ def without_reference(drive) -> np.ndarray:
     return np.column_stack([drive.measurements, np.full(drive.t.size, np.nan)])
 
 
-def fit(drive, params, references=(), tyres="linear", **options):
+def fit(drive, params, references=(), tyres="linear", start="data"):
     """The documented fit on ``drive`` with ``params`` free: (TuneResult, wall s); with
     ``references=("vy",)`` the model observes the reference too (:func:`with_reference`);
     saturating ``tyres`` start at the model's nominal mu (and shape factors)."""
@@ -86,9 +86,10 @@ def fit(drive, params, references=(), tyres="linear", **options):
     ys = with_reference(drive) if references else drive.measurements
     r0 = np.append(R0, REFERENCE_STD ** 2) if references else R0
     t0 = time.perf_counter()
-    res = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)), r0, ys,
-                          drive.inputs, x0=X0, P0=P0, params=params, noise=("R", "input"),
-                          builder_kwargs={"input_noise": INPUT0}, progress=False, **options)
+    res = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)), r0, ys, drive.inputs, x0=X0,
+                          P0=P0, params=vehjax.tune.Fitted(params, noise=("R", "input")),
+                          builder_kwargs={"input_noise": INPUT0},
+                          options=vehjax.tune.Options(progress=False), start=start)
     return res, time.perf_counter() - t0
 
 
@@ -142,7 +143,8 @@ def second_car_table(duration: float):
           f"{'iz':>16} {'fit s':>6}")
     fits = {}
     for label, params, options in (("documented", ("cf", "cr"), {}),
-                                   ("as given", ("cf", "cr"), {"release": False}),
+                                   ("as given", ("cf", "cr"),
+                                    {"start": vehjax.tune.Start(release=False)}),
                                    ("iz freed", ("cf", "cr", "iz"), {}),
                                    ("reference", ("cf", "cr"), {"references": ("vy",)}),
                                    ("brush", ("cf", "cr", "mu"), {"tyres": "brush"})):
@@ -179,8 +181,9 @@ def rav4_table(quick: bool = False):
     kw = {"input_noise": {"delta": 0.05 * deg}}
     start = time.perf_counter()
     res = vehjax.tune.fit(vehjax.filters.ekf, model, Q, R, y_tr, u_tr, x0=np.zeros(4), P0=P0r,
-                          params=("cf", "cr"), noise=(), builder_kwargs=kw, steps=50,
-                          progress=False)
+                          params=vehjax.tune.Fitted(("cf", "cr"), noise=()), builder_kwargs=kw,
+                          options=vehjax.tune.Options(optimizer=vehjax.tune.Scoring(steps=50),
+                                                      progress=False))
     wall = time.perf_counter() - start
     out = vehjax.filter(res.estimator, y_te, u_te, x0=np.zeros(4), P0=P0r)
     ref = np.arctan(test.reference["ref_vy"] / u_te[:, 1])

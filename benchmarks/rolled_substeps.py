@@ -47,8 +47,9 @@ def fit_one(rolled: bool, duration: float, out: str) -> None:
     with execution.using(CPU._replace(rolled_substeps=rolled)):
         obj, setup = likelihood.prepare(
             vehjax.filters.ekf, model, np.zeros((2, 2)), bl.R0, drive.measurements,
-            drive.inputs, bl.X0, bl.P0, bl.PARAMS["brush"], None, ("R", "input"), False, None,
-            {"input_noise": bl.INPUT0})
+            drive.inputs, x0=bl.X0, P0=bl.P0,
+            params=vehjax.tune.Fitted(bl.PARAMS["brush"], noise=("R", "input")),
+            builder_kwargs={"input_noise": bl.INPUT0})
         flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
         fn = program._program(obj, setup, unravel, flat.shape[0], True)
         f = jnp.asarray(flat)

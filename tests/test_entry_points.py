@@ -99,7 +99,7 @@ def _entry_points(ys, us, x0, P0, which):
         "run": lambda: vj.run(EKF, ys, us, x0=x0, P0=P0, progress=False),
         "compile_run": lambda: vj.compile_run(EKF, ys, us, x0=x0, P0=P0, progress=False)(),
         "tune.objective": lambda: tune.objective(F.ekf, MODEL, Q, R, ys, us, x0=x0, P0=P0,
-                                                 noise=("R",)),
+                                                 params=tune.Fitted(noise=("R",))),
     }
     if which in ("inputs", "x0"):
         scn = vj.scenarios.Scenario("test", np.arange(T) * 0.1, us, x0, ("u",), None)
@@ -391,7 +391,8 @@ def test_tune_fit_refuses_a_dual_filter_naming_the_builder():
     for builder, kw in ((F.dual_ekf, None),
                         (F.dual_ekf, {"Q_theta": [1e-4], "estimate": "a"})):
         with pytest.raises(ValueError, match="^builder:"):
-            tune.fit(builder, MODEL, Q, R, YS, US, x0=X0, P0=P0, builder_kwargs=kw, steps=1)
+            tune.fit(builder, MODEL, Q, R, YS, US, x0=X0, P0=P0, builder_kwargs=kw,
+                     options=tune.Options(optimizer=tune.Scoring(steps=1)))
 
 
 def test_run_refuses_repeated_devices():

@@ -35,7 +35,7 @@ def data():
 def fit(c, ys, us, q0=1e-2):
     return vehjax.tune.fit_noise(vehjax.filters.ekf, gain_model(c), np.array([q0]),
                                  np.array([1e-2]), ys, us, x0=np.zeros(1), P0=P0,
-                                 progress=False)
+                                 options=vehjax.tune.Options(progress=False))
 
 
 @pytest.fixture(scope="module")

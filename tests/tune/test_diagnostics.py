@@ -73,11 +73,11 @@ def _scalar_fit(b_held, seed=0):
     ys, us = _scalar_data(seed)
     model = _scalar_model(b_held)
     args = (vehjax.filters.ekf, model, np.array([0.02]), np.array([0.02]), ys, us)
-    kw = dict(x0=np.zeros(1), P0=np.ones(1), params=("a",), noise=("Q", "R"))
+    kw = dict(x0=np.zeros(1), P0=np.ones(1), params=vehjax.tune.Fitted(("a",), noise=("Q", "R")))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = vehjax.tune.fit_from_theta(*args, **kw, progress=False)
-    obj, setup = prepare(*args, kw["x0"], kw["P0"], ("a",), None, ("Q", "R"), False, None, None)
+        res = vehjax.tune.fit_from_theta(*args, **kw, options=vehjax.tune.Options(progress=False))
+    obj, setup = prepare(*args, x0=kw["x0"], P0=kw["P0"], params=("a",))
     return res, obj, setup, ys, us, [str(w.message) for w in caught]
 
 
@@ -261,8 +261,10 @@ def _car_fit(drive, iz_held, release=False):
         warnings.simplefilter("always")
         res = vehjax.tune.fit(vehjax.filters.ekf, SingleTrack().with_theta(iz=iz_held),
                               np.diag([1e-6, 1e-8]), np.diag([0.05, 1e-5]), ys, us,
-                              x0=np.zeros(2), P0=np.eye(2) * 0.1, params=("cf", "cr"),
-                              noise=("R",), progress=False, release=release)
+                              x0=np.zeros(2), P0=np.eye(2) * 0.1,
+                              params=vehjax.tune.Fitted(("cf", "cr"), noise=("R",)),
+                              options=vehjax.tune.Options(progress=False),
+                              start=vehjax.tune.Start(release=release))
     return res, [str(w.message) for w in caught]
 
 

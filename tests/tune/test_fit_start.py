@@ -114,9 +114,10 @@ def test_the_fit_lands_at_scipys_bounded_optimum_on_a_short_drive(drives):
     names = ("cf", "cr", "mu")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        res = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)), R, ys, us, x0=x0,
-                              P0=P0, params=names, noise=(),
-                              builder_kwargs={"input_noise": {"delta": 0.003}}, progress=False)
+        res = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)), R, ys, us, x0=x0, P0=P0,
+                              params=vehjax.tune.Fitted(names, noise=()),
+                              builder_kwargs={"input_noise": {"delta": 0.003}},
+                              options=vehjax.tune.Options(progress=False))
     f = _neg_loglik(model, names, ys, us, R, x0, P0)
     scale = np.array([1e5, 1e5, 1.0])
     start = np.array([1.2e5, 1.4e5, 1.5])
@@ -141,11 +142,14 @@ def test_work_side_by_side_changes_the_time_not_the_result(drives):
         with vehjax.execution.using(vehjax.execution.current()._replace(side_by_side=side)), \
                 warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            out[side] = vehjax.tune.fit(
-                vehjax.filters.ekf, model, np.zeros((2, 2)), np.array([0.1, 1e-4]),
-                d.measurements[1500:3000], d.inputs[1500:3000], x0=np.zeros(2),
-                P0=np.array([0.1, 0.01]), params=("cf", "cr", "mu"), noise=("R", "input"),
-                builder_kwargs={"input_noise": {"delta": 0.002}}, progress=False)
+            out[side] = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)),
+                                        np.array([0.1, 1e-4]), d.measurements[1500:3000],
+                                        d.inputs[1500:3000], x0=np.zeros(2),
+                                        P0=np.array([0.1, 0.01]),
+                                        params=vehjax.tune.Fitted(("cf", "cr", "mu"),
+                                                                  noise=("R", "input")),
+                                        builder_kwargs={"input_noise": {"delta": 0.002}},
+                                        options=vehjax.tune.Options(progress=False))
     one, two = out[1], out[2]
     assert one.evaluations == two.evaluations and one.nested.loglik == two.nested.loglik
     np.testing.assert_allclose(two.loglik, one.loglik, rtol=1e-12)
@@ -166,10 +170,12 @@ def test_a_fit_held_in_the_trap_is_reported_with_both_likelihoods(drives):
         warnings.simplefilter("always")
         res = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)), np.array([0.1, 1e-4]),
                               d.measurements[:3000], d.inputs[:3000], x0=np.zeros(2),
-                              P0=np.array([0.1, 0.01]), params=("cf", "cr", "mu"),
-                              bounds={"mu": (0.5, 1.0)}, noise=("R", "input"), start="theta",
-                              builder_kwargs={"input_noise": {"delta": 0.002}}, progress=False,
-                              steps=20)   # the trap's report, not its last digits
+                              P0=np.array([0.1, 0.01]),
+                              params=vehjax.tune.Fitted(("cf", "cr", "mu"), noise=("R", "input"),
+                                                        bounds={"mu": (0.5, 1.0)}),
+                              start="theta", builder_kwargs={"input_noise": {"delta": 0.002}},
+                              options=vehjax.tune.Options(optimizer=vehjax.tune.Scoring(steps=20),
+                                                          progress=False))  # the trap's report
     floor = model.data_floors(d.measurements[:3000], d.inputs[:3000])["mu"]
     assert floor > 1.3
     assert res.params["mu"] == pytest.approx(1.0, abs=1e-3)
@@ -197,8 +203,10 @@ def _fit_default(drive, tyres):
         warnings.simplefilter("always")
         res = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)), np.array([0.1, 1e-4]),
                               drive.measurements, drive.inputs, x0=np.zeros(2),
-                              P0=np.array([0.1, 0.01]), params=params, noise=("R", "input"),
-                              builder_kwargs={"input_noise": {"delta": 0.002}}, progress=False)
+                              P0=np.array([0.1, 0.01]),
+                              params=vehjax.tune.Fitted(params, noise=("R", "input")),
+                              builder_kwargs={"input_noise": {"delta": 0.002}},
+                              options=vehjax.tune.Options(progress=False))
     return res, [str(w.message) for w in caught]
 
 
@@ -237,7 +245,7 @@ def _no_stage_may_run(monkeypatch):
     def stage(*a, **k):
         raise AssertionError("a stage ran (something was traced) before the refusal")
 
-    for name in ("_nested_stage", "fit_from_theta", "compile_objective"):
+    for name in ("_nested_stage", "fit_start", "compile_objective"):
         monkeypatch.setattr(staged, name, stage)
 
 
@@ -245,8 +253,6 @@ def _no_stage_may_run(monkeypatch):
 @pytest.mark.parametrize("kw, words", [
     (dict(bounds={"mu": (3.5, 5.0)}), ["bounds", "mu", "(3.5, 5.0)", "domain (0, 3)"]),
     (dict(bounds={"cf": (-2.0, -1.0)}), ["bounds", "cf", "domain (0, inf)"]),
-    (dict(learning_rate=0.1), ["learning_rate", "line search", "optimizer='adam'"]),
-    (dict(learning_rate=0.1, optimizer="scoring"), ["learning_rate", "scoring"]),
 ])
 def test_the_staged_fit_refuses_what_its_last_stage_would_before_the_first(
         monkeypatch, start, kw, words):
@@ -255,26 +261,36 @@ def test_the_staged_fit_refuses_what_its_last_stage_would_before_the_first(
     _no_stage_may_run(monkeypatch)
     ys, us = np.zeros((50, 2)), np.tile([0.0, 20.0], (50, 1))
     with pytest.raises(ValueError) as err:
-        vehjax.tune.fit(vehjax.filters.ekf, SingleTrack(tyres="brush"), np.eye(2), np.eye(2),
-                        ys, us, x0=np.zeros(2), P0=np.eye(2), params=("cf", "mu"),
-                        start=start, progress=False, **kw)
+        vehjax.tune.fit(vehjax.filters.ekf, SingleTrack(tyres="brush"), np.eye(2), np.eye(2), ys,
+                        us, x0=np.zeros(2), P0=np.eye(2),
+                        params=vehjax.tune.Fitted(("cf", "mu"), **kw), start=start,
+                        options=vehjax.tune.Options(progress=False))
     text = str(err.value)
     assert text.startswith(words[0] + ":")
     for w in words:
         assert w in text, (w, text)
 
 
+@pytest.mark.parametrize("record", ["LBFGS", "Scoring"])
+def test_a_learning_rate_is_no_option_of_a_line_search(record):
+    """A learning rate for a line search (the default optimizer of a deterministic filter) is
+    refused: the records of scoring and L-BFGS have none."""
+    with pytest.raises(TypeError, match="learning_rate"):
+        getattr(vehjax.tune, record)(learning_rate=0.1)
+
+
 def test_a_learning_rate_is_left_to_a_particle_filter_whose_default_is_adam():
     from vehjax.tune import driver, likelihood
 
     model = SingleTrack()
-    args = (model, np.eye(2), np.eye(2), ("cf",), ("Q", "R"), False)
+    args = (model, np.eye(2), np.eye(2), vehjax.tune.Fitted(("cf",), ("Q", "R"), False))
     assert likelihood.draws_random_numbers(vehjax.filters.bootstrap_pf, *args,
                                            {"n_particles": 16})
     assert not likelihood.draws_random_numbers(vehjax.filters.ekf, *args, None)
-    driver.check_options({"learning_rate": 0.1}, stochastic=True)  # adam takes it
-    with pytest.raises(ValueError, match="^learning_rate: the default optimizer"):
-        driver.check_options({"learning_rate": 0.1}, stochastic=False)
+    driver.check_optimizer(vehjax.tune.Adam(learning_rate=0.1), stochastic=True)  # adam takes it
+    assert driver.choose_optimizer(None, True, True) == vehjax.tune.Adam()
+    with pytest.raises(ValueError, match="^optimizer: 'scoring' needs a deterministic"):
+        driver.check_optimizer(vehjax.tune.Scoring(), stochastic=True)
 
 
 def test_a_nested_variance_on_its_bound_starts_the_models_fit_at_the_given_value():
@@ -313,7 +329,8 @@ def test_a_variance_the_data_push_to_zero_is_on_its_bound_from_the_data_start():
     sim = vehjax.simulate(model, scn, runs=1, key=jax.random.key(1),
                           process_std=[0.003, 0.003], meas_std=[0.0, 0.002])
     ys, us = np.asarray(sim.measurements[0]), np.asarray(sim.inputs)
-    kw = dict(x0=np.zeros(2), P0=np.array([0.01, 0.001]), noise=("R",), progress=False)
+    kw = dict(x0=np.zeros(2), P0=np.array([0.01, 0.001]), params=vehjax.tune.Fitted(noise=("R",)),
+              options=vehjax.tune.Options(progress=False))
     out = {}
     for start in ("data", "theta"):
         with warnings.catch_warnings(record=True) as caught:
@@ -334,8 +351,7 @@ def test_a_variance_the_data_push_to_zero_is_on_its_bound_from_the_data_start():
     np.testing.assert_allclose(res.std_errors["R[r,r]"], ref.std_errors["R[r,r]"], rtol=1e-3)
 
 
-def test_fit_from_theta_refuses_a_learning_rate_for_its_default_line_search_before_compiling(
-        monkeypatch):
+def test_fit_from_theta_refuses_scoring_for_a_particle_filter_before_compiling(monkeypatch):
     from vehjax.tune import program
 
     def compiled(*a, **k):
@@ -343,7 +359,10 @@ def test_fit_from_theta_refuses_a_learning_rate_for_its_default_line_search_befo
 
     monkeypatch.setattr(program, "compiled_loss", compiled)
     ys, us = np.zeros((50, 2)), np.tile([0.0, 20.0], (50, 1))
-    with pytest.raises(ValueError, match="^learning_rate: the default optimizer"):
-        vehjax.tune.fit_from_theta(vehjax.filters.ekf, SingleTrack(), np.eye(2), np.eye(2), ys,
-                                   us, x0=np.zeros(2), P0=np.eye(2), params=("cf",),
-                                   learning_rate=0.1, progress=False)
+    with pytest.raises(ValueError, match="^optimizer: 'scoring' needs a deterministic"):
+        vehjax.tune.fit_from_theta(vehjax.filters.bootstrap_pf, SingleTrack(), np.eye(2),
+                                   np.eye(2), ys, us, x0=np.zeros(2), P0=np.eye(2),
+                                   params=("cf",), builder_kwargs={"n_particles": 16},
+                                   options=vehjax.tune.Options(optimizer="scoring",
+                                                               progress=False,
+                                                               key=jax.random.key(0)))

@@ -72,10 +72,11 @@ def scipy_log_prior(p, priors):
     return total
 
 
-def tune_fit(priors, params=("d",), **kw):
+def tune_fit(priors, params=("d",), options=vt.Options(progress=False)):
     ys, us = data()
-    return vt.fit(vj.filters.ekf, model(), [Q], [R], ys, us, x0=X0, P0=P0, params=params,
-                  noise=(), priors=priors, progress=False, **kw)
+    return vt.fit(vj.filters.ekf, model(), [Q], [R], ys, us, x0=X0, P0=P0,
+                  params=vt.Fitted(params, noise=(), priors=priors),
+                  options=options)
 
 
 @pytest.fixture(scope="module")
@@ -145,10 +146,11 @@ def test_contradicting_prior_warns():
 
 def test_uniform_is_a_box():
     ys, us = data()
-    kw = dict(x0=X0, P0=P0, noise=(), progress=False)
-    box = vt.fit(vj.filters.ekf, model(), [Q], [R], ys, us, priors={"b": Uniform(0.0, 2.0)}, **kw)
-    ref = vt.fit(vj.filters.ekf, model(), [Q], [R], ys, us, params=("b",), bounds={"b": (0, 2)},
-                 **kw)
+    kw = dict(x0=X0, P0=P0, options=vt.Options(progress=False))
+    box = vt.fit(vj.filters.ekf, model(), [Q], [R], ys, us,
+                 params=vt.Fitted(noise=(), priors={"b": Uniform(0.0, 2.0)}), **kw)
+    ref = vt.fit(vj.filters.ekf, model(), [Q], [R], ys, us,
+                 params=vt.Fitted(("b",), noise=(), bounds={"b": (0, 2)}), **kw)
     np.testing.assert_allclose(box.values["b"], ref.values["b"], rtol=1e-9)
     assert box.pulls == {} and "(prior uniform on (0, 2))" in box.summary()
     np.testing.assert_allclose(box.log_prior, -math.log(2.0), rtol=1e-12)
@@ -176,15 +178,17 @@ def test_bad_priors(priors, match):
     m = model(domains={"b": "(0, inf)"})
     for fn in (vt.fit, vt.fit_from_theta):
         with pytest.raises(ValueError, match=match):
-            fn(vj.filters.ekf, m, [Q], [R], ys, us, x0=X0, P0=P0, noise=(), priors=priors,
-               progress=False)
+            fn(vj.filters.ekf, m, [Q], [R], ys, us, x0=X0, P0=P0,
+               params=vt.Fitted(noise=(), priors=priors), options=vt.Options(progress=False))
 
 
 def test_uniform_beside_other_bounds_refused():
     ys, us = data(n=20)
     with pytest.raises(ValueError, match=r"priors: 'b' has a Uniform prior and bounds"):
-        vt.fit(vj.filters.ekf, model(), [Q], [R], ys, us, x0=X0, P0=P0, noise=(),
-               priors={"b": Uniform(0.0, 2.0)}, bounds={"b": (0.1, 3.0)}, progress=False)
+        vt.fit(vj.filters.ekf, model(), [Q], [R], ys, us, x0=X0, P0=P0,
+               params=vt.Fitted(noise=(), bounds={"b": (0.1, 3.0)},
+                                priors={"b": Uniform(0.0, 2.0)}),
+               options=vt.Options(progress=False))
 
 
 def test_lognormal_within():
@@ -198,9 +202,9 @@ def test_objective_and_programs_carry_the_penalty():
     """The loss of vehjax.tune.objective (reverse mode) and the compiled forward-mode program,
     its BHHH matrix and its batched gradients all see the prior."""
     ys, us = data(n=100)
-    args = (vj.filters.ekf, model(), [Q], [R], ys, us, X0, P0, ("d",), None, (), False, None,
-            None, PRIORS)
-    obj, setup = vt.prepare(*args)
+    args = (vj.filters.ekf, model(), [Q], [R], ys, us)
+    obj, setup = vt.prepare(*args, x0=X0, P0=P0, params=vt.Fitted(("d",), noise=(),
+                                                                  priors=PRIORS))
     p0 = [0.8, 0.6, 0.2]
     ref = -(kalman_loglik(p0, ys, us) + scipy_log_prior(p0, PRIORS)) / len(ys)
     np.testing.assert_allclose(float(obj.loss(obj.z0, obj.data)[0]), ref, rtol=1e-10)
@@ -211,7 +215,8 @@ def test_objective_and_programs_carry_the_penalty():
         obj.z0))[0]
     np.testing.assert_allclose(g, np.asarray(g_rev), rtol=1e-8)
     np.testing.assert_allclose(loss.grads(np.stack([loss.x0] * 6))[0], g, rtol=1e-8)
-    plain_obj, plain_setup = vt.prepare(*args[:8], ("d", "a", "b"), *args[9:-1], None)
+    plain_obj, plain_setup = vt.prepare(*args, x0=X0, P0=P0,
+                                        params=vt.Fitted(("d", "a", "b"), noise=()))
     assert plain_setup.log_prior is None and setup.params == ("d", "a", "b")
     # the coordinates: theta = log d, log a, log b (the prior'd parameters after params); the
     # prior's curvature in log a is (a^2 + (a - mean) a) / std^2 and in log b 1 / sigma^2
@@ -223,6 +228,7 @@ def test_objective_and_programs_carry_the_penalty():
 
 
 def test_jax_hessian_gives_the_same_standard_errors(map_fit):
-    res = tune_fit(PRIORS, hessian="jax")
+    res = tune_fit(PRIORS, options=vt.Options(standard_errors=vt.StandardErrors(hessian="jax"),
+                                              progress=False))
     for k in ("a", "b", "d"):
         np.testing.assert_allclose(res.std_errors[k], map_fit.std_errors[k], rtol=1e-4)

@@ -80,7 +80,7 @@ def test_fitted_noise_equals_scipy_maximum_likelihood():
     model = linear_model()
     R0 = np.array([[1.0, 0.2], [0.2, 1.0]])
     res = vt.fit_noise(vj.filters.ukf, model, np.array([0.01, 0.01]), R0, ys, us, x0=X0, P0=P0,
-                       optimizer="lbfgs", steps=60, tol=1e-12, progress=False)
+                       options=vt.Options(optimizer=vt.LBFGS(steps=60), progress=False))
     # diagonal Q0 fitted as diagonal, full R0 as full
     assert res.Q[0, 1] == 0.0 and res.R[0, 1] != 0.0
     np.testing.assert_allclose(np.diag(res.Q), np.diag(Q_ml), rtol=1e-3)
@@ -125,7 +125,7 @@ def test_gradient_matches_central_differences(builder, kwargs):
     ys[0, 3, 1] = ys[1, 7, 0] = ys[1, 9, :] = np.nan  # missing components
     obj = vt.objective(builder, model, np.array([[0.01, 0.003], [0.003, 0.02]]), [0.1, 0.2],
                        ys, us, x0=np.array([[0.3, 0.0], [0.1, -0.2]]), P0=np.diag([0.1, 0.1]),
-                       params=("k",), bounds={"k": (0.5, 20.0)}, fit_x0=True,
+                       params=vt.Fitted(("k",), bounds={"k": (0.5, 20.0)}, x0=True),
                        builder_kwargs=kwargs)
     vg = jax.jit(jax.value_and_grad(lambda z: obj.loss(z, obj.data)[0]))
     z0 = obj.z0
@@ -152,7 +152,8 @@ def test_vehicle_tuning_recovers_simulated_measurement_noise():
     r = np.array([0.3, 0.3, 0.02, 0.1])
     sim = vj.simulate(model, scn, runs=20, key=jax.random.key(1), process_std=q, meas_std=r)
     res = vt.fit_noise(vj.filters.ukf, model, q**2, 10 * r**2, sim.measurements, sim.inputs,
-                       x0=scn.x0, P0=np.full(4, 1e-2), noise=("R",), steps=100, progress=False)
+                       x0=scn.x0, P0=np.full(4, 1e-2), noise=("R",),
+                       options=vt.Options(optimizer=vt.Scoring(steps=100), progress=False))
     ratio = np.diag(res.R) / r**2
     assert np.all(np.abs(ratio - 1) < 0.10), ratio
     np.testing.assert_array_equal(res.Q, np.diag(q**2))  # not fitted
@@ -259,21 +260,23 @@ def _counting_model():
     (dict(Q0=np.array([-1.0])), "Q0"),
     (dict(R0=np.array([[0.0]])), "R0"),
     (dict(Q0=np.zeros((2, 2))), "Q0"),
-    (dict(learning_rate=0.0), "learning_rate"),
-    (dict(learning_rate=-1e-3), "learning_rate"),
-    (dict(steps=0), "steps"),
-    (dict(optimizer="sgd"), "optimizer"),
-    (dict(params=("a",), bounds={"a": (1.0, 2.0)}), "bounds"),
-    (dict(noise=("P",)), "noise"),
-    (dict(noise=()), "noise"),
+    (lambda: dict(options=vt.Options(optimizer=vt.Adam(learning_rate=0.0))),
+     "optimizer.learning_rate"),
+    (lambda: dict(options=vt.Options(optimizer=vt.Adam(learning_rate=-1e-3))),
+     "optimizer.learning_rate"),
+    (lambda: dict(options=vt.Options(optimizer=vt.Scoring(steps=0))), "optimizer.steps"),
+    (lambda: dict(options=vt.Options(optimizer="sgd")), "optimizer"),
+    (dict(params=vt.Fitted(("a",), bounds={"a": (1.0, 2.0)})), "bounds"),
+    (lambda: dict(params=vt.Fitted(noise=("P",))), "params.noise"),
+    (dict(params=vt.Fitted(noise=())), "params.noise"),
     (dict(builder=vj.filters.bootstrap_pf), "key"),
     (dict(P0=np.array([[-1.0]])), "P0"),
 ])
 def test_bad_arguments_raise_before_tracing(change, name):
     args = dict(builder=vj.filters.ukf, model=_counting_model(), Q0=[0.1], R0=[0.1],
                 measurements=np.zeros((5, 1)), inputs=None, x0=np.zeros(1), P0=np.eye(1))
-    args.update(change)
     _Counting.calls = 0
     with pytest.raises(ValueError, match=rf"^{name}\b"):
+        args.update(change() if callable(change) else change)  # a record checks itself
         vt.fit(**args)
     assert _Counting.calls == 0

@@ -72,8 +72,8 @@ def tune_fit(ys, us, a_bounds, **kw):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         res = vt.fit(vj.filters.ekf, model(), 0.3 * np.eye(1), 0.5 * np.eye(1), ys, us,
-                     x0=np.zeros(1), P0=P0, params=("a",), bounds={"a": a_bounds},
-                     progress=False, **kw)
+                     x0=np.zeros(1), P0=P0, params=vt.Fitted(("a",), bounds={"a": a_bounds}),
+                     options=vt.Options(progress=False), **kw)
     return res, [str(w.message) for w in caught]
 
 
@@ -122,7 +122,8 @@ def test_fit_x0_standard_errors_are_finite_and_equal_finite_differences():
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # nothing named undetermined
         res = vt.fit(vj.filters.ekf, model(A_TRUE), 0.3 * np.eye(1), 0.5 * np.eye(1), ys, us,
-                     x0=np.zeros(1), P0=P0, fit_x0=True, progress=False)
+                     x0=np.zeros(1), P0=P0, params=vt.Fitted(x0=True),
+                     options=vt.Options(progress=False))
     fn = lambda p: loglik(A_TRUE, p[1], p[2], ys, us, x0=p[0])  # noqa: E731
     ref = scipy.optimize.minimize(lambda p: -fn(p), x0=[0.0, 0.3, 0.5], method="L-BFGS-B",
                                   bounds=[(None, None), (1e-8, None), (1e-8, None)],
@@ -146,7 +147,7 @@ def test_single_step_fit_with_the_default_optimizer_does_not_fail(y):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = vt.fit(vj.filters.ekf, model(a), 0.3 * np.eye(1), 0.5 * np.eye(1), ys, us,
-                     x0=np.zeros(1), P0=P0, progress=False)
+                     x0=np.zeros(1), P0=P0, options=vt.Options(progress=False))
     S = max(y * y, a * a * P0[0, 0])
     best = -0.5 * (y * y / S + np.log(2 * np.pi * S))
     assert res.loglik == pytest.approx(best, rel=1e-6, abs=1e-6) and res.converged

@@ -77,8 +77,8 @@ def test_fit_with_input_noise_equals_scipy_ml_and_inverse_information():
     p_ml, cov = reference(fn, np.array([0.5, 0.3, 1.0]))
 
     res = vt.fit(vj.filters.ekf, scalar_model(), np.zeros(1), [1.0], ys, us, x0=X0, P0=P0,
-                 params=("a",), noise=("R", "input"), builder_kwargs={"input_noise": {"u": 0.3}},
-                 progress=False)
+                 params=vt.Fitted(("a",), noise=("R", "input")),
+                 builder_kwargs={"input_noise": {"u": 0.3}}, options=vt.Options(progress=False))
     assert res.converged and res.gradient <= 1e-6 and not res.undetermined
     got = np.array([res.values["a"], res.values["input[u]"], res.values["R[y,y]"]])
     np.testing.assert_allclose(got, p_ml, rtol=1e-3)
@@ -102,8 +102,8 @@ def test_fit_q_r_and_parameter_equals_scipy_ml():
     ys, us = simulate(1, q=Q_TRUE)
     fn = lambda p: loglik(p[0], p[1], p[2], ys, us)  # noqa: E731
     p_ml, cov = reference(fn, np.array([0.5, 1.0, 1.0]))
-    res = vt.fit(vj.filters.ckf, scalar_model(), [1.0], [1.0], ys, us, x0=X0, P0=P0,
-                 params=("a",), progress=False)
+    res = vt.fit(vj.filters.ckf, scalar_model(), [1.0], [1.0], ys, us, x0=X0, P0=P0, params=("a",),
+                 options=vt.Options(progress=False))
     got = np.array([res.values["a"], res.values["Q[x,x]"], res.values["R[y,y]"]])
     np.testing.assert_allclose(got, p_ml, rtol=1e-3)
     se = np.array([res.std_errors[k] for k in ("a", "Q[x,x]", "R[y,y]")])
@@ -117,8 +117,9 @@ def test_undetermined_parameter_is_named():
     ys, us = simulate(2, q=Q_TRUE, T=100)
     us2 = np.concatenate([us, np.zeros_like(us)], axis=1)
     with pytest.warns(UserWarning, match=r"do not determine b\b"):
-        res = vt.fit(vj.filters.ekf, scalar_model(extra=True), [Q_TRUE], [R_TRUE], ys, us2,
-                     x0=X0, P0=P0, params=("a", "b"), noise=(), progress=False)
+        res = vt.fit(vj.filters.ekf, scalar_model(extra=True), [Q_TRUE], [R_TRUE], ys, us2, x0=X0,
+                     P0=P0, params=vt.Fitted(("a", "b"), noise=()),
+                     options=vt.Options(progress=False))
     assert res.undetermined == ("b",)
     assert res.std_errors["b"] == np.inf and res.values["b"] == 1.0  # never moved
     assert np.isfinite(res.std_errors["a"]) and 0 < res.std_errors["a"] < 0.1
@@ -136,13 +137,13 @@ def test_confounded_pair_is_named_and_q_zero_refused_when_fitted():
     with warnings.catch_warnings(record=True) as w:
         warnings.simplefilter("always")
         res = vt.fit(vj.filters.ekf, model, [Q_TRUE], [R_TRUE], ys, us, x0=X0, P0=P0,
-                     params=("a", "b"), noise=(), progress=False)
+                     params=vt.Fitted(("a", "b"), noise=()), options=vt.Options(progress=False))
     assert set(res.undetermined) == {"a", "b"}
     assert any("a, b" in str(m.message) for m in w)
     np.testing.assert_allclose(res.values["a"] * res.values["b"], A_TRUE, atol=0.1)
     with pytest.raises(ValueError, match="^Q0"):
         vt.fit(vj.filters.ekf, model, np.zeros(1), [R_TRUE], ys, us, x0=X0, P0=P0,
-               noise=("Q",), progress=False)
+               params=vt.Fitted(noise=("Q",)), options=vt.Options(progress=False))
 
 
 def test_uncertainty_on_its_own():
@@ -166,9 +167,12 @@ def test_jax_hessian_equals_gradient_differences():
     check, which compiles a reverse-mode gradient and a Hessian through the particle filter,
     is the slow test below.)"""
     ys, us = simulate(4, q=Q_TRUE, T=60)
-    common = dict(x0=X0, P0=P0, params=("a",), progress=False)
-    d = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, **common)
-    j = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, hessian="jax", **common)
+    common = dict(x0=X0, P0=P0, params=("a",))
+    quiet = vt.Options(progress=False)
+    d = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, options=quiet, **common)
+    j = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us,
+               options=vt.Options(standard_errors=vt.StandardErrors(hessian="jax"),
+                                  progress=False), **common)
     for k in ("a", "Q[x,x]", "R[y,y]"):
         np.testing.assert_allclose(j.std_errors[k], d.std_errors[k], rtol=1e-5)
 
@@ -180,11 +184,14 @@ def test_particle_fit_reports_standard_errors_of_the_kalman_size():
     import jax
 
     ys, us = simulate(4, q=Q_TRUE, T=60)
-    common = dict(x0=X0, P0=P0, params=("a",), progress=False)
-    d = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, **common)
-    pf = vt.fit(vj.filters.bootstrap_pf, scalar_model(), [Q_TRUE], [R_TRUE], ys, us, steps=3,
-                key=jax.random.key(0), builder_kwargs={"n_particles": 256}, noise=("R",),
-                **common)
+    common = dict(x0=X0, P0=P0, params=("a",))
+    quiet = vt.Options(progress=False)
+    d = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, options=quiet, **common)
+    pf = vt.fit(vj.filters.bootstrap_pf, scalar_model(), [Q_TRUE], [R_TRUE], ys, us,
+                options=vt.Options(optimizer=vt.Adam(steps=3), progress=False,
+                                   key=jax.random.key(0)),
+                builder_kwargs={"n_particles": 256}, params=vt.Fitted(("a",), noise=("R",)),
+                x0=X0, P0=P0)
     assert pf.iterations == 3 and np.isfinite(pf.std_errors["a"])
     np.testing.assert_allclose(pf.std_errors["a"], d.std_errors["a"], rtol=0.5)
 
@@ -211,8 +218,8 @@ def test_forward_scores_and_bhhh_equal_numpy_differences():
     import jax.flatten_util
 
     ys, us = simulate(5, q=Q_TRUE, T=40)
-    obj, info = vt.prepare(vj.filters.ekf, scalar_model(), [0.4], [0.7], ys, us, X0, P0,
-                           ("a",), None, ("Q", "R"), False, None, None)
+    obj, info = vt.prepare(vj.filters.ekf, scalar_model(), [0.4], [0.7], ys, us, x0=X0, P0=P0,
+                           params=("a",))
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
     ll, dll, div = vt.forward_scores(lambda g, d: info.per_step(unravel(g), d), flat,
                                      obj.data)
@@ -252,10 +259,11 @@ def test_default_is_forward_scoring_and_lbfgs_reaches_the_same_optimum():
     ys, us = simulate(6, q=Q_TRUE, T=200)
     fn = lambda p: loglik(p[0], p[1], p[2], ys, us)  # noqa: E731
     p_ml, _ = reference(fn, np.array([0.5, 1.0, 1.0]))
-    common = dict(x0=X0, P0=P0, params=("a",), progress=False)
-    d = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, **common)
-    lb = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, optimizer="lbfgs",
-                **common)
+    common = dict(x0=X0, P0=P0, params=("a",))
+    quiet = vt.Options(progress=False)
+    d = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, options=quiet, **common)
+    lb = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us,
+                options=vt.Options(optimizer="lbfgs", progress=False), **common)
     assert (d.optimizer, d.derivatives, lb.optimizer) == ("scoring", "forward", "lbfgs")
     assert d.converged and lb.converged and 0 < d.evaluations and 0 < d.compile_seconds
     assert d.compile_seconds < d.seconds and 0 < d.compile_cpu_seconds
@@ -264,7 +272,9 @@ def test_default_is_forward_scoring_and_lbfgs_reaches_the_same_optimum():
         np.testing.assert_allclose(got, p_ml, rtol=1e-3)
     with pytest.raises(ValueError, match="^optimizer"):
         vt.fit(vj.filters.bootstrap_pf, scalar_model(), [1.0], [1.0], ys, us,
-               optimizer="scoring", key=__import__("jax").random.key(0), **common)
+               options=vt.Options(optimizer="scoring", progress=False,
+                                  key=__import__("jax").random.key(0)),
+               **common)
 
 
 def test_hessian_from_gradients_batched_equals_one_by_one_and_the_analytic_hessian():
@@ -325,8 +335,8 @@ def test_fit_with_the_batched_hessian_matches_the_inverse_information(monkeypatc
     ys, us = simulate(7, q=Q_TRUE, T=150)
     fn = lambda p: loglik(p[0], p[1], p[2], ys, us)  # noqa: E731
     p_ml, cov = reference(fn, np.array([0.5, 1.0, 1.0]))
-    res = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, x0=X0, P0=P0,
-                 params=("a",), progress=False)
+    res = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, x0=X0, P0=P0, params=("a",),
+                 options=vt.Options(progress=False))
     assert res.converged and res.hessian_batches >= 1 and res.hessian_compile_seconds > 0
     got = np.array([res.values["a"], res.values["Q[x,x]"], res.values["R[y,y]"]])
     np.testing.assert_allclose(got, p_ml, rtol=1e-3)

@@ -34,10 +34,13 @@ from . import figures, fitfile
 from .setup import (BUILDERS, build_model, builder_kwargs, load_drive, model_label, on_model,
                     start_values)
 
-__all__ = ["run", "fit_options"]
+__all__ = ["run", "fit_options", "fit_keywords"]
 
-#: [fit] keys passed to vehjax.tune.fit as they are
+#: [fit] keys read as they are (:func:`fit_keywords` maps them to vehjax.tune.fit's records)
 _PASSED = ("fit_x0", "start", "compare", "release", "steps", "optimizer", "gtol")
+#: the optimiser record of each [fit] optimizer name; no name: the default, scoring (every
+#: filter of the command is deterministic; L-BFGS beyond 12 fitted coordinates)
+_OPTIMIZERS = {"adam": tune.Adam, "lbfgs": tune.LBFGS, "scoring": tune.Scoring, None: tune.Scoring}
 
 
 def _check_starts(model, bounds: dict, floors) -> None:
@@ -52,9 +55,10 @@ def _check_starts(model, bounds: dict, floors) -> None:
 
 
 def fit_options(model, section: dict, floors=()) -> dict:
-    """vehjax.tune.fit's keyword arguments of the [fit] section (but the noise and prior),
+    """The fit's settings of the [fit] section (but the noise and prior), by their [fit] keys,
     the parameter names and bounds checked against ``model`` (``floors``: the names of the
-    parameters with a data floor, ``model.data_floors``)."""
+    parameters with a data floor, ``model.data_floors``); :func:`fit_keywords` makes them
+    vehjax.tune.fit's keyword arguments."""
     params = section.get("params", ())
     unknown = [p for p in params if p not in model.param_names]
     if unknown:
@@ -72,6 +76,21 @@ def fit_options(model, section: dict, floors=()) -> dict:
     return out
 
 
+def fit_keywords(options: dict, progress: bool) -> dict:
+    """vehjax.tune.fit's keywords ``params``, ``start`` and ``options`` of the settings
+    :func:`fit_options` read: the fitted quantities as a :class:`vehjax.tune.Fitted`, the start
+    as a :class:`vehjax.tune.Start`, the optimiser's record (its steps and gtol where given, the
+    default optimizer's otherwise) in :class:`vehjax.tune.Options`."""
+    name = options.get("optimizer")
+    limits = {k: options[k] for k in ("steps", "gtol") if k in options}
+    optimizer = _OPTIMIZERS[name](**limits) if limits else name
+    return dict(params=tune.Fitted(options["params"], options["noise"],
+                                   options.get("fit_x0", False), options["bounds"]),
+                start=tune.Start(options.get("start", "data"), options.get("compare", True),
+                                 options.get("release", True)),
+                options=tune.Options(optimizer=optimizer, progress=progress))
+
+
 def _say(text: str) -> None:
     print(f"vehjax fit: {text}", file=sys.stderr, flush=True)
 
@@ -82,7 +101,7 @@ def _fit(builder, model, start, grid, options, progress):
         warnings.simplefilter("always")
         res = tune.fit(builder, model, start.Q, start.R, grid.measurements, grid.inputs,
                        x0=start.x0, P0=start.P0, builder_kwargs=builder_kwargs(start.input_noise),
-                       progress=progress, **options)
+                       **fit_keywords(options, progress))
     texts = [" ".join(str(w.message).split()) for w in caught]
     for t in texts:
         _say(f"warning: {t}")

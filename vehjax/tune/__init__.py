@@ -10,7 +10,12 @@
     print(res.summary())         # fitted values with names and units
 
     res = vehjax.tune.fit(vehjax.filters.ekf, model, Q0, R0, ys, us, x0=x0, P0=P0,
-                          params=("m", "iz"), noise=("R",))   # model parameters too
+                          params=("m", "iz"))                 # model parameters too
+
+What is fitted: ``params``, names or :class:`Fitted` (names, noise, x0, bounds, priors); how:
+``options``, :class:`Options` (the optimiser, a record each: :class:`Adam`, :class:`LBFGS`,
+:class:`Scoring`, :class:`FirstOrder`; :class:`StandardErrors`; progress; a particle filter's
+key); where from: ``start``, "data", "theta" or :class:`Start` (:mod:`vehjax.tune.options`).
 
 The objective is the summed log-likelihood ``sum_r vehjax.filter(est, y_r, u_r, ...).loglik.sum()``
 over a batch of runs (one run ``(T, ny)`` or a batch ``(R, T, ny)``), ``jax.grad`` of it through
@@ -19,8 +24,8 @@ inside the differentiated function. The optimiser minimises the loss
 ``-sum loglik / (R T)``, the negative mean log-likelihood per step, which is what
 ``history`` records.
 
-Priors (:mod:`vehjax.tune.priors`): ``priors={"iz": LogNormal(2763.0, 0.3), "m":
-Normal(1500.0, 75.0)}`` (the objects of :mod:`vehjax.lib.priors`, the same dict
+Priors (:mod:`vehjax.tune.priors`): ``Fitted(priors={"iz": LogNormal(2763.0, 0.3), "m":
+Normal(1500.0, 75.0)})`` (the objects of :mod:`vehjax.lib.priors`, the same dict
 :func:`vehjax.calibrate.pmmh` takes) fits each named parameter by penalised likelihood, the loss
 ``-(sum loglik + sum_j log p_j(theta_j)) / (R T)`` (the MAP estimate in physical coordinates);
 ``TuneResult.loglik`` stays the plain log-likelihood, ``pulls`` and ``log_prior`` report the rest.
@@ -33,8 +38,8 @@ from ``model.theta`` and the given noise (:func:`fit_from_theta`).
 
 Parameterisations: a diagonal ``Q0``/``R0`` is fitted as log standard deviations, a full one by
 its log-Cholesky factor (both keep Q positive definite); a model parameter in ``params`` stays in
-its declared domain (``model.param_domains()``), narrowed by ``bounds``; ``x0`` (``fit_x0=True``)
-and the input noise (``noise=(..., "input")``) can be fitted too.
+its declared domain (``model.param_domains()``), narrowed by ``Fitted.bounds``; ``x0``
+(``Fitted(x0=True)``) and the input noise (``Fitted(noise=(..., "input"))``) can be fitted too.
 
 Optimisers (:mod:`vehjax.tune.optimisers`): ``"scoring"`` (BHHH on forward-mode scores, then
 Newton steps; the default for deterministic filters with at most 12 fitted coordinates),
@@ -76,7 +81,7 @@ defaults:
 from __future__ import annotations
 
 from . import (boundaries, diagnostics, driver, information, innovations, likelihood,
-               optimisers, priors, program, quantities, staged)
+               optimisers, options, priors, program, quantities, staged)
 from .driver import fit_from_theta, fit_noise
 from .staged import fit
 from .compare import StructureComparison, compare
@@ -85,6 +90,8 @@ from .innovations import InnovationCheck, check_innovations
 from .information import Uncertainty, hessian_from_gradients, uncertainty
 from .likelihood import Objective, objective, prepare
 from .optimisers import scoring_direction
+from .options import (LBFGS, Adam, FirstOrder, Fitted, Options, Scoring, StandardErrors,
+                      Start)
 from .particle import stop_gradient, stop_gradient_pf
 from .program import forward_scores, score_outer_product
 from .quantities import fitted_quantities
@@ -94,4 +101,5 @@ __all__ = ["fit", "fit_from_theta", "fit_noise", "objective", "Objective", "Tune
            "forward_scores", "score_outer_product", "scoring_direction",
            "uncertainty", "Uncertainty", "fitted_quantities", "hessian_from_gradients",
            "stop_gradient", "prepare", "Comparison", "compare", "StructureComparison",
-           "check_innovations", "InnovationCheck", "ScoreTest"]
+           "check_innovations", "InnovationCheck", "ScoreTest", "Fitted", "Options", "Start",
+           "Adam", "LBFGS", "Scoring", "FirstOrder", "StandardErrors"]

@@ -29,7 +29,7 @@ is rough: the gain and the one-step value are then indications of direction and 
 rejection itself stays valid.
 
 Cost (:func:`score_tests`): the fit's objective with the held parameters added to ``params``
-(:func:`vehjax.tune.likelihood.prepare`) compiled once more, then its gradient at the optimum
+(:func:`vehjax.tune.likelihood.prepare_fit`) compiled once more, then its gradient at the optimum
 and at the n + k points of the Hessian's forward differences
 (:func:`vehjax.tune.information.difference_hessian`, side by side on the host's cores; one
 batched call on a long fit), n fitted coordinates and k held parameters.
@@ -56,7 +56,8 @@ from ..lib import whiteness
 from . import innovations as inn
 from . import program
 from .information import FORWARD_REL, RCOND, difference_hessian
-from .likelihood import prepare
+from .likelihood import prepare_fit
+from .options import Fitted
 from .parameterisation import param_transform
 from .quantities import coordinates
 
@@ -147,10 +148,10 @@ def _augmented(fit, setup, data, bounds, extra):
     kw = dict(setup.builder_kwargs)
     if fit.input_noise is not None:
         kw["input_noise"] = fit.input_noise
-    return prepare(setup.builder, fit.model, fit.Q, fit.R, np.asarray(ys),
-                   None if us is None else np.asarray(us), np.asarray(fit.x0), np.asarray(P0),
-                   tuple(setup.params) + tuple(extra), bounds, setup.noise,
-                   setup.fit_x0, None, kw, setup.priors)
+    return prepare_fit(setup.builder, fit.model, fit.Q, fit.R, np.asarray(ys),
+                       None if us is None else np.asarray(us), np.asarray(fit.x0),
+                       np.asarray(P0), Fitted(tuple(setup.params) + tuple(extra), setup.noise,
+                                              setup.fit_x0, bounds, setup.priors), None, kw)
 
 
 class Start(NamedTuple):
@@ -245,7 +246,7 @@ def _held_columns(loss, x, scales, held, free_hessian, names):
 
 def augmented_information(res, setup, data, bounds, extra, compiled=None, free_hessian=None):
     """The score and curvature at the fit's optimum ``res`` of its objective with the
-    parameters ``extra`` fitted too (:func:`vehjax.tune.likelihood.prepare` at the fitted
+    parameters ``extra`` fitted too (:func:`vehjax.tune.likelihood.prepare_fit` at the fitted
     values, compiled once or ``compiled`` by :func:`compile_augmented`; the Hessian by
     :func:`vehjax.tune.information.difference_hessian`, or, given the fit's own Hessian
     ``free_hessian`` = (its coordinate names, the Hessian of the mean loss over them), that
@@ -316,7 +317,7 @@ def score_tests(res, setup, data, bounds=None, held_coordinates=(), compiled=Non
     Args:
         res: the fit's :class:`vehjax.tune.TuneResult` (``model``, ``Q``, ``R``,
             ``input_noise``, ``x0`` at the optimum).
-        setup: the fit's set-up (:func:`vehjax.tune.likelihood.prepare`).
+        setup: the fit's set-up (:func:`vehjax.tune.likelihood.prepare_fit`).
         data: the fit's ``Objective.data``.
         bounds: the fit's ``bounds=``.
         held_coordinates: names of fitted coordinates held out of the block (on a bound).

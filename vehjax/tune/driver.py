@@ -22,68 +22,33 @@ from . import program
 from . import boundaries, diagnostics
 from . import priors as tune_priors
 from .information import MAX_SCALED_STD, difference_hessian, uncertainty
-from .likelihood import NOISE, prepare
-from .optimisers import GTOL
+from .likelihood import NOISE, prepare_fit
+from .options import LBFGS, Adam, Fitted, Options, Scoring, fitted, optimizer_name
 from .quantities import coordinates, fitted_quantities
 from .result import TuneResult, make_result
 
-__all__ = ["fit_from_theta", "fit_noise", "compile_objective", "check_options", "OPTIONS"]
+__all__ = ["fit_from_theta", "fit_noise", "fit_start", "compile_objective", "check_optimizer",
+           "choose_optimizer"]
 
 
-def _check_fit_options(learning_rate, tol, gtol, hessian, steps, patience, optimizer,
-                       progress=True, standard_errors=True):
-    """:func:`fit`'s optimiser and report options checked (ValueError naming the first bad
-    one; the flags by :func:`vehjax.validation.flag`: ``progress="no"`` is refused, not read
-    as True): (learning_rate, tol, gtol) as numbers."""
-    validation.flag("progress", progress)
-    validation.flag("standard_errors", standard_errors)
-    if learning_rate is not None:
-        learning_rate = validation.number("learning_rate", learning_rate, 0.0)
-        if optimizer in ("lbfgs", "scoring"):
-            raise ValueError(f"learning_rate: {optimizer} takes its steps by a line search; "
-                             f"leave it None")
-    tol = validation.number("tol", tol, 0.0, low_open=False)
-    gtol = validation.number("gtol", gtol, 0.0)
-    if hessian is not None:
-        validation.choice("hessian", hessian, ("differences", "jax"))
-    if steps is not None:
-        validation.integer("steps", steps, 1)
-    if patience is not None:
-        validation.integer("patience", patience, 1)
-    if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
-        if not isinstance(optimizer, str):
-            raise ValueError(f"optimizer: expected 'adam', 'lbfgs' or an "
-                             f"optax.GradientTransformation, got {optimizer!r}")
-        validation.choice("optimizer", optimizer, opt.OPTIMIZERS)
-    return learning_rate, tol, gtol
-
-
-#: the optimiser's and the report's options of :func:`fit_from_theta`
-OPTIONS = ("optimizer", "learning_rate", "steps", "tol", "patience", "gtol", "key",
-           "progress", "standard_errors", "hessian")
-
-
-def check_options(options: dict, stochastic: bool | None = None) -> None:
-    """``**options`` of :func:`vehjax.tune.fit` checked before anything is traced: TypeError
-    for a name :func:`fit_from_theta` does not take, ValueError naming a bad value. With
-    ``stochastic`` False (the filter is deterministic) a ``learning_rate`` without an
-    ``optimizer`` is refused: the default optimiser is then a line search; with True (a
-    particle filter) the optimizer "scoring"."""
-    for k in options:
-        if k not in OPTIONS:
-            raise TypeError(f"fit() got an unexpected keyword argument {k!r}")
-    if stochastic and options.get("optimizer") == "scoring":
+def check_optimizer(optimizer, stochastic: bool) -> None:
+    """The optimiser record refused where the filter cannot take it, before anything is
+    compiled: scoring needs a deterministic filter."""
+    if stochastic and isinstance(optimizer, Scoring):
         raise ValueError("optimizer: 'scoring' needs a deterministic filter (EKF, UKF, CKF); "
-                         "use 'adam' for a particle filter")
-    if stochastic is False and options.get("optimizer") is None \
-            and options.get("learning_rate") is not None:
-        raise ValueError("learning_rate: the default optimizer of a deterministic filter "
-                         "(scoring, or lbfgs beyond 12 fitted coordinates) takes its steps by a "
-                         "line search; leave it None, or pass optimizer='adam'")
-    _check_fit_options(options.get("learning_rate"), options.get("tol", 0.0),
-                       options.get("gtol", GTOL), options.get("hessian"), options.get("steps"),
-                       options.get("patience"), options.get("optimizer"),
-                       options.get("progress", True), options.get("standard_errors", True))
+                         "use vehjax.tune.Adam() for a particle filter")
+
+
+def choose_optimizer(optimizer, stochastic: bool, forward: bool):
+    """The optimiser record that runs: ``optimizer`` (:class:`vehjax.tune.Options`), or by
+    default Adam for a particle filter, scoring for a deterministic one, L-BFGS (scoring's
+    steps and gtol) where there are too many coordinates for forward mode (``forward``
+    False)."""
+    if optimizer is None:
+        optimizer = Adam() if stochastic else Scoring() if forward else LBFGS()
+    if isinstance(optimizer, Scoring) and not forward:
+        optimizer = LBFGS(optimizer.steps, optimizer.gtol)
+    return optimizer
 
 
 def _progress(steps: int, enabled, name: str):
@@ -99,15 +64,18 @@ def _progress(steps: int, enabled, name: str):
     return report, bar
 
 
-def _optimise(loss, optimizer, opts: dict, report, scales):
-    """The chosen optimiser on the compiled loss: (x, aux, history, iterations, converged,
-    skipped)."""
-    steps, gtol = opts["steps"], opts["gtol"]
-    if optimizer == "scoring":
-        return (*opt.scoring(loss, steps, gtol, report, scales, opts["n_steps"]), 0)
-    if optimizer == "lbfgs":
+def _optimise(loss, optimizer, n_steps: int, report, scales):
+    """The chosen optimiser (a record of :mod:`vehjax.tune.options`) on the compiled loss:
+    (x, aux, history, iterations, converged, skipped)."""
+    steps, gtol = optimizer.steps, optimizer.gtol
+    if isinstance(optimizer, Scoring):
+        return (*opt.scoring(loss, steps, gtol, report, scales, n_steps), 0)
+    if isinstance(optimizer, LBFGS):
         return (*opt.lbfgs(loss, steps, gtol, report), 0)
-    return opt.first_order(loss, opts["first"], steps, opts["tol"], opts["patience"], report)
+    first = (opt.first_order_optimizer("adam", optimizer.learning_rate, steps)
+             if isinstance(optimizer, Adam) else
+             opt.first_order_optimizer(optimizer.transformation, None, steps))
+    return opt.first_order(loss, first, steps, optimizer.tol, optimizer.patience, report)
 
 
 def _hessian_fn(obj, setup, loss, hessian, scales):
@@ -178,7 +146,7 @@ def _free_gradient(g, free) -> float:
     return float(np.max(g)) if g.size else 0.0
 
 
-def _standard_errors(obj, setup, quantities, loss, x, optimizer, hessian, gtol, scales, names):
+def _standard_errors(obj, setup, quantities, loss, x, scoring, hessian, gtol, scales, names):
     """The Newton polish (deterministic filters) and the observed information at its end over
     the free coordinates, the quantities on a bound held there: (x, aux, max |gradient|,
     polished to gtol over the free coordinates, :class:`vehjax.tune.Uncertainty`, the
@@ -189,7 +157,7 @@ def _standard_errors(obj, setup, quantities, loss, x, optimizer, hessian, gtol, 
         Hm = hess(x)
     else:  # polish the free coordinates, the quantities on a bound held there
         free = _bounds_at(obj, setup, quantities, x, loss.vg(x)[2], names)[3]
-        for _ in range(3 if optimizer == "scoring" else 1):
+        for _ in range(3 if scoring else 1):
             x, aux, g, Hm = opt.newton(loss, x, scales, gtol, hess, free)
             hess.remember(x, Hm)  # the curvature newton gives for where it ended
             if _free_gradient(g, free) <= gtol:
@@ -225,13 +193,8 @@ def _compiled_ahead(future) -> diagnostics.Ahead:
 
 
 def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
-                   bounds=None, noise=NOISE, fit_x0: bool = False, optimizer=None,
-                   learning_rate=None, steps: int | None = None, tol: float = 1e-7,
-                   patience: int | None = None, gtol: float = GTOL, key=None,
-                   builder_kwargs=None, progress: bool = True, standard_errors: bool = True,
-                   hessian: str | None = None, floors=None,
-                   compiled: program.Program | None = None, priors=None,
-                   checks: diagnostics.Checks = diagnostics.Checks()) -> TuneResult:
+                   builder_kwargs=None, options: Options | None = None,
+                   floors=None) -> TuneResult:
     """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum likelihood,
     with standard errors, from one start: ``model.theta``, Q0, R0 and the given input noise as
     they are (:func:`vehjax.tune.fit` chooses the start from the data first).
@@ -248,54 +211,26 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
         measurements: (T, ny) one run or (R, T, ny) runs; NaN components are missing.
         inputs: (T, nu) shared or (R, T, nu) per run; None for a model without inputs.
         x0, P0: prior of every run: x0 (nx,) or (R, nx), P0 (nx, nx), (nx,) or (R, nx, nx).
-        params: names of model parameters to fit (default none).
-        bounds: ``{name: (lo, hi)}`` for fitted parameters, either end None (:mod:`vehjax.tune`).
-        noise: which noise to fit, a subset of ("Q", "R", "input") (default ("Q", "R")).
-            "input" fits the input noise whose starting value is
-            ``builder_kwargs["input_noise"]``: stds by input name (log stds fitted, reported as
-            ``"input[name]"`` stds in the input's unit) or an (nu, nu) covariance (fitted like
-            Q0, reported in units squared).
-        fit_x0: also fit x0 (the shape it was given in).
-        optimizer: None (default): "scoring" (BHHH then Newton steps, forward-mode
-            derivatives) for deterministic filters with at most 12 fitted coordinates,
-            "lbfgs" for those with more, "adam" for particle filters; or one of those names,
-            or an ``optax.GradientTransformation`` (docs/tune.md, "Optimisers").
-        steps: maximum number of iterations, >= 1 (default 300 adam, 100 lbfgs/scoring).
-        learning_rate, tol, patience: adam's (and a custom optimiser's) peak rate > 0 (default
-            0.05, cosine decay to 5 % over ``steps``), the relative improvement >= 0 of the best
-            loss that resets ``patience``, and iterations >= 1 without it before stopping (50).
-        gtol: > 0, the projected gradient of the loss (mean negative log-likelihood per
-            step, unconstrained coordinates) at which L-BFGS and scoring stop; deterministic
-            fits then take a Newton polish, and ``converged`` tests gtol there over the
-            quantities not on a bound (docs/tune.md, "The options of a fit in full").
-        key: PRNG key, required for particle filters; run r uses ``jax.random.split(key, R)[r]``
-            at every iteration.
+        params: names of model parameters to fit (default none), or
+            :class:`vehjax.tune.Fitted`: the names, which noise (default ("Q", "R"); "input"
+            fits the input noise whose starting value is ``builder_kwargs["input_noise"]``),
+            x0, the parameters' bounds and priors (penalised likelihood, MAP in physical
+            coordinates; ``loglik`` stays the plain log-likelihood, :mod:`vehjax.tune.priors`).
         builder_kwargs: further keyword arguments of ``builder`` (``sqrt``, ``alpha``,
             ``n_particles``, ``input_noise``, ...).
-        progress: show a progress bar (tqdm.auto when installed, else a line on stderr).
-        standard_errors: compute the observed information (the Hessian of the
-            log-likelihood): standard errors, correlations, undetermined directions, and for
-            deterministic filters the score tests of held parameters and the innovation checks
-            (:mod:`vehjax.tune.diagnostics`), at the cost of two more compiles (default True).
-        hessian: "differences" (default for deterministic filters: forward differences of
-            JAX's exact gradient, relative error ~1e-6) or "jax" (``jax.hessian``, exact, one
-            more compile; default for particle filters).
+        options: :class:`vehjax.tune.Options`: the optimiser (None, default: "scoring", BHHH
+            then Newton steps, for deterministic filters with at most 12 fitted coordinates,
+            "lbfgs" for those with more, "adam" for particle filters; or a record
+            :class:`vehjax.tune.Adam`, ``LBFGS``, ``Scoring``, ``FirstOrder``, docs/tune.md,
+            "Optimisers"), the standard errors (True, False or
+            :class:`vehjax.tune.StandardErrors`: the observed information, and for
+            deterministic filters the score tests of held parameters and the innovation checks,
+            :mod:`vehjax.tune.diagnostics`, at the cost of two more compiles), the progress bar
+            and a particle filter's PRNG key (required for particle filters; run r uses
+            ``jax.random.split(key, R)[r]`` at every iteration). None: ``Options()``.
         floors: ``{parameter name: least value the data allow}`` (``model.data_floors``), or
             None: a parameter that ends far below its floor is reported
             (``TuneResult.below_floor``), not called undetermined.
-        priors: ``{parameter name: prior}`` of :mod:`vehjax.lib.priors` (``Normal``,
-            ``LogNormal``, ``LogNormal.within(value, 0.3)``, ``Uniform``; the dict
-            :func:`vehjax.calibrate.pmmh` takes): each named parameter is fitted by penalised
-            likelihood (MAP in physical coordinates); ``loglik`` stays the plain log-likelihood
-            (:mod:`vehjax.tune.priors`).
-        compiled: the program of this fit's objective compiled for another start, differing
-            only in the fitted values (:func:`compile_objective`; :func:`vehjax.tune.fit`
-            compiles the next stage's while it fits the nested model); None (default):
-            compiled here.
-        checks: which diagnostics the standard errors come with
-            (:class:`vehjax.tune.diagnostics.Checks`); by default the score tests of every
-            held parameter and the innovation checks (:func:`vehjax.tune.fit`'s nested stage
-            asks for the score tests of what it may release only).
 
     Returns:
         :class:`TuneResult`. A warning names the quantities the data do not determine
@@ -307,22 +242,59 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
 
     Raises:
         ValueError: naming the argument, before anything is traced: an unknown parameter name,
-            wrong shapes, a Q0/R0/P0 that is not positive definite, learning_rate <= 0,
-            steps < 1, an unknown optimizer, a missing key, nothing to fit; ``priors``
+            wrong shapes, a Q0/R0/P0 that is not positive definite, a missing key, nothing to
+            fit, scoring with a particle filter (the records check their own fields); ``priors``
             naming the parameter: an unknown name, no prior object, a prior outside the
             parameter's domain (:func:`vehjax.tune.priors.check`).
     """
+    return fit_start(builder, model, Q0, R0, measurements, inputs,
+                     dict(x0=x0, P0=P0, params=params, builder_kwargs=builder_kwargs),
+                     validation.record("options", options, Options), floors=floors)
+
+
+def _finish(obj, setup, loss, x, optimizer, std_errors, gtol, scales, names, quantities):
+    """After the optimiser: the standard errors' Newton polish and information
+    (:func:`_standard_errors`), or scoring's Newton polish alone; (x, aux or None, max
+    |gradient|, the polish converged, uncertainty or None, on bound, Hessian or None)."""
+    scoring = isinstance(optimizer, Scoring)
+    if std_errors is not None:
+        return _standard_errors(obj, setup, quantities, loss, x, scoring, std_errors.hessian,
+                                gtol, scales, names)
+    aux, grad_max, polished = None, float("nan"), False
+    if scoring:  # the Newton polish finishes scoring
+        free = _bounds_at(obj, setup, quantities, x, loss.vg(x)[2], names)[3]
+        x, aux, g, _ = opt.newton(loss, x, scales, gtol,
+                                  lambda f: difference_hessian(loss, f, scales), free,
+                                  curvature_after=False)
+    else:
+        g = loss.vg(x)[2]
+    on, _, _, free = _bounds_at(obj, setup, quantities, x, g, names)
+    if scoring:
+        grad_max = float(np.max(np.abs(g)))
+        polished = _free_gradient(g, free) <= gtol
+    return x, aux, grad_max, polished, None, on, None
+
+
+def fit_start(builder, model, Q0, R0, measurements, inputs, args: dict, options: Options, *,
+              floors=None, compiled: program.Program | None = None,
+              checks: diagnostics.Checks = diagnostics.Checks()) -> TuneResult:
+    """:func:`fit_from_theta` with ``args`` its keywords (x0, P0, params, builder_kwargs) and
+    two more for :func:`vehjax.tune.fit`'s stages: ``compiled``, the program of this fit's
+    objective compiled for another start, differing only in the fitted values
+    (:func:`compile_objective`; None: compiled here), and ``checks``, which diagnostics the
+    standard errors come with (:class:`vehjax.tune.diagnostics.Checks`; by default the score
+    tests of every held parameter and the innovation checks)."""
     t_start = time.perf_counter()
-    learning_rate, tol, gtol = _check_fit_options(learning_rate, tol, gtol, hessian, steps,
-                                                  patience, optimizer, progress,
-                                                  standard_errors)
-    obj, setup = prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
-                         noise, fit_x0, key, builder_kwargs, priors)
-    check_options(dict(optimizer=optimizer, learning_rate=learning_rate),  # before compiling
-                  stochastic=setup.stochastic)
+    what, key, builder_kwargs = fitted(args["params"]), options.key, args["builder_kwargs"]
+    x0 = args["x0"]
+    std_errors, user_opt = options.standard_errors, options.optimizer
+    obj, setup = prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, args["P0"], what,
+                             key, builder_kwargs)
+    check_optimizer(user_opt, setup.stochastic)  # before compiling
+    hessian = None if std_errors is None else std_errors.hessian
     differences = not setup.stochastic and hessian in (None, "differences")
-    ahead = _diagnostics_ahead(setup, obj.data, model, Q0, R0, x0, builder_kwargs, bounds,
-                               standard_errors, checks)
+    ahead = _diagnostics_ahead(setup, obj.data, model, Q0, R0, x0, builder_kwargs, what.bounds,
+                               std_errors is not None, checks)
     names, scales = coordinates(setup, model, obj.z0)
     flat0, unravel0 = jax.flatten_util.ravel_pytree(obj.z0)
     if setup.log_prior is not None:  # a narrow prior: the coordinate's size is its width
@@ -331,78 +303,52 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
     setup = setup._replace(bounds=boundaries.quantity_bounds(setup, model))
     box = boundaries.coordinate_box(names, flat0, setup.bounds)
     loss = program.compiled_loss(obj, setup, batch_hessian=differences and obj.n_steps >=
-                                 program.BATCH_HESSIAN_STEPS and (standard_errors or optimizer
-                                                                  in (None, "scoring")), box=box,
+                                 program.BATCH_HESSIAN_STEPS and (
+                                     std_errors is not None or user_opt is None
+                                     or isinstance(user_opt, Scoring)), box=box,
                                  compiled=compiled)
-    if optimizer is None:
-        optimizer = ("adam" if setup.stochastic else
-                     "scoring" if loss.vgo is not None else "lbfgs")
-    if optimizer == "scoring" and loss.vgo is None:  # too many coordinates for forward mode
-        optimizer = "lbfgs"
-    line_search = isinstance(optimizer, str) and optimizer in ("lbfgs", "scoring")
-    if line_search and learning_rate is not None:
-        raise ValueError(f"learning_rate: {optimizer} takes its steps by a line search; leave "
-                         f"it None")
-    steps = (opt.LBFGS_STEPS if line_search else opt.ADAM_STEPS) if steps is None else steps
-    patience = 50 if patience is None else patience
-    first = None if line_search else opt.first_order_optimizer(optimizer, learning_rate, steps)
-    report, bar = _progress(steps, progress, setup.name)
-    x, aux, history, iters, converged, skipped = _optimise(
-        loss, optimizer, dict(steps=steps, gtol=gtol, tol=tol, patience=patience, first=first,
-                              n_steps=obj.n_steps),
-        report, scales)
+    optimizer = choose_optimizer(user_opt, setup.stochastic, loss.vgo is not None)
+    report, bar = _progress(optimizer.steps, options.progress, setup.name)
+    x, aux, history, iters, converged, skipped = _optimise(loss, optimizer, obj.n_steps, report,
+                                                           scales)
     bar.close()
-    unc, grad_max = None, float("nan")
     quantities = _quantity_map(obj, setup, model, loss.unravel)
-    if standard_errors:
-        x, aux, grad_max, polished, unc, on, Hm = _standard_errors(
-            obj, setup, quantities, loss, x, optimizer, hessian, gtol, scales, names)
-        converged = converged or polished
-    else:
-        if optimizer == "scoring":  # the Newton polish finishes scoring
-            free = _bounds_at(obj, setup, quantities, x, loss.vg(x)[2], names)[3]
-            x, aux, g, _ = opt.newton(loss, x, scales, gtol,
-                                      lambda f: difference_hessian(loss, f, scales), free,
-                                      curvature_after=False)
-        else:
-            g = loss.vg(x)[2]
-        on, _, _, free = _bounds_at(obj, setup, quantities, x, g, names)
-        if optimizer == "scoring":
-            grad_max = float(np.max(np.abs(g)))
-            converged = converged or _free_gradient(g, free) <= gtol
+    x, aux_polish, grad_max, polished, unc, on, Hm = _finish(
+        obj, setup, loss, x, optimizer, std_errors, optimizer.gtol, scales, names, quantities)
+    aux = aux if aux_polish is None else aux_polish
+    converged = converged or polished
     z = loss.unravel(jnp.asarray(x))
-    res = make_result(obj, setup, model, z, aux, history, iters, converged, skipped, unc,
+    res = make_result(obj, setup, model, z, aux, (history, iters, converged, skipped), unc,
                       grad_max, t_start, on, floors)
-    if standard_errors and not setup.stochastic:  # the nested fit of fit() pays nothing
+    if std_errors is not None and not setup.stochastic:  # the nested fit of fit() pays nothing
         res = res._replace(**diagnostics.fit_diagnostics(
-            res, setup, obj.data, z, bounds, tuple(on), _compiled_ahead(ahead), checks,
+            res, setup, obj.data, z, what.bounds, tuple(on), _compiled_ahead(ahead), checks,
             (tuple(names), np.asarray(Hm, dtype=float))))
     st = loss.stats
-    return res._replace(seconds=time.perf_counter() - t_start, evaluations=st["evaluations"], optimizer=str(optimizer)
-                        if isinstance(optimizer, str) else "optax", derivatives=st["mode"],
+    return res._replace(seconds=time.perf_counter() - t_start, evaluations=st["evaluations"],
+                        optimizer=optimizer_name(optimizer), derivatives=st["mode"],
                         compile_seconds=st["compile_seconds"], hessian_batches=st["batch_evaluations"],
                         hessian_compile_seconds=st["batch_compile_seconds"],
                         compile_cpu_seconds=st["compile_cpu_seconds"])
 
 
 def compile_objective(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
-                      bounds=None, noise=NOISE, fit_x0: bool = False, key=None,
-                      builder_kwargs=None, priors=None) -> program.Program:
-    """The program :func:`fit_from_theta` compiles for these arguments, to hand to fits of the
-    same objective from other starts (``compiled=``): the fitted values are the program's
-    argument, everything else (the data, the model's other parameters, the noise not fitted)
-    its constants."""
-    obj, setup = prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
-                         noise, fit_x0, key, builder_kwargs, priors)
+                      builder_kwargs=None, key=None) -> program.Program:
+    """The program :func:`fit_from_theta` compiles for these arguments (those of
+    :func:`vehjax.tune.objective`), to hand to fits of the same objective from other starts
+    (:func:`fit_start`'s ``compiled``): the fitted values are the program's argument,
+    everything else (the data, the model's other parameters, the noise not fitted) its
+    constants."""
+    obj, setup = prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0,
+                             fitted(params), key, builder_kwargs)
     return program.compile_program(obj, setup)
 
 
 def fit_noise(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, noise=NOISE,
-              **kwargs) -> TuneResult:
-    """Fit the noise covariances Q and R (``noise``: both by default) by maximum likelihood:
-    :func:`fit_from_theta` with no model parameters. Same arguments and result."""
-    if "params" in kwargs:
-        raise ValueError("params: fit_noise fits Q and R only; use vehjax.tune.fit for model "
-                         "parameters")
-    return fit_from_theta(builder, model, Q0, R0, measurements, inputs, x0=x0, P0=P0, noise=noise,
-                          **kwargs)
+              builder_kwargs=None, options: Options | None = None) -> TuneResult:
+    """Fit the noise covariances Q and R (``noise``: both by default, a subset of ("Q", "R",
+    "input")) by maximum likelihood: :func:`fit_from_theta` with no model parameters
+    (``params=vehjax.tune.Fitted(noise=noise)``). Same result."""
+    return fit_from_theta(builder, model, Q0, R0, measurements, inputs, x0=x0, P0=P0,
+                          params=Fitted(noise=noise), builder_kwargs=builder_kwargs,
+                          options=options)

@@ -22,11 +22,10 @@ from ..filters.particle import bootstrap_pf
 from .parameterisation import Cov, InputNoise, is_diag, param_transform
 from .particle import resample_keyword, stop_gradient_pf
 from . import priors as tune_priors
+from .options import NOISE, NOISE_KINDS, Fitted, fitted
 
-__all__ = ["Objective", "FitSetup", "objective", "prepare", "check_data", "NOISE", "NOISE_KINDS"]
-
-NOISE = ("Q", "R")
-NOISE_KINDS = ("Q", "R", "input")
+__all__ = ["Objective", "FitSetup", "objective", "prepare", "prepare_fit", "check_data", "NOISE",
+           "NOISE_KINDS"]
 
 
 class Objective(NamedTuple):
@@ -123,28 +122,24 @@ def _check_builder(builder):
     return builder
 
 
-def _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs,
-                priors=None) -> FitSetup:
-    """The fitted quantities and their starting values checked: the set-up so far (the
-    prior'd parameters added to ``params``, a Uniform prior's box to ``bounds``:
-    :mod:`vehjax.tune.priors`)."""
+def _check_what(model, Q0, R0, what: Fitted, builder_kwargs) -> FitSetup:
+    """The fitted quantities (:class:`vehjax.tune.Fitted`) and their starting values checked:
+    the set-up so far (the prior'd parameters added to the names, a Uniform prior's box to the
+    bounds: :mod:`vehjax.tune.priors`)."""
     nx, ny = len(model.state_names), len(model.output_names)
-    noise = validation.names("noise", noise, NOISE_KINDS, allow_empty=True)
+    noise, params, bounds, fit_x0 = what.noise, what.names, what.bounds, what.x0
     # a Q0 that is not fitted may be singular (zero with the noise through the inputs)
     Qa = validation.cov("Q0", float_array("Q0", Q0), nx, allow_psd="Q" not in noise)
     Ra = validation.cov("R0", float_array("R0", R0), ny)
     names = tuple(model.param_names)
-    if isinstance(params, Mapping):
-        raise ValueError("params: expected a sequence of parameter names; give their bounds in "
-                         "bounds={name: (lo, hi)}")
     params = validation.names("params", params, names, allow_empty=True)
-    priors, bounds = tune_priors.check(priors, model, bounds)
+    priors, bounds = tune_priors.check(what.priors, model, bounds)
     params = tune_priors.fitted_params(params, priors)
     theta0 = np.asarray(model.theta, dtype=float)
     idx, theta_map = param_transform(params, bounds, theta0, names, model.param_domains())
-    validation.flag("fit_x0", fit_x0)
     if not noise and not params and not fit_x0:
-        raise ValueError("noise: nothing to fit: noise=(), params=() and fit_x0=False")
+        raise ValueError("params.noise: nothing to fit: noise=(), no parameter names and "
+                         "x0=False")
     if builder_kwargs is None:
         builder_kwargs = {}
     if not isinstance(builder_kwargs, Mapping):
@@ -154,8 +149,8 @@ def _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs,
     inp = None
     if "input" in noise:
         if builder_kwargs.get("input_noise") is None:
-            raise ValueError("noise: 'input' fits the input noise, whose starting value goes in "
-                             "builder_kwargs={'input_noise': {input name: std, ...}}")
+            raise ValueError("params.noise: 'input' fits the input noise, whose starting value "
+                             "goes in builder_kwargs={'input_noise': {input name: std, ...}}")
         inp = InputNoise(builder_kwargs["input_noise"], model)
     return FitSetup(builder_kwargs=builder_kwargs, params=params, noise=noise, Qa=Qa, Ra=Ra,
                 diagQ=np.ndim(Q0) == 1 or is_diag(Qa), diagR=np.ndim(R0) == 1 or is_diag(Ra),
@@ -214,12 +209,13 @@ def _built(builder, model, setup: FitSetup) -> Estimator:
     return est0
 
 
-def draws_random_numbers(builder, model, Q0, R0, params, noise, fit_x0,
-                         builder_kwargs) -> bool:
+def draws_random_numbers(builder, model, Q0, R0, what: Fitted, builder_kwargs) -> bool:
     """Whether the fit's filter is a particle filter (its optimiser by default adam, not a line
     search), found by building it at the starting values, before anything is traced;
-    ValueError naming a bad argument as :func:`prepare` does."""
-    setup = _check_what(model, Q0, R0, params, None, noise, fit_x0, builder_kwargs)
+    ValueError naming a bad argument as :func:`prepare` does (``what`` without its bounds and
+    priors)."""
+    what = Fitted(what.names, what.noise, what.x0)
+    setup = _check_what(model, Q0, R0, what, builder_kwargs)
     return bool(_built(_check_builder(builder), model, setup).needs_key)
 
 
@@ -304,16 +300,17 @@ def _log_prior(setup: FitSetup, unpack):
     return lambda z: fn(unpack(z)["theta"])
 
 
-def prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds, noise,
-            fit_x0, key, builder_kwargs, priors=None):
+def prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0, what: Fitted, key,
+                builder_kwargs):
     """Everything checked before tracing (ValueError naming the argument): the
     :class:`Objective` and the fit's :class:`FitSetup` (the builder, the starting values, the
     parameterisations, ``per_step``, ``at``, ``log_prior``, ...) for the optimisers and the
-    report. With ``priors`` (:mod:`vehjax.tune.priors`) the loss is the penalised one,
-    ``-(sum loglik + log prior) / (R T)``; its aux stays the plain log-likelihood per run."""
+    report; ``what`` a :class:`vehjax.tune.Fitted`. With priors (:mod:`vehjax.tune.priors`) the
+    loss is the penalised one, ``-(sum loglik + log prior) / (R T)``; its aux stays the plain
+    log-likelihood per run."""
     builder = _check_builder(builder)
     validation.model(model)
-    setup = _check_what(model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs, priors)
+    setup = _check_what(model, Q0, R0, fitted(what), builder_kwargs)
     ys, us, x0a, P0a = check_data(model, measurements, inputs, x0, P0)
     n_runs, T, _ = ys.shape
     est0, sg, keys = _start_estimator(builder, model, setup, key, n_runs)
@@ -338,12 +335,20 @@ def prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds
     return Objective(loss, z0, data, unpack, n_runs * T), setup
 
 
+def prepare(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
+            builder_kwargs=None, key=None):
+    """(:class:`Objective`, :class:`FitSetup`) of :func:`objective` (same arguments): the
+    objective and the fit's set-up, everything checked before tracing
+    (:func:`prepare_fit`)."""
+    return prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0, fitted(params),
+                       key, builder_kwargs)
+
+
 def objective(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
-              bounds=None, noise=NOISE, fit_x0: bool = False, key=None,
-              builder_kwargs=None, priors=None) -> Objective:
-    """The objective of :func:`vehjax.tune.fit` (same arguments), to evaluate, differentiate
-    or optimise with tools of one's own: ``obj.loss(obj.z0, obj.data)``,
+              builder_kwargs=None, key=None) -> Objective:
+    """The objective of :func:`vehjax.tune.fit` (the same arguments: ``params`` names or
+    :class:`vehjax.tune.Fitted`; ``key`` a particle filter's), to evaluate, differentiate or
+    optimise with tools of one's own: ``obj.loss(obj.z0, obj.data)``,
     ``obj.unpack(z)["Q"]``."""
-    obj, _ = prepare(builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds,
-                     noise, fit_x0, key, builder_kwargs, priors)
-    return obj
+    return prepare(builder, model, Q0, R0, measurements, inputs, x0=x0, P0=P0, params=params,
+                   builder_kwargs=builder_kwargs, key=key)[0]

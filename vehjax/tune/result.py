@@ -214,10 +214,12 @@ def below_floors(model, theta, floors) -> dict:
     return out
 
 
-def make_result(obj, info, model, best_z, best_aux, history, iters, converged, skipped, unc,
-                grad_max, t_start, on_bound=None, floors=None) -> TuneResult:
+def make_result(obj, info, model, best_z, best_aux, search: tuple, unc, grad_max, t_start,
+                on_bound=None, floors=None) -> TuneResult:
     """The :class:`TuneResult` at ``best_z``, with warnings for diverged runs, quantities on a
-    bound and undetermined quantities."""
+    bound and undetermined quantities; ``search`` the optimiser's (history, iterations,
+    converged, skipped)."""
+    history, iters, converged, skipped = search
     ll, div = jax.jit(obj.loss)(best_z, obj.data)[1] if best_aux is None else best_aux
     v = jax.tree.map(np.asarray, jax.jit(obj.unpack)(best_z))  # one compile, not one an operation
     Q, R, theta, x0_fit = v["Q"], v["R"], v["theta"], v["x0"]

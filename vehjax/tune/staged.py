@@ -49,6 +49,7 @@ keeps that from being reported.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import warnings
@@ -57,16 +58,16 @@ import numpy as np
 
 from .. import execution, validation
 from .diagnostics import Checks
-from .driver import check_options, compile_objective, fit_from_theta
+from .driver import check_optimizer, compile_objective, fit_start
 from . import priors as tune_priors
-from .likelihood import NOISE, check_data, draws_random_numbers, objective
+from .likelihood import check_data, draws_random_numbers, objective
+from .options import STARTS, Fitted, Options, fitted, start_record
 from .parameterisation import check_bounds
 from .release import release_priors, start_value, to_release
 from .result import Comparison, TuneResult
 
 __all__ = ["fit", "STARTS", "BELOW_NESTED", "FLOOR_MARGIN", "start_values"]
 
-STARTS = ("data", "theta")
 #: a fit whose log-likelihood is below the nested model's by more than this (natural log
 #: units, summed over the runs) is below it
 BELOW_NESTED = 1.0
@@ -112,8 +113,8 @@ def start_values(model, floors: dict, params, bounds=None, second: bool = False)
 
 def _nested_likelihood(builder, nested, Q0, R0, ys, us, x0, P0, key, builder_kwargs):
     """The nested model's log-likelihood at its given values, when nothing of it is fitted."""
-    obj = objective(builder, nested, Q0, R0, ys, us, x0=x0, P0=P0, noise=("R",), key=key,
-                    builder_kwargs=builder_kwargs)
+    obj = objective(builder, nested, Q0, R0, ys, us, x0=x0, P0=P0,
+                    params=Fitted(noise=("R",)), key=key, builder_kwargs=builder_kwargs)
     return -float(obj.loss(obj.z0, obj.data)[0]) * obj.n_steps
 
 
@@ -128,7 +129,17 @@ def _nested_args(nested, args: dict):
     return dict(args, params=params, bounds=bounds or None, priors=priors)
 
 
-def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, nargs, options: dict,
+def _call(args: dict) -> dict:
+    """The keywords of :func:`~vehjax.tune.driver.fit_start`'s ``args`` and
+    :func:`~vehjax.tune.driver.compile_objective` from a stage's ``args`` (x0, P0, params,
+    bounds, noise, fit_x0, builder_kwargs, priors): what is fitted as a
+    :class:`~vehjax.tune.Fitted`."""
+    return dict(x0=args["x0"], P0=args["P0"], builder_kwargs=args["builder_kwargs"],
+                params=Fitted(args["params"], args["noise"], args["fit_x0"], args["bounds"],
+                              args["priors"]))
+
+
+def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, nargs, options: Options,
                 compiled=None, diagnose: bool = False):
     """(the nested model's :class:`~vehjax.tune.TuneResult` or None, its
     :class:`~vehjax.tune.result.Comparison`, its warnings held back); ``nargs`` from
@@ -137,18 +148,19 @@ def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, nargs, options: dic
     t0 = time.perf_counter()
     if nargs is None:
         ll = _nested_likelihood(builder, nested, Q0, R0, ys, us, args["x0"], args["P0"],
-                                options.get("key"), args["builder_kwargs"])
+                                options.key, args["builder_kwargs"])
         return None, Comparison(_label(nested), ll, {}, time.perf_counter() - t0), []
     held = tuple(k for k in nested.spec_priors() if k not in nargs["params"])
-    res, caught = _quietly(fit_from_theta, builder, nested, Q0, R0, ys, us, **nargs,
-                           **dict(options, standard_errors=diagnose and bool(held)),
+    se = options.standard_errors if diagnose and held else False
+    res, caught = _quietly(fit_start, builder, nested, Q0, R0, ys, us, _call(nargs),
+                           dataclasses.replace(options, standard_errors=se),
                            compiled=compiled, checks=Checks(held, innovations=False))
     return res, Comparison(_label(nested), res.loglik, dict(res.values),
                            res.seconds + (0.0 if compiled is None else
                                           compiled.stats["compile_seconds"])), caught
 
 
-def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: dict,
+def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: Options,
                   diagnose: bool):
     """The nested model's fit (:func:`_fit_nested`; ``model``'s program, at its start,
     compiled beside its compile and its fit: :func:`_compile_ahead`), and made again where the data
@@ -159,7 +171,7 @@ def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: d
     nargs = _nested_args(nested, args)
     ahead = _compile_ahead(builder, model, Q0, R0, ys, us, args, options)
     nprog = None if nargs is None else compile_objective(
-        builder, nested, Q0, R0, ys, us, key=options.get("key"), **nargs)
+        builder, nested, Q0, R0, ys, us, key=options.key, **_call(nargs))
     lin, cmp, held = _fit_nested(builder, nested, Q0, R0, ys, us, args, nargs, options, nprog,
                                  diagnose=diagnose)
     released = to_release(lin, model, args["params"]) if diagnose and lin else {}
@@ -172,18 +184,16 @@ def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: d
     return lin, cmp, ahead, args, released
 
 
-def _check_ahead(builder, model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs,
-                 options: dict) -> None:
+def _check_ahead(builder, model, Q0, R0, args: dict, options: Options) -> None:
     """What the model's own fit would refuse, checked before the nested model's fit: bounds
     outside a parameter's domain; Q0, R0, the noise, the builder and its keywords (the filter
-    built once at the start, nothing traced); a learning_rate the default (line-search)
-    optimiser of a deterministic filter does not take."""
-    params = validation.names("params", params, model.param_names, allow_empty=True)
-    check_bounds(params, bounds, model)
-    stochastic = draws_random_numbers(builder, model, Q0, R0, params, noise, fit_x0,
-                                      builder_kwargs)
-    if options.get("learning_rate") is not None and options.get("optimizer") is None:
-        check_options(options, stochastic=stochastic)
+    built once at the start, nothing traced); scoring with a particle filter."""
+    params = validation.names("params", args["params"], model.param_names, allow_empty=True)
+    check_bounds(params, args["bounds"], model)
+    stochastic = draws_random_numbers(builder, model, Q0, R0,
+                                      Fitted(params, args["noise"], args["fit_x0"]),
+                                      args["builder_kwargs"])
+    check_optimizer(options.optimizer, stochastic)
 
 
 def _quietly(fn, *args, **kwargs):
@@ -221,7 +231,7 @@ def _released_start(model, Q0, R0, args: dict, res, released: dict) -> tuple:
                                for k, t in released.items()}), Q0, R0, args
 
 
-def _compile_ahead(builder, model, Q0, R0, ys, us, args: dict, options: dict):
+def _compile_ahead(builder, model, Q0, R0, ys, us, args: dict, options: Options):
     """The model's program (:func:`~vehjax.tune.driver.compile_objective`) compiled in a second
     host thread while this one fits the nested model: a future, or None where the platform
     does one thing at a time (``side_by_side`` of :mod:`vehjax.execution`). ``model`` is at a
@@ -231,7 +241,7 @@ def _compile_ahead(builder, model, Q0, R0, ys, us, args: dict, options: dict):
     if execution.current().side_by_side < 2:
         return None
     return execution.in_thread(compile_objective, builder, model, Q0, R0, ys, us,
-                               key=options.get("key"), **args)
+                               key=options.key, **_call(args))
 
 
 def _compiled(future):
@@ -286,31 +296,25 @@ def _off_bounds(fitted, given, name: str, components, on_bound: dict) -> np.ndar
     return out
 
 
-def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(), bounds=None,
-        noise=NOISE, fit_x0: bool = False, start: str = "data", compare: bool = True,
-        builder_kwargs=None, priors=None, release: bool = True, **options) -> TuneResult:
+def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
+        builder_kwargs=None, options: Options | None = None, start="data") -> TuneResult:
     """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum
     likelihood, with standard errors, from a start the data give (module docstring).
 
     Args:
-        builder, model, Q0, R0, measurements, inputs, x0, P0, params, bounds, noise, fit_x0,
-        builder_kwargs, priors: as :func:`vehjax.tune.driver.fit_from_theta`
-            (``model.theta`` the starting parameter values where ``start="theta"``; a
-            parameter in ``priors`` is fitted, by penalised likelihood:
+        builder, model, Q0, R0, measurements, inputs, x0, P0, params, builder_kwargs, options:
+            as :func:`vehjax.tune.driver.fit_from_theta` (``params`` names or
+            :class:`vehjax.tune.Fitted`; ``options`` :class:`vehjax.tune.Options`, the
+            optimiser, the standard errors, the progress bar, a particle filter's key;
+            ``model.theta`` the starting parameter values where the start is "theta"; a
+            parameter with a prior is fitted, by penalised likelihood:
             :mod:`vehjax.tune.priors`; the nested model's fit takes the priors of its
             parameters, and of two starts the higher penalised likelihood is kept).
         start: ``"data"`` (default): the nested model's fit and the data's floors give the
             start (module docstring, steps 1-3); ``"theta"``: ``model.theta``, Q0, R0 and the
-            given input noise as they are.
-        compare: fit the nested model (``model.nested_model()``) and report a result below its
-            likelihood (default True; a model without one has nothing to compare).
-        release: fit a held parameter the data reject under the model's data-sheet prior
-            (``model.spec_priors()``; :mod:`vehjax.tune.release`) and say so
-            (``TuneResult.released``), default True; False holds every given value as given
-            (the score tests still name those the data reject). Needs the standard errors.
-        **options: the optimiser's and the report's options of
-            :func:`~vehjax.tune.driver.fit_from_theta` (``optimizer``, ``steps``, ``gtol``,
-            ``key``, ``progress``, ``standard_errors``, ``hessian``, ...).
+            given input noise as they are; or :class:`vehjax.tune.Start` (that and whether to
+            compare with the nested model and to release held parameters the data reject:
+            :mod:`vehjax.tune.release`, ``TuneResult.released``).
 
     Returns:
         :class:`~vehjax.tune.TuneResult`, the best start's, with ``nested``, ``below_nested``,
@@ -319,27 +323,25 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
         parameters) are not raised; those of the nested model's fit name it.
 
     Raises:
-        ValueError: naming the argument (``start``, ``compare``, ``release``, and those of
+        ValueError: naming the argument (``start`` and those of
             :func:`~vehjax.tune.driver.fit_from_theta`), before anything is traced.
     """
     t0 = time.perf_counter()
-    validation.choice("start", start, STARTS)
-    validation.flag("compare", compare)
-    validation.flag("fit_x0", fit_x0)
-    release = validation.flag("release", release)
-    check_options(options)
+    stages, what = start_record(start), fitted(params)
+    start, compare = stages.values, stages.compare
+    options = validation.record("options", options, Options)
     validation.model(model)
     ys, us, _, _ = check_data(model, measurements, inputs, x0, P0)
     all_floors = model.data_floors(ys, us)
-    priors, bounds = tune_priors.check(priors, model, bounds)
+    priors, bounds = tune_priors.check(what.priors, model, what.bounds)
+    params = what.names
     if priors:  # the prior'd parameters fitted; the names checked here, before the nested fit
         params = tune_priors.fitted_params(
             validation.names("params", params, model.param_names, allow_empty=True), priors)
-    _check_ahead(builder, model, Q0, R0, params, bounds, noise, fit_x0, builder_kwargs, options)
-    args = dict(x0=x0, P0=P0, params=params, bounds=bounds, noise=noise, fit_x0=fit_x0,
+    args = dict(x0=x0, P0=P0, params=params, bounds=bounds, noise=what.noise, fit_x0=what.x0,
                 builder_kwargs=builder_kwargs, priors=priors)
-    diagnose = release and validation.flag("standard_errors",
-                                           options.get("standard_errors", True))
+    _check_ahead(builder, model, Q0, R0, args, options)
+    diagnose = stages.release and options.standard_errors is not None
     given = model  # the user's model: its held values and their data-sheet priors
     nested = model.nested_model() if compare or start == "data" else None
     lin = cmp = ahead = None
@@ -355,11 +357,11 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
         model = model.with_theta(**start_values(model, all_floors, params, bounds))
     compiled = _compiled(ahead)
     if compiled is None and cmp is not None:  # one compile for a second start too
-        compiled = compile_objective(builder, model, Q0, R0, ys, us, key=options.get("key"),
-                                     **args)
+        compiled = compile_objective(builder, model, Q0, R0, ys, us, key=options.key,
+                                     **_call(args))
 
     def one(m):
-        res, caught = _quietly(fit_from_theta, builder, m, Q0, R0, ys, us, **args, **options,
+        res, caught = _quietly(fit_start, builder, m, Q0, R0, ys, us, _call(args), options,
                                floors=all_floors, compiled=compiled)
         starts.append(({k: float(m.theta[m.param_names.index(k)]) for k in args["params"]},
                        res.loglik))
@@ -377,7 +379,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     if more:  # released by the model's own fit: made again from its values
         args = _widened(args, given, more)
         m, Q0, R0, args = _released_start(model, Q0, R0, args, best, more)
-        best, held = _quietly(fit_from_theta, builder, m, Q0, R0, ys, us, **args, **options,
+        best, held = _quietly(fit_start, builder, m, Q0, R0, ys, us, _call(args), options,
                               floors=all_floors)
         released = {**released, **more}
     _reissue(held)

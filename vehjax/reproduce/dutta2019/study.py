@@ -330,8 +330,9 @@ def tuned_settings(paper: dict, model, scn, estimate, truth, box, key, runs: int
     fit = tune.fit(ukf, guess, np.asarray(paper["Q"], float), np.asarray(paper["R"], float),
                    sim.measurements, sim.inputs, x0=np.asarray(scn.x0, float),
                    P0=np.diag(np.asarray(paper["P0"], float)), params=tuple(estimate),
-                   optimizer="adam", learning_rate=_TUNE_LR, steps=steps,
-                   patience=_TUNE_PATIENCE, progress=False)
+                   options=tune.Options(optimizer=tune.Adam(learning_rate=_TUNE_LR, steps=steps,
+                                                            patience=_TUNE_PATIENCE),
+                                        progress=False))
     cfg = matched_settings(paper, model, truth, box)
     cfg.update(Q=tuple(float(v) for v in np.diag(fit.Q)), R=tuple(float(v) for v in np.diag(fit.R)))
     return Tuning(cfg, fit, sim, tuple(estimate), start, fixed)
