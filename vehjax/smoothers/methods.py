@@ -107,12 +107,19 @@ class IPLS(_Iterated):
     name: ClassVar[str] = "ipls"
 
 
-def _trajectories(value) -> int:
-    return validation.integer("method.n_trajectories", value, 1)
+@dataclasses.dataclass(frozen=True)
+class _Trajectories:
+    """What the particle smoothers share: ``n_trajectories``, M >= 1 trajectories to draw."""
+
+    n_trajectories: int = 100
+
+    def __post_init__(self):
+        object.__setattr__(self, "n_trajectories", validation.integer(
+            "method.n_trajectories", self.n_trajectories, 1))
 
 
 @dataclasses.dataclass(frozen=True)
-class FFBSi:
+class FFBSi(_Trajectories):
     """Backward simulation (forward filtering, backward simulation): the bootstrap PF's
     (:func:`vehjax.smoothers.particle.smooth`) and, Rao-Blackwellised, the marginalized PF's with
     ``kalman_states="linear"`` (:func:`vehjax.smoothers.marginalized.smooth`).
@@ -122,14 +129,10 @@ class FFBSi:
     """
 
     name: ClassVar[str] = "ffbsi"
-    n_trajectories: int = 100
-
-    def __post_init__(self):
-        object.__setattr__(self, "n_trajectories", _trajectories(self.n_trajectories))
 
 
 @dataclasses.dataclass(frozen=True)
-class RejectionSampling:
+class RejectionSampling(_Trajectories):
     """Backward simulation by rejection sampling, the bootstrap PF's.
 
     Attributes:
@@ -138,17 +141,16 @@ class RejectionSampling:
     """
 
     name: ClassVar[str] = "rejection"
-    n_trajectories: int = 100
     max_tries: int = 10
 
     def __post_init__(self):
-        object.__setattr__(self, "n_trajectories", _trajectories(self.n_trajectories))
+        super().__post_init__()
         object.__setattr__(self, "max_tries",
                            validation.integer("method.max_tries", self.max_tries, 1))
 
 
 @dataclasses.dataclass(frozen=True)
-class AncestorPaths:
+class AncestorPaths(_Trajectories):
     """The particles' ancestral paths (with a per-path RTS for the marginalized PF, whose
     default this is).
 
@@ -157,10 +159,6 @@ class AncestorPaths:
     """
 
     name: ClassVar[str] = "ancestor"
-    n_trajectories: int = 100
-
-    def __post_init__(self):
-        object.__setattr__(self, "n_trajectories", _trajectories(self.n_trajectories))
 
 
 #: The Gaussian filters' methods and the particle filters'.
