@@ -26,7 +26,8 @@ import vehjax as vj
 from vehjax.models import SingleTrack, SingleTrackBank
 from vehjax.tune import parameterisation, program, staged
 
-MODULES = ("vehjax", "vehjax.tune", "vehjax.filters", "vehjax.data", "vehjax.smoothers")
+MODULES = ("vehjax", "vehjax.tune", "vehjax.filters", "vehjax.data", "vehjax.smoothers",
+           "vehjax.calibrate")
 
 #: the compile events of JAX (tracing a function, lowering it, compiling it)
 _EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/backend_compile_duration")
@@ -116,6 +117,19 @@ CALLS = {
              niw=vj.filters.NiW(std0={"delta": 0.01, "ay": 0.4, "r": 0.02, "roll_rate": 0.02}))),
     "vehjax.filters.marginalized_pf_grid": lambda: (
         vj.filters.marginalized_pf_grid, (SingleTrackBank(dt=0.01),), dict(Q=0.1 ** 2)),
+    # particle MCMC: the samplers' options are the fields of their records
+    **{f"vehjax.calibrate.{r}": (lambda r=r: (getattr(vj.calibrate, r), (), {}))
+       for r in ("Chains", "Adaptation", "Sweep")},
+    "vehjax.calibrate.log_likelihood_spread": lambda: (
+        vj.calibrate.log_likelihood_spread, (vj.filters.ekf, M, YS, US),
+        dict(x0=X0, P0=P0, Q=Q, R=R, values={"cf": 8e4}, key=KEY)),
+    "vehjax.calibrate.log_likelihood_difference_spread": lambda: (
+        vj.calibrate.log_likelihood_difference_spread,
+        (vj.calibrate.Correlated(vj.filters.bootstrap_pf, 0.9), M, YS, US),
+        dict(x0=X0, P0=P0, Q=Q, R=R, values={"cf": 8e4}, key=KEY)),
+    "vehjax.calibrate.fixed_noise_mpf": lambda: (vj.calibrate.fixed_noise_mpf, (M, Q, R),
+                                                 dict(input_noise={"delta": 0.01})),
+    "vehjax.calibrate.target_acceptance": lambda: (vj.calibrate.target_acceptance, (2,), {}),
     "vehjax.data.online_virtual_scale": lambda: (
         vj.data.online_virtual_scale, (np.zeros(T), np.zeros(T), np.full(T, 20.0), 1.6), {}),
 }
@@ -143,6 +157,10 @@ ALLOWED = {
        for name, arg in (("IEKS", "max_iter"), ("IPLS", "max_iter"), ("FFBSi", "n_trajectories"),
                          ("RejectionSampling", "n_trajectories"),
                          ("RejectionSampling", "max_tries"), ("AncestorPaths", "n_trajectories"))},
+    **{(f"vehjax.calibrate.{r}", a): {repr(10**15): "a count with no upper bound (the "
+                                                   "caller's time and memory)"}
+       for r, a in (("Chains", "n"), ("Chains", "samples"), ("Sweep", "moves"),
+                    ("Adaptation", "windows"))},
     **{(f"vehjax.tune.{r}", a): {repr(10**15): "an iteration limit: the stopping rules end "
                                                "the fit before it"}
        for r in ("Adam", "LBFGS", "Scoring", "FirstOrder") for a in ("steps", "patience")},
@@ -286,7 +304,9 @@ def _array_variants(a: np.ndarray) -> dict:
 ARRAY_ALLOWED = {
     **{(q, "measurements", "nan"): "NaN is a missing measurement"
        for q in ("vehjax.filter", "vehjax.smooth", "vehjax.run", "vehjax.compile_run",
-                 "vehjax.tune.fit", "vehjax.tune.fit_from_theta", "vehjax.tune.objective")},
+                 "vehjax.tune.fit", "vehjax.tune.fit_from_theta", "vehjax.tune.objective",
+                 "vehjax.calibrate.log_likelihood_spread",
+                 "vehjax.calibrate.log_likelihood_difference_spread")},
     **{(q, "measurements", "extra axis"): "several runs (R, T, ny) fitted together"
        for q in ("vehjax.tune.fit", "vehjax.tune.fit_from_theta", "vehjax.tune.objective")},
     **{("vehjax.tune.uncertainty", a, v): "a fit's information that is not finite gives NaN "

@@ -51,7 +51,7 @@ def target_acceptance(d: int, loglik_std=0.0):
     Roberts & Rosenthal 2015, Ann. Statist. 43(1): acceptance 2 Phi(-sqrt(l^2 + 2 sigma^2) / 2),
     0.234 at sigma = 0, 0.144 at 1.2, 0.11 at 1.5). Dimensionless, in (0, 1)."""
     d = validation.integer("d", d, 1)
-    s = float(loglik_std)
+    s = validation.number("loglik_std", loglik_std, 0.0, low_open=False)
     a_d = _RW_ACCEPTANCE_D[d - 1] if d <= len(_RW_ACCEPTANCE_D) else RW_ACCEPTANCE
     noisy = math.erfc(0.5 * math.sqrt(RW_SCALE**2 + 2.0 * s * s) / math.sqrt(2.0))
     return a_d * noisy / math.erfc(0.5 * RW_SCALE / math.sqrt(2.0))

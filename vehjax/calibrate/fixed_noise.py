@@ -15,7 +15,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..filters import NiW, Resampling, marginalized_pf
+from .. import validation
+from ..filters import NiW, Resampling, marginalized_pf, smc
 from ..filters.base import Dims, Estimator, Runtime, StepOutput
 from ..models import Model
 
@@ -54,7 +55,7 @@ def _fixed_noise_model(model, noisy_input: str):
                  output_names=tuple(model.output_names), fast_math=False)
 
 
-def _fixed_noise_filter(aug, n_particles, name, q_std, resampling, ess_threshold):
+def _fixed_noise_filter(aug, n_particles, name, q_std, resampling):
     """:func:`vehjax.filters.marginalized_pf` on :func:`_fixed_noise_model`'s ``aug`` with
     the statistics held (placeholder stds 1: :func:`fixed_noise_mpf`'s ``init`` sets them)."""
     states = aug.state_names[1:]
@@ -63,11 +64,11 @@ def _fixed_noise_filter(aug, n_particles, name, q_std, resampling, ess_threshold
         linear_states=states, Q=q_std ** 2,
         niw=NiW(std0={k: 1.0 for k in (name,) + tuple(aug.output_names)}, forgetting=1.0,
                 gamma0=FIXED_GAMMA0, nu0=FIXED_NU0), kalman_states="all",
-        resampling=Resampling(scheme=resampling, ess_threshold=ess_threshold))
+        resampling=resampling)
 
 
 def fixed_noise_mpf(model, Q, R, *, input_noise, n_particles: int = 100,
-                    resampling: str = "systematic", ess_threshold: float = 0.5):
+                    resampling: Resampling = Resampling()):
     """A builder for :func:`pmmh` / :func:`log_likelihood_fn`: the marginalized PF of paper 004
     (:func:`vehjax.filters.marginalized_pf`, ``kalman_states="all"``) with its noise statistics
     fixed at the given values, as a state-only estimator of ``model``'s states.
@@ -89,11 +90,13 @@ def fixed_noise_mpf(model, Q, R, *, input_noise, n_particles: int = 100,
             calibrated: ``Q[...]`` priors are refused).
         R: (ny,) variances or (ny, ny) (its diagonal is used: the outputs' noises independent).
         input_noise: dict with one entry, input name -> std [input units] (may be traced).
-        n_particles, resampling, ess_threshold: as :func:`vehjax.filters.marginalized_pf`.
+        n_particles, resampling: as :func:`vehjax.filters.marginalized_pf` (``resampling`` a
+            :class:`vehjax.filters.Resampling`).
 
     Returns:
         ``Estimator``: state-only (``theta0`` replaces the model's parameters), ``needs_key``.
     """
+    n_particles = smc.check_n_particles(n_particles)
     if not isinstance(input_noise, Mapping) or len(input_noise) != 1:
         raise ValueError(f"input_noise: expected one input name -> std, got {input_noise!r}")
     (name, s_u), = input_noise.items()
@@ -104,15 +107,16 @@ def fixed_noise_mpf(model, Q, R, *, input_noise, n_particles: int = 100,
     except jax.errors.TracerArrayConversionError:
         raise ValueError("Q: fixed_noise_mpf takes a fixed Q (its values set the Kalman "
                          "filters' noise when built); drop the 'Q[...]' priors") from None
+    Qd = np.asarray(validation.cov("Q", Qd, len(model.state_names), allow_psd=True), float)
     q_std = np.sqrt(np.diag(Qd) if Qd.ndim == 2 else Qd)
-    R = jnp.asarray(R, float)
+    R = jnp.asarray(validation.cov("R", R, len(model.output_names)), float)
     r_std = jnp.sqrt(jnp.diag(R) if R.ndim == 2 else R)
     aug = _fixed_noise_model(model, name)
     ny, nx = len(model.output_names), len(model.state_names)
     # built from concrete values only (its model checks run numerically), also when the
     # builder is called under a PMMH chain's trace
     with jax.ensure_compile_time_eval():
-        mpf = _fixed_noise_filter(aug, n_particles, name, q_std, resampling, ess_threshold)
+        mpf = _fixed_noise_filter(aug, n_particles, name, q_std, resampling)
     i_u = model.input_names.index(name)
     theta_model = jnp.asarray(model.theta, float)
 

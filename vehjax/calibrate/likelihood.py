@@ -53,6 +53,8 @@ class Targets(NamedTuple):
 QUANTITY_KINDS = {"R": "output_names", "Q": "state_names", "bias": "output_names",
                   "input": "input_names"}
 _KEY = re.compile(r"^(\w+)\[([^\[\]]*)\]$")
+#: the most evaluations a spread takes (they run side by side, one filter each)
+MAX_EVALS = 100_000
 _OLD_KEY = re.compile(r"^(R|Q|bias|input):(.*)$")
 
 
@@ -131,9 +133,11 @@ def log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R, nam
     func, kwargs = builder_options(builder)
     tg = targets(model, names)
     ys, us = validation.data(measurements, inputs, model.ny, model.nu, "one")
+    validation.prior(model.nx, x0, P0)  # checked here, before a trace; the filter takes them
+    Q = validation.cov("Q", Q, model.nx, allow_psd=True)
+    R = validation.cov("R", R, model.ny)
     ys, us = jnp.asarray(ys, float), jnp.asarray(us, float)
-    Q = jnp.asarray(validation.cov("Q", Q, model.nx, allow_psd=True))
-    R = jnp.asarray(validation.cov("R", R, model.ny))
+    Q, R = jnp.asarray(Q), jnp.asarray(R)
     _no_fixed_input_noise(tg, kwargs)
     theta_base = jnp.asarray(model.theta, float)
 
@@ -176,11 +180,12 @@ def cpm_log_likelihood_fn(correlated_estimate, model, measurements, inputs, *, x
     tg = targets(model, names)
     _no_fixed_input_noise(tg, kwargs)
     ys, us = validation.data(measurements, inputs, model.ny, model.nu, "one")
-    ys, us = jnp.asarray(ys, float), jnp.asarray(us, float)
     x0a, P0a = validation.prior(model.nx, x0, P0)
-    x0a, L0 = jnp.asarray(x0a, float), jnp.asarray(np.linalg.cholesky(np.asarray(P0a, float)))
     Qn = np.asarray(validation.cov("Q", Q, model.nx, allow_psd=True), float)
-    Rj = jnp.asarray(validation.cov("R", R, model.ny), float)
+    Rn = validation.cov("R", R, model.ny)
+    ys, us = jnp.asarray(ys, float), jnp.asarray(us, float)
+    x0a, L0 = jnp.asarray(x0a, float), jnp.asarray(np.linalg.cholesky(np.asarray(P0a, float)))
+    Rj = jnp.asarray(Rn, float)
     LQ_fixed = jnp.asarray(square_root.chol_const(Qn))
     Lu_fixed = inoise.input_factor(kwargs.get("input_noise"), model.input_names)
     if tg.inputs:
@@ -213,12 +218,12 @@ def log_likelihood_difference_spread(correlated_estimate, model, measurements, i
     acceptance ratio sees, and the std of log p_hat(y | values, aux) itself (independent
     estimates, the plain PMMH chain's). Returns (std of the difference, std of the estimate)
     (:func:`cpm_log_likelihood_fn`)."""
+    n_evals = validation.integer("n_evals", n_evals, 2, MAX_EVALS)
     names = tuple(values)
     loglik, draw = cpm_log_likelihood_fn(correlated_estimate, model, measurements, inputs, x0=x0,
                                          P0=P0, Q=Q, R=R, names=names)
     rho = correlated_estimate.correlation
     v = jnp.asarray([float(values[n]) for n in names])
-    n_evals = validation.integer("n_evals", n_evals, 2)
 
     def pair(k):
         ka, ke = jax.random.split(k)
@@ -236,10 +241,10 @@ def log_likelihood_spread(builder, model, measurements, inputs=None, *, x0, P0, 
     and its mean: (std, mean). ``builder`` as :func:`log_likelihood_fn`'s. Doucet, Pitt,
     Deligiannidis & Kohn (2015, Biometrika 102(2)): PMMH is most efficient for its cost with
     this std about 1.0-1.5 at the posterior mean; a larger one makes the chain stick."""
+    n_evals = validation.integer("n_evals", n_evals, 2, MAX_EVALS)
     names = tuple(values)
     loglik = log_likelihood_fn(builder, model, measurements, inputs, x0=x0, P0=P0, Q=Q, R=R,
                                names=names)
     v = jnp.asarray([float(values[n]) for n in names])
-    n_evals = validation.integer("n_evals", n_evals, 2)
     lls = np.asarray(jax.jit(jax.vmap(lambda k: loglik(v, k)))(jax.random.split(key, n_evals)))
     return float(np.std(lls, ddof=1)), float(np.mean(lls))
