@@ -143,9 +143,9 @@ def run_mpf_smoother(args, d, est, P0, N, log=print):
     if getattr(args, "kalman_states", "linear") != "linear":
         method = "ancestor"  # FFBSi is built for the paper's kalman_states="linear"
     t0 = time.perf_counter()
-    method = vj.smoothers.methods.BY_NAME[method](n_trajectories=M)
+    record = vj.smoothers.methods.BY_NAME[method](n_trajectories=M)
     msm = jax.jit(lambda y, u, k: vj.smooth(est, y, u, x0=np.zeros(6), P0=P0, key=k,
-                                            method=method))(
+                                            method=record))(
         d["Y"], d["U"], jax.random.fold_in(jax.random.key(args.seed), 29))
     mpf_smooth = dict(states=np.asarray(msm.states), cov=np.asarray(msm.covariances),
                       params=np.asarray(msm.params), params_cov=np.asarray(msm.params_cov),
