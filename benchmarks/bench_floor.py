@@ -28,7 +28,10 @@ round, ``--repeat`` rounds, the best kept), in us per step and as a ratio to the
 vx, vy, r, all measured; five inputs; linear tyres through the arctangent slip angles, RK4 in
 one step of 10 ms) against a second C EKF (:data:`C_SOURCE_3DOF`: the derivative's Jacobian
 by hand, the RK4 map's by the chain rule through the four stages, a 3 x 3 Cholesky), on a sine
-steer simulated ten times finer than the filter's step.
+steer simulated ten times finer than the filter's step. For this model a C UKF too
+(:data:`C_SOURCE_3DOF`'s ``ukf_loglik``: the unscented rule with alpha 1, beta 2, kappa 0, seven
+points through RK4, fresh points for the update, vehjax's defaults), checked likewise; the
+column "x C same" sets each vehjax row beside the C filter of its own kind.
 
     python benchmarks/bench_floor.py                 # or: vehjax bench floor
     python benchmarks/bench_floor.py --duration 20 --repeat 2
@@ -219,6 +222,108 @@ double ekf_loglik(const double *theta, double dt, int substeps, const double *Q,
     }
     return ll;
 }
+
+/* the derivative alone (the UKF needs no Jacobian) */
+static void deriv_f(const car *c, const double *x, const double *u, double *f) {
+    double J[9];
+    deriv(c, x, u, f, J);
+}
+
+/* 3 x 3 Cholesky factor (lower, row-major) of the symmetric part of A */
+static void chol3(const double *A, double *L) {
+    double a10 = 0.5 * (A[3] + A[1]), a20 = 0.5 * (A[6] + A[2]), a21 = 0.5 * (A[7] + A[5]);
+    for (int i = 0; i < 9; ++i) L[i] = 0.0;
+    L[0] = sqrt(A[0]); L[3] = a10 / L[0]; L[6] = a20 / L[0];
+    L[4] = sqrt(A[4] - L[3] * L[3]); L[7] = (a21 - L[6] * L[3]) / L[4];
+    L[8] = sqrt(A[8] - L[6] * L[6] - L[7] * L[7]);
+}
+
+/* the 7 sigma points of N(x, L L^T) (unscented rule, alpha 1, beta 2, kappa 0: points 0 and
+   +-sqrt(3) e_j) as rows of X */
+static void points3(const double *x, const double *L, double X[7][3]) {
+    double s = sqrt(3.0);
+    for (int i = 0; i < 3; ++i) X[0][i] = x[i];
+    for (int j = 0; j < 3; ++j)
+        for (int i = 0; i < 3; ++i) {
+            X[1 + j][i] = x[i] + s * L[3 * i + j];
+            X[4 + j][i] = x[i] - s * L[3 * i + j];
+        }
+}
+
+/* weighted mean m and covariance P (+ N) of the rows of Y: wm = (0, 1/6 ...), wc = (2, 1/6 ...) */
+static void moments3(double Y[7][3], const double *N, double *m, double *P) {
+    static const double wm[7] = {0.0, 1.0 / 6, 1.0 / 6, 1.0 / 6, 1.0 / 6, 1.0 / 6, 1.0 / 6};
+    static const double wc[7] = {2.0, 1.0 / 6, 1.0 / 6, 1.0 / 6, 1.0 / 6, 1.0 / 6, 1.0 / 6};
+    for (int i = 0; i < 3; ++i) {
+        m[i] = 0.0;
+        for (int k = 0; k < 7; ++k) m[i] += wm[k] * Y[k][i];
+    }
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            double a = 0.0;
+            for (int k = 0; k < 7; ++k) a += wc[k] * (Y[k][i] - m[i]) * (Y[k][j] - m[j]);
+            P[3 * i + j] = a + N[3 * i + j];
+        }
+}
+
+/* The UKF log-likelihood (the additive-noise UKF: points of N(x, P) through RK4, their moments
+   + Q; fresh points of N(x-, P-) through h(x) = x, S = their covariance + R, C = their cross
+   covariance; the update through S's Cholesky factor Ls: w = Ls^-1 e, W = Ls^-1 C^T,
+   x = x- + W^T w, P = P- - W^T W) */
+double ukf_loglik(const double *theta, double dt, int substeps, const double *Q, const double *R,
+                  const double *ys, const double *us, long T, const double *x0, const double *P0) {
+    car c = {theta[0], theta[1], theta[2], theta[3], theta[4], theta[5], theta[6]};
+    double x[3] = {x0[0], x0[1], x0[2]}, P[9], L[9], X[7][3], ll = 0.0, h = dt / substeps;
+    for (int i = 0; i < 9; ++i) P[i] = P0[i];
+    for (long t = 0; t < T; ++t) {
+        const double *u = us + 5 * t, *y = ys + 3 * t;
+        chol3(P, L);
+        points3(x, L, X);
+        for (int k = 0; k < 7; ++k)
+            for (int s = 0; s < substeps; ++s) {           /* RK4 of each point */
+                double k1[3], k2[3], k3[3], k4[3], z[3], *v = X[k];
+                deriv_f(&c, v, u, k1);
+                for (int i = 0; i < 3; ++i) z[i] = v[i] + 0.5 * h * k1[i];
+                deriv_f(&c, z, u, k2);
+                for (int i = 0; i < 3; ++i) z[i] = v[i] + 0.5 * h * k2[i];
+                deriv_f(&c, z, u, k3);
+                for (int i = 0; i < 3; ++i) z[i] = v[i] + h * k3[i];
+                deriv_f(&c, z, u, k4);
+                for (int i = 0; i < 3; ++i)
+                    v[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]);
+            }
+        double xp[3], Pp[9], yh[3], S[9], C[9], Ls[9], e[3], w[3], W[9];
+        moments3(X, Q, xp, Pp);
+        for (int i = 0; i < 3; ++i)                          /* symmetric P- */
+            for (int j = 0; j < i; ++j) Pp[3 * i + j] = Pp[3 * j + i] = 0.5 * (Pp[3 * i + j] + Pp[3 * j + i]);
+        chol3(Pp, L);
+        points3(xp, L, X);
+        moments3(X, R, yh, S);                               /* h(x) = x: Z = X */
+        for (int i = 0; i < 3; ++i)                          /* C = Cov(x, z) about xp, yh */
+            for (int j = 0; j < 3; ++j) {
+                double a = 0.0;
+                for (int k = 0; k < 7; ++k)
+                    a += (k ? 1.0 / 6 : 2.0) * (X[k][i] - xp[i]) * (X[k][j] - yh[j]);
+                C[3 * i + j] = a;
+            }
+        chol3(S, Ls);
+        for (int i = 0; i < 3; ++i) e[i] = y[i] - yh[i];
+        w[0] = e[0] / Ls[0]; w[1] = (e[1] - Ls[3] * w[0]) / Ls[4];
+        w[2] = (e[2] - Ls[6] * w[0] - Ls[7] * w[1]) / Ls[8];
+        for (int i = 0; i < 3; ++i) {                        /* column i of W: Ls^-1 C[i, :] */
+            const double *ci = C + 3 * i;
+            W[i] = ci[0] / Ls[0]; W[3 + i] = (ci[1] - Ls[3] * W[i]) / Ls[4];
+            W[6 + i] = (ci[2] - Ls[6] * W[i] - Ls[7] * W[3 + i]) / Ls[8];
+        }
+        for (int i = 0; i < 3; ++i) x[i] = xp[i] + W[i] * w[0] + W[3 + i] * w[1] + W[6 + i] * w[2];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                P[3 * i + j] = Pp[3 * i + j] - (W[i] * W[j] + W[3 + i] * W[3 + j] + W[6 + i] * W[6 + j]);
+        ll += -0.5 * (w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+              - log(Ls[0] * Ls[4] * Ls[8]) - 1.5 * log(2.0 * M_PI);
+    }
+    return ll;
+}
 """
 
 X0, P0 = np.zeros(2), np.diag([0.1, 0.01])
@@ -226,10 +331,11 @@ Q = np.diag([1e-4, 1e-5])
 R = np.diag([0.1, 1e-4])
 
 
-def c_floor(source: str = C_SOURCE, Q=Q, R=R, x0=X0, P0=P0):
-    """The C EKF log-likelihood of ``source`` (:data:`C_SOURCE`, :data:`C_SOURCE_3DOF`) with
-    the noise ``Q``, ``R`` and the prior ``x0``, ``P0`` as a Python function ``(model, ys, us)``
-    (compiled once into a temporary folder), or None without a C compiler."""
+def c_floor(source: str = C_SOURCE, Q=Q, R=R, x0=X0, P0=P0, symbol: str = "ekf_loglik"):
+    """The C log-likelihood ``symbol`` of ``source`` (:data:`C_SOURCE`'s ``ekf_loglik``,
+    :data:`C_SOURCE_3DOF`'s ``ekf_loglik`` and ``ukf_loglik``) with the noise ``Q``, ``R`` and
+    the prior ``x0``, ``P0`` as a Python function ``(model, ys, us)`` (compiled once into a
+    temporary folder), or None without a C compiler."""
     cc = shutil.which("gcc") or shutil.which("cc")
     if cc is None:
         return None
@@ -238,7 +344,7 @@ def c_floor(source: str = C_SOURCE, Q=Q, R=R, x0=X0, P0=P0):
     subprocess.run([cc, "-O2", "-shared", "-fPIC", "-o", str(folder / "ekf.so"),
                     str(folder / "ekf.c"), "-lm"], check=True)
     lib = ctypes.CDLL(str(folder / "ekf.so"))
-    f = lib.ekf_loglik
+    f = getattr(lib, symbol)
     dp = ctypes.POINTER(ctypes.c_double)
     f.argtypes = [dp, ctypes.c_double, ctypes.c_int, dp, dp, dp, dp, ctypes.c_long, dp, dp]
     f.restype = ctypes.c_double
@@ -343,44 +449,57 @@ def three_dof_problem(duration: float, seed: int = 0, fine: int = 10):
 PROBLEMS = {"single_track": single_track_problem, "3dof": three_dof_problem}
 
 
+def check_floor(name, floor, est, model, ys, us, x0, P0) -> None:
+    """Print the C log-likelihood beside ``vehjax.filter``'s with ``est``; SystemExit when
+    they differ by more than 1e-9 relative (the floor would time other work)."""
+    ll_vehjax = float(jnp.sum(vehjax.filter(est, ys, us, x0=x0, P0=P0).loglik))
+    ll_c = floor(model, ys, us)
+    rel = abs(ll_c - ll_vehjax) / abs(ll_vehjax)
+    print(f"# log-likelihood, {name}: C {ll_c:.10f}, vehjax.filter {ll_vehjax:.10f} "
+          f"(relative difference {rel:.1e})")
+    if not rel <= 1e-9:
+        raise SystemExit(f"vehjax bench floor: the C {name} and vehjax.filter disagree")
+
+
 def main(argv=None) -> int:
     a = parser().parse_args(argv)
     if a.duration <= 0 or a.repeat < 1:
         raise SystemExit("vehjax bench floor: --duration must be > 0 and --repeat >= 1")
     label, model, ys, us, Qm, Rm, x0, P0m, source = PROBLEMS[a.model](a.duration)
     T = len(ys)
-    floor = c_floor(source, Qm, Rm, x0, P0m)
-    ll_vehjax = float(jnp.sum(vehjax.filter(vehjax.filters.ekf(model, Qm, Rm), ys, us, x0=x0,
-                                            P0=P0m).loglik))
-    if floor is not None:
-        ll_c = floor(model, ys, us)
-        rel = abs(ll_c - ll_vehjax) / abs(ll_vehjax)
-        print(f"# log-likelihood: C {ll_c:.10f}, vehjax.filter {ll_vehjax:.10f} "
-              f"(relative difference {rel:.1e})")
-        if not rel <= 1e-9:
-            raise SystemExit("vehjax bench floor: the C floor and vehjax.filter disagree")
+    # the C filters: the EKF (the floor), and for the 3-DOF model also the UKF, beside which
+    # vehjax's UKF row is set
+    floors = {"EKF": vehjax.filters.ekf} if a.model == "single_track" else \
+        {"EKF": vehjax.filters.ekf, "UKF": vehjax.filters.ukf}
+    floors = {k: (c_floor(source, Qm, Rm, x0, P0m, f"{k.lower()}_loglik"), build)
+              for k, build in floors.items()}
+    floors = {k: fl for k, (fl, build) in floors.items() if fl is not None
+              and check_floor(k, fl, build(model, Qm, Rm), model, ys, us, x0, P0m) is None}
     rows = (contenders(model, ys, us) if a.model == "single_track" else
             filter_rows(model, ys, us, Qm, Rm, x0, P0m))
     compile_s = {k: timed(fn, args) for k, (fn, args) in rows.items()}  # first call: compile
     best = {k: np.inf for k in rows}
-    best_c = np.inf
+    best_c = {k: np.inf for k in floors}
     for _ in range(a.repeat):
-        if floor is not None:
+        for k, floor in floors.items():
             t0 = time.perf_counter()
             floor(model, ys, us)
-            best_c = min(best_c, time.perf_counter() - t0)
+            best_c[k] = min(best_c[k], time.perf_counter() - t0)
         for k, (fn, args) in rows.items():
             best[k] = min(best[k], timed(fn, args))
     print(f"# {T} steps, {label}, float64, {jax.devices()[0]}; "
           f"best of {a.repeat} interleaved rounds; first call (compile + one run) apart")
-    print(f"{'row':<15} {'us/step':>9} {'x floor':>9} {'first call s':>13}")
-    c_us = best_c / T * 1e6
-    if floor is not None:
-        print(f"{'C floor':<15} {c_us:9.3f} {1.0:9.1f} {'-':>13}")
+    print(f"{'row':<15} {'us/step':>9} {'x floor':>9} {'x C same':>9} {'first call s':>13}")
+    c_us = {k: v / T * 1e6 for k, v in best_c.items()}
+    ratio = lambda v, k: f"{v / c_us[k]:9.1f}" if k in c_us else f"{'-':>9}"  # noqa: E731
+    for k in floors:
+        name = "C floor" if k == "EKF" else f"C {k}"
+        print(f"{name:<15} {c_us[k]:9.3f} {ratio(c_us[k], 'EKF')} {1.0:9.1f} {'-':>13}")
     for k in rows:
         us_step = best[k] / T * 1e6
-        ratio = f"{us_step / c_us:9.1f}" if floor is not None else f"{'-':>9}"
-        print(f"{k:<15} {us_step:9.3f} {ratio} {compile_s[k]:13.2f}")
+        same = k.rsplit(" ", 1)[-1] if k.startswith(("filter", "run")) else None
+        print(f"{k:<15} {us_step:9.3f} {ratio(us_step, 'EKF')} {ratio(us_step, same)} "
+              f"{compile_s[k]:13.2f}")
     return 0
 
 

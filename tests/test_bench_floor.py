@@ -65,3 +65,25 @@ def test_c_floor_of_the_3dof_model_equals_vehjax_filter():
     c = floor(model, ys, us)
     assert abs(c - ll(R)) <= 1e-10 * abs(ll(R))
     assert abs(c - ll(2 * R)) > 1e-3 * abs(ll(R))
+
+
+@needs_cc
+def test_c_ukf_of_the_3dof_model_equals_vehjax_ukf():
+    """The C UKF (seven unscented points through RK4, fresh points for the update) on another
+    realisation and car (cornering stiffness 1.3x, a wider prior): its log-likelihood equals
+    vehjax.filters.ukf's to 1e-10 relative, and differs from the EKF's (a UKF, not an EKF, is
+    what it times) and from the UKF's with another Q."""
+    _, model, ys, us, Q, R, x0, P0, source = bench.three_dof_problem(5.0, seed=7)
+    th = np.asarray(model.theta).copy()
+    th[2] *= 1.3
+    model = vehjax.models.Dynamic3DOF(dt=model.dt, theta=tuple(th))
+    P0 = 4.0 * P0
+    floor = bench.c_floor(source, Q, R, x0, P0, symbol="ukf_loglik")
+
+    def ll(build, Q_):
+        return float(jnp.sum(vehjax.filter(build(model, Q_, R), ys, us, x0=x0, P0=P0).loglik))
+
+    c, ukf = floor(model, ys, us), ll(vehjax.filters.ukf, Q)
+    assert abs(c - ukf) <= 1e-10 * abs(ukf)
+    assert abs(c - ll(vehjax.filters.ekf, Q)) > 1e-8 * abs(ukf)
+    assert abs(c - ll(vehjax.filters.ukf, 3 * Q)) > 1e-3 * abs(ukf)

@@ -285,14 +285,25 @@ def _bench():
 @pytest.mark.slow  # a benchmark's smoke run (pyproject.toml's slow marker)
 def test_bench_online_smoke_ekf(capsys):
     """Tiny sizes, the EKF row: checked equal to vehjax.filter and filterpy, then timed."""
-    assert _bench().main(["--quick", "--rows", "ekf"]) == 0
+    assert _bench().main(["--quick", "--rows", "ekf", "--dispatch", "async"]) == 0
     out = capsys.readouterr().out
     assert "FAILED" not in out and "target: Online.update median" in out
     assert all(f"ekf  {c}" in out for c in ("Online.update", "vehjax.filter", "vehjax.run"))
 
 
+@pytest.mark.slow  # two fresh processes, each importing JAX and compiling
+def test_bench_online_both_dispatches_run_in_fresh_processes(capfd):
+    """The default ``--dispatch both``: a child per mode, each saying its mode, then one line
+    per row with both medians (numbers, not NaN: each child reported its row)."""
+    assert _bench().main(["--quick", "--rows", "ekf"]) == 0
+    out = capfd.readouterr().out
+    assert "dispatch sync:" in out and "dispatch async:" in out and "FAILED" not in out
+    line = [ln for ln in out.splitlines() if ln.startswith("ekf  target 30 us:")]
+    assert len(line) == 1 and "nan" not in line[0], out
+
+
 @pytest.mark.slow  # the marginalized PF's compiles: about two minutes on 2 cores
 def test_bench_online_smoke_all_rows(capsys):
-    assert _bench().main(["--quick"]) == 0
+    assert _bench().main(["--quick", "--dispatch", "async"]) == 0
     out = capsys.readouterr().out
     assert "FAILED" not in out and "paper 004's 1.4 ms a step: ratio" in out

@@ -64,13 +64,16 @@ So the state stays on the device as a few flat buffers (:class:`Layout`), donate
 (updated in place), y and u go to it as one vector (y then u), and the step's outputs come
 back as one vector that :meth:`Online.update` splits into numpy views; the checks of y and u
 are a few Python-level operations (about 1 us each).
-A gap compiles a second function (a loop over prediction steps) on first use. JAX's CPU
-backend hands each call to a worker thread (async dispatch), which a loop that waits for every
-result does not need: a process that sets ``jax.config.update("jax_cpu_enable_async_dispatch",
-False)`` before JAX's first computation runs the step in the calling thread, and on a busy
-CPU that is most of the latency: ``vehjax bench online [--dispatch sync]`` measures both (on
-a loaded 2-core CPU, benchmarks/results/cpu_bench_online_2026-12-02.log, the EKF's median
-sample took 32 us in the calling thread and 102 us handed over).
+A gap compiles a second function (a loop over prediction steps) on first use.
+
+Dispatch. JAX's CPU backend hands a computation to a worker thread (async dispatch) unless
+XLA's cost analysis counts it under 1000 flops; the EKF step on the single-track model is under
+that, the UKF's and the particle filters' are over it, and a loop that waits for every result
+then pays a thread hand-over and wake-up on each sample. For a live loop, run JAX's CPU
+computations in the calling thread: ``jax.config.update("jax_cpu_enable_async_dispatch",
+False)`` before JAX's first computation (JAX reads it when its backend starts). ``vehjax bench
+online`` measures both, each in a fresh process; on a 2-core VM the hand-over costs the UKF
+several times its step (benchmarks/results/ has the figures).
 
 Limits: one stream per object (for many cars, :func:`vehjax.run` or ``jax.vmap`` of the step);
 the inputs between two stamped samples are not known and are taken to be the later sample's;
