@@ -275,3 +275,18 @@ def test_a_max_gap_shorter_than_the_sample_interval_is_refused_naming_it(call):
                 d.for_model(SingleTrack(dt=0.01), max_gap=gap)
     r = d.resample(0.01, max_gap=0.021)
     np.testing.assert_allclose(r.signals["ay"], np.interp(r.t, t, np.cos(t)), rtol=1e-13)
+
+
+def test_max_gap_is_checked_when_the_drive_is_on_the_models_grid_already():
+    """A drive already at the model's dt is not resampled; a max_gap shorter than its interval
+    is still refused naming it (it was ignored), and a valid one changes nothing."""
+    t = np.arange(100) * 0.01
+    d = Drive.from_arrays(t, {"delta": np.sin(t), "vx": np.full(100, 20.0), "ay": np.cos(t),
+                              "r": np.zeros(100)},
+                          {"delta": "rad", "vx": "m/s", "ay": "m/s^2", "r": "rad/s"})
+    with pytest.raises(ValueError, match=r"^max_gap: 0.001 s is not longer than the drive's "
+                                         r"sample interval \(0.01 s"):
+        d.for_model(SingleTrack(dt=0.01), max_gap=0.001)
+    for a, b in zip(d.for_model(SingleTrack(dt=0.01), max_gap=0.05),
+                    d.for_model(SingleTrack(dt=0.01))):
+        np.testing.assert_array_equal(a, b)

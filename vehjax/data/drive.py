@@ -344,11 +344,7 @@ class Drive:
             raise ValueError(f"stop: {t1} s is not after start = {t0} s")
         median = float(np.median(np.diff(self.t)))
         step = 2.5 * median
-        given = None if max_gap is None else _positive("max_gap", max_gap)
-        if given is not None and given <= median * (1.0 + 1e-9):  # every interval a gap, NaN
-            raise ValueError(f"max_gap: {given:g} s is not longer than the drive's sample "
-                             f"interval ({median:g} s, the median): every sample would be a gap; "
-                             f"give more than {median:g} s (default 2.5 intervals)")
+        given = self._max_gap(max_gap)
         n = _grid_points(t0, t1, dt)
         if n < 2:
             raise ValueError(f"dt: {dt} s gives fewer than 2 samples between {t0} and {t1} s")
@@ -393,6 +389,18 @@ class Drive:
                      reference={k: v[keep] for k, v in self.reference.items()},
                      units=dict(self.units), intervals=dict(self.intervals))
 
+    def _max_gap(self, max_gap) -> float | None:
+        """``max_gap`` [s] checked: None, or a number > 0 longer than the drive's median sample
+        interval (else every interval would be a gap); ValueError naming it."""
+        if max_gap is None:
+            return None
+        given, median = _positive("max_gap", max_gap), float(np.median(np.diff(self.t)))
+        if given <= median * (1.0 + 1e-9):  # every interval a gap, NaN
+            raise ValueError(f"max_gap: {given:g} s is not longer than the drive's sample "
+                             f"interval ({median:g} s, the median): every sample would be a gap; "
+                             f"give more than {median:g} s (default 2.5 intervals)")
+        return given
+
     # -- a model's arrays -------------------------------------------------------------------
     def for_model(self, model, names: Mapping | None = None, *, missing_outputs=(),
                   max_gap=None):
@@ -423,7 +431,8 @@ class Drive:
                 input/output name.
             missing_outputs: model outputs with no column in this drive, returned as NaN
                 (e.g. a bank angle that was not measured); any other absent one is an error.
-            max_gap: passed to :meth:`resample`.
+            max_gap: passed to :meth:`resample` (checked by its rule also when the drive is
+                on the model's grid already and is not resampled).
 
         Raises:
             ValueError: an unknown name in ``names``, a model input or output with no column,
@@ -444,6 +453,7 @@ class Drive:
                 raise ValueError(f"names: {target!r} is not an input or output of the model "
                                  f"({model.input_names}, {model.output_names})")
         _one_column_each(names)
+        self._max_gap(max_gap)  # checked even when the drive is on the grid already
         missing_outputs = _names("missing_outputs", missing_outputs, model.output_names)
         drive = self if self.on_grid(float(model.dt)) else self.resample(float(model.dt),
                                                                          max_gap=max_gap)
