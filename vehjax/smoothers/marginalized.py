@@ -72,6 +72,7 @@ from ..filters.marginalized.niw import impute_missing, niw_predict, niw_update, 
 from ..filters import smc
 from ..filters.base import Estimator
 from ..lib.linalg import sym
+from .linear import rts_apply
 from .particle import count_unique, ffbsi_indices
 
 __all__ = [
@@ -199,12 +200,12 @@ def rts_step(m, P, m_pred, P_pred, C, m_next, P_next):
     Returns:
         (m_s, P_s, cross): smoothed moments at t - 1 and Cov(s_t-1, s_t | all data) = G P_next,
         G = C P_pred^+ (:func:`psd_right_solve`); P_s symmetric positive semi-definite
-        (:func:`psd_part`).
+        (:func:`psd_part`). The recursion is :func:`vehjax.smoothers.linear.rts_apply`'s with
+        this gain (a pseudo-inverse: a path's predicted covariance may be singular).
     """
-    G = psd_right_solve(C, P_pred)
-    m_s = m + G @ (m_next - m_pred)
-    P_s = P + G @ (P_next - P_pred) @ G.T
-    return m_s, psd_part(P_s), G @ P_next
+    m_s, P_s, cross = rts_apply(psd_right_solve(C, P_pred), m, P, m_pred, P_pred, m_next,
+                                P_next)
+    return m_s, psd_part(P_s), cross
 
 
 def _mixture_cross(m0, m1, cross):
