@@ -41,7 +41,7 @@ import numpy as np
 from ..runtime import hoist
 from ..runtime.hoist import Split, split
 from .base import StepOutput
-from .kalman import update_entries
+from .kalman import measure_entries, predict_entries, update_entries
 from ..lib.entrywise import chol_sym, dot, stack, sym_entries, wsum
 from ..lib.linalg import UNROLL_MAX, cholesky_succeeds, is_pd
 from .sigma import SigmaRule
@@ -361,17 +361,15 @@ def ekf_step(f, h, Qn: np.ndarray, Rn: np.ndarray, *, nu: int, n_params: int,
         P = [[P0[i, j] for j in range(nx)] for i in range(nx)]
 
         xp, F = _linearise(fm, [X0[i] for i in range(nx)], th, res_f, per_run_inputs, F_const)
-        FP = [[dot(F[i], [P[j][k] for j in range(nx)]) for k in range(nx)] for i in range(nx)]
-        Pp = sym_entries(lambda i, l: dot(FP[i], F[l]) + Q[i][l], nx)
+        Pp = predict_entries(F, P, Q)  # the one-run EKF's algebra (vehjax.filters.kalman)
         yh, H = _linearise(hm, xp, th, res_h, per_run_inputs, H_const)
-        C = [[dot(Pp[i], H[j]) for j in range(ny)] for i in range(nx)]
-        S = sym_entries(lambda a, b: dot(H[a], [C[i][b] for i in range(nx)]) + Rm[a][b], ny)
+        C, S = measure_entries(Pp, H, Rm)
         x_new, P_new, loglik, nis, n_obs = _update(xp, Pp, y, yh, S, C, joseph=(H, Rm))
         out = _output(x_new, P_new, loglik, nis, n_obs)
         if not with_prediction:
             return state._replace(x=x_new, P=P_new), out
-        # Cov(x_{t-1}, x_t | y_1:t-1) = P F^T = (F P)^T (P symmetric)
-        Cx = [[FP[j][i] for j in range(nx)] for i in range(nx)]
+        # Cov(x_{t-1}, x_t | y_1:t-1) = P F^T (P symmetric)
+        Cx = [[dot(F[j], [P[k][i] for k in range(nx)]) for j in range(nx)] for i in range(nx)]
         return state._replace(x=x_new, P=P_new), (out, _prediction(xp, Pp, Cx))
 
     return Batch(prepare, partial(step, with_prediction=False),
