@@ -516,3 +516,37 @@ def test_many_runs_form_with_each_runs_theta0():
     est = ukf(NONLIN, Q_NL, R_NL)  # the EKF's per-run theta: tests/filters/test_runs_last.py
     form = assert_batch_equals_step(est, ys, us, x0, P0_NL, theta0=theta0)
     assert form == ("batch" if est.batch is not None else "vmap")
+
+
+@pytest.mark.parametrize("rule", [vj.filters.sigma.unscented_rule(3, 0.5, 2.0, 1.0),
+                                  vj.filters.sigma.cubature_rule(3)],
+                         ids=["unscented", "cubature"])
+def test_sigma_moments_entry_by_entry_equal_the_matrix_forms(rule):
+    """The entry-by-entry predict and measure (vehjax.filters.sigma.step_moments_entries, what
+    the one-run UKF/CKF of a small model and the runs-last step run) give the matrix forms'
+    moments (sigma.predict, sigma.measure) for a nonlinear transition and observation, a
+    random covariance and a rule with a negative centre weight, to 1e-13."""
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(3, 3))
+    x, P = rng.normal(size=3), A @ A.T + 0.2 * np.eye(3)
+    Q, R = np.diag([0.1, 0.2, 0.05]), np.array([[0.3, 0.1], [0.1, 0.4]])
+
+    def f(v):
+        return jnp.stack([jnp.sin(v[0]) + v[1] * v[2], jnp.arctan(v[1]), v[2] + 0.1 * v[0] ** 2])
+
+    def h(v):
+        return jnp.stack([v[0] * v[1], jnp.cos(v[2])])
+
+    def images(fn):
+        return lambda pts: [list(fn(jnp.stack(p))) for p in pts]
+
+    ent = lambda M: [[M[i, j] for j in range(M.shape[1])] for i in range(M.shape[0])]  # noqa: E731
+    m = vj.filters.sigma.step_moments_entries(list(jnp.asarray(x)), ent(jnp.asarray(P)),
+                                              images(f), images(h), ent(jnp.asarray(Q)),
+                                              ent(jnp.asarray(R)), rule)
+    xp, Pp = vj.filters.sigma.predict(rule, jnp.asarray(x), jnp.asarray(P), f, jnp.asarray(Q))
+    me = vj.filters.sigma.measure(rule, xp, Pp, h, jnp.asarray(R))
+    arr = lambda v: np.array(v, dtype=float)  # noqa: E731
+    for got, want in ((m.xp, xp), (m.Pp, Pp), (m.yh, me.y_hat), (m.S, me.S), (m.C, me.C)):
+        np.testing.assert_allclose(arr(got), np.asarray(want), rtol=1e-13, atol=1e-15)
+    assert np.array_equal(arr(m.Pp), arr(m.Pp).T) and np.array_equal(arr(m.S), arr(m.S).T)

@@ -223,7 +223,8 @@ def test_entry_by_entry_ekf_algebra_equals_numpy():
     np.testing.assert_allclose(np.array(S, dtype=float), Hm @ Pp @ Hm.T + Rm, rtol=1e-13)
     xp, yh, y = rng.normal(size=3), rng.normal(size=3), np.array([0.4, np.nan, -0.2])
     r = kalman.masked_update_entries(list(jnp.asarray(xp)), ent(Pp), jnp.asarray(y),
-                                     list(jnp.asarray(yh)), S, C, ent(Hm), kalman.cov_entries(Rm))
+                                     list(jnp.asarray(yh)), S, C,
+                                     joseph=(ent(Hm), kalman.cov_entries(Rm)))
     o = [0, 2]  # the observed components: the textbook update on them
     Ho, So = Hm[o], (Hm @ Pp @ Hm.T + Rm)[np.ix_(o, o)]
     K = np.linalg.solve(So, Ho @ Pp).T

@@ -34,6 +34,7 @@ from __future__ import annotations
 from functools import partial
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -201,7 +202,35 @@ def _ekf_entries(x, P, y, u, theta, f, h, tr, Qn, Rn, Lu):
     yh, H = jacobian_entries(h, jnp.stack(xp))
     Rm = cov_entries(Rn, dt)
     C, S = measure_entries(Pp, H, Rm)
-    return masked_update_entries(xp, Pp, y, yh, S, C, H, Rm)
+    return masked_update_entries(xp, Pp, y, yh, S, C, joseph=(H, Rm))
+
+
+def _sigma_entries(x, P, y, f, h, Qn, Rn, rule: SigmaRule):
+    """One UKF/CKF step of a small model entry by entry: the moments of
+    :func:`vehjax.filters.sigma.step_moments_entries` (the runs-last step's,
+    :func:`vehjax.filters.runs_last.sigma_step`), the model evaluated at the points by one
+    ``vmap``, then the masked update (:func:`vehjax.filters.kalman.masked_update_entries`).
+    x (nx,), P (nx, nx), y (ny,) arrays of the filter's dtype; f, h the model at (u, theta);
+    Qn, Rn numpy constants. Returns :class:`vehjax.filters.kalman.UpdateResult`."""
+    nx, dt = x.shape[0], x.dtype
+
+    def images(fn):
+        def at(points):
+            Y = jax.vmap(fn)(jnp.stack([jnp.stack(p) for p in points]))
+            return [[Y[k, i] for i in range(Y.shape[1])] for k in range(Y.shape[0])]
+        return at
+
+    m = sigma.step_moments_entries([x[i] for i in range(nx)],
+                                   [[P[i, j] for j in range(nx)] for i in range(nx)],
+                                   images(f), images(h), _const_entries(Qn, dt),
+                                   _const_entries(Rn, dt), rule)
+    return masked_update_entries(m.xp, m.Pp, y, m.yh, m.S, m.C)
+
+
+def _const_entries(A: np.ndarray, dt):
+    """Nested lists of a numpy covariance's entries as arrays of ``dt`` (not Python floats: the
+    runs-last step's entries, so the two forms are the same arithmetic)."""
+    return [[jnp.asarray(A[i, j], dt) for j in range(A.shape[1])] for i in range(A.shape[0])]
 
 
 def _runs_last_form(model, Qn, Rn, build):
@@ -256,8 +285,11 @@ def _sigma_filter(model, Q, R, rule: SigmaRule, sqrt: bool, name: str, input_noi
             dt = x.dtype
             y, u = cast_yu(y, u, dt)
             f, h = point_fns(model, u, theta)
-            x_pred, P_pred = predict(x, P, f, u, theta, jnp.asarray(Qn, dt))
-            r = sigma.update(rule, x_pred, P_pred, h, y, jnp.asarray(Rn, dt))
+            if Lu is None and max(nx, ny) <= UNROLL_MAX:  # entry by entry (vehjax.filters.sigma)
+                r = _sigma_entries(x, P, y, f, h, Qn, Rn, rule)
+            else:
+                x_pred, P_pred = predict(x, P, f, u, theta, jnp.asarray(Qn, dt))
+                r = sigma.update(rule, x_pred, P_pred, h, y, jnp.asarray(Rn, dt))
             return GaussianState(r.x, r.P, theta), state_output(r.x, r.P, r.loglik, r.nis, r.n_obs)
 
         batch = None if Lu is not None else _runs_last_form(

@@ -253,14 +253,15 @@ def update_entries(xp, Pp, y, yh, S, C, joseph=None):
     return x, P, loglik, nis, n_obs, e
 
 
-def masked_update_entries(xp, Pp, y, yh, S, C, H, N) -> UpdateResult:
-    """:func:`update_entries` in Joseph form for one run: xp (nx,), yh (ny,) lists of
-    scalars, Pp (nx, nx), S (ny, ny), C (nx, ny), H (ny, nx), N (ny, ny) the noise part of S,
-    nested lists (Python-float entries allowed); y (ny,) an array, NaN where missing.
+def masked_update_entries(xp, Pp, y, yh, S, C, joseph=None) -> UpdateResult:
+    """:func:`update_entries` for one run: xp (nx,), yh (ny,) lists of scalars, Pp (nx, nx),
+    S (ny, ny), C (nx, ny) nested lists (Python-float entries allowed); y (ny,) an array, NaN
+    where missing; ``joseph`` = (H (ny, nx), N (ny, ny) the noise part of S) for the Joseph
+    form (the EKF), None for P- - K S K^T (the sigma-point filters).
 
     Returns :class:`UpdateResult` of arrays: x (nx,), P (nx, nx), loglik, nis, n_obs,
     innovation (ny,)."""
-    x, P, loglik, nis, n_obs, e = update_entries(xp, Pp, y, yh, S, C, joseph=(H, N))
+    x, P, loglik, nis, n_obs, e = update_entries(xp, Pp, y, yh, S, C, joseph)
     dt = y.dtype
     stack = lambda v: jnp.broadcast_to(jnp.asarray(v, dt), jnp.shape(y[0]))  # noqa: E731
     return UpdateResult(jnp.stack([stack(v) for v in x]),

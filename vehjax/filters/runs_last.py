@@ -42,36 +42,11 @@ from ..runtime import hoist
 from ..runtime.hoist import Split, split
 from .base import StepOutput
 from .kalman import measure_entries, predict_entries, update_entries
-from ..lib.entrywise import chol_sym, dot, stack, sym_entries, wsum
+from ..lib.entrywise import dot, stack, wsum
 from ..lib.linalg import UNROLL_MAX, cholesky_succeeds, is_pd
-from .sigma import SigmaRule
+from .sigma import SigmaRule, step_moments_entries
 
 MAX_DIM = UNROLL_MAX  # nx and ny up to this use the runs-last step
-
-
-def _points(x, L, rule: SigmaRule):
-    """Sigma points x + L xi_k, as a list over points of lists over components."""
-    pts = []
-    for xi in rule.points:
-        point = []
-        for i in range(len(x)):
-            off = wsum(xi[: i + 1], L[i][: i + 1])  # L is lower triangular
-            point.append(x[i] if off is None else x[i] + off)
-        pts.append(point)
-    return pts
-
-
-def _moments(Y, rule: SigmaRule, noise):
-    """Weighted mean (list) and covariance (nested lists) of points Y, plus the deviations."""
-    d = len(Y[0])
-    mean = [wsum(rule.wm, [y[i] for y in Y]) for i in range(d)]
-    dev = [[y[i] - mean[i] for i in range(d)] for y in Y]
-    cov = [[None] * d for _ in range(d)]
-    for i in range(d):
-        for j in range(i + 1):
-            c = wsum(rule.wc, [e[i] * e[j] for e in dev])
-            cov[i][j] = cov[j][i] = c + noise[i][j]
-    return mean, cov, dev
 
 
 class Batch(NamedTuple):
@@ -250,24 +225,18 @@ def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int
         x = [X0[i] for i in range(nx)]
         P = [[P0[i, j] for j in range(nx)] for i in range(nx)]
 
-        X = _points(x, chol_sym(P), rule)
-        F = _evaluate(fm, X, th, res_f, per_run_inputs)
-        xp, Pp, dF = _moments(F, rule, Q)
-        pts = _points(xp, chol_sym(Pp), rule)
-        Z = _evaluate(hm, pts, th, res_h, per_run_inputs)
-        yh, S, dz = _moments(Z, rule, Rm)
-        dx = [[p[i] - xp[i] for i in range(nx)] for p in pts]
-        C = [[wsum(rule.wc, [a[i] * b[j] for a, b in zip(dx, dz)]) for j in range(ny)]
-             for i in range(nx)]
-
-        x_new, P_new, loglik, nis, n_obs = _update(xp, Pp, y, yh, S, C)
+        # the one-run UKF's algebra (vehjax.filters.sigma), the model evaluated for all runs
+        m = step_moments_entries(x, P, lambda X: _evaluate(fm, X, th, res_f, per_run_inputs),
+                                 lambda X: _evaluate(hm, X, th, res_h, per_run_inputs), Q, Rm,
+                                 rule)
+        x_new, P_new, loglik, nis, n_obs = _update(m.xp, m.Pp, y, m.yh, m.S, m.C)
         out = _output(x_new, P_new, loglik, nis, n_obs)
         if not with_prediction:
             return state._replace(x=x_new, P=P_new), out
         # Cov(x_{t-1}, x_t | y_1:t-1): the points' deviations from x_{t-1} against their images'
-        Cx = [[wsum(rule.wc, [(p[i] - x[i]) * d[j] for p, d in zip(X, dF)]) for j in range(nx)]
-              for i in range(nx)]
-        return state._replace(x=x_new, P=P_new), (out, _prediction(xp, Pp, Cx))
+        Cx = [[wsum(rule.wc, [(p[i] - x[i]) * d[j] for p, d in zip(m.X, m.dF)])
+               for j in range(nx)] for i in range(nx)]
+        return state._replace(x=x_new, P=P_new), (out, _prediction(m.xp, m.Pp, Cx))
 
     return Batch(prepare, partial(step, with_prediction=False), prefetch=False,
                  smooth_step=partial(step, with_prediction=True))

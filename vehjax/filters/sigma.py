@@ -29,6 +29,12 @@ and their square-root forms :func:`sqrt_predict`, :func:`sqrt_update`. ``f`` and
 functions of one point (closures over the input and the parameters); they are vmapped here.
 The small-matrix kernels (:func:`cholesky`, :func:`solve_lower`) come from
 :mod:`vehjax.lib.linalg`.
+
+The same predict and measure entry by entry (:func:`points_entries`, :func:`moments_entries`,
+:func:`step_moments_entries`): the moments' algebra unrolled over the entries of nested
+lists, each entry a scalar (one run, :func:`vehjax.filters.ukf` on a small model) or an (R,)
+array (all runs at once, runs last: :func:`vehjax.filters.runs_last.sigma_step`); the two forms
+differ only in how the model is evaluated at the points.
 """
 
 from __future__ import annotations
@@ -41,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import validation
+from ..lib.entrywise import chol_sym, wsum
 from ..lib.linalg import cholesky, solve_lower
 from .kalman import Measurement, UpdateResult, gaussian_loglik, masked_update, observed
 
@@ -48,7 +55,8 @@ __all__ = [
     "SigmaRule", "unscented_rule", "cubature_rule", "sigma_points", "unscented_transform",
     "cross_covariance", "triangularize", "chol_update", "weighted_sqrt_factor",
     "sqrt_unscented_transform", "predict", "measure", "update", "sqrt_predict", "sqrt_update",
-    "moments_cross", "sqrt_moments_joint",
+    "moments_cross", "sqrt_moments_joint", "points_entries", "moments_entries",
+    "StepMoments", "step_moments_entries",
     "cholesky", "solve_lower",
 ]
 
@@ -347,3 +355,64 @@ def sqrt_update(rule: SigmaRule, x, L, h, y, LR):
     n_obs = jnp.sum(m).astype(jnp.int32)
     loglik, nis = gaussian_loglik(w, L11, n_obs)
     return x + L21 @ w, L22, loglik, nis, n_obs
+
+
+# --------------------------------------------------------------------------------------------
+# entry by entry (module docstring)
+
+
+def points_entries(x, L, rule: SigmaRule) -> list:
+    """Sigma points ``x + L xi_k`` entry by entry: x a list (n,), L nested lists (n, n), lower
+    triangular; a list over the m points of lists over the n components."""
+    pts = []
+    for xi in rule.points:
+        point = []
+        for i in range(len(x)):
+            off = wsum(xi[: i + 1], L[i][: i + 1])  # L is lower triangular
+            point.append(x[i] if off is None else x[i] + off)
+        pts.append(point)
+    return pts
+
+
+def moments_entries(Y, rule: SigmaRule, noise) -> tuple:
+    """Weighted mean (list (d,)) and covariance (nested lists (d, d), exactly symmetric) of the
+    points ``Y`` (list over m points of lists over d components), plus ``noise`` (nested lists
+    (d, d)), and the deviations from the mean (list over points of lists)."""
+    d = len(Y[0])
+    mean = [wsum(rule.wm, [y[i] for y in Y]) for i in range(d)]
+    dev = [[y[i] - mean[i] for i in range(d)] for y in Y]
+    cov = [[None] * d for _ in range(d)]
+    for i in range(d):
+        for j in range(i + 1):
+            c = wsum(rule.wc, [e[i] * e[j] for e in dev])
+            cov[i][j] = cov[j][i] = c + noise[i][j]
+    return mean, cov, dev
+
+
+class StepMoments(NamedTuple):
+    """What one sigma-point step's moments are (:func:`step_moments_entries`), nested lists:
+    X the points of N(x, P), dF their images' deviations from x- (for the smoother's
+    Cov(x_t-1, x_t)), xp, Pp the prediction, yh, S, C the measurement's moments."""
+
+    X: list
+    dF: list
+    xp: list
+    Pp: list
+    yh: list
+    S: list
+    C: list
+
+
+def step_moments_entries(x, P, image_f, image_h, Q, R, rule: SigmaRule) -> StepMoments:
+    """:func:`predict` then :func:`measure` entry by entry: points of N(x, P) through
+    ``image_f``, their moments + Q, fresh points of the prediction through ``image_h``, their
+    moments + R and the cross-covariance. x a list (n,), P, Q, R nested lists; ``image_f``,
+    ``image_h`` map a list of points (lists of entries) to the list of their images."""
+    X = points_entries(x, chol_sym(P), rule)
+    xp, Pp, dF = moments_entries(image_f(X), rule, Q)
+    pts = points_entries(xp, chol_sym(Pp), rule)
+    yh, S, dz = moments_entries(image_h(pts), rule, R)
+    dx = [[p[i] - xp[i] for i in range(len(xp))] for p in pts]
+    C = [[wsum(rule.wc, [a[i] * b[j] for a, b in zip(dx, dz)]) for j in range(len(yh))]
+         for i in range(len(xp))]
+    return StepMoments(X, dF, xp, Pp, yh, S, C)
