@@ -31,8 +31,8 @@ from ..filters import input_noise as inoise
 from ..tune.innovations import innovations, p_text
 from ..tune.likelihood import NOISE
 from . import figures, fitfile
-from .setup import (BUILDERS, build_model, builder_kwargs, load_drive, model_label, on_model,
-                    start_values)
+from .setup import (BUILDERS, build_model, load_drive, model_label, on_model, start_values,
+                    with_input_noise)
 
 __all__ = ["run", "fit_options", "fit_keywords"]
 
@@ -99,8 +99,8 @@ def _fit(builder, model, start, grid, options, progress):
     """(TuneResult, its warnings as one-line texts), the warnings also on stderr."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = tune.fit(builder, model, start.Q, start.R, grid.measurements, grid.inputs,
-                       x0=start.x0, P0=start.P0, builder_kwargs=builder_kwargs(start.input_noise),
+        res = tune.fit(with_input_noise(builder, start.input_noise), model, start.Q, start.R,
+                       grid.measurements, grid.inputs, x0=start.x0, P0=start.P0,
                        **fit_keywords(options, progress))
     texts = [" ".join(str(w.message).split()) for w in caught]
     for t in texts:

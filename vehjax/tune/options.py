@@ -47,10 +47,10 @@ class Fitted:
     Attributes:
         names: model parameters to fit (default none); a parameter in ``priors`` is fitted too.
         noise: which noise to fit, a subset of ("Q", "R", "input") (default ("Q", "R")).
-            "input" fits the input noise whose starting value is
-            ``builder_kwargs["input_noise"]``: stds by input name (log stds fitted, reported as
-            ``"input[name]"`` stds in the input's unit) or an (nu, nu) covariance (fitted like
-            Q0, reported in units squared).
+            "input" fits the input noise whose starting value is the builder's option
+            ``input_noise`` (``functools.partial(builder, input_noise=...)``): stds by input
+            name (log stds fitted, reported as ``"input[name]"`` stds in the input's unit) or
+            an (nu, nu) covariance (fitted like Q0, reported in units squared).
         x0: also fit x0 (the shape it was given in), default False.
         bounds: ``{name: (lo, hi)}`` for fitted parameters, in their units, either end None
             (:mod:`vehjax.tune`).
