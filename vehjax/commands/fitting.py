@@ -30,6 +30,7 @@ from ..filtering import filter as run_filter
 from ..filters import input_noise as inoise
 from ..tune.innovations import innovations, p_text
 from ..tune.likelihood import NOISE
+from ..tune.options import OPTIMIZERS
 from . import figures, fitfile
 from .setup import (BUILDERS, build_model, load_drive, model_label, on_model, start_values,
                     with_input_noise)
@@ -38,9 +39,9 @@ __all__ = ["run", "fit_options", "fit_keywords"]
 
 #: [fit] keys read as they are (:func:`fit_keywords` maps them to vehjax.tune.fit's records)
 _PASSED = ("fit_x0", "start", "compare", "release", "steps", "optimizer", "gtol")
-#: the optimiser record of each [fit] optimizer name; no name: the default, scoring (every
+#: the optimiser of a [fit] with steps or gtol but no optimizer name: scoring, the default (every
 #: filter of the command is deterministic; L-BFGS beyond 12 fitted coordinates)
-_OPTIMIZERS = {"adam": tune.Adam, "lbfgs": tune.LBFGS, "scoring": tune.Scoring, None: tune.Scoring}
+_DEFAULT_OPTIMIZER = "scoring"
 
 
 def _check_starts(model, bounds: dict, floors) -> None:
@@ -83,7 +84,7 @@ def fit_keywords(options: dict, progress: bool) -> dict:
     default optimizer's otherwise) in :class:`vehjax.tune.Options`."""
     name = options.get("optimizer")
     limits = {k: options[k] for k in ("steps", "gtol") if k in options}
-    optimizer = _OPTIMIZERS[name](**limits) if limits else name
+    optimizer = OPTIMIZERS[name or _DEFAULT_OPTIMIZER](**limits) if limits else name
     return dict(params=tune.Fitted(options["params"], options["noise"],
                                    options.get("fit_x0", False), options["bounds"]),
                 start=tune.Start(options.get("start", "data"), options.get("compare", True),

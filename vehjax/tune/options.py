@@ -189,6 +189,8 @@ class Scoring:
         object.__setattr__(self, "gtol", _gtol("optimizer", self.gtol))
 
 
+#: the optimisers by name, the one list of them (``vehjax.commands.config`` writes the names
+#: out, importing no JAX; tests/test_cli_drive.py checks that they agree)
 OPTIMIZERS = {"adam": Adam, "lbfgs": LBFGS, "scoring": Scoring}
 _RECORDS = (Adam, LBFGS, Scoring, FirstOrder)
 
@@ -202,7 +204,7 @@ def optimizer_record(value):
     if isinstance(value, optax.GradientTransformation):
         return FirstOrder(value)
     if not isinstance(value, str):
-        raise ValueError(f"optimizer: expected None, 'adam', 'lbfgs', 'scoring', "
+        raise ValueError(f"optimizer: expected None, {', '.join(map(repr, OPTIMIZERS))}, "
                          f"vehjax.tune.Adam/LBFGS/Scoring/FirstOrder(...) or an "
                          f"optax.GradientTransformation, got {value!r}")
     return OPTIMIZERS[validation.choice("optimizer", value, tuple(OPTIMIZERS))]()
