@@ -140,6 +140,8 @@ def test_run_smooths_with_a_methods_record_as_vehjax_smooth_does():
     one_pass = vj.run(ekf, ys, us, smooth=IEKS(max_iter=1), **kw)
     default = vj.run(ekf, ys, us, smooth="ieks", **kw)
     assert np.max(np.abs(one_pass.states - default.states)) > 1e-6
+    compiled = vj.compile_run(ekf, ys, us, smooth=IEKS(max_iter=1), **kw)()  # its signature
+    np.testing.assert_array_equal(compiled.states, one_pass.states)
     for name, cls in (("rts", RTS), ("ieks", IEKS)):
         by_name, by_record = (vj.run(ekf, ys, us, smooth=m, **kw) for m in (name, cls()))
         for field in ("states", "covariances", "cross_covariances", "loglik", "diverged"):
