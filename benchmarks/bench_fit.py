@@ -42,6 +42,7 @@ estimate does not depend on the start). Models:
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 
 import equinox as eqx
@@ -151,13 +152,15 @@ def dynamic_data(T: int, seed: int):
 
 
 def single_track_problem():
-    """(builder kwargs of vehjax.tune.fit except the data, the truth by fitted name)."""
+    """(keyword arguments of vehjax.tune.fit except the data, the builder with its options,
+    the truth by fitted name)."""
     true = vj.models.SingleTrack(dt=DT)
     cf, cr = (float(true.theta[true.param_names.index(p)]) for p in ("cf", "cr"))
     start = true.with_theta(cf=0.8 * cf, cr=0.8 * cr)
-    kw = dict(builder=vj.filters.ekf, model=start, Q0=np.zeros(2), R0=np.array([1.0, 1e-3]),
+    ekf = functools.partial(vj.filters.ekf, input_noise={"delta": 2 * ST_DELTA_STD})
+    kw = dict(builder=ekf, model=start, Q0=np.zeros(2), R0=np.array([1.0, 1e-3]),
               x0=np.zeros(2), P0=np.diag([0.1, 0.01]), params=("cf", "cr"),
-              noise=("R", "input"), builder_kwargs={"input_noise": {"delta": 2 * ST_DELTA_STD}})
+              noise=("R", "input"))
     truth = {"cf": cf, "cr": cr, "input[delta]": ST_DELTA_STD,
              "R[ay,ay]": ST_MEAS_STD[0] ** 2, "R[r,r]": ST_MEAS_STD[1] ** 2}
     return kw, truth
@@ -198,7 +201,6 @@ def time_fit(steps: int, seed: int = 0, baseline: bool = False):
         c0, w0 = time.process_time(), time.perf_counter()
         res = vt.fit(builder, model, Q0, R0, ys, us, x0=kw["x0"], P0=kw["P0"],
                      params=vt.Fitted(kw["params"], noise=kw["noise"]),
-                     builder_kwargs=kw.get("builder_kwargs"),
                      options=vt.Options(optimizer=optimizer, progress=False))
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
     finally:
@@ -241,13 +243,13 @@ def batched_fits(problem: str, runs: int, steps: int, seed0: int = 1000, iters: 
     us = np.stack([s[1] for s in sims])
     # the objective's structure and the true point from one run; data of every run beside it
     model = kw["model"].with_theta(**{p: truth[p] for p in kw["params"]})
-    bk = dict(kw.get("builder_kwargs") or {})
+    builder, bk = vj.validation.builder_options(kw["builder"])
     if "input_noise" in bk:
         bk["input_noise"] = {"delta": truth["input[delta]"]}
     R_true = np.array([truth[k] for k in truth if k.startswith("R[")])
-    obj = vt.objective(kw["builder"], model, kw["Q0"], R_true, ys[0], us[0], x0=kw["x0"],
-                       P0=kw["P0"], params=vt.Fitted(kw["params"], noise=kw["noise"]),
-                       builder_kwargs=bk)
+    obj = vt.objective(functools.partial(builder, **bk), model, kw["Q0"], R_true, ys[0], us[0],
+                       x0=kw["x0"], P0=kw["P0"],
+                       params=vt.Fitted(kw["params"], noise=kw["noise"]))
     flat0, unravel = jax.flatten_util.ravel_pytree(obj.z0)
     n = flat0.shape[0]
     names = list(truth)

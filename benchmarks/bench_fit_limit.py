@@ -25,6 +25,7 @@ steering corrections). ``--trap`` also fits the brush model from its nominal val
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 import warnings
 
@@ -51,10 +52,10 @@ def fit(drive, tyres: str, start: str = "data"):
     t0, c0 = time.perf_counter(), time.process_time()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = vehjax.tune.fit(vehjax.filters.ekf, start_model(tyres, drive.body), np.zeros((2, 2)),
+        res = vehjax.tune.fit(functools.partial(vehjax.filters.ekf, input_noise=INPUT0),
+                              start_model(tyres, drive.body), np.zeros((2, 2)),
                               R0, drive.measurements, drive.inputs, x0=X0, P0=P0,
                               params=vehjax.tune.Fitted(PARAMS[tyres], noise=("R", "input")),
-                              builder_kwargs={"input_noise": INPUT0},
                               options=vehjax.tune.Options(progress=False), start=start)
     return res, time.perf_counter() - t0, time.process_time() - c0, [str(w.message) for w in
                                                                      caught]

@@ -8,8 +8,9 @@ Three 88 s drives at 200 Hz (17,600 steps each): run 1 to fit, runs 2 and 3 held
 Rows:
 
 * ``documented``: the documented path (notebooks/06_drive.ipynb's call, as on the real car):
-  ``vehjax.tune.fit(vehjax.filters.ekf, SingleTrack(dt=0.005, theta=<spec>), Q0 = 0, R0, ...,
-  params=("cf", "cr"), noise=("R", "input"), builder_kwargs={"input_noise": {"delta": ...}})``
+  ``vehjax.tune.fit(functools.partial(vehjax.filters.ekf, input_noise={"delta": ...}),
+  SingleTrack(dt=0.005, theta=<spec>), Q0 = 0, R0, ..., params=("cf", "cr"),
+  noise=("R", "input"))``
   on run 1, then ``vehjax.filter`` with the fitted estimator on runs 2 and 3;
 * ``as given``: the same with ``release=False``: every data-sheet value held as given (what the
   documented path did before :mod:`vehjax.tune.release`);
@@ -36,6 +37,7 @@ documented path, its held-out 19 s and the pose's sideslip) with the textbook ob
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 
 import jax.numpy as jnp
@@ -86,9 +88,9 @@ def fit(drive, params, references=(), tyres="linear", start="data"):
     ys = with_reference(drive) if references else drive.measurements
     r0 = np.append(R0, REFERENCE_STD ** 2) if references else R0
     t0 = time.perf_counter()
-    res = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)), r0, ys, drive.inputs, x0=X0,
+    res = vehjax.tune.fit(functools.partial(vehjax.filters.ekf, input_noise=INPUT0), model,
+                          np.zeros((2, 2)), r0, ys, drive.inputs, x0=X0,
                           P0=P0, params=vehjax.tune.Fitted(params, noise=("R", "input")),
-                          builder_kwargs={"input_noise": INPUT0},
                           options=vehjax.tune.Options(progress=False), start=start)
     return res, time.perf_counter() - t0
 
@@ -178,10 +180,10 @@ def rav4_table(quick: bool = False):
     P0r = np.array([0.1, 0.5 * deg, 0.2, 0.3 * deg]) ** 2
     Q = np.array([1e-4, 1e-4 * deg, 1e-4, 1e-5 * deg]) ** 2
     R = np.array([0.3, 0.3 * deg]) ** 2
-    kw = {"input_noise": {"delta": 0.05 * deg}}
+    ekf = functools.partial(vehjax.filters.ekf, input_noise={"delta": 0.05 * deg})
     start = time.perf_counter()
-    res = vehjax.tune.fit(vehjax.filters.ekf, model, Q, R, y_tr, u_tr, x0=np.zeros(4), P0=P0r,
-                          params=vehjax.tune.Fitted(("cf", "cr"), noise=()), builder_kwargs=kw,
+    res = vehjax.tune.fit(ekf, model, Q, R, y_tr, u_tr, x0=np.zeros(4), P0=P0r,
+                          params=vehjax.tune.Fitted(("cf", "cr"), noise=()),
                           options=vehjax.tune.Options(optimizer=vehjax.tune.Scoring(steps=50),
                                                       progress=False))
     wall = time.perf_counter() - start

@@ -20,6 +20,7 @@ and a 100-run study; and one run through ``vehjax.run`` against ``vehjax.filter`
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import subprocess
 import sys
@@ -46,10 +47,9 @@ def fit_one(rolled: bool, duration: float, out: str) -> None:
     model = bl.start_model("brush", drive.body)
     with execution.using(CPU._replace(rolled_substeps=rolled)):
         obj, setup = likelihood.prepare(
-            vehjax.filters.ekf, model, np.zeros((2, 2)), bl.R0, drive.measurements,
-            drive.inputs, x0=bl.X0, P0=bl.P0,
-            params=vehjax.tune.Fitted(bl.PARAMS["brush"], noise=("R", "input")),
-            builder_kwargs={"input_noise": bl.INPUT0})
+            functools.partial(vehjax.filters.ekf, input_noise=bl.INPUT0), model,
+            np.zeros((2, 2)), bl.R0, drive.measurements, drive.inputs, x0=bl.X0, P0=bl.P0,
+            params=vehjax.tune.Fitted(bl.PARAMS["brush"], noise=("R", "input")))
         flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
         fn = program._program(obj, setup, unravel, flat.shape[0], True)
         f = jnp.asarray(flat)

@@ -339,10 +339,10 @@ def test_a_users_model_by_module_path(tmp_path, monkeypatch):
 
 def test_the_configurations_names_are_vehjaxs():
     from vehjax.commands import setup
-    from vehjax.tune import likelihood, optimisers, staged
+    from vehjax.tune import likelihood, options, staged
 
     assert drive_config.NOISE_KINDS == likelihood.NOISE_KINDS
-    assert drive_config.OPTIMIZERS == optimisers.OPTIMIZERS
+    assert drive_config.OPTIMIZERS == tuple(options.OPTIMIZERS)
     assert drive_config.STARTS == staged.STARTS
     assert drive_config.FILTERS == tuple(setup.BUILDERS)
 

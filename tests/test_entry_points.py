@@ -9,6 +9,7 @@ a Kalman filter in numpy (written here, not vehjax's) for the valid data itself.
 """
 
 import ast
+import functools
 import re
 import shutil
 from pathlib import Path
@@ -388,10 +389,9 @@ def test_loader_refuses_complex_and_non_finite_times(tmp_path):
 
 
 def test_tune_fit_refuses_a_dual_filter_naming_the_builder():
-    for builder, kw in ((F.dual_ekf, None),
-                        (F.dual_ekf, {"Q_theta": [1e-4], "estimate": "a"})):
+    for builder in (F.dual_ekf, functools.partial(F.dual_ekf, Q_theta=[1e-4], estimate="a")):
         with pytest.raises(ValueError, match="^builder:"):
-            tune.fit(builder, MODEL, Q, R, YS, US, x0=X0, P0=P0, builder_kwargs=kw,
+            tune.fit(builder, MODEL, Q, R, YS, US, x0=X0, P0=P0,
                      options=tune.Options(optimizer=tune.Scoring(steps=1)))
 
 

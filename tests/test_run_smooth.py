@@ -109,6 +109,69 @@ def test_bad_smooth_is_refused_naming_it():
         vj.run(pf, ys, us, x0=X0, P0=P0, smooth=True, key=jax.random.key(0))
 
 
+#: a pendulum-like model: the iterated smoothers' passes move its linearisation
+NONLINEAR = vj.models.Model(
+    lambda x, u, th: jnp.stack([x[0] + DT * x[1], 0.95 * x[1] - DT * jnp.sin(x[0]) + DT * u[0]]),
+    lambda x, u, th: jnp.stack([jnp.sin(x[0]), x[1]]), dt=DT, state_names=("p", "v"),
+    input_names=("a",), output_names=("p", "v"))
+
+
+def test_run_smooths_with_a_methods_record_as_vehjax_smooth_does():
+    """``run(smooth=)`` takes vehjax.smooth's method records with their options: per run the
+    same numbers as ``vehjax.smooth(method=<the record>)``; a name is its record's defaults."""
+    from vehjax.smoothers import IEKS, IPLS, RTS
+
+    ys, us = _data(runs=3, steps=12)
+    ekf, ukf = vj.filters.ekf(NONLINEAR, Q, R), vj.filters.ukf(NONLINEAR, Q, R)
+    kw = dict(x0=X0, P0=P0, return_covariances=True)
+    for est, rec in ((ekf, IEKS(max_iter=1)),               # one pass: short of the fixed point
+                     (ekf, IEKS(tol=1e-12, parallel="doubling")),
+                     (ukf, IPLS(max_iter=2, parallel=True)),
+                     (ekf, RTS(parallel="doubling"))):
+        out = vj.run(est, ys, us, smooth=rec, **kw)
+        assert out.name == f"{est.name} ({rec.name} smoothed)"
+        for r in range(3):
+            one = vj.smooth(est, ys[r], us, x0=X0, P0=P0, method=rec)
+            for got, want in ((out.states[r], one.states), (out.covariances[r], one.covariances),
+                              (out.cross_covariances[r], one.cross_covariances),
+                              (out.loglik[r], one.loglik.sum())):
+                np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    # the options are honoured: one pass is not the default's converged smoother
+    one_pass = vj.run(ekf, ys, us, smooth=IEKS(max_iter=1), **kw)
+    default = vj.run(ekf, ys, us, smooth="ieks", **kw)
+    assert np.max(np.abs(one_pass.states - default.states)) > 1e-6
+    compiled = vj.compile_run(ekf, ys, us, smooth=IEKS(max_iter=1), **kw)()  # its signature
+    np.testing.assert_array_equal(compiled.states, one_pass.states)
+    for name, cls in (("rts", RTS), ("ieks", IEKS)):
+        by_name, by_record = (vj.run(ekf, ys, us, smooth=m, **kw) for m in (name, cls()))
+        for field in ("states", "covariances", "cross_covariances", "loglik", "diverged"):
+            np.testing.assert_array_equal(getattr(by_name, field), getattr(by_record, field))
+        assert by_name.name == by_record.name
+    np.testing.assert_array_equal(vj.run(ekf, ys, us, smooth=True, **kw).states,
+                                  vj.run(ekf, ys, us, smooth=RTS(), **kw).states)
+
+
+def test_run_refuses_the_particle_smoothers_and_a_start_naming_smooth():
+    from vehjax.smoothers import IEKS, IPLS, RTS, AncestorPaths, FFBSi, RejectionSampling
+
+    ys, us = _data(runs=2, steps=5)
+    est = vj.filters.ekf(MODEL, Q, R)
+    pf = vj.filters.bootstrap_pf(MODEL, Q, R, n_particles=16)
+    for rec in (FFBSi(), RejectionSampling(max_tries=3), AncestorPaths(n_trajectories=5),
+                "ffbsi"):
+        name = type(vj.smoothers.methods.record(rec)).__name__
+        for e, key in ((est, None), (pf, jax.random.key(0))):
+            with pytest.raises(ValueError, match=f"^smooth: {name} is a particle smoother.*"
+                                                 f"vehjax.smooth"):
+                vj.run(e, ys, us, x0=X0, P0=P0, key=key, smooth=rec)
+    with pytest.raises(ValueError, match="^smooth: method: 'ipls' iterates sigma-point"):
+        vj.run(est, ys, us, x0=X0, P0=P0, smooth=IPLS())
+    with pytest.raises(ValueError, match="^smooth.initial: .*vehjax.smooth"):
+        vj.run(est, ys, us, x0=X0, P0=P0, smooth=IEKS(initial=np.zeros((5, 2))))
+    with pytest.raises(ValueError, match="^smooth: expected"):
+        vj.run(est, ys, us, x0=X0, P0=P0, smooth=RTS)  # the class, not a record
+
+
 def test_runs_last_smoothing_equals_the_vmapped_one_with_per_run_inputs():
     """The runs-last forward and backward pass of ``run(smooth=True)`` (CPU strategy, filters
     with a runs-last form) against the vmapped ``smooth_one_run`` (runs_last off) and the numpy

@@ -183,7 +183,7 @@ def run(
     return_covariances: bool = False,
     progress: bool | None = None,
     execution: Execution | None = None,
-    smooth: bool | str = False,
+    smooth=False,
 ) -> RunResult:
     """Run ``estimator`` over R runs of T steps in one jitted call per chunk of runs.
 
@@ -210,7 +210,10 @@ def run(
             :mod:`vehjax.execution`); None: ``Execution()``, every default. Results do not
             depend on it beyond rounding.
         smooth: False (filter), True (each run smoothed by the filter's own RTS smoother,
-            :func:`vehjax.smooth`), or ``"rts"``, ``"ieks"``, ``"ipls"``: then ``states``,
+            :func:`vehjax.smooth`), or a Gaussian smoother as :func:`vehjax.smooth`'s
+            ``method`` takes it, its record :class:`vehjax.smoothers.RTS`, ``IEKS`` or ``IPLS``
+            (with its options; not ``initial``, one run's start) or its name ``"rts"``,
+            ``"ieks"``, ``"ipls"`` (the record with its defaults): then ``states``,
             ``covariances``, ``params`` and ``params_cov`` are the smoothed ones, ``loglik``
             the filter's (the linearised model's for the iterated smoothers), ``nis`` and
             ``n_obs`` the filter's, ``cross_covariances`` Cov(x_t, x_t+1 | y_1:T) (with

@@ -74,10 +74,10 @@ from .smoothers import methods as _methods
 from .smoothers import particle as _particle
 
 __all__ = ["SmoothResult", "smooth", "smooth_one_run", "smooth_runs_last", "check_options",
-           "METHODS"]
+           "one_run_options", "METHODS"]
 
 #: The Gaussian smoothing methods' names (module docstring; :mod:`vehjax.smoothers.methods`).
-METHODS = ("rts", "ieks", "ipls")
+METHODS = tuple(cls.name for cls in _methods.GAUSSIAN)
 
 
 class SmoothResult(NamedTuple):
@@ -319,6 +319,15 @@ def check_options(estimator: Estimator, method=None):
     return rec
 
 
+def one_run_options(rec) -> dict:
+    """:func:`smooth_one_run`'s keywords of a Gaussian method's record (checked:
+    :func:`check_options`) but ``initial``: its name, ``parallel``, ``tol`` and ``max_iter``
+    (the iterated smoothers'; RTS takes neither), as :func:`smooth` and ``vehjax.run(...,
+    smooth=)`` both pass them."""
+    return dict(method=rec.name, parallel=rec.parallel, tol=getattr(rec, "tol", TOL),
+                max_iter=getattr(rec, "max_iter", MAX_ITER))
+
+
 def _particle_method(estimator: Estimator, method) -> dict:
     """A particle filter's smoothing method as the particle smoother's keyword arguments
     (``method``, ``n_trajectories``, ``max_tries``); {} for None (its default). ValueError
@@ -393,9 +402,7 @@ def smooth(estimator: Estimator, measurements, inputs=None, *, x0, P0, theta0=No
         if np.shape(initial) != (T, n):
             raise ValueError(f"method.initial: expected shape ({T}, {n}), got "
                              f"{np.shape(initial)}")
-    tol, max_iter = getattr(rec, "tol", TOL), getattr(rec, "max_iter", MAX_ITER)
     ys, us = jnp.asarray(ys), jnp.asarray(us)
     # called eagerly: compiled as one program (vehjax.runtime.eager); under a trace: inline
-    return eager.call(smooth_one_run, (estimator,),
-                       dict(method=rec.name, parallel=rec.parallel, tol=tol, max_iter=max_iter),
-                       ys, us, jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key, initial=initial)
+    return eager.call(smooth_one_run, (estimator,), one_run_options(rec), ys, us,
+                      jnp.asarray(x0), jnp.asarray(P0), th0, Pth0, key, initial=initial)

@@ -20,6 +20,7 @@ This module imports nothing of vehjax's (the model check is by attribute name), 
 
 from __future__ import annotations
 
+import functools
 import operator
 
 import jax
@@ -81,6 +82,20 @@ def record(name: str, value, cls):
         raise ValueError(f"{name}: expected {cls.__module__.rsplit('.', 1)[0]}.{cls.__name__}"
                          f"(...), got {value!r}")
     return value
+
+
+def builder_options(builder) -> tuple:
+    """(the filter builder, its options): a builder's own options are given with it,
+    ``functools.partial(builder, **options)``, which is (builder, options); any other callable
+    is (builder, {}). ValueError naming ``builder`` for anything else (not callable, or a
+    partial with positional arguments). :mod:`vehjax.tune` and :mod:`vehjax.calibrate` take
+    their builders so."""
+    if isinstance(builder, functools.partial) and not builder.args:
+        return builder.func, dict(builder.keywords)
+    if not callable(builder) or isinstance(builder, functools.partial):
+        raise ValueError(f"builder: expected a filter builder builder(model, Q, R), its options "
+                         f"given with functools.partial(builder, **options), got {builder!r}")
+    return builder, {}
 
 
 def choice(name: str, value, options) -> str:

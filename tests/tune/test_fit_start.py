@@ -6,6 +6,7 @@ short drive, the physics of the friction limit (|ay| <= mu g), and the simulated
 truth (:mod:`vehjax.studies.limit_drive`: a two-track car with load transfer, not a fitted model).
 """
 
+import functools
 import warnings
 
 import equinox as eqx
@@ -18,6 +19,9 @@ import vehjax
 from vehjax.models import SingleTrack
 from vehjax.models.single_track import G, peak_lateral_acceleration
 from vehjax.tune import staged
+
+#: the EKF with the starting value of the input noise that noise "input" fits
+EKF_DELTA = functools.partial(vehjax.filters.ekf, input_noise={"delta": 0.002})
 
 
 @pytest.fixture(scope="module")
@@ -114,9 +118,10 @@ def test_the_fit_lands_at_scipys_bounded_optimum_on_a_short_drive(drives):
     names = ("cf", "cr", "mu")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        res = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)), R, ys, us, x0=x0, P0=P0,
+        res = vehjax.tune.fit(functools.partial(vehjax.filters.ekf,
+                                                input_noise={"delta": 0.003}),
+                              model, np.zeros((2, 2)), R, ys, us, x0=x0, P0=P0,
                               params=vehjax.tune.Fitted(names, noise=()),
-                              builder_kwargs={"input_noise": {"delta": 0.003}},
                               options=vehjax.tune.Options(progress=False))
     f = _neg_loglik(model, names, ys, us, R, x0, P0)
     scale = np.array([1e5, 1e5, 1.0])
@@ -142,13 +147,12 @@ def test_work_side_by_side_changes_the_time_not_the_result(drives):
         with vehjax.execution.using(vehjax.execution.current()._replace(side_by_side=side)), \
                 warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            out[side] = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)),
+            out[side] = vehjax.tune.fit(EKF_DELTA, model, np.zeros((2, 2)),
                                         np.array([0.1, 1e-4]), d.measurements[1500:3000],
                                         d.inputs[1500:3000], x0=np.zeros(2),
                                         P0=np.array([0.1, 0.01]),
                                         params=vehjax.tune.Fitted(("cf", "cr", "mu"),
                                                                   noise=("R", "input")),
-                                        builder_kwargs={"input_noise": {"delta": 0.002}},
                                         options=vehjax.tune.Options(progress=False))
     one, two = out[1], out[2]
     assert one.evaluations == two.evaluations and one.nested.loglik == two.nested.loglik
@@ -168,12 +172,12 @@ def test_a_fit_held_in_the_trap_is_reported_with_both_likelihoods(drives):
     model = SingleTrack(tyres="brush", theta=tuple(d.body.values()) + (1.2e5, 1.4e5, 0.9))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)), np.array([0.1, 1e-4]),
+        res = vehjax.tune.fit(EKF_DELTA, model, np.zeros((2, 2)), np.array([0.1, 1e-4]),
                               d.measurements[:3000], d.inputs[:3000], x0=np.zeros(2),
                               P0=np.array([0.1, 0.01]),
                               params=vehjax.tune.Fitted(("cf", "cr", "mu"), noise=("R", "input"),
                                                         bounds={"mu": (0.5, 1.0)}),
-                              start="theta", builder_kwargs={"input_noise": {"delta": 0.002}},
+                              start="theta",
                               options=vehjax.tune.Options(optimizer=vehjax.tune.Scoring(steps=20),
                                                           progress=False))  # the trap's report
     floor = model.data_floors(d.measurements[:3000], d.inputs[:3000])["mu"]
@@ -201,11 +205,10 @@ def _fit_default(drive, tyres):
     model = SingleTrack(tyres=tyres, theta=tuple(drive.body.values()) + tuple(nominal[4:]))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)), np.array([0.1, 1e-4]),
+        res = vehjax.tune.fit(EKF_DELTA, model, np.zeros((2, 2)), np.array([0.1, 1e-4]),
                               drive.measurements, drive.inputs, x0=np.zeros(2),
                               P0=np.array([0.1, 0.01]),
                               params=vehjax.tune.Fitted(params, noise=("R", "input")),
-                              builder_kwargs={"input_noise": {"delta": 0.002}},
                               options=vehjax.tune.Options(progress=False))
     return res, [str(w.message) for w in caught]
 
@@ -284,9 +287,9 @@ def test_a_learning_rate_is_left_to_a_particle_filter_whose_default_is_adam():
 
     model = SingleTrack()
     args = (model, np.eye(2), np.eye(2), vehjax.tune.Fitted(("cf",), ("Q", "R"), False))
-    assert likelihood.draws_random_numbers(vehjax.filters.bootstrap_pf, *args,
-                                           {"n_particles": 16})
-    assert not likelihood.draws_random_numbers(vehjax.filters.ekf, *args, None)
+    assert likelihood.draws_random_numbers(
+        functools.partial(vehjax.filters.bootstrap_pf, n_particles=16), *args)
+    assert not likelihood.draws_random_numbers(vehjax.filters.ekf, *args)
     driver.check_optimizer(vehjax.tune.Adam(learning_rate=0.1), stochastic=True)  # adam takes it
     assert driver.choose_optimizer(None, True, True) == vehjax.tune.Adam()
     with pytest.raises(ValueError, match="^optimizer: 'scoring' needs a deterministic"):
@@ -360,9 +363,10 @@ def test_fit_from_theta_refuses_scoring_for_a_particle_filter_before_compiling(m
     monkeypatch.setattr(program, "compiled_loss", compiled)
     ys, us = np.zeros((50, 2)), np.tile([0.0, 20.0], (50, 1))
     with pytest.raises(ValueError, match="^optimizer: 'scoring' needs a deterministic"):
-        vehjax.tune.fit_from_theta(vehjax.filters.bootstrap_pf, SingleTrack(), np.eye(2),
+        vehjax.tune.fit_from_theta(functools.partial(vehjax.filters.bootstrap_pf,
+                                                     n_particles=16), SingleTrack(), np.eye(2),
                                    np.eye(2), ys, us, x0=np.zeros(2), P0=np.eye(2),
-                                   params=("cf",), builder_kwargs={"n_particles": 16},
+                                   params=("cf",),
                                    options=vehjax.tune.Options(optimizer="scoring",
                                                                progress=False,
                                                                key=jax.random.key(0)))

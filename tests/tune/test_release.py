@@ -3,6 +3,7 @@ where they start, and fits on a drive of a richer truth (vehjax.studies.second_c
 vibrating accelerometer, a data-sheet yaw inertia 2.5 times too small) judged on a drive they
 did not see: the documented path, and a calibration with a reference sensor run without it."""
 
+import functools
 import warnings
 
 import numpy as np
@@ -87,10 +88,11 @@ def _documented(drive, tyres="linear", references=(), start="data"):
     R0 = np.array([0.1, 1e-4] + [REFERENCE_STD ** 2] * len(references))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = vehjax.tune.fit(vehjax.filters.ekf, model, np.zeros((2, 2)), R0, ys, drive.inputs,
+        res = vehjax.tune.fit(functools.partial(vehjax.filters.ekf,
+                                                input_noise={"delta": 0.002}),
+                              model, np.zeros((2, 2)), R0, ys, drive.inputs,
                               x0=np.zeros(2), P0=np.array([0.1, 0.01]),
                               params=vehjax.tune.Fitted(params, noise=("R", "input")),
-                              builder_kwargs={"input_noise": {"delta": 0.002}},
                               options=vehjax.tune.Options(progress=False), start=start)
     return res, [str(w.message) for w in caught]
 

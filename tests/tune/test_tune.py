@@ -6,6 +6,8 @@ vehjax.simulate drew (vehicle), the exact Kalman score (particle filter's stop-g
 Sizes are small: compilation dominates the time of this file.
 """
 
+import functools
+
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
@@ -123,10 +125,10 @@ def test_gradient_matches_central_differences(builder, kwargs):
     us = rng.normal(size=(T, 1))
     ys = rng.normal(size=(2, T, 2)) * 0.5
     ys[0, 3, 1] = ys[1, 7, 0] = ys[1, 9, :] = np.nan  # missing components
-    obj = vt.objective(builder, model, np.array([[0.01, 0.003], [0.003, 0.02]]), [0.1, 0.2],
+    obj = vt.objective(functools.partial(builder, **kwargs), model,
+                       np.array([[0.01, 0.003], [0.003, 0.02]]), [0.1, 0.2],
                        ys, us, x0=np.array([[0.3, 0.0], [0.1, -0.2]]), P0=np.diag([0.1, 0.1]),
-                       params=vt.Fitted(("k",), bounds={"k": (0.5, 20.0)}, x0=True),
-                       builder_kwargs=kwargs)
+                       params=vt.Fitted(("k",), bounds={"k": (0.5, 20.0)}, x0=True))
     vg = jax.jit(jax.value_and_grad(lambda z: obj.loss(z, obj.data)[0]))
     z0 = obj.z0
     _, g = vg(z0)
@@ -205,8 +207,8 @@ def test_particle_filter_stop_gradient_score_matches_kalman_score():
     np.testing.assert_array_equal(a1.states, a2.states)
 
     S, N = 100, 2000
-    obj = vt.objective(vj.filters.bootstrap_pf, model, [2 * q], [2 * r], ys, None, **common,
-                       key=jax.random.key(0), builder_kwargs=dict(n_particles=N))
+    obj = vt.objective(functools.partial(vj.filters.bootstrap_pf, n_particles=N), model,
+                       [2 * q], [2 * r], ys, None, **common, key=jax.random.key(0))
     ys_, us_, x0_, P0_, _ = obj.data
 
     def score(key):
@@ -271,6 +273,9 @@ def _counting_model():
     (dict(params=vt.Fitted(noise=())), "params.noise"),
     (dict(builder=vj.filters.bootstrap_pf), "key"),
     (dict(P0=np.array([[-1.0]])), "P0"),
+    (dict(builder="ukf"), "builder"),
+    (dict(builder=functools.partial(vj.filters.ukf, 1.0)), "builder"),  # options by keyword
+    (dict(params=vt.Fitted(noise=("R", "input"))), "params.noise"),  # no input_noise to start
 ])
 def test_bad_arguments_raise_before_tracing(change, name):
     args = dict(builder=vj.filters.ukf, model=_counting_model(), Q0=[0.1], R0=[0.1],
@@ -280,3 +285,19 @@ def test_bad_arguments_raise_before_tracing(change, name):
         args.update(change() if callable(change) else change)  # a record checks itself
         vt.fit(**args)
     assert _Counting.calls == 0
+
+
+def test_a_builders_options_go_with_it_by_partial_not_by_a_keyword():
+    """tune takes a builder's options as vehjax.calibrate does, functools.partial(builder,
+    **options): ``builder_kwargs=`` is no keyword of any tune function."""
+    args = (vj.filters.ekf, _counting_model(), [0.1], [0.1], np.zeros((5, 1)), None)
+    for fn in (vt.fit, vt.fit_from_theta, vt.fit_noise, vt.objective, vt.prepare):
+        with pytest.raises(TypeError, match="builder_kwargs"):
+            fn(*args, x0=np.zeros(1), P0=np.eye(1), builder_kwargs={"sqrt": True})
+    model = vj.models.Model(transition=lambda x, u, th: 0.9 * x + u, observe=lambda x, u, th: x,
+                            dt=1.0, state_names=("x",), input_names=("u",))
+    us = np.zeros((5, 1))
+    obj = vt.objective(functools.partial(vj.filters.ukf, sqrt=True, input_noise={"u": 0.3}),
+                       model, np.zeros(1), [0.1], np.zeros((5, 1)), us, x0=np.zeros(1),
+                       P0=np.eye(1), params=vt.Fitted(noise=("R", "input")))
+    np.testing.assert_allclose(obj.unpack(obj.z0)["input"]["u"], 0.3)  # the partial's start

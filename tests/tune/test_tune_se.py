@@ -6,6 +6,7 @@ written out in numpy, maximised with scipy.optimize, and its Hessian in physical
 central finite differences (the inverse observed information). Data drawn here with numpy.
 """
 
+import functools
 import warnings
 
 import jax.numpy as jnp
@@ -76,9 +77,9 @@ def test_fit_with_input_noise_equals_scipy_ml_and_inverse_information():
     fn = lambda p: loglik(p[0], p[1] ** 2, p[2], ys, us)  # noqa: E731
     p_ml, cov = reference(fn, np.array([0.5, 0.3, 1.0]))
 
-    res = vt.fit(vj.filters.ekf, scalar_model(), np.zeros(1), [1.0], ys, us, x0=X0, P0=P0,
-                 params=vt.Fitted(("a",), noise=("R", "input")),
-                 builder_kwargs={"input_noise": {"u": 0.3}}, options=vt.Options(progress=False))
+    res = vt.fit(functools.partial(vj.filters.ekf, input_noise={"u": 0.3}), scalar_model(),
+                 np.zeros(1), [1.0], ys, us, x0=X0, P0=P0,
+                 params=vt.Fitted(("a",), noise=("R", "input")), options=vt.Options(progress=False))
     assert res.converged and res.gradient <= 1e-6 and not res.undetermined
     got = np.array([res.values["a"], res.values["input[u]"], res.values["R[y,y]"]])
     np.testing.assert_allclose(got, p_ml, rtol=1e-3)
@@ -187,10 +188,11 @@ def test_particle_fit_reports_standard_errors_of_the_kalman_size():
     common = dict(x0=X0, P0=P0, params=("a",))
     quiet = vt.Options(progress=False)
     d = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, options=quiet, **common)
-    pf = vt.fit(vj.filters.bootstrap_pf, scalar_model(), [Q_TRUE], [R_TRUE], ys, us,
+    pf = vt.fit(functools.partial(vj.filters.bootstrap_pf, n_particles=256), scalar_model(),
+                [Q_TRUE], [R_TRUE], ys, us,
                 options=vt.Options(optimizer=vt.Adam(steps=3), progress=False,
                                    key=jax.random.key(0)),
-                builder_kwargs={"n_particles": 256}, params=vt.Fitted(("a",), noise=("R",)),
+                params=vt.Fitted(("a",), noise=("R",)),
                 x0=X0, P0=P0)
     assert pf.iterations == 3 and np.isfinite(pf.std_errors["a"])
     np.testing.assert_allclose(pf.std_errors["a"], d.std_errors["a"], rtol=0.5)

@@ -34,7 +34,7 @@ from ..filtering import filter as run_filter
 from ..filters import input_noise as inoise
 from ..lib import square_root
 from . import correlated
-from .options import Correlated, builder_options
+from .options import Correlated
 
 __all__ = ["Targets", "QUANTITY_KINDS", "parse_quantity", "targets", "with_values",
            "log_likelihood_fn", "log_likelihood_spread", "cpm_log_likelihood_fn",
@@ -130,7 +130,7 @@ def log_likelihood_fn(builder, model, measurements, inputs, *, x0, P0, Q, R, nam
     named stds replace their diagonal entries. A run that diverges (or re-initialises its
     particles) has likelihood zero (-inf).
     """
-    func, kwargs = builder_options(builder)
+    func, kwargs = validation.builder_options(builder)
     tg = targets(model, names)
     ys, us = validation.data(measurements, inputs, model.ny, model.nu, "one")
     validation.prior(model.nx, x0, P0)  # checked here, before a trace; the filter takes them

@@ -12,13 +12,12 @@ naming the argument and the field, before anything is traced).
   of a builder, and :func:`log_likelihood_difference_spread`'s estimate.
 
 A builder's own options are given with it, ``functools.partial(vehjax.filters.bootstrap_pf,
-n_particles=64)``; :func:`builder_options` reads them back.
+n_particles=64)``; :func:`vehjax.validation.builder_options` reads them back.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import Any, Mapping
 
 import numpy as np
@@ -27,8 +26,7 @@ from .. import validation
 from ..filters import Resampling, bootstrap_pf
 from ..filters import smc
 
-__all__ = ["Chains", "Adaptation", "RandomWalk", "Sweep", "Correlated", "CPM_KWARGS",
-           "builder_options"]
+__all__ = ["Chains", "Adaptation", "RandomWalk", "Sweep", "Correlated", "CPM_KWARGS"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,17 +143,6 @@ CPM_KWARGS = ("n_particles", "resampling", "input_noise")
 _CPM_RESAMPLING = Resampling(scheme="systematic")
 
 
-def builder_options(builder) -> tuple:
-    """(the builder, its options): ``functools.partial(f, **kw)`` is (f, kw), any other
-    callable (builder, {}); ValueError naming ``builder`` for anything else."""
-    if isinstance(builder, functools.partial) and not builder.args:
-        return builder.func, dict(builder.keywords)
-    if not callable(builder) or isinstance(builder, (functools.partial, Correlated)):
-        raise ValueError(f"builder: expected a filter builder builder(model, Q, R), its options "
-                         f"given with functools.partial(builder, **options), got {builder!r}")
-    return builder, {}
-
-
 @dataclasses.dataclass(frozen=True)
 class Correlated:
     """The correlated pseudo-marginal estimate (Deligiannidis, Doucet & Pitt 2018): the
@@ -182,7 +169,7 @@ class Correlated:
         object.__setattr__(self, "correlation", validation.number(
             "correlation", self.correlation, 0.0, 1.0,
             what="a number in (0, 1) (the Crank-Nicolson move's rho)"))
-        func, kwargs = builder_options(self.builder)
+        func, kwargs = validation.builder_options(self.builder)
         if func is not bootstrap_pf:
             raise ValueError(f"builder: the correlated estimate is written for "
                              f"vehjax.filters.bootstrap_pf only, got builder {self.builder!r}; "
@@ -197,4 +184,4 @@ class Correlated:
     @property
     def options(self) -> dict:
         """The bootstrap PF's options (``n_particles``, ``resampling``, ``input_noise``)."""
-        return builder_options(self.builder)[1]
+        return validation.builder_options(self.builder)[1]

@@ -67,8 +67,9 @@ __all__ = ["read", "check", "FILTERS", "DRIVE_FORMAT", "DRIVE_MAPPING", "FORMAT_
 
 #: the filter families a drive is fitted and estimated with (builders of vehjax.filters)
 FILTERS = ("ekf", "ukf", "ckf")
-#: vehjax.tune's noise kinds and optimisers, written out so that this module imports no JAX
-#: (tests/test_cli_drive.py checks that they agree)
+#: vehjax.tune's noise kinds, optimisers (the names of vehjax.tune.options.OPTIMIZERS) and
+#: starts, written out so that this module imports no JAX (tests/test_cli_drive.py checks that
+#: they agree)
 NOISE_KINDS = ("Q", "R", "input")
 OPTIMIZERS = ("adam", "lbfgs", "scoring")
 STARTS = ("data", "theta")

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from . import config
-from .setup import BUILDERS, build_model, builder_kwargs
+from .setup import BUILDERS, build_model, with_input_noise
 
 __all__ = ["FORMAT", "record", "write", "read", "rebuild"]
 
@@ -105,7 +105,7 @@ def rebuild(content: dict, family: str | None = None):
     if family not in BUILDERS:
         raise ValueError(f"--fit: unknown filter family {family!r}; expected one of "
                          f"{', '.join(BUILDERS)}")
-    est = BUILDERS[family](model, np.asarray(f["Q"], dtype=float),
-                           np.asarray(f["R"], dtype=float), **builder_kwargs(f["input_noise"]))
+    est = with_input_noise(BUILDERS[family], f["input_noise"])(
+        model, np.asarray(f["Q"], dtype=float), np.asarray(f["R"], dtype=float))
     return model, est, np.asarray(content["x0"], dtype=float), np.asarray(content["P0"],
                                                                           dtype=float)

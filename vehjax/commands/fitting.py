@@ -30,17 +30,18 @@ from ..filtering import filter as run_filter
 from ..filters import input_noise as inoise
 from ..tune.innovations import innovations, p_text
 from ..tune.likelihood import NOISE
+from ..tune.options import OPTIMIZERS
 from . import figures, fitfile
-from .setup import (BUILDERS, build_model, builder_kwargs, load_drive, model_label, on_model,
-                    start_values)
+from .setup import (BUILDERS, build_model, load_drive, model_label, on_model, start_values,
+                    with_input_noise)
 
 __all__ = ["run", "fit_options", "fit_keywords"]
 
 #: [fit] keys read as they are (:func:`fit_keywords` maps them to vehjax.tune.fit's records)
 _PASSED = ("fit_x0", "start", "compare", "release", "steps", "optimizer", "gtol")
-#: the optimiser record of each [fit] optimizer name; no name: the default, scoring (every
+#: the optimiser of a [fit] with steps or gtol but no optimizer name: scoring, the default (every
 #: filter of the command is deterministic; L-BFGS beyond 12 fitted coordinates)
-_OPTIMIZERS = {"adam": tune.Adam, "lbfgs": tune.LBFGS, "scoring": tune.Scoring, None: tune.Scoring}
+_DEFAULT_OPTIMIZER = "scoring"
 
 
 def _check_starts(model, bounds: dict, floors) -> None:
@@ -83,7 +84,7 @@ def fit_keywords(options: dict, progress: bool) -> dict:
     default optimizer's otherwise) in :class:`vehjax.tune.Options`."""
     name = options.get("optimizer")
     limits = {k: options[k] for k in ("steps", "gtol") if k in options}
-    optimizer = _OPTIMIZERS[name](**limits) if limits else name
+    optimizer = OPTIMIZERS[name or _DEFAULT_OPTIMIZER](**limits) if limits else name
     return dict(params=tune.Fitted(options["params"], options["noise"],
                                    options.get("fit_x0", False), options["bounds"]),
                 start=tune.Start(options.get("start", "data"), options.get("compare", True),
@@ -99,8 +100,8 @@ def _fit(builder, model, start, grid, options, progress):
     """(TuneResult, its warnings as one-line texts), the warnings also on stderr."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = tune.fit(builder, model, start.Q, start.R, grid.measurements, grid.inputs,
-                       x0=start.x0, P0=start.P0, builder_kwargs=builder_kwargs(start.input_noise),
+        res = tune.fit(with_input_noise(builder, start.input_noise), model, start.Q, start.R,
+                       grid.measurements, grid.inputs, x0=start.x0, P0=start.P0,
                        **fit_keywords(options, progress))
     texts = [" ".join(str(w.message).split()) for w in caught]
     for t in texts:

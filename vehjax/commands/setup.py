@@ -5,6 +5,7 @@ file (``[fit] meas_std: expected 1 value or 2 (one per ay, r), got 3``)."""
 
 from __future__ import annotations
 
+import functools
 import importlib
 from pathlib import Path
 from typing import NamedTuple
@@ -18,7 +19,7 @@ from . import config
 from .config import DRIVE_FORMAT, DRIVE_MAPPING
 
 __all__ = ["load_drive", "build_model", "model_label", "on_model", "OnGrid", "Start",
-           "start_values", "BUILDERS", "builder_kwargs"]
+           "start_values", "BUILDERS", "with_input_noise"]
 
 #: the filter families by their name in the configuration
 BUILDERS = {"ekf": filters.ekf, "ukf": filters.ukf, "ckf": filters.ckf}
@@ -209,10 +210,12 @@ def start_values(model, section: dict) -> Start:
     return Start(Q, R, x0, P0, noise)
 
 
-def builder_kwargs(input_noise) -> dict:
-    """The builder's keyword arguments: ``input_noise`` when there is one."""
+def with_input_noise(builder, input_noise):
+    """The builder with its ``input_noise`` option when there is one,
+    ``functools.partial(builder, input_noise=...)``; else the builder itself."""
     if input_noise is None:
-        return {}
+        return builder
     if isinstance(input_noise, dict):
-        return {"input_noise": {k: float(v) for k, v in input_noise.items()}}
-    return {"input_noise": np.asarray(input_noise, dtype=float)}
+        return functools.partial(builder, input_noise={k: float(v)
+                                                       for k, v in input_noise.items()})
+    return functools.partial(builder, input_noise=np.asarray(input_noise, dtype=float))

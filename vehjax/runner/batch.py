@@ -27,6 +27,7 @@ from .. import engine, execution, smoothing
 from ..engine import FilterResult
 from ..filters import runs_last
 from ..filters.base import Estimator
+from ..smoothers.methods import RTS
 from .plan import balanced_blocks
 
 __all__ = ["scan", "scan_prefetched", "runs_last_study", "vmapped_study", "blocked",
@@ -162,8 +163,11 @@ def blocked(side_by_side, per_run, block, args):
 
 def smoothed_study(estimator, method, return_cov, per_run, block, strategy, *args):
     """:func:`vehjax.smoothing.smooth_one_run` over the runs (in blocks as the vmapped study),
-    as the study's outputs; ``cross`` (C, T-1, nx, nx) the lag-one cross-covariances. The
-    filter's own RTS of a filter with a runs-last form, where the strategy uses that form,
+    as the study's outputs; ``cross`` (C, T-1, nx, nx) the lag-one cross-covariances.
+    ``method``: a Gaussian method's record (RTS, IEKS, IPLS, checked; its options passed as
+    :func:`vehjax.smooth` passes them, :func:`vehjax.smoothing.one_run_options`). The
+    filter's own sequential RTS (``RTS()``) of a filter with a runs-last form, where the
+    strategy uses that form,
     runs forward and backward with the runs axis last instead
     (:func:`vehjax.smoothing.smooth_runs_last`): the same numbers to rounding, several times
     faster on the CPU (``vehjax bench smooth``)."""
@@ -175,14 +179,15 @@ def smoothed_study(estimator, method, return_cov, per_run, block, strategy, *arg
                             sm.diverged, div_at.astype(f.diverged_at.dtype), f.at_bound), \
             (sm.cross_covariances if return_cov else None)
 
-    if (method == "rts" and execution.runs_last_for(strategy, args[0].shape[0])
+    if (method == RTS() and execution.runs_last_for(strategy, args[0].shape[0])
             and estimator.batch is not None and not estimator.smoother.sqrt):
         filt, state0, means, covs, pred = runs_last_study(
             estimator, True, strategy.prefetch_inputs, per_run, *args, predictions=True)
         return as_result(smoothing.smooth_runs_last(estimator, filt, state0, means, covs, pred))
 
     def one(*a):
-        return as_result(smoothing.smooth_one_run(estimator, *a, method=method))
+        return as_result(smoothing.smooth_one_run(estimator, *a,
+                                                  **smoothing.one_run_options(method)))
 
     return blocked(jax.vmap(one, in_axes=tuple(0 if r else None for r in per_run)), per_run,
                     block, args)

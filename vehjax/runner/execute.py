@@ -92,7 +92,8 @@ def execute(plan: Plan, fn, progress) -> RunResult:
 
     states, covs, params, pcov, ll, nis, n_obs, div, div_at, at_b, cross = (cat(k)
                                                                               for k in range(11))
-    name = plan.estimator.name + ("" if plan.smooth is None else f" ({plan.smooth} smoothed)")
+    name = plan.estimator.name + ("" if plan.smooth is None
+                                  else f" ({plan.smooth.name} smoothed)")
     return RunResult(states, covs, params, pcov, ll, nis, n_obs, div, div_at, name,
                      tuple(plan.estimator.param_names), at_bound=at_b, cross_covariances=cross)
 

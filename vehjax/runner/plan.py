@@ -26,6 +26,7 @@ import numpy as np
 from jax.sharding import Mesh
 
 from .. import engine, smoothing, validation
+from ..smoothers import methods
 from .. import execution as platform
 from ..execution import Execution
 from ..filters.base import Estimator
@@ -56,7 +57,7 @@ class Plan(NamedTuple):
     spans_processes: bool = False  # the mesh holds other processes' devices (jax.distributed)
     block: int | None = None  # runs vmapped side by side inside a chunk (None: all)
     strategy: platform.Strategy | None = None  # how it executes (vehjax.execution)
-    smooth: str | None = None  # the smoothing method (vehjax.smoothing.METHODS), or None
+    smooth: Any = None  # the Gaussian smoothing method's record (vehjax.smoothers), or None
 
 
 def balanced_blocks(runs: int, block: int) -> tuple[int, int]:
@@ -108,18 +109,33 @@ def _check_options(return_covariances, progress) -> None:
     check_progress(progress)
 
 
-def _smooth_method(estimator, smooth) -> str | None:
-    """``run``'s ``smooth``: False/None (filter only), True (the filter's own RTS smoother) or
-    a method of :data:`vehjax.smoothing.METHODS`; ValueError naming ``smooth`` otherwise."""
+def _smooth_method(estimator, smooth):
+    """``run``'s ``smooth`` as a Gaussian smoother's record (:mod:`vehjax.smoothers.methods`),
+    or None: False/None (filter only), True (the filter's own RTS smoother), a method's name or
+    record (RTS, IEKS, IPLS), resolved and checked as :func:`vehjax.smooth` resolves and checks
+    its ``method`` (:func:`vehjax.smoothing.check_options`). ValueError naming ``smooth``
+    otherwise, and for a particle smoother (run smooths no particle filter's study) and an
+    iterated smoother's ``initial`` (one run's start, :func:`vehjax.smooth`'s)."""
     if smooth is None or (isinstance(smooth, (bool, np.bool_)) and not smooth):
         return None
-    if not isinstance(smooth, (bool, np.bool_, str)):
-        raise ValueError(f"smooth: expected True, False or one of {smoothing.METHODS}, got "
-                         f"{smooth!r}")
+    if not isinstance(smooth, (bool, np.bool_, str) + methods.GAUSSIAN + methods.PARTICLE):
+        raise ValueError(f"smooth: expected True, False, one of {smoothing.METHODS} or a record "
+                         f"vehjax.smoothers.RTS/IEKS/IPLS(...), got {smooth!r}")
     try:
-        return smoothing.check_options(estimator, None if smooth is True else smooth).name
+        rec = methods.record(None if smooth is True else smooth)
+        if isinstance(rec, methods.PARTICLE):
+            raise ValueError(
+                f"{type(rec).__name__} is a particle smoother, which vehjax.run does not run "
+                f"(it smooths a study with the Gaussian smoothers RTS, IEKS, IPLS); smooth a "
+                f"particle filter's runs one at a time with vehjax.smooth(..., method=...)")
+        rec = smoothing.check_options(estimator, rec)
     except ValueError as err:
         raise ValueError(f"smooth: {err}") from None
+    if getattr(rec, "initial", None) is not None:
+        raise ValueError("smooth.initial: an iterated smoother's start is one run's; vehjax.run "
+                         "smooths every run from its filter's own moments: give initial to "
+                         "vehjax.smooth, run by run")
+    return rec
 
 
 def plan(estimator, measurements, inputs, x0, P0, theta0, P_theta0, key, return_covariances,

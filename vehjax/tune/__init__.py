@@ -16,6 +16,8 @@ What is fitted: ``params``, names or :class:`Fitted` (names, noise, x0, bounds, 
 ``options``, :class:`Options` (the optimiser, a record each: :class:`Adam`, :class:`LBFGS`,
 :class:`Scoring`, :class:`FirstOrder`; :class:`StandardErrors`; progress; a particle filter's
 key); where from: ``start``, "data", "theta" or :class:`Start` (:mod:`vehjax.tune.options`).
+The builder's own options go with it, as :mod:`vehjax.calibrate` takes them:
+``fit(functools.partial(vehjax.filters.ekf, sqrt=True, input_noise={"delta": 0.002}), ...)``.
 
 The objective is the summed log-likelihood ``sum_r vehjax.filter(est, y_r, u_r, ...).loglik.sum()``
 over a batch of runs (one run ``(T, ny)`` or a batch ``(R, T, ny)``), ``jax.grad`` of it through

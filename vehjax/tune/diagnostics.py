@@ -43,6 +43,7 @@ p < :data:`REJECT_P` and the gain exceeds :data:`REJECT_GAIN` log-likelihood uni
 
 from __future__ import annotations
 
+import functools
 import warnings
 from typing import NamedTuple
 
@@ -145,13 +146,14 @@ def _augmented(fit, setup, data, bounds, extra):
     parameters fitted too: (obj, setup); penalised by the fit's priors, if any (the optimum's
     free gradient is that objective's)."""
     ys, us, _, P0, _ = data
-    kw = dict(setup.builder_kwargs)
+    kw = dict(setup.builder_options)
     if fit.input_noise is not None:
         kw["input_noise"] = fit.input_noise
-    return prepare_fit(setup.builder, fit.model, fit.Q, fit.R, np.asarray(ys),
-                       None if us is None else np.asarray(us), np.asarray(fit.x0),
-                       np.asarray(P0), Fitted(tuple(setup.params) + tuple(extra), setup.noise,
-                                              setup.fit_x0, bounds, setup.priors), None, kw)
+    return prepare_fit(functools.partial(setup.builder, **kw), fit.model, fit.Q, fit.R,
+                       np.asarray(ys), None if us is None else np.asarray(us),
+                       np.asarray(fit.x0), np.asarray(P0),
+                       Fitted(tuple(setup.params) + tuple(extra), setup.noise, setup.fit_x0,
+                              bounds, setup.priors), None)
 
 
 class Start(NamedTuple):

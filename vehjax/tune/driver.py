@@ -170,14 +170,13 @@ def _standard_errors(obj, setup, quantities, loss, x, scoring, hessian, gtol, sc
     return x, aux, float(np.max(np.abs(g))), polished, unc, on, Hm
 
 
-def _diagnostics_ahead(setup, data, model, Q0, R0, x0, builder_kwargs, bounds, standard_errors,
-                       checks):
+def _diagnostics_ahead(setup, data, model, Q0, R0, x0, bounds, standard_errors, checks):
     """The diagnostics' programs (:func:`vehjax.tune.diagnostics.compile_ahead`) compiled from
     the start in a second host thread while the fit runs: a future, or None (no standard
     errors, a particle filter, or a platform that does one thing at a time)."""
     if not standard_errors or setup.stochastic or execution.current().side_by_side < 2:
         return None
-    start = diagnostics.Start(model, Q0, R0, (builder_kwargs or {}).get("input_noise"), x0)
+    start = diagnostics.Start(model, Q0, R0, setup.builder_options.get("input_noise"), x0)
     return execution.in_thread(diagnostics.compile_ahead, start, setup, data, bounds, checks)
 
 
@@ -193,17 +192,18 @@ def _compiled_ahead(future) -> diagnostics.Ahead:
 
 
 def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
-                   builder_kwargs=None, options: Options | None = None,
-                   floors=None) -> TuneResult:
+                   options: Options | None = None, floors=None) -> TuneResult:
     """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum likelihood,
     with standard errors, from one start: ``model.theta``, Q0, R0 and the given input noise as
     they are (:func:`vehjax.tune.fit` chooses the start from the data first).
 
     Args:
-        builder: a filter builder ``builder(model, Q, R, **builder_kwargs) -> Estimator``:
-            ``vehjax.filters.ekf``, ``ukf``, ``ckf`` (``builder_kwargs={"sqrt": True}`` for the
-            square-root forms), ``bootstrap_pf`` (differentiated with stop-gradient
-            resampling, :func:`vehjax.tune.stop_gradient_pf`), or one's own state-only builder.
+        builder: a filter builder ``builder(model, Q, R) -> Estimator``, its own options
+            (``sqrt``, ``alpha``, ``n_particles``, ``input_noise``, ...) given with it by
+            ``functools.partial(builder, **options)``: ``vehjax.filters.ekf``, ``ukf``, ``ckf``
+            (``functools.partial(vehjax.filters.ekf, sqrt=True)`` for the square-root forms),
+            ``bootstrap_pf`` (differentiated with stop-gradient resampling,
+            :func:`vehjax.tune.stop_gradient_pf`), or one's own state-only builder.
         model: a vehjax model; ``model.theta`` holds the starting parameter values.
         Q0, R0: starting covariances, (n, n) or (n,) variances; diagonal ones are fitted as
             diagonal, full ones as full (:mod:`vehjax.tune`). Positive definite when fitted; a Q0
@@ -213,11 +213,9 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
         x0, P0: prior of every run: x0 (nx,) or (R, nx), P0 (nx, nx), (nx,) or (R, nx, nx).
         params: names of model parameters to fit (default none), or
             :class:`vehjax.tune.Fitted`: the names, which noise (default ("Q", "R"); "input"
-            fits the input noise whose starting value is ``builder_kwargs["input_noise"]``),
+            fits the input noise whose starting value is the builder's ``input_noise``),
             x0, the parameters' bounds and priors (penalised likelihood, MAP in physical
             coordinates; ``loglik`` stays the plain log-likelihood, :mod:`vehjax.tune.priors`).
-        builder_kwargs: further keyword arguments of ``builder`` (``sqrt``, ``alpha``,
-            ``n_particles``, ``input_noise``, ...).
         options: :class:`vehjax.tune.Options`: the optimiser (None, default: "scoring", BHHH
             then Newton steps, for deterministic filters with at most 12 fitted coordinates,
             "lbfgs" for those with more, "adam" for particle filters; or a record
@@ -248,7 +246,7 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
             parameter's domain (:func:`vehjax.tune.priors.check`).
     """
     return fit_start(builder, model, Q0, R0, measurements, inputs,
-                     dict(x0=x0, P0=P0, params=params, builder_kwargs=builder_kwargs),
+                     dict(x0=x0, P0=P0, params=params),
                      validation.record("options", options, Options), floors=floors)
 
 
@@ -278,22 +276,22 @@ def _finish(obj, setup, loss, x, optimizer, std_errors, gtol, scales, names, qua
 def fit_start(builder, model, Q0, R0, measurements, inputs, args: dict, options: Options, *,
               floors=None, compiled: program.Program | None = None,
               checks: diagnostics.Checks = diagnostics.Checks()) -> TuneResult:
-    """:func:`fit_from_theta` with ``args`` its keywords (x0, P0, params, builder_kwargs) and
+    """:func:`fit_from_theta` with ``args`` its keywords (x0, P0, params) and
     two more for :func:`vehjax.tune.fit`'s stages: ``compiled``, the program of this fit's
     objective compiled for another start, differing only in the fitted values
     (:func:`compile_objective`; None: compiled here), and ``checks``, which diagnostics the
     standard errors come with (:class:`vehjax.tune.diagnostics.Checks`; by default the score
     tests of every held parameter and the innovation checks)."""
     t_start = time.perf_counter()
-    what, key, builder_kwargs = fitted(args["params"]), options.key, args["builder_kwargs"]
+    what, key = fitted(args["params"]), options.key
     x0 = args["x0"]
     std_errors, user_opt = options.standard_errors, options.optimizer
     obj, setup = prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, args["P0"], what,
-                             key, builder_kwargs)
+                             key)
     check_optimizer(user_opt, setup.stochastic)  # before compiling
     hessian = None if std_errors is None else std_errors.hessian
     differences = not setup.stochastic and hessian in (None, "differences")
-    ahead = _diagnostics_ahead(setup, obj.data, model, Q0, R0, x0, builder_kwargs, what.bounds,
+    ahead = _diagnostics_ahead(setup, obj.data, model, Q0, R0, x0, what.bounds,
                                std_errors is not None, checks)
     names, scales = coordinates(setup, model, obj.z0)
     flat0, unravel0 = jax.flatten_util.ravel_pytree(obj.z0)
@@ -333,22 +331,21 @@ def fit_start(builder, model, Q0, R0, measurements, inputs, args: dict, options:
 
 
 def compile_objective(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
-                      builder_kwargs=None, key=None) -> program.Program:
+                      key=None) -> program.Program:
     """The program :func:`fit_from_theta` compiles for these arguments (those of
     :func:`vehjax.tune.objective`), to hand to fits of the same objective from other starts
     (:func:`fit_start`'s ``compiled``): the fitted values are the program's argument,
     everything else (the data, the model's other parameters, the noise not fitted) its
     constants."""
     obj, setup = prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0,
-                             fitted(params), key, builder_kwargs)
+                             fitted(params), key)
     return program.compile_program(obj, setup)
 
 
 def fit_noise(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, noise=NOISE,
-              builder_kwargs=None, options: Options | None = None) -> TuneResult:
+              options: Options | None = None) -> TuneResult:
     """Fit the noise covariances Q and R (``noise``: both by default, a subset of ("Q", "R",
     "input")) by maximum likelihood: :func:`fit_from_theta` with no model parameters
     (``params=vehjax.tune.Fitted(noise=noise)``). Same result."""
     return fit_from_theta(builder, model, Q0, R0, measurements, inputs, x0=x0, P0=P0,
-                          params=Fitted(noise=noise), builder_kwargs=builder_kwargs,
-                          options=options)
+                          params=Fitted(noise=noise), options=options)

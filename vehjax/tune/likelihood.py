@@ -2,13 +2,14 @@
 function of the unconstrained coordinates (:mod:`vehjax.tune`; docs/tune.md in full).
 
 Everything is checked before tracing (:func:`prepare`, ValueError naming the argument); the
-loss rebuilds the estimator with ``builder(model, Q, R, **builder_kwargs)`` inside the
-differentiated function and runs :func:`vehjax.filter` vmapped over the runs.
+loss rebuilds the estimator with ``builder(model, Q, R, **options)`` (the builder's own
+options given with it, ``functools.partial(builder, **options)``) inside the differentiated
+function and runs :func:`vehjax.filter` vmapped over the runs.
 """
 
 from __future__ import annotations
 
-from typing import Callable, Mapping, NamedTuple
+from typing import Callable, NamedTuple
 
 import equinox as eqx
 import jax
@@ -53,8 +54,9 @@ class FitSetup(NamedTuple):
     the functions the optimisers, the standard errors and the report evaluate.
 
     Attributes:
-        builder: the filter builder (``builder(model, Q, R, **builder_kwargs)``).
-        builder_kwargs: its further keyword arguments (a dict, as given).
+        builder: the filter builder (``builder(model, Q, R, **builder_options)``), its
+            options split off (:func:`vehjax.validation.builder_options`).
+        builder_options: its options (a dict, as given with it by ``functools.partial``).
         params: names of the fitted model parameters (those with priors included).
         noise: which noise is fitted, a subset of ("Q", "R", "input").
         Qa, Ra: the starting (or held) Q (nx, nx) and R (ny, ny), numpy.
@@ -76,7 +78,7 @@ class FitSetup(NamedTuple):
             set by the driver; None before.
     """
 
-    builder_kwargs: dict
+    builder_options: dict
     params: tuple
     noise: tuple
     Qa: np.ndarray
@@ -112,18 +114,18 @@ def float_array(name: str, value, allow_nan: bool = False) -> np.ndarray:
     return np.array(validation.array(name, value, missing=allow_nan), dtype=float)
 
 
-def _check_builder(builder):
-    if not callable(builder):
-        raise ValueError(
-            f"builder: expected a filter builder such as vehjax.filters.ukf, got {builder!r}"
-        )
+def _check_builder(builder) -> tuple:
+    """(the builder, its options): ``functools.partial(builder, **options)`` split
+    (:func:`vehjax.validation.builder_options`, ValueError naming ``builder``)."""
+    builder, options = validation.builder_options(builder)
     if builder is stop_gradient_pf:  # the same filter forward; its gradients are applied anyway
-        return bootstrap_pf
-    return builder
+        return bootstrap_pf, options
+    return builder, options
 
 
-def _check_what(model, Q0, R0, what: Fitted, builder_kwargs) -> FitSetup:
-    """The fitted quantities (:class:`vehjax.tune.Fitted`) and their starting values checked:
+def _check_what(model, Q0, R0, what: Fitted, options: dict) -> FitSetup:
+    """The fitted quantities (:class:`vehjax.tune.Fitted`) and their starting values checked
+    (``options`` the builder's, :func:`_check_builder`):
     the set-up so far (the prior'd parameters added to the names, a Uniform prior's box to the
     bounds: :mod:`vehjax.tune.priors`)."""
     nx, ny = len(model.state_names), len(model.output_names)
@@ -140,19 +142,14 @@ def _check_what(model, Q0, R0, what: Fitted, builder_kwargs) -> FitSetup:
     if not noise and not params and not fit_x0:
         raise ValueError("params.noise: nothing to fit: noise=(), no parameter names and "
                          "x0=False")
-    if builder_kwargs is None:
-        builder_kwargs = {}
-    if not isinstance(builder_kwargs, Mapping):
-        raise ValueError(f"builder_kwargs: expected a dict of keyword arguments, got "
-                         f"{builder_kwargs!r}")
-    builder_kwargs = dict(builder_kwargs)
     inp = None
     if "input" in noise:
-        if builder_kwargs.get("input_noise") is None:
+        if options.get("input_noise") is None:
             raise ValueError("params.noise: 'input' fits the input noise, whose starting value "
-                             "goes in builder_kwargs={'input_noise': {input name: std, ...}}")
-        inp = InputNoise(builder_kwargs["input_noise"], model)
-    return FitSetup(builder_kwargs=builder_kwargs, params=params, noise=noise, Qa=Qa, Ra=Ra,
+                             "goes with the builder, functools.partial(builder, "
+                             "input_noise={input name: std, ...})")
+        inp = InputNoise(options["input_noise"], model)
+    return FitSetup(builder_options=dict(options), params=params, noise=noise, Qa=Qa, Ra=Ra,
                 diagQ=np.ndim(Q0) == 1 or is_diag(Qa), diagR=np.ndim(R0) == 1 or is_diag(Ra),
                 theta0=theta0, idx=idx, fit_x0=fit_x0, input=inp, theta_map=theta_map,
                 priors=priors, prior_fn=tune_priors.log_prior_fn(priors, names))
@@ -178,7 +175,7 @@ def _start_estimator(builder, model, setup: FitSetup, key, n_runs: int):
     est0 = _built(builder, model, setup)
     keys, sg = None, {}
     if est0.needs_key:  # a particle filter: differentiated with stop-gradient resampling
-        sg = resample_keyword(builder, est0.name, setup.builder_kwargs)
+        sg = resample_keyword(builder, est0.name, setup.builder_options)
         if key is None:
             raise ValueError(f"key: {est0.name} draws random numbers; pass key=jax.random.key(...)")
         try:
@@ -192,10 +189,10 @@ def _built(builder, model, setup: FitSetup) -> Estimator:
     """The state-only estimator ``builder`` makes at the starting values (ValueError naming
     ``builder`` where it is not one)."""
     try:
-        est0 = builder(model, setup.Qa, setup.Ra, **setup.builder_kwargs)
+        est0 = builder(model, setup.Qa, setup.Ra, **setup.builder_options)
     except TypeError as err:  # not a state-only builder(model, Q, R, **kw), or bad keywords
         raise ValueError(
-            f"builder: calling it as builder(model, Q, R, **builder_kwargs) failed ({err}); tune "
+            f"builder: calling it as builder(model, Q, R, **options) failed ({err}); tune "
             f"takes a state-only filter builder (ekf, ukf, ckf, ackf, bootstrap_pf) and fits "
             f"model parameters with params="
         ) from None
@@ -209,14 +206,15 @@ def _built(builder, model, setup: FitSetup) -> Estimator:
     return est0
 
 
-def draws_random_numbers(builder, model, Q0, R0, what: Fitted, builder_kwargs) -> bool:
+def draws_random_numbers(builder, model, Q0, R0, what: Fitted) -> bool:
     """Whether the fit's filter is a particle filter (its optimiser by default adam, not a line
     search), found by building it at the starting values, before anything is traced;
     ValueError naming a bad argument as :func:`prepare` does (``what`` without its bounds and
     priors)."""
     what = Fitted(what.names, what.noise, what.x0)
-    setup = _check_what(model, Q0, R0, what, builder_kwargs)
-    return bool(_built(_check_builder(builder), model, setup).needs_key)
+    builder, options = _check_builder(builder)
+    setup = _check_what(model, Q0, R0, what, options)
+    return bool(_built(builder, model, setup).needs_key)
 
 
 def _coordinates(setup: FitSetup):
@@ -252,14 +250,14 @@ def _coordinates(setup: FitSetup):
 def _estimator_at(builder, model, setup: FitSetup, unpack, sg: dict):
     """``at(z, data) -> (estimator, model, Q, R, input noise or None, x0)``: the fit's filter
     built at the coordinates z (traceable), the values not fitted as given."""
-    Qa, Ra, builder_kwargs = setup.Qa, setup.Ra, setup.builder_kwargs
+    Qa, Ra, options = setup.Qa, setup.Ra, setup.builder_options
 
     def at(z, data):
         v = unpack(z)
         Q = v["Q"] if "Q" in z else Qa  # constants stay numpy: the builder may specialise
         R = v["R"] if "R" in z else Ra
         mdl = eqx.tree_at(lambda m: m.theta, model, v["theta"]) if "theta" in z else model
-        kw = builder_kwargs if "input" not in z else {**builder_kwargs, "input_noise": v["input"]}
+        kw = options if "input" not in z else {**options, "input_noise": v["input"]}
         est = builder(mdl, Q, R, **{**kw, **sg})  # sg replaces the caller's resampling
         return est, mdl, Q, R, kw.get("input_noise"), v["x0"] if "x0" in z else data[2]
 
@@ -300,17 +298,16 @@ def _log_prior(setup: FitSetup, unpack):
     return lambda z: fn(unpack(z)["theta"])
 
 
-def prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0, what: Fitted, key,
-                builder_kwargs):
+def prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0, what: Fitted, key):
     """Everything checked before tracing (ValueError naming the argument): the
     :class:`Objective` and the fit's :class:`FitSetup` (the builder, the starting values, the
     parameterisations, ``per_step``, ``at``, ``log_prior``, ...) for the optimisers and the
     report; ``what`` a :class:`vehjax.tune.Fitted`. With priors (:mod:`vehjax.tune.priors`) the
     loss is the penalised one, ``-(sum loglik + log prior) / (R T)``; its aux stays the plain
     log-likelihood per run."""
-    builder = _check_builder(builder)
+    builder, options = _check_builder(builder)
     validation.model(model)
-    setup = _check_what(model, Q0, R0, fitted(what), builder_kwargs)
+    setup = _check_what(model, Q0, R0, fitted(what), options)
     ys, us, x0a, P0a = check_data(model, measurements, inputs, x0, P0)
     n_runs, T, _ = ys.shape
     est0, sg, keys = _start_estimator(builder, model, setup, key, n_runs)
@@ -336,19 +333,20 @@ def prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0, what: Fitt
 
 
 def prepare(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
-            builder_kwargs=None, key=None):
+            key=None):
     """(:class:`Objective`, :class:`FitSetup`) of :func:`objective` (same arguments): the
     objective and the fit's set-up, everything checked before tracing
     (:func:`prepare_fit`)."""
     return prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0, fitted(params),
-                       key, builder_kwargs)
+                       key)
 
 
 def objective(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
-              builder_kwargs=None, key=None) -> Objective:
+              key=None) -> Objective:
     """The objective of :func:`vehjax.tune.fit` (the same arguments: ``params`` names or
     :class:`vehjax.tune.Fitted`; ``key`` a particle filter's), to evaluate, differentiate or
     optimise with tools of one's own: ``obj.loss(obj.z0, obj.data)``,
-    ``obj.unpack(z)["Q"]``."""
+    ``obj.unpack(z)["Q"]``. The builder's own options go with it,
+    ``functools.partial(builder, **options)``."""
     return prepare(builder, model, Q0, R0, measurements, inputs, x0=x0, P0=P0, params=params,
-                   builder_kwargs=builder_kwargs, key=key)[0]
+                   key=key)[0]

@@ -31,9 +31,8 @@ from .. import validation
 from .information import RCOND
 
 __all__ = ["scoring", "scoring_direction", "lbfgs", "first_order", "first_order_optimizer",
-           "newton", "OPTIMIZERS", "GTOL"]
+           "newton", "GTOL"]
 
-OPTIMIZERS = ("adam", "lbfgs", "scoring")
 ADAM_LR = 0.05
 ADAM_STEPS = 300
 LBFGS_STEPS = 100

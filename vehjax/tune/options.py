@@ -47,10 +47,10 @@ class Fitted:
     Attributes:
         names: model parameters to fit (default none); a parameter in ``priors`` is fitted too.
         noise: which noise to fit, a subset of ("Q", "R", "input") (default ("Q", "R")).
-            "input" fits the input noise whose starting value is
-            ``builder_kwargs["input_noise"]``: stds by input name (log stds fitted, reported as
-            ``"input[name]"`` stds in the input's unit) or an (nu, nu) covariance (fitted like
-            Q0, reported in units squared).
+            "input" fits the input noise whose starting value is the builder's option
+            ``input_noise`` (``functools.partial(builder, input_noise=...)``): stds by input
+            name (log stds fitted, reported as ``"input[name]"`` stds in the input's unit) or
+            an (nu, nu) covariance (fitted like Q0, reported in units squared).
         x0: also fit x0 (the shape it was given in), default False.
         bounds: ``{name: (lo, hi)}`` for fitted parameters, in their units, either end None
             (:mod:`vehjax.tune`).
@@ -189,6 +189,8 @@ class Scoring:
         object.__setattr__(self, "gtol", _gtol("optimizer", self.gtol))
 
 
+#: the optimisers by name, the one list of them (``vehjax.commands.config`` writes the names
+#: out, importing no JAX; tests/test_cli_drive.py checks that they agree)
 OPTIMIZERS = {"adam": Adam, "lbfgs": LBFGS, "scoring": Scoring}
 _RECORDS = (Adam, LBFGS, Scoring, FirstOrder)
 
@@ -202,7 +204,7 @@ def optimizer_record(value):
     if isinstance(value, optax.GradientTransformation):
         return FirstOrder(value)
     if not isinstance(value, str):
-        raise ValueError(f"optimizer: expected None, 'adam', 'lbfgs', 'scoring', "
+        raise ValueError(f"optimizer: expected None, {', '.join(map(repr, OPTIMIZERS))}, "
                          f"vehjax.tune.Adam/LBFGS/Scoring/FirstOrder(...) or an "
                          f"optax.GradientTransformation, got {value!r}")
     return OPTIMIZERS[validation.choice("optimizer", value, tuple(OPTIMIZERS))]()

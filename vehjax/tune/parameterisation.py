@@ -49,10 +49,11 @@ class Cov:
 
 
 class InputNoise:
-    """Parameterisation of the input noise (``builder_kwargs["input_noise"]``, its starting
-    value): a dict ``{input name: std}`` is fitted by the log standard deviations of the named
-    inputs (the builder gets ``{name: exp(z)}``), an (nu, nu) covariance like Q0 (log-diagonal
-    or log-Cholesky, positive definite)."""
+    """Parameterisation of the input noise (its starting value the builder's ``input_noise``
+    option, ``functools.partial(builder, input_noise=...)``): a dict ``{input name: std}`` is
+    fitted by the log standard deviations of the named inputs (the builder gets
+    ``{name: exp(z)}``), an (nu, nu) covariance like Q0 (log-diagonal or log-Cholesky, positive
+    definite)."""
 
     def __init__(self, spec, model):
         names = tuple(model.input_names)

@@ -45,10 +45,10 @@ def stop_gradient(estimator: Estimator) -> Estimator:
         f"vehjax.tune.stop_gradient_pf(model, Q, R, ...)")
 
 
-def resample_keyword(builder, name: str, builder_kwargs) -> dict:
+def resample_keyword(builder, name: str, options: dict) -> dict:
     """The keyword that makes ``builder`` (a particle filter's, called ``name``) resample with
     stop-gradient weights: ``{"resampling": Resampling(..., resample=smc.resample_stop_gradient)}``
-    (the scheme and threshold of ``builder_kwargs``' own ``resampling``, else the defaults), or
+    (the scheme and threshold of its ``options``' own ``resampling``, else the defaults), or
     {} when that record already names a ``resample`` (the caller's own choice) or is not a
     :class:`~vehjax.filters.Resampling` (the builder names it). It replaces the caller's.
 
@@ -59,7 +59,7 @@ def resample_keyword(builder, name: str, builder_kwargs) -> dict:
     Raises:
         ValueError: naming ``builder``, when its signature shows no ``resampling`` keyword.
     """
-    given = builder_kwargs.get("resampling")
+    given = options.get("resampling")
     if given is not None and (not isinstance(given, Resampling) or given.resample is not None):
         return {}
     try:

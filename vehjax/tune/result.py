@@ -50,8 +50,8 @@ class TuneResult(NamedTuple):
         params: fitted model parameters by name (empty when none were fitted).
         x0: the fitted initial state ((nx,) or (R, nx)), or the given one.
         model: the model with the fitted parameters (``model.with_theta``).
-        estimator: ``builder(model, Q, R, **builder_kwargs)`` at the fitted values, ready for
-            :func:`vehjax.run`.
+        estimator: ``builder(model, Q, R, **options)`` (the builder's own options) at the
+            fitted values, ready for :func:`vehjax.run`.
         loglik: total log-likelihood of the runs at the fitted values (sum over runs).
         loglik0: the same at the starting values.
         history: loss per iteration, (iterations,): ``-sum loglik / (R T)`` at the values that
@@ -228,7 +228,7 @@ def make_result(obj, info, model, best_z, best_aux, search: tuple, unc, grad_max
     if info.params:
         fitted_model = model.with_theta(**{p: float(theta[model.param_names.index(p)])
                                            for p in info.params})
-    kw = dict(info.builder_kwargs)
+    kw = dict(info.builder_options)
     if v["input"] is not None:
         kw["input_noise"] = ({k: float(s) for k, s in v["input"].items()}
                              if isinstance(v["input"], dict) else np.asarray(v["input"]))

@@ -50,6 +50,7 @@ keeps that from being reported.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 import warnings
@@ -111,10 +112,10 @@ def start_values(model, floors: dict, params, bounds=None, second: bool = False)
     return out
 
 
-def _nested_likelihood(builder, nested, Q0, R0, ys, us, x0, P0, key, builder_kwargs):
+def _nested_likelihood(builder, nested, Q0, R0, ys, us, x0, P0, key):
     """The nested model's log-likelihood at its given values, when nothing of it is fitted."""
     obj = objective(builder, nested, Q0, R0, ys, us, x0=x0, P0=P0,
-                    params=Fitted(noise=("R",)), key=key, builder_kwargs=builder_kwargs)
+                    params=Fitted(noise=("R",)), key=key)
     return -float(obj.loss(obj.z0, obj.data)[0]) * obj.n_steps
 
 
@@ -132,9 +133,8 @@ def _nested_args(nested, args: dict):
 def _call(args: dict) -> dict:
     """The keywords of :func:`~vehjax.tune.driver.fit_start`'s ``args`` and
     :func:`~vehjax.tune.driver.compile_objective` from a stage's ``args`` (x0, P0, params,
-    bounds, noise, fit_x0, builder_kwargs, priors): what is fitted as a
-    :class:`~vehjax.tune.Fitted`."""
-    return dict(x0=args["x0"], P0=args["P0"], builder_kwargs=args["builder_kwargs"],
+    bounds, noise, fit_x0, priors): what is fitted as a :class:`~vehjax.tune.Fitted`."""
+    return dict(x0=args["x0"], P0=args["P0"],
                 params=Fitted(args["params"], args["noise"], args["fit_x0"], args["bounds"],
                               args["priors"]))
 
@@ -148,7 +148,7 @@ def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, nargs, options: Opt
     t0 = time.perf_counter()
     if nargs is None:
         ll = _nested_likelihood(builder, nested, Q0, R0, ys, us, args["x0"], args["P0"],
-                                options.key, args["builder_kwargs"])
+                                options.key)
         return None, Comparison(_label(nested), ll, {}, time.perf_counter() - t0), []
     held = tuple(k for k in nested.spec_priors() if k not in nargs["params"])
     se = options.standard_errors if diagnose and held else False
@@ -177,8 +177,8 @@ def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: O
     released = to_release(lin, model, args["params"]) if diagnose and lin else {}
     if released:  # the nested model again with them; the model's program compiled anew
         nargs = _widened(nargs, model, released)
-        m, Qn, Rn, nargs = _released_start(nested, Q0, R0, nargs, lin, released)
-        lin, cmp, held = _fit_nested(builder, m, Qn, Rn, ys, us, args, nargs, options)
+        bn, m, Qn, Rn, nargs = _released_start(builder, nested, Q0, R0, nargs, lin, released)
+        lin, cmp, held = _fit_nested(bn, m, Qn, Rn, ys, us, args, nargs, options)
         args, ahead = _widened(args, model, released), None
     _reissue(held, cmp.model)
     return lin, cmp, ahead, args, released
@@ -191,8 +191,7 @@ def _check_ahead(builder, model, Q0, R0, args: dict, options: Options) -> None:
     params = validation.names("params", args["params"], model.param_names, allow_empty=True)
     check_bounds(params, args["bounds"], model)
     stochastic = draws_random_numbers(builder, model, Q0, R0,
-                                      Fitted(params, args["noise"], args["fit_x0"]),
-                                      args["builder_kwargs"])
+                                      Fitted(params, args["noise"], args["fit_x0"]))
     check_optimizer(options.optimizer, stochastic)
 
 
@@ -223,11 +222,11 @@ def _widened(args: dict, model, names) -> dict:
                 priors={**args["priors"], **release_priors(model, names)})
 
 
-def _released_start(model, Q0, R0, args: dict, res, released: dict) -> tuple:
-    """(model, Q0, R0, args) of a fit made again from ``res``'s values, each released
-    parameter at its :func:`~vehjax.tune.release.start_value`."""
-    model, Q0, R0, args = _from_nested(model, Q0, R0, args, res)
-    return model.with_theta(**{k: start_value(t, args["priors"][k])
+def _released_start(builder, model, Q0, R0, args: dict, res, released: dict) -> tuple:
+    """(builder, model, Q0, R0, args) of a fit made again from ``res``'s values, each
+    released parameter at its :func:`~vehjax.tune.release.start_value`."""
+    builder, model, Q0, R0, args = _from_nested(builder, model, Q0, R0, args, res)
+    return builder, model.with_theta(**{k: start_value(t, args["priors"][k])
                                for k, t in released.items()}), Q0, R0, args
 
 
@@ -255,10 +254,11 @@ def _compiled(future):
         return None
 
 
-def _from_nested(model, Q0, R0, args: dict, lin) -> tuple:
-    """(model, Q0, R0, args) with the nested fit's values as the start."""
+def _from_nested(builder, model, Q0, R0, args: dict, lin) -> tuple:
+    """(builder, model, Q0, R0, args) with the nested fit's values as the start (the fitted
+    input noise the builder's ``input_noise``)."""
     if lin is None:
-        return model, Q0, R0, args
+        return builder, model, Q0, R0, args
     args = dict(args)
     given = {k: float(model.theta[model.param_names.index(k)]) for k in lin.params}
     model = model.with_theta(**{k: given[k] if k in lin.on_bound else v
@@ -268,14 +268,15 @@ def _from_nested(model, Q0, R0, args: dict, lin) -> tuple:
     R0 = _off_bounds(lin.R, R0, "R", model.output_names, lin.on_bound) if "R" in noise else R0
     if "input" in noise:
         inoise = lin.input_noise
+        func, options = validation.builder_options(builder)
         if isinstance(inoise, dict):  # stds by name: those on their bound start as given
-            start = (args["builder_kwargs"] or {}).get("input_noise") or {}
+            start = options.get("input_noise") or {}
             inoise = {k: start.get(k, v) if f"input[{k}]" in lin.on_bound else v
                       for k, v in inoise.items()}
-        args["builder_kwargs"] = dict(args["builder_kwargs"] or {}, input_noise=inoise)
+        builder = functools.partial(func, **{**options, "input_noise": inoise})
     if args["fit_x0"]:
         args["x0"] = lin.x0
-    return model, Q0, R0, args
+    return builder, model, Q0, R0, args
 
 
 def _off_bounds(fitted, given, name: str, components, on_bound: dict) -> np.ndarray:
@@ -297,13 +298,14 @@ def _off_bounds(fitted, given, name: str, components, on_bound: dict) -> np.ndar
 
 
 def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
-        builder_kwargs=None, options: Options | None = None, start="data") -> TuneResult:
+        options: Options | None = None, start="data") -> TuneResult:
     """Fit Q, R, the input noise, named model parameters and optionally x0 by maximum
     likelihood, with standard errors, from a start the data give (module docstring).
 
     Args:
-        builder, model, Q0, R0, measurements, inputs, x0, P0, params, builder_kwargs, options:
-            as :func:`vehjax.tune.driver.fit_from_theta` (``params`` names or
+        builder, model, Q0, R0, measurements, inputs, x0, P0, params, options:
+            as :func:`vehjax.tune.driver.fit_from_theta` (``builder``'s own options given with
+            it, ``functools.partial(builder, **options)``; ``params`` names or
             :class:`vehjax.tune.Fitted`; ``options`` :class:`vehjax.tune.Options`, the
             optimiser, the standard errors, the progress bar, a particle filter's key;
             ``model.theta`` the starting parameter values where the start is "theta"; a
@@ -339,7 +341,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
         params = tune_priors.fitted_params(
             validation.names("params", params, model.param_names, allow_empty=True), priors)
     args = dict(x0=x0, P0=P0, params=params, bounds=bounds, noise=what.noise, fit_x0=what.x0,
-                builder_kwargs=builder_kwargs, priors=priors)
+                priors=priors)
     _check_ahead(builder, model, Q0, R0, args, options)
     diagnose = stages.release and options.standard_errors is not None
     given = model  # the user's model: its held values and their data-sheet priors
@@ -353,7 +355,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
             builder, nested, ahead_model, Q0, R0, ys, us, args, options,
             diagnose and start == "data")
     if start == "data":
-        model, Q0, R0, args = _from_nested(model, Q0, R0, args, lin)
+        builder, model, Q0, R0, args = _from_nested(builder, model, Q0, R0, args, lin)
         model = model.with_theta(**start_values(model, all_floors, params, bounds))
     compiled = _compiled(ahead)
     if compiled is None and cmp is not None:  # one compile for a second start too
@@ -378,8 +380,8 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     more = to_release(best, given, args["params"]) if diagnose else {}
     if more:  # released by the model's own fit: made again from its values
         args = _widened(args, given, more)
-        m, Q0, R0, args = _released_start(model, Q0, R0, args, best, more)
-        best, held = _quietly(fit_start, builder, m, Q0, R0, ys, us, _call(args), options,
+        b, m, Q0, R0, args = _released_start(builder, model, Q0, R0, args, best, more)
+        best, held = _quietly(fit_start, b, m, Q0, R0, ys, us, _call(args), options,
                               floors=all_floors)
         released = {**released, **more}
     _reissue(held)
