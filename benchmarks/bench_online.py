@@ -339,7 +339,9 @@ def parser() -> argparse.ArgumentParser:
                    help="JAX's CPU dispatch: sync (the calling thread), async (JAX's default: "
                         "a worker thread) or both, each in a fresh process (module docstring; "
                         "default %(default)s)")
-    p.add_argument("--medians", default=None, help=argparse.SUPPRESS)  # both's children
+    p.add_argument("--medians", default=None, metavar="FILE",
+                   help="also write each row's Online.update median [us] to this JSON file "
+                        "(how --dispatch both reads its children's; default none)")
     p.add_argument("--tol", type=float, default=1e-9,
                    help="max abs difference, Online vs vehjax.filter (default %(default)s)")
     p.add_argument("--fp-tol", type=float, default=1e-8,
