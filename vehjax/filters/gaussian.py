@@ -220,17 +220,12 @@ def _sigma_entries(x, P, y, f, h, Qn, Rn, rule: SigmaRule):
             return [[Y[k, i] for i in range(Y.shape[1])] for k in range(Y.shape[0])]
         return at
 
+    # the noise's entries as arrays of the filter's dtype, as the runs-last step takes them
     m = sigma.step_moments_entries([x[i] for i in range(nx)],
                                    [[P[i, j] for j in range(nx)] for i in range(nx)],
-                                   images(f), images(h), _const_entries(Qn, dt),
-                                   _const_entries(Rn, dt), rule)
+                                   images(f), images(h), cov_entries(jnp.asarray(Qn, dt)),
+                                   cov_entries(jnp.asarray(Rn, dt)), rule)
     return masked_update_entries(m.xp, m.Pp, y, m.yh, m.S, m.C)
-
-
-def _const_entries(A: np.ndarray, dt):
-    """Nested lists of a numpy covariance's entries as arrays of ``dt`` (not Python floats: the
-    runs-last step's entries, so the two forms are the same arithmetic)."""
-    return [[jnp.asarray(A[i, j], dt) for j in range(A.shape[1])] for i in range(A.shape[0])]
 
 
 def _runs_last_form(model, Qn, Rn, build):

@@ -41,7 +41,7 @@ import numpy as np
 from ..runtime import hoist
 from ..runtime.hoist import Split, split
 from .base import StepOutput
-from .kalman import measure_entries, predict_entries, update_entries
+from .kalman import cov_entries, measure_entries, predict_entries, update_entries
 from ..lib.entrywise import dot, stack, wsum
 from ..lib.linalg import UNROLL_MAX, cholesky_succeeds, is_pd
 from .sigma import SigmaRule, step_moments_entries
@@ -220,8 +220,7 @@ def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int
         y = y.astype(dt)
         th = None if theta is not None else th.astype(dt)  # theta for the model only
         res_f, res_h = unpack(prepared)
-        Q = [[jnp.asarray(Qn[i, j], dt) for j in range(nx)] for i in range(nx)]
-        Rm = [[jnp.asarray(Rn[i, j], dt) for j in range(ny)] for i in range(ny)]
+        Q, Rm = cov_entries(jnp.asarray(Qn, dt)), cov_entries(jnp.asarray(Rn, dt))
         x = [X0[i] for i in range(nx)]
         P = [[P0[i, j] for j in range(nx)] for i in range(nx)]
 
@@ -325,8 +324,7 @@ def ekf_step(f, h, Qn: np.ndarray, Rn: np.ndarray, *, nu: int, n_params: int,
         y = y.astype(dt)
         th = None if theta is not None else th.astype(dt)
         res_f, res_h = unpack(prepared)
-        Q = [[jnp.asarray(Qn[i, j], dt) for j in range(nx)] for i in range(nx)]
-        Rm = [[jnp.asarray(Rn[i, j], dt) for j in range(ny)] for i in range(ny)]
+        Q, Rm = cov_entries(jnp.asarray(Qn, dt)), cov_entries(jnp.asarray(Rn, dt))
         P = [[P0[i, j] for j in range(nx)] for i in range(nx)]
 
         xp, F = _linearise(fm, [X0[i] for i in range(nx)], th, res_f, per_run_inputs, F_const)
