@@ -474,12 +474,14 @@ def main(argv=None) -> int:
     T = len(ys)
     # the C filters: the EKF (the floor), and for the 3-DOF model also the UKF, beside which
     # vehjax's UKF row is set
-    floors = {"EKF": vehjax.filters.ekf} if a.model == "single_track" else \
+    kinds = {"EKF": vehjax.filters.ekf} if a.model == "single_track" else \
         {"EKF": vehjax.filters.ekf, "UKF": vehjax.filters.ukf}
-    floors = {k: (c_floor(source, Qm, Rm, x0, P0m, f"{k.lower()}_loglik"), build)
-              for k, build in floors.items()}
-    floors = {k: fl for k, (fl, build) in floors.items() if fl is not None
-              and check_floor(k, fl, build(model, Qm, Rm), model, ys, us, x0, P0m) is None}
+    floors = {}
+    for k, build in kinds.items():
+        floor = c_floor(source, Qm, Rm, x0, P0m, f"{k.lower()}_loglik")
+        if floor is not None:  # None: no C compiler
+            check_floor(k, floor, build(model, Qm, Rm), model, ys, us, x0, P0m)
+            floors[k] = floor
     rows = (contenders(model, ys, us) if a.model == "single_track" else
             filter_rows(model, ys, us, Qm, Rm, x0, P0m))
     compile_s = {k: timed(fn, args) for k, (fn, args) in rows.items()}  # first call: compile

@@ -29,16 +29,16 @@ Before timing, the estimates are checked: Online equal to vehjax.filter (``--tol
 difference of the means over the first round), filterpy equal to them. Rounds are interleaved
 (``--rounds``: each contender once per round on its own slice of the data), so that a change in
 machine load hits all alike; the per-sample statistics pool every round, and "best round" is
-the lowest of the rounds' medians (steadier on a shared machine). Targets (issue 56): a median
+the lowest of the rounds' medians (steadier on a shared machine). Targets: a median
 under 30 us for the EKF and UKF, under 2 ms for the marginalized PF at N = 500, whose paper
 reports 1.4 ms a step (C, a 2014 laptop): the ratio is printed.
 
 JAX's CPU dispatch. ``--dispatch sync`` runs JAX's CPU computations in the calling thread
 (``jax_cpu_enable_async_dispatch`` False, set before JAX starts its backend), ``async`` hands
 them to a worker thread (JAX's default). XLA:CPU runs a computation of under 1000 flops (its
-cost analysis) in the calling thread either way; the EKF step is under that, the UKF's and the
-marginalized PF's are over it, so with async dispatch each of their samples pays a thread
-hand-over and wake-up (about 70 us on a 2-core VM). A live filter waits for every result and
+cost analysis, printed in the Online.update row's note) in the calling thread either way; the
+EKF step is under that, the UKF's and the marginalized PF's are over it, so with async dispatch
+each of their samples pays a thread hand-over and wake-up. A live filter waits for every result and
 gains nothing from the hand-over: the calling thread is its configuration (``vehjax.Online``'s
 docstring). The default ``both`` runs each in a fresh Python process (the setting acts only
 before JAX's backend starts), sync first, and ends with one line per row comparing them with
@@ -225,6 +225,18 @@ def batch_calls(est, ys, us, x0, P0, key):
     return filt, run
 
 
+def step_flops(est, live) -> float:
+    """The flops XLA's cost analysis counts in the sample step :class:`vehjax.Online` compiles
+    (:func:`vehjax.online.packed_step` on its state's layout): under 1000, XLA:CPU runs it in
+    the calling thread whatever the dispatch (module docstring)."""
+    buffers = vj.online.pack(live.state, live.layout)
+    yu = jnp.zeros((est.ny + est.nu,), buffers[0].dtype)
+    fn = jax.jit(lambda b, v: vj.online.packed_step(est, live.layout, b, v))
+    cost = fn.lower(buffers, yu).compile().cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    return float(cost.get("flops", math.nan))
+
+
 def check(name, got, want, tol):
     diff = float(np.max(np.abs(np.asarray(got) - np.asarray(want))))
     print(f"  check {name}: max |difference| of the means {diff:.1e}"
@@ -255,6 +267,7 @@ def time_row(row, args):
     t0 = time.perf_counter()
     live, online = online_loop(est, x0, P0, key, dt)
     build_s = time.perf_counter() - t0
+    flops = step_flops(est, live)
     (c_filter, filt), (c_run, run) = batch_calls(est, ys[:args.steps], us[:args.steps], x0, P0,
                                                  key)
     fp = None
@@ -267,7 +280,8 @@ def time_row(row, args):
     first = slice(w, w + args.steps)
     ref = np.asarray(vj.filter(est, ys[:w + args.steps], us[:w + args.steps], x0=x0, P0=P0, key=key,
                                return_covariances=False).states)
-    timings = [Timing("Online.update", f"built and compiled in {build_s:.1f} s"),
+    timings = [Timing("Online.update", f"built and compiled in {build_s:.1f} s; its step "
+                                       f"{flops:.0f} flops (XLA's cost analysis)"),
                Timing("vehjax.filter", f"per step of a {args.steps}-step jit; compile "
                                        f"{c_filter:.1f} s"),
                Timing("vehjax.run", f"per step of compile_run, one run; compile {c_run:.1f} s")]
