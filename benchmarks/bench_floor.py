@@ -37,7 +37,11 @@ column "x C same" sets each vehjax row beside the C filter of its own kind.
 
     python benchmarks/bench_floor.py                 # or: vehjax bench floor
     python benchmarks/bench_floor.py --duration 20 --repeat 2
+``--model user``: the filter and run rows on a model as a user writes it,
+:class:`vehjax.models.Model` of plain jnp functions (:func:`user_problem`), with no C floor.
+
     python benchmarks/bench_floor.py --model 3dof
+    python benchmarks/bench_floor.py --model user
 """
 
 from __future__ import annotations
@@ -417,8 +421,9 @@ def parser() -> argparse.ArgumentParser:
                    help="s of the drive at 100 Hz (default 200: 20,000 steps)")
     p.add_argument("--repeat", type=int, default=5, help="interleaved rounds (default 5)")
     p.add_argument("--model", choices=tuple(PROBLEMS), default="single_track",
-                   help="single_track (default; the filter, run and fit rows) or 3dof "
-                        "(Dynamic3DOF: the filter and run rows)")
+                   help="single_track (default; the filter, run and fit rows), 3dof "
+                        "(Dynamic3DOF: the filter and run rows, C EKF and UKF floors) or user "
+                        "(a Model of plain jnp functions: the filter and run rows, no floor)")
     return p
 
 
@@ -451,7 +456,52 @@ def three_dof_problem(duration: float, seed: int = 0, fine: int = 10):
     return ("Dynamic3DOF (nx = 3, ny = 3)", model, ys, us, Q3, R3, x0, P0, C_SOURCE_3DOF)
 
 
-PROBLEMS = {"single_track": single_track_problem, "3dof": three_dof_problem}
+def _user_derivative(x, u, th):
+    """A three-state car as a user writes it, plain jnp: (vx, vy, r)' under steer and a
+    longitudinal acceleration input, linear tyres through the arctangent slip angles."""
+    m, iz, lf, lr, cf, cr = th
+    vx, vy, r = x
+    delta, ax = u
+    fyf = cf * (delta - jnp.arctan((vy + lf * r) / vx))
+    fyr = -cr * jnp.arctan((vy - lr * r) / vx)
+    return jnp.stack([ax + vy * r - fyf * jnp.sin(delta) / m,
+                      -vx * r + (fyf * jnp.cos(delta) + fyr) / m,
+                      (lf * fyf * jnp.cos(delta) - lr * fyr) / iz])
+
+
+def user_problem(duration: float, seed: int = 0):
+    """The same rows on a user's :class:`vehjax.models.Model` of plain jnp functions (two Euler
+    sub-steps of 5 ms; outputs vx, r, ay), another car and excitation (a modulated steer, a slow
+    acceleration), a wider prior; no C floor (the rows' "x floor" columns are left empty)."""
+    th = np.array([1650.0, 2900.0, 1.2, 1.6, 9.0e4, 1.1e5])
+
+    def f(x, u, th):
+        for _ in range(2):
+            x = x + 0.005 * _user_derivative(x, u, th)
+        return x
+
+    def h(x, u, th):
+        return jnp.stack([x[0], x[2], _user_derivative(x, u, th)[1] + x[0] * x[2]])
+
+    model = vehjax.models.Model(transition=f, observe=h, dt=0.01, state_names=("vx", "vy", "r"),
+                                param_names=("m", "iz", "lf", "lr", "cf", "cr"),
+                                input_names=("delta", "ax"), output_names=("vx", "r", "ay"),
+                                theta=th)
+    t = np.arange(int(round(duration / model.dt))) * model.dt
+    us = np.stack([0.04 * np.sin(2 * np.pi * 0.3 * t) * np.sin(2 * np.pi * 0.05 * t),
+                   0.3 * np.cos(2 * np.pi * 0.02 * t)], axis=1)
+    xs = jax.lax.scan(lambda x, u: (f(x, u, th),) * 2, jnp.array([25.0, 0.0, 0.0]),
+                      jnp.asarray(us))[1]
+    std = np.array([0.05, 0.003, 0.2])
+    ys = np.asarray(jax.vmap(lambda x, u: h(x, u, th))(xs, jnp.asarray(us)))
+    ys = ys + np.random.default_rng(seed).normal(size=ys.shape) * std
+    return ("a user's Model, plain jnp (nx = 3, ny = 3)", model, ys, us,
+            np.diag([1e-4, 1e-4, 1e-6]), np.diag(std ** 2), np.array([25.0, 0.0, 0.0]),
+            4.0 * np.diag([1.0, 0.1, 0.01]), None)
+
+
+PROBLEMS = {"single_track": single_track_problem, "3dof": three_dof_problem,
+            "user": user_problem}
 
 
 def check_floor(name, floor, est, model, ys, us, x0, P0) -> None:
@@ -477,7 +527,7 @@ def main(argv=None) -> int:
     kinds = {"EKF": vehjax.filters.ekf} if a.model == "single_track" else \
         {"EKF": vehjax.filters.ekf, "UKF": vehjax.filters.ukf}
     floors = {}
-    for k, build in kinds.items():
+    for k, build in (kinds.items() if source is not None else ()):
         floor = c_floor(source, Qm, Rm, x0, P0m, f"{k.lower()}_loglik")
         if floor is not None:  # None: no C compiler
             check_floor(k, floor, build(model, Qm, Rm), model, ys, us, x0, P0m)

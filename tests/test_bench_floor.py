@@ -87,3 +87,11 @@ def test_c_ukf_of_the_3dof_model_equals_vehjax_ukf():
     assert abs(c - ukf) <= 1e-10 * abs(ukf)
     assert abs(c - ll(vehjax.filters.ekf, Q)) > 1e-8 * abs(ukf)
     assert abs(c - ll(vehjax.filters.ukf, 3 * Q)) > 1e-3 * abs(ukf)
+
+
+def test_bench_floor_runs_on_a_users_model_without_a_floor(capsys):
+    """``--model user`` (a Model of plain jnp functions): the filter and run rows, no C row."""
+    assert bench.main(["--model", "user", "--duration", "2", "--repeat", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "a user's Model" in out and "C floor" not in out
+    assert all(row in out for row in ("filter EKF", "filter UKF", "run EKF"))
