@@ -72,8 +72,8 @@ that, the UKF's and the particle filters' are over it, and a loop that waits for
 then pays a thread hand-over and wake-up on each sample. For a live loop, run JAX's CPU
 computations in the calling thread: ``jax.config.update("jax_cpu_enable_async_dispatch",
 False)`` before JAX's first computation (JAX reads it when its backend starts). ``vehjax bench
-online`` measures both, each in a fresh process; on a 2-core VM the hand-over costs the UKF
-several times its step (benchmarks/results/ has the figures).
+online`` measures both, each in a fresh process, and prints each step's flop count; the
+hand-over can cost several times the step itself.
 
 Limits: one stream per object (for many cars, :func:`vehjax.run` or ``jax.vmap`` of the step);
 the inputs between two stamped samples are not known and are taken to be the later sample's;

@@ -208,7 +208,7 @@ def sigma_step(f, h, Qn: np.ndarray, Rn: np.ndarray, rule: SigmaRule, *, nu: int
         StepOutput has mean (nx, R), cov (nx, nx, R), loglik, nis, n_obs (R,), params (0, R),
         params_cov (0, 0, R).
     """
-    nx, ny = Qn.shape[0], Rn.shape[0]
+    nx = Qn.shape[0]
     fm = _point_model(f, nx, nu, n_params, dtype, theta)
     hm = _point_model(h, nx, nu, n_params, dtype, theta)
 
@@ -308,7 +308,7 @@ def ekf_step(f, h, Qn: np.ndarray, Rn: np.ndarray, *, nu: int, n_params: int,
     covariance update) over a batch of runs, runs last. Arguments and result as
     :func:`sigma_step`. Entries of the measurement Jacobian that are constants of the model (an
     output that is a state) are folded into the algebra at trace time."""
-    nx, ny = Qn.shape[0], Rn.shape[0]
+    nx = Qn.shape[0]
     fm = _point_model(f, nx, nu, n_params, dtype, theta)
     hm = _point_model(h, nx, nu, n_params, dtype, theta)
     prepare, unpack = _prepare(fm, hm, nu, per_run_inputs, dtype)
