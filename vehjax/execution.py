@@ -106,6 +106,13 @@ class Strategy(NamedTuple):
             of a fit's program then compiles in half the time and runs about a third faster
             (the single-track model's two RK4 sub-steps; ``benchmarks/results``); the same
             arithmetic, rounded apart by a few ulps.
+        batched_hessian_steps: a fit of at least this many run-steps (R T) in forward mode
+            computes its Hessian's 2 n difference gradients in one program vmapped over the
+            points (a second compile; :mod:`vehjax.tune.program`); None: never, the n forward
+            differences as ``side_by_side`` evaluations instead. None on XLA:CPU, where the
+            fused filter step is bound by arithmetic: 12 points batched cost 10.6 evaluations of
+            one (the brush fit's program, 20,000 steps; ``benchmarks/results``); 50,000 on a
+            GPU/TPU, where a point's scan leaves the device mostly idle (not measured there).
     """
 
     platform: str
@@ -119,6 +126,7 @@ class Strategy(NamedTuple):
     prefetch_inputs: bool = True
     side_by_side: int = 1
     rolled_substeps: bool = False
+    batched_hessian_steps: int | None = 50000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -198,7 +206,8 @@ def for_platform(platform: str, device_memory: int | None = None) -> Strategy:
     if name == "cpu":
         return Strategy("cpu", _CPU_CHUNK_BYTES, _CPU_CHUNK_WORK, _CPU_BLOCK_NUMBERS,
                         runs_last=True, elemental_emitter=True, substitute_elementary=True,
-                        side_by_side=os.cpu_count() or 1, rolled_substeps=True)
+                        side_by_side=os.cpu_count() or 1, rolled_substeps=True,
+                        batched_hessian_steps=None)
     if name in ("gpu", "cuda", "rocm", "tpu"):
         budget = (_DEVICE_CHUNK_FALLBACK if device_memory is None
                   else int(_DEVICE_CHUNK_FRACTION * device_memory))
@@ -344,6 +353,7 @@ def _check(s: Strategy) -> None:
     positive("chunk_bytes", s.chunk_bytes, False)
     positive("chunk_work", s.chunk_work, True)
     positive("block_numbers", s.block_numbers, True)
+    positive("batched_hessian_steps", s.batched_hessian_steps, True)
     if isinstance(s.side_by_side, bool) or not isinstance(s.side_by_side, int) or \
             s.side_by_side < 1:
         raise ValueError(f"strategy: side_by_side must be an int >= 1, got {s.side_by_side!r}")

@@ -329,16 +329,30 @@ def test_hessian_from_gradients_batched_equals_one_by_one_and_the_analytic_hessi
     assert handed == [3]
 
 
-def test_fit_with_the_batched_hessian_matches_the_inverse_information(monkeypatch):
+def test_the_batched_hessian_is_a_platform_rule():
+    """Never on the CPU (batched points cost about one evaluation each there); from the GPU
+    strategy's run-steps on."""
+    cpu, gpu = vj.execution.for_platform("cpu"), vj.execution.for_platform("gpu")
+    assert cpu.batched_hessian_steps is None and gpu.batched_hessian_steps == 50000
+    with vj.execution.using(cpu):
+        assert not vt.program.batched_hessian(10 ** 9)
+    with vj.execution.using(gpu):
+        assert vt.program.batched_hessian(50000) and not vt.program.batched_hessian(49999)
+    with pytest.raises(ValueError, match="batched_hessian_steps"):
+        vj.execution.check_strategy(cpu._replace(batched_hessian_steps=0))
+
+
+def test_fit_with_the_batched_hessian_matches_the_inverse_information():
     """A fit long enough for the batched Hessian (threshold lowered to take this short run):
     its standard errors within 2 % of the numpy inverse observed information at scipy's
     optimum, the optimum within 1e-3, and the Hessian went through the batched program."""
-    monkeypatch.setattr(vt.program, "BATCH_HESSIAN_STEPS", 1)
     ys, us = simulate(7, q=Q_TRUE, T=150)
     fn = lambda p: loglik(p[0], p[1], p[2], ys, us)  # noqa: E731
     p_ml, cov = reference(fn, np.array([0.5, 1.0, 1.0]))
-    res = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, x0=X0, P0=P0, params=("a",),
-                 options=vt.Options(progress=False))
+    strategy = vj.execution.current()._replace(batched_hessian_steps=1)  # a GPU's rule, lowered
+    with vj.execution.using(strategy):
+        res = vt.fit(vj.filters.ekf, scalar_model(), [1.0], [1.0], ys, us, x0=X0, P0=P0,
+                     params=("a",), options=vt.Options(progress=False))
     assert res.converged and res.hessian_batches >= 1 and res.hessian_compile_seconds > 0
     got = np.array([res.values["a"], res.values["Q[x,x]"], res.values["R[y,y]"]])
     np.testing.assert_allclose(got, p_ml, rtol=1e-3)

@@ -29,10 +29,15 @@ is rough: the gain and the one-step value are then indications of direction and 
 rejection itself stays valid.
 
 Cost (:func:`score_tests`): the fit's objective with the held parameters added to ``params``
-(:func:`vehjax.tune.likelihood.prepare_fit`) compiled once more, then its gradient at the optimum
-and at the n + k points of the Hessian's forward differences
-(:func:`vehjax.tune.information.difference_hessian`, side by side on the host's cores; one
-batched call on a long fit), n fitted coordinates and k held parameters.
+(:func:`vehjax.tune.likelihood.prepare_fit`) needs its own program. In forward mode the fit runs
+on it (:func:`compile_shared`: the tangents along the fit's n coordinates, the held ones read
+relative to their held values, so that the fit's arithmetic is that of its own program, bit for
+bit; no second compile, and an evaluation costs what the fit's own does), and the tests take
+its gradient n directions at a time, ceil((n + k) / n) evaluations a point; else it is compiled
+once more. Then its gradient at the optimum and at the points of the Hessian's forward
+differences: k along the held coordinates beside the fit's own Hessian (:func:`_held_columns`),
+or n + k (:func:`vehjax.tune.information.difference_hessian`), side by side on the host's cores;
+n fitted coordinates and k held parameters.
 
 A held parameter whose value the transform cannot take (on or outside its declared domain) or
 whose block has no positive-definite information (neither form) gets NaN, not an error.
@@ -48,6 +53,7 @@ import warnings
 from typing import NamedTuple
 
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 
@@ -62,7 +68,9 @@ from .options import Fitted
 from .parameterisation import param_transform
 from .quantities import coordinates
 
-__all__ = ["ScoreTest", "Checks", "Start", "Ahead", "compile_augmented", "compile_innovations",
+__all__ = ["ScoreTest", "Checks", "Start", "Ahead", "compile_augmented", "compile_shared",
+           "shared_extra",
+           "compile_innovations",
            "compile_ahead", "testable", "lm_statistic", "score_p_value", "score_tests", "augmented_information",
            "physical_block", "fit_innovations",
            "fit_diagnostics", "rejected", "score_text", "diagnostics_text", "REJECT_P",
@@ -140,11 +148,12 @@ def _testable(model, held) -> tuple[list, list]:
     return ok, bad
 
 
-def _augmented(fit, setup, data, bounds, extra):
+def _augmented(fit, setup, data, bounds, extra, anchored: bool = False):
     """The fit's objective at ``fit``'s values (its ``model``, ``Q``, ``R``, ``input_noise``,
     ``x0``: the optimum's, or the start's for :func:`compile_augmented`) with ``extra``
     parameters fitted too: (obj, setup); penalised by the fit's priors, if any (the optimum's
-    free gradient is that objective's)."""
+    free gradient is that objective's); ``anchored``: ``extra`` read relative to an anchor
+    (:func:`vehjax.tune.likelihood.anchored_physical`, :func:`compile_shared`)."""
     ys, us, _, P0, _ = data
     kw = dict(setup.builder_options)
     if fit.input_noise is not None:
@@ -153,7 +162,8 @@ def _augmented(fit, setup, data, bounds, extra):
                        np.asarray(ys), None if us is None else np.asarray(us),
                        np.asarray(fit.x0), np.asarray(P0),
                        Fitted(tuple(setup.params) + tuple(extra), setup.noise, setup.fit_x0,
-                              bounds, setup.priors), None)
+                              bounds, setup.priors), None,
+                       anchored=tuple(extra) if anchored else ())
 
 
 class Start(NamedTuple):
@@ -198,6 +208,39 @@ def compile_augmented(start: Start, setup, data, bounds=None, only=None):
     return program.compile_program(obj, aug)
 
 
+def shared_extra(model, setup, only=None) -> tuple:
+    """The held parameters of the program :func:`compile_shared` would compile for the fit of
+    ``setup`` (its ``z0``) on ``model``: the testable ones (among ``only``, unless None); ()
+    where there is none or the fit's derivatives are not forward mode (a particle filter,
+    more than :data:`vehjax.tune.program.FORWARD_MAX` coordinates)."""
+    n = jax.flatten_util.ravel_pytree(setup.z0)[0].shape[0]
+    if setup.stochastic or n > program.FORWARD_MAX:
+        return ()
+    return tuple(testable(model, setup.params, only))
+
+
+def compile_shared(start: Start, setup, data, bounds=None, only=None):
+    """The program of the augmented objective (:func:`compile_augmented`) that serves the fit
+    too (:func:`vehjax.tune.program.compile_directed`): forward mode along the fit's n
+    coordinates at a time, the held parameters read relative to their values at the start
+    (their anchor), so that the fit runs on it with its own program's arithmetic and its score
+    tests need no second compile; None where :func:`shared_extra` is empty. ``setup`` the
+    fit's."""
+    extra = shared_extra(start.model, setup, only)
+    if not extra:
+        return None
+    obj, aug = _augmented(start, setup, data, bounds, extra, anchored=True)
+    fit_names = list(coordinates(setup, start.model, setup.z0)[0])
+    names = list(coordinates(aug, start.model, obj.z0)[0])
+    held_pos = np.array([names.index(p) for p in extra], dtype=int)
+    theta = np.asarray(start.model.theta, dtype=float)
+    layout = program.Layout(
+        tuple(extra), tuple(fit_names), np.array([names.index(q) for q in fit_names], dtype=int),
+        held_pos, np.asarray(jax.flatten_util.ravel_pytree(obj.z0)[0], dtype=float)[held_pos],
+        np.array([theta[list(start.model.param_names).index(p)] for p in extra]), len(names))
+    return program.compile_directed(obj, aug, layout)
+
+
 def compile_innovations(setup, data):
     """The innovation checks' program (:func:`vehjax.tune.innovations.fitted_innovations`)
     compiled at the fit's start ``setup.z0``: its fitted values are the argument, so it
@@ -215,13 +258,17 @@ class Ahead(NamedTuple):
     innovations: object = None
 
 
-def compile_ahead(start: Start, setup, data, bounds=None, checks: Checks = Checks()) -> Ahead:
+def compile_ahead(start: Start, setup, data, bounds=None, checks: Checks = Checks(),
+                  augmented: bool = True) -> Ahead:
     """The programs :func:`fit_diagnostics` runs at the optimum, compiled from the fit's start
     side by side: the score tests' (:func:`compile_augmented`, for the held parameters among
-    ``checks.held``) here and, with ``checks.innovations``, the innovation checks'
+    ``checks.held``; not with ``augmented`` False, where the fit's own program serves them,
+    :func:`compile_shared`) here and, with ``checks.innovations``, the innovation checks'
     (:func:`compile_innovations`) in another host thread. :func:`vehjax.tune.fit_from_theta`
     runs this in a second host thread while it fits: the two compiles, which end the fit
     when they finish after it, then use the cores its evaluations leave."""
+    if not augmented:
+        return Ahead(None, compile_innovations(setup, data) if checks.innovations else None)
     inn = execution.in_thread(compile_innovations, setup, data) if checks.innovations else None
     aug = compile_augmented(start, setup, data, bounds, checks.held)
     return Ahead(aug, None if inn is None else inn.result())
@@ -249,7 +296,8 @@ def _held_columns(loss, x, scales, held, free_hessian, names):
 def augmented_information(res, setup, data, bounds, extra, compiled=None, free_hessian=None):
     """The score and curvature at the fit's optimum ``res`` of its objective with the
     parameters ``extra`` fitted too (:func:`vehjax.tune.likelihood.prepare_fit` at the fitted
-    values, compiled once or ``compiled`` by :func:`compile_augmented`; the Hessian by
+    values, compiled once or ``compiled`` by :func:`compile_augmented` or
+    :func:`compile_shared`; the Hessian by
     :func:`vehjax.tune.information.difference_hessian`, or, given the fit's own Hessian
     ``free_hessian`` = (its coordinate names, the Hessian of the mean loss over them), that
     and differences along the held coordinates only, :func:`_held_columns`).
@@ -262,8 +310,11 @@ def augmented_information(res, setup, data, bounds, extra, compiled=None, free_h
     """
     obj, aug = _augmented(res, setup, data, bounds, extra)
     names, scales = coordinates(aug, res.model, obj.z0)
-    loss = program.compiled_loss(obj, aug, batch_hessian=obj.n_steps >=
-                                 program.BATCH_HESSIAN_STEPS, compiled=compiled)
+    if compiled is not None and compiled.layout is not None and (
+            compiled.layout.extra != tuple(extra) or compiled.layout.size != len(names)):
+        compiled = None  # a program over other held parameters: this objective's own
+    loss = program.compiled_loss(obj, aug, batch_hessian=program.batched_hessian(obj.n_steps),
+                                 compiled=compiled)
     if loss.vgo is not None:
         _, _, g, opg = loss.vgo(loss.x0)
         opg = obj.n_steps * opg

@@ -170,25 +170,48 @@ def _standard_errors(obj, setup, quantities, loss, x, scoring, hessian, gtol, sc
     return x, aux, float(np.max(np.abs(g))), polished, unc, on, Hm
 
 
-def _diagnostics_ahead(setup, data, model, Q0, R0, x0, bounds, standard_errors, checks):
-    """The diagnostics' programs (:func:`vehjax.tune.diagnostics.compile_ahead`) compiled from
-    the start in a second host thread while the fit runs: a future, or None (no standard
-    errors, a particle filter, or a platform that does one thing at a time)."""
-    if not standard_errors or setup.stochastic or execution.current().side_by_side < 2:
+def _diagnostics_ahead(setup, data, start, bounds, standard_errors, checks, augmented):
+    """The diagnostics' programs (:func:`vehjax.tune.diagnostics.compile_ahead`; the score
+    tests' only where ``augmented``) compiled from the start in a second host thread while
+    the fit runs: a future, or None (no standard errors, a particle filter, nothing to
+    compile, or a platform that does one thing at a time)."""
+    if not standard_errors or setup.stochastic or execution.current().side_by_side < 2 or (
+            not augmented and not checks.innovations):
         return None
-    start = diagnostics.Start(model, Q0, R0, setup.builder_options.get("input_noise"), x0)
-    return execution.in_thread(diagnostics.compile_ahead, start, setup, data, bounds, checks)
+    return execution.in_thread(diagnostics.compile_ahead, start, setup, data, bounds, checks,
+                               augmented)
 
 
-def _compiled_ahead(future) -> diagnostics.Ahead:
+def _compiled_ahead(future, shared) -> diagnostics.Ahead:
     """The programs a future compiled, or none (no future, or a compile failed: the
-    diagnostics then compile their own and raise what is wrong)."""
-    if future is None:
-        return diagnostics.Ahead()
-    try:
-        return future.result()
-    except Exception:  # noqa: BLE001 - the diagnostics' own compile reports it
-        return diagnostics.Ahead()
+    diagnostics then compile their own and raise what is wrong); ``shared`` the fit's own
+    program where it serves the score tests (:func:`vehjax.tune.diagnostics.compile_shared`),
+    else None."""
+    ahead = diagnostics.Ahead()
+    if future is not None:
+        try:
+            ahead = future.result()
+        except Exception:  # noqa: BLE001 - the diagnostics' own compile reports it
+            pass
+    return ahead if shared is None else ahead._replace(augmented=shared)
+
+
+def _program_plan(compiled, setup, obj, start, checks, tests: bool):
+    """(``compiled`` where given and it serves this fit, else None; whether the fit's program
+    serves its score tests too): a given program with a layout serves the fit when
+    :func:`vehjax.tune.program.serves` says so (one without is taken as given), and the tests
+    when its held parameters are theirs; without a program, a fit with score tests in forward
+    mode runs on theirs (:func:`vehjax.tune.diagnostics.compile_shared`)."""
+    names = coordinates(setup, start.model, obj.z0)[0]
+    if compiled is not None and compiled.layout is not None and not program.serves(
+            compiled.layout, names, start.model):
+        compiled = None
+    extra = diagnostics.shared_extra(start.model, setup, checks.held) if tests else ()
+    if not extra:
+        return compiled, False
+    if compiled is None:
+        return None, True
+    return compiled, compiled.layout is not None and compiled.layout.extra == extra
 
 
 def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
@@ -223,7 +246,8 @@ def fit_from_theta(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0,
             "Optimisers"), the standard errors (True, False or
             :class:`vehjax.tune.StandardErrors`: the observed information, and for
             deterministic filters the score tests of held parameters and the innovation checks,
-            :mod:`vehjax.tune.diagnostics`, at the cost of two more compiles), the progress bar
+            :mod:`vehjax.tune.diagnostics`, at the cost of one more compile, the filter with
+            covariances; the fit itself runs on the score tests' program), the progress bar
             and a particle filter's PRNG key (required for particle filters; run r uses
             ``jax.random.split(key, R)[r]`` at every iteration). None: ``Options()``.
         floors: ``{parameter name: least value the data allow}`` (``model.data_floors``), or
@@ -291,8 +315,14 @@ def fit_start(builder, model, Q0, R0, measurements, inputs, args: dict, options:
     check_optimizer(user_opt, setup.stochastic)  # before compiling
     hessian = None if std_errors is None else std_errors.hessian
     differences = not setup.stochastic and hessian in (None, "differences")
-    ahead = _diagnostics_ahead(setup, obj.data, model, Q0, R0, x0, what.bounds,
-                               std_errors is not None, checks)
+    start = diagnostics.Start(model, Q0, R0, setup.builder_options.get("input_noise"), x0)
+    tests = std_errors is not None and not setup.stochastic
+    compiled, sharing = _program_plan(compiled, setup, obj, start, checks, tests)
+    ahead = _diagnostics_ahead(setup, obj.data, start, what.bounds, std_errors is not None,
+                               checks, augmented=not sharing)
+    if sharing and compiled is None:
+        compiled = diagnostics.compile_shared(start, setup, obj.data, what.bounds, checks.held)
+    shared = compiled if sharing else None
     names, scales = coordinates(setup, model, obj.z0)
     flat0, unravel0 = jax.flatten_util.ravel_pytree(obj.z0)
     if setup.log_prior is not None:  # a narrow prior: the coordinate's size is its width
@@ -300,8 +330,8 @@ def fit_start(builder, model, Q0, R0, measurements, inputs, args: dict, options:
             setup.log_prior, unravel0, flat0, 1)[2])))
     setup = setup._replace(bounds=boundaries.quantity_bounds(setup, model))
     box = boundaries.coordinate_box(names, flat0, setup.bounds)
-    loss = program.compiled_loss(obj, setup, batch_hessian=differences and obj.n_steps >=
-                                 program.BATCH_HESSIAN_STEPS and (
+    loss = program.compiled_loss(obj, setup, batch_hessian=differences and
+                                 program.batched_hessian(obj.n_steps) and (
                                      std_errors is not None or user_opt is None
                                      or isinstance(user_opt, Scoring)), box=box,
                                  compiled=compiled)
@@ -320,7 +350,7 @@ def fit_start(builder, model, Q0, R0, measurements, inputs, args: dict, options:
                       grad_max, t_start, on, floors)
     if std_errors is not None and not setup.stochastic:  # the nested fit of fit() pays nothing
         res = res._replace(**diagnostics.fit_diagnostics(
-            res, setup, obj.data, z, what.bounds, tuple(on), _compiled_ahead(ahead), checks,
+            res, setup, obj.data, z, what.bounds, tuple(on), _compiled_ahead(ahead, shared), checks,
             (tuple(names), np.asarray(Hm, dtype=float))))
     st = loss.stats
     return res._replace(seconds=time.perf_counter() - t_start, evaluations=st["evaluations"],
@@ -331,14 +361,21 @@ def fit_start(builder, model, Q0, R0, measurements, inputs, args: dict, options:
 
 
 def compile_objective(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
-                      key=None) -> program.Program:
+                      key=None, checks: diagnostics.Checks | None = None) -> program.Program:
     """The program :func:`fit_from_theta` compiles for these arguments (those of
     :func:`vehjax.tune.objective`), to hand to fits of the same objective from other starts
     (:func:`fit_start`'s ``compiled``): the fitted values are the program's argument,
     everything else (the data, the model's other parameters, the noise not fitted) its
-    constants."""
-    obj, setup = prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0,
-                             fitted(params), key)
+    constants. ``checks``: the fit has standard errors with these diagnostics, so its program
+    is its score tests' where it can be (:func:`vehjax.tune.diagnostics.compile_shared`);
+    None: without."""
+    what = fitted(params)
+    obj, setup = prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0, what, key)
+    if checks is not None:
+        start = diagnostics.Start(model, Q0, R0, setup.builder_options.get("input_noise"), x0)
+        shared = diagnostics.compile_shared(start, setup, obj.data, what.bounds, checks.held)
+        if shared is not None:
+            return shared
     return program.compile_program(obj, setup)
 
 

@@ -76,6 +76,8 @@ class FitSetup(NamedTuple):
         log_prior: ``log_prior(z)`` or None; log_prior0: its value at z0 (0.0 without).
         bounds: the fitted quantities' bounds (:func:`vehjax.tune.boundaries.quantity_bounds`),
             set by the driver; None before.
+        anchored: positions in ``z["theta"]`` of the parameters that coordinates ``z`` with
+            an ``"anchor"`` entry read relative to it (:func:`anchored_physical`); () none.
     """
 
     builder_options: dict
@@ -104,6 +106,7 @@ class FitSetup(NamedTuple):
     log_prior: Callable | None = None
     log_prior0: float = 0.0
     bounds: dict | None = None
+    anchored: tuple = ()
 
 
 def float_array(name: str, value, allow_nan: bool = False) -> np.ndarray:
@@ -217,8 +220,23 @@ def draws_random_numbers(builder, model, Q0, R0, what: Fitted) -> bool:
     return bool(_built(builder, model, setup).needs_key)
 
 
+def anchored_physical(theta_map, zt, anchor, pos, held):
+    """The physical parameters at the unconstrained ``zt`` (p,), the entries at ``pos`` (k,)
+    read relative to their ``anchor`` coordinates (k,): ``held + g(zt) - g(anchor)`` there,
+    g = ``theta_map.to_physical``. At ``zt[pos] == anchor`` those entries are ``held``
+    (k,) exactly, where ``g(anchor)`` would round ``held`` through g and its inverse; their
+    derivatives are g's. What lets a fit with parameters held run on the program of its
+    score tests (:mod:`vehjax.tune.diagnostics`), which has their coordinates too, with the
+    arithmetic of the fit's own program."""
+    phys = theta_map.to_physical(zt)
+    at_anchor = theta_map.to_physical(zt.at[pos].set(anchor))
+    return phys.at[pos].set(held + (phys[pos] - at_anchor[pos]))
+
+
 def _coordinates(setup: FitSetup):
-    """(z0, unpack): the starting coordinates (a dict) and the map to the physical values."""
+    """(z0, unpack): the starting coordinates (a dict) and the map to the physical values; z
+    with an ``"anchor"`` entry reads ``setup.anchored`` relative to it
+    (:func:`anchored_physical`)."""
     noise, inp, idx, theta_map = setup.noise, setup.input, setup.idx, setup.theta_map
     Qa, Ra, theta0, x0a = setup.Qa, setup.Ra, setup.theta0, setup.x0
     covQ = Cov(Qa, setup.diagQ) if "Q" in noise else None
@@ -239,7 +257,11 @@ def _coordinates(setup: FitSetup):
         Q = covQ(z["Q"]) if "Q" in z else jnp.asarray(Qa)
         R = covR(z["R"]) if "R" in z else jnp.asarray(Ra)
         theta = jnp.asarray(theta0)
-        if "theta" in z:
+        if "theta" in z and "anchor" in z:
+            pos = np.asarray(setup.anchored, dtype=int)
+            theta = theta.at[idx].set(anchored_physical(
+                theta_map, z["theta"], z["anchor"], pos, jnp.asarray(theta0[idx][pos])))
+        elif "theta" in z:
             theta = theta.at[idx].set(theta_map.to_physical(z["theta"]))
         return {"Q": Q, "R": R, "theta": theta, "x0": z["x0"] if "x0" in z else jnp.asarray(x0a),
                 "input": inp(z["input"]) if "input" in z else None}
@@ -298,11 +320,14 @@ def _log_prior(setup: FitSetup, unpack):
     return lambda z: fn(unpack(z)["theta"])
 
 
-def prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0, what: Fitted, key):
+def prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0, what: Fitted, key,
+                anchored: tuple = ()):
     """Everything checked before tracing (ValueError naming the argument): the
     :class:`Objective` and the fit's :class:`FitSetup` (the builder, the starting values, the
     parameterisations, ``per_step``, ``at``, ``log_prior``, ...) for the optimisers and the
-    report; ``what`` a :class:`vehjax.tune.Fitted`. With priors (:mod:`vehjax.tune.priors`) the
+    report; ``what`` a :class:`vehjax.tune.Fitted`; ``anchored``: names among its parameters
+    that coordinates with an ``"anchor"`` entry read relative to it
+    (:attr:`FitSetup.anchored`). With priors (:mod:`vehjax.tune.priors`) the
     loss is the penalised one, ``-(sum loglik + log prior) / (R T)``; its aux stays the plain
     log-likelihood per run."""
     builder, options = _check_builder(builder)
@@ -311,7 +336,8 @@ def prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0, what: Fitt
     ys, us, x0a, P0a = check_data(model, measurements, inputs, x0, P0)
     n_runs, T, _ = ys.shape
     est0, sg, keys = _start_estimator(builder, model, setup, key, n_runs)
-    setup = setup._replace(builder=builder, x0=x0a, P0=P0a)
+    setup = setup._replace(builder=builder, x0=x0a, P0=P0a,
+                           anchored=tuple(setup.params.index(p) for p in anchored))
     z0, unpack = _coordinates(setup)
     at = _estimator_at(builder, model, setup, unpack, sg)
     per_step = _per_step(at)

@@ -222,7 +222,9 @@ class StandardErrors:
     """The standard errors of a fit (the observed information, the Hessian of the
     log-likelihood): standard errors, correlations, undetermined directions, and for
     deterministic filters the score tests of held parameters and the innovation checks
-    (:mod:`vehjax.tune.diagnostics`), at the cost of two more compiles.
+    (:mod:`vehjax.tune.diagnostics`), at the cost of one more compile (the filter with
+    covariances; in forward mode the fit runs on the score tests' program,
+    :func:`vehjax.tune.diagnostics.compile_shared`, else that is a second).
 
     Attributes:
         hessian: "differences" (default for deterministic filters: forward differences of

@@ -23,21 +23,22 @@ import numpy as np
 from .. import execution
 from . import priors as tune_priors
 
-__all__ = ["CompiledLoss", "Program", "forward_scores", "score_outer_product",
+__all__ = ["CompiledLoss", "Program", "Layout", "serves", "compile_directed", "forward_scores", "score_outer_product",
            "compile_program", "compiled_loss", "prior_terms", "FORWARD_MAX",
-           "BATCH_HESSIAN_STEPS"]
+           "batched_hessian"]
 
 #: forward-mode derivatives (:func:`forward_scores`) for at most this many coordinates; reverse
 #: mode beyond (its cost does not grow with the number of coordinates)
 FORWARD_MAX = 12
 
-#: fits of at least this many run-steps (R T) with forward-mode derivatives and a Hessian by
-#: differences compute the Hessian's 2 n gradients in one program vmapped over the 2 n points
-#: (a second compile, once per fit): the filter's scan on XLA:CPU is bound by the cost of
-#: launching many tiny operations per step, so 2 n points side by side cost about 2
-#: evaluations of one point rather than 2 n; the second compile pays only on long fits
-#: (measurements: ``benchmarks/results/notes_tune.md``).
-BATCH_HESSIAN_STEPS = 50000
+
+def batched_hessian(n_steps: int) -> bool:
+    """Whether a forward-mode fit of ``n_steps`` run-steps (R T) with a Hessian by differences
+    computes the Hessian's 2 n gradients in one program vmapped over the points
+    (:func:`compiled_loss`'s ``batch_hessian``): the platform's rule, ``batched_hessian_steps``
+    of :mod:`vehjax.execution` (never on the CPU)."""
+    at = execution.current().batched_hessian_steps
+    return at is not None and n_steps >= at
 
 
 class CompiledLoss(NamedTuple):
@@ -47,7 +48,7 @@ class CompiledLoss(NamedTuple):
     scores (:func:`score_outer_product`) from the same evaluation. ``grads(F) -> (k, n)``: the
     gradients at the k = 2 n points F (k, n) of the Hessian's central differences
     (:func:`vehjax.tune.hessian_from_gradients`) in one vmapped forward-mode program, or None
-    (:data:`BATCH_HESSIAN_STEPS`). ``many(points) -> [vg(p) for p in points]``, the points
+    (:func:`batched_hessian`). ``many(points) -> [vg(p) for p in points]``, the points
     evaluated side by side on :mod:`vehjax.execution`'s ``side_by_side`` host threads (one
     evaluation of a filter's scan keeps about one CPU core busy). ``stats``: ``mode``
     ("forward" or "reverse"), ``compile_seconds``, ``evaluations`` (of vg/vgo; a repeated
@@ -63,30 +64,32 @@ class CompiledLoss(NamedTuple):
     many: Callable | None = None
 
 
-def forward_scores(per_step, f, data):
+def forward_scores(per_step, f, data, directions=None):
     """Per-step log-likelihoods and their derivatives by forward mode.
 
-    ``n`` Jacobian-vector products of ``per_step`` along the coordinate axes, vmapped: one
-    pass through the filter carrying n tangents beside the state, nothing stored for a
-    backward pass. For a few coordinates and long runs this is several times cheaper than
-    reverse mode through the scan (``benchmarks/results/notes_tune.md``), and it gives every
-    step's score, not only their sum.
+    ``m`` Jacobian-vector products of ``per_step`` along ``directions`` (m, n) (None: the n
+    coordinate axes), vmapped: one pass through the filter carrying m tangents beside the
+    state, nothing stored for a backward pass. For a few coordinates and long runs this is
+    several times cheaper than reverse mode through the scan
+    (``benchmarks/results/notes_tune.md``), and it gives every step's score, not only their
+    sum.
 
     Args:
         per_step: ``per_step(f, data) -> (loglik (R, T), aux)``, f (n,) flat coordinates.
         f: (n,) point; data: the objective's data, ``(ys, us, x0, P0, keys)``.
+        directions: (m, n) tangent directions, or None (the identity).
 
     Returns:
-        (loglik (R, T), d loglik / df (n, R, T), aux).
+        (loglik (R, T), d loglik / df along each direction (m, R, T), aux).
     """
-    n = f.shape[0]
-    basis = jnp.eye(n, dtype=f.dtype)
+    basis = jnp.eye(f.shape[0], dtype=f.dtype) if directions is None else directions
+    m = basis.shape[0]
     x0, P0 = data[2], data[3]
     # the prior's tangents explicit zeros, one per direction: the filter's carried state then
     # has non-zero, batched tangents from its first step, and JAX traces the scan's body once
     # for the tangents and once for the directions instead of iterating to a fixed point
     # (the brush fit's program: one jvp and one batching pass fewer; the values are the same)
-    zx, zP = jnp.zeros((n,) + x0.shape, x0.dtype), jnp.zeros((n,) + P0.shape, P0.dtype)
+    zx, zP = jnp.zeros((m,) + x0.shape, x0.dtype), jnp.zeros((m,) + P0.shape, P0.dtype)
 
     def jvp(v, dx, dP):
         return jax.jvp(lambda g, a, b: per_step(g, (*data[:2], a, b, *data[4:])),
@@ -144,16 +147,79 @@ def _program(obj, setup, unravel, n: int, forward: bool):
     return program
 
 
+class Layout(NamedTuple):
+    """How a fit's coordinates sit among those of a program over more
+    (:func:`compile_directed`): its score tests' objective, the fit's coordinates and the
+    held parameters ``extra`` (N in all).
+
+    Attributes:
+        extra: the held parameters' names, in the program's order.
+        fit_names: the fit's coordinates' names (n,), in its flat order.
+        fit_pos: their positions among the program's N coordinates (n,).
+        held_pos: the held parameters' positions among them (k,).
+        anchor: the held parameters' coordinates at their held values (k,): the program
+            reads them relative to these (:func:`vehjax.tune.likelihood.anchored_physical`).
+        held: their held values (k,), physical units: the program's constants.
+        size: N.
+    """
+
+    extra: tuple
+    fit_names: tuple
+    fit_pos: np.ndarray
+    held_pos: np.ndarray
+    anchor: np.ndarray
+    held: np.ndarray
+    size: int
+
+
+def serves(layout: Layout | None, fit_names, model) -> bool:
+    """Whether a program with ``layout`` serves a fit of coordinates ``fit_names`` of
+    ``model`` (its held parameters at the program's values)."""
+    if layout is None:
+        return False
+    theta = np.asarray(model.theta, dtype=float)
+    held = [theta[list(model.param_names).index(p)] for p in layout.extra]
+    return tuple(fit_names) == layout.fit_names and np.array_equal(held, layout.held)
+
+
+def _directed(obj, setup, unravel):
+    """The function :func:`compile_directed` compiles: ``(f (N,), V (m, N), anchor (k,),
+    data) -> (loss, aux, V grad, V B V^T, scores (m, R T))`` of the objective ``obj`` (its
+    set-up ``setup`` with ``anchored`` parameters, :func:`vehjax.tune.likelihood.prepare_fit`),
+    the loss, gradient and BHHH matrix penalised by its priors as in :func:`_program`."""
+    per_step, log_prior = setup.per_step, setup.log_prior
+
+    def program(f, V, anchor, data):
+        at = lambda g: {**unravel(g), "anchor": anchor}  # noqa: E731
+        ll, dll, lls_div = forward_scores(lambda g, d: per_step(at(g), d), f, data, V)
+        pv, pg, pH = prior_terms(None if log_prior is None else log_prior, at, f, obj.n_steps)
+        scores = dll.reshape(V.shape[0], -1)
+        loss = -jnp.sum(ll) / obj.n_steps + pv
+        grad = -jnp.sum(scores, axis=1) / obj.n_steps + V @ pg
+        return (loss, (jnp.sum(ll, axis=-1), lls_div), grad,
+                score_outer_product(dll, obj.n_steps) + V @ pH @ V.T, scores)
+
+    return program
+
+
 class Program(NamedTuple):
     """A fit's program compiled (:func:`compile_program`): ``compiled(f, data) -> (loss, aux,
     grad, BHHH matrix or None)`` on the flat coordinates f. The fitted values are its argument,
     so one program serves every start of the same objective (:func:`vehjax.tune.fit` compiles
-    the next stage's program while the nested model is fitted); ``stats`` the compile's."""
+    the next stage's program while the nested model is fitted); ``stats`` the compile's.
+
+    With a ``layout`` (:func:`compile_directed`) the program is that of the fit's score tests,
+    over the fit's coordinates and the held parameters', ``compiled(f (N,), V (n, N), anchor
+    (k,), data) -> (loss, aux, V grad (n,), V BHHH V^T (n, n), the per-step scores along V
+    (n, R T))``: it serves the fit (V its coordinates' rows, the held ones at their anchor),
+    and the score tests' full gradient a block of n directions at a time
+    (:func:`compiled_loss`)."""
 
     compiled: Callable
     forward: bool
     options: dict | None
     stats: dict
+    layout: Layout | None = None
 
 
 def compile_program(obj, setup=None) -> Program:
@@ -174,12 +240,83 @@ def compile_program(obj, setup=None) -> Program:
         "compile_cpu_seconds": time.process_time() - c0})
 
 
+def compile_directed(obj, setup, layout: Layout) -> Program:
+    """Compile the program of ``obj`` (the fit's score tests' objective: the fit's coordinates
+    and the held parameters', ``setup.anchored`` those) that serves the fit too (:class:`Program`
+    with ``layout``): forward mode along n directions given at each call, n the fit's
+    coordinates; compiled ahead of time with :mod:`vehjax.execution`'s XLA options. One
+    compile fewer per fit with score tests: the fit's own program costs about as much per
+    evaluation (``benchmarks/results``)."""
+    flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
+    options = execution.compiler_options(execution.current(), setup.workload)
+    V = jnp.zeros((len(layout.fit_pos), flat.shape[0]), flat.dtype)
+    t0, c0 = time.perf_counter(), time.process_time()
+    compiled = jax.jit(_directed(obj, setup, unravel)).lower(
+        jnp.asarray(flat), V, jnp.asarray(layout.anchor, dtype=flat.dtype), obj.data).compile(
+        compiler_options=options)
+    return Program(compiled, True, options, {
+        "compile_seconds": time.perf_counter() - t0,
+        "compile_cpu_seconds": time.process_time() - c0}, layout)
+
+
+def _rows(pos, size: int, dtype) -> jnp.ndarray:
+    """(len(pos), size): the rows ``pos`` of the identity; a negative position a zero row."""
+    V = np.zeros((len(pos), size))
+    for i, j in enumerate(pos):
+        if j >= 0:
+            V[i, j] = 1.0
+    return jnp.asarray(V, dtype=dtype)
+
+
+def _evaluator(prog: Program, n: int, data, dtype):
+    """``evaluate(f) -> (loss, aux, grad, BHHH or None)`` of the program ``prog`` at the n flat
+    coordinates f: of its own objective; of a fit on its score tests' program (``prog.layout``,
+    n its fit's coordinates: the held ones at their anchor); or of the score tests' objective on
+    it (n = N: the gradient n directions at a time, the BHHH matrix's blocks between them from
+    the per-step scores, the prior's diagonal curvature within the blocks)."""
+    layout, executable = prog.layout, prog.compiled
+    if layout is None:
+        return lambda f: executable(jnp.asarray(f, dtype=dtype), data)
+    anchor = jnp.asarray(layout.anchor, dtype=dtype)
+    m = len(layout.fit_pos)
+    if n == m:
+        V = _rows(layout.fit_pos, layout.size, dtype)
+        base = np.zeros(layout.size)
+        base[layout.held_pos] = layout.anchor
+
+        def fit_point(f):
+            g = base.copy()
+            g[layout.fit_pos] = np.asarray(f, dtype=float)
+            return executable(jnp.asarray(g, dtype=dtype), V, anchor, data)[:4]
+
+        return fit_point
+    if n != layout.size:
+        raise ValueError(f"compiled: a program over {layout.size} coordinates, {m} of them the "
+                         f"fit's, cannot evaluate {n}")
+    blocks = [list(range(i, min(i + m, n))) for i in range(0, n, m)]
+    Vs = [_rows(b + [-1] * (m - len(b)), n, dtype) for b in blocks]
+
+    def full_point(f):
+        at = jnp.asarray(f, dtype=dtype)
+        outs = [executable(at, V, anchor, data) for V in Vs]
+        g = np.concatenate([np.asarray(o[2])[:len(b)] for o, b in zip(outs, blocks)])
+        S = np.concatenate([np.asarray(o[4])[:len(b)] for o, b in zip(outs, blocks)])
+        B = (S @ S.T) / S.shape[1]  # S (N, R T): n_steps = R T
+        for o, b in zip(outs, blocks):
+            B[np.ix_(b, b)] = np.asarray(o[3])[:len(b), :len(b)]
+        return outs[0][0], outs[0][1], g, B
+
+    return full_point
+
+
 def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None,
                   compiled: Program | None = None) -> CompiledLoss:
     """The compiled loss of a fit (:class:`CompiledLoss`) on its program
     (:func:`compile_program`, or ``compiled``: the same objective's program compiled for
-    another start). ``batch_hessian`` (forward mode only): also give ``CompiledLoss.grads``
-    (its program compiled at its first call).
+    another start, or with a :class:`Layout` the program of the fit's score tests, which
+    serves both the fit and, on their objective, the tests: :func:`compile_directed`).
+    ``batch_hessian`` (forward mode only): also give ``CompiledLoss.grads`` (its program
+    compiled at its first call).
 
     The domain of a deterministic filter's fit: ``box`` = (low (n,), high (n,)) limits the
     coordinates (:func:`vehjax.tune.boundaries.coordinate_box`), and a point where more runs
@@ -190,7 +327,7 @@ def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None,
     would walk to values where the estimator cannot be built."""
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
     prog = compile_program(obj, setup) if compiled is None else compiled
-    forward, options, executable = prog.forward, prog.options, prog.compiled
+    forward, options = prog.forward, prog.options
     stats = {"mode": "forward" if forward else "reverse", **prog.stats, "evaluations": 0,
              "batch_compile_seconds": 0.0, "batch_evaluations": 0, "options": options}
     last = []  # (point, result) of the latest evaluation: the optimiser's last point is the
@@ -198,10 +335,12 @@ def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None,
     guard = setup is not None and not setup.stochastic
     base = []  # the runs diverged at the first point evaluated
 
+    evaluate = _evaluator(prog, flat.shape[0], obj.data, flat.dtype)
+
     def run(f):  # the compiled program at f (clipped into the box); no shared state touched
         inside = box is None or not guard or bool(np.all((f >= box[0]) & (f <= box[1])))
         at = f if inside else np.clip(f, box[0], box[1])
-        v, aux, g, B = executable(jnp.asarray(at, dtype=flat.dtype), obj.data)
+        v, aux, g, B = evaluate(at)
         return (inside, float(v), aux, np.asarray(g, dtype=float),
                 None if B is None else np.asarray(B, dtype=float), int(np.sum(np.asarray(aux[1]))))
 

@@ -150,14 +150,30 @@ def _fit_nested(builder, nested, Q0, R0, ys, us, args: dict, nargs, options: Opt
         ll = _nested_likelihood(builder, nested, Q0, R0, ys, us, args["x0"], args["P0"],
                                 options.key)
         return None, Comparison(_label(nested), ll, {}, time.perf_counter() - t0), []
-    held = tuple(k for k in nested.spec_priors() if k not in nargs["params"])
-    se = options.standard_errors if diagnose and held else False
+    checks = _nested_checks(nested, nargs, options, diagnose)
+    se = options.standard_errors if checks is not None else False
     res, caught = _quietly(fit_start, builder, nested, Q0, R0, ys, us, _call(nargs),
                            dataclasses.replace(options, standard_errors=se),
-                           compiled=compiled, checks=Checks(held, innovations=False))
+                           compiled=compiled, checks=checks or Checks((), innovations=False))
     return res, Comparison(_label(nested), res.loglik, dict(res.values),
                            res.seconds + (0.0 if compiled is None else
                                           compiled.stats["compile_seconds"])), caught
+
+
+def _nested_checks(nested, nargs: dict, options: Options, diagnose: bool):
+    """The nested fit's diagnostics (:class:`~vehjax.tune.diagnostics.Checks`): the score tests
+    of its held data-sheet values (those it may release), no innovation checks; None where it
+    has no standard errors (not ``diagnose``, nothing such held, or none asked for)."""
+    held = tuple(k for k in nested.spec_priors() if k not in nargs["params"])
+    if not (diagnose and held and options.standard_errors is not None):
+        return None
+    return Checks(held, innovations=False)
+
+
+def _model_checks(options: Options):
+    """The model's own fit's diagnostics: every held parameter's score test and the innovation
+    checks where it has standard errors, else None."""
+    return None if options.standard_errors is None else Checks()
 
 
 def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: Options,
@@ -171,7 +187,8 @@ def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: O
     nargs = _nested_args(nested, args)
     ahead = _compile_ahead(builder, model, Q0, R0, ys, us, args, options)
     nprog = None if nargs is None else compile_objective(
-        builder, nested, Q0, R0, ys, us, key=options.key, **_call(nargs))
+        builder, nested, Q0, R0, ys, us, key=options.key, **_call(nargs),
+        checks=_nested_checks(nested, nargs, options, diagnose))
     lin, cmp, held = _fit_nested(builder, nested, Q0, R0, ys, us, args, nargs, options, nprog,
                                  diagnose=diagnose)
     released = to_release(lin, model, args["params"]) if diagnose and lin else {}
@@ -240,7 +257,7 @@ def _compile_ahead(builder, model, Q0, R0, ys, us, args: dict, options: Options)
     if execution.current().side_by_side < 2:
         return None
     return execution.in_thread(compile_objective, builder, model, Q0, R0, ys, us,
-                               key=options.key, **_call(args))
+                               key=options.key, **_call(args), checks=_model_checks(options))
 
 
 def _compiled(future):
@@ -360,7 +377,7 @@ def fit(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
     compiled = _compiled(ahead)
     if compiled is None and cmp is not None:  # one compile for a second start too
         compiled = compile_objective(builder, model, Q0, R0, ys, us, key=options.key,
-                                     **_call(args))
+                                     **_call(args), checks=_model_checks(options))
 
     def one(m):
         res, caught = _quietly(fit_start, builder, m, Q0, R0, ys, us, _call(args), options,
