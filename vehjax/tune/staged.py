@@ -192,11 +192,13 @@ def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: O
     lin, cmp, held = _fit_nested(builder, nested, Q0, R0, ys, us, args, nargs, options, nprog,
                                  diagnose=diagnose)
     released = to_release(lin, model, args["params"]) if diagnose and lin else {}
-    if released:  # the nested model again with them; the model's program compiled anew
+    if released:  # the nested model again with them; the model's program compiled anew,
+        # beside that fit
         nargs = _widened(nargs, model, released)
         bn, m, Qn, Rn, nargs = _released_start(builder, nested, Q0, R0, nargs, lin, released)
+        args = _widened(args, model, released)
+        ahead = _compile_ahead(builder, model, Q0, R0, ys, us, args, options)
         lin, cmp, held = _fit_nested(bn, m, Qn, Rn, ys, us, args, nargs, options)
-        args, ahead = _widened(args, model, released), None
     _reissue(held, cmp.model)
     return lin, cmp, ahead, args, released
 
