@@ -354,7 +354,7 @@ def prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0, what: Fitt
             jnp.asarray(P0a), keys)
     setup = setup._replace(name=est0.name, stochastic=bool(est0.needs_key),
                  per_step=per_step, at=at, workload=est0.workload, log_prior=log_prior,
-                 log_prior0=0.0 if log_prior is None else float(log_prior(z0)))
+                 log_prior0=0.0 if log_prior is None else float(jax.jit(log_prior)(z0)))
     return Objective(loss, z0, data, unpack, n_runs * T), setup
 
 

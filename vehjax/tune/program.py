@@ -192,7 +192,7 @@ def _directed(obj, setup, unravel):
     def program(f, V, anchor, data):
         at = lambda g: {**unravel(g), "anchor": anchor}  # noqa: E731
         ll, dll, lls_div = forward_scores(lambda g, d: per_step(at(g), d), f, data, V)
-        pv, pg, pH = prior_terms(None if log_prior is None else log_prior, at, f, obj.n_steps)
+        pv, pg, pH = prior_terms(log_prior, at, f, obj.n_steps)
         scores = dll.reshape(V.shape[0], -1)
         loss = -jnp.sum(ll) / obj.n_steps + pv
         grad = -jnp.sum(scores, axis=1) / obj.n_steps + V @ pg
