@@ -54,6 +54,7 @@ p = (theta - low) / span):
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -143,6 +144,16 @@ def log_derivative(k: str, lo: float, hi: float, c: float, s):
     return math.log(hi - lo) + jax.nn.log_sigmoid(s) + jax.nn.log_sigmoid(-s)
 
 
+@functools.partial(jax.jit, static_argnums=(0, 1, 3))
+def _mapped(fn, spec: tuple, a, axis: int):
+    """``fn`` (:func:`forward`, ...) applied entry by entry along ``axis`` of the float array
+    ``a``, ``spec`` = ((kind, lo, hi, c), ...) one per entry: one program per spec and shape,
+    which a trace inlines; called on values outside a trace it compiles once, where op by op
+    every kind of map would compile a few small XLA programs of its own."""
+    cols = [fn(k, lo, hi, c, jnp.take(a, i, axis=axis)) for i, (k, lo, hi, c) in enumerate(spec)]
+    return jnp.stack(cols, axis=axis).astype(a.dtype)
+
+
 class Transform:
     """Maps between physical parameters theta (..., p) and unconstrained coordinates s.
 
@@ -178,11 +189,9 @@ class Transform:
         a = jnp.asarray(a)
         if not jnp.issubdtype(a.dtype, jnp.floating):
             a = a.astype(jnp.asarray(0.0).dtype)
-        axis = axis % a.ndim
-        cols = [fn(k, float(lo), float(hi), float(c), jnp.take(a, i, axis=axis))
-                for i, (k, lo, hi, c) in enumerate(zip(self.kinds, self.low, self.high,
-                                                        self.scale))]
-        return jnp.stack(cols, axis=axis).astype(a.dtype)
+        spec = tuple((k, float(lo), float(hi), float(c))
+                     for k, lo, hi, c in zip(self.kinds, self.low, self.high, self.scale))
+        return _mapped(fn, spec, a, axis % a.ndim)
 
     def to_physical(self, s, axis: int = -1):
         """theta = g(s), same shape as s; inside [low, high] for every finite s."""

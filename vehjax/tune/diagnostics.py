@@ -347,7 +347,8 @@ def _map_derivatives(tmap, z):
     """(g'(z), g''(z)) of the parameter map, entry by entry, (p,) each."""
     ones = jnp.ones_like(z)
     d1 = lambda v: jax.jvp(tmap.to_physical, (v,), (ones,))[1]  # noqa: E731
-    return np.asarray(d1(z)), np.asarray(jax.jvp(d1, (z,), (ones,))[1])
+    both = jax.jit(lambda v: (d1(v), jax.jvp(d1, (v,), (ones,))[1]))  # one program
+    return tuple(np.asarray(d) for d in both(z))
 
 
 def _one_test(value, score_z, info, opg, d1, d2, unit):
