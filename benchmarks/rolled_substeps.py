@@ -51,7 +51,7 @@ def fit_one(rolled: bool, duration: float, out: str) -> None:
             np.zeros((2, 2)), bl.R0, drive.measurements, drive.inputs, x0=bl.X0, P0=bl.P0,
             params=vehjax.tune.Fitted(bl.PARAMS["brush"], noise=("R", "input")))
         flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
-        fn = program._program(obj, setup, unravel, flat.shape[0], True)
+        fn = program._program(obj, setup, unravel, True)
         f = jnp.asarray(flat)
         t0 = time.perf_counter()
         traced = jax.jit(fn).trace(f, obj.data)

@@ -196,13 +196,19 @@ def _compiled_ahead(future, shared) -> diagnostics.Ahead:
     return ahead if shared is None else ahead._replace(augmented=shared)
 
 
-def _program_plan(compiled, setup, obj, start, checks, tests: bool):
+def _start(model, Q0, R0, setup, x0) -> diagnostics.Start:
+    """The fit's start as the diagnostics read it (:class:`vehjax.tune.diagnostics.Start`):
+    the model, Q0, R0, the builder's input noise and x0 as given."""
+    return diagnostics.Start(model, Q0, R0, setup.builder_options.get("input_noise"), x0)
+
+
+def _program_plan(compiled, setup, names, start, checks, tests: bool):
     """(``compiled`` where given and it serves this fit, else None; whether the fit's program
     serves its score tests too): a given program with a layout serves the fit when
     :func:`vehjax.tune.program.serves` says so (one without is taken as given), and the tests
     when its held parameters are theirs; without a program, a fit with score tests in forward
-    mode runs on theirs (:func:`vehjax.tune.diagnostics.compile_shared`)."""
-    names = coordinates(setup, start.model, obj.z0)[0]
+    mode runs on theirs (:func:`vehjax.tune.diagnostics.compile_shared`); ``names`` the fit's
+    coordinates' (:func:`vehjax.tune.quantities.coordinates`)."""
     if compiled is not None and compiled.layout is not None and not program.serves(
             compiled.layout, names, start.model):
         compiled = None
@@ -315,15 +321,15 @@ def fit_start(builder, model, Q0, R0, measurements, inputs, args: dict, options:
     check_optimizer(user_opt, setup.stochastic)  # before compiling
     hessian = None if std_errors is None else std_errors.hessian
     differences = not setup.stochastic and hessian in (None, "differences")
-    start = diagnostics.Start(model, Q0, R0, setup.builder_options.get("input_noise"), x0)
+    start = _start(model, Q0, R0, setup, x0)
     tests = std_errors is not None and not setup.stochastic
-    compiled, sharing = _program_plan(compiled, setup, obj, start, checks, tests)
+    names, scales = coordinates(setup, model, obj.z0)
+    compiled, sharing = _program_plan(compiled, setup, names, start, checks, tests)
     ahead = _diagnostics_ahead(setup, obj.data, start, what.bounds, std_errors is not None,
                                checks, augmented=not sharing)
     if sharing and compiled is None:
         compiled = diagnostics.compile_shared(start, setup, obj.data, what.bounds, checks.held)
     shared = compiled if sharing else None
-    names, scales = coordinates(setup, model, obj.z0)
     flat0, unravel0 = jax.flatten_util.ravel_pytree(obj.z0)
     if setup.log_prior is not None:  # a narrow prior: the coordinate's size is its width
         # one program: evaluated op by op, the prior's value, gradient and Hessian compile
@@ -374,8 +380,7 @@ def compile_objective(builder, model, Q0, R0, measurements, inputs=None, *, x0, 
     what = fitted(params)
     obj, setup = prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0, what, key)
     if checks is not None:
-        start = diagnostics.Start(model, Q0, R0, setup.builder_options.get("input_noise"), x0)
-        shared = diagnostics.compile_shared(start, setup, obj.data, what.bounds, checks.held)
+        shared = diagnostics.compile_shared(_start(model, Q0, R0, setup, x0), setup, obj.data, what.bounds, checks.held)
         if shared is not None:
             return shared
     return program.compile_program(obj, setup)

@@ -124,7 +124,20 @@ def prior_terms(log_prior, unravel, f, n_steps: int, curvature: bool = True):
     return -v / n_steps, -g / n_steps, H
 
 
-def _program(obj, setup, unravel, n: int, forward: bool):
+def _penalised(ll, dll, lls_div, prior, n_steps: int):
+    """(loss, aux, grad, BHHH matrix or None) of a forward-mode evaluation: the per-step
+    log-likelihoods ``ll`` (R, T) and their derivatives ``dll`` (m, R, T) along m directions,
+    the prior's terms ``prior`` = (value, gradient (m,), curvature (m, m) or None) along the
+    same directions (:func:`prior_terms`); the loss and its gradient the mean negative
+    log-likelihood per run-step plus the prior's penalty, the BHHH matrix
+    (:func:`score_outer_product`) plus its curvature."""
+    pv, pg, pH = prior
+    grad = -jnp.sum(dll.reshape(dll.shape[0], -1), axis=1) / n_steps + pg
+    B = None if pH is None else score_outer_product(dll, n_steps) + pH
+    return -jnp.sum(ll) / n_steps + pv, (jnp.sum(ll, axis=-1), lls_div), grad, B
+
+
+def _program(obj, setup, unravel, forward: bool):
     """The function compiled: ``(f, data) -> (loss, aux, grad, BHHH matrix or None)``; with
     priors the loss, gradient and BHHH matrix of the penalised loss (:func:`prior_terms`)."""
     if forward:
@@ -132,11 +145,8 @@ def _program(obj, setup, unravel, n: int, forward: bool):
 
         def program(f, data):
             ll, dll, lls_div = forward_scores(lambda g, d: per_step(unravel(g), d), f, data)
-            pv, pg, pH = prior_terms(log_prior, unravel, f, obj.n_steps)
-            loss = -jnp.sum(ll) / obj.n_steps + pv
-            grad = -jnp.sum(dll.reshape(n, -1), axis=1) / obj.n_steps + pg
-            return (loss, (jnp.sum(ll, axis=-1), lls_div), grad,
-                    score_outer_product(dll, obj.n_steps) + pH)
+            return _penalised(ll, dll, lls_div, prior_terms(log_prior, unravel, f, obj.n_steps),
+                              obj.n_steps)
         return program
     vgf = jax.value_and_grad(lambda f, data: obj.loss(unravel(f), data), has_aux=True)
 
@@ -193,11 +203,8 @@ def _directed(obj, setup, unravel):
         at = lambda g: {**unravel(g), "anchor": anchor}  # noqa: E731
         ll, dll, lls_div = forward_scores(lambda g, d: per_step(at(g), d), f, data, V)
         pv, pg, pH = prior_terms(log_prior, at, f, obj.n_steps)
-        scores = dll.reshape(V.shape[0], -1)
-        loss = -jnp.sum(ll) / obj.n_steps + pv
-        grad = -jnp.sum(scores, axis=1) / obj.n_steps + V @ pg
-        return (loss, (jnp.sum(ll, axis=-1), lls_div), grad,
-                score_outer_product(dll, obj.n_steps) + V @ pH @ V.T, scores)
+        return (*_penalised(ll, dll, lls_div, (pv, V @ pg, V @ pH @ V.T), obj.n_steps),
+                dll.reshape(V.shape[0], -1))
 
     return program
 
@@ -233,7 +240,7 @@ def compile_program(obj, setup=None) -> Program:
     if setup is not None:
         options = execution.compiler_options(execution.current(), setup.workload)
     t0, c0 = time.perf_counter(), time.process_time()
-    compiled = jax.jit(_program(obj, setup, unravel, n, forward)).lower(
+    compiled = jax.jit(_program(obj, setup, unravel, forward)).lower(
         jnp.asarray(flat), obj.data).compile(compiler_options=options)
     return Program(compiled, forward, options, {
         "compile_seconds": time.perf_counter() - t0,
@@ -387,9 +394,9 @@ def _batched_gradients(setup, unravel, obj, flat, options, stats):
 
     def program(F, data):
         def one(f):
-            _, dll, _ = forward_scores(lambda g, d: per_step(unravel(g), d), f, data)
-            pg = prior_terms(log_prior, unravel, f, obj.n_steps, curvature=False)[1]
-            return -jnp.sum(dll.reshape(n, -1), axis=1) / obj.n_steps + pg
+            ll, dll, div = forward_scores(lambda g, d: per_step(unravel(g), d), f, data)
+            prior = prior_terms(log_prior, unravel, f, obj.n_steps, curvature=False)
+            return _penalised(ll, dll, div, prior, obj.n_steps)[2]
 
         return jax.vmap(one)(F)
 
