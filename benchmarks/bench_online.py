@@ -37,12 +37,12 @@ JAX's CPU dispatch. ``--dispatch sync`` runs JAX's CPU computations in the calli
 (``jax_cpu_enable_async_dispatch`` False, set before JAX starts its backend), ``async`` hands
 them to a worker thread (JAX's default). XLA:CPU runs a computation of under 1000 flops (its
 cost analysis, printed in the Online.update row's note) in the calling thread either way; the
-EKF step is under that, the UKF's and the marginalized PF's are over it, so with async dispatch
-each of their samples pays a thread hand-over and wake-up. A live filter waits for every result and
-gains nothing from the hand-over: the calling thread is its configuration (``vehjax.Online``'s
-docstring). The default ``both`` runs each in a fresh Python process (the setting acts only
-before JAX's backend starts), sync first, and ends with one line per row comparing them with
-the target.
+EKF step is under that, the UKF's and the marginalized PF's are over it. ``vehjax.Online``
+runs its step on a synchronous CPU client of its own under either setting
+(:func:`vehjax.execution.live_device`), so both should measure alike; before it did, the UKF
+took 80-89 us a sample under ``async`` against 14 us under ``sync`` (``benchmarks/results``).
+The default ``both`` runs each in a fresh Python process (the setting acts only before JAX's
+backend starts), sync first, and ends with one line per row comparing them with the target.
 
     vehjax bench online                      # or: python benchmarks/bench_online.py
     vehjax bench online --quick              # tiny sizes

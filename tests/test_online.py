@@ -1,12 +1,14 @@
 """vehjax.Online: a filter sample by sample equals vehjax.filter over the same samples (EKF, UKF,
 a bootstrap PF with the same key), compiled once; stamps at 2 dt equal the filter with NaN rows
 inserted; refusals name their argument and leave the filter unchanged; save/load continues
-identically; the exported step runs in a process without vehjax."""
+identically; the exported step runs in a process without vehjax; the step runs in the calling
+thread under JAX's default asynchronous CPU dispatch."""
 
 import json
 import os
 import subprocess
 import sys
+import time
 
 import jax
 import jax.numpy as jnp
@@ -14,6 +16,7 @@ import numpy as np
 import pytest
 
 import vehjax as vj
+from vehjax import execution
 from vehjax import online as O
 
 MODEL = vj.models.SingleTrack(dt=0.01)
@@ -307,3 +310,40 @@ def test_bench_online_smoke_all_rows(capsys):
     assert _bench().main(["--quick", "--dispatch", "async"]) == 0
     out = capsys.readouterr().out
     assert "FAILED" not in out and "paper 004's 1.4 ms a step: ratio" in out
+
+
+def _returns_after_the_work(device) -> bool:
+    """Whether a call of a compiled 0.05 s computation on ``device`` returns only once it has
+    run (the calling thread) rather than at once (handed to a worker thread)."""
+    def work(a):
+        return jax.lax.fori_loop(0, 200, lambda i, b: jnp.tanh(b @ a), a)
+
+    on = jax.sharding.SingleDeviceSharding(device)
+    a = jax.device_put(np.eye(200) * 0.5, on)
+    fn = jax.jit(work).lower(a).compile()
+    fn(a).block_until_ready()
+    t0 = time.perf_counter()
+    out = fn(a)
+    returned = time.perf_counter() - t0
+    out.block_until_ready()
+    return returned > 0.5 * (time.perf_counter() - t0)
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu"
+                    or not jax.config.read("jax_cpu_enable_async_dispatch"),
+                    reason="JAX's asynchronous CPU dispatch is what the live device avoids")
+def test_the_step_runs_in_the_calling_thread_under_async_dispatch():
+    """Under JAX's default (asynchronous) CPU dispatch a large computation's call returns before
+    it has run; on the live device it returns after. Online's state lives there, and its
+    ``state`` comes back on JAX's default device, usable beside the process's other arrays."""
+    device = execution.live_device()
+    assert device.client is not jax.local_devices()[0].client
+    assert not _returns_after_the_work(jax.local_devices()[0])
+    assert _returns_after_the_work(device)
+    live = vj.Online(BUILD["ukf"](), X0, P0)
+    live.update(YS[0], US[0])
+    assert all(b.devices() == {device} for b in live._buffers)
+    state = live.state
+    assert state.mean.devices() == {jax.local_devices()[0]}
+    again = vj.filter(BUILD["ukf"](), YS[1:3], US[1:3], x0=state.mean, P0=state.cov)
+    np.testing.assert_allclose(again.states[0], live.update(YS[1], US[1]).mean, **TOL)

@@ -32,7 +32,8 @@ module, since it must be set before JAX starts); runs vmapped in cache-sized blo
 (``elemental_emitter``); vectorisable trigonometry for ``fast_math`` models
 (``substitute_elementary``); a fit's independent work on several threads (``side_by_side``); a
 model's integrator sub-steps as a loop (``rolled_substeps``); the runs-last batched step
-(``runs_last``) except for a chunk of one run (:func:`runs_last_for`). On
+(``runs_last``) except for a chunk of one run (:func:`runs_last_for`); a live filter's sample
+step on a synchronous CPU client, in the calling thread (:func:`live_device`). On
 GPU (and TPU, unmeasured): no blocking, no CPU XLA options, substitutes off, the runs-last step
 on, chunks of a quarter of the device's memory, one thing at a time in a fit. ``vehjax bench
 all``, ``particle``, ``device`` and ``marginalized`` measure them.
@@ -65,7 +66,8 @@ import numpy as np
 
 __all__ = ["Execution", "Strategy", "for_platform", "for_device", "current", "using", "resolve",
            "compiler_options", "check_options", "block_size", "memory_limit", "check_fits", "check_memory",
-           "resolve_devices", "WORKLOADS", "in_thread"]
+           "resolve_devices", "WORKLOADS", "in_thread",
+           "live_device"]
 
 #: What an estimator may declare its step to be (``Estimator.workload``).
 WORKLOADS = ("default", "small_dense", "particles")
@@ -456,6 +458,36 @@ def _xla_knows(name: str, value) -> bool:
     except jax.errors.JaxRuntimeError:
         return False
     return True
+
+
+def live_device():
+    """The device a live filter's sample step runs on (:class:`vehjax.Online`).
+
+    A live loop waits for every sample's result, so a thread hand-over is pure latency. JAX's
+    CPU backend hands a computation of over 1000 flops (XLA's cost analysis) to a worker
+    thread unless its dispatch is synchronous (``jax_cpu_enable_async_dispatch``), and that
+    hand-over costs an erratic 4-65 us on a shared 2-core machine against a UKF step's 10 us
+    (``benchmarks/results``). So where JAX's default backend is the CPU with asynchronous
+    dispatch, the step runs on the device of a second CPU client of this process, made once
+    and synchronous: XLA:CPU runs its computations in the calling thread, and the rest of the
+    process keeps JAX's default. Otherwise (a GPU or TPU backend, or synchronous dispatch
+    already, or a jaxlib without ``xla_client.make_cpu_client``): JAX's default device.
+    """
+    if jax.default_backend() == "cpu" and jax.config.read("jax_cpu_enable_async_dispatch"):
+        device = _calling_thread_cpu()
+        if device is not None:
+            return device
+    return jax.local_devices()[0]
+
+
+@lru_cache(maxsize=1)
+def _calling_thread_cpu():
+    """The device of a synchronous CPU client of this process (made on first use), or None."""
+    try:
+        from jaxlib import xla_client
+        return xla_client.make_cpu_client(asynchronous=False, num_devices=1).local_devices()[0]
+    except (ImportError, AttributeError, TypeError, RuntimeError):
+        return None
 
 
 def in_thread(fn, *args, **kwargs) -> Future:

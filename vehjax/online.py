@@ -66,14 +66,12 @@ back as one vector that :meth:`Online.update` splits into numpy views; the check
 are a few Python-level operations (about 1 us each).
 A gap compiles a second function (a loop over prediction steps) on first use.
 
-Dispatch. JAX's CPU backend hands a computation to a worker thread (async dispatch) unless
-XLA's cost analysis counts it under 1000 flops; the EKF step on the single-track model is under
-that, the UKF's and the particle filters' are over it, and a loop that waits for every result
-then pays a thread hand-over and wake-up on each sample. For a live loop, run JAX's CPU
-computations in the calling thread: ``jax.config.update("jax_cpu_enable_async_dispatch",
-False)`` before JAX's first computation (JAX reads it when its backend starts). ``vehjax bench
-online`` measures both, each in a fresh process, and prints each step's flop count; the
-hand-over can cost several times the step itself.
+Dispatch. JAX's CPU backend hands a computation of over 1000 flops (XLA's cost analysis; the
+UKF's and the particle filters' steps) to a worker thread, and a loop that waits for every
+result would pay the hand-over, several times the step on a shared machine. So on a CPU the
+step and its state live on a second, synchronous CPU client (:func:`vehjax.execution.live_device`):
+each sample runs in the calling thread; :attr:`Online.state` comes back on JAX's default
+device. ``vehjax bench online`` measures the latency under both of JAX's dispatch settings.
 
 Limits: one stream per object (for many cars, :func:`vehjax.run` or ``jax.vmap`` of the step);
 the inputs between two stamped samples are not known and are taken to be the later sample's;
@@ -385,18 +383,27 @@ class Online:
         est = self.estimator
         self.layout = layout_of(state)
         self._dtype = np.dtype(state.mean.dtype)
-        self._buffers = pack(state, self.layout)
+        self._on = jax.sharding.SingleDeviceSharding(execution.live_device())
+        self._buffers = self._placed(pack(state, self.layout))
         self._nan_y = np.full((est.ny,), np.nan, self._dtype)
         self._no_u = np.zeros((est.nu,), self._dtype)
         self._options = execution.compiler_options(execution.current(), est.workload)
-        yu = jax.ShapeDtypeStruct((est.ny + est.nu,), self._dtype)
-        specs = [jax.ShapeDtypeStruct(b.shape, b.dtype) for b in self._buffers]
+        yu = self._spec((est.ny + est.nu,), self._dtype)
+        specs = [self._spec(b.shape, b.dtype) for b in self._buffers]
         # the state's buffers are donated: the step writes the new state in place
         fn = jax.jit(partial(packed_step, est, self.layout), donate_argnums=0)
         self._step = fn.lower(specs, yu).compile(compiler_options=self._options)
         self._gap = self._unpack = None
         nx, p = est.nx, len(est.param_names)
         self._cuts = (nx, p, nx + nx * nx, nx + nx * nx + p, nx + nx * nx + p + p * p)
+
+    def _spec(self, shape, dtype) -> jax.ShapeDtypeStruct:
+        """An argument of the compiled steps: on the live device."""
+        return jax.ShapeDtypeStruct(shape, dtype, sharding=self._on)
+
+    def _placed(self, buffers) -> list:
+        """State buffers (arrays) on the live device (:func:`vehjax.execution.live_device`)."""
+        return [jax.device_put(np.asarray(b), self._on) for b in buffers]
 
     # ------------------------------------------------------------------------------------------
     # one sample
@@ -443,9 +450,9 @@ class Online:
         """``n`` prediction-only steps (compiled on the first gap)."""
         if self._gap is None:
             fn = jax.jit(partial(packed_gap, self.estimator, self.layout), donate_argnums=0)
-            specs = [jax.ShapeDtypeStruct(b.shape, b.dtype) for b in buffers]
-            self._gap = fn.lower(specs, jax.ShapeDtypeStruct(u.shape, u.dtype),
-                                 jax.ShapeDtypeStruct((), np.int32)).compile(
+            specs = [self._spec(b.shape, b.dtype) for b in buffers]
+            self._gap = fn.lower(specs, self._spec(u.shape, u.dtype),
+                                 self._spec((), np.int32)).compile(
                 compiler_options=self._options)
         return self._gap(buffers, u, np.int32(n))
 
@@ -467,7 +474,7 @@ class Online:
         own buffers are reused by the next update)."""
         if self._unpack is None:
             self._unpack = jax.jit(partial(unpack, layout=self.layout))
-        return self._unpack(self._buffers)
+        return jax.device_put(self._unpack(self._buffers), jax.local_devices()[0])
 
     @property
     def steps(self) -> int:
@@ -519,7 +526,7 @@ class Online:
                              f"{str(saved['estimator'])!r} in buffers "
                              f"{[(str(b.dtype), b.shape) for b in buffers]}; estimator "
                              f"{estimator.name!r} expects {[(str(d), s) for d, s in expected]}")
-        live._buffers = [jnp.asarray(b) for b in buffers]
+        live._buffers = live._placed(buffers)
         live._t_origin = None if np.isnan(saved["t_origin"]) else float(saved["t_origin"])
         live._steps = int(saved["steps"])
         return live
