@@ -51,18 +51,19 @@ def fit_one(rolled: bool, duration: float, out: str) -> None:
             np.zeros((2, 2)), bl.R0, drive.measurements, drive.inputs, x0=bl.X0, P0=bl.P0,
             params=vehjax.tune.Fitted(bl.PARAMS["brush"], noise=("R", "input")))
         flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
-        fn = program._program(obj, setup, unravel, True)
+        fn = program._forward(obj, setup, unravel)
         f = jnp.asarray(flat)
+        args = (f, jnp.eye(f.shape[0], dtype=f.dtype), jnp.zeros((0,), f.dtype), obj.data)
         t0 = time.perf_counter()
-        traced = jax.jit(fn).trace(f, obj.data)
+        traced = jax.jit(fn).trace(*args)
         t1 = time.perf_counter()
         compiled = traced.lower().compile()
         t2 = time.perf_counter()
-    jax.block_until_ready(compiled(f, obj.data))
+    jax.block_until_ready(compiled(*args))
     times = []
     for _ in range(3):
         t = time.perf_counter()
-        res = jax.block_until_ready(compiled(f, obj.data))
+        res = jax.block_until_ready(compiled(*args))
         times.append(time.perf_counter() - t)
     np.save(out, np.concatenate([np.ravel(np.asarray(r)) for r in jax.tree.leaves(res)]))
     print(f"{'loop' if rolled else 'written out':>12} trace {t1 - t0:6.2f}  compile "

@@ -1,12 +1,14 @@
 """The benchmark scripts that are not ``vehjax bench`` commands run, at tiny sizes, and print
 what their docstrings say (benchmarks/fit_profile.py, forward_directions.py,
-filter_outputs.py)."""
+filter_outputs.py, split_directions.py)."""
 
 import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from vehjax import execution
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -30,6 +32,16 @@ def test_forward_directions_prints_a_row_per_fit(capsys):
     assert _load("forward_directions").main(["--duration", "2", "--repeat", "1"]) == 0
     lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("cf")]
     assert [int(ln.split()[-4]) for ln in lines] == [2, 4, 5, 5, 6]
+
+
+@pytest.mark.slow  # two programs compiled
+def test_split_directions_prints_the_split_loss_equal(capsys):
+    assert _load("split_directions").main(["--duration", "2", "--models", "linear",
+                                           "--repeat", "1"]) == 0
+    row = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("linear")][0]
+    n, block, equal = row.split()[1], row.split()[2], row.split()[-3]
+    assert n == "5" and equal == "True"
+    assert int(block) == execution.direction_block(execution.for_platform("cpu"), 5)
 
 
 def test_filter_outputs_compare_says_equal_bits_and_relative_differences(tmp_path, capsys):

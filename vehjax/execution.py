@@ -30,7 +30,8 @@ module, since it must be set before JAX starts); runs vmapped in cache-sized blo
 (``block_numbers``); chunks of at most 512 MiB and 2e9 carried numbers x steps (``chunk_bytes``,
 ``chunk_work``); XLA:CPU's elemental emitter for the small-dense filters
 (``elemental_emitter``); vectorisable trigonometry for ``fast_math`` models
-(``substitute_elementary``); a fit's independent work on several threads (``side_by_side``); a
+(``substitute_elementary``); a fit's independent work on several threads (``side_by_side``),
+a point's forward-mode directions among them too (``split_directions``); a
 model's integrator sub-steps as a loop (``rolled_substeps``); the runs-last batched step
 (``runs_last``) except for a chunk of one run (:func:`runs_last_for`); a live filter's sample
 step on a synchronous CPU client, in the calling thread (:func:`live_device`). On
@@ -56,6 +57,7 @@ import contextlib
 import contextvars
 import dataclasses
 import os
+import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from functools import lru_cache
 from typing import Any, NamedTuple
@@ -115,6 +117,12 @@ class Strategy(NamedTuple):
             fused filter step is bound by arithmetic: 12 points batched cost 10.6 evaluations of
             one (the brush fit's program, 20,000 steps; ``benchmarks/results``); 50,000 on a
             GPU/TPU, where a point's scan leaves the device mostly idle (not measured there).
+        split_directions: a forward-mode evaluation of a fit's program carries its n tangent
+            directions in ``side_by_side`` blocks evaluated at once on as many threads
+            (:func:`direction_block`), each block repeating the filter's own arithmetic; False:
+            all n in one call. On XLA:CPU a call costs about a + b m for m directions with a
+            the filter's own share (the brush fit's program, 20,000 steps: 226 ms for its 6
+            directions, two blocks of 3 at once 130 ms; ``benchmarks/results``).
     """
 
     platform: str
@@ -129,6 +137,7 @@ class Strategy(NamedTuple):
     side_by_side: int = 1
     rolled_substeps: bool = False
     batched_hessian_steps: int | None = 50000
+    split_directions: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -209,7 +218,7 @@ def for_platform(platform: str, device_memory: int | None = None) -> Strategy:
         return Strategy("cpu", _CPU_CHUNK_BYTES, _CPU_CHUNK_WORK, _CPU_BLOCK_NUMBERS,
                         runs_last=True, elemental_emitter=True, substitute_elementary=True,
                         side_by_side=os.cpu_count() or 1, rolled_substeps=True,
-                        batched_hessian_steps=None)
+                        batched_hessian_steps=None, split_directions=True)
     if name in ("gpu", "cuda", "rocm", "tpu"):
         budget = (_DEVICE_CHUNK_FALLBACK if device_memory is None
                   else int(_DEVICE_CHUNK_FRACTION * device_memory))
@@ -360,7 +369,7 @@ def _check(s: Strategy) -> None:
             s.side_by_side < 1:
         raise ValueError(f"strategy: side_by_side must be an int >= 1, got {s.side_by_side!r}")
     for name in ("runs_last", "elemental_emitter", "substitute_elementary", "results_to_host",
-                 "prefetch_inputs", "rolled_substeps"):
+                 "prefetch_inputs", "rolled_substeps", "split_directions"):
         if not isinstance(getattr(s, name), bool):
             raise ValueError(f"strategy: {name} must be True or False, got "
                              f"{getattr(s, name)!r}")
@@ -413,6 +422,19 @@ def runs_last_for(strategy: Strategy, runs: int) -> bool:
     where the strategy says so and the chunk holds more than one run (one run goes by the
     per-run step, as :func:`vehjax.filter`)."""
     return bool(strategy.runs_last) and int(runs) > 1
+
+
+def direction_block(strategy: Strategy, n: int, beside: bool = False) -> int:
+    """Tangent directions per call of a forward-mode fit program over ``n`` of them: all n, or
+    with ``split_directions`` ceil(n / side_by_side), the calls then made at once on
+    ``side_by_side`` threads. ``beside``: the program is evaluated while a fit's next program
+    compiles in another thread (:func:`in_thread`): all n, since its blocks would wait for a
+    core and each repeats the filter's own arithmetic (the nested linear fit of
+    ``benchmarks/bench_fit_limit.py``: 89 ms an evaluation in two blocks, 70 ms in one)."""
+    n = max(int(n), 1)
+    if beside or not strategy.split_directions or strategy.side_by_side < 2:
+        return n
+    return -(-n // strategy.side_by_side)
 
 
 def chunk_runs(strategy: Strategy, per_run_bytes: int, steps: int, numbers: int) -> int:
@@ -490,12 +512,36 @@ def _calling_thread_cpu():
         return None
 
 
+_BACKGROUND = {"in_flight": 0}  # work started by in_thread and not yet done
+_BACKGROUND_LOCK = threading.Lock()
+
+
+def _counted(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)``, counted in flight (:func:`spare_threads`) while it runs."""
+    with _BACKGROUND_LOCK:
+        _BACKGROUND["in_flight"] += 1
+    try:
+        return fn(*args, **kwargs)
+    finally:
+        with _BACKGROUND_LOCK:
+            _BACKGROUND["in_flight"] -= 1
+
+
 def in_thread(fn, *args, **kwargs) -> Future:
     """``fn(*args, **kwargs)`` started in a second host thread, in a copy of this one's context
     (the strategy in force, :func:`using`): a future. The work that ``side_by_side`` lets run
     beside the caller's (a fit's next program compiled while it fits); the thread ends with
-    its work."""
+    its work, counted in flight until then (:func:`spare_threads`)."""
     pool = ThreadPoolExecutor(1)
-    future = pool.submit(contextvars.copy_context().run, fn, *args, **kwargs)
+    future = pool.submit(contextvars.copy_context().run, _counted, fn, *args, **kwargs)
     pool.shutdown(wait=False)
     return future
+
+
+def spare_threads(strategy: Strategy) -> int:
+    """The host threads a fit's evaluation may take now: ``side_by_side`` less the work
+    :func:`in_thread` has in flight, at least 1 (a point's blocks of directions,
+    ``split_directions``, go one after another while a program compiles beside)."""
+    with _BACKGROUND_LOCK:
+        busy = _BACKGROUND["in_flight"]
+    return max(1, strategy.side_by_side - busy)

@@ -219,13 +219,13 @@ def shared_extra(model, setup, only=None) -> tuple:
     return tuple(testable(model, setup.params, only))
 
 
-def compile_shared(start: Start, setup, data, bounds=None, only=None):
+def compile_shared(start: Start, setup, data, bounds=None, only=None, beside: bool = False):
     """The program of the augmented objective (:func:`compile_augmented`) that serves the fit
     too (:func:`vehjax.tune.program.compile_directed`): forward mode along the fit's n
     coordinates at a time, the held parameters read relative to their values at the start
     (their anchor), so that the fit runs on it with its own program's arithmetic and its score
     tests need no second compile; None where :func:`shared_extra` is empty. ``setup`` the
-    fit's."""
+    fit's; ``beside`` as :func:`vehjax.tune.program.compile_program`'s."""
     extra = shared_extra(start.model, setup, only)
     if not extra:
         return None
@@ -238,7 +238,7 @@ def compile_shared(start: Start, setup, data, bounds=None, only=None):
         tuple(extra), tuple(fit_names), np.array([names.index(q) for q in fit_names], dtype=int),
         held_pos, np.asarray(jax.flatten_util.ravel_pytree(obj.z0)[0], dtype=float)[held_pos],
         np.array([theta[list(start.model.param_names).index(p)] for p in extra]), len(names))
-    return program.compile_directed(obj, aug, layout)
+    return program.compile_directed(obj, aug, layout, beside)
 
 
 def compile_innovations(setup, data):

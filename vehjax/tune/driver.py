@@ -369,21 +369,24 @@ def fit_start(builder, model, Q0, R0, measurements, inputs, args: dict, options:
 
 
 def compile_objective(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, params=(),
-                      key=None, checks: diagnostics.Checks | None = None) -> program.Program:
+                      key=None, checks: diagnostics.Checks | None = None,
+                      beside: bool = False) -> program.Program:
     """The program :func:`fit_from_theta` compiles for these arguments (those of
     :func:`vehjax.tune.objective`), to hand to fits of the same objective from other starts
     (:func:`fit_start`'s ``compiled``): the fitted values are the program's argument,
     everything else (the data, the model's other parameters, the noise not fitted) its
     constants. ``checks``: the fit has standard errors with these diagnostics, so its program
     is its score tests' where it can be (:func:`vehjax.tune.diagnostics.compile_shared`);
-    None: without."""
+    None: without. ``beside``: the fit runs while another program compiles
+    (:func:`vehjax.execution.direction_block`)."""
     what = fitted(params)
     obj, setup = prepare_fit(builder, model, Q0, R0, measurements, inputs, x0, P0, what, key)
     if checks is not None:
-        shared = diagnostics.compile_shared(_start(model, Q0, R0, setup, x0), setup, obj.data, what.bounds, checks.held)
+        shared = diagnostics.compile_shared(_start(model, Q0, R0, setup, x0), setup, obj.data,
+                                            what.bounds, checks.held, beside)
         if shared is not None:
             return shared
-    return program.compile_program(obj, setup)
+    return program.compile_program(obj, setup, beside)
 
 
 def fit_noise(builder, model, Q0, R0, measurements, inputs=None, *, x0, P0, noise=NOISE,

@@ -7,6 +7,13 @@ Forward mode (:func:`forward_scores`) for a deterministic filter with at most
 step's score, nothing stored for a backward pass; for a few coordinates and long runs several
 times cheaper than reverse mode through the scan. Reverse mode (``jax.value_and_grad``)
 beyond, and for particle filters. Measurements: ``benchmarks/results/notes_tune.md``.
+
+A forward-mode program takes its directions as an argument, a block of them per call
+(:func:`vehjax.execution.direction_block`): on a machine with cores to spare a point is
+evaluated in blocks at once on several threads, each repeating the filter's own arithmetic,
+and the blocks joined (:func:`joined`: the gradient's entries in turn, the BHHH matrix's
+between blocks from the per-step scores). The loss is the same to the bit whatever the blocks;
+the gradient and the BHHH matrix to rounding.
 """
 
 from __future__ import annotations
@@ -23,9 +30,9 @@ import numpy as np
 from .. import execution
 from . import priors as tune_priors
 
-__all__ = ["CompiledLoss", "Program", "Layout", "serves", "compile_directed", "forward_scores", "score_outer_product",
-           "compile_program", "compiled_loss", "prior_terms", "FORWARD_MAX",
-           "batched_hessian"]
+__all__ = ["CompiledLoss", "Program", "Layout", "serves", "compile_directed", "forward_scores",
+           "score_outer_product", "compile_program", "compiled_loss", "prior_terms",
+           "FORWARD_MAX", "batched_hessian", "joined", "at_once"]
 
 #: forward-mode derivatives (:func:`forward_scores`) for at most this many coordinates; reverse
 #: mode beyond (its cost does not grow with the number of coordinates)
@@ -48,9 +55,11 @@ class CompiledLoss(NamedTuple):
     scores (:func:`score_outer_product`) from the same evaluation. ``grads(F) -> (k, n)``: the
     gradients at the k = 2 n points F (k, n) of the Hessian's central differences
     (:func:`vehjax.tune.hessian_from_gradients`) in one vmapped forward-mode program, or None
-    (:func:`batched_hessian`). ``many(points) -> [vg(p) for p in points]``, the points
-    evaluated side by side on :mod:`vehjax.execution`'s ``side_by_side`` host threads (one
-    evaluation of a filter's scan keeps about one CPU core busy). ``stats``: ``mode``
+    (:func:`batched_hessian`). ``many(points) -> [vg(p) for p in points]``, the points (each
+    in its blocks of directions, :class:`Program`) evaluated side by side on
+    :mod:`vehjax.execution`'s ``side_by_side`` host threads (one evaluation of a filter's scan
+    keeps about one CPU core busy); ``vg`` and ``vgo`` a point's blocks on the threads not
+    taken by work in flight beside (:func:`vehjax.execution.spare_threads`). ``stats``: ``mode``
     ("forward" or "reverse"), ``compile_seconds``, ``evaluations`` (of vg/vgo; a repeated
     point is not evaluated again), ``batch_compile_seconds`` and ``batch_evaluations`` (of
     grads)."""
@@ -137,17 +146,9 @@ def _penalised(ll, dll, lls_div, prior, n_steps: int):
     return -jnp.sum(ll) / n_steps + pv, (jnp.sum(ll, axis=-1), lls_div), grad, B
 
 
-def _program(obj, setup, unravel, forward: bool):
-    """The function compiled: ``(f, data) -> (loss, aux, grad, BHHH matrix or None)``; with
-    priors the loss, gradient and BHHH matrix of the penalised loss (:func:`prior_terms`)."""
-    if forward:
-        per_step, log_prior = setup.per_step, setup.log_prior
-
-        def program(f, data):
-            ll, dll, lls_div = forward_scores(lambda g, d: per_step(unravel(g), d), f, data)
-            return _penalised(ll, dll, lls_div, prior_terms(log_prior, unravel, f, obj.n_steps),
-                              obj.n_steps)
-        return program
+def _reverse(obj, unravel):
+    """The reverse-mode program: ``(f, data) -> (loss, aux, grad, None)`` by
+    ``jax.value_and_grad`` of the objective's (penalised) loss."""
     vgf = jax.value_and_grad(lambda f, data: obj.loss(unravel(f), data), has_aux=True)
 
     def program(f, data):
@@ -192,15 +193,17 @@ def serves(layout: Layout | None, fit_names, model) -> bool:
     return tuple(fit_names) == layout.fit_names and np.array_equal(held, layout.held)
 
 
-def _directed(obj, setup, unravel):
-    """The function :func:`compile_directed` compiles: ``(f (N,), V (m, N), anchor (k,),
-    data) -> (loss, aux, V grad, V B V^T, scores (m, R T))`` of the objective ``obj`` (its
-    set-up ``setup`` with ``anchored`` parameters, :func:`vehjax.tune.likelihood.prepare_fit`),
-    the loss, gradient and BHHH matrix penalised by its priors as in :func:`_program`."""
+def _forward(obj, setup, unravel, anchored: bool = False):
+    """The forward-mode program: ``(f (N,), V (m, N), anchor (k,), data) -> (loss, aux, V grad,
+    V B V^T, scores (m, R T))`` of the objective ``obj`` along the m directions V: the loss,
+    gradient and BHHH matrix penalised by its priors (:func:`prior_terms`, :func:`_penalised`)
+    and the per-step scores. ``anchored``: the set-up ``setup`` reads its held parameters
+    relative to ``anchor`` (:func:`vehjax.tune.likelihood.prepare_fit`); else ``anchor`` is
+    empty and unused."""
     per_step, log_prior = setup.per_step, setup.log_prior
 
     def program(f, V, anchor, data):
-        at = lambda g: {**unravel(g), "anchor": anchor}  # noqa: E731
+        at = (lambda g: {**unravel(g), "anchor": anchor}) if anchored else unravel  # noqa: E731
         ll, dll, lls_div = forward_scores(lambda g, d: per_step(at(g), d), f, data, V)
         pv, pg, pH = prior_terms(log_prior, at, f, obj.n_steps)
         return (*_penalised(ll, dll, lls_div, (pv, V @ pg, V @ pH @ V.T), obj.n_steps),
@@ -210,60 +213,78 @@ def _directed(obj, setup, unravel):
 
 
 class Program(NamedTuple):
-    """A fit's program compiled (:func:`compile_program`): ``compiled(f, data) -> (loss, aux,
-    grad, BHHH matrix or None)`` on the flat coordinates f. The fitted values are its argument,
-    so one program serves every start of the same objective (:func:`vehjax.tune.fit` compiles
-    the next stage's program while the nested model is fitted); ``stats`` the compile's.
+    """A fit's program compiled (:func:`compile_program`) on the flat coordinates f. The
+    fitted values are its argument, so one program serves every start of the same objective
+    (:func:`vehjax.tune.fit` compiles the next stage's program while the nested model is
+    fitted); ``stats`` the compile's.
 
-    With a ``layout`` (:func:`compile_directed`) the program is that of the fit's score tests,
-    over the fit's coordinates and the held parameters', ``compiled(f (N,), V (n, N), anchor
-    (k,), data) -> (loss, aux, V grad (n,), V BHHH V^T (n, n), the per-step scores along V
-    (n, R T))``: it serves the fit (V its coordinates' rows, the held ones at their anchor),
-    and the score tests' full gradient a block of n directions at a time
-    (:func:`compiled_loss`)."""
+    Reverse mode: ``compiled(f, data) -> (loss, aux, grad, None)``. Forward mode
+    (:func:`_forward`): ``compiled(f (N,), V (block, N), anchor (k,), data) -> (loss, aux, V
+    grad, V BHHH V^T, the per-step scores along V (block, R T))``, ``block`` directions a call
+    (:func:`vehjax.execution.direction_block`): :func:`compiled_loss` evaluates a point a block
+    at a time, the blocks at once on :mod:`vehjax.execution`'s ``side_by_side`` threads. With
+    a ``layout`` (:func:`compile_directed`) the program is that of the fit's score tests, over
+    the fit's coordinates and the held parameters': it serves the fit (V rows of its
+    coordinates, the held ones at their anchor) and the tests' full gradient."""
 
     compiled: Callable
     forward: bool
     options: dict | None
     stats: dict
     layout: Layout | None = None
+    block: int | None = None
 
 
-def compile_program(obj, setup=None) -> Program:
+def _compiled(fn, args, options):
+    """(``jax.jit(fn)`` lowered at ``args`` and compiled ahead of time with the XLA
+    ``options``, the compile's wall and CPU seconds)."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    compiled = jax.jit(fn).lower(*args).compile(compiler_options=options)
+    return compiled, {"compile_seconds": time.perf_counter() - t0,
+                      "compile_cpu_seconds": time.process_time() - c0}
+
+
+def compile_program(obj, setup=None, beside: bool = False) -> Program:
     """Compile the program of ``obj``'s fit: forward mode for deterministic filters with at
     most :data:`FORWARD_MAX` coordinates, else ``jax.value_and_grad``; compiled ahead of time,
-    with the XLA options :mod:`vehjax.execution` gives the estimator's workload."""
+    with the XLA options :mod:`vehjax.execution` gives the estimator's workload. ``beside``:
+    evaluated while another program compiles (:func:`vehjax.execution.direction_block`)."""
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
     n = flat.shape[0]
-    forward = setup is not None and not setup.stochastic and n <= FORWARD_MAX
-    options = None
-    if setup is not None:
-        options = execution.compiler_options(execution.current(), setup.workload)
-    t0, c0 = time.perf_counter(), time.process_time()
-    compiled = jax.jit(_program(obj, setup, unravel, forward)).lower(
-        jnp.asarray(flat), obj.data).compile(compiler_options=options)
-    return Program(compiled, forward, options, {
-        "compile_seconds": time.perf_counter() - t0,
-        "compile_cpu_seconds": time.process_time() - c0})
+    if setup is None or setup.stochastic or n > FORWARD_MAX:
+        options = None if setup is None else execution.compiler_options(execution.current(),
+                                                                         setup.workload)
+        compiled, stats = _compiled(_reverse(obj, unravel), (jnp.asarray(flat), obj.data),
+                                    options)
+        return Program(compiled, False, options, stats)
+    return _compile_forward(obj, setup, None, beside)
 
 
-def compile_directed(obj, setup, layout: Layout) -> Program:
+def compile_directed(obj, setup, layout: Layout, beside: bool = False) -> Program:
     """Compile the program of ``obj`` (the fit's score tests' objective: the fit's coordinates
     and the held parameters', ``setup.anchored`` those) that serves the fit too (:class:`Program`
-    with ``layout``): forward mode along n directions given at each call, n the fit's
-    coordinates; compiled ahead of time with :mod:`vehjax.execution`'s XLA options. One
-    compile fewer per fit with score tests: the fit's own program costs about as much per
-    evaluation (``benchmarks/results``)."""
+    with ``layout``): forward mode along directions given at each call, a block of the fit's
+    coordinates' count at a time; compiled ahead of time with :mod:`vehjax.execution`'s XLA
+    options. One compile fewer per fit with score tests: the fit's own program costs about as
+    much per evaluation (``benchmarks/results``). ``beside`` as :func:`compile_program`'s."""
+    return _compile_forward(obj, setup, layout, beside)
+
+
+def _compile_forward(obj, setup, layout: Layout | None, beside: bool) -> Program:
+    """The forward-mode :class:`Program` of ``obj`` (:func:`_forward`), its calls ``block``
+    directions wide (:func:`vehjax.execution.direction_block` of the fit's coordinates' count:
+    all of ``obj``'s without a ``layout``)."""
     flat, unravel = jax.flatten_util.ravel_pytree(obj.z0)
-    options = execution.compiler_options(execution.current(), setup.workload)
-    V = jnp.zeros((len(layout.fit_pos), flat.shape[0]), flat.dtype)
-    t0, c0 = time.perf_counter(), time.process_time()
-    compiled = jax.jit(_directed(obj, setup, unravel)).lower(
-        jnp.asarray(flat), V, jnp.asarray(layout.anchor, dtype=flat.dtype), obj.data).compile(
-        compiler_options=options)
-    return Program(compiled, True, options, {
-        "compile_seconds": time.perf_counter() - t0,
-        "compile_cpu_seconds": time.process_time() - c0}, layout)
+    strategy = execution.current()
+    options = execution.compiler_options(strategy, setup.workload)
+    block = execution.direction_block(strategy, flat.shape[0] if layout is None
+                                      else len(layout.fit_pos), beside)
+    anchor = jnp.zeros((0,), flat.dtype) if layout is None else jnp.asarray(layout.anchor,
+                                                                           dtype=flat.dtype)
+    V = jnp.zeros((block, flat.shape[0]), flat.dtype)
+    compiled, stats = _compiled(_forward(obj, setup, unravel, anchored=layout is not None),
+                                (jnp.asarray(flat), V, anchor, obj.data), options)
+    return Program(compiled, True, options, stats, layout, block)
 
 
 def _rows(pos, size: int, dtype) -> jnp.ndarray:
@@ -275,45 +296,79 @@ def _rows(pos, size: int, dtype) -> jnp.ndarray:
     return jnp.asarray(V, dtype=dtype)
 
 
-def _evaluator(prog: Program, n: int, data, dtype):
-    """``evaluate(f) -> (loss, aux, grad, BHHH or None)`` of the program ``prog`` at the n flat
-    coordinates f: of its own objective; of a fit on its score tests' program (``prog.layout``,
-    n its fit's coordinates: the held ones at their anchor); or of the score tests' objective on
-    it (n = N: the gradient n directions at a time, the BHHH matrix's blocks between them from
-    the per-step scores, the prior's diagonal curvature within the blocks)."""
-    layout, executable = prog.layout, prog.compiled
-    if layout is None:
-        return lambda f: executable(jnp.asarray(f, dtype=dtype), data)
-    anchor = jnp.asarray(layout.anchor, dtype=dtype)
-    m = len(layout.fit_pos)
-    if n == m:
-        V = _rows(layout.fit_pos, layout.size, dtype)
-        base = np.zeros(layout.size)
-        base[layout.held_pos] = layout.anchor
+def _on_host(out):
+    """A program's outputs as numpy arrays: waits for its evaluation (in the thread that made
+    the call, so that calls made at once run at once)."""
+    return jax.tree.map(np.asarray, out)
 
-        def fit_point(f):
-            g = base.copy()
-            g[layout.fit_pos] = np.asarray(f, dtype=float)
-            return executable(jnp.asarray(g, dtype=dtype), V, anchor, data)[:4]
 
-        return fit_point
-    if n != layout.size:
-        raise ValueError(f"compiled: a program over {layout.size} coordinates, {m} of them the "
-                         f"fit's, cannot evaluate {n}")
-    blocks = [list(range(i, min(i + m, n))) for i in range(0, n, m)]
-    Vs = [_rows(b + [-1] * (m - len(b)), n, dtype) for b in blocks]
+def at_once(calls, threads: int) -> list:
+    """``[c() for c in calls]``, the calls made at once on up to ``threads`` host threads (one
+    evaluation of a filter's scan keeps about one CPU core busy)."""
+    workers = min(len(calls), threads)
+    if workers <= 1:
+        return [c() for c in calls]
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(lambda c: c(), calls))
 
-    def full_point(f):
-        at = jnp.asarray(f, dtype=dtype)
-        outs = [executable(at, V, anchor, data) for V in Vs]
-        g = np.concatenate([np.asarray(o[2])[:len(b)] for o, b in zip(outs, blocks)])
-        S = np.concatenate([np.asarray(o[4])[:len(b)] for o, b in zip(outs, blocks)])
-        B = (S @ S.T) / S.shape[1]  # S (N, R T): n_steps = R T
-        for o, b in zip(outs, blocks):
-            B[np.ix_(b, b)] = np.asarray(o[3])[:len(b), :len(b)]
-        return outs[0][0], outs[0][1], g, B
 
-    return full_point
+def _embedding(layout: Layout | None, n: int):
+    """(the program's coordinates' count, the positions of the evaluated point's n coordinates
+    among them, the program's point with those left to fill in) for a point of n coordinates:
+    of the program's own objective (no ``layout``, or n its N), or of a fit on its score tests'
+    program (n its fit's coordinates, the held ones at their anchor)."""
+    if layout is None or n == layout.size:
+        return n, np.arange(n), np.zeros(n)
+    if n != len(layout.fit_pos):
+        raise ValueError(f"compiled: a program over {layout.size} coordinates, "
+                         f"{len(layout.fit_pos)} of them the fit's, cannot evaluate {n}")
+    base = np.zeros(layout.size)
+    base[layout.held_pos] = layout.anchor
+    return layout.size, np.asarray(layout.fit_pos), base
+
+
+def joined(outs, sizes, n_steps: int):
+    """(loss, aux, grad, BHHH matrix) of a point evaluated in blocks of directions: ``outs``
+    the forward-mode program's outputs (:func:`_forward`) per block, ``sizes`` each block's
+    directions (its rows beyond are padding). The gradient the blocks' in turn; the BHHH
+    matrix's entries between blocks from their per-step scores (:func:`score_outer_product`),
+    within a block the program's, which hold the prior's curvature (a diagonal,
+    :func:`prior_terms`). One block of no padding: the program's outputs as they are."""
+    if len(outs) == 1 and outs[0][2].shape[0] == sizes[0]:
+        return tuple(outs[0][:4])
+    g = np.concatenate([o[2][:k] for o, k in zip(outs, sizes)])
+    B = score_outer_product(np.concatenate([o[4][:k] for o, k in zip(outs, sizes)]), n_steps)
+    ends = np.cumsum(sizes)
+    for o, k, e in zip(outs, sizes, ends):
+        B[e - k:e, e - k:e] = o[3][:k, :k]
+    return outs[0][0], outs[0][1], g, B
+
+
+def _evaluator(prog: Program, n: int, data, n_steps: int, dtype):
+    """``(calls, join)`` of the program ``prog`` at n flat coordinates f: ``calls(f)`` the
+    program's calls that evaluate f (zero-argument functions, to make at once: :func:`at_once`),
+    ``join(outs) -> (loss, aux, grad, BHHH or None)`` from their outputs. A point of the
+    program's own objective, of a fit on its score tests' program (:func:`_embedding`), or of
+    the score tests' objective on it; in forward mode ``prog.block`` directions a call
+    (:func:`joined`)."""
+    executable = prog.compiled
+    if not prog.forward:
+        return (lambda f: [lambda: _on_host(executable(jnp.asarray(f, dtype=dtype), data))],
+                lambda outs: tuple(outs[0]))
+    size, pos, base = _embedding(prog.layout, n)
+    anchor = jnp.asarray(np.zeros(0) if prog.layout is None else prog.layout.anchor, dtype=dtype)
+    m = prog.block
+    blocks = [list(pos[i:i + m]) for i in range(0, n, m)]
+    Vs = [_rows(b + [-1] * (m - len(b)), size, dtype) for b in blocks]
+    sizes = [len(b) for b in blocks]
+
+    def calls(f):
+        g = base.copy()
+        g[pos] = np.asarray(f, dtype=float)
+        at = jnp.asarray(g, dtype=dtype)
+        return [lambda V=V: _on_host(executable(at, V, anchor, data)) for V in Vs]
+
+    return calls, lambda outs: joined(outs, sizes, n_steps)
 
 
 def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None,
@@ -342,14 +397,22 @@ def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None,
     guard = setup is not None and not setup.stochastic
     base = []  # the runs diverged at the first point evaluated
 
-    evaluate = _evaluator(prog, flat.shape[0], obj.data, flat.dtype)
+    calls, join = _evaluator(prog, flat.shape[0], obj.data, obj.n_steps, flat.dtype)
 
-    def run(f):  # the compiled program at f (clipped into the box); no shared state touched
-        inside = box is None or not guard or bool(np.all((f >= box[0]) & (f <= box[1])))
-        at = f if inside else np.clip(f, box[0], box[1])
-        v, aux, g, B = evaluate(at)
-        return (inside, float(v), aux, np.asarray(g, dtype=float),
-                None if B is None else np.asarray(B, dtype=float), int(np.sum(np.asarray(aux[1]))))
+    def run(points, threads):  # the compiled program at each point (clipped into the box),
+        # its calls made at once on up to ``threads`` threads; no shared state touched
+        inside = [box is None or not guard or bool(np.all((f >= box[0]) & (f <= box[1])))
+                  for f in points]
+        work = [calls(f if ok else np.clip(f, box[0], box[1])) for f, ok in zip(points, inside)]
+        outs = at_once([c for w in work for c in w], threads)
+        results, i = [], 0
+        for ok, w in zip(inside, work):
+            v, aux, g, B = join(outs[i:i + len(w)])
+            i += len(w)
+            results.append((ok, float(v), aux, np.asarray(g, dtype=float),
+                            None if B is None else np.asarray(B, dtype=float),
+                            int(np.sum(np.asarray(aux[1])))))
+        return results
 
     def judged(f, r):  # counted, judged against the start's divergences, remembered
         inside, v, aux, g, B, n_div = r
@@ -365,19 +428,17 @@ def compiled_loss(obj, setup=None, batch_hessian: bool = False, box=None,
         f = np.array(f, dtype=float)
         if last and np.array_equal(last[0], f):
             return last[1]
-        return judged(f, run(f))
+        return judged(f, run([f], execution.spare_threads(execution.current()))[0])
 
     def vg(f):
         return vgo(f)[:3]
 
     def many(points):
         points = [np.array(p, dtype=float) for p in points]
-        workers = min(len(points), execution.current().side_by_side)
-        if workers <= 1:
+        threads = execution.current().side_by_side
+        if len(points) <= 1 or threads <= 1:
             return [vg(p) for p in points]
-        with ThreadPoolExecutor(workers) as pool:
-            results = list(pool.map(run, points))
-        return [judged(p, r)[:3] for p, r in zip(points, results)]
+        return [judged(p, r)[:3] for p, r in zip(points, run(points, threads))]
 
     grads = _batched_gradients(setup, unravel, obj, flat, options, stats) \
         if forward and batch_hessian else None

@@ -188,7 +188,7 @@ def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: O
     ahead = _compile_ahead(builder, model, Q0, R0, ys, us, args, options)
     nprog = None if nargs is None else compile_objective(
         builder, nested, Q0, R0, ys, us, key=options.key, **_call(nargs),
-        checks=_nested_checks(nested, nargs, options, diagnose))
+        checks=_nested_checks(nested, nargs, options, diagnose), beside=ahead is not None)
     lin, cmp, held = _fit_nested(builder, nested, Q0, R0, ys, us, args, nargs, options, nprog,
                                  diagnose=diagnose)
     released = to_release(lin, model, args["params"]) if diagnose and lin else {}
@@ -198,7 +198,9 @@ def _nested_stage(builder, nested, model, Q0, R0, ys, us, args: dict, options: O
         bn, m, Qn, Rn, nargs = _released_start(builder, nested, Q0, R0, nargs, lin, released)
         args = _widened(args, model, released)
         ahead = _compile_ahead(builder, model, Q0, R0, ys, us, args, options)
-        lin, cmp, held = _fit_nested(bn, m, Qn, Rn, ys, us, args, nargs, options)
+        nprog = compile_objective(bn, m, Qn, Rn, ys, us, key=options.key, **_call(nargs),
+                                  beside=ahead is not None)
+        lin, cmp, held = _fit_nested(bn, m, Qn, Rn, ys, us, args, nargs, options, nprog)
     _reissue(held, cmp.model)
     return lin, cmp, ahead, args, released
 
